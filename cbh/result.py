@@ -1,0 +1,167 @@
+"""The objects every stage hands on: a camera frame, and the result of one frame pair.
+
+The pipeline (:mod:`cbh.pipeline`) produces one :class:`PairResult` per synchronized pair;
+the service, the MCAP recorder, the Rerun viewer and the exporters all consume it.
+Frames and units: docs/conventions.md.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+import numpy as np
+
+__all__ = ["Frame", "Layer", "Histogram", "PointSet", "PairResult", "to_ns", "from_ns"]
+
+
+def to_ns(t: datetime) -> int:
+    """UTC datetime → integer nanoseconds since the Unix epoch."""
+    if t.tzinfo is None:
+        raise ValueError("naive datetime: cbh times must be timezone-aware UTC")
+    delta = t - datetime(1970, 1, 1, tzinfo=timezone.utc)
+    return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1_000
+
+
+def from_ns(ns: int) -> datetime:
+    """Integer nanoseconds since the Unix epoch → UTC datetime (microsecond precision)."""
+    from datetime import timedelta
+
+    return datetime(1970, 1, 1, tzinfo=timezone.utc) + timedelta(microseconds=int(ns) // 1_000)
+
+
+@dataclass
+class Frame:
+    """One image from one camera.
+
+    Attributes
+    ----------
+    camera : str
+        Station camera name.
+    time_utc : datetime
+        Capture time, timezone-aware UTC.
+    image : ndarray, shape (H, W, 3), uint8
+        Decoded BGR image.
+    encoded : bytes or None
+        The bytes as received (e.g. JPEG), recorded without re-encoding.
+    format : str
+        Format of ``encoded`` ("jpeg", "png").
+    sequence : int
+        Per-source frame counter.
+    """
+
+    camera: str
+    time_utc: datetime
+    image: np.ndarray
+    encoded: bytes | None = None
+    format: str = "jpeg"
+    sequence: int = 0
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One cloud layer found in a frame pair (heights above the ENU origin)."""
+
+    height_m: float  # cloud-base height: robust low statistic of the layer [m]
+    median_height_m: float  # median height of the layer's points [m]
+    spread_m: float  # robust spread (1.4826 · MAD) of the layer's heights [m]
+    cover: float  # fraction of camera 1's usable sky covered by this layer, 0..1
+    points: int  # number of triangulated points supporting it
+    confidence: float  # 0..1
+
+    def to_dict(self) -> dict:
+        return {
+            "height_m": float(self.height_m),
+            "median_height_m": float(self.median_height_m),
+            "spread_m": float(self.spread_m),
+            "cover": float(self.cover),
+            "points": int(self.points),
+            "confidence": float(self.confidence),
+        }
+
+
+@dataclass(frozen=True)
+class Histogram:
+    """Height histogram of the valid points: ``counts[i]`` in [edges_m[i], edges_m[i+1])."""
+
+    edges_m: np.ndarray  # shape (B + 1,), float64 [m]
+    counts: np.ndarray  # shape (B,), float64 (weights may be fractional)
+
+
+@dataclass(frozen=True)
+class PointSet:
+    """Triangulated correspondences that passed every check (N points)."""
+
+    xyz_m: np.ndarray  # shape (N, 3), float32, ENU [m]
+    miss_m: np.ndarray  # shape (N,), float32 [m]
+    px1: np.ndarray  # shape (N, 2), float32, pixels in camera 1
+    px2: np.ndarray  # shape (N, 2), float32, pixels in camera 2
+    layer: np.ndarray  # shape (N,), int16, index into PairResult.layers, -1 = none
+
+    @property
+    def height_m(self) -> np.ndarray:
+        return self.xyz_m[:, 2]
+
+    def __len__(self) -> int:
+        return int(self.xyz_m.shape[0])
+
+    @staticmethod
+    def empty() -> "PointSet":
+        z2 = np.zeros((0, 2), np.float32)
+        return PointSet(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), z2, z2.copy(), np.zeros(0, np.int16))
+
+
+@dataclass
+class PairResult:
+    """Everything cbh knows about one synchronized frame pair.
+
+    Attributes
+    ----------
+    time_utc : datetime
+        Capture time of camera 1's frame.
+    cameras : tuple of str
+        (camera 1, camera 2) names.
+    layers : list of Layer
+        Ascending by ``height_m``; empty for a clear sky.
+    histogram : Histogram
+    points : PointSet
+    height_map : ndarray, shape (H, W), float32
+        Cloud-base height above the ENU origin on camera 1's pixel grid [m], NaN where unknown.
+    cloud_masks : dict of str → ndarray (H, W) bool
+    cloud_fraction : dict of str → float
+        Cloud fraction of each camera's usable sky, 0..1.
+    timing_ms : dict of str → float
+        Wall time of each pipeline stage [ms].
+    flags : list of str
+        Quality flags (e.g. "few_points", "sun_glare", "overcast_no_texture").
+    """
+
+    time_utc: datetime
+    cameras: tuple[str, str]
+    layers: list[Layer]
+    histogram: Histogram
+    points: PointSet
+    height_map: np.ndarray
+    cloud_masks: dict[str, np.ndarray]
+    cloud_fraction: dict[str, float]
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    flags: list[str] = field(default_factory=list)
+    matches: dict[str, np.ndarray] = field(default_factory=dict)  # method → (M, 4) x1,y1,x2,y2 kept matches (for display)
+
+    def summary(self) -> dict:
+        """The JSON object ``cbh pair --json`` prints."""
+        h = self.points.height_m.astype(np.float64)
+        n = len(h)
+        return {
+            "time_utc": self.time_utc.isoformat().replace("+00:00", "Z"),
+            "layers": [l.to_dict() for l in self.layers],
+            "points": {
+                "count": n,
+                "mean_height_m": float(h.mean()) if n else None,
+                "std_height_m": float(h.std()) if n else None,
+                "p5_height_m": float(np.percentile(h, 5)) if n else None,
+                "median_miss_m": float(np.median(self.points.miss_m)) if n else None,
+            },
+            "cloud_fraction": {k: float(v) for k, v in self.cloud_fraction.items()},
+            "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
+            "flags": list(self.flags),
+        }

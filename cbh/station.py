@@ -1,0 +1,416 @@
+"""A station: two or more fisheye cameras with ENU positions and orientations (TOML).
+
+See docs/conventions.md for the frames. The file format::
+
+    [station]
+    name = "unb-lea"
+    latitude_deg = -15.7634
+    longitude_deg = -47.8703
+    altitude_m = 1050.0                      # ENU origin above mean sea level
+
+    [[cameras]]
+    name = "cam1"
+    calibration = "cam1_calib_results.txt"   # OCamCalib file, relative to this TOML
+    position_m = [0.0, 0.0, 0.0]             # east, north, up of the projection centre
+    yaw_deg = 0.0                            # azimuth the image top faces, clockwise from north
+    pitch_deg = 0.0
+    roll_deg = 0.0
+    # rotation = [[..], [..], [..]]          # R_world_from_cam, rows; instead of the angles
+    # [cameras.intrinsics]                   # inline instead of `calibration`
+    # model = "ocam" | "equidistant" | "equisolid", poly / radius_px, center_xy, width, height
+
+Other top-level tables (``pipeline``, ``service``, ``scene``) are kept raw in
+:attr:`Station.sections` and validated by the module that owns them.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .camera import MODELS, CameraModel, OCamModel, read_ocamcalib
+from .errors import CalibrationError, ConfigError, check_shape
+
+__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "B_LEVEL_NORTH_UP"]
+
+#: The level camera whose image top faces north: columns are camera x → west, y → south, z → up.
+B_LEVEL_NORTH_UP = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
+
+#: Top-level tables a station file may have besides [station] and [[cameras]].
+EXTRA_SECTIONS = ("pipeline", "service", "scene")
+
+_CAMERA_KEYS = {
+    "name", "calibration", "intrinsics", "position_m", "yaw_deg", "pitch_deg", "roll_deg",
+    "rotation", "mask", "source",
+}
+_STATION_KEYS = {"name", "latitude_deg", "longitude_deg", "altitude_m"}
+
+
+def _rx(a):
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
+
+
+def _ry(a):
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=np.float64)
+
+
+def _rz(a):
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
+
+
+def rotation_from_angles(yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
+    """``R_world_from_cam = Rz(−yaw) · B · Rx(pitch) · Ry(roll)``, shape (3, 3).
+
+    ``yaw_deg`` is the azimuth (clockwise from north) the image's top edge faces; pitch and
+    roll tilt the camera about its own x and y axes [deg].
+    """
+    return _rz(-math.radians(yaw_deg)) @ B_LEVEL_NORTH_UP @ _rx(math.radians(pitch_deg)) @ _ry(math.radians(roll_deg))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """One camera of a station: a lens model plus its pose in ENU.
+
+    Attributes
+    ----------
+    name : str
+    model : CameraModel
+        Pixel <-> camera-frame ray.
+    position_m : ndarray, shape (3,), float64
+        Projection centre in ENU [m].
+    R_world_from_cam : ndarray, shape (3, 3), float64
+        Rotation taking camera-frame vectors to ENU.
+    mask : Path or None
+        Static obstacle mask image (non-zero = sky usable), if configured.
+    source : str or None
+        Where live frames come from (URL, file, directory, ``sim``), if configured.
+    """
+
+    name: str
+    model: CameraModel
+    position_m: np.ndarray
+    R_world_from_cam: np.ndarray
+    mask: Path | None = None
+    source: str | None = None
+
+    def pixel_to_world(self, px) -> np.ndarray:
+        """Unit ray directions in ENU of pixels (N, 2) → (N, 3) float64."""
+        return self.model.pixel_to_ray(px) @ self.R_world_from_cam.T
+
+    def world_to_pixel(self, points_m) -> np.ndarray:
+        """Pixels (N, 2) of ENU points (N, 3) [m]; NaN where outside the model's field."""
+        pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+        return self.direction_to_pixel(pts - self.position_m)
+
+    def direction_to_pixel(self, dirs_world) -> np.ndarray:
+        """Pixels (N, 2) of ENU directions (N, 3) (points at infinity)."""
+        d = np.asarray(dirs_world, dtype=np.float64).reshape(-1, 3)
+        return self.model.ray_to_pixel(d @ self.R_world_from_cam)
+
+    def zenith_map(self) -> np.ndarray:
+        """Zenith angle [deg] of every pixel's ray, shape (height, width), float32 (cached)."""
+        cache = self.model._cache
+        key = ("zenith_map", self.R_world_from_cam.tobytes())
+        if key not in cache:
+            up_cam = self.R_world_from_cam[2]  # world up expressed in the camera frame
+            cosz = self.model.ray_map() @ up_cam
+            z = np.degrees(np.arccos(np.clip(cosz, -1.0, 1.0))).astype(np.float32)
+            z.setflags(write=False)
+            cache[key] = z
+        return cache[key]
+
+    def scaled(self, factor: float) -> "Camera":
+        return replace(self, model=self.model.scaled(factor))
+
+
+@dataclass(frozen=True)
+class Station:
+    """Site and cameras. ``cameras`` keeps file order; ``sections`` holds the raw extra tables."""
+
+    name: str
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+    cameras: dict[str, Camera]
+    path: Path | None = None
+    sections: dict[str, dict] = field(default_factory=dict)
+
+    def camera(self, name: str) -> Camera:
+        try:
+            return self.cameras[name]
+        except KeyError:
+            raise ConfigError(
+                f"camera {name!r} is not in station {self.name!r} (cameras: {', '.join(self.cameras)})"
+            ) from None
+
+    def pair(self, names: str | tuple[str, str] | list[str] | None = None) -> tuple[Camera, Camera]:
+        """The two cameras named ``"a,b"`` (default: the first two in the file)."""
+        if names is None:
+            if len(self.cameras) < 2:
+                raise ConfigError(f"station {self.name!r} needs at least two cameras")
+            a, b = list(self.cameras)[:2]
+        else:
+            parts = [p.strip() for p in names.split(",")] if isinstance(names, str) else list(names)
+            if len(parts) != 2 or not all(parts):
+                raise ConfigError(f"--cameras needs two names separated by a comma, got {names!r}")
+            a, b = parts
+        if a == b:
+            raise ConfigError(f"the two cameras of a pair must differ (got {a!r} twice)")
+        return self.camera(a), self.camera(b)
+
+    def scaled(self, size_px: int) -> "Station":
+        """The station for images resized so that the first camera is ``size_px`` wide."""
+        first = next(iter(self.cameras.values()))
+        factor = size_px / first.model.width
+        return replace(self, cameras={n: c.scaled(factor) for n, c in self.cameras.items()})
+
+    def to_dict(self) -> dict:
+        """Self-contained TOML-ready dict (intrinsics inline, rotation as matrix)."""
+        cams = []
+        for c in self.cameras.values():
+            d: dict[str, Any] = {
+                "name": c.name,
+                "position_m": [float(v) for v in c.position_m],
+                "rotation": [[float(v) for v in row] for row in c.R_world_from_cam],
+                "intrinsics": c.model.to_dict(),
+            }
+            if c.mask is not None:
+                d["mask"] = str(Path(c.mask).resolve())
+            if c.source is not None:
+                d["source"] = c.source
+            cams.append(d)
+        out = {
+            "station": {
+                "name": self.name,
+                "latitude_deg": self.latitude_deg,
+                "longitude_deg": self.longitude_deg,
+                "altitude_m": self.altitude_m,
+            },
+            "cameras": cams,
+        }
+        out.update({k: v for k, v in self.sections.items()})
+        return out
+
+    def to_toml(self) -> str:
+        """TOML text that :func:`parse_station` reads back to an equal station."""
+        return dumps_toml(self.to_dict())
+
+
+# --- parsing ------------------------------------------------------------------------------
+
+def _num(where: str, value, *, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"{where}: must be finite, got {value!r}")
+    if positive and value <= 0:
+        raise ConfigError(f"{where}: must be > 0, got {value!r}")
+    return float(value)
+
+
+def _vec(where: str, value, n: int) -> list[float]:
+    if not isinstance(value, list) or len(value) != n:
+        raise ConfigError(f"{where}: expected a list of {n} numbers, got {value!r}")
+    return [_num(f"{where}[{i}]", v) for i, v in enumerate(value)]
+
+
+def _unknown(where: str, table: dict, allowed: set) -> None:
+    extra = sorted(set(table) - allowed)
+    if extra:
+        raise ConfigError(f"{where}.{extra[0]}: unknown key (allowed: {', '.join(sorted(allowed))})")
+
+
+def parse_intrinsics(where: str, d: dict) -> CameraModel:
+    """Inline intrinsics table → camera model. ``where`` prefixes error messages."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"{where}: expected a table")
+    model = d.get("model", "ocam")
+    if model not in MODELS:
+        raise ConfigError(f"{where}.model: unknown model {model!r} (choose from {', '.join(MODELS)})")
+    common = {"model", "center_xy", "width", "height", "affine"}
+    allowed = common | ({"poly", "invpol"} if model == "ocam" else {"radius_px", "max_theta_deg"})
+    _unknown(where, d, allowed)
+    for key in ("center_xy", "width", "height", "poly" if model == "ocam" else "radius_px"):
+        if key not in d:
+            raise ConfigError(f"{where}.{key}: missing")
+    width = int(_num(f"{where}.width", d["width"], positive=True))
+    height = int(_num(f"{where}.height", d["height"], positive=True))
+    center = tuple(_vec(f"{where}.center_xy", d["center_xy"], 2))
+    affine = tuple(_vec(f"{where}.affine", d.get("affine", [1.0, 0.0, 0.0]), 3))
+    try:
+        if model == "ocam":
+            poly = d["poly"]
+            if not isinstance(poly, list) or len(poly) < 2:
+                raise ConfigError(f"{where}.poly: expected a list of at least 2 coefficients (a0, a1, …)")
+            inv = d.get("invpol")
+            return OCamModel(
+                width=width, height=height, center_xy=center, affine=affine,
+                poly=tuple(_num(f"{where}.poly[{i}]", v) for i, v in enumerate(poly)),
+                invpol=None if inv is None else tuple(_num(f"{where}.invpol[{i}]", v) for i, v in enumerate(inv)),
+            )
+        return MODELS[model](
+            width=width, height=height, center_xy=center, affine=affine,
+            radius_px=_num(f"{where}.radius_px", d["radius_px"], positive=True),
+            max_theta_deg=_num(f"{where}.max_theta_deg", d.get("max_theta_deg", 90.0), positive=True),
+        )
+    except CalibrationError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def _rotation(where: str, value) -> np.ndarray:
+    if not isinstance(value, list) or len(value) != 3:
+        raise ConfigError(f"{where}: expected 3 rows of 3 numbers (R_world_from_cam)")
+    R = np.array([_vec(f"{where}[{i}]", row, 3) for i, row in enumerate(value)])
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > 1e-4 or np.linalg.det(R) < 0:
+        raise ConfigError(
+            f"{where}: not a rotation (|R Rᵀ − I| = {err:.2g}, det = {np.linalg.det(R):.4f}); "
+            "it must be orthonormal with det +1"
+        )
+    # re-orthonormalise the few 1e-6 of rounding a TOML file carries
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt
+
+
+def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = None) -> Station:
+    """Validate a station dict (as read from TOML) into a :class:`Station`."""
+    label = path.name if path is not None else "station"
+    _unknown(label, data, {"station", "cameras", *EXTRA_SECTIONS})
+    st = data.get("station")
+    if not isinstance(st, dict):
+        raise ConfigError(f"{label}: [station] table missing")
+    _unknown("station", st, _STATION_KEYS)
+    for key in _STATION_KEYS:
+        if key not in st:
+            raise ConfigError(f"station.{key}: missing")
+    if not isinstance(st["name"], str) or not st["name"]:
+        raise ConfigError("station.name: expected a non-empty string")
+    lat = _num("station.latitude_deg", st["latitude_deg"])
+    lon = _num("station.longitude_deg", st["longitude_deg"])
+    if not -90 <= lat <= 90:
+        raise ConfigError(f"station.latitude_deg: {lat} is outside -90..90")
+    if not -180 <= lon <= 360:
+        raise ConfigError(f"station.longitude_deg: {lon} is outside -180..180")
+    cams_raw = data.get("cameras")
+    if not isinstance(cams_raw, list) or len(cams_raw) < 2:
+        raise ConfigError(f"{label}: needs at least two [[cameras]] entries")
+    base_dir = base_dir or Path.cwd()
+    cameras: dict[str, Camera] = {}
+    for i, c in enumerate(cams_raw):
+        where = f"cameras[{i}]"
+        if not isinstance(c, dict):
+            raise ConfigError(f"{where}: expected a table")
+        _unknown(where, c, _CAMERA_KEYS)
+        name = c.get("name")
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"{where}.name: missing or not a string")
+        if name in cameras:
+            raise ConfigError(f"{where}.name: duplicate camera name {name!r}")
+        where = f"cameras[{name}]"
+        if ("calibration" in c) == ("intrinsics" in c):
+            raise ConfigError(f"{where}: give exactly one of 'calibration' (file) or 'intrinsics' (inline table)")
+        if "calibration" in c:
+            if not isinstance(c["calibration"], str):
+                raise ConfigError(f"{where}.calibration: expected a file path string")
+            cal = Path(c["calibration"])
+            cal = cal if cal.is_absolute() else base_dir / cal
+            try:
+                model = read_ocamcalib(cal)
+            except CalibrationError as exc:
+                raise ConfigError(f"{where}.calibration: {exc}") from None
+        else:
+            model = parse_intrinsics(f"{where}.intrinsics", c["intrinsics"])
+        if "position_m" not in c:
+            raise ConfigError(f"{where}.position_m: missing")
+        pos = np.array(_vec(f"{where}.position_m", c["position_m"], 3))
+        angles = [k for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in c]
+        if "rotation" in c:
+            if angles:
+                raise ConfigError(f"{where}.rotation: give either 'rotation' or the angles ({', '.join(angles)}), not both")
+            R = _rotation(f"{where}.rotation", c["rotation"])
+        else:
+            R = rotation_from_angles(*(_num(f"{where}.{k}", c.get(k, 0.0)) for k in ("yaw_deg", "pitch_deg", "roll_deg")))
+        mask = None
+        if "mask" in c:
+            if not isinstance(c["mask"], str):
+                raise ConfigError(f"{where}.mask: expected an image path string")
+            mask = Path(c["mask"]) if Path(c["mask"]).is_absolute() else base_dir / c["mask"]
+            if not mask.is_file():
+                raise ConfigError(f"{where}.mask: file not found: {mask}")
+        source = c.get("source")
+        if source is not None and not isinstance(source, str):
+            raise ConfigError(f"{where}.source: expected a string (URL, file, directory or 'sim')")
+        cameras[name] = Camera(name=name, model=model, position_m=pos, R_world_from_cam=R, mask=mask, source=source)
+    sections = {}
+    for key in EXTRA_SECTIONS:
+        if key in data:
+            if not isinstance(data[key], dict):
+                raise ConfigError(f"{key}: expected a table")
+            sections[key] = data[key]
+    return Station(
+        name=st["name"], latitude_deg=lat, longitude_deg=lon,
+        altitude_m=_num("station.altitude_m", st["altitude_m"]),
+        cameras=cameras, path=path, sections=sections,
+    )
+
+
+def load_station(path: str | Path) -> Station:
+    """Read and validate a station TOML file. Raises :class:`ConfigError` naming the key."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"station file not found: {path}") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read station file {path}: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path.name}: malformed TOML: {exc}") from None
+    return parse_station(data, base_dir=path.parent, path=path)
+
+
+# --- a small TOML writer (tomllib reads only) ----------------------------------------------
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _is_table_array(v) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
+
+def dumps_toml(data: dict, _prefix: str = "") -> str:
+    """Minimal TOML writer for nested dicts, arrays of tables and plain values."""
+    lines, tables = [], []
+    for k, v in data.items():
+        if isinstance(v, dict) or _is_table_array(v):
+            tables.append((k, v))
+        else:
+            lines.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v in tables:
+        name = f"{_prefix}{k}"
+        if isinstance(v, dict):
+            out += f"\n[{name}]\n" + dumps_toml(v, name + ".")
+        else:
+            for item in v:
+                out += f"\n[[{name}]]\n" + dumps_toml(item, name + ".")
+    return out

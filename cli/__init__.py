@@ -1,0 +1,1 @@
+"""The `cbh` command line (Typer). Thin: each command parses options and calls cbh."""

@@ -1,0 +1,5 @@
+"""`cbh export` (being built)."""
+
+
+def register(app):
+    pass

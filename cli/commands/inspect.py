@@ -1,0 +1,5 @@
+"""`cbh inspect` (being built)."""
+
+
+def register(app):
+    pass

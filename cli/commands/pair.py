@@ -1,0 +1,5 @@
+"""`cbh pair` (being built)."""
+
+
+def register(app):
+    pass

@@ -1,0 +1,5 @@
+"""`cbh replay` (being built)."""
+
+
+def register(app):
+    pass

@@ -1,0 +1,5 @@
+"""`cbh run` (being built)."""
+
+
+def register(app):
+    pass

@@ -1,0 +1,5 @@
+"""`cbh simulate` (being built)."""
+
+
+def register(app):
+    pass
