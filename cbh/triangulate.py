@@ -136,37 +136,34 @@ def triangulate(o1, d1, o2, d2, limits: TriangulationLimits = TriangulationLimit
 
 
 def _tri_core(xp, o1, d1, o2, d2, limits):
-    # columns as contiguous 1-D arrays: elementwise work stays vectorized and cache friendly
+    # Cross-product form of the closest approach (stable in float32 for near-parallel rays,
+    # unlike a·c − b²): n = d1 × d2, w = o2 − o1,
+    #   s = ((w × d2) · n) / |n|²   (along ray 1),   t = ((w × d1) · n) / |n|²   (along ray 2),
+    #   miss = |w · n| / |n|,   angle = atan2(|n|, d1 · d2).
     ax, ay, az = d1[:, 0], d1[:, 1], d1[:, 2]
     bx, by, bz = d2[:, 0], d2[:, 1], d2[:, 2]
-    wx, wy, wz = o1[:, 0] - o2[:, 0], o1[:, 1] - o2[:, 1], o1[:, 2] - o2[:, 2]
-    a = ax * ax + ay * ay + az * az
-    b = ax * bx + ay * by + az * bz
-    c = bx * bx + by * by + bz * bz
-    d = ax * wx + ay * wy + az * wz
-    e = bx * wx + by * wy + bz * wz
-    denom = a * c - b * b
-    tiny = xp.finfo(denom.dtype).tiny if xp is np else xp.finfo(denom.dtype).tiny
-    safe = xp.where(denom > tiny, denom, xp.ones_like(denom))
-    s = (b * e - c * d) / safe  # parameter along ray 1
-    t = (a * e - b * d) / safe  # parameter along ray 2
+    wx, wy, wz = o2[:, 0] - o1[:, 0], o2[:, 1] - o1[:, 1], o2[:, 2] - o1[:, 2]
+    nx = ay * bz - az * by
+    ny = az * bx - ax * bz
+    nz = ax * by - ay * bx
+    nn = nx * nx + ny * ny + nz * nz
+    tiny = xp.finfo(nn.dtype).tiny
+    ok = nn > tiny
+    inv = 1.0 / xp.where(ok, nn, xp.ones_like(nn))
+    # (w × d2) · n and (w × d1) · n as scalar triple products
+    s = ((wy * bz - wz * by) * nx + (wz * bx - wx * bz) * ny + (wx * by - wy * bx) * nz) * inv
+    t = ((wy * az - wz * ay) * nx + (wz * ax - wx * az) * ny + (wx * ay - wy * ax) * nz) * inv
     p1x, p1y, p1z = o1[:, 0] + s * ax, o1[:, 1] + s * ay, o1[:, 2] + s * az
     p2x, p2y, p2z = o2[:, 0] + t * bx, o2[:, 1] + t * by, o2[:, 2] + t * bz
     point = xp.stack([(p1x + p2x) * 0.5, (p1y + p2y) * 0.5, (p1z + p2z) * 0.5], -1)
-    miss = xp.sqrt((p1x - p2x) ** 2 + (p1y - p2y) ** 2 + (p1z - p2z) ** 2)
-    na, nc = xp.sqrt(a), xp.sqrt(c)
-    r1, r2 = s * na, t * nc
-    # angle between rays from |a×b| and a·b (accurate for small angles)
-    cx_ = ay * bz - az * by
-    cy_ = az * bx - ax * bz
-    cz_ = ax * by - ay * bx
-    cross = xp.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_)
-    if xp is np:
-        angle = np.degrees(np.arctan2(cross, b))
-    else:
-        angle = xp.rad2deg(xp.atan2(cross, b))
+    nlen = xp.sqrt(nn)
+    miss = xp.abs(wx * nx + wy * ny + wz * nz) / xp.where(ok, nlen, xp.ones_like(nlen))
+    r1 = s * xp.sqrt(ax * ax + ay * ay + az * az)
+    r2 = t * xp.sqrt(bx * bx + by * by + bz * bz)
+    dot = ax * bx + ay * by + az * bz
+    angle = np.degrees(np.arctan2(nlen, dot)) if xp is np else xp.rad2deg(xp.atan2(nlen, dot))
     valid = (
-        (denom > tiny) & (r1 > 0) & (r2 > 0)
+        ok & (r1 > 0) & (r2 > 0)
         & (angle >= limits.min_angle_deg)
         & (r1 <= limits.max_range_m) & (r2 <= limits.max_range_m)
     )

@@ -1,0 +1,292 @@
+"""Pipeline configuration: one frozen dataclass per stage, units in the field comments.
+
+A station file may carry a ``[pipeline]`` table (and sub-tables ``[pipeline.masks]``,
+``[pipeline.segmentation]``, ``[pipeline.matching]``, ``[pipeline.matching.lk]`` …) whose keys
+are exactly the field names below. Unknown keys and wrongly typed values raise
+:class:`~cbh.errors.ConfigError` naming the key path, e.g. ``pipeline.matching.lk.window_px``.
+Methods are chosen by name; unknown names raise a ConfigError listing the valid ones.
+
+>>> cfg = PipelineConfig.from_dict({"matching": {"methods": ["lk"]}})
+>>> cfg.matching.methods
+('lk',)
+>>> PipelineConfig.from_dict(cfg.to_dict()) == cfg
+True
+"""
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+
+from ..errors import ConfigError
+
+__all__ = [
+    "MasksConfig",
+    "SegmentationConfig",
+    "LKConfig",
+    "ORBConfig",
+    "DISConfig",
+    "MatchingConfig",
+    "FilteringConfig",
+    "HeightMapConfig",
+    "LayersConfig",
+    "PipelineConfig",
+]
+
+SEGMENTATION_METHODS = ("nbr", "nbr_adaptive", "otsu")
+MATCHING_METHODS = ("lk", "orb", "dis")
+LAYER_METHODS = ("histogram",)
+FILL_METHODS = ("none", "normalized")
+
+
+@dataclass(frozen=True)
+class MasksConfig:
+    """Which pixels of each camera are usable sky."""
+
+    max_zenith_deg: float = 80.0  # largest zenith angle of usable sky [deg]
+    static_mask: bool = True  # apply the camera's obstacle mask image (station `mask`), if any
+    sun: bool = True  # mask a disk around the sun (pvlib position from lat/lon + time)
+    sun_radius_deg: float = 8.0  # radius of the masked sun disk [deg]
+    saturation: bool = True  # also mask saturated blobs (sun, glare, specular reflections)
+    saturation_level: int = 250  # a pixel is saturated when all channels reach this [0..255]
+    saturation_min_area_px: int = 20  # smallest saturated blob kept, at working size [px]
+    saturation_grow_px: int = 6  # dilation of saturated blobs, at working size [px]
+
+
+@dataclass(frozen=True)
+class SegmentationConfig:
+    """Cloud / clear-sky classification on the normalized blue-red ratio NBR = (B−R)/(B+R)."""
+
+    method: str = "nbr_adaptive"  # one of: nbr, nbr_adaptive, otsu
+    threshold: float = 0.10  # NBR below this is cloud (nbr; base of nbr_adaptive) [1]
+    sun_threshold: float = -0.05  # nbr_adaptive: threshold right at the sun [1]
+    sun_scale_deg: float = 25.0  # nbr_adaptive: e-folding angle of the sun term [deg]
+    horizon_threshold: float = 0.03  # nbr_adaptive: threshold at zenith 90 deg [1]
+    horizon_start_deg: float = 55.0  # nbr_adaptive: zenith angle where the horizon ramp starts [deg]
+    otsu_min: float = -0.05  # otsu: clamp of the Otsu threshold, lower end [1]
+    otsu_max: float = 0.20  # otsu: clamp of the Otsu threshold, upper end [1]
+    min_brightness: int = 8  # pixels darker than this (max channel) are not classified [0..255]
+
+
+@dataclass(frozen=True)
+class LKConfig:
+    """Pyramidal Lucas-Kanade on cloud pixels, started at the point-at-infinity prediction."""
+
+    max_points: int = 3000  # corner features tracked [1]
+    quality: float = 0.005  # goodFeaturesToTrack quality level [1]
+    min_distance_px: int = 5  # spacing of features, at working size [px]
+    window_px: int = 21  # LK window side [px]
+    levels: int = 4  # pyramid levels above the base [1]
+    fb_max_px: float = 0.5  # forward-backward disagreement allowed [px]
+
+
+@dataclass(frozen=True)
+class ORBConfig:
+    """ORB features matched with Hamming distance, cross-checked."""
+
+    max_features: int = 4000  # features per image [1]
+    max_hamming: int = 60  # largest descriptor distance accepted [bits]
+    max_parallax_deg: float = 25.0  # largest angle between the ray and its infinity prediction [deg]
+
+
+@dataclass(frozen=True)
+class DISConfig:
+    """Dense DIS optical flow between image 1 and image 2 warped into camera 1's grid."""
+
+    preset: str = "fast"  # ultrafast, fast or medium
+    point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
+    fb_max_px: float = 1.0  # forward-backward disagreement allowed [px]
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """Correspondences camera 1 → camera 2."""
+
+    methods: tuple[str, ...] = ("lk", "dis")  # any of: lk, orb, dis
+    lk: LKConfig = field(default_factory=LKConfig)
+    orb: ORBConfig = field(default_factory=ORBConfig)
+    dis: DISConfig = field(default_factory=DISConfig)
+
+
+@dataclass(frozen=True)
+class FilteringConfig:
+    """Geometric rejection of correspondences (this replaces epipolar lines)."""
+
+    max_miss_ratio: float = 0.01  # ray-miss distance / range from camera 1, at most [1]
+    min_angle_deg: float = 0.1  # triangulation angle, at least [deg]
+    min_height_m: float = 100.0  # height above the ENU origin, at least [m]
+    max_height_m: float = 15000.0  # height above the ENU origin, at most [m]
+
+
+@dataclass(frozen=True)
+class HeightMapConfig:
+    """Dense height map on camera 1's grid."""
+
+    fill: str = "normalized"  # none or normalized (Gaussian normalized convolution inside the cloud mask)
+    fill_radius_px: float = 4.0  # Gaussian sigma of the fill, at working size [px]
+    fill_min_weight: float = 0.2  # fill only where nearby data weight reaches this fraction [1]
+    median_px: int = 3  # median filter of the dense map before filling, at working size (1 = off) [px]
+
+
+@dataclass(frozen=True)
+class LayersConfig:
+    """Multi-layer histogram of log-height."""
+
+    method: str = "histogram"  # histogram
+    bin_log: float = 0.01  # histogram bin width in ln(height) (≈1 %) [1]
+    smooth_log: float = 0.04  # Gaussian smoothing of the histogram in ln(height) [1]
+    min_separation_log: float = 0.18  # peaks closer than this in ln(height) are one layer [1]
+    valley_ratio: float = 0.5  # two peaks are separate only if the valley is below this × the lower peak [1]
+    base_percentile: float = 10.0  # a layer's cloud-base height = this percentile of its points [%]
+    min_points: int = 50  # a layer needs at least this many points [1]
+    min_fraction: float = 0.04  # … and this fraction of all points [1]
+    min_cover: float = 0.005  # … and this fraction of camera 1's usable sky [1]
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """The whole pipeline. ``working_radius_px``: images are downsampled (models scaled exactly)
+    so that the 90° radius of each lens is at most this many pixels; 0 = full size."""
+
+    working_radius_px: float = 480.0  # lens radius at 90 deg after downsampling [px]; 0 = no downsampling
+    masks: MasksConfig = field(default_factory=MasksConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    filtering: FilteringConfig = field(default_factory=FilteringConfig)
+    height_map: HeightMapConfig = field(default_factory=HeightMapConfig)
+    layers: LayersConfig = field(default_factory=LayersConfig)
+
+    @classmethod
+    def from_dict(cls, data: dict | None, where: str = "pipeline") -> "PipelineConfig":
+        """Validate a ``[pipeline]`` table (missing keys take defaults)."""
+        cfg = _build(cls, data or {}, where)
+        _validate(cfg, where)
+        return cfg
+
+    def to_dict(self) -> dict:
+        """Plain dict (TOML/JSON-ready) that :meth:`from_dict` reads back to an equal config."""
+        return _to_dict(self)
+
+    def replace(self, **changes) -> "PipelineConfig":
+        """A copy with top-level fields replaced (validated)."""
+        cfg = dataclasses.replace(self, **changes)
+        _validate(cfg, "pipeline")
+        return cfg
+
+
+# --- generic strict dict -> dataclass ---------------------------------------------------------
+
+def _build(cls, data, where):
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    extra = sorted(set(data) - names)
+    if extra:
+        raise ConfigError(f"{where}.{extra[0]}: unknown key (allowed: {', '.join(sorted(names))})")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        kwargs[f.name] = _coerce(hints[f.name], data[f.name], f"{where}.{f.name}")
+    return cls(**kwargs)
+
+
+def _coerce(tp, value, where):
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, where)
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        return tuple(_coerce(typing.get_args(tp)[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise ConfigError(f"{where}: unsupported type")  # pragma: no cover
+
+
+def _to_dict(obj):
+    out = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            v = _to_dict(v)
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[f.name] = v
+    return out
+
+
+def _choice(where, value, valid):
+    if value not in valid:
+        raise ConfigError(f"{where}: unknown method {value!r} (valid: {', '.join(valid)})")
+
+
+def _positive(where, value, strict=True):
+    if (strict and not value > 0) or (not strict and not value >= 0):
+        raise ConfigError(f"{where}: must be {'>' if strict else '>='} 0, got {value!r}")
+
+
+def _validate(cfg: PipelineConfig, where: str) -> None:
+    _positive(f"{where}.working_radius_px", cfg.working_radius_px, strict=False)
+    m = cfg.masks
+    if not 0 < m.max_zenith_deg <= 90:
+        raise ConfigError(f"{where}.masks.max_zenith_deg: must be in (0, 90], got {m.max_zenith_deg}")
+    _positive(f"{where}.masks.sun_radius_deg", m.sun_radius_deg, strict=False)
+    if not 0 <= m.saturation_level <= 255:
+        raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
+    _choice(f"{where}.segmentation.method", cfg.segmentation.method, SEGMENTATION_METHODS)
+    if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:
+        raise ConfigError(f"{where}.segmentation.otsu_min: must be <= otsu_max")
+    mt = cfg.matching
+    if not mt.methods:
+        raise ConfigError(f"{where}.matching.methods: give at least one method (valid: {', '.join(MATCHING_METHODS)})")
+    for i, name in enumerate(mt.methods):
+        _choice(f"{where}.matching.methods[{i}]", name, MATCHING_METHODS)
+    if len(set(mt.methods)) != len(mt.methods):
+        raise ConfigError(f"{where}.matching.methods: duplicate method in {list(mt.methods)}")
+    if mt.lk.window_px < 5 or mt.lk.window_px % 2 == 0:
+        raise ConfigError(f"{where}.matching.lk.window_px: must be an odd number >= 5, got {mt.lk.window_px}")
+    _positive(f"{where}.matching.lk.max_points", mt.lk.max_points)
+    _positive(f"{where}.matching.lk.fb_max_px", mt.lk.fb_max_px)
+    if not 0 <= mt.lk.levels <= 8:
+        raise ConfigError(f"{where}.matching.lk.levels: must be in 0..8, got {mt.lk.levels}")
+    _positive(f"{where}.matching.orb.max_features", mt.orb.max_features)
+    _choice(f"{where}.matching.dis.preset", mt.dis.preset, ("ultrafast", "fast", "medium"))
+    _positive(f"{where}.matching.dis.point_stride_px", mt.dis.point_stride_px)
+    _positive(f"{where}.matching.dis.fb_max_px", mt.dis.fb_max_px)
+    fl = cfg.filtering
+    _positive(f"{where}.filtering.max_miss_ratio", fl.max_miss_ratio)
+    _positive(f"{where}.filtering.min_angle_deg", fl.min_angle_deg, strict=False)
+    if not fl.min_height_m < fl.max_height_m:
+        raise ConfigError(f"{where}.filtering.min_height_m: must be < max_height_m")
+    _positive(f"{where}.filtering.min_height_m", fl.min_height_m)
+    hm = cfg.height_map
+    _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
+    _positive(f"{where}.height_map.fill_radius_px", hm.fill_radius_px)
+    if hm.median_px < 1 or hm.median_px % 2 == 0:
+        raise ConfigError(f"{where}.height_map.median_px: must be an odd number >= 1, got {hm.median_px}")
+    ly = cfg.layers
+    _choice(f"{where}.layers.method", ly.method, LAYER_METHODS)
+    for k in ("bin_log", "smooth_log", "min_separation_log"):
+        _positive(f"{where}.layers.{k}", getattr(ly, k))
+    if not 0 <= ly.base_percentile <= 50:
+        raise ConfigError(f"{where}.layers.base_percentile: must be in 0..50, got {ly.base_percentile}")
+    if not 0 < ly.valley_ratio <= 1:
+        raise ConfigError(f"{where}.layers.valley_ratio: must be in (0, 1], got {ly.valley_ratio}")

@@ -1,0 +1,108 @@
+"""Triangulation: closest approach vs. the paper's SVD, backends and dtypes, validity, the drone experiment."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cbh.triangulate import TriangulationLimits, triangulate, triangulate_svd, triangulate_svd_loop
+
+
+def random_scene(n, seed=0, baseline=50.0):
+    rng = np.random.default_rng(seed)
+    o1 = np.zeros(3)
+    o2 = np.array([baseline, 10.0, 1.0])
+    pts = np.column_stack([rng.uniform(-5000, 5000, n), rng.uniform(-5000, 5000, n), rng.uniform(300, 9000, n)])
+    return o1, pts - o1, o2, pts - o2, pts
+
+
+def test_exact_rays_meet_at_the_point():
+    o1, d1, o2, d2, pts = random_scene(1000)
+    t = triangulate(o1, d1, o2, d2)
+    np.testing.assert_allclose(t.point_m, pts, rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(t.height_m, pts[:, 2], rtol=1e-9)
+    assert t.miss_m.max() < 1e-6 and t.valid.all()
+    np.testing.assert_allclose(t.range1_m, np.linalg.norm(d1, axis=1), rtol=1e-9)
+
+
+def test_miss_distance_is_the_common_perpendicular():
+    # ray 1 along +x at z=0; ray 2 along +y offset by 3 m in z: they miss by exactly 3 m
+    t = triangulate(np.array([0.0, 0, 0]), np.array([[1.0, 0, 0]]), np.array([5.0, -5, 3]), np.array([[0.0, 1, 0]]))
+    assert t.miss_m[0] == pytest.approx(3.0)
+    np.testing.assert_allclose(t.point_m[0], [5, 0, 1.5])
+    assert t.angle_deg[0] == pytest.approx(90.0)
+
+
+def test_svd_reference_agrees_on_well_conditioned_pairs():
+    o1, d1, o2, d2, pts = random_scene(500, seed=1)
+    a = triangulate(o1, d1, o2, d2)
+    b = triangulate_svd(o1, d1, o2, d2)
+    c = triangulate_svd_loop(o1, d1[:50], o2, d2[:50])
+    np.testing.assert_allclose(b.height_m, a.height_m, rtol=1e-9)  # exact rays: identical
+    np.testing.assert_allclose(c.height_m, b.height_m[:50], rtol=1e-9)
+
+
+def test_svd_and_closest_approach_differ_far_less_than_the_noise():
+    o1, d1, o2, d2, pts = random_scene(2000, seed=1)
+    rng = np.random.default_rng(2)
+    d1 = d1 / np.linalg.norm(d1, axis=1, keepdims=True) + rng.normal(0, 2e-4, d1.shape)  # ~0.01° ray noise
+    d2 = d2 / np.linalg.norm(d2, axis=1, keepdims=True) + rng.normal(0, 2e-4, d2.shape)
+    a = triangulate(o1, d1, o2, d2)
+    b = triangulate_svd(o1, d1, o2, d2)
+    ok = a.angle_deg > 1.0  # well conditioned
+    err = np.median(np.abs(a.height_m[ok] - pts[ok, 2]))
+    diff = np.median(np.abs(a.height_m[ok] - b.height_m[ok]))
+    # the SVD minimises an algebraic error, closest approach a geometric one: both are
+    # estimators of the same point, their disagreement is a small part of the noise error
+    assert diff < 0.2 * err, (diff, err)
+    assert np.median(np.abs(b.height_m[ok] - pts[ok, 2])) < 1.3 * err
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+@pytest.mark.parametrize("dtype, rtol", [("float64", 1e-9), ("float32", 2e-3)])
+def test_backends_and_dtypes(backend, dtype, rtol):
+    # float32 with 5 km points and a 50 m baseline: ε32·range/baseline ≈ 1e-7·100 → 1e-5 rel, plus
+    # cancellation in a·c − b² for angles ≈ 0.5°: tolerance 2e-3 covers it.
+    o1, d1, o2, d2, pts = random_scene(2000, seed=3)
+    d1 = d1 / np.linalg.norm(d1, axis=1, keepdims=True)
+    d2 = d2 / np.linalg.norm(d2, axis=1, keepdims=True)
+    args = [a.astype(dtype) for a in (o1, d1, o2, d2)]
+    if backend == "torch":
+        args = [torch.from_numpy(a) for a in args]
+    t = triangulate(*args)
+    h = t.height_m.numpy() if backend == "torch" else t.height_m
+    assert str(h.dtype).endswith(dtype)
+    np.testing.assert_allclose(h, pts[:, 2], rtol=rtol)
+    assert bool(np.asarray(t.valid).all())
+
+
+def test_chunked_numpy_equals_unchunked():
+    o1, d1, o2, d2, _ = random_scene(10_000, seed=4)
+    a = triangulate(o1, d1, o2, d2, chunk=1 << 20)
+    b = triangulate(o1, d1, o2, d2, chunk=777)
+    np.testing.assert_array_equal(a.point_m, b.point_m)
+    np.testing.assert_array_equal(a.valid, b.valid)
+
+
+def test_validity_flags():
+    o1, o2 = np.zeros(3), np.array([50.0, 0, 0])
+    d1 = np.array([[0, 0, 1.0], [0, 0, 1.0], [0, 0, -1.0], [0, 0, 1.0]])
+    d2 = np.array([[-0.05, 0, 1.0], [0, 0, 1.0], [0.05, 0, -1.0], [-50 / 200_000, 0, 1.0]])
+    t = triangulate(o1, d1, o2, d2, TriangulationLimits(min_angle_deg=0.01, max_range_m=100_000))
+    # ok; parallel; behind both cameras; 200 km away (out of range)
+    assert t.valid.tolist() == [True, False, False, False]
+
+
+def test_swapping_cameras_leaves_heights_unchanged():
+    o1, d1, o2, d2, _ = random_scene(300, seed=5)
+    a = triangulate(o1, d1 + 1e-4, o2, d2)
+    b = triangulate(o2, d2, o1, d1 + 1e-4)
+    np.testing.assert_allclose(a.height_m, b.height_m, rtol=1e-12)
+    np.testing.assert_allclose(a.miss_m, b.miss_m, rtol=1e-9)
+
+
+def test_shape_errors_are_clear():
+    from cbh.errors import ShapeError
+
+    with pytest.raises(ShapeError, match=r"d1: expected shape \(N, 3\)"):
+        triangulate(np.zeros(3), np.zeros((4, 2)), np.zeros(3), np.zeros((4, 3)))
