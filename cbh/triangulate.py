@@ -119,20 +119,78 @@ def triangulate(o1, d1, o2, d2, limits: TriangulationLimits = TriangulationLimit
     for name, a in (("o1", o1), ("d1", d1), ("o2", o2), ("d2", d2)):
         _check(name, a, n)
     if xp is np:
-        dtype = d1.dtype if d1.dtype in (np.float32, np.float64) else np.float64
-        o1, o2 = (np.broadcast_to(np.asarray(o, dtype=dtype), (n, 3)) for o in (o1, o2))
-        d1, d2 = (np.asarray(d, dtype=dtype).reshape(-1, 3) for d in (d1, d2))
-        if n <= chunk:
-            return _tri_core(np, o1, d1, o2, d2, limits)
-        parts = [_tri_core(np, o1[i : i + chunk], d1[i : i + chunk], o2[i : i + chunk], d2[i : i + chunk], limits)
-                 for i in range(0, n, chunk)]
-        return Triangulation(*(np.concatenate([getattr(p, f) for p in parts]) for f in Triangulation.__dataclass_fields__))
+        return _tri_numpy(o1, d1, o2, d2, limits, n, chunk)
     import torch
 
     dtype = d1.dtype if d1.dtype in (torch.float32, torch.float64) else torch.float64
     dev = d1.device
     o1, o2, d1, d2 = (torch.as_tensor(a, dtype=dtype, device=dev).reshape(-1, 3).expand(n, 3) for a in (o1, o2, d1, d2))
-    return _tri_core(torch, o1, d1, o2, d2, limits)
+    step = n if dev.type != "cpu" else chunk  # CPU: blocks keep temporaries in cache (and off mmap)
+    parts = [_tri_core(torch, o1[i : i + step], d1[i : i + step], o2[i : i + step], d2[i : i + step], limits)
+             for i in range(0, n, step)]
+    if len(parts) == 1:
+        return parts[0]
+    return Triangulation(*(torch.cat([getattr(p, f) for p in parts]) for f in Triangulation.__dataclass_fields__))
+
+
+def _tri_numpy(o1, d1, o2, d2, limits, n, chunk):
+    """numpy closest approach in cache-sized blocks of contiguous (3, m) rows, in place."""
+    dtype = d1.dtype if d1.dtype in (np.float32, np.float64) else np.float64
+    d1 = np.asarray(d1, dtype=dtype).reshape(-1, 3)
+    d2 = np.asarray(d2, dtype=dtype).reshape(-1, 3)
+    o1 = np.asarray(o1, dtype=dtype)
+    o2 = np.asarray(o2, dtype=dtype)
+    point = np.empty((n, 3), dtype)
+    miss = np.empty(n, dtype)
+    r1 = np.empty(n, dtype)
+    r2 = np.empty(n, dtype)
+    angle = np.empty(n, dtype)
+    valid = np.empty(n, bool)
+    per_pair1 = o1.ndim == 2 and o1.shape[0] == n and n > 1
+    per_pair2 = o2.ndim == 2 and o2.shape[0] == n and n > 1
+    o1 = o1 if per_pair1 else o1.reshape(3)
+    o2 = o2 if per_pair2 else o2.reshape(3)
+    tiny = np.finfo(dtype).tiny
+    cos_min = np.cos(np.radians(limits.min_angle_deg))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i in range(0, n, chunk):
+            j = min(i + chunk, n)
+            ax, ay, az = np.ascontiguousarray(d1[i:j].T)
+            bx, by, bz = np.ascontiguousarray(d2[i:j].T)
+            O1 = o1[i:j].T if per_pair1 else o1
+            O2 = o2[i:j].T if per_pair2 else o2
+            wx, wy, wz = O2[0] - O1[0], O2[1] - O1[1], O2[2] - O1[2]
+            nx = ay * bz; nx -= az * by
+            ny = az * bx; ny -= ax * bz
+            nz = ax * by; nz -= ay * bx
+            nn = nx * nx; nn += ny * ny; nn += nz * nz
+            inv = 1.0 / nn
+            s = (wy * bz - wz * by) * nx; s += (wz * bx - wx * bz) * ny; s += (wx * by - wy * bx) * nz; s *= inv
+            t = (wy * az - wz * ay) * nx; t += (wz * ax - wx * az) * ny; t += (wx * ay - wy * ax) * nz; t *= inv
+            la = ax * ax; la += ay * ay; la += az * az; np.sqrt(la, out=la)
+            lb = bx * bx; lb += by * by; lb += bz * bz; np.sqrt(lb, out=lb)
+            for k, (o, a, b) in enumerate(((0, ax, bx), (1, ay, by), (2, az, bz))):
+                q = s * a; q += O1[o]; q2 = t * b; q2 += O2[o]; q += q2; q *= 0.5
+                point[i:j, k] = q
+            m = wx * nx; m += wy * ny; m += wz * nz; np.abs(m, out=m)
+            nl = np.sqrt(nn)
+            miss[i:j] = m / nl
+            np.multiply(s, la, out=r1[i:j])
+            np.multiply(t, lb, out=r2[i:j])
+            dot = ax * bx; dot += ay * by; dot += az * bz
+            angle[i:j] = np.degrees(np.arctan2(nl, dot))
+            v = nn > tiny
+            v &= r1[i:j] > 0
+            v &= r2[i:j] > 0
+            # angle ≥ min without re-reading the angle: cos(angle) ≤ cos(min) or ≥ 90°
+            la *= lb
+            la *= cos_min
+            v &= dot <= la
+            v &= r1[i:j] <= limits.max_range_m
+            v &= r2[i:j] <= limits.max_range_m
+            valid[i:j] = v
+    miss[~np.isfinite(miss)] = np.nan  # parallel rays: no common perpendicular
+    return Triangulation(point, point[:, 2], miss, r1, r2, angle, valid)
 
 
 def _tri_core(xp, o1, d1, o2, d2, limits):
