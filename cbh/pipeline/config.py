@@ -36,7 +36,7 @@ __all__ = [
 SEGMENTATION_METHODS = ("nbr", "nbr_adaptive", "otsu")
 MATCHING_METHODS = ("lk", "orb", "dis")
 LAYER_METHODS = ("histogram",)
-FILL_METHODS = ("none", "normalized")
+FILL_METHODS = ("none", "nearest")
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,7 @@ class SegmentationConfig:
 class LKConfig:
     """Pyramidal Lucas-Kanade on cloud pixels, started at the point-at-infinity prediction."""
 
+    space: str = "warped"  # warped (track into image 2 warped onto camera 1's grid) or raw [-]
     max_points: int = 3000  # corner features tracked [1]
     quality: float = 0.005  # goodFeaturesToTrack quality level [1]
     min_distance_px: int = 5  # spacing of features, at working size [px]
@@ -95,7 +96,7 @@ class DISConfig:
 
     preset: str = "fast"  # ultrafast, fast or medium
     point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
-    fb_max_px: float = 1.0  # forward-backward disagreement allowed [px]
+    fb_max_px: float = 0.5  # forward-backward disagreement allowed [px]; 0 = no check
 
 
 @dataclass(frozen=True)
@@ -122,10 +123,8 @@ class FilteringConfig:
 class HeightMapConfig:
     """Dense height map on camera 1's grid."""
 
-    fill: str = "normalized"  # none or normalized (Gaussian normalized convolution inside the cloud mask)
-    fill_radius_px: float = 4.0  # Gaussian sigma of the fill, at working size [px]
-    fill_min_weight: float = 0.2  # fill only where nearby data weight reaches this fraction [1]
-    median_px: int = 3  # median filter of the dense map before filling, at working size (1 = off) [px]
+    fill: str = "nearest"  # none or nearest (copy the nearest measured height, inside the cloud mask only)
+    fill_max_px: float = 3.0  # fill only holes within this distance of a measurement, at working size [px]
 
 
 @dataclass(frozen=True)
@@ -270,7 +269,8 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.matching.orb.max_features", mt.orb.max_features)
     _choice(f"{where}.matching.dis.preset", mt.dis.preset, ("ultrafast", "fast", "medium"))
     _positive(f"{where}.matching.dis.point_stride_px", mt.dis.point_stride_px)
-    _positive(f"{where}.matching.dis.fb_max_px", mt.dis.fb_max_px)
+    _positive(f"{where}.matching.dis.fb_max_px", mt.dis.fb_max_px, strict=False)
+    _choice(f"{where}.matching.lk.space", mt.lk.space, ("warped", "raw"))
     fl = cfg.filtering
     _positive(f"{where}.filtering.max_miss_ratio", fl.max_miss_ratio)
     _positive(f"{where}.filtering.min_angle_deg", fl.min_angle_deg, strict=False)
@@ -279,9 +279,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.filtering.min_height_m", fl.min_height_m)
     hm = cfg.height_map
     _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
-    _positive(f"{where}.height_map.fill_radius_px", hm.fill_radius_px)
-    if hm.median_px < 1 or hm.median_px % 2 == 0:
-        raise ConfigError(f"{where}.height_map.median_px: must be an odd number >= 1, got {hm.median_px}")
+    _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
     ly = cfg.layers
     _choice(f"{where}.layers.method", ly.method, LAYER_METHODS)
     for k in ("bin_log", "smooth_log", "min_separation_log"):

@@ -57,7 +57,8 @@ def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig):
     # map [-1, 1] to 0..255 for cv2's Otsu
     q = np.clip((v + 1.0) * 127.5, 0, 255).astype(np.uint8).reshape(-1, 1)
     t8, _ = cv2.threshold(q, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    t = float(np.clip(t8 / 127.5 - 1.0, cfg.otsu_min, cfg.otsu_max))
+    # Otsu puts values <= t8 in the low (cloud) class: the boundary is half a level above t8
+    t = float(np.clip((t8 + 1.0) / 127.5 - 1.0, cfg.otsu_min, cfg.otsu_max))
     return (nbr < t) & usable
 
 

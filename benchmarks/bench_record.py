@@ -1,0 +1,71 @@
+"""Recorder, reader, Rerun and export throughput (run on demand; prints numbers).
+
+    python benchmarks/bench_record.py [--size 1920] [--pairs 10]
+
+Writes synthetic pairs of the given size (JPEG images as received, a dense float32 height map,
+~8000 points) with McapRecorder, then reads them back, replays into an .rrd and exports NetCDF.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--size", type=int, default=1920)
+    ap.add_argument("--pairs", type=int, default=10)
+    a = ap.parse_args(argv)
+
+    from dataclasses import replace
+
+    from cbh.export import export_sessions
+    from cbh.record import McapRecorder, open_session
+    from cbh.viz import RerunSink
+    from tests.test_record import small_station, synthetic_pair
+
+    st = small_station(a.size)
+    pairs = []
+    for k in range(a.pairs):
+        frames, res = synthetic_pair(st, k, n_points=8000)
+        rng = np.random.default_rng(k)
+        hm = np.where(rng.random(res.height_map.shape) < 0.5, np.nan,
+                      1200 + 30 * rng.standard_normal(res.height_map.shape)).astype(np.float32)
+        pairs.append((frames, replace(res, height_map=hm)))
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "bench.mcap"
+        t0 = time.perf_counter()
+        with McapRecorder(path, st, {}) as rec:
+            for frames, res in pairs:
+                rec.write(frames, res)
+        t_write = (time.perf_counter() - t0) / a.pairs
+        size = path.stat().st_size / a.pairs / 1e6
+        t0 = time.perf_counter()
+        n = sum(1 for _ in open_session(path).pairs())
+        t_read = (time.perf_counter() - t0) / n
+        t0 = time.perf_counter()
+        with RerunSink(st, "save", str(Path(d) / "b.rrd")) as sink:
+            for frames, res in pairs:
+                sink.write(frames, res)
+        t_rr = (time.perf_counter() - t0) / a.pairs
+        t0 = time.perf_counter()
+        export_sessions([path], "netcdf", Path(d) / "b.nc")
+        t_nc = time.perf_counter() - t0
+    print(f"size {a.size}px, {a.pairs} pairs (2 cores, other jobs running):")
+    print(f"  McapRecorder.write   {t_write * 1e3:8.1f} ms/pair   {size:6.2f} MB/pair on disk")
+    print(f"  Session.pairs()      {t_read * 1e3:8.1f} ms/pair (decode all topics)")
+    print(f"  RerunSink.write      {t_rr * 1e3:8.1f} ms/pair (save mode)")
+    print(f"  export netcdf        {t_nc * 1e3:8.1f} ms total")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,141 @@
+"""Pairing two cameras' frames by nearest time stamp within a tolerance.
+
+Two cameras of a station are not triggered together: each frame carries its own UTC time.
+A pair taken seconds apart is wrong by the clouds' motion (a 10 m/s cloud moves 10 m per
+second, which shifts the triangulated point), so frames farther apart than the tolerance
+are never paired; they are counted as unpaired and dropped.
+
+The rule (frames of each camera arrive in time order):
+
+1. Look at the oldest waiting frame of each camera, ``a`` and ``b``. If they are more than
+   ``tolerance_s`` apart, the older one can never be paired (every later frame of the other
+   camera is later still): drop it, counted as unpaired.
+2. Otherwise the later of the two, say ``b``, is the best partner for ``a`` (later frames of
+   b's camera are farther). But a later frame of a's camera may be closer to ``b``: if one has
+   already arrived and is closer, ``a`` is dropped; else ``(a, b)`` is a pair.
+3. If no later frame of a's camera has arrived yet and ``a`` and ``b`` are not simultaneous
+   (|dt| > ``sync_s``), wait for one, at most until ``b`` has waited ``patience`` further frames
+   of its own camera (then pair anyway): the choice is the nearest among frames received.
+
+Memory is bounded: each camera keeps at most ``max_waiting`` frames; the oldest overflow is
+dropped and counted.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+from .errors import ConfigError
+from .result import Frame
+
+__all__ = ["Pairer", "PairingStats"]
+
+
+@dataclass
+class PairingStats:
+    """Counters of one pairer (mutable state, not config)."""
+
+    pairs: int = 0  # pairs formed
+    unpaired: dict[str, int] = field(default_factory=dict)  # camera → frames dropped without a partner
+    max_dt_s: float = 0.0  # largest |dt| of a formed pair [s]
+
+    def to_dict(self) -> dict:
+        return {"pairs": self.pairs, "unpaired": dict(self.unpaired), "max_dt_s": self.max_dt_s}
+
+
+class Pairer:
+    """Pairs frames of two cameras by nearest time stamp within ``tolerance_s``.
+
+    Parameters
+    ----------
+    cameras : tuple of str
+        (camera 1, camera 2); pairs come out in this order.
+    tolerance_s : float
+        Largest |t1 − t2| of a pair [s].
+    sync_s : float
+        Frames this close are taken as simultaneous and paired at once, without waiting to
+        see whether a closer frame follows [s].
+    max_waiting : int
+        Frames kept per camera while waiting for a partner.
+
+    Examples
+    --------
+    >>> from datetime import datetime, timezone, timedelta
+    >>> t0 = datetime(2015, 10, 29, 4, 58, tzinfo=timezone.utc)
+    >>> p = Pairer(("cam1", "cam2"), tolerance_s=0.5)
+    >>> p.push(Frame("cam1", t0, None)); p.push(Frame("cam2", t0 + timedelta(seconds=0.01), None))
+    >>> [(a.camera, b.camera) for a, b in p.pop_pairs()]
+    [('cam1', 'cam2')]
+    """
+
+    def __init__(self, cameras: tuple[str, str], tolerance_s: float = 0.5, sync_s: float = 0.02,
+                 max_waiting: int = 16, patience: int = 1):
+        if not tolerance_s > 0:
+            raise ConfigError(f"pair tolerance must be > 0 s, got {tolerance_s}")
+        if cameras[0] == cameras[1]:
+            raise ConfigError(f"pairing needs two different cameras, got {cameras}")
+        if max_waiting < 2:
+            raise ConfigError(f"max_waiting must be >= 2, got {max_waiting}")
+        self.cameras = (cameras[0], cameras[1])
+        self.tolerance_s, self.sync_s = float(tolerance_s), float(sync_s)
+        self.max_waiting, self.patience = int(max_waiting), int(patience)
+        self._q: dict[str, deque[Frame]] = {c: deque() for c in self.cameras}
+        self._ready: list[tuple[Frame, Frame]] = []
+        self.stats = PairingStats(unpaired={c: 0 for c in self.cameras})
+
+    def waiting(self) -> dict[str, int]:
+        return {c: len(q) for c, q in self._q.items()}
+
+    def push(self, frame: Frame) -> None:
+        """Add one frame (of either camera). Out-of-order frames (older than the newest) are dropped."""
+        q = self._q.get(frame.camera)
+        if q is None:
+            raise ConfigError(f"frame of camera {frame.camera!r}, but pairing {self.cameras[0]},{self.cameras[1]}")
+        if q and frame.time_utc < q[-1].time_utc:
+            self._drop(frame)
+            return
+        q.append(frame)
+        while len(q) > self.max_waiting:
+            self._drop(q.popleft())
+        self._match()
+
+    def _drop(self, f: Frame) -> None:
+        self.stats.unpaired[f.camera] += 1
+
+    def _match(self, final: bool = False) -> None:
+        qa, qb = self._q[self.cameras[0]], self._q[self.cameras[1]]
+        while qa and qb:
+            a, b = qa[0], qb[0]
+            dt = (b.time_utc - a.time_utc).total_seconds()
+            if dt > self.tolerance_s:
+                self._drop(qa.popleft())
+                continue
+            if dt < -self.tolerance_s:
+                self._drop(qb.popleft())
+                continue
+            # e = the earlier frame's queue, l = the later one's
+            qe, ql = (qa, qb) if dt >= 0 else (qb, qa)
+            if len(qe) > 1:
+                nxt = abs((qe[1].time_utc - ql[0].time_utc).total_seconds())
+                if nxt < abs(dt):
+                    self._drop(qe.popleft())
+                    continue
+            elif abs(dt) > self.sync_s and not final and len(ql) <= self.patience:
+                return  # a closer frame of the earlier camera may still come
+            fa, fb = qa.popleft(), qb.popleft()
+            self.stats.pairs += 1
+            self.stats.max_dt_s = max(self.stats.max_dt_s, abs(dt))
+            self._ready.append((fa, fb))
+
+    def pop_pairs(self) -> list[tuple[Frame, Frame]]:
+        """All pairs formed since the last call, oldest first (camera 1's frame first)."""
+        out, self._ready = self._ready, []
+        return out
+
+    def flush(self) -> list[tuple[Frame, Frame]]:
+        """At the end of a run: pair what can be paired, count the rest as unpaired."""
+        self._match(final=True)
+        for q in self._q.values():
+            while q:
+                self._drop(q.popleft())
+        return self.pop_pairs()

@@ -1,0 +1,81 @@
+"""Stage 4b: the dense cloud-base height map on camera 1's pixel grid (NaN = unknown).
+
+Triangulated correspondences are splatted onto camera 1's grid (mean of the heights that land
+in a pixel); holes are filled only inside camera 1's cloud mask and only within
+``fill_max_px`` of a measured pixel, by copying the *nearest* measured height (no averaging,
+so two layers meeting at an edge are never blended into a height that exists in neither).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .config import HeightMapConfig
+
+__all__ = ["rasterize_heights", "nearest_fill", "upsample_map"]
+
+
+def rasterize_heights(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray) -> np.ndarray:
+    """Mean height per pixel.
+
+    Parameters
+    ----------
+    shape : (H, W)
+    px : ndarray, shape (N, 2), float
+        Pixel coordinates (x, y); rounded to the nearest pixel centre.
+    height_m : ndarray, shape (N,), float [m]
+
+    Returns
+    -------
+    ndarray, shape (H, W), float32
+        NaN where no point landed.
+    """
+    h, w = shape
+    out = np.full(h * w, np.nan, np.float32)
+    if len(px) == 0:
+        return out.reshape(h, w)
+    xi = np.rint(px[:, 0]).astype(np.int64)
+    yi = np.rint(px[:, 1]).astype(np.int64)
+    ok = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h) & np.isfinite(height_m)
+    idx = yi[ok] * w + xi[ok]
+    s = np.bincount(idx, weights=height_m[ok], minlength=h * w)
+    c = np.bincount(idx, minlength=h * w)
+    has = c > 0
+    out[has] = (s[has] / c[has]).astype(np.float32)
+    return out.reshape(h, w)
+
+
+def nearest_fill(hmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest measured height and the distance to it, for every pixel.
+
+    Parameters
+    ----------
+    hmap : ndarray, shape (H, W), float32
+        Height map, NaN where unknown.
+
+    Returns
+    -------
+    nearest : ndarray, shape (H, W), float32
+        Height of the nearest measured pixel (NaN everywhere if nothing is measured).
+    dist_px : ndarray, shape (H, W), float32
+        Distance to it [px] (0 on measured pixels, inf if nothing is measured).
+    """
+    import cv2
+
+    known = np.isfinite(hmap)
+    if not known.any():
+        return np.full_like(hmap, np.nan), np.full(hmap.shape, np.inf, np.float32)
+    dist, lab = cv2.distanceTransformWithLabels((~known).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    ky, kx = np.nonzero(known)
+    values = np.full(int(lab.max()) + 1, np.nan, np.float32)
+    values[lab[ky, kx]] = hmap[ky, kx]
+    return values[lab], dist
+
+
+def upsample_map(hmap: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize of a (working-size) map to (height, width) (NaN preserved)."""
+    import cv2
+
+    if hmap.shape == (height, width):
+        return hmap
+    return cv2.resize(hmap, (width, height), interpolation=cv2.INTER_NEAREST)

@@ -1,0 +1,121 @@
+"""Stage 5: cloud layers from the histogram of point heights.
+
+Heights are binned in ln(height): the range error of a stereo height grows like h²/baseline,
+so a layer's relative (not absolute) spread is what stays about constant from 500 m to 8 km.
+The histogram is smoothed with a Gaussian (``smooth_log``); its local maxima are candidate
+layers. Two neighbouring candidates are merged (the higher survives) when they are closer than
+``min_separation_log`` (the expected height resolution) or when the histogram between them
+does not dip below ``valley_ratio`` × the lower peak. Each surviving peak owns the heights
+between the valleys on either side. A layer is reported only with enough support:
+``min_points`` points, ``min_fraction`` of all points and ``min_cover`` of the usable sky.
+
+Each layer's statistics (:func:`layer_stats`):
+
+- ``height_m``: the cloud-base height, the ``base_percentile`` (default 10th) percentile of the
+  layer's point heights — a robust statistic of the layer's lowest part (the lowest points are
+  the base; a pure minimum would follow the worst outlier);
+- ``median_height_m``; ``spread_m`` = 1.4826 · MAD (σ for Gaussian heights);
+- ``cover``: fraction of camera 1's usable sky whose height-map pixel lies in the layer's
+  height interval;
+- ``confidence`` = (1 − exp(−points / (4·min_points))) · exp(−spread / median / 0.15) ·
+  min(1, cover / (4·min_cover)): support, precision and extent in one number in 0..1.
+
+Contract of every method in :data:`LAYER_METHODS`::
+
+    method(heights_m (N,), cfg) -> (Histogram, list of (lo_m, hi_m) intervals, ascending)
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..result import Histogram, Layer
+from .config import FilteringConfig, LayersConfig
+
+__all__ = ["LAYER_METHODS", "histogram_layers", "layer_stats", "get_layer_method"]
+
+
+def _smooth(counts: np.ndarray, sigma_bins: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter1d
+
+    return gaussian_filter1d(counts.astype(np.float64), sigma_bins, mode="constant") if sigma_bins > 0 else counts
+
+
+def histogram_layers(heights_m: np.ndarray, cfg: LayersConfig, limits: FilteringConfig = FilteringConfig()):
+    """Candidate layer intervals from a smoothed log-height histogram (see module doc).
+
+    Returns
+    -------
+    hist : Histogram
+        Counts of ``heights_m`` in log-spaced bins between the filtering height limits.
+    intervals : list of (lo_m, hi_m)
+        Height interval owned by each candidate layer, ascending; not yet checked for support.
+    """
+    lo, hi = math.log(limits.min_height_m), math.log(limits.max_height_m)
+    nb = max(1, int(math.ceil((hi - lo) / cfg.bin_log)))
+    edges_log = lo + cfg.bin_log * np.arange(nb + 1)
+    h = np.asarray(heights_m, np.float64)
+    h = h[np.isfinite(h) & (h > 0)]
+    counts, _ = np.histogram(np.log(h), bins=edges_log)
+    hist = Histogram(edges_m=np.exp(edges_log), counts=counts.astype(np.float64))
+    if counts.sum() == 0:
+        return hist, []
+    s = _smooth(counts, cfg.smooth_log / cfg.bin_log)
+    # local maxima (plateaus: first index)
+    left = np.concatenate([[-np.inf], s[:-1]])
+    right = np.concatenate([s[1:], [-np.inf]])
+    peaks = list(np.flatnonzero((s > left) & (s >= right) & (s > 0)))
+    sep_bins = cfg.min_separation_log / cfg.bin_log
+    changed = True
+    while changed and len(peaks) > 1:
+        changed = False
+        best = None
+        for i in range(len(peaks) - 1):
+            a, b = peaks[i], peaks[i + 1]
+            valley = s[a : b + 1].min()
+            low = min(s[a], s[b])
+            if (b - a) < sep_bins or valley > cfg.valley_ratio * low:
+                # merge the pair with the weakest lower peak first
+                if best is None or low < best[0]:
+                    best = (low, i)
+        if best is not None:
+            i = best[1]
+            a, b = peaks[i], peaks[i + 1]
+            peaks.pop(i + 1 if s[a] >= s[b] else i)
+            changed = True
+    cuts = [lo]
+    for a, b in zip(peaks[:-1], peaks[1:]):
+        v = a + int(np.argmin(s[a : b + 1]))
+        cuts.append(edges_log[v] + 0.5 * cfg.bin_log)
+    cuts.append(hi)
+    intervals = [(math.exp(cuts[i]), math.exp(cuts[i + 1])) for i in range(len(peaks))]
+    return hist, intervals
+
+
+def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig) -> Layer:
+    """Statistics of one layer's point heights ``h`` (N,) [m] (see module doc)."""
+    med = float(np.median(h))
+    spread = 1.4826 * float(np.median(np.abs(h - med)))
+    n = int(h.size)
+    conf = (1 - math.exp(-n / (4.0 * max(cfg.min_points, 1)))) * math.exp(-(spread / med) / 0.15)
+    conf *= min(1.0, cover / (4.0 * cfg.min_cover)) if cfg.min_cover > 0 else 1.0
+    return Layer(
+        height_m=float(np.percentile(h, cfg.base_percentile)),
+        median_height_m=med,
+        spread_m=spread,
+        cover=float(cover),
+        points=n,
+        confidence=float(min(max(conf, 0.0), 1.0)),
+    )
+
+
+LAYER_METHODS = {"histogram": histogram_layers}
+
+
+def get_layer_method(name: str):
+    try:
+        return LAYER_METHODS[name.lower()]
+    except KeyError:
+        raise ConfigError(f"unknown layer method {name!r} (valid: {', '.join(LAYER_METHODS)})") from None

@@ -1,0 +1,280 @@
+"""Stage 3: correspondences camera 1 → camera 2 on the raw fisheye images.
+
+No undistortion, no rectification, no epipolar curves. The one geometric aid is the
+*point-at-infinity mapping*: a pixel p1 of camera 1 and the pixel of camera 2 that sees the
+same direction, ``p2_inf = cam2.direction_to_pixel(cam1.pixel_to_world(p1))``. It depends only
+on the two rotations and lenses, is precomputed once per camera pair as a remap table
+(:class:`PairGeometry`), and leaves only the parallax (≈ baseline / range) to be searched.
+
+Contract of every method in :data:`MATCHERS`::
+
+    method(inp: MatchInput, cfg: MatchingConfig) -> Matches
+
+``Matches.px1`` / ``px2`` are (N, 2) float64 pixel coordinates in the working-size images of
+camera 1 and camera 2. Geometric rejection (ray miss / range, triangulation angle, height) is
+done afterwards by :func:`triangulate_matches`, the same for every method.
+
+- ``lk``: pyramidal Lucas-Kanade on corner features inside camera 1's cloud mask, started at
+  the infinity prediction. By default it tracks into image 2 *warped onto camera 1's grid with
+  the infinity mapping* (so the start is zero displacement and the camera rotation and lens
+  differences are undone); ``space = "raw"`` tracks on the raw image 2 from ``p2_inf``. Both
+  check forward-backward consistency.
+- ``orb``: ORB features on both raw images, Hamming matching with cross check.
+- ``dis``: dense DIS optical flow between image 1 and the warped image 2: p2 = map(p1 + flow);
+  forward-backward checked. Gives one correspondence per cloud pixel (the dense height map).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..station import Camera
+from ..triangulate import TriangulationLimits, triangulate
+from .config import FilteringConfig, MatchingConfig
+
+__all__ = ["PairGeometry", "MatchInput", "Matches", "MATCHERS", "get_matcher", "triangulate_matches", "sample_map"]
+
+_OUTSIDE = -1.0e5  # map value for "no pixel": far outside any image
+
+
+def sample_map(map_x: np.ndarray, map_y: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a remap table at sub-pixel points (N, 2) → (N, 2) float64."""
+    import cv2
+
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    n = len(pts)
+    cols = 1024  # remap wants fewer than 32767 rows and columns: lay the points out as a block
+    rows = -(-n // cols)
+    p = np.full((rows * cols, 2), _OUTSIDE, np.float32)
+    p[:n] = pts
+    p = p.reshape(rows, cols, 2)
+    px, py = np.ascontiguousarray(p[..., 0]), np.ascontiguousarray(p[..., 1])
+    kw = dict(interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=_OUTSIDE)
+    mx = cv2.remap(np.ascontiguousarray(map_x, np.float32), px, py, **kw).ravel()[:n]
+    my = cv2.remap(np.ascontiguousarray(map_y, np.float32), px, py, **kw).ravel()[:n]
+    return np.stack([mx, my], axis=-1).astype(np.float64)
+
+
+@dataclass
+class PairGeometry:
+    """Per-pair precomputation at working size (cached by :class:`~cbh.pipeline.Pipeline`).
+
+    Attributes
+    ----------
+    cam1, cam2 : Camera
+        The two cameras, models scaled to the working image sizes.
+    map_x, map_y : ndarray, shape (H1, W1), float32
+        Pixel of camera 2 seeing the direction of each camera-1 pixel (point at infinity);
+        a large negative value where camera 2 has no pixel.
+    rays1_world : ndarray, shape (H1, W1, 3), float32
+        Unit ENU ray of every camera-1 pixel.
+    """
+
+    cam1: Camera
+    cam2: Camera
+    map_x: np.ndarray = field(init=False)
+    map_y: np.ndarray = field(init=False)
+    rays1_world: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        m = self.cam1.model
+        rays = (self.cam1.model.ray_map().reshape(-1, 3) @ self.cam1.R_world_from_cam.T)
+        self.rays1_world = rays.reshape(m.height, m.width, 3).astype(np.float32)
+        px2 = self.cam2.direction_to_pixel(rays)
+        ok = np.isfinite(px2).all(axis=1) & self.cam2.model.contains(np.nan_to_num(px2, nan=-1e6))
+        px2[~ok] = _OUTSIDE
+        self.map_x = px2[:, 0].reshape(m.height, m.width).astype(np.float32)
+        self.map_y = px2[:, 1].reshape(m.height, m.width).astype(np.float32)
+
+    def infinity(self, px1: np.ndarray) -> np.ndarray:
+        """Camera-2 pixels (N, 2) of the points at infinity seen at camera-1 pixels ``px1`` (N, 2)."""
+        return sample_map(self.map_x, self.map_y, px1)
+
+    def warp2(self, image2: np.ndarray) -> np.ndarray:
+        """Image 2 resampled onto camera 1's grid with the infinity mapping (0 where unseen)."""
+        import cv2
+
+        return cv2.remap(image2, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+@dataclass
+class MatchInput:
+    """What every matcher gets (working size; grey images uint8)."""
+
+    geometry: PairGeometry
+    gray1: np.ndarray  # (H1, W1) uint8
+    gray2: np.ndarray  # (H2, W2) uint8
+    cloud1: np.ndarray  # (H1, W1) bool, camera 1 cloud mask
+    usable1: np.ndarray  # (H1, W1) bool
+    usable2: np.ndarray  # (H2, W2) bool
+    cloud2: np.ndarray  # (H2, W2) bool
+    _warped2: np.ndarray | None = None
+
+    @property
+    def warped2(self) -> np.ndarray:
+        """Image 2 warped onto camera 1's grid (computed once, shared by lk and dis)."""
+        if self._warped2 is None:
+            self._warped2 = self.geometry.warp2(self.gray2)
+        return self._warped2
+
+
+@dataclass
+class Matches:
+    """Correspondences of one method (working-size pixel coordinates)."""
+
+    method: str
+    px1: np.ndarray  # (N, 2) float64
+    px2: np.ndarray  # (N, 2) float64
+    dense: bool = False  # one correspondence per camera-1 pixel at integer coordinates
+
+    def __len__(self) -> int:
+        return int(self.px1.shape[0])
+
+    def take(self, keep: np.ndarray) -> "Matches":
+        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense)
+
+
+def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
+    """Inside camera 2's image and usable mask."""
+    ok = np.isfinite(px2).all(axis=1)
+    xi = np.round(np.where(ok, px2[:, 0], -1)).astype(np.int64)
+    yi = np.round(np.where(ok, px2[:, 1], -1)).astype(np.int64)
+    h, w = inp.usable2.shape
+    ok &= (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+    ok[ok] = inp.usable2[yi[ok], xi[ok]]
+    return ok
+
+
+def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
+    import cv2
+
+    c = cfg.lk
+    feats = cv2.goodFeaturesToTrack(
+        inp.gray1, maxCorners=c.max_points, qualityLevel=c.quality, minDistance=c.min_distance_px,
+        mask=inp.cloud1.astype(np.uint8), blockSize=7,
+    )
+    if feats is None:
+        return Matches("lk", np.zeros((0, 2)), np.zeros((0, 2)))
+    p1 = feats.reshape(-1, 2).astype(np.float32)
+    g = inp.geometry
+    lk = dict(winSize=(c.window_px, c.window_px), maxLevel=c.levels,
+              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01), flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    if c.space == "warped":
+        w2 = inp.warped2
+        q, st, _ = cv2.calcOpticalFlowPyrLK(inp.gray1, w2, p1, p1.copy(), **lk)
+        b, st2, _ = cv2.calcOpticalFlowPyrLK(w2, inp.gray1, q, q.copy(), **lk)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(b - p1, axis=1) <= c.fb_max_px)
+        p1, q = p1[ok], q[ok]
+        px2 = g.infinity(q)
+    else:  # raw: start at the infinity prediction in image 2, come back from its inverse
+        init = g.infinity(p1)
+        ok0 = _in_cam2(inp, init)
+        p1, init = p1[ok0], init[ok0].astype(np.float32)
+        if not len(p1):
+            return Matches("lk", np.zeros((0, 2)), np.zeros((0, 2)))
+        p2, st, _ = cv2.calcOpticalFlowPyrLK(inp.gray1, inp.gray2, p1, init.copy(), **lk)
+        back0 = g.cam1.direction_to_pixel(g.cam2.pixel_to_world(p2.astype(np.float64)))
+        back0 = np.nan_to_num(back0, nan=-1e5).astype(np.float32)
+        b, st2, _ = cv2.calcOpticalFlowPyrLK(inp.gray2, inp.gray1, p2, back0, **lk)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(b - p1, axis=1) <= c.fb_max_px)
+        p1, px2 = p1[ok], p2[ok].astype(np.float64)
+    keep = _in_cam2(inp, px2)
+    return Matches("lk", p1[keep].astype(np.float64), px2[keep])
+
+
+def _orb(inp: MatchInput, cfg: MatchingConfig) -> Matches:
+    import cv2
+
+    c = cfg.orb
+    orb = cv2.ORB_create(nfeatures=c.max_features, fastThreshold=5)
+    k1, d1 = orb.detectAndCompute(inp.gray1, inp.cloud1.astype(np.uint8))
+    k2, d2 = orb.detectAndCompute(inp.gray2, inp.usable2.astype(np.uint8))
+    empty = Matches("orb", np.zeros((0, 2)), np.zeros((0, 2)))
+    if d1 is None or d2 is None or len(k1) == 0 or len(k2) == 0:
+        return empty
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+    ms = [m for m in bf.match(d1, d2) if m.distance <= c.max_hamming]
+    if not ms:
+        return empty
+    p1 = np.array([k1[m.queryIdx].pt for m in ms], np.float64)
+    p2 = np.array([k2[m.trainIdx].pt for m in ms], np.float64)
+    g = inp.geometry
+    # parallax gate: the camera-2 ray must be within max_parallax_deg of the infinity direction
+    cosang = np.einsum("ij,ij->i", g.cam1.pixel_to_world(p1), g.cam2.pixel_to_world(p2))
+    keep = cosang >= np.cos(np.radians(c.max_parallax_deg))
+    return Matches("orb", p1[keep], p2[keep])
+
+
+_DIS_PRESETS = {"ultrafast": 0, "fast": 1, "medium": 2}
+
+
+def _dis(inp: MatchInput, cfg: MatchingConfig) -> Matches:
+    import cv2
+
+    c = cfg.dis
+    dis = cv2.DISOpticalFlow.create(_DIS_PRESETS[c.preset])
+    w2 = inp.warped2
+    flow = dis.calc(inp.gray1, w2, None)
+    ys, xs = np.nonzero(inp.cloud1)
+    p1 = np.stack([xs, ys], axis=-1).astype(np.float32)
+    q = p1 + flow[ys, xs]
+    ok = np.ones(len(p1), bool)
+    if c.fb_max_px > 0:
+        back = dis.calc(w2, inp.gray1, None)
+        bq = sample_map(back[..., 0], back[..., 1], q)
+        ok &= np.linalg.norm(flow[ys, xs] + bq, axis=1) <= c.fb_max_px
+    # the warped image is black where camera 2 sees nothing: drop flows that land there
+    p1, q = p1[ok], q[ok]
+    px2 = inp.geometry.infinity(q)
+    keep = _in_cam2(inp, px2)
+    return Matches("dis", p1[keep].astype(np.float64), px2[keep], dense=True)
+
+
+MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis}
+
+
+def get_matcher(name: str):
+    """The matching function registered as ``name`` (case-insensitive)."""
+    try:
+        return MATCHERS[name.lower()]
+    except KeyError:
+        raise ConfigError(f"unknown matching method {name!r} (valid: {', '.join(MATCHERS)})") from None
+
+
+@dataclass
+class TriangulatedMatches:
+    """Triangulated correspondences that passed :class:`FilteringConfig` (working-size pixels)."""
+
+    matches: Matches
+    point_m: np.ndarray  # (N, 3) float64 ENU [m]
+    miss_m: np.ndarray  # (N,) float64 [m]
+    n_in: int  # correspondences before filtering
+
+    @property
+    def height_m(self) -> np.ndarray:
+        return self.point_m[:, 2]
+
+
+def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) -> TriangulatedMatches:
+    """Triangulate and reject by ray miss / range, triangulation angle and height range."""
+    n = len(m)
+    if m.dense:
+        xi = m.px1[:, 0].astype(np.int64)
+        yi = m.px1[:, 1].astype(np.int64)
+        d1 = geom.rays1_world[yi, xi]
+    else:
+        d1 = geom.cam1.pixel_to_world(m.px1).astype(np.float32)
+    d2 = geom.cam2.pixel_to_world(m.px2).astype(np.float32)
+    tri = triangulate(geom.cam1.position_m.astype(np.float32), d1, geom.cam2.position_m.astype(np.float32), d2,
+                      TriangulationLimits(min_angle_deg=cfg.min_angle_deg, max_range_m=1e6))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        keep = (
+            tri.valid
+            & (tri.miss_m <= cfg.max_miss_ratio * tri.range1_m)
+            & (tri.height_m >= cfg.min_height_m)
+            & (tri.height_m <= cfg.max_height_m)
+        )
+    return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64), n)

@@ -1,0 +1,373 @@
+"""MCAP recorder: one file per session, every pair flushed as it is written.
+
+Each message goes into its own zstd chunk (``chunk_size=1``) and the file is flushed after
+each pair, so a writer killed with SIGKILL leaves every earlier pair on disk as complete
+records: :func:`cbh.record.recover` rewrites them into a valid file. The topics and the
+metadata record are listed in :mod:`cbh.record`.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import RecordingError
+from ..result import Frame, PairResult, from_ns, to_ns
+from .schemas import cbh_types, foxglove_types
+
+__all__ = ["McapRecorder", "cbh_version", "METADATA_NAME", "FRAME_ID_WORLD"]
+
+log = logging.getLogger(__name__)
+
+METADATA_NAME = "cbh"
+FRAME_ID_WORLD = "enu"
+#: Point-cloud fields (name, numpy dtype, foxglove NumericType name), packed in this order.
+POINT_FIELDS = (
+    ("x", "<f4", "FLOAT32"), ("y", "<f4", "FLOAT32"), ("z", "<f4", "FLOAT32"),  # ENU [m]; z = height
+    ("miss", "<f4", "FLOAT32"),  # ray-miss distance [m]
+    ("x1", "<f4", "FLOAT32"), ("y1", "<f4", "FLOAT32"),  # pixel in camera 1
+    ("x2", "<f4", "FLOAT32"), ("y2", "<f4", "FLOAT32"),  # pixel in camera 2
+    ("layer", "<i4", "INT32"),  # layer index, -1 = none
+)
+POINT_DTYPE = np.dtype([(n, d) for n, d, _ in POINT_FIELDS])
+
+
+def cbh_version() -> str:
+    """The installed cbh version (``importlib.metadata``), or ``"unknown"``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("cbh")
+    except PackageNotFoundError:  # pragma: no cover - cbh is installed in every supported setup
+        return "unknown"
+
+
+def _stamp(ts, ns: int) -> None:
+    ts.seconds, ts.nanos = divmod(int(ns), 1_000_000_000)
+
+
+def _utc_name(ns: int) -> str:
+    return from_ns(ns).strftime("%Y%m%dT%H%M%SZ")
+
+
+def _png(image: np.ndarray, what: str) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:  # pragma: no cover - OpenCV encodes uint8/uint16 PNG
+        raise RecordingError(f"PNG encoding of {what} failed")
+    return buf.tobytes()
+
+
+def pack_points(points) -> bytes:
+    """PointSet → packed little-endian records of :data:`POINT_DTYPE`."""
+    n = len(points)
+    rec = np.zeros(n, POINT_DTYPE)
+    xyz = np.asarray(points.xyz_m, np.float32).reshape(n, 3)
+    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    rec["miss"] = np.asarray(points.miss_m, np.float32)
+    px1 = np.asarray(points.px1, np.float32).reshape(n, 2)
+    px2 = np.asarray(points.px2, np.float32).reshape(n, 2)
+    rec["x1"], rec["y1"], rec["x2"], rec["y2"] = px1[:, 0], px1[:, 1], px2[:, 0], px2[:, 1]
+    rec["layer"] = np.asarray(points.layer).astype(np.int32)
+    return rec.tobytes()
+
+
+class _File:
+    """One open MCAP file with its registered schemas and channels."""
+
+    def __init__(self, path: Path, metadata: dict[str, str], compression: str):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = path
+        try:
+            self.fh = open(path, "wb")
+        except OSError as exc:
+            raise RecordingError(f"cannot create recording {path}: {exc.strerror}") from None
+        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
+        # chunk_size=1: every message is finalized into its own chunk as soon as it is added.
+        self.writer = Writer(self.fh, chunk_size=1, compression=comp)
+        self.writer.start(profile="", library=f"cbh/{metadata.get('cbh_version', '?')} mcap-python")
+        self.writer.add_metadata(METADATA_NAME, metadata)
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        self.first_ns: int | None = None
+        self.fh.flush()
+
+    def channel(self, topic: str, cls) -> int:
+        if topic not in self.channels:
+            from mcap_protobuf.schema import register_schema
+
+            name = cls.DESCRIPTOR.full_name
+            if name not in self.schemas:
+                self.schemas[name] = register_schema(self.writer, cls)
+            self.channels[topic] = self.writer.register_channel(
+                topic=topic, message_encoding="protobuf", schema_id=self.schemas[name])
+        return self.channels[topic]
+
+    def size(self) -> int:
+        return self.fh.tell()
+
+    def close(self, fsync: bool) -> None:
+        self.writer.finish()
+        self.fh.flush()
+        if fsync:
+            os.fsync(self.fh.fileno())
+        self.fh.close()
+
+
+class McapRecorder:
+    """Records frame pairs and their results to MCAP (a :class:`cbh.interfaces.ResultSink`).
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.mcap`` file, or a directory (created if needed) in which files are named
+        ``<station>-<UTC capture time of the first pair>.mcap``. Rotated files of a ``.mcap``
+        path are named ``<stem>-001.mcap``, ``<stem>-002.mcap`` …
+    station : cbh.station.Station
+        Stored as self-contained TOML in the metadata record.
+    config : dict
+        The resolved pipeline configuration (stored as JSON).
+    rotate_mb : float, optional
+        Start a new file once the current one reaches this size [MB = 1e6 bytes].
+    rotate_s : float, optional
+        Start a new file once a pair's capture time is this far past the file's first [s].
+    fsync : bool
+        ``os.fsync`` after every pair (survives power loss, not only a killed process).
+    compression : {"zstd", "lz4", "none"}
+        Chunk compression.
+
+    Files are created on the first ``write``/``write_status`` (a ``.mcap`` path with nothing
+    written still gets an empty, valid session on ``close``).
+    """
+
+    def __init__(self, path, station, config: dict, rotate_mb: float | None = None,
+                 rotate_s: float | None = None, *, fsync: bool = False, compression: str = "zstd"):
+        from ..errors import ConfigError
+
+        if compression not in ("zstd", "lz4", "none"):
+            raise ConfigError(f"record.compression: unknown {compression!r} (valid: zstd, lz4, none)")
+        for name, v in (("rotate_mb", rotate_mb), ("rotate_s", rotate_s)):
+            if v is not None and not v > 0:
+                raise ConfigError(f"record.{name}: must be > 0, got {v!r}")
+        self.path = Path(path)
+        self.station = station
+        self.rotate_bytes = None if rotate_mb is None else float(rotate_mb) * 1e6
+        self.rotate_ns = None if rotate_s is None else int(float(rotate_s) * 1e9)
+        self.fsync = fsync
+        self.compression = compression
+        self.directory_mode = self.path.is_dir() or self.path.suffix.lower() != ".mcap"
+        if self.directory_mode:
+            try:
+                self.path.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise RecordingError(f"cannot create recording directory {self.path}: {exc.strerror}") from None
+        elif not self.path.parent.is_dir():
+            raise RecordingError(f"recording directory does not exist: {self.path.parent}")
+        try:
+            config_json = json.dumps(config, sort_keys=True, default=_json_default)
+        except (TypeError, ValueError) as exc:
+            raise RecordingError(f"pipeline config cannot be stored as JSON: {exc}") from None
+        self._meta = {
+            "station_name": station.name,
+            "station_toml": station.to_toml(),
+            "config_json": config_json,
+            "cbh_version": cbh_version(),
+            "cameras": ",".join(station.cameras),
+            "recorder_start_utc": datetime.now(timezone.utc).isoformat().replace("+00:00", "Z"),
+        }
+        self._file: _File | None = None
+        self._paths: list[Path] = []
+        self._pair_index = 0
+        self._closed = False
+
+    # --- files --------------------------------------------------------------------------
+
+    @property
+    def paths(self) -> list[Path]:
+        """Files written so far (in order)."""
+        return list(self._paths)
+
+    @property
+    def pairs_written(self) -> int:
+        return self._pair_index
+
+    def _next_path(self, t_ns: int) -> Path:
+        if self.directory_mode:
+            base = f"{self.station.name}-{_utc_name(t_ns)}"
+            p, k = self.path / f"{base}.mcap", 1
+            while p.exists() or p in self._paths:
+                p, k = self.path / f"{base}-{k:03d}.mcap", k + 1
+            return p
+        if not self._paths:
+            return self.path
+        return self.path.with_name(f"{self.path.stem}-{len(self._paths):03d}.mcap")
+
+    def _ensure_file(self, t_ns: int) -> _File:
+        f = self._file
+        if f is not None and f.first_ns is not None:
+            too_big = self.rotate_bytes is not None and f.size() >= self.rotate_bytes
+            too_long = self.rotate_ns is not None and t_ns - f.first_ns >= self.rotate_ns
+            if too_big or too_long:
+                log.info("rotating recording %s (%s)", f.path, "size" if too_big else "time")
+                f.close(self.fsync)
+                self._file = f = None
+        if f is None:
+            path = self._next_path(t_ns)
+            meta = dict(self._meta, file_index=str(len(self._paths)),
+                        session_start_utc=from_ns(t_ns).isoformat().replace("+00:00", "Z"))
+            f = self._file = _File(path, meta, self.compression)
+            self._paths.append(path)
+        if f.first_ns is None:
+            f.first_ns = t_ns
+        return f
+
+    # --- writing ------------------------------------------------------------------------
+
+    def write(self, frames: tuple[Frame, Frame], result: PairResult) -> None:
+        """Record one pair: both images as received, masks, matches, points, height map,
+        histogram, then the layers (the pair's last message). Flushed before returning."""
+        if self._closed:
+            raise RecordingError("write to a closed McapRecorder")
+        t_ns = to_ns(result.time_utc)
+        messages = self._pair_messages(frames, result, t_ns)  # build all first: no half-written pair
+        f = self._ensure_file(t_ns)
+        seq = self._pair_index
+        pub = time.time_ns()
+        for topic, msg, log_ns in messages:
+            f.writer.add_message(f.channel(topic, type(msg)), log_time=log_ns, data=msg.SerializeToString(),
+                                 publish_time=pub, sequence=seq)
+        self._flush(f)
+        self._pair_index += 1
+
+    def write_status(self, time_utc: datetime, stats: dict) -> None:
+        """Record the service's statistics (``/service/status``) at ``time_utc``."""
+        if self._closed:
+            raise RecordingError("write_status to a closed McapRecorder")
+        T = cbh_types()
+        t_ns = to_ns(time_utc)
+        msg = T["ServiceStatus"]()
+        _stamp(msg.timestamp, t_ns)
+        for name, value in _flatten_numbers(stats):
+            msg.counters.add(name=name, value=value)
+        sources = stats.get("sources") if isinstance(stats, dict) else None
+        if isinstance(sources, dict):
+            for name, st in sources.items():
+                state = st.get("state", "") if isinstance(st, dict) else st
+                msg.sources.add(name=str(name), state=str(state))
+        msg.json = json.dumps(stats, sort_keys=True, default=_json_default)
+        f = self._ensure_file(t_ns)
+        f.writer.add_message(f.channel("/service/status", type(msg)), log_time=t_ns,
+                             data=msg.SerializeToString(), publish_time=time.time_ns(), sequence=self._pair_index)
+        self._flush(f)
+
+    def _flush(self, f: _File) -> None:
+        f.fh.flush()
+        if self.fsync:
+            os.fsync(f.fh.fileno())
+
+    def _pair_messages(self, frames, result: PairResult, t_ns: int) -> list:
+        from ..imageio import encode_jpeg
+
+        T, F = cbh_types(), foxglove_types()
+        cam1, cam2 = result.cameras
+        out = []
+        for fr in frames:
+            fns = to_ns(fr.time_utc)
+            data, fmt = (fr.encoded, fr.format) if fr.encoded is not None else (encode_jpeg(fr.image), "jpeg")
+            m = F["CompressedImage"](frame_id=fr.camera, data=bytes(data), format=fmt)
+            _stamp(m.timestamp, fns)
+            out.append((f"/{fr.camera}/image/compressed", m, fns))
+        for cam, mask in result.cloud_masks.items():
+            m = F["CompressedImage"](frame_id=cam, data=_png(np.asarray(mask, bool).astype(np.uint8) * 255, f"{cam} cloud mask"),
+                                     format="png")
+            _stamp(m.timestamp, t_ns)
+            out.append((f"/{cam}/cloud_mask", m, t_ns))
+        mt = T["Matches"](camera1=cam1, camera2=cam2)
+        _stamp(mt.timestamp, t_ns)
+        for method, arr in result.matches.items():
+            a = np.asarray(arr, np.float64).reshape(-1, 4)
+            mt.sets.add(method=str(method), x1=a[:, 0], y1=a[:, 1], x2=a[:, 2], y2=a[:, 3])
+        out.append(("/pair/matches", mt, t_ns))
+        pc = F["PointCloud"](frame_id=FRAME_ID_WORLD, point_stride=POINT_DTYPE.itemsize, data=pack_points(result.points))
+        _stamp(pc.timestamp, t_ns)
+        pc.pose.position.SetInParent()  # explicit identity pose (Rerun needs a translation)
+        pc.pose.orientation.w = 1.0
+        PEF = F["PackedElementField"]
+        for name, _dt, typ in POINT_FIELDS:
+            pc.fields.add(name=name, offset=POINT_DTYPE.fields[name][1], type=PEF.NumericType.Value(typ))
+        out.append(("/pair/points", pc, t_ns))
+        hm = np.ascontiguousarray(np.asarray(result.height_map, dtype="<f4"))
+        if hm.ndim != 2:
+            raise RecordingError(f"height_map: expected a 2-D array, got shape {hm.shape}")
+        ri = F["RawImage"](frame_id=cam1, width=hm.shape[1], height=hm.shape[0], encoding="32FC1",
+                           step=hm.shape[1] * 4, data=hm.tobytes())
+        _stamp(ri.timestamp, t_ns)
+        out.append(("/pair/height_map", ri, t_ns))
+        h = T["Histogram"](edges_m=np.asarray(result.histogram.edges_m, np.float64).tolist(),
+                           counts=np.asarray(result.histogram.counts, np.float64).tolist())
+        _stamp(h.timestamp, t_ns)
+        out.append(("/pair/histogram", h, t_ns))
+        pl = T["PairLayers"](camera1=cam1, camera2=cam2, flags=[str(s) for s in result.flags],
+                             point_count=len(result.points), pair_index=self._pair_index)
+        _stamp(pl.timestamp, t_ns)
+        alt = float(self.station.altitude_m)
+        for layer in result.layers:
+            pl.layers.add(height_m=float(layer.height_m), median_height_m=float(layer.median_height_m),
+                          spread_m=float(layer.spread_m), cover=float(layer.cover), points=int(layer.points),
+                          confidence=float(layer.confidence), altitude_m=float(layer.height_m) + alt)
+        for cam, frac in result.cloud_fraction.items():
+            pl.cloud_fraction.add(camera=str(cam), fraction=float(frac))
+        for stage, ms in result.timing_ms.items():
+            pl.timing.add(stage=str(stage), ms=float(ms))
+        out.append(("/pair/layers", pl, t_ns))
+        return out
+
+    def close(self) -> None:
+        """Finish the file (summary, indexes, footer). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._file is None and not self.directory_mode:
+            # Nothing written: still leave an empty, valid session at the requested path.
+            self._file = _File(self.path, dict(self._meta, file_index="0"), self.compression)
+            self._paths.append(self.path)
+        if self._file is not None:
+            self._file.close(self.fsync)
+            self._file = None
+
+    def __enter__(self) -> "McapRecorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, datetime):
+        return o.isoformat()
+    return str(o)
+
+
+def _flatten_numbers(d, prefix: str = ""):
+    """(dotted name, float) for every number in a nested dict (booleans excluded)."""
+    if not isinstance(d, dict):
+        return
+    for k, v in d.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, bool):
+            continue
+        if isinstance(v, (int, float, np.integer, np.floating)):
+            yield name, float(v)
+        elif isinstance(v, dict):
+            yield from _flatten_numbers(v, name + ".")

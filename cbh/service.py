@@ -1,0 +1,701 @@
+"""The live service behind ``cbh run``: camera readers, pairing, processing, sinks, faults.
+
+Threads: one reader per camera pulls frames from its :class:`~cbh.interfaces.FrameSource`
+into a bounded queue; the calling thread pairs them (:class:`cbh.pairing.Pairer`), processes
+one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultSink`.
+
+- **Cadence** (``cadence_s``): a pair is processed only if its time is at least
+  ``cadence_s`` after the last processed pair's (frame time, so a video file or directory is
+  subsampled the same way as a live camera); the pairs in between are *skipped*. 0 = every pair.
+- **Falling behind** (any live source): when several pairs are waiting, the newest is processed
+  and the older ones are *dropped* (counted); reader queues drop their oldest frame when full.
+  Memory stays bounded by ``queue_frames`` and the pairer's ``max_waiting`` per camera.
+  With only finite sources (files, directories, lists, the simulator as fast as possible)
+  nothing is dropped: readers wait for the processing.
+- **Faults**: a source that raises :class:`SourceError` (or an OS error/timeout) is closed and
+  reopened with exponential backoff (``backoff_initial_s`` doubling up to ``backoff_max_s``);
+  a corrupt frame (:class:`ImageError`) is counted and skipped. A pair the pipeline rejects is
+  counted as failed. None of these stop the service. Per-source state: ``connecting``,
+  ``streaming``, ``backoff``, ``ended`` (finite source done), ``failed`` (a finite source that
+  cannot be read).
+- **Stopping**: ``frames`` processed pairs, ``duration_s`` wall seconds, every source ended,
+  :meth:`Service.stop`, or SIGINT/SIGTERM (the pair in flight is finished, every sink closed).
+  A sink that fails to write (disk full, unwritable) stops the service with
+  :class:`RecordingError` after closing every sink, so what was written is kept.
+"""
+from __future__ import annotations
+
+import errno
+import logging
+import queue
+import signal
+import threading
+import time
+from dataclasses import asdict, dataclass, field, fields
+from datetime import datetime
+from pathlib import Path
+from typing import Callable
+
+from .errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
+from .result import Frame, PairResult
+from .sources import EndOfStream, decode_frame
+
+__all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySink", "STATES"]
+
+log = logging.getLogger(__name__)
+
+STATES = ("connecting", "streaming", "backoff", "ended", "failed")
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """Settings of the service loop (station file table ``[service]``)."""
+
+    cadence_s: float = 0.0  # frame time between processed pairs [s]; 0 = every pair
+    pair_tolerance_s: float = 0.5  # largest |t1 - t2| of a pair [s]
+    queue_frames: int = 4  # frames buffered per camera between reader and pairing
+    read_timeout_s: float = 0.25  # one source read blocks at most this long [s]
+    stall_timeout_s: float = 10.0  # a live source silent this long is reconnected [s]
+    backoff_initial_s: float = 0.5  # first reconnect delay [s]
+    backoff_max_s: float = 30.0  # reconnect delay cap [s]
+    snapshot_interval_s: float = 1.0  # HTTP snapshot polling period [s]
+    frames: int | None = None  # stop after this many processed pairs
+    duration_s: float | None = None  # stop after this many wall seconds [s]
+
+    def __post_init__(self):
+        for f in ("pair_tolerance_s", "read_timeout_s", "stall_timeout_s", "backoff_initial_s",
+                  "backoff_max_s", "snapshot_interval_s"):
+            if not getattr(self, f) > 0:
+                raise ConfigError(f"service.{f}: must be > 0, got {getattr(self, f)!r}")
+        if self.cadence_s < 0:
+            raise ConfigError(f"service.cadence_s: must be >= 0, got {self.cadence_s!r}")
+        if self.queue_frames < 1:
+            raise ConfigError(f"service.queue_frames: must be >= 1, got {self.queue_frames!r}")
+        if self.frames is not None and self.frames < 1:
+            raise ConfigError(f"service.frames: must be >= 1, got {self.frames!r}")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ConfigError(f"service.duration_s: must be > 0, got {self.duration_s!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict | None, where: str = "service") -> "ServiceConfig":
+        """From a TOML table; unknown keys and wrong types raise :class:`ConfigError` naming the key."""
+        d = dict(d or {})
+        names = {f.name: f for f in fields(cls)}
+        kw = {}
+        for k, v in d.items():
+            if k not in names:
+                raise ConfigError(f"{where}.{k}: unknown key (allowed: {', '.join(names)})")
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ConfigError(f"{where}.{k}: expected a number, got {v!r}")
+            kw[k] = int(v) if k in ("queue_frames", "frames") else float(v)
+        return cls(**kw)
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+@dataclass
+class SourceStatus:
+    """Live state of one camera's reader."""
+
+    state: str = "connecting"
+    frames: int = 0  # frames received
+    corrupt: int = 0  # frames that could not be decoded (skipped)
+    dropped: int = 0  # frames dropped because the queue was full (processing behind)
+    reconnects: int = 0
+    error: str | None = None  # last error message
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class ServiceStats:
+    """Counters of one run (what the status line shows and the recorder stores)."""
+
+    pairs_processed: int = 0
+    pairs_dropped: int = 0  # newer pairs were waiting: processing fell behind
+    pairs_skipped: int = 0  # closer than the cadence to the last processed pair
+    pairs_failed: int = 0  # the pipeline rejected the pair
+    unpaired: dict[str, int] = field(default_factory=dict)
+    sources: dict[str, SourceStatus] = field(default_factory=dict)
+    latency_s: float | None = None  # frame received → result written, last pair [s]
+    process_s: float | None = None  # pipeline time of the last pair [s]
+    last_time_utc: datetime | None = None
+    last_layers_m: list[float] = field(default_factory=list)  # latest layer heights above the ENU origin [m]
+    started_monotonic: float = field(default_factory=time.monotonic)
+    stop_reason: str | None = None
+    last_error: str | None = None
+
+    def to_dict(self) -> dict:
+        return {
+            "pairs_processed": self.pairs_processed,
+            "pairs_dropped": self.pairs_dropped,
+            "pairs_skipped": self.pairs_skipped,
+            "pairs_failed": self.pairs_failed,
+            "unpaired": dict(self.unpaired),
+            "corrupt": {c: s.corrupt for c, s in self.sources.items()},
+            "reconnects": {c: s.reconnects for c, s in self.sources.items()},
+            "sources": {c: s.state for c, s in self.sources.items()},
+            "latency_s": self.latency_s,
+            "process_s": self.process_s,
+            "layers_m": list(self.last_layers_m),
+            "elapsed_s": round(time.monotonic() - self.started_monotonic, 3),
+        }
+
+    def line(self) -> str:
+        """One-line status text."""
+        layers = ", ".join(f"{h:.0f} m" for h in self.last_layers_m) or "-"
+        src = " ".join(f"{c}:{s.state}" for c, s in self.sources.items())
+        lat = f"{self.latency_s:.2f} s" if self.latency_s is not None else "-"
+        extra = ""
+        corrupt = sum(s.corrupt for s in self.sources.values())
+        if corrupt:
+            extra += f" corrupt {corrupt}"
+        if self.pairs_failed:
+            extra += f" failed {self.pairs_failed}"
+        return (f"pairs {self.pairs_processed} dropped {self.pairs_dropped} skipped {self.pairs_skipped}"
+                f" unpaired {sum(self.unpaired.values())}{extra} | latency {lat} | layers {layers} | {src}")
+
+
+class MemorySink:
+    """A :class:`~cbh.interfaces.ResultSink` that keeps everything in a list (tests)."""
+
+    def __init__(self):
+        self.items: list[tuple[tuple[Frame, Frame], PairResult]] = []
+        self.status: list[tuple[datetime, dict]] = []
+        self.closed = False
+
+    def write(self, frames, result) -> None:
+        if self.closed:
+            raise RecordingError("MemorySink: write after close")
+        self.items.append((frames, result))
+
+    def write_status(self, time_utc, stats: dict) -> None:
+        self.status.append((time_utc, stats))
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class _Reader(threading.Thread):
+    """Pulls one source into a bounded queue; reconnects with backoff; never raises."""
+
+    def __init__(self, source, cfg: ServiceConfig, status: SourceStatus, stop: threading.Event,
+                 wake: threading.Event, opened: bool):
+        super().__init__(name=f"cbh-reader-{source.camera}", daemon=True)
+        self.src, self.cfg, self.status = source, cfg, status
+        self.live = bool(getattr(source, "live", True))
+        self.q: queue.Queue = queue.Queue(maxsize=cfg.queue_frames)
+        self._stop_ev, self._wake = stop, wake
+        self._opened = opened
+        self.done = False
+
+    def _set(self, state: str, error: str | None = None) -> None:
+        if state != self.status.state:
+            log.info(f"{self.src.camera}: {state}" + (f" ({error})" if error else ""),
+                     extra={"cbh_camera": self.src.camera, "cbh_state": state, "cbh_error": error})
+        self.status.state = state
+        if error is not None:
+            self.status.error = error
+
+    def run(self) -> None:
+        backoff = self.cfg.backoff_initial_s
+        cam = self.src.camera
+        try:
+            while not self._stop_ev.is_set():
+                try:
+                    if not self._opened:
+                        self._set("connecting")
+                        self.src.open()
+                        self._opened = True
+                        self._set("streaming")
+                    frame = self.src.read(self.cfg.read_timeout_s)
+                    if frame is None:
+                        continue
+                    backoff = self.cfg.backoff_initial_s
+                    self.status.frames += 1
+                    frame._cbh_recv_s = time.monotonic()  # for the latency figure
+                    self._put(frame)
+                except ImageError as exc:
+                    self.status.corrupt += 1
+                    self.status.error = str(exc)
+                    log.warning(f"{cam}: corrupt frame skipped: {exc}", extra={"cbh_camera": cam, "cbh_event": "corrupt"})
+                except EndOfStream:
+                    self._set("ended")
+                    return
+                except (SourceError, OSError, TimeoutError) as exc:
+                    msg = str(exc) if isinstance(exc, CbhError) else f"{type(exc).__name__}: {exc}"
+                    self._close_src()
+                    self._opened = False
+                    if not self.live:
+                        self._set("failed", msg)
+                        return
+                    self.status.reconnects += 1
+                    self._set("backoff", msg)
+                    log.warning(f"{msg if msg.startswith(cam) else cam + ': ' + msg}; reconnecting in {backoff:.2g} s",
+                                extra={"cbh_camera": cam, "cbh_event": "reconnect", "cbh_backoff_s": backoff})
+                    self._stop_ev.wait(backoff)
+                    backoff = min(backoff * 2.0, self.cfg.backoff_max_s)
+                except Exception as exc:  # a bug in a source must not take the service down silently
+                    log.error(f"{cam}: source error: {exc!r}", exc_info=True, extra={"cbh_camera": cam})
+                    self._close_src()
+                    self._opened = False
+                    self._set("failed", f"{type(exc).__name__}: {exc}")
+                    return
+        finally:
+            self.done = True
+            self._wake.set()
+
+    def _put(self, frame: Frame) -> None:
+        if self.live:
+            while True:
+                try:
+                    self.q.put_nowait(frame)
+                    break
+                except queue.Full:
+                    try:
+                        self.q.get_nowait()
+                        self.status.dropped += 1
+                    except queue.Empty:
+                        pass
+        else:
+            while not self._stop_ev.is_set():
+                try:
+                    self.q.put(frame, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+        self._wake.set()
+
+    def _close_src(self) -> None:
+        try:
+            self.src.close()
+        except Exception:  # closing a broken connection may fail again; nothing to keep
+            pass
+
+
+class Service:
+    """Run the sources → pairing → processing → sinks loop.
+
+    Parameters
+    ----------
+    sources : sequence of FrameSource
+        Exactly two: camera 1's and camera 2's (pairs come out in this order).
+    process : callable (Frame, Frame) → PairResult
+        Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc)``.
+        Frames arrive decoded (``image`` set).
+    sinks : sequence of ResultSink
+        Each gets ``write((f1, f2), result)`` per pair, ``write_status(time_utc, stats)`` if it
+        has that method, and ``close()`` at the end.
+    config : ServiceConfig
+    on_pair : callable (ServiceStats, PairResult | None) → None, optional
+        Called after every processed (or failed) pair and now and then while idle (status line).
+    """
+
+    def __init__(self, sources, process: Callable[[Frame, Frame], PairResult], sinks=(),
+                 config: ServiceConfig | None = None, on_pair: Callable | None = None):
+        sources = list(sources)
+        if len(sources) != 2:
+            raise ConfigError(f"the service needs exactly two sources, got {len(sources)}")
+        self.sources, self.process, self.sinks = sources, process, list(sinks)
+        self.cfg = config or ServiceConfig()
+        self.on_pair = on_pair
+        self.cameras = (sources[0].camera, sources[1].camera)
+        self.stats = ServiceStats(sources={s.camera: SourceStatus() for s in sources})
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._signals = 0
+
+    # -- control ------------------------------------------------------------------------------
+    def stop(self, reason: str = "stopped") -> None:
+        """Ask the loop to end after the pair in flight (thread- and signal-safe)."""
+        if self.stats.stop_reason is None:
+            self.stats.stop_reason = reason
+        self._stop.set()
+        self._wake.set()
+
+    def _on_signal(self, signum, _frame) -> None:
+        self._signals += 1
+        if self._signals > 1:
+            raise KeyboardInterrupt  # second signal: stop now
+        self.stop(signal.Signals(signum).name)
+
+    # -- main loop ----------------------------------------------------------------------------
+    def run(self, handle_signals: bool = True) -> ServiceStats:
+        """Run until a stop condition; returns the counters. Every sink is closed on return."""
+        from .pairing import Pairer
+
+        old = {}
+        if handle_signals and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                old[sig] = signal.signal(sig, self._on_signal)
+        readers: list[_Reader] = []
+        try:
+            # finite sources are opened now, so a missing file is one clear error at start
+            opened = []
+            for s in self.sources:
+                if not getattr(s, "live", True):
+                    s.open()
+                    self.stats.sources[s.camera].state = "streaming"
+                opened.append(not getattr(s, "live", True))
+            pairer = Pairer(self.cameras, self.cfg.pair_tolerance_s,
+                            max_waiting=max(2 * self.cfg.queue_frames, 8))
+            self.stats.unpaired = pairer.stats.unpaired
+            self.stats.started_monotonic = time.monotonic()
+            readers = [_Reader(s, self.cfg, self.stats.sources[s.camera], self._stop, self._wake, o)
+                       for s, o in zip(self.sources, opened)]
+            for r in readers:
+                r.start()
+            self._loop(readers, pairer)
+        finally:
+            self._stop.set()
+            for r in readers:
+                r.join(timeout=2.0 + self.cfg.read_timeout_s)
+            for s in self.sources:
+                try:
+                    s.close()
+                except Exception as exc:
+                    log.warning(f"{s.camera}: close failed: {exc}")
+            close_err = self._close_sinks()
+            for sig, h in old.items():
+                signal.signal(sig, h)
+        if close_err is not None:
+            raise close_err
+        if self.stats.pairs_processed == 0:
+            failed = [f"{c}: {st.error}" for c, st in self.stats.sources.items() if st.state == "failed"]
+            if failed:
+                raise SourceError("; ".join(failed))
+            if self.stats.pairs_failed and self.stats.last_error:
+                raise ImageError(f"no pair could be processed: {self.stats.last_error}")
+        return self.stats
+
+    def _close_sinks(self) -> Exception | None:
+        err = None
+        for sink in self.sinks:
+            try:
+                sink.close()
+            except Exception as exc:
+                log.error(f"closing {type(sink).__name__} failed: {exc}", extra={"cbh_sink": type(sink).__name__})
+                if err is None:
+                    err = _sink_error(sink, exc, "closing")
+        return err
+
+    def _loop(self, readers: list[_Reader], pairer) -> None:
+        cfg, st = self.cfg, self.stats
+        live = any(r.live for r in readers)
+        t_end = None if cfg.duration_s is None else st.started_monotonic + cfg.duration_s
+        pending: list[tuple[Frame, Frame]] = []
+        last_t: datetime | None = None  # time of the last pair accepted for processing
+        last_status = 0.0
+        while not self._stop.is_set():
+            self._wake.clear()
+            for r in readers:
+                other = readers[1] if r is readers[0] else readers[0]
+                while True:
+                    # lossless: leave frames with a reader that is ahead of the other camera
+                    # (it waits) instead of overflowing the pairer, unless the other has ended
+                    if (not live and pairer.waiting()[r.src.camera] >= pairer.max_waiting - 1
+                            and not (other.done and other.q.empty())):
+                        break
+                    try:
+                        pairer.push(r.q.get_nowait())
+                    except queue.Empty:
+                        break
+            finished = all(r.done and r.q.empty() for r in readers)
+            new = pairer.flush() if finished else pairer.pop_pairs()
+            for p in new:
+                t = p[0].time_utc
+                if last_t is not None and cfg.cadence_s > 0 and (t - last_t).total_seconds() < cfg.cadence_s - 1e-6:
+                    st.pairs_skipped += 1
+                    continue
+                if last_t is not None and cfg.cadence_s > 0:
+                    missed = int((t - last_t).total_seconds() / cfg.cadence_s + 1e-6) - 1
+                    if live and missed > 0:
+                        st.pairs_dropped += missed
+                pending.append(p)
+                last_t = t
+            if live and len(pending) > 1:
+                if cfg.cadence_s == 0:
+                    st.pairs_dropped += len(pending) - 1
+                pending = pending[-1:]
+            if pending:
+                self._handle(pending.pop(0))
+                if cfg.frames is not None and st.pairs_processed >= cfg.frames:
+                    self.stop("frames")
+                continue
+            if t_end is not None and time.monotonic() >= t_end:
+                self.stop("duration")
+                break
+            if finished:
+                self.stop("sources ended")
+                break
+            now = time.monotonic()
+            if self.on_pair is not None and now - last_status > 1.0:
+                last_status = now
+                self.on_pair(st, None)
+            wait = 0.5 if t_end is None else max(0.0, min(0.5, t_end - now))
+            self._wake.wait(wait)
+
+    def _handle(self, pair: tuple[Frame, Frame]) -> None:
+        st = self.stats
+        f1, f2 = pair
+        try:
+            decode_frame(f1)
+        except ImageError as exc:
+            return self._corrupt(f1, exc)
+        try:
+            decode_frame(f2)
+        except ImageError as exc:
+            return self._corrupt(f2, exc)
+        t0 = time.monotonic()
+        try:
+            result = self.process(f1, f2)
+        except Exception as exc:  # a bad pair never stops the service
+            st.pairs_failed += 1
+            st.last_error = str(exc) if isinstance(exc, CbhError) else f"{type(exc).__name__}: {exc}"
+            log.warning(f"pair at {f1.time_utc.isoformat()} failed: {st.last_error}",
+                        exc_info=not isinstance(exc, CbhError), extra={"cbh_event": "pair_failed"})
+            if self.on_pair is not None:
+                self.on_pair(st, None)
+            return
+        st.process_s = time.monotonic() - t0
+        for sink in self.sinks:
+            try:
+                sink.write(pair, result)
+            except Exception as exc:
+                err = _sink_error(sink, exc, "writing")
+                log.error(str(err), extra={"cbh_event": "sink_failed"})
+                self.stop("sink failed")
+                raise err from None
+        st.pairs_processed += 1
+        st.last_time_utc = result.time_utc
+        st.last_layers_m = [float(l.height_m) for l in result.layers]
+        recv = max(getattr(f1, "_cbh_recv_s", t0), getattr(f2, "_cbh_recv_s", t0))
+        st.latency_s = time.monotonic() - recv
+        status = st.to_dict()
+        for sink in self.sinks:
+            ws = getattr(sink, "write_status", None)
+            if ws is not None:
+                try:
+                    ws(result.time_utc, status)
+                except Exception as exc:
+                    err = _sink_error(sink, exc, "writing status to")
+                    self.stop("sink failed")
+                    raise err from None
+        log.info("pair processed", extra={
+            "cbh_time_utc": result.time_utc.isoformat(), "cbh_layers_m": st.last_layers_m,
+            "cbh_process_s": round(st.process_s, 3), "cbh_latency_s": round(st.latency_s, 3),
+            "cbh_pairs": st.pairs_processed, "cbh_dropped": st.pairs_dropped,
+        })
+        if self.on_pair is not None:
+            self.on_pair(st, result)
+
+    def _corrupt(self, frame: Frame, exc: ImageError) -> None:
+        s = self.stats.sources[frame.camera]
+        s.corrupt += 1
+        s.error = str(exc)
+        log.warning(f"{frame.camera}: corrupt frame skipped: {exc}", extra={"cbh_camera": frame.camera, "cbh_event": "corrupt"})
+
+
+def _sink_error(sink, exc: Exception, doing: str) -> RecordingError:
+    name = getattr(sink, "path", None) or type(sink).__name__
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return RecordingError(f"disk full while {doing} {name}: stopped; everything written before is kept")
+    if isinstance(exc, OSError):
+        return RecordingError(f"cannot write {name}: {exc.strerror or exc}; stopped; everything written before is kept")
+    if isinstance(exc, RecordingError) and "disk full" in str(exc):
+        return exc
+    return RecordingError(f"{doing} {name} failed: {exc}; stopped")
+
+
+# --- assembling a run (what `cbh run` does) ------------------------------------------------------
+
+class RunSetup:
+    """A ready-to-run service with its station, sources, pipeline and sinks (see :func:`build_run`)."""
+
+    def __init__(self, station, cameras, sources, pipeline, sinks, config: ServiceConfig, recorder, notes):
+        self.station, self.cameras, self.sources = station, cameras, sources
+        self.pipeline, self.sinks, self.config = pipeline, sinks, config
+        self.recorder = recorder  # McapRecorder or None
+        self.notes = notes
+
+    def process(self, f1: Frame, f2: Frame) -> PairResult:
+        return self.pipeline.process(f1.image, f2.image, f1.time_utc)
+
+    def run(self, status: bool = True, on_pair: Callable | None = None) -> ServiceStats:
+        """Run the service with a live status line (rich) unless ``status`` is False."""
+        import sys
+
+        for n in self.notes:
+            print(n, file=sys.stderr)
+        if not status:
+            svc = Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair)
+            return svc.run()
+        from rich.console import Console
+
+        console = Console(stderr=True)
+        if console.is_terminal:
+            from rich.live import Live
+            from rich.text import Text
+
+            with Live(Text("starting…"), console=console, refresh_per_second=4, transient=False) as live:
+                def show(st, result):
+                    live.update(Text(st.line()))
+                    if on_pair is not None:
+                        on_pair(st, result)
+
+                svc = Service(self.sources, self.process, self.sinks, self.config, on_pair=show)
+                return svc.run()
+
+        def plain(st, result):  # not a terminal: one line per processed pair
+            if result is not None:
+                print(f"{result.time_utc.isoformat().replace('+00:00', 'Z')}  {st.line()}", file=sys.stderr, flush=True)
+            if on_pair is not None:
+                on_pair(st, result)
+
+        svc = Service(self.sources, self.process, self.sinks, self.config, on_pair=plain)
+        return svc.run()
+
+    def report(self, stats: ServiceStats) -> None:
+        """Print the end-of-run summary (stdout)."""
+        print(f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
+              f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
+              f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}")
+        if stats.last_layers_m:
+            print("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
+                  + f" above the station ({self.station.altitude_m:.0f} m a.s.l.)")
+        rec = self.recorder
+        if rec is not None:
+            paths = getattr(rec, "paths", None) or [getattr(rec, "path", "?")]
+            for p in paths:
+                print(f"recorded: {p}")
+        for s in self.sinks:
+            if type(s).__name__ == "LayerExporter":
+                print(f"exported: {getattr(s, 'path', '?')}")
+
+
+def _rerun_args(spec: str) -> tuple[str, str | None]:
+    """``--rerun`` value → (mode, target): ``MODE``, ``MODE=TARGET`` (``connect=URL``,
+    ``save=PATH.rrd``), or a bare URL / PATH.rrd (validated by :func:`cbh.viz.parse_rerun_spec`)."""
+    s = spec.strip()
+    for mode in ("spawn", "serve", "connect", "save"):
+        for sep in ("=", ":"):
+            if s.lower().startswith(mode + sep):
+                return mode, s[len(mode) + 1:] or None
+    return s, None
+
+
+def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None, rerun=None, export=None,
+              cadence_s=None, frames=None, duration_s=None, size_px=None, pair_tolerance_s=None, watch=False,
+              realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6) -> RunSetup:
+    """Assemble ``cbh run``: station, sources, pipeline, sinks, service config (no thread started).
+
+    Cameras without a ``--source`` use their station ``source`` key; cameras with neither are
+    simulated (``--scene``, default ``two-layers``). A run whose sources are all simulated and
+    that has neither ``frames`` nor ``duration_s`` processes ``demo_frames`` pairs.
+    ``record``: None (off), True (``recordings/<station>-<UTC>.mcap``) or a path (a ``.mcap``
+    file, or a directory).
+    """
+    from datetime import timezone
+
+    from .presets import scene_path, station_path
+    from .sources import open_source
+    from .station import load_station
+
+    st = load_station(station_path(station) if station else station_path())
+    overrides: dict[str, str] = {}
+    for s in sources:
+        cam, sep, spec = s.partition("=")
+        if not sep or not cam.strip() or not spec.strip():
+            raise ConfigError(f"--source {s!r}: expected CAMERA=SPEC, e.g. cam1=rtsp://host/stream")
+        if cam.strip() not in st.cameras:
+            raise ConfigError(f"--source {s!r}: no camera {cam.strip()!r} in station {st.name!r} "
+                              f"(cameras: {', '.join(st.cameras)})")
+        overrides[cam.strip()] = spec.strip()
+    c1, c2 = st.pair(cameras)
+    names = (c1.name, c2.name)
+    specs = {n: overrides.get(n) or st.cameras[n].source or "sim" for n in names}
+    simulated = [n for n in names if specs[n].lower() in ("sim", "simulator", "sim:")]
+    if simulated and len(simulated) != 2:
+        raise ConfigError(f"camera {simulated[0]} would be simulated and the other not: give both a source, or neither")
+    cfg_dict = dict(st.sections.get("service", {}))
+    over = {"cadence_s": cadence_s, "frames": frames, "duration_s": duration_s, "pair_tolerance_s": pair_tolerance_s}
+    cfg_dict.update({k: v for k, v in over.items() if v is not None})
+    ServiceConfig.from_dict(cfg_dict)  # cheap checks first: errors before the simulator is built
+    rerun_args = None
+    if rerun is not None:
+        from .viz import parse_rerun_spec
+
+        rerun_args = parse_rerun_spec(*_rerun_args(rerun))
+    if export is not None and Path(export).suffix.lower() not in (".csv", ".parquet"):
+        raise ConfigError(f"--export {export}: the file must end in .csv or .parquet")
+    if record is None and (rotate_mb is not None or rotate_s is not None):
+        raise ConfigError("--rotate-mb/--rotate-s need --record")
+    notes = []
+    sim = None
+    if simulated:
+        from .sim import SkySimulator, load_scene
+
+        sc = load_scene(scene_path(scene) if scene else scene_path())
+        sim = SkySimulator(st, sc, size_px=size_px)
+        st = sim.station
+        if "frames" not in cfg_dict and "duration_s" not in cfg_dict:
+            cfg_dict["frames"] = demo_frames
+            notes.append(f"simulated station {st.name} (scene {sc.name}): {demo_frames} pairs; "
+                         "--frames/--duration for more")
+        start = sc.time_utc.astimezone(timezone.utc)
+    else:
+        if size_px is not None:
+            raise ConfigError("--size applies to simulated cameras only (real frames must match the calibration)")
+        if scene is not None:
+            raise ConfigError("--scene applies to simulated cameras only, but both cameras have a source")
+        start = None
+    config = ServiceConfig.from_dict(cfg_dict)
+    step = config.cadence_s if config.cadence_s > 0 else 10.0
+    base_dir = st.path.parent if st.path is not None else None
+    same_dir = specs[names[0]] == specs[names[1]]
+    srcs = [open_source(
+        st.cameras[n], specs[n], sim=sim, start_utc=start, watch=watch, decode=False,
+        interval_s=config.snapshot_interval_s, stall_timeout_s=config.stall_timeout_s,
+        sim_step_s=step, sim_realtime=realtime, base_dir=base_dir, prefix=n if same_dir else None,
+    ) for n in names]
+    from .pipeline import Pipeline, PipelineConfig
+
+    pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
+    pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg)
+    sinks = []
+    recorder = None
+    try:
+        if record is not None:
+            from .record import McapRecorder
+
+            if record is True:
+                from datetime import datetime
+
+                stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+                out = Path("recordings") / f"{st.name}-{stamp}.mcap"
+                try:
+                    out.parent.mkdir(parents=True, exist_ok=True)
+                except OSError as exc:
+                    raise RecordingError(f"cannot create {out.parent}: {exc.strerror}") from None
+            else:
+                out = Path(record)
+            recorder = McapRecorder(out, st, pcfg.to_dict(), rotate_mb=rotate_mb, rotate_s=rotate_s)
+            sinks.append(recorder)
+        if export is not None:
+            from .export import LayerExporter
+
+            sinks.append(LayerExporter(export, st))
+        if rerun is not None:
+            from .viz import RerunSink
+
+            sinks.append(RerunSink(st, mode=rerun_args[0], target=rerun_args[1]))
+    except BaseException:
+        for s in sinks:
+            try:
+                s.close()
+            except Exception:
+                pass
+        raise
+    return RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)

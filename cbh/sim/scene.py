@@ -1,0 +1,435 @@
+"""Synthetic sky scenes: cloud layers, sun, sky, obstacles, camera imperfections (TOML).
+
+A scene says *what is in the sky*; the station (:mod:`cbh.station`) says *who looks at it*.
+:class:`cbh.sim.SkySimulator` renders one through the other. Every table and key is optional
+except ``[[layers]]`` entries' ``height_m``; unknown keys are a :class:`~cbh.errors.ConfigError`
+naming the key path (e.g. ``layers[1].coverage``). Heights are above the station's ENU origin.
+
+The file format::
+
+    name = "two-layers"                    # free text, defaults to the file stem
+    description = "..."                    # free text
+    time_utc = 2024-06-21T15:00:00Z        # start time (TOML datetime with offset, or ISO string
+                                           # ending in Z); layer positions are given at this time
+    seed = 7                               # sensor noise and obstacle shapes
+
+    [sun]
+    position = "true"                      # "true": pvlib solar position for the station's
+                                           # latitude/longitude at the capture time; "fixed": below
+    zenith_deg = 35.0                      # "fixed" only: sun zenith angle [deg]
+    azimuth_deg = 120.0                    # "fixed" only: clockwise from north [deg]
+    disk = true                            # draw the sun disk, glow and saturation
+
+    [sky]
+    zenith_bgr = [200, 125, 70]            # clear-sky colour at the zenith (B, G, R) [DN]
+    horizon_bgr = [235, 215, 200]          # clear-sky colour at the horizon [DN]
+    visibility_m = 40000.0                 # clouds fade into the haze over this range [m]
+
+    [image]
+    exposure = 1.0                         # brightness factor of the whole image
+    vignetting = 0.25                      # brightness loss at 90 deg from the optical axis, 0..1
+    noise_dn = 1.5                         # sensor noise standard deviation [DN]
+    jpeg_quality = 92                      # JPEG quality of SkySimulator.frame() (1..100)
+    jpeg_roundtrip = false                 # render() images also go through JPEG
+
+    [[layers]]                             # any number; listed in any order
+    height_m = 1500.0                      # cloud base above the ENU origin [m], > 0
+    coverage = 0.4                         # fraction of the layer's area that is cloud, 0..1
+    texture_scale_m = 800.0                # size of the largest cloud features [m], > 0
+    wind_ms = [6.0, -2.0]                  # drift (east, north) [m/s]
+    seed = 11                              # texture seed
+    offset_m = [0.0, 0.0]                  # texture shift (east, north) at time_utc [m]
+    brightness = 1.0                       # cloud-base brightness factor (dark rain base < 1)
+    contrast = 1.0                         # internal texture contrast factor
+    edge_softness = 1.0                    # width of the soft cloud edge, relative
+
+    [[obstacles]]                          # horizon silhouettes; their pixels have no height
+    kind = "buildings"                     # "buildings" or "trees"
+    azimuth_deg = [30.0, 95.0]             # azimuth range, clockwise from north [deg]
+    max_elevation_deg = 14.0               # tallest silhouette [deg above the horizon]
+    seed = 3
+
+    [[imperfections]]                      # per camera, all off by default
+    camera = "cam2"
+    clock_offset_s = 2.0                   # the camera captures this late (its stamp is on time)
+    rotation_error_deg = [0.5, 0.0, 0.0]   # true (yaw, pitch, roll) minus the station file's [deg]
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+from pathlib import Path
+
+from ..errors import ConfigError
+
+__all__ = [
+    "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
+    "load_scene", "parse_scene", "DEFAULT_TIME_UTC",
+]
+
+#: Start time of a scene that gives none (a clear mid-morning in Brasília).
+DEFAULT_TIME_UTC = datetime(2024, 6, 21, 14, 0, 0, tzinfo=timezone.utc)
+
+SUN_POSITIONS = ("true", "fixed")
+OBSTACLE_KINDS = ("buildings", "trees")
+
+
+@dataclass(frozen=True)
+class CloudLayer:
+    """A horizontal cloud base with a fractal texture drifting with the wind.
+
+    Attributes
+    ----------
+    height_m : float
+        Cloud-base height above the ENU origin [m].
+    coverage : float
+        Fraction of the layer's area that is cloud, 0..1.
+    texture_scale_m : float
+        Size (wavelength) of the largest cloud features [m].
+    wind_ms : tuple of float
+        Drift (east, north) [m/s].
+    seed : int
+        Texture seed.
+    offset_m : tuple of float
+        Texture shift (east, north) [m]: the scene's value at ``time_utc``; in a rendered
+        :class:`~cbh.sim.SimShot` the advected shift at that time.
+    brightness, contrast, edge_softness : float
+        Shading factors (1 = default look).
+    """
+
+    height_m: float
+    coverage: float
+    texture_scale_m: float = 800.0
+    wind_ms: tuple[float, float] = (0.0, 0.0)
+    seed: int = 0
+    offset_m: tuple[float, float] = (0.0, 0.0)
+    brightness: float = 1.0
+    contrast: float = 1.0
+    edge_softness: float = 1.0
+
+    def advected(self, dt_s: float) -> "CloudLayer":
+        """This layer ``dt_s`` seconds later (offset moved by wind · dt)."""
+        return replace(
+            self,
+            offset_m=(self.offset_m[0] + self.wind_ms[0] * dt_s, self.offset_m[1] + self.wind_ms[1] * dt_s),
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "height_m": float(self.height_m),
+            "coverage": float(self.coverage),
+            "texture_scale_m": float(self.texture_scale_m),
+            "wind_ms": [float(v) for v in self.wind_ms],
+            "seed": int(self.seed),
+            "offset_m": [float(v) for v in self.offset_m],
+            "brightness": float(self.brightness),
+            "contrast": float(self.contrast),
+            "edge_softness": float(self.edge_softness),
+        }
+
+
+@dataclass(frozen=True)
+class Sun:
+    position: str = "true"  # "true" (pvlib) or "fixed"
+    zenith_deg: float = 35.0  # "fixed": zenith angle [deg]
+    azimuth_deg: float = 120.0  # "fixed": azimuth, clockwise from north [deg]
+    disk: bool = True  # draw disk, glow and saturation
+
+
+@dataclass(frozen=True)
+class Sky:
+    zenith_bgr: tuple[float, float, float] = (200.0, 125.0, 70.0)  # clear sky at the zenith [DN]
+    horizon_bgr: tuple[float, float, float] = (235.0, 215.0, 200.0)  # clear sky at the horizon [DN]
+    visibility_m: float = 40_000.0  # clouds fade into haze over this range [m]
+
+
+@dataclass(frozen=True)
+class ImageSettings:
+    exposure: float = 1.0  # overall brightness factor
+    vignetting: float = 0.25  # relative brightness loss at 90 deg off-axis, 0..1
+    noise_dn: float = 1.5  # sensor noise std [DN]
+    jpeg_quality: int = 92  # quality of encoded frames, 1..100
+    jpeg_roundtrip: bool = False  # render() images go through JPEG too
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    kind: str  # "buildings" or "trees"
+    azimuth_deg: tuple[float, float]  # azimuth range, clockwise from north [deg]
+    max_elevation_deg: float  # tallest silhouette above the horizon [deg]
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Imperfection:
+    camera: str
+    clock_offset_s: float = 0.0  # the camera captures this many seconds late [s]
+    rotation_error_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # true minus nominal (yaw, pitch, roll) [deg]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A synthetic sky (see the module docstring for the TOML form).
+
+    Attributes
+    ----------
+    layers : tuple of CloudLayer
+        Ascending by height.
+    time_utc : datetime
+        Start time (aware UTC); layer offsets are given at this time.
+    sun, sky, image : Sun, Sky, ImageSettings
+    obstacles : tuple of Obstacle
+    imperfections : dict of str → Imperfection
+        Per camera name.
+    seed : int
+    name : str
+    path : Path or None
+    """
+
+    layers: tuple[CloudLayer, ...] = ()
+    time_utc: datetime = DEFAULT_TIME_UTC
+    sun: Sun = Sun()
+    sky: Sky = Sky()
+    image: ImageSettings = ImageSettings()
+    obstacles: tuple[Obstacle, ...] = ()
+    imperfections: dict[str, Imperfection] = field(default_factory=dict)
+    seed: int = 0
+    name: str = "scene"
+    description: str = ""
+    path: Path | None = None
+
+    def imperfection(self, camera: str) -> Imperfection:
+        return self.imperfections.get(camera) or Imperfection(camera=camera)
+
+    def layers_at(self, time_utc: datetime) -> tuple[CloudLayer, ...]:
+        """The layers advected to ``time_utc``."""
+        dt = (time_utc - self.time_utc).total_seconds()
+        return tuple(l.advected(dt) for l in self.layers)
+
+
+# --- parsing ------------------------------------------------------------------------------
+
+def _unknown(where: str, table: dict, allowed) -> None:
+    extra = sorted(set(table) - set(allowed))
+    if extra:
+        key = f"{where}.{extra[0]}" if where else extra[0]
+        raise ConfigError(f"scene: {key}: unknown key (allowed: {', '.join(sorted(allowed))})")
+
+
+def _table(where: str, value) -> dict:
+    if not isinstance(value, dict):
+        raise ConfigError(f"scene: {where}: expected a table")
+    return value
+
+
+def _num(where: str, value, *, lo=None, hi=None, lo_open=False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"scene: {where}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ConfigError(f"scene: {where}: must be finite, got {value!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise ConfigError(f"scene: {where}: must be {'>' if lo_open else '>='} {lo:g}, got {value!r}")
+    if hi is not None and v > hi:
+        raise ConfigError(f"scene: {where}: must be <= {hi:g}, got {value!r}")
+    return v
+
+
+def _int(where: str, value, *, lo=None, hi=None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"scene: {where}: expected an integer, got {value!r}")
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise ConfigError(f"scene: {where}: must be in {lo}..{hi}, got {value!r}")
+    return int(value)
+
+
+def _bool(where: str, value) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"scene: {where}: expected true or false, got {value!r}")
+    return value
+
+
+def _str(where: str, value) -> str:
+    if not isinstance(value, str):
+        raise ConfigError(f"scene: {where}: expected a string, got {value!r}")
+    return value
+
+
+def _vec(where: str, value, n: int, **kw) -> tuple[float, ...]:
+    if not isinstance(value, list) or len(value) != n:
+        raise ConfigError(f"scene: {where}: expected a list of {n} numbers, got {value!r}")
+    return tuple(_num(f"{where}[{i}]", v, **kw) for i, v in enumerate(value))
+
+
+def _time(where: str, value) -> datetime:
+    if isinstance(value, datetime):
+        t = value
+    elif isinstance(value, str):
+        try:
+            t = datetime.fromisoformat(value.strip().replace("Z", "+00:00"))
+        except ValueError:
+            raise ConfigError(f"scene: {where}: not an ISO 8601 time: {value!r}") from None
+    else:
+        raise ConfigError(f"scene: {where}: expected a UTC time like 2024-06-21T15:00:00Z, got {value!r}")
+    if t.tzinfo is None:
+        raise ConfigError(f"scene: {where}: time needs a UTC offset (end it with Z), got {value!r}")
+    return t.astimezone(timezone.utc)
+
+
+def _choice(where: str, value, choices) -> str:
+    value = _str(where, value)
+    if value not in choices:
+        raise ConfigError(f"scene: {where}: unknown value {value!r} (choose from {', '.join(choices)})")
+    return value
+
+
+def _parse_layer(where: str, d) -> CloudLayer:
+    d = _table(where, d)
+    _unknown(where, d, CloudLayer.__dataclass_fields__)
+    if "height_m" not in d:
+        raise ConfigError(f"scene: {where}.height_m: missing")
+    if "coverage" not in d:
+        raise ConfigError(f"scene: {where}.coverage: missing")
+    return CloudLayer(
+        height_m=_num(f"{where}.height_m", d["height_m"], lo=0.0, lo_open=True),
+        coverage=_num(f"{where}.coverage", d["coverage"], lo=0.0, hi=1.0),
+        texture_scale_m=_num(f"{where}.texture_scale_m", d.get("texture_scale_m", 800.0), lo=0.0, lo_open=True),
+        wind_ms=_vec(f"{where}.wind_ms", d.get("wind_ms", [0.0, 0.0]), 2),
+        seed=_int(f"{where}.seed", d.get("seed", 0), lo=0, hi=2**32 - 1),
+        offset_m=_vec(f"{where}.offset_m", d.get("offset_m", [0.0, 0.0]), 2),
+        brightness=_num(f"{where}.brightness", d.get("brightness", 1.0), lo=0.0, lo_open=True, hi=3.0),
+        contrast=_num(f"{where}.contrast", d.get("contrast", 1.0), lo=0.0, hi=5.0),
+        edge_softness=_num(f"{where}.edge_softness", d.get("edge_softness", 1.0), lo=0.0, lo_open=True, hi=20.0),
+    )
+
+
+def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) -> Scene:
+    """Validate a scene dict (as read from TOML) into a :class:`Scene`.
+
+    Raises
+    ------
+    ConfigError
+        Unknown key, wrong type or out-of-range value; the message names the key path.
+    """
+    data = _table("top level", data)
+    _unknown("", data, ("name", "description", "time_utc", "seed", "sun", "sky", "image",
+                        "layers", "obstacles", "imperfections"))
+
+    sun_d = _table("sun", data.get("sun", {}))
+    _unknown("sun", sun_d, Sun.__dataclass_fields__)
+    sun = Sun(
+        position=_choice("sun.position", sun_d.get("position", Sun.position), SUN_POSITIONS),
+        zenith_deg=_num("sun.zenith_deg", sun_d.get("zenith_deg", Sun.zenith_deg), lo=0.0, hi=180.0),
+        azimuth_deg=_num("sun.azimuth_deg", sun_d.get("azimuth_deg", Sun.azimuth_deg)) % 360.0,
+        disk=_bool("sun.disk", sun_d.get("disk", True)),
+    )
+
+    sky_d = _table("sky", data.get("sky", {}))
+    _unknown("sky", sky_d, Sky.__dataclass_fields__)
+    sky = Sky(
+        zenith_bgr=_vec("sky.zenith_bgr", sky_d.get("zenith_bgr", list(Sky.zenith_bgr)), 3, lo=0.0, hi=255.0),
+        horizon_bgr=_vec("sky.horizon_bgr", sky_d.get("horizon_bgr", list(Sky.horizon_bgr)), 3, lo=0.0, hi=255.0),
+        visibility_m=_num("sky.visibility_m", sky_d.get("visibility_m", Sky.visibility_m), lo=0.0, lo_open=True),
+    )
+
+    im_d = _table("image", data.get("image", {}))
+    _unknown("image", im_d, ImageSettings.__dataclass_fields__)
+    image = ImageSettings(
+        exposure=_num("image.exposure", im_d.get("exposure", 1.0), lo=0.0, lo_open=True, hi=10.0),
+        vignetting=_num("image.vignetting", im_d.get("vignetting", ImageSettings.vignetting), lo=0.0, hi=1.0),
+        noise_dn=_num("image.noise_dn", im_d.get("noise_dn", ImageSettings.noise_dn), lo=0.0, hi=100.0),
+        jpeg_quality=_int("image.jpeg_quality", im_d.get("jpeg_quality", ImageSettings.jpeg_quality), lo=1, hi=100),
+        jpeg_roundtrip=_bool("image.jpeg_roundtrip", im_d.get("jpeg_roundtrip", False)),
+    )
+
+    raw_layers = data.get("layers", [])
+    if not isinstance(raw_layers, list):
+        raise ConfigError("scene: layers: expected an array of tables ([[layers]])")
+    layers = [_parse_layer(f"layers[{i}]", d) for i, d in enumerate(raw_layers)]
+    layers.sort(key=lambda l: l.height_m)
+
+    raw_obs = data.get("obstacles", [])
+    if not isinstance(raw_obs, list):
+        raise ConfigError("scene: obstacles: expected an array of tables ([[obstacles]])")
+    obstacles = []
+    for i, d in enumerate(raw_obs):
+        w = f"obstacles[{i}]"
+        d = _table(w, d)
+        _unknown(w, d, Obstacle.__dataclass_fields__)
+        for key in ("kind", "azimuth_deg", "max_elevation_deg"):
+            if key not in d:
+                raise ConfigError(f"scene: {w}.{key}: missing")
+        obstacles.append(Obstacle(
+            kind=_choice(f"{w}.kind", d["kind"], OBSTACLE_KINDS),
+            azimuth_deg=_vec(f"{w}.azimuth_deg", d["azimuth_deg"], 2),
+            max_elevation_deg=_num(f"{w}.max_elevation_deg", d["max_elevation_deg"], lo=0.0, lo_open=True, hi=60.0),
+            seed=_int(f"{w}.seed", d.get("seed", i), lo=0, hi=2**32 - 1),
+        ))
+
+    raw_imp = data.get("imperfections", [])
+    if not isinstance(raw_imp, list):
+        raise ConfigError("scene: imperfections: expected an array of tables ([[imperfections]])")
+    imperfections: dict[str, Imperfection] = {}
+    for i, d in enumerate(raw_imp):
+        w = f"imperfections[{i}]"
+        d = _table(w, d)
+        _unknown(w, d, Imperfection.__dataclass_fields__)
+        if "camera" not in d:
+            raise ConfigError(f"scene: {w}.camera: missing")
+        cam = _str(f"{w}.camera", d["camera"])
+        if cam in imperfections:
+            raise ConfigError(f"scene: {w}.camera: camera {cam!r} already has imperfections")
+        imperfections[cam] = Imperfection(
+            camera=cam,
+            clock_offset_s=_num(f"{w}.clock_offset_s", d.get("clock_offset_s", 0.0), lo=-3600.0, hi=3600.0),
+            rotation_error_deg=_vec(f"{w}.rotation_error_deg", d.get("rotation_error_deg", [0.0, 0.0, 0.0]), 3,
+                                    lo=-45.0, hi=45.0),
+        )
+
+    return Scene(
+        layers=tuple(layers),
+        time_utc=_time("time_utc", data["time_utc"]) if "time_utc" in data else DEFAULT_TIME_UTC,
+        sun=sun,
+        sky=sky,
+        image=image,
+        obstacles=tuple(obstacles),
+        imperfections=imperfections,
+        seed=_int("seed", data.get("seed", 0), lo=0, hi=2**32 - 1),
+        name=_str("name", data.get("name", name)),
+        description=_str("description", data.get("description", "")),
+        path=path,
+    )
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read a scene TOML file, or a preset name (``two-layers``) from ``configs/scenes``.
+
+    Raises
+    ------
+    ConfigError
+        Missing file, malformed TOML, or a bad key (the message names it).
+    """
+    p = Path(path)
+    if not p.exists() and p.suffix != ".toml":
+        from ..presets import scene_path
+
+        p = scene_path(str(path))
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"scene file not found: {p}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"scene path is a directory, not a TOML file: {p}") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read scene file {p}: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p.name}: malformed TOML: {exc}") from None
+    try:
+        return parse_scene(data, name=p.stem, path=p)
+    except ConfigError as exc:
+        msg = str(exc)
+        raise ConfigError(f"scene {p.name}: {msg.removeprefix('scene: ')}") from None

@@ -1,0 +1,214 @@
+"""Layer exports: live CSV/Parquet sink, session tables, CF NetCDF; exact round trips."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cbh.errors import ConfigError, RecordingError
+from tests.test_record import small_station, synthetic_pair, write_session
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
+
+
+@pytest.fixture(scope="module")
+def station():
+    return small_station()
+
+
+def _clear(res):
+    """The same pair with no layer (clear sky)."""
+    from dataclasses import replace
+
+    from cbh.result import PointSet
+
+    return replace(res, layers=[], points=PointSet.empty(), flags=["few_points"])
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_live_exporter_round_trip_is_exact(tmp_path, station, suffix):
+    import pandas as pd
+
+    from cbh.export import COLUMNS, LayerExporter
+
+    out = tmp_path / f"layers{suffix}"
+    made = []
+    with LayerExporter(out, station) as exp:
+        for k in range(4):
+            frames, res = synthetic_pair(station, k)
+            if k == 3:
+                res = _clear(res)
+            exp.write(frames, res)
+            made.append(res)
+            if suffix == ".csv":  # rows are on disk as soon as write() returns
+                assert len(pd.read_csv(out)) == sum(max(1, len(r.layers)) for r in made)
+    df = pd.read_parquet(out) if suffix == ".parquet" else pd.read_csv(out, keep_default_na=True)
+    assert list(df.columns) == list(COLUMNS)
+    want = [(r.time_utc, i, l) for r in made for i, l in enumerate(r.layers)]
+    got = df[df.layer >= 0]
+    assert len(got) == len(want)
+    for (t, i, l), (_, row) in zip(want, got.iterrows()):
+        assert pd.Timestamp(row.time_utc) == pd.Timestamp(t)
+        assert row.layer == i
+        assert row.cloud_base_height_m == l.height_m  # exact: repr() text / float64 column
+        assert row.cloud_base_altitude_m == l.height_m + station.altitude_m
+        assert row.cover == l.cover and row.points == l.points and row.confidence == l.confidence
+    clear = df[df.layer == -1]
+    assert len(clear) == 1 and math.isnan(clear.cloud_base_height_m.iloc[0]) and clear.n_layers.iloc[0] == 0
+    assert clear["flags"].iloc[0] == "few_points"
+
+
+def test_csv_appends_to_its_own_file_only(tmp_path, station):
+    import pandas as pd
+
+    from cbh.export import LayerExporter
+
+    out = tmp_path / "l.csv"
+    for k in range(2):
+        with LayerExporter(out, station) as exp:
+            exp.write(*synthetic_pair(station, k))
+    assert len(pd.read_csv(out)) == 1 + 2  # pair 0: one layer, pair 1: two layers; one header
+    other = tmp_path / "other.csv"
+    other.write_text("a,b\n1,2\n")
+    with pytest.raises(RecordingError, match="other columns"):
+        LayerExporter(other, station)
+    pq = tmp_path / "l.parquet"
+    pq.write_bytes(b"x")
+    with pytest.raises(RecordingError, match="cannot be appended"):
+        LayerExporter(pq, station)
+    with pytest.raises(ConfigError, match="unknown format"):
+        LayerExporter(tmp_path / "l.txt", station)
+
+
+@pytest.fixture(scope="module")
+def two_sessions(tmp_path_factory, station):
+    d = tmp_path_factory.mktemp("ex")
+    _, made_a = write_session(d / "a.mcap", station, n=3)
+    # second session continues 60 s later
+    from cbh.record import McapRecorder
+
+    rec = McapRecorder(d / "b.mcap", station, {})
+    made_b = []
+    for k in range(3, 5):
+        frames, res = synthetic_pair(station, k, dt_s=30.0)
+        rec.write(frames, res)
+        made_b.append(res)
+    rec.close()
+    return d / "a.mcap", d / "b.mcap", [r for _, r in made_a] + made_b
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet", "netcdf"])
+def test_export_of_sessions_gives_exactly_the_recorded_heights(tmp_path, two_sessions, fmt, station):
+    import pandas as pd
+    import xarray as xr
+
+    from cbh.export import export_sessions
+
+    a, b, made = two_sessions
+    out = tmp_path / {"csv": "x.csv", "parquet": "x.parquet", "netcdf": "x.nc"}[fmt]
+    rows, steps = export_sessions([b, a], fmt, out)  # given out of order: sorted by time
+    assert steps == len(made) and rows == sum(len(r.layers) for r in made)
+    made = sorted(made, key=lambda r: r.time_utc)
+    if fmt == "netcdf":
+        with xr.open_dataset(out) as ds:
+            h = ds.cloud_base_height.values
+            for i, r in enumerate(made):
+                assert pd.Timestamp(ds.time.values[i]).tz_localize("UTC") == pd.Timestamp(r.time_utc)
+                assert list(h[i, : len(r.layers)]) == [l.height_m for l in r.layers]
+                assert np.isnan(h[i, len(r.layers):]).all()
+        return
+    df = pd.read_csv(out) if fmt == "csv" else pd.read_parquet(out)
+    assert list(df.cloud_base_height_m) == [l.height_m for r in made for l in r.layers]
+    assert list(df.cloud_base_altitude_m) == [l.height_m + station.altitude_m for r in made for l in r.layers]
+
+
+def test_netcdf_is_cf_with_expected_variables_units_and_fill_values(tmp_path, two_sessions, station):
+    import netCDF4
+    import xarray as xr
+
+    from cbh.export import FILL_VALUE, export_sessions
+
+    a, b, made = two_sessions
+    out = tmp_path / "cbh.nc"
+    export_sessions([a, b], "netcdf", out)
+    with netCDF4.Dataset(out) as nc:  # raw file: fill values and CF time as written
+        assert nc.Conventions == "CF-1.8"
+        assert dict(nc.dimensions)["time"].size == 5 and dict(nc.dimensions)["layer"].size == 3
+        v = nc.variables["cloud_base_height"]
+        assert v.dimensions == ("time", "layer") and v.units == "m" and v._FillValue == FILL_VALUE
+        raw = v[:].filled(np.nan) if np.ma.isMaskedArray(v[:]) else v[:]
+        assert nc.variables["cloud_base_altitude"].standard_name == "cloud_base_altitude"
+        assert nc.variables["time"].units.startswith("microseconds since 1970-01-01")  # CF time, UTC epoch
+        assert nc.variables["time"].calendar == "standard"
+        assert nc.variables["cloud_fraction"].standard_name == "cloud_area_fraction"
+        qf = nc.variables["quality_flag"]
+        assert qf.flag_meanings.split()[0] == "few_points" and list(qf.flag_masks[:3]) == [1, 2, 4]
+        v.set_auto_mask(False)
+        assert (v[:][:, 2] == FILL_VALUE).all()  # nobody has a third layer: stored as the fill value
+    with xr.open_dataset(out) as ds:
+        for name in ("cloud_base_height", "cloud_base_altitude", "cloud_layer_cover", "cloud_fraction", "quality_flag",
+                     "n_layers", "latitude", "longitude", "altitude"):
+            assert name in ds, name
+        assert ds.attrs["station_latitude"] == station.latitude_deg
+        assert float(ds.altitude) == station.altitude_m
+        assert ds.cloud_base_altitude.attrs["units"] == "m"
+        assert ds.cloud_base_height.encoding["_FillValue"] == FILL_VALUE
+        np.testing.assert_array_equal(ds.cloud_base_altitude.values - ds.cloud_base_height.values,
+                                      np.where(np.isnan(raw), np.nan, station.altitude_m))
+        assert list(ds.n_layers.values) == [len(r.layers) for r in made]
+        # pair 2 (k=2) carries the few_points flag → bit 0
+        assert list(ds.quality_flag.values) == [1 if r.flags else 0 for r in made]
+        assert ds.time.dt.year.values[0] == 2024
+
+
+def test_export_cli_and_errors(tmp_path, two_sessions, capsys):
+    from cli.main import main
+
+    a, b, _ = two_sessions
+    assert main(["export", str(a), str(b), "--out", str(tmp_path / "o.nc")]) == 0
+    assert "5 time steps" in capsys.readouterr().out
+    assert main(["export", str(a), "--format", "csv", "--out", str(tmp_path / "o.txt")]) == 0
+    capsys.readouterr()
+    assert main(["export", str(a), "--out", str(tmp_path / "o.xyz")]) == 2
+    assert "--format" in capsys.readouterr().err
+    assert main(["export", str(a), "--format", "hdf", "--out", str(tmp_path / "o.h5")]) == 2
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x00" * 100)
+    capsys.readouterr()
+    assert main(["export", str(junk), "--out", str(tmp_path / "j.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cbh: error:") and "not an MCAP file" in err and "\n" not in err
+
+
+def test_sessions_of_different_stations_are_refused(tmp_path, station):
+    from dataclasses import replace
+
+    from cbh.export import export_sessions
+
+    write_session(tmp_path / "a.mcap", station, n=1)
+    write_session(tmp_path / "b.mcap", replace(station, name="elsewhere"), n=1)
+    with pytest.raises(RecordingError, match="differs"):
+        export_sessions([tmp_path / "a.mcap", tmp_path / "b.mcap"], "csv", tmp_path / "x.csv")
+
+
+def test_sample_recording_exports_its_layer_heights():
+    """The repository's sample session: exported heights equal those in its /pair/layers."""
+    import xarray as xr
+
+    from cbh.export import export_sessions
+    from cbh.record import open_session
+
+    s = open_session(SAMPLE)
+    recorded = [[l.height_m for l in p.result.layers] for p in s.pairs(layers_only=True)]
+    assert len(recorded) == s.pair_count >= 6
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "s.nc"
+        export_sessions([SAMPLE], "netcdf", out)
+        with xr.open_dataset(out) as ds:
+            for i, hs in enumerate(recorded):
+                assert list(ds.cloud_base_height.values[i, : len(hs)]) == hs

@@ -1,0 +1,310 @@
+"""MCAP recorder → reader round trip, rotation, flush-per-pair and recovery of a killed writer."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cbh.errors import RecordingError
+from cbh.result import Frame, Histogram, Layer, PairResult, PointSet
+
+REPO = Path(__file__).resolve().parents[1]
+T0 = datetime(2024, 3, 1, 12, 0, 0, tzinfo=timezone.utc)
+SIZE = 240  # px: small images keep the tests fast
+
+
+def small_station(size: int = SIZE):
+    from cbh.station import load_station
+
+    return load_station(REPO / "configs" / "unb-lea.toml").scaled(size)
+
+
+def synthetic_pair(station, k: int, heights=(1800.0, 4200.0), n_points: int = 60, seed: int = 0,
+                   dt_s: float = 10.0, encode: bool = True):
+    """A pair whose points are real projections of two cloud layers into both cameras."""
+    from cbh.imageio import encode_jpeg
+
+    rng = np.random.default_rng(seed + k)
+    cam1, cam2 = station.pair()
+    t = T0 + timedelta(seconds=dt_s * k)
+    n_layers = 1 + (k % len(heights))  # varies from pair to pair: 1, 2, 1, 2 …
+    xyz, lay = [], []
+    for i in range(n_layers):
+        n = n_points // n_layers
+        e = rng.uniform(-2500, 2500, n)
+        nn = rng.uniform(-2500, 2500, n)
+        z = heights[i] + rng.normal(0, 15.0, n)
+        xyz.append(np.stack([e, nn, z], 1))
+        lay.append(np.full(n, i, np.int16))
+    xyz = np.concatenate(xyz).astype(np.float32)
+    lay = np.concatenate(lay)
+    px1 = cam1.world_to_pixel(xyz.astype(np.float64) - cam1.position_m).astype(np.float32)
+    px2 = cam2.world_to_pixel(xyz.astype(np.float64) - cam2.position_m).astype(np.float32)
+    pts = PointSet(xyz, rng.uniform(0, 3, len(xyz)).astype(np.float32), px1, px2, lay)
+    layers = [Layer(float(np.percentile(xyz[lay == i, 2], 5)), float(np.median(xyz[lay == i, 2])),
+                    float(1.4826 * np.median(np.abs(xyz[lay == i, 2] - np.median(xyz[lay == i, 2])))),
+                    0.3 / (i + 1), int((lay == i).sum()), 0.9 - 0.1 * i) for i in range(n_layers)]
+    edges = np.arange(0.0, 6001.0, 250.0)
+    counts, _ = np.histogram(xyz[:, 2], edges)
+    hm = np.full((cam1.model.height, cam1.model.width), np.nan, np.float32)
+    hm[40:120, 50:150] = rng.normal(heights[0], 20, (80, 100)).astype(np.float32)
+    masks = {}
+    imgs = {}
+    for c in (cam1, cam2):
+        m = np.zeros((c.model.height, c.model.width), bool)
+        m[30 + k: 130, 40:160] = True
+        masks[c.name] = m
+        img = np.full((c.model.height, c.model.width, 3), (200, 150, 100), np.uint8)
+        img[m] = (230, 230, 230)
+        img[:, :, 1] = (img[:, :, 1].astype(int) + rng.integers(0, 20, img.shape[:2])).clip(0, 255)
+        imgs[c.name] = img
+    matches = {"lk": np.concatenate([px1, px2], 1).astype(np.float64)}
+    res = PairResult(t, (cam1.name, cam2.name), layers, Histogram(edges, counts.astype(np.float64)), pts, hm,
+                     masks, {cam1.name: 0.41 + 0.01 * k, cam2.name: 0.40}, {"segment": 3.5, "match": 12.25},
+                     ["few_points"] if k % 3 == 2 else [], matches)
+    frames = tuple(Frame(c.name, t + timedelta(milliseconds=20 * j), imgs[c.name],
+                         encoded=encode_jpeg(imgs[c.name], 85) if encode else None, sequence=k)
+                   for j, c in enumerate((cam1, cam2)))
+    return frames, res
+
+
+def write_session(path, station, n: int = 4, **kw):
+    from cbh.record import McapRecorder
+
+    rec = McapRecorder(path, station, {"segment": {"method": "rbr", "threshold": 0.6}}, **kw)
+    made = []
+    for k in range(n):
+        frames, res = synthetic_pair(station, k)
+        rec.write(frames, res)
+        made.append((frames, res))
+    rec.write_status(T0 + timedelta(seconds=10 * n), {"pairs_processed": n, "pairs_dropped": 1, "unpaired": 2,
+                                                      "sources": {"cam1": {"state": "ok"}, "cam2": "reconnecting"}})
+    rec.close()
+    return rec, made
+
+
+@pytest.fixture(scope="module")
+def station():
+    return small_station()
+
+
+@pytest.fixture(scope="module")
+def session_file(tmp_path_factory, station):
+    path = tmp_path_factory.mktemp("rec") / "s.mcap"
+    rec, made = write_session(path, station, n=4)
+    return path, made
+
+
+def test_round_trip_gives_back_every_pair_exactly(session_file, station):
+    from cbh.record import open_session
+
+    path, made = session_file
+    s = open_session(path)
+    pairs = list(s.pairs())
+    assert len(pairs) == len(made) == s.pair_count
+    for p, (frames, res) in zip(pairs, made):
+        r = p.result
+        assert p.time_utc == res.time_utc and r.cameras == res.cameras
+        assert [l.to_dict() for l in r.layers] == [l.to_dict() for l in res.layers]  # bit-exact doubles
+        assert p.altitude_m == [l.height_m + station.altitude_m for l in res.layers]
+        np.testing.assert_array_equal(r.histogram.edges_m, res.histogram.edges_m)
+        np.testing.assert_array_equal(r.histogram.counts, res.histogram.counts)
+        np.testing.assert_array_equal(r.points.xyz_m, res.points.xyz_m)
+        np.testing.assert_array_equal(r.points.miss_m, res.points.miss_m)
+        np.testing.assert_array_equal(r.points.px1, res.points.px1)
+        np.testing.assert_array_equal(r.points.px2, res.points.px2)
+        np.testing.assert_array_equal(r.points.layer, res.points.layer)
+        np.testing.assert_array_equal(r.height_map, res.height_map)  # NaN positions equal too
+        for cam in res.cloud_masks:
+            np.testing.assert_array_equal(r.cloud_masks[cam], res.cloud_masks[cam])
+        assert r.cloud_fraction == res.cloud_fraction and r.timing_ms == res.timing_ms and r.flags == res.flags
+        np.testing.assert_array_equal(r.matches["lk"], res.matches["lk"])
+        for fr in frames:  # images are the bytes as received, not re-encoded
+            img = p.images[fr.camera]
+            assert img.data == fr.encoded and img.format == "jpeg" and img.time_utc == fr.time_utc
+        f1, f2 = p.frames()
+        assert f1.image.shape == frames[0].image.shape
+
+
+def test_metadata_topics_and_status(session_file, station):
+    from cbh.record import open_session
+    from cbh.station import parse_station
+    import tomllib
+
+    path, made = session_file
+    s = open_session(path)
+    assert s.config == {"segment": {"method": "rbr", "threshold": 0.6}}
+    assert s.station.name == station.name
+    st2 = parse_station(tomllib.loads(s.station_toml))
+    # parse_station re-orthonormalises rotations (SVD): equal to the last bit or two
+    np.testing.assert_allclose(st2.cameras["cam2"].R_world_from_cam, station.cameras["cam2"].R_world_from_cam,
+                               rtol=0, atol=1e-15)
+    assert s.version and s.version != "unknown"
+    topics = {t.topic: t for t in s.topics}
+    for cam in ("cam1", "cam2"):
+        assert topics[f"/{cam}/image/compressed"].schema == "foxglove.CompressedImage"
+        assert topics[f"/{cam}/image/compressed"].count == 4
+    assert topics["/pair/points"].schema == "foxglove.PointCloud"
+    assert topics["/pair/height_map"].schema == "foxglove.RawImage"
+    assert topics["/pair/layers"].schema == "cbh.PairLayers"
+    assert topics["/service/status"].count == 1
+    first, last = s.time_span
+    assert first == made[0][1].time_utc and last == made[-1][1].time_utc + timedelta(seconds=10)
+    (t, stats), = list(s.statuses())
+    assert stats["pairs_dropped"] == 1 and stats["sources"]["cam2"] == "reconnecting"
+
+
+def test_generic_protobuf_decoder_reads_every_message(session_file):
+    """Foxglove-style generic decoding from the schemas in the file (no cbh code)."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    path, made = session_file
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        seen = {}
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            seen[channel.topic] = decoded
+    assert len(seen) == 10  # 2 images, 2 masks, matches, points, height map, histogram, layers, status
+    layers = seen["/pair/layers"]
+    assert [l.height_m for l in layers.layers] == [l.height_m for l in made[-1][1].layers]
+    assert seen["/pair/points"].point_stride == 36
+
+
+def test_rotation_by_size_and_time(tmp_path, station):
+    from cbh.record import open_session
+
+    rec, made = write_session(tmp_path / "big.mcap", station, n=5, rotate_mb=0.001)
+    assert len(rec.paths) >= 4 and rec.paths[0] == tmp_path / "big.mcap"
+    assert rec.paths[1] == tmp_path / "big-001.mcap"
+    s = open_session(rec.paths)
+    assert [p.time_utc for p in s.pairs()] == [r.time_utc for _, r in made]
+    d = tmp_path / "dir"
+    rec2, made2 = write_session(d, station, n=5, rotate_s=25)  # pairs 10 s apart: 0,10,20 | 30,40
+    names = [p.name for p in rec2.paths]
+    assert names == ["unb-lea-20240301T120000Z.mcap", "unb-lea-20240301T120030Z.mcap"]
+    assert open_session(d).pair_count == 5
+
+
+def test_frames_without_encoded_bytes_are_encoded_once(tmp_path, station):
+    from cbh.record import McapRecorder, open_session
+
+    frames, res = synthetic_pair(station, 0, encode=False)
+    with McapRecorder(tmp_path / "x.mcap", station, {}) as rec:
+        rec.write(frames, res)
+    (p,) = list(open_session(tmp_path / "x.mcap").pairs())
+    img = p.images["cam1"].decode()
+    # JPEG q92 of a smooth image: mean error of a few grey levels at most
+    assert np.abs(img.astype(int) - frames[0].image.astype(int)).mean() < 4
+
+
+def test_foreign_and_truncated_files_give_one_line_errors(tmp_path, session_file):
+    from cbh.record import open_session
+
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap at all" * 10)
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        open_session(junk)
+    with pytest.raises(RecordingError, match="not found"):
+        open_session(tmp_path / "missing.mcap")
+    # A valid MCAP file that is not a cbh recording
+    from mcap.writer import Writer
+
+    other = tmp_path / "other.mcap"
+    with open(other, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema("x", "jsonschema", b"{}")
+        cid = w.register_channel("/x", "json", sid)
+        w.add_message(cid, 1, b"{}", 1)
+        w.finish()
+    with pytest.raises(RecordingError, match="not a cbh recording"):
+        open_session(other)
+    path, _ = session_file
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(RecordingError, match="truncated.*--repair") as ei:
+        open_session(cut)
+    assert "\n" not in str(ei.value)
+
+
+@pytest.mark.parametrize("fraction", [0.35, 0.8])
+def test_recover_truncated_file_keeps_every_complete_pair(tmp_path, session_file, fraction):
+    from cbh.record import open_session, recover
+
+    path, made = session_file
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    rep = recover(cut, tmp_path / "fixed.mcap")
+    assert not rep.complete and 0 < rep.pairs < len(made)
+    s = open_session(tmp_path / "fixed.mcap")
+    got = list(s.pairs())
+    assert len(got) == rep.pairs
+    for p, (_, res) in zip(got, made):
+        assert [l.height_m for l in p.result.layers] == [l.height_m for l in res.layers]
+    # a complete file recovers to all pairs
+    rep2 = recover(path, tmp_path / "same.mcap")
+    assert rep2.complete and rep2.pairs == len(made)
+
+
+KILL_SCRIPT = r"""
+import sys, time
+sys.path.insert(0, sys.argv[2])
+from tests.test_record import small_station, synthetic_pair
+from cbh.record import McapRecorder
+st = small_station()
+rec = McapRecorder(sys.argv[1], st, {"k": 1})
+for k in range(1000):
+    frames, res = synthetic_pair(st, k)
+    rec.write(frames, res)
+    print(k, flush=True)
+    if k >= 2:
+        time.sleep(0.2)
+"""
+
+
+def test_sigkill_loses_at_most_the_pair_in_flight(tmp_path):
+    from cbh.record import open_session, recover
+
+    out = tmp_path / "killed.mcap"
+    written = -1
+    with subprocess.Popen([sys.executable, "-c", KILL_SCRIPT, str(out), str(REPO)], stdout=subprocess.PIPE,
+                          text=True) as proc:
+        for line in proc.stdout:
+            written = int(line)
+            if written >= 4:
+                break
+        os.kill(proc.pid, signal.SIGKILL)  # while it sleeps or writes pair 5
+        proc.wait()
+    assert written >= 4
+    with pytest.raises(RecordingError, match="truncated"):
+        open_session(out)
+    rep = recover(out, tmp_path / "rec.mcap")
+    # every pair whose write() returned is on disk; at most the one in flight is lost
+    assert rep.pairs >= written + 1
+    assert open_session(tmp_path / "rec.mcap").pair_count == rep.pairs
+
+
+def test_bad_arguments(tmp_path, station):
+    from cbh.errors import ConfigError
+    from cbh.record import McapRecorder
+
+    with pytest.raises(ConfigError, match="rotate_mb"):
+        McapRecorder(tmp_path / "a.mcap", station, {}, rotate_mb=0)
+    with pytest.raises(RecordingError, match="does not exist"):
+        McapRecorder(tmp_path / "nodir" / "a.mcap", station, {})
+    rec = McapRecorder(tmp_path / "empty.mcap", station, {})
+    rec.close()
+    from cbh.record import open_session
+
+    s = open_session(tmp_path / "empty.mcap")
+    assert s.pair_count == 0 and s.time_span is None
+    with pytest.raises(RecordingError, match="closed"):
+        rec.write(*synthetic_pair(station, 0))

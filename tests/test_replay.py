@@ -1,0 +1,108 @@
+"""`cbh replay`: the sample session into a verified .rrd on its time line; --reprocess."""
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.test_viz import RERUN, needs_cli, rrd_print, rrd_verify
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
+
+
+def test_sample_recording_is_small_and_complete():
+    from cbh.record import open_session
+
+    assert SAMPLE.stat().st_size <= 20e6
+    s = open_session(SAMPLE)
+    assert 6 <= s.pair_count <= 10
+    assert s.station.name == "unb-lea" and s.config  # resolved pipeline config travels with the data
+    assert all(p.result.layers for p in s.pairs(layers_only=True))  # the simulator's low layer is found
+
+
+@needs_cli
+def test_replay_sample_into_verified_rrd_on_the_capture_time_line(tmp_path, capsys):
+    from cli.main import main
+
+    out = tmp_path / "replay.rrd"
+    assert main(["replay", str(SAMPLE), "--rerun", "save", str(out)]) == 0
+    assert "replayed 8 pairs" in capsys.readouterr().out
+    r = rrd_verify(out)
+    assert r.returncode == 0, r.stderr
+    full = rrd_print(out, "-vvv")
+    # original capture times (the sample starts 2024-06-21 14:00:00 UTC), not the replay's wall clock
+    assert "2024-06-21T14:00:00" in full and "2024-06-21T14:01:10" in full
+    assert "[3D]" in full and "[BarChart]" in full and "[TimeSeries]" in full
+
+
+@needs_cli
+def test_rerun_mcap_loader_reads_the_recording(tmp_path):
+    """Plain MCAP loading in Rerun (Foxglove protobuf schemas) also works on cbh recordings."""
+    out = tmp_path / "conv.rrd"
+    r = subprocess.run([RERUN, "mcap", "convert", str(SAMPLE), "-o", str(out)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert rrd_verify(out).returncode == 0
+    summary = rrd_print(out)
+    for entity in ("/cam1/image/compressed", "/pair/points", "/pair/height_map", "/pair/layers"):
+        assert f" - {entity} - " in summary, entity
+
+
+@pytest.fixture(scope="module")
+def short_session(tmp_path_factory):
+    """The sample's first two pairs, re-recorded, and its station as a TOML file."""
+    from cbh.record import McapRecorder, open_session
+
+    d = tmp_path_factory.mktemp("rp")
+    s = open_session(SAMPLE)
+    with McapRecorder(d / "short.mcap", s.station, s.config) as rec:
+        for i, p in enumerate(s.pairs()):
+            if i == 2:
+                break
+            rec.write(p.frames(), p.result)
+    (d / "station.toml").write_text(s.station_toml)
+    return d / "short.mcap", d / "station.toml"
+
+
+@needs_cli
+def test_reprocess_reruns_the_pipeline_and_records(tmp_path, short_session, capsys):
+    from cbh.record import open_session
+    from cli.main import main
+
+    sess, st = short_session
+    out, rrd = tmp_path / "new.mcap", tmp_path / "new.rrd"
+    rc = main(["replay", str(sess), "--rerun", str(rrd), "--reprocess", "--station", str(st), "--record", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    old = list(open_session(sess).pairs())
+    new = list(open_session(out).pairs())
+    assert [p.time_utc for p in new] == [p.time_utc for p in old]
+    for a, b in zip(old, new):
+        assert a.images["cam1"].data == b.images["cam1"].data  # the images as received are carried over
+        # same images, same station, same config: the pipeline is deterministic on CPU
+        assert [l.height_m for l in b.result.layers] == pytest.approx([l.height_m for l in a.result.layers], abs=1e-6)
+    assert rrd_verify(rrd).returncode == 0
+
+
+def test_replay_errors_are_one_line(tmp_path, short_session, capsys):
+    from cli.main import main
+
+    sess, st = short_session
+    cases = [
+        (["replay", str(sess), "--rerun", "show"], "unknown mode"),
+        (["replay", str(sess), "--rerun", "save"], "needs an output"),
+        (["replay", str(sess), "--reprocess", "--rerun", "x.rrd"], "--station"),
+        (["replay", str(sess), "--record", "x.mcap", "--rerun", "x.rrd"], "--reprocess"),
+        (["replay", str(tmp_path / "none.mcap"), "--rerun", "x.rrd"], "not found"),
+        (["replay", str(sess), "--rerun", "x.rrd", "--reprocess", "--station", str(REPO / "configs" / "unb-lea.toml")],
+         "1920x1920"),  # recorded 640 px images against the full-size calibration
+    ]
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(sess.read_bytes()[:100_000])
+    cases.append((["replay", str(cut), "--rerun", str(tmp_path / "c.rrd")], "truncated"))
+    for args, msg in cases:
+        capsys.readouterr()
+        assert main(args) == 2, args
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("cbh: error:") and msg in err and "\n" not in err, (args, err)

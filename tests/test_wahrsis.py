@@ -1,0 +1,41 @@
+"""The real WAHRSIS pair (Singapore, 2015-10-29 04:58:01 UTC, "med" exposures) against the
+authors' published statistics (Savoy et al.; ../shared/data/wahrsis-2015-10-29/README.md):
+365 points, mean 725.15 m, 5th percentile 404.89 m, mean ray miss 23.73 m. Not a ground truth
+(no ceilometer): the bars are agreement bands, 10 % on the mean and 15 % on the 5th percentile."""
+from datetime import datetime, timezone
+
+import pytest
+
+from cbh.imageio import read_image
+from cbh.pipeline import Pipeline
+from cbh.station import load_station
+
+T = datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc)
+
+
+@pytest.fixture(scope="module")
+def result(shared, repo):
+    d = shared / "data" / "wahrsis-2015-10-29"
+    st = load_station(repo / "configs" / "wahrsis-2015-10-29.toml")
+    i1, _ = read_image(d / "2015-10-29-12-58-01-wahrsis3-med.jpg")
+    i2, _ = read_image(d / "2015-10-29-12-58-01-wahrsis4-med.jpg")
+    return Pipeline(st).process(i1, i2, T)
+
+
+def test_real_pair_matches_the_authors_statistics(result):
+    p = result.summary()["points"]
+    assert p["count"] > 365
+    assert abs(p["mean_height_m"] - 725.15) <= 0.10 * 725.15
+    assert abs(p["p5_height_m"] - 404.89) <= 0.15 * 404.89
+    assert p["median_miss_m"] <= 30.0
+
+
+def test_real_pair_outputs_are_on_camera_1_grid(result):
+    assert result.height_map.shape == (3456, 5184)
+    assert result.cloud_masks["wahrsis3"].shape == (3456, 5184)
+    assert result.cloud_masks["wahrsis4"].shape == (4000, 6000)
+    assert 0.2 < result.cloud_fraction["wahrsis3"] < 0.9  # a broken cumulus sky
+    assert len(result.layers) >= 1
+    # matches for display are in full-size pixel coordinates
+    for m in result.matches.values():
+        assert m[:, 0].max() < 5184 and m[:, 2].max() < 6000
