@@ -12,9 +12,12 @@ injected for tests and demos: :meth:`CameraServer.drop` (a camera goes offline f
 its connections are cut and new ones refused with 503) and :meth:`CameraServer.corrupt`
 (the next frames are garbage bytes).
 
-Run one for a demo (it prints the URLs to give ``cbh run --source``)::
+Run one for a demo (it writes the station scaled to ``--size`` and prints the ``cbh run``
+command line to use it)::
 
     python -m cbh.camera_server --scene two-layers --size 960 --fps 1 --port 8080
+
+:class:`RtspCameraServer` does the same over RTSP (RTP/JPEG), for tests of the RTSP path.
 """
 from __future__ import annotations
 
@@ -26,7 +29,7 @@ from datetime import datetime, timedelta, timezone
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Callable
 
-__all__ = ["CameraServer", "sim_frames"]
+__all__ = ["CameraServer", "RtspCameraServer", "sim_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -244,6 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--step-s", type=float, default=None, help="simulated seconds per frame (default 1/fps)")
     ap.add_argument("--port", type=int, default=8080)
     ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--write-station", default="camera-server-station.toml",
+                    help="write the station scaled to --size here (for cbh run --station)")
     a = ap.parse_args(argv)
     st = load_station(station_path(a.station) if a.station else station_path())
     sim = SkySimulator(st, load_scene(scene_path(a.scene)), size_px=a.size)
@@ -251,8 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     with srv:
         for c in srv.cameras:
             print(f"{c}: {srv.url(c)}   snapshot: {srv.url(c, 'snapshot')}", flush=True)
+        with open(a.write_station, "w") as fh:
+            fh.write(sim.station.to_toml())
         srv_sources = " ".join(f"--source {c}={srv.url(c)}" for c in srv.cameras[:2])
-        print(f"try: cbh run --station <station.toml scaled to {a.size} px> {srv_sources}", flush=True)
+        print(f"try: cbh run --station {a.write_station} {srv_sources}", flush=True)
         try:
             while True:
                 time.sleep(3600)
@@ -382,7 +389,7 @@ class RtspCameraServer:
                 k, _, v = ln.partition(":")
                 hdr[k.strip().lower()] = v.strip()
             cseq = hdr.get("cseq", "0")
-            path = urllib_path(url)
+            path = _rtsp_path(url)
             base = path.split("/")[0]
             extra, body, status = {}, b"", "200 OK"
             if base not in self.frames_sent and method != "OPTIONS":
@@ -454,7 +461,7 @@ class RtspCameraServer:
             return
 
 
-def urllib_path(url: str) -> str:
+def _rtsp_path(url: str) -> str:
     """Path of an RTSP URL without the leading slash (``rtsp://h:p/cam1/track0`` → ``cam1/track0``)."""
     import urllib.parse
 

@@ -174,8 +174,12 @@ class LayerExporter:
                 raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
             self._csv = csv.writer(self._fh, lineterminator="\n")
             if not exists:
-                self._csv.writerow(COLUMNS)
-                self._fh.flush()
+                try:
+                    self._csv.writerow(COLUMNS)
+                    self._fh.flush()
+                except OSError:
+                    self._fh.close()  # the caller reports the error (e.g. disk full)
+                    raise
         else:
             import pyarrow.parquet as pq
 

@@ -498,6 +498,16 @@ class Service:
         log.warning(f"{frame.camera}: corrupt frame skipped: {exc}", extra={"cbh_camera": frame.camera, "cbh_event": "corrupt"})
 
 
+def _open_sink(path, make):
+    """Create a sink; an OS error (disk full, permission) becomes one RecordingError naming ``path``."""
+    try:
+        return make()
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise RecordingError(f"disk full while creating {path}") from None
+        raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
 def _sink_error(sink, exc: Exception, doing: str) -> RecordingError:
     name = getattr(sink, "path", None) or type(sink).__name__
     if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
@@ -681,12 +691,13 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
                     raise RecordingError(f"cannot create {out.parent}: {exc.strerror}") from None
             else:
                 out = Path(record)
-            recorder = McapRecorder(out, st, pcfg.to_dict(), rotate_mb=rotate_mb, rotate_s=rotate_s)
+            recorder = _open_sink(out, lambda: McapRecorder(out, st, pcfg.to_dict(), rotate_mb=rotate_mb,
+                                                             rotate_s=rotate_s))
             sinks.append(recorder)
         if export is not None:
             from .export import LayerExporter
 
-            sinks.append(LayerExporter(export, st))
+            sinks.append(_open_sink(export, lambda: LayerExporter(export, st)))
         if rerun is not None:
             from .viz import RerunSink
 

@@ -12,7 +12,7 @@ HTTP snapshot      ``http://host/snap.jpg`` (or ``snapshot+http``) ``X-Timestamp
 (auto)             any other ``http(s)://`` URL: the reply's       as above
                    Content-Type picks MJPEG (multipart) or
                    snapshot (image/*)
-RTSP               ``rtsp://host/stream``                          stream clock anchored at receive time
+RTSP               ``rtsp://host/stream``                          stream clock + smallest receive lag
 video file         ``clip.mp4`` (any file OpenCV/FFmpeg reads)     start + position in the file
 image directory    ``path/to/dir/`` (``--watch``: keep polling)    time in the file name, else mtime
 simulator          ``sim``                                         simulated time
@@ -47,9 +47,8 @@ import urllib.parse
 from collections import deque
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Iterable
 
-import numpy as np
 
 from .errors import ConfigError, ImageError, SourceError
 from .result import Frame
@@ -68,6 +67,9 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mjpg", ".mjpeg", ".w
 
 class EndOfStream(Exception):
     """A finite source has no more frames (not an error)."""
+
+
+_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 
 
 def _now() -> datetime:
@@ -465,7 +467,8 @@ class VideoSource:
         self._cap = None
         self._seq = 0
         self._done = 0  # frames of a file already delivered (for reopening)
-        self._anchor: tuple[datetime, float] | None = None  # RTSP: (receive time, stream time [s])
+        self._lag: float | None = None  # RTSP: receive time − stream time, smallest seen [s]
+        self._synced, self._last_pos, self._burst = False, None, 0
 
     def __repr__(self) -> str:
         return f"VideoSource({self.camera!r}, {_redact(self.uri)!r})"
@@ -485,7 +488,7 @@ class VideoSource:
             cap.release()
             raise SourceError(f"{self.camera}: cannot open {_redact(self.uri)} (OpenCV/FFmpeg)")
         self._cap = cap
-        self._anchor = None
+        self._lag, self._synced, self._last_pos, self._burst = None, False, None, 0
         if not self.live:
             if self.start_utc is None:
                 self.start_utc = time_from_name(Path(self.uri).name)
@@ -505,7 +508,9 @@ class VideoSource:
 
         if self._cap is None:
             raise SourceError(f"{self.camera}: source not open")
+        t_call = time.monotonic()
         ok, img = self._cap.read()
+        waited = time.monotonic() - t_call
         if not ok or img is None:
             if self.live:
                 raise SourceError(f"{self.camera}: {_redact(self.uri)}: stream ended or timed out")
@@ -513,14 +518,24 @@ class VideoSource:
         if img.ndim == 2:
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
         if self.live:
-            # the stream's own clock (RTP time stamps) spaces frames correctly even when
-            # FFmpeg hands over a buffered burst; re-anchored to the receive time when the two
-            # drift apart by more than 2 s (a stall, a camera restart)
-            now = _now()
             pos_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC)) / 1000.0
-            if self._anchor is None or abs(((self._anchor[0] + timedelta(seconds=pos_s - self._anchor[1])) - now).total_seconds()) > 2.0:
-                self._anchor = (now, pos_s)
-            t = self._anchor[0] + timedelta(seconds=pos_s - self._anchor[1])
+            now = _now()
+            if not self._synced:
+                # FFmpeg hands over the frames it buffered while connecting in one burst; their
+                # receive time says nothing about their capture time, so they are skipped until
+                # a read has to wait for the camera (then frames arrive as they are sent)
+                step = pos_s - self._last_pos if self._last_pos is not None else None
+                self._last_pos = pos_s
+                self._burst += 1
+                if not (step and step > 0 and waited >= 0.5 * step) and self._burst < 200:
+                    return None
+                self._synced = True
+            # capture time = stream clock (RTP time stamps) + the smallest receive lag seen, so
+            # network jitter does not jitter the stamps; re-anchored after a stall (lag > 2 s)
+            lag = (now - _EPOCH).total_seconds() - pos_s
+            if self._lag is None or lag < self._lag or lag - self._lag > 2.0:
+                self._lag = lag
+            t = _EPOCH + timedelta(seconds=pos_s + self._lag)
         else:
             t = self.start_utc + timedelta(milliseconds=float(self._cap.get(cv2.CAP_PROP_POS_MSEC)))
             self._done += 1

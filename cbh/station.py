@@ -25,7 +25,6 @@ Other top-level tables (``pipeline``, ``service``, ``scene``) are kept raw in
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -33,9 +32,10 @@ from typing import Any
 import numpy as np
 
 from .camera import MODELS, CameraModel, OCamModel, read_ocamcalib
-from .errors import CalibrationError, ConfigError, check_shape
+from .errors import CalibrationError, ConfigError
+from .tomlio import dumps_toml, read_toml
 
-__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "B_LEVEL_NORTH_UP"]
+__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
 
 #: The level camera whose image top faces north: columns are camera x → west, y → south, z → up.
 B_LEVEL_NORTH_UP = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -50,17 +50,20 @@ _CAMERA_KEYS = {
 _STATION_KEYS = {"name", "latitude_deg", "longitude_deg", "altitude_m"}
 
 
-def _rx(a):
+def rot_x(a: float) -> np.ndarray:
+    """Right-handed rotation by ``a`` [rad] about x, shape (3, 3)."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
 
 
-def _ry(a):
+def rot_y(a: float) -> np.ndarray:
+    """Right-handed rotation by ``a`` [rad] about y, shape (3, 3)."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=np.float64)
 
 
-def _rz(a):
+def rot_z(a: float) -> np.ndarray:
+    """Right-handed rotation by ``a`` [rad] about z, shape (3, 3)."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
 
@@ -71,7 +74,7 @@ def rotation_from_angles(yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll_deg:
     ``yaw_deg`` is the azimuth (clockwise from north) the image's top edge faces; pitch and
     roll tilt the camera about its own x and y axes [deg].
     """
-    return _rz(-math.radians(yaw_deg)) @ B_LEVEL_NORTH_UP @ _rx(math.radians(pitch_deg)) @ _ry(math.radians(roll_deg))
+    return rot_z(-math.radians(yaw_deg)) @ B_LEVEL_NORTH_UP @ rot_x(math.radians(pitch_deg)) @ rot_y(math.radians(roll_deg))
 
 
 @dataclass(frozen=True)
@@ -364,53 +367,4 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
 def load_station(path: str | Path) -> Station:
     """Read and validate a station TOML file. Raises :class:`ConfigError` naming the key."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"station file not found: {path}") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read station file {path}: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path.name}: malformed TOML: {exc}") from None
-    return parse_station(data, base_dir=path.parent, path=path)
-
-
-# --- a small TOML writer (tomllib reads only) ----------------------------------------------
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        return repr(float(v))
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def _is_table_array(v) -> bool:
-    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
-
-
-def dumps_toml(data: dict, _prefix: str = "") -> str:
-    """Minimal TOML writer for nested dicts, arrays of tables and plain values."""
-    lines, tables = [], []
-    for k, v in data.items():
-        if isinstance(v, dict) or _is_table_array(v):
-            tables.append((k, v))
-        else:
-            lines.append(f"{k} = {_toml_value(v)}")
-    out = "\n".join(lines) + ("\n" if lines else "")
-    for k, v in tables:
-        name = f"{_prefix}{k}"
-        if isinstance(v, dict):
-            out += f"\n[{name}]\n" + dumps_toml(v, name + ".")
-        else:
-            for item in v:
-                out += f"\n[[{name}]]\n" + dumps_toml(item, name + ".")
-    return out
+    return parse_station(read_toml(path, "station"), base_dir=path.parent, path=path)

@@ -61,9 +61,11 @@ def test_default_simulated_run_records_six_pairs_that_all_read_back(tmp_path, ca
 
 def test_record_without_path_goes_to_recordings(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    rc = main(["run", "--size", str(SIZE), "--frames", "1", "--record", "--export", "layers.csv"])
+    rc = main(["run", "--size", str(SIZE), "--frames", "1", "--record", "--export", "layers.csv",
+               "--rerun", "save=view.rrd"])
     out = capsys.readouterr().out
     assert rc == 0
+    assert (tmp_path / "view.rrd").stat().st_size > 1000
     files = list((tmp_path / "recordings").glob("unb-lea-*.mcap"))
     assert len(files) == 1 and f"recorded: {Path('recordings') / files[0].name}" in out
     lines = (tmp_path / "layers.csv").read_text().strip().splitlines()
@@ -104,6 +106,26 @@ def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_pat
     assert last["sources"] == {"cam1": "streaming", "cam2": "streaming"}
 
 
+@pytest.mark.slow  # two FFmpeg RTSP handshakes and stream probes: ~10 s
+def test_two_rtsp_cameras_pair_on_their_stream_clocks(sim320, station320, tmp_path, capsys):
+    from cbh.camera_server import RtspCameraServer, sim_frames
+    from cbh.record import open_session
+
+    out = tmp_path / "rtsp.mcap"
+    with RtspCameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0) as srv:
+        rc = main(["run", "--station", str(station320), "--source", f"cam1={srv.url('cam1')}",
+                   "--source", f"cam2={srv.url('cam2')}", "--frames", "3", "--record", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    pairs = list(open_session(out).pairs())
+    assert len(pairs) == 3
+    for p in pairs:
+        # the same frame index of both streams: well within half the 0.25 s frame interval
+        dt = abs((p.images["cam1"].time_utc - p.images["cam2"].time_utc).total_seconds())
+        assert dt < 0.125
+        # and therefore the same simulated sky: a layer near the scene's lower base is found
+        assert p.result.layers
+
+
 def test_directories_of_timestamped_images(sim320, station320, tmp_path, capsys):
     from datetime import timedelta
 
@@ -137,6 +159,18 @@ def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
     err = capsys.readouterr().err
     assert rc == 2
     assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs Linux /dev/full")
+def test_full_disk_is_one_error_and_the_recording_stays_valid(tmp_path, capsys):
+    from cbh.record import open_session
+
+    (tmp_path / "full.csv").symlink_to("/dev/full")  # every write: ENOSPC
+    rc = main(["run", "--size", "64", "--frames", "2", "--record", str(tmp_path / "ok.mcap"),
+               "--export", str(tmp_path / "full.csv")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.strip() == f"cbh: error: disk full while creating {tmp_path / 'full.csv'}"
+    assert open_session(tmp_path / "ok.mcap").pair_count == 0  # closed properly, valid, empty
 
 
 # --- signals (subprocesses) -----------------------------------------------------------------

@@ -125,14 +125,22 @@ class FullDisk(MemorySink):
         super().write(frames, result)
 
 
-def test_full_disk_stops_with_one_error_and_closes_every_sink():
+def test_full_disk_stops_with_one_error_and_keeps_what_was_recorded(tmp_path):
+    from cbh.presets import station_path
+    from cbh.record import McapRecorder, open_session
+    from cbh.station import load_station
+
+    rec = McapRecorder(tmp_path / "kept.mcap", load_station(station_path()), {})
     good, full = MemorySink(), FullDisk(ok=2)
     svc = Service([MemorySource("cam1", frames("cam1", 10)), MemorySource("cam2", frames("cam2", 10))],
-                  process_fn(), [good, full])
+                  process_fn(), [rec, good, full])
     with pytest.raises(RecordingError, match="disk full"):
         svc.run()
     assert good.closed and full.closed
-    assert len(full.items) == 2 and len(good.items) == 3  # the good sink wrote the pair before
+    # the third pair reached the sinks before the full one: recorded and kept, nothing after it
+    assert len(full.items) == 2 and len(good.items) == 3
+    s = open_session(tmp_path / "kept.mcap")  # closed properly: summary and footer present
+    assert s.pair_count == 3 and [p.time_utc for p in s.pairs()] == [T0 + timedelta(seconds=k) for k in range(3)]
 
 
 class Flaky:

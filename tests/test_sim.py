@@ -129,25 +129,26 @@ def test_texture_is_matchable_lk_recovers_height(two_layers):
     sim, shot = two_layers
     v1, v2 = shot.views["cam1"], shot.views["cam2"]
     c1, c2 = sim.station.pair()
-    inner = cv2.erode(v1.cloud_mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    # interior of the low clouds, so that the LK window does not straddle a depth edge
+    inner = cv2.erode(v1.cloud_mask.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
     inner &= (c1.zenith_map() < 50) & (v1.height_m == 1200.0)
     g1, g2 = gray(v1.image).astype(np.uint8), gray(v2.image).astype(np.uint8)
     pts = cv2.goodFeaturesToTrack(g1, 1000, 0.01, 4, mask=inner.astype(np.uint8))[:, 0, :].astype(np.float64)
-    assert len(pts) > 80
+    assert len(pts) > 60
     h = v1.height_m[np.rint(pts[:, 1]).astype(int), np.rint(pts[:, 0]).astype(int)].astype(np.float64)
     d = c1.pixel_to_world(pts)
     guess = c2.world_to_pixel(c1.position_m + d * (1.05 * h / d[:, 2])[:, None]).astype(np.float32)
     p2, status, _ = cv2.calcOpticalFlowPyrLK(
-        g1, g2, pts.astype(np.float32), guess.copy(), winSize=(15, 15), maxLevel=2,
+        g1, g2, pts.astype(np.float32), guess.copy(), winSize=(11, 11), maxLevel=2,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
     ok = status.ravel() == 1
     tri = triangulate_pixels(c1, pts[ok], c2, p2[ok].astype(np.float64))
     rel = (tri.height_m - h[ok]) / h[ok]
-    # LK's sub-pixel error (~0.1 px) on a ~5 px disparity at 480 px is a few % per point;
-    # the median of ~100 points is within 1 %, far from the 5 % start.
+    # LK's sub-pixel error (~0.1 px) on a ~6 px disparity at 480 px is ~2 % per point;
+    # the median of ~150 points is within 1 %, far from the 5 % start.
     assert abs(np.median(rel)) < 0.01
-    assert np.median(np.abs(rel)) < 0.04
+    assert np.median(np.abs(rel)) < 0.03
 
 
 # --- ground truth ------------------------------------------------------------------------------
@@ -166,9 +167,8 @@ def test_truth_mask_and_height_agree(two_layers):
         img = v.image.astype(np.float32) + 1.0
         br = img[..., 0] / img[..., 2]
         zen = cam.zenith_map()
-        far_from_sun = np.degrees(np.arccos(np.clip(
-            sim.station.cameras[name].pixel_to_world(np.argwhere(np.ones((SIZE, SIZE)))[:, ::-1].astype(float))
-            @ sun_direction(shot.sun_zenith_deg, shot.sun_azimuth_deg), -1, 1))).reshape(SIZE, SIZE) > 20
+        cos_sun = cam.model.ray_map() @ cam.R_world_from_cam.T @ sun_direction(shot.sun_zenith_deg, shot.sun_azimuth_deg)
+        far_from_sun = cos_sun < math.cos(math.radians(20.0))
         import cv2
 
         core = cv2.erode(v.cloud_mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
@@ -289,17 +289,27 @@ def test_clock_offset_moves_clouds_by_wind_times_dt(station):
     np.testing.assert_array_equal(v_late.height_m, v_then.height_m)
     assert np.mean(v_late.cloud_mask != v_now.cloud_mask) > 0.01
     # and "moved" means by wind · dt on the layer: cam2's truth at t+dt at the pixel of
-    # world point P equals its truth at t at the pixel of P − wind · dt.
+    # world point P equals its truth at t at the pixel of P − wind · dt (away from cloud
+    # edges, where rounding to whole pixels decides).
+    import cv2
+
     cam = ref.station.cameras["cam2"]
+    m = v_now.cloud_mask.astype(np.uint8)
+    edge = cv2.dilate(m, np.ones((3, 3), np.uint8)) != cv2.erode(m, np.ones((3, 3), np.uint8))
     ys, xs = np.nonzero(cam.zenith_map() < 60)
     px = np.stack([xs, ys], 1).astype(float)
     d = cam.pixel_to_world(px)
     pts = cam.position_m + d * ((1500.0 - cam.position_m[2]) / d[:, 2])[:, None]
-    back = cam.world_to_pixel(pts - np.array([wind[0] * dt, wind[1] * dt, 0.0]))
-    r = np.rint(back).astype(int)
-    inside = (r >= 0).all(1) & (r < 240).all(1)
-    agree = v_then.cloud_mask[ys[inside], xs[inside]] == v_now.cloud_mask[r[inside, 1], r[inside, 0]]
-    assert agree.mean() > 0.97  # rounding to pixels at cloud edges only
+
+    def agreement(shift_m):
+        r = np.rint(cam.world_to_pixel(pts - shift_m)).astype(int)
+        ok = (r >= 0).all(1) & (r < 240).all(1)
+        ok[ok] &= ~edge[r[ok, 1], r[ok, 0]]
+        return np.mean(v_then.cloud_mask[ys[ok], xs[ok]] == v_now.cloud_mask[r[ok, 1], r[ok, 0]])
+
+    moved = np.array([wind[0] * dt, wind[1] * dt, 0.0])
+    assert agreement(moved) > 0.99
+    assert agreement(0.0 * moved) < 0.97 and agreement(-moved) < 0.9  # controls
 
 
 def test_orientation_error_renders_a_different_camera(station):
@@ -351,6 +361,19 @@ def test_frame_is_a_jpeg_camera_frame(station):
     assert (f0.sequence, f1.sequence) == (0, 1)
     assert f1.time_utc - f0.time_utc == timedelta(seconds=10)
     assert f0.time_utc.tzinfo is not None
+
+
+def test_jpeg_roundtrip_option(station):
+    scene = quiet(load_scene("two-layers"))
+    raw = SkySimulator(station, scene, size_px=128).view("cam1")
+
+    def error(quality):
+        v = SkySimulator(station, quiet(scene, jpeg_roundtrip=True, jpeg_quality=quality), size_px=128).view("cam1")
+        np.testing.assert_array_equal(raw.height_m, v.height_m)  # truth is not compressed
+        return np.abs(raw.image.astype(int) - v.image).mean()
+
+    # compression artefacts are there and grow as the quality drops
+    assert 0.5 < error(95) < error(60) < 20.0
 
 
 def test_frames_advect_layers(station):

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..result import Frame, to_ns
-from ..station import Camera, Station, _rx, _ry, _rz
+from ..station import Camera, Station, rot_x, rot_y, rot_z
 from .noise import FADE_ZERO_PX, FINEST_PX_PER_WAVELENGTH, TILE_PX, LayerTexture, fade_weight, sample_tile
 from .scene import CloudLayer, Scene
 from .sky import GROUND_BGR, SUN_BGR, SUN_RADIUS_DEG, obstacle_profile, sun_direction, sun_position
@@ -141,7 +141,7 @@ class _CameraState:
     def __init__(self, index: int, nominal: Camera, scene: Scene):
         imp = scene.imperfection(nominal.name)
         dyaw, dpitch, droll = (math.radians(v) for v in imp.rotation_error_deg)
-        R_true = _rz(-dyaw) @ nominal.R_world_from_cam @ _rx(dpitch) @ _ry(droll)
+        R_true = rot_z(-dyaw) @ nominal.R_world_from_cam @ rot_x(dpitch) @ rot_y(droll)
         self.index = index
         self.name = nominal.name
         self.nominal = nominal
@@ -156,6 +156,8 @@ class _CameraState:
         while min((self.H + (1 << (n_levels + 1)) - 1) >> (n_levels + 1),
                   (self.W + (1 << (n_levels + 1)) - 1) >> (n_levels + 1)) >= MIN_LEVEL_PX:
             n_levels += 1
+        if n_levels == 0:
+            raise ConfigError(f"camera {nominal.name!r}: image {self.W}x{self.H} is too small to simulate (min 16 px)")
         xs = _axis_positions(self.W, n_levels)
         ys = _axis_positions(self.H, n_levels)
         self.levels: list[_Level] = []
@@ -172,24 +174,32 @@ class _CameraState:
             up = dz > 1e-6
             with np.errstate(divide="ignore", invalid="ignore"):
                 inv_dz = np.where(up, 1.0 / np.where(up, dz, 1.0), 0.0)
-            # angular size of one sample of this level [rad]: geometric mean along x and y
-            gxr = np.linalg.norm(np.gradient(rays, axis=1), axis=-1)
-            gyr = np.linalg.norm(np.gradient(rays, axis=0), axis=-1)
-            alpha = np.sqrt(gxr * gyr) + 1e-12
-            inv_fp = np.where(up, np.clip(dz, 0.0, 1.0) ** 1.5 / alpha, 0.0)
             lvl = _Level(
                 shape=(ny, nx),
                 tanx=(rays[..., 0] * inv_dz).astype(np.float32),
                 tany=(rays[..., 1] * inv_dz).astype(np.float32),
-                inv_fp=inv_fp.astype(np.float32),
+                inv_fp=np.clip(dz, 0.0, 1.0).astype(np.float32) ** 1.5,  # ÷ angular size below
             )
             self.levels.append(lvl)
             if m == 0:
                 self.dirs = np.ascontiguousarray(np.moveaxis(rays, -1, 0), dtype=np.float32)  # (3, H, W)
                 self.inv_dz = inv_dz.astype(np.float32)
-                c = (self.H // 2, self.W // 2)
-                self.zenith_px_rad = float(alpha[c])  # angular pixel size near the centre [rad]
-                del gxr, gyr, alpha
+                del rays, dz, up, inv_dz
+                continue
+            # angular size of one sample of this level [rad]: geometric mean along x and y
+            gxr = np.linalg.norm(np.gradient(rays, axis=1), axis=-1)
+            gyr = np.linalg.norm(np.gradient(rays, axis=0), axis=-1)
+            alpha = (np.sqrt(gxr * gyr) + 1e-12).astype(np.float32)
+            lvl.inv_fp /= alpha
+            if m == 1:
+                # full resolution: half of level 1's, interpolated (exact for a smooth lens,
+                # and 4x cheaper than differentiating the full-size ray map)
+                import cv2
+
+                alpha0 = cv2.resize(alpha, (self.W, self.H), interpolation=cv2.INTER_LINEAR) * np.float32(0.5)
+                self.levels[0].inv_fp /= alpha0
+                self.zenith_px_rad = float(alpha0[self.H // 2, self.W // 2])  # near the centre [rad]
+                del alpha0
 
         # --- static masks and colours ------------------------------------------------------
         circle = model.image_circle_mask()
@@ -216,7 +226,6 @@ class _CameraState:
             rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 0x0B5, index]))
             tex = rng.uniform(0.85, 1.15, size=(self.obstacle_idx.size, 1))
             self.obstacle_bgr = (shade[b.ravel()[self.obstacle_idx]] * tex).astype(np.float32)
-        self.zenith_deg = zen.astype(np.float32)
         self._haze: dict[int, np.ndarray] = {}
         self._boxes: dict[tuple, tuple | None] = {}
         self._sun_key = None
@@ -233,17 +242,20 @@ class _CameraState:
         return self._boxes[key]
 
     def haze(self, layer_index: int, dh_m: float, visibility_m: float) -> np.ndarray:
-        """Visibility of a layer's cloud through the haze, exp(−range / visibility), 0 off the sky (cached)."""
+        """Transmittance of the air to a layer, exp(−range / visibility), (H, W) float32 (cached)."""
         h = self._haze.get(layer_index)
         if h is None:
             h = np.multiply(self.inv_dz, np.float32(-dh_m / visibility_m))
             np.exp(h, out=h)
-            h[~self.sky] = 0.0
             self._haze[layer_index] = h
+            self._haze[(layer_index, "1-")] = np.subtract(np.float32(1.0), h)
         return h
 
+    def one_minus_haze(self, layer_index: int) -> np.ndarray:
+        return self._haze[(layer_index, "1-")]
+
     def sun_maps(self, sun_dir: np.ndarray, zenith_sun_deg: float, show_disk: bool):
-        """(sky glow [DN/255 of SUN_BGR], cloud illumination factor, cloud forward-scatter) maps."""
+        """(sky glow [× SUN_BGR], cloud illumination factor, thin-cloud forward glow or None) maps."""
         key = (tuple(np.round(sun_dir, 12)), show_disk)
         if key != self._sun_key:
             cosg = self.dirs[0] * np.float32(sun_dir[0])
@@ -255,12 +267,12 @@ class _CameraState:
                 glow = 1.3 * np.exp(-gam / 1.5) + 0.35 * np.exp(-gam / 8.0) + 0.10 * np.exp(-gam / 35.0)
                 r_disk = max(SUN_RADIUS_DEG, 1.5 * math.degrees(self.zenith_px_rad))
                 glow[gam <= r_disk] += 4.0  # the disk saturates
-                forward = 1.2 * np.exp(-gam / 5.0)
+                forward = (1.2 * np.exp(-gam / 5.0)).astype(np.float32)
             else:
                 glow = np.zeros_like(gam)
-                forward = np.zeros_like(gam)
+                forward = None
             illum = 1.0 + 0.45 * np.exp(-gam / 20.0)
-            self._sun_maps = (glow.astype(np.float32), illum.astype(np.float32), forward.astype(np.float32))
+            self._sun_maps = (glow.astype(np.float32), illum.astype(np.float32), forward)
             self._sun_key = key
         return self._sun_maps
 
@@ -444,6 +456,7 @@ class SkySimulator:
         dt_s = (t - scene.time_utc).total_seconds()
 
         trans = np.ones((H, W), np.float32)  # transmittance to the sky behind the clouds
+        airlight = np.zeros((H, W), np.float32)  # weight of hazy air (sky-coloured) in front of clouds
         lum = np.zeros((H, W), np.float32)  # cloud radiance reaching the camera [DN/255]
         height = np.full((H, W), np.nan, np.float32)
         mask = np.zeros((H, W), bool)
@@ -452,8 +465,10 @@ class SkySimulator:
             layer = ls.layer.advected(dt_s)
             if layer.coverage <= 0.0:
                 continue
-            shape, detail = self._texture(cs, ls, layer.offset_m)
             dh = layer.height_m - float(cs.true.position_m[2])
+            if dh <= 0.0:  # at or below this camera: an upward camera cannot see its base
+                continue
+            shape, detail = self._texture(cs, ls, layer.offset_m)
             # thickness 0..1 from the shape field (before it is reused in place)
             thick = np.subtract(shape, np.float32(ls.thick_lo))
             thick *= np.float32(1.0 / ls.thick_span)
@@ -471,33 +486,44 @@ class SkySimulator:
                 alpha += np.float32(0.5)
                 np.clip(alpha, 0.0, 1.0, out=alpha)
             new = m & ~mask
-            height[new] = np.float32(layer.height_m)
+            np.copyto(height, np.float32(layer.height_m), where=new)
             mask |= m
-            alpha *= cs.haze(ls.index, dh, scene.sky.visibility_m)  # fades with range; 0 off the sky
+            tau = cs.haze(ls.index, dh, scene.sky.visibility_m)  # air between camera and cloud
             # brightness: darker where thick, textured by the detail field, lit near the sun
+            k = np.float32(layer.brightness)
             lcl = np.multiply(detail, np.float32(DETAIL_CONTRAST * layer.contrast), out=detail)
             lcl += np.float32(1.0)
-            base = np.multiply(thick, np.float32(-0.42))
-            base += np.float32(0.96)
+            base = np.multiply(thick, np.float32(-0.42) * k)
+            base += np.float32(0.96) * k
             lcl *= base
             lcl *= illum
-            np.subtract(np.float32(1.0), thick, out=thick)
-            thick *= forward
-            lcl += thick
-            lcl *= np.float32(layer.brightness * 0.93)
-            lcl *= alpha
-            lcl *= trans
+            if forward is not None:  # thin cloud glows in front of the sun
+                np.subtract(np.float32(1.0), thick, out=thick)
+                thick *= forward
+                if k != 1.0:
+                    thick *= k
+                lcl += thick
+            # the opaque part (alpha) of this layer seen through what is in front of it;
+            # the haze replaces the fraction 1 − tau of the cloud's light by airlight (sky colour).
+            # (alpha off the sky does not matter: vignetting is 0 outside the image circle and
+            # ground pixels are painted over.)
+            vis = np.multiply(alpha, trans, out=base)
+            lcl *= vis
+            lcl *= tau
             lum += lcl
+            vis *= cs.one_minus_haze(ls.index)
+            airlight += vis
             np.subtract(np.float32(1.0), alpha, out=alpha)
             trans *= alpha
 
-        cloud_bgr = (0.96, 0.98, 1.0)  # grey-white, slightly warm: blue/red ≈ 1
+        cloud_bgr = (0.893, 0.911, 0.93)  # grey-white, slightly warm: blue/red ≈ 0.96
         noise = self._noise_views(cs, t)
         chans = []
         for c in range(3):
             sky_c = np.multiply(glow, np.float32(SUN_BGR[c]))
             sky_c += cs.sky_bgr[c]
             sky_c *= trans
+            sky_c += airlight * cs.sky_bgr[c]
             cl = np.multiply(lum, np.float32(255.0 * cloud_bgr[c]))
             sky_c += cl
             sky_c *= np.float32(daylight)

@@ -57,12 +57,12 @@ The file format::
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
 from ..errors import ConfigError
+from ..tomlio import read_toml
 
 __all__ = [
     "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
@@ -176,7 +176,7 @@ class Scene:
     Attributes
     ----------
     layers : tuple of CloudLayer
-        Ascending by height.
+        Ascending by height (sorted on construction).
     time_utc : datetime
         Start time (aware UTC); layer offsets are given at this time.
     sun, sky, image : Sun, Sky, ImageSettings
@@ -199,6 +199,10 @@ class Scene:
     name: str = "scene"
     description: str = ""
     path: Path | None = None
+
+    def __post_init__(self):
+        # rendering relies on ascending heights (a lower layer hides a higher one)
+        object.__setattr__(self, "layers", tuple(sorted(self.layers, key=lambda l: l.height_m)))
 
     def imperfection(self, camera: str) -> Imperfection:
         return self.imperfections.get(camera) or Imperfection(camera=camera)
@@ -416,18 +420,7 @@ def load_scene(path: str | Path) -> Scene:
         from ..presets import scene_path
 
         p = scene_path(str(path))
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"scene file not found: {p}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"scene path is a directory, not a TOML file: {p}") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read scene file {p}: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p.name}: malformed TOML: {exc}") from None
+    data = read_toml(p, "scene")
     try:
         return parse_scene(data, name=p.stem, path=p)
     except ConfigError as exc:
