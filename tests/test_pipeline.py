@@ -1,9 +1,8 @@
 """Pipeline stages on synthetic inputs, and the whole pipeline on simulated skies.
 
-Simulated-scene tolerances: a flat cloud base at height h seen with baseline B and angular
-pixel size δ has a per-pixel height error of about h·δ·h/(B·cos²z) — at 960 px (δ ≈ 0.19°)
-with B = 100 m and h = 1 km that is ≈ 3 %, so medians over thousands of pixels are good to well
-under 1 % while a *low percentile* (the cloud-base statistic) sits ≈ 1.3 σ_noise below.
+Simulated-scene tests check the issue's bars themselves (layers within 5 %, 2 % for a single
+layer below 3 km, no spurious layer, dense map median APE <= 2 % over >= 70 % of the true
+cloud pixels); the physics of why they are reachable is in the comment above them.
 """
 from datetime import datetime, timezone
 
@@ -129,6 +128,45 @@ def _sim(layers, size, baseline_m=50.0, yaw2=-5.6, time="2024-06-21T14:00:00Z"):
     return sim, shot
 
 
+def _check(sim, shot, tol_single=0.02, tol_multi=0.05):
+    """The issue-4 bars on one simulated pair; returns the result for extra checks."""
+    v1 = shot.views["cam1"]
+    r = Pipeline(sim.station).process(v1.image, shot.views["cam2"].image, shot.time_utc)
+    truth = sorted(l.height_m for l in shot.layers)
+    found = [(round(l.height_m), round(l.median_height_m), l.points) for l in r.layers]
+    assert len(r.layers) == len(truth), (found, truth)  # every layer found, none spurious
+    tol = tol_single if len(truth) == 1 and truth[0] < 3000 else tol_multi
+    for layer, h in zip(r.layers, truth):
+        assert abs(layer.height_m - h) <= tol * h, (found, truth)
+    if truth:
+        cloud = np.isfinite(v1.height_m)
+        have = cloud & np.isfinite(r.height_map)
+        ape = np.abs(r.height_map[have] - v1.height_m[have]) / v1.height_m[have]
+        assert np.median(ape) <= 0.02, float(np.median(ape))
+        assert have.sum() >= 0.70 * cloud.sum(), have.sum() / cloud.sum()
+    return r
+
+
+def _scene(name):
+    from cbh.sim import load_scene
+
+    sc = load_scene(name)
+    return [{"height_m": l.height_m, "coverage": l.coverage, "texture_scale_m": l.texture_scale_m,
+             "seed": l.seed, "brightness": l.brightness, "contrast": l.contrast} for l in sc.layers], sc
+
+
+def _sim_scene(name, size, baseline_m, yaw2):
+    from dataclasses import replace
+
+    from cbh.sim import SkySimulator, load_scene
+
+    st = load_station(station_path("unb-lea"))
+    cams = dict(st.cameras)
+    cams["cam2"] = replace(cams["cam2"], position_m=np.array([baseline_m, 0.0, 0.0]), R_world_from_cam=rotation_from_angles(yaw2))
+    sim = SkySimulator(replace(st, cameras=cams), load_scene(name), size_px=size)
+    return sim, sim.render()
+
+
 def test_clear_sky_gives_no_layer():
     sim, shot = _sim([], 480)
     r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
@@ -137,36 +175,63 @@ def test_clear_sky_gives_no_layer():
     assert np.isnan(r.height_map).all()
 
 
+# Default-run scene tests at 960 px (working size = full size, ≈0.19 deg per pixel). The bars
+# are the issue's own: a flat base is recovered by the plane sweep to well under 1 % (the
+# layer-aggregated disparity is good to ≈0.05 px; e.g. 1500 m, B = 30 m: parallax ≈ 6 px at
+# zenith, 0.05 px ≈ 0.8 %), and the noise-deconvolved base statistic is not biased low.
+@pytest.mark.parametrize("scene, baseline_m, yaw2", [
+    ("single-cumulus", 30.0, 20.0),   # single low layer: 2 % bar, shortest baseline
+    ("two-layers", 100.0, 20.0),     # two layers: sharp heights at the occlusion boundaries
+    ("overcast", 30.0, -5.6),        # full deck
+])
+def test_simulated_scene_meets_the_bar(scene, baseline_m, yaw2):
+    sim, shot = _sim_scene(scene, 960, baseline_m, yaw2)
+    _check(sim, shot)
+
+
 def test_single_low_layer_found_and_dense_map_accurate():
     # 1 km cumulus, 100 m baseline, camera 2 yawed 20° against camera 1, sun in view.
     sim, shot = _sim([{"height_m": 1000.0, "coverage": 0.4, "texture_scale_m": 800.0, "seed": 5}], 960, 100.0, 20.0)
-    v1 = shot.views["cam1"]
-    r = Pipeline(sim.station).process(v1.image, shot.views["cam2"].image, shot.time_utc)
-    assert len(r.layers) == 1, [l.to_dict() for l in r.layers]
+    r = _check(sim, shot)
     layer = r.layers[0]
-    assert abs(layer.median_height_m - 1000.0) <= 20.0  # 2 %
-    assert 950.0 <= layer.height_m <= 1000.0  # base statistic (10th percentile): within 5 %, low side
-    truth = v1.height_m
-    cloud = np.isfinite(truth)
-    have = cloud & np.isfinite(r.height_map)
-    ape = np.abs(r.height_map[have] - truth[have]) / truth[have]
-    assert np.median(ape) <= 0.02
-    assert have.sum() >= 0.70 * cloud.sum()
+    # flat base: the deconvolved base equals the median to the noise of a median (≪ 1 %)
+    assert abs(layer.height_m - layer.median_height_m) <= 0.01 * 1000.0
+
+
+def test_base_statistic_is_not_biased_low_by_noise():
+    rng = np.random.default_rng(3)
+    flat = 1500.0 + 45.0 * rng.standard_normal(4000)  # flat base, 3 % matching noise
+    st = layer_stats(flat, 0.3, LayersConfig(), np.full(4000, 45.0))
+    # MAD of 4000 points is good to ≈ 2 % (1σ): σ_true = sqrt(σ_obs² − 45²) ≤ ≈ 13 m at 2σ, so the
+    # base is within ≈ 17 m; the raw 10th percentile would be 1500 − 1.28·45 ≈ 1442 m.
+    assert abs(st.height_m - 1500.0) <= 20.0
+    assert np.percentile(flat, 10) < 1450.0
+    thick = 1500.0 + 100.0 * np.abs(rng.standard_normal(4000))  # real spread above the base
+    st2 = layer_stats(thick, 0.3, LayersConfig(), np.full(4000, 0.0))
+    assert st2.height_m < st2.median_height_m - 50.0  # real spread is kept: base below the median
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="multi-layer bar not met yet: DIS blends heights across layer edges "
-                   "(1200 m layer median 1330 m, dense median APE 12 %; see issue 4 report)")
-def test_two_layers_full_size_meet_the_bar():
-    sim, shot = _sim([{"height_m": 1200.0, "coverage": 0.35, "texture_scale_m": 900.0, "seed": 21},
-                      {"height_m": 3500.0, "coverage": 0.3, "texture_scale_m": 1500.0, "seed": 22}], 1920, 100.0, 20.0)
-    v1 = shot.views["cam1"]
-    r = Pipeline(sim.station).process(v1.image, shot.views["cam2"].image, shot.time_utc)
-    assert [round(l.median_height_m / h, 2) for l, h in zip(r.layers, (1200.0, 3500.0))] == [1.0, 1.0]
-    assert len(r.layers) == 2
-    for layer, h in zip(r.layers, (1200.0, 3500.0)):
-        assert abs(layer.height_m - h) <= 0.05 * h
-    cloud = np.isfinite(v1.height_m)
-    have = cloud & np.isfinite(r.height_map)
-    assert np.median(np.abs(r.height_map[have] - v1.height_m[have]) / v1.height_m[have]) <= 0.02
-    assert have.sum() >= 0.7 * cloud.sum()
+@pytest.mark.parametrize("scene, baseline_m, yaw2", [
+    ("single-cumulus", 50.0, -5.6), ("two-layers", 50.0, -5.6), ("two-layers", 30.0, 20.0), ("overcast", 100.0, 20.0),
+])
+def test_full_size_scene_meets_the_bar(scene, baseline_m, yaw2):
+    sim, shot = _sim_scene(scene, 1920, baseline_m, yaw2)
+    _check(sim, shot)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="three layers with B <= 50 m: 2800 m and 7000 m layers (2 px apart in "
+                   "parallax at working size) are not separated; B = 100 m: coverage 69 % < 70 % (see report)")
+@pytest.mark.parametrize("baseline_m, yaw2", [(30.0, 20.0), (50.0, -5.6), (100.0, 20.0)])
+def test_three_layers_meet_the_bar(baseline_m, yaw2):
+    sim, shot = _sim_scene("three-layers", 960, baseline_m, yaw2)
+    _check(sim, shot)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="coverage 56-59 % < 70 %: 27 % of the true cloud is beyond the 80 deg "
+                   "zenith mask and nbr_adaptive calls sunlit cloud near the hidden sun clear (see report)")
+def test_sun_behind_clouds_meets_the_bar():
+    sim, shot = _sim_scene("sun-behind-clouds", 960, 50.0, -5.6)
+    _check(sim, shot)

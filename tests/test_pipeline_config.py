@@ -8,7 +8,7 @@ from cbh.pipeline import PipelineConfig
 def test_defaults_round_trip():
     cfg = PipelineConfig.from_dict({})
     d = cfg.to_dict()
-    assert d["matching"]["methods"] == ["lk", "dis"]
+    assert d["matching"]["methods"] == ["lk", "sweep"]
     assert PipelineConfig.from_dict(d) == cfg
 
 

@@ -18,6 +18,7 @@ from .config import (
     ORBConfig,
     PipelineConfig,
     SegmentationConfig,
+    SweepConfig,
 )
 from .layers import LAYER_METHODS
 from .match import MATCHERS, PairGeometry
@@ -32,6 +33,7 @@ __all__ = [
     "LKConfig",
     "ORBConfig",
     "DISConfig",
+    "SweepConfig",
     "MatchingConfig",
     "FilteringConfig",
     "HeightMapConfig",

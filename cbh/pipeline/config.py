@@ -26,6 +26,7 @@ __all__ = [
     "LKConfig",
     "ORBConfig",
     "DISConfig",
+    "SweepConfig",
     "MatchingConfig",
     "FilteringConfig",
     "HeightMapConfig",
@@ -34,7 +35,7 @@ __all__ = [
 ]
 
 SEGMENTATION_METHODS = ("nbr", "nbr_adaptive", "otsu")
-MATCHING_METHODS = ("lk", "orb", "dis")
+MATCHING_METHODS = ("lk", "orb", "dis", "sweep")
 LAYER_METHODS = ("histogram",)
 FILL_METHODS = ("none", "nearest")
 
@@ -100,13 +101,37 @@ class DISConfig:
 
 
 @dataclass(frozen=True)
+class SweepConfig:
+    """Dense plane sweep over horizontal planes (see :mod:`cbh.pipeline.sweep`)."""
+
+    window_px: int = 9  # ZNCC window side, fine pass, at working size [px]
+    coarse_factor: int = 2  # the coarse pass runs at working size / this [1]
+    coarse_window_px: int = 7  # ZNCC window side, coarse pass, at coarse size [px]
+    coarse_step_px: float = 1.0  # largest image shift between coarse planes, at coarse size [px]
+    step_px: float = 1.0  # largest image shift between fine planes, at working size [px]
+    far_px: float = 6.0  # the fine pass sweeps every plane up to this parallax from infinity [px]
+    min_height_m: float = 300.0  # lowest plane, above the ENU origin [m]
+    max_height_m: float = 15000.0  # highest plane, above the ENU origin [m]
+    min_zncc: float = 0.6  # a pixel's best plane must correlate at least this well [1]
+    min_texture: float = 1.0  # grey-level standard deviation in the window, at least [0..255]
+    min_vote_fraction: float = 0.01  # a layer hypothesis needs this fraction of the cloud pixels' votes [1]
+    extent_ratio: float = 0.1  # a hypothesis spans the planes whose votes stay above this × its peak [1]
+    valley_ratio: float = 0.5  # two vote peaks are separate only if the valley is below this × the lower [1]
+    aggregate_px: int = 31  # refine each pixel on its layer's cost summed over this box (1 = off) [px]
+    label_px: int = 15  # box over which a pixel's cost decides its layer [px]
+    max_planes: int = 48  # fine planes at most (the step grows beyond) [1]
+    point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
+
+
+@dataclass(frozen=True)
 class MatchingConfig:
     """Correspondences camera 1 → camera 2."""
 
-    methods: tuple[str, ...] = ("lk", "dis")  # any of: lk, orb, dis
+    methods: tuple[str, ...] = ("lk", "sweep")  # any of: lk, orb, dis, sweep
     lk: LKConfig = field(default_factory=LKConfig)
     orb: ORBConfig = field(default_factory=ORBConfig)
     dis: DISConfig = field(default_factory=DISConfig)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
 
 
 @dataclass(frozen=True)
@@ -271,6 +296,24 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.matching.dis.point_stride_px", mt.dis.point_stride_px)
     _positive(f"{where}.matching.dis.fb_max_px", mt.dis.fb_max_px, strict=False)
     _choice(f"{where}.matching.lk.space", mt.lk.space, ("warped", "raw"))
+    sw, swp = mt.sweep, f"{where}.matching.sweep"
+    for k in ("window_px", "coarse_window_px"):
+        v = getattr(sw, k)
+        if v < 3 or v % 2 == 0:
+            raise ConfigError(f"{swp}.{k}: must be an odd number >= 3, got {v}")
+    if not 1 <= sw.coarse_factor <= 8:
+        raise ConfigError(f"{swp}.coarse_factor: must be in 1..8, got {sw.coarse_factor}")
+    _positive(f"{swp}.far_px", sw.far_px, strict=False)
+    for k in ("coarse_step_px", "step_px", "min_height_m", "max_planes", "point_stride_px"):
+        _positive(f"{swp}.{k}", getattr(sw, k))
+    if not sw.min_height_m < sw.max_height_m:
+        raise ConfigError(f"{swp}.min_height_m: must be < max_height_m")
+    if not -1.0 <= sw.min_zncc < 1.0:
+        raise ConfigError(f"{swp}.min_zncc: must be in [-1, 1), got {sw.min_zncc}")
+    for k in ("min_vote_fraction", "extent_ratio", "valley_ratio"):
+        if not 0 < getattr(sw, k) <= 1:
+            raise ConfigError(f"{swp}.{k}: must be in (0, 1], got {getattr(sw, k)}")
+    _positive(f"{swp}.min_texture", sw.min_texture, strict=False)
     fl = cfg.filtering
     _positive(f"{where}.filtering.max_miss_ratio", fl.max_miss_ratio)
     _positive(f"{where}.filtering.min_angle_deg", fl.min_angle_deg, strict=False)

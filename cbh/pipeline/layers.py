@@ -11,10 +11,21 @@ between the valleys on either side. A layer is reported only with enough support
 
 Each layer's statistics (:func:`layer_stats`):
 
-- ``height_m``: the cloud-base height, the ``base_percentile`` (default 10th) percentile of the
-  layer's point heights — a robust statistic of the layer's lowest part (the lowest points are
-  the base; a pure minimum would follow the worst outlier);
-- ``median_height_m``; ``spread_m`` = 1.4826 · MAD (σ for Gaussian heights);
+- ``height_m``: the cloud-base height, a *noise-deconvolved low percentile*. A raw low
+  percentile of the point heights is biased low by the matching noise even on a perfectly
+  flat base (the 10th percentile of N(h, σ) is h − 1.28σ). So the observed robust spread
+  σ_obs = 1.4826·MAD is split into measurement noise and true spread:
+  σ_true = sqrt(max(σ_obs² − σ_noise², 0)), and
+  ``height_m = median − z·σ_true`` with z the standard-normal quantile of
+  ``base_percentile`` (z = 1.2816 for the 10th): the 10th percentile of the layer's true
+  height distribution, assumed Gaussian around its median. σ_noise is the median of the
+  points' predicted height noise (:func:`height_noise`): δh = h·R·δθ / B⊥ (R the range from
+  camera 1, B⊥ the baseline component perpendicular to the ray, δθ the angular matching
+  noise), with δθ estimated by :func:`angular_noise` from the ray-miss distances of the
+  sparse 2-D correspondences (miss / range samples the same pixel noise across the epipolar
+  direction that the height sees along it). Without any (σ_noise = 0) it falls back to
+  median − z·σ_obs, the Gaussian-robust raw percentile;
+- ``median_height_m``; ``spread_m`` = σ_obs = 1.4826 · MAD (σ for Gaussian heights);
 - ``cover``: fraction of camera 1's usable sky whose height-map pixel lies in the layer's
   height interval;
 - ``confidence`` = (1 − exp(−points / (4·min_points))) · exp(−spread / median / 0.15) ·
@@ -34,7 +45,31 @@ from ..errors import ConfigError
 from ..result import Histogram, Layer
 from .config import FilteringConfig, LayersConfig
 
-__all__ = ["LAYER_METHODS", "histogram_layers", "layer_stats", "get_layer_method"]
+__all__ = ["LAYER_METHODS", "histogram_layers", "layer_stats", "get_layer_method", "angular_noise", "height_noise"]
+
+
+def angular_noise(miss_m: np.ndarray, range_m: np.ndarray) -> float:
+    """Angular matching noise δθ [rad] = 1.4826 · median(miss / range) (0 without points).
+
+    The ray miss of a correspondence is its cross-epipolar error × range; for isotropic pixel
+    noise the along-epipolar (height) error has the same angular size.
+    """
+    miss_m, range_m = np.asarray(miss_m, np.float64), np.asarray(range_m, np.float64)
+    ok = np.isfinite(miss_m) & (range_m > 0)
+    return float(1.4826 * np.median(miss_m[ok] / range_m[ok])) if ok.any() else 0.0
+
+
+def height_noise(xyz_m: np.ndarray, o1: np.ndarray, o2: np.ndarray, dtheta_rad: float) -> np.ndarray:
+    """Predicted height noise [m] of each point (N, 3): δh = h_rel · R · δθ / B⊥ (see module doc)."""
+    xyz_m = np.asarray(xyz_m, np.float64).reshape(-1, 3)
+    if dtheta_rad <= 0 or not len(xyz_m):
+        return np.zeros(len(xyz_m))
+    v = xyz_m - np.asarray(o1, np.float64)
+    r = np.linalg.norm(v, axis=1)
+    d = v / np.maximum(r, 1e-9)[:, None]
+    b = np.asarray(o2, np.float64) - np.asarray(o1, np.float64)
+    b_perp = np.linalg.norm(b[None, :] - (d @ b)[:, None] * d, axis=1)
+    return np.abs(v[:, 2]) * r * dtheta_rad / np.maximum(b_perp, 1e-6)
 
 
 def _smooth(counts: np.ndarray, sigma_bins: float) -> np.ndarray:
@@ -94,15 +129,24 @@ def histogram_layers(heights_m: np.ndarray, cfg: LayersConfig, limits: Filtering
     return hist, intervals
 
 
-def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig) -> Layer:
-    """Statistics of one layer's point heights ``h`` (N,) [m] (see module doc)."""
+def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndarray | None = None) -> Layer:
+    """Statistics of one layer's point heights ``h`` (N,) [m] (see module doc).
+
+    ``noise_m`` (N,): predicted height noise of each point [m] (:func:`height_noise`);
+    None = unknown (0).
+    """
+    from statistics import NormalDist
+
     med = float(np.median(h))
     spread = 1.4826 * float(np.median(np.abs(h - med)))
+    sig_n = float(np.median(noise_m)) if noise_m is not None and len(noise_m) else 0.0
+    sig_t = math.sqrt(max(spread * spread - sig_n * sig_n, 0.0))
+    z = -NormalDist().inv_cdf(min(max(cfg.base_percentile, 1e-6), 50.0) / 100.0)
     n = int(h.size)
     conf = (1 - math.exp(-n / (4.0 * max(cfg.min_points, 1)))) * math.exp(-(spread / med) / 0.15)
     conf *= min(1.0, cover / (4.0 * cfg.min_cover)) if cfg.min_cover > 0 else 1.0
     return Layer(
-        height_m=float(np.percentile(h, cfg.base_percentile)),
+        height_m=med - z * sig_t,
         median_height_m=med,
         spread_m=spread,
         cover=float(cover),

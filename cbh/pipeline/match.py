@@ -21,7 +21,11 @@ done afterwards by :func:`triangulate_matches`, the same for every method.
   check forward-backward consistency.
 - ``orb``: ORB features on both raw images, Hamming matching with cross check.
 - ``dis``: dense DIS optical flow between image 1 and the warped image 2: p2 = map(p1 + flow);
-  forward-backward checked. Gives one correspondence per cloud pixel (the dense height map).
+  forward-backward checked. Gives one correspondence per cloud pixel (the dense height map),
+  but smooths across the boundary between two layers (heights in neither).
+- ``sweep`` (default dense method): plane sweep over horizontal planes with ZNCC
+  (:mod:`.sweep`): one correspondence per textured cloud pixel, each on the plane (layer
+  hypothesis) that explains it best, refined between planes; sharp at layer boundaries.
 """
 from __future__ import annotations
 
@@ -78,6 +82,7 @@ class PairGeometry:
     map_x: np.ndarray = field(init=False)
     map_y: np.ndarray = field(init=False)
     rays1_world: np.ndarray = field(init=False)
+    _planes: object = field(init=False, default=None)
 
     def __post_init__(self):
         m = self.cam1.model
@@ -88,6 +93,15 @@ class PairGeometry:
         px2[~ok] = _OUTSIDE
         self.map_x = px2[:, 0].reshape(m.height, m.width).astype(np.float32)
         self.map_y = px2[:, 1].reshape(m.height, m.width).astype(np.float32)
+
+    @property
+    def planes(self):
+        """:class:`~cbh.pipeline.sweep.PlaneMaps` camera 1 → camera 2 (built on first use)."""
+        if self._planes is None:
+            from .sweep import plane_maps
+
+            self._planes = plane_maps(self.cam1, self.cam2, self.rays1_world)
+        return self._planes
 
     def infinity(self, px1: np.ndarray) -> np.ndarray:
         """Camera-2 pixels (N, 2) of the points at infinity seen at camera-1 pixels ``px1`` (N, 2)."""
@@ -233,7 +247,16 @@ def _dis(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     return Matches("dis", p1[keep].astype(np.float64), px2[keep], dense=True)
 
 
-MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis}
+def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
+    from .sweep import sweep_matches
+
+    g = inp.geometry
+    px1, px2, _ = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, float(g.cam1.position_m[2]), cfg.sweep)
+    keep = _in_cam2(inp, px2)
+    return Matches("sweep", px1[keep], px2[keep], dense=True)
+
+
+MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis, "sweep": _sweep}
 
 
 def get_matcher(name: str):

@@ -31,7 +31,7 @@ from ..result import Histogram, PairResult, PointSet
 from ..station import Camera, Station
 from .config import PipelineConfig
 from .heightmap import nearest_fill, rasterize_heights, upsample_map
-from .layers import get_layer_method, layer_stats
+from .layers import angular_noise, get_layer_method, height_noise, layer_stats
 from .masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
 from .match import MatchInput, PairGeometry, get_matcher, triangulate_matches
 from .segment import segment
@@ -250,10 +250,10 @@ class Pipeline:
 
         # point set (dense correspondences thinned to a regular grid)
         t = time.perf_counter()
-        stride = cfg.matching.dis.point_stride_px
         parts = []
         for tr in tris:
             m = tr.matches
+            stride = getattr(cfg.matching, m.method).point_stride_px if m.dense else 1
             keep = np.ones(len(m), bool)
             if m.dense and stride > 1:
                 xi, yi = m.px1[:, 0].astype(np.int64), m.px1[:, 1].astype(np.int64)
@@ -267,6 +267,10 @@ class Pipeline:
         else:
             xyz, miss, p1, p2 = np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
         heights = xyz[:, 2]
+        noise = height_noise(xyz, self.cam1.position_m, self.cam2.position_m,
+                             angular_noise(np.concatenate([tr.miss_m for tr in tris if not tr.matches.dense] or [np.zeros(0)]),
+                                           np.concatenate([np.linalg.norm(tr.point_m - self.cam1.position_m, axis=1)
+                                                           for tr in tris if not tr.matches.dense] or [np.zeros(0)])))
 
         # layers
         hist, intervals = self._layers(heights, cfg.layers, cfg.filtering)
@@ -283,7 +287,7 @@ class Pipeline:
             if n < ly.min_points or n < ly.min_fraction * len(heights) or cover < ly.min_cover:
                 continue
             label[sel] = len(layers)
-            layers.append(layer_stats(heights[sel], cover, ly))
+            layers.append(layer_stats(heights[sel], cover, ly, noise[sel]))
         timing["layers"] = _ms(t)
 
         if len(heights) < cfg.layers.min_points:
