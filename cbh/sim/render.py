@@ -377,6 +377,15 @@ class SkySimulator:
         return SimView(camera=camera, image=image, height_m=height, cloud_mask=mask,
                        time_utc=t, stamp_utc=stamp, true_camera=cs.true)
 
+    def obstacle_mask(self, camera: str) -> np.ndarray:
+        """Ground truth: pixels of horizon obstacles in ``camera``'s image, shape (H, W), bool."""
+        if camera not in self._cams:
+            raise ConfigError(f"camera {camera!r} is not in station {self.station.name!r}")
+        cs = self._cams[camera]
+        m = np.zeros(cs.H * cs.W, bool)
+        m[cs.obstacle_idx] = True
+        return m.reshape(cs.H, cs.W)
+
     def frame(self, camera: str, time_utc: datetime | None = None) -> Frame:
         """One camera's frame as a real camera delivers it: JPEG bytes and the decoded image.
 
