@@ -64,6 +64,7 @@ class SegmentationConfig:
     sun_scale_deg: float = 25.0  # nbr_adaptive: e-folding angle of the sun term [deg]
     horizon_threshold: float = 0.03  # nbr_adaptive: threshold at zenith 90 deg [1]
     horizon_start_deg: float = 55.0  # nbr_adaptive: zenith angle where the horizon ramp starts [deg]
+    grey_chroma: float = 0.10  # nbr_adaptive: pixels with (max−min)/max below this get no sun term [1]
     otsu_min: float = -0.05  # otsu: clamp of the Otsu threshold, lower end [1]
     otsu_max: float = 0.20  # otsu: clamp of the Otsu threshold, upper end [1]
     min_brightness: int = 8  # pixels darker than this (max channel) are not classified [0..255]
@@ -74,7 +75,7 @@ class LKConfig:
     """Pyramidal Lucas-Kanade on cloud pixels, started at the point-at-infinity prediction."""
 
     space: str = "warped"  # warped (track into image 2 warped onto camera 1's grid) or raw [-]
-    max_points: int = 3000  # corner features tracked [1]
+    max_points: int = 1500  # corner features tracked [1]
     quality: float = 0.005  # goodFeaturesToTrack quality level [1]
     min_distance_px: int = 5  # spacing of features, at working size [px]
     window_px: int = 21  # LK window side [px]
@@ -119,6 +120,8 @@ class SweepConfig:
     valley_ratio: float = 0.5  # two vote peaks are separate only if the valley is below this × the lower [1]
     aggregate_px: int = 31  # refine each pixel on its layer's cost summed over this box (1 = off) [px]
     label_px: int = 15  # box over which a pixel's cost decides its layer [px]
+    far_aggregate_px: float = 8.0  # layers with less parallax than this get a box grown by this/parallax (≤ 4×); 0 = off [px]
+    vote_percentile: float = 70.0  # fine layer votes: only pixels whose wide-box ZNCC is above this percentile [%]
     max_planes: int = 48  # fine planes at most (the step grows beyond) [1]
     point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
 
@@ -276,6 +279,8 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if not 0 <= m.saturation_level <= 255:
         raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
     _choice(f"{where}.segmentation.method", cfg.segmentation.method, SEGMENTATION_METHODS)
+    if not 0 <= cfg.segmentation.grey_chroma <= 1:
+        raise ConfigError(f"{where}.segmentation.grey_chroma: must be in 0..1, got {cfg.segmentation.grey_chroma}")
     if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:
         raise ConfigError(f"{where}.segmentation.otsu_min: must be <= otsu_max")
     mt = cfg.matching
@@ -314,6 +319,9 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
         if not 0 < getattr(sw, k) <= 1:
             raise ConfigError(f"{swp}.{k}: must be in (0, 1], got {getattr(sw, k)}")
     _positive(f"{swp}.min_texture", sw.min_texture, strict=False)
+    _positive(f"{swp}.far_aggregate_px", sw.far_aggregate_px, strict=False)
+    if not 0 <= sw.vote_percentile < 100:
+        raise ConfigError(f"{swp}.vote_percentile: must be in [0, 100), got {sw.vote_percentile}")
     fl = cfg.filtering
     _positive(f"{where}.filtering.max_miss_ratio", fl.max_miss_ratio)
     _positive(f"{where}.filtering.min_angle_deg", fl.min_angle_deg, strict=False)

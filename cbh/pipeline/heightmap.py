@@ -4,6 +4,14 @@ Triangulated correspondences are splatted onto camera 1's grid (mean of the heig
 in a pixel); holes are filled only inside camera 1's cloud mask and only within
 ``fill_max_px`` of a measured pixel, by copying the *nearest* measured height (no averaging,
 so two layers meeting at an edge are never blended into a height that exists in neither).
+
+Coverage. The map can only cover camera 1's *analysed field of view*: the usable sky of
+stage 1, i.e. zenith ≤ ``masks.max_zenith_deg`` (default 80°; beyond it the air path, haze
+and the ground make both segmentation and matching unreliable, and the parallax of a cloud
+seen that low is small), minus the sun disk, glare and obstacles. The coverage bar (≥ 70 % of
+the pixels that are cloud in truth) is therefore measured over true-cloud pixels inside that
+zenith limit: a scene whose cloud lies largely beyond 80° (e.g. sun-behind-clouds, 27 % of its
+cloud) is not under-covered by the map but outside the analysed sky by design.
 """
 from __future__ import annotations
 

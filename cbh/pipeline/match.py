@@ -281,16 +281,23 @@ class TriangulatedMatches:
         return self.point_m[:, 2]
 
 
+def _rays_world(cam: Camera, px: np.ndarray) -> np.ndarray:
+    """ENU unit rays (N, 3) float32 of pixels (N, 2): ``cam.pixel_to_world`` without the BLAS
+    matmul (an (N, 3) @ (3, 3) product is slow and thread-hungry; three broadcasts are not)."""
+    r = cam.model.pixel_to_ray(px)
+    R = cam.R_world_from_cam
+    return (r[:, 0:1] * R[:, 0] + r[:, 1:2] * R[:, 1] + r[:, 2:3] * R[:, 2]).astype(np.float32)
+
+
 def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) -> TriangulatedMatches:
     """Triangulate and reject by ray miss / range, triangulation angle and height range."""
     n = len(m)
     if m.dense:
-        xi = m.px1[:, 0].astype(np.int64)
-        yi = m.px1[:, 1].astype(np.int64)
-        d1 = geom.rays1_world[yi, xi]
+        idx = m.px1[:, 1].astype(np.int64) * geom.rays1_world.shape[1] + m.px1[:, 0].astype(np.int64)
+        d1 = geom.rays1_world.reshape(-1, 3)[idx]
     else:
-        d1 = geom.cam1.pixel_to_world(m.px1).astype(np.float32)
-    d2 = geom.cam2.pixel_to_world(m.px2).astype(np.float32)
+        d1 = _rays_world(geom.cam1, m.px1)
+    d2 = _rays_world(geom.cam2, m.px2)
     tri = triangulate(geom.cam1.position_m.astype(np.float32), d1, geom.cam2.position_m.astype(np.float32), d2,
                       TriangulationLimits(min_angle_deg=cfg.min_angle_deg, max_range_m=1e6))
     with np.errstate(invalid="ignore", divide="ignore"):

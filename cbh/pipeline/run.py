@@ -11,7 +11,10 @@ Stages (each a pure function in its own module; timed into ``PairResult.timing_m
 4. ``match_<method>``: correspondences per configured method (:mod:`.match`).
 5. ``triangulation``: all correspondences at once, geometric rejection.
 6. ``height_map``: dense map on camera 1's grid, returned at camera 1's full image size.
-7. ``layers``: log-height histogram → layers with support checks.
+7. ``layers``: log-height histogram → layers with support checks; each layer's ``cover`` is
+   the share of camera 1's usable sky whose cloud pixels (own or nearest measured height) lie
+   in its height interval, so the covers add up to the cloud fraction (flag
+   ``cover_incomplete`` when over 10 % of the cloud is in no reported layer).
 
 Per-camera caches (scaled models, static masks, the infinity remap table) live in the
 :class:`Pipeline` object; ``process`` itself keeps no state between frames.
@@ -31,7 +34,7 @@ from ..result import Histogram, PairResult, PointSet
 from ..station import Camera, Station
 from .config import PipelineConfig
 from .heightmap import nearest_fill, rasterize_heights, upsample_map
-from .layers import angular_noise, get_layer_method, height_noise, layer_stats
+from .layers import angular_noise, get_layer_method, height_noise, layer_covers, layer_stats
 from .masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
 from .match import MatchInput, PairGeometry, get_matcher, triangulate_matches
 from .segment import segment
@@ -41,13 +44,19 @@ __all__ = ["Pipeline", "working_factor"]
 log = logging.getLogger(__name__)
 
 _MAX_DISPLAY_MATCHES = 5000
+_COVER_SLACK = 0.1  # flag cover_incomplete when more than this share of the cloud is in no layer
+_RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 
 
 def working_factor(cam: Camera, working_radius_px: float) -> float:
-    """Exact downsampling factor (≤ 1) for a camera: its 90° radius becomes ≤ ``working_radius_px``.
+    """Exact downsampling factor (≤ 1) for a camera: its 90° radius becomes ≤ ``working_radius_px``
+    (up to 5 % more, so that an image is not resampled by a hair, e.g. 960 → 959 px, which
+    only blurs it).
 
-    The factor is n / gcd(width, height) so that width and height scale by exactly the same
-    ratio (OpenCV's resize then matches :meth:`CameraModel.scaled` to the pixel).
+    Preferred: 1 or 1/n with n a whole divisor of width and height (1920 → 960: each working
+    pixel is the mean of a 2 × 2 block). Otherwise n / gcd(width, height), so that width and
+    height scale by exactly the same ratio (OpenCV's resize then matches
+    :meth:`CameraModel.scaled` to the pixel).
     """
     m = cam.model
     if working_radius_px <= 0:
@@ -56,8 +65,11 @@ def working_factor(cam: Camera, working_radius_px: float) -> float:
     if not r90 > 0 or not math.isfinite(r90):
         r90 = 0.5 * min(m.width, m.height)
     f = working_radius_px / r90
-    if f >= 1.0:
+    if f >= 1.0 / _RADIUS_SLACK:
         return 1.0
+    n = math.ceil(1.0 / (f * _RADIUS_SLACK))  # a whole divisor: exact, and the fast INTER_AREA path
+    if m.width % n == 0 and m.height % n == 0 and n * f <= 1.25:  # not much below the target
+        return 1.0 / n
     g = math.gcd(m.width, m.height)
     n = max(1, round(f * g))
     exact = n / g
@@ -94,6 +106,8 @@ class Pipeline:
         self.factors = tuple(working_factor(c, self.config.working_radius_px) for c in (self.cam1_full, self.cam2_full))
         self.cam1, self.cam2 = (c.scaled(f) if f != 1.0 else c for c, f in zip((self.cam1_full, self.cam2_full), self.factors))
         self._static: dict[int, np.ndarray] = {}
+        self._rays: dict[int, np.ndarray] = {}
+        self._zenith: dict[int, np.ndarray] = {}
         self._geometry: PairGeometry | None = None
         self._layers = get_layer_method(self.config.layers.method)
         for name in self.config.matching.methods:
@@ -116,6 +130,18 @@ class Pipeline:
                 obstacle = load_obstacle_mask(cam.mask, cam.model.width, cam.model.height)
             self._static[i] = static_sky_mask(cam, self.config.masks, obstacle)
         return self._static[i]
+
+    def rays_cam(self, i: int) -> np.ndarray:
+        """Ray map of camera ``i`` at working size in its own frame, (H, W, 3) float32 (cached)."""
+        if i not in self._rays:
+            self._rays[i] = (self.cam1, self.cam2)[i].model.ray_map().astype(np.float32)
+        return self._rays[i]
+
+    def zenith(self, i: int) -> np.ndarray:
+        """Zenith angle of camera ``i``'s pixels at working size, (H, W) float32 [deg] (cached)."""
+        if i not in self._zenith:
+            self._zenith[i] = np.asarray((self.cam1, self.cam2)[i].zenith_map(), np.float32)
+        return self._zenith[i]
 
     def to_working(self, i: int, image: np.ndarray) -> np.ndarray:
         """Resize a full-size image of camera ``i`` to working size."""
@@ -184,14 +210,14 @@ class Pipeline:
             if sun_zen >= 90.0:
                 sun_dir = None
         for i, (cam, img) in enumerate(((self.cam1, w1), (self.cam2, w2))):
-            u = self.static_mask(i).copy()
-            ang = angle_map_deg(cam, sun_dir) if sun_dir is not None else None
+            u = self.static_mask(i)
+            ang = angle_map_deg(cam, sun_dir, self.rays_cam(i)) if sun_dir is not None else None
             if cfg.masks.sun and ang is not None:
-                u &= ang > cfg.masks.sun_radius_deg
+                u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
                 sat = saturation_mask(img, cfg.masks)
                 if sat.any():
-                    u &= ~sat
+                    u = u & ~sat
                     if i == 0:
                         flags.append("sun_glare")
             usable.append(u)
@@ -202,7 +228,7 @@ class Pipeline:
         t = time.perf_counter()
         clouds, fractions = [], {}
         for i, (cam, img) in enumerate(((self.cam1, w1), (self.cam2, w2))):
-            c, frac = segment(img, usable[i], cam.zenith_map(), sun_angle[i], cfg.segmentation)
+            c, frac = segment(img, usable[i], self.zenith(i), sun_angle[i], cfg.segmentation)
             clouds.append(c)
             fractions[cam.name] = frac
         timing["segmentation"] = _ms(t)
@@ -275,19 +301,20 @@ class Pipeline:
         # layers
         hist, intervals = self._layers(heights, cfg.layers, cfg.filtering)
         label = np.full(len(heights), -1, np.int16)
-        n_usable = int(usable[0].sum())
-        cloud_near = np.where(clouds[0], nearest, np.nan)  # every cloud pixel: nearest measured height
+        cover_of, unassigned = layer_covers(clouds[0], usable[0], nearest, intervals)
         layers = []
-        for lo, hi in intervals:
+        ly = cfg.layers
+        for k, (lo, hi) in enumerate(intervals):
             sel = (heights >= lo) & (heights < hi)
             n = int(sel.sum())
-            with np.errstate(invalid="ignore"):
-                cover = float(((cloud_near >= lo) & (cloud_near < hi)).sum()) / n_usable if n_usable else 0.0
-            ly = cfg.layers
-            if n < ly.min_points or n < ly.min_fraction * len(heights) or cover < ly.min_cover:
+            if n < ly.min_points or n < ly.min_fraction * len(heights) or cover_of[k] < ly.min_cover:
+                unassigned += cover_of[k]  # cloud of an unsupported height interval: in no layer
                 continue
             label[sel] = len(layers)
-            layers.append(layer_stats(heights[sel], cover, ly, noise[sel]))
+            layers.append(layer_stats(heights[sel], cover_of[k], ly, noise[sel]))
+        frac1 = fractions[self.cam1.name]
+        if layers and unassigned > max(_COVER_SLACK * frac1, 0.005):
+            flags.append("cover_incomplete")  # the layers' covers add up to less than the cloud fraction
         timing["layers"] = _ms(t)
 
         if len(heights) < cfg.layers.min_points:
