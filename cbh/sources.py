@@ -65,6 +65,17 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mjpg", ".mjpeg", ".webm", ".ts")
 
 
+def _wait_until(t_monotonic: float, timeout_s: float) -> bool:
+    """Sleep until ``t_monotonic`` if it comes within ``timeout_s``; else sleep ``timeout_s`` and return False."""
+    wait = t_monotonic - time.monotonic()
+    if wait > timeout_s:
+        time.sleep(max(timeout_s, 0.0))
+        return False
+    if wait > 0:
+        time.sleep(wait)
+    return True
+
+
 class EndOfStream(Exception):
     """A finite source has no more frames (not an error)."""
 
@@ -363,12 +374,8 @@ class HttpSource:
         if self._pending is not None:
             f, self._pending = self._pending, None
             return f
-        wait = self._next_poll - time.monotonic()
-        if wait > timeout_s:
-            time.sleep(max(timeout_s, 0.0))
+        if not _wait_until(self._next_poll, timeout_s):
             return None
-        if wait > 0:
-            time.sleep(wait)
         self._next_poll = max(self._next_poll + self.interval_s, time.monotonic())
         conn = _HttpConn(self.url, self.stall_timeout_s)
         try:
@@ -703,13 +710,8 @@ class SimSource:
         if self.frames is not None and self._k >= self.frames:
             raise EndOfStream(self.camera)
         if self.live:
-            due = self._t0 + self._k * self.pace_s
-            wait = due - time.monotonic()
-            if wait > timeout_s:
-                time.sleep(max(timeout_s, 0.0))
+            if not _wait_until(self._t0 + self._k * self.pace_s, timeout_s):
                 return None
-            if wait > 0:
-                time.sleep(wait)
         t = self.start_utc + timedelta(seconds=self._k * self.step_s)
         with _sim_lock(self.sim):
             f = self.sim.frame(self.camera, t)
@@ -743,12 +745,8 @@ class MemorySource:
         if self._i >= len(self.frames):
             raise EndOfStream(self.camera)
         if self.pace_s > 0:
-            wait = self._next - time.monotonic()
-            if wait > timeout_s:
-                time.sleep(max(timeout_s, 0.0))
+            if not _wait_until(self._next, timeout_s):
                 return None
-            if wait > 0:
-                time.sleep(wait)
             self._next = max(self._next + self.pace_s, time.monotonic() - self.pace_s)
         f = self.frames[self._i]
         self._i += 1
