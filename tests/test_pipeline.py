@@ -115,14 +115,10 @@ def test_wrong_image_size_is_an_image_error():
 
 # --- simulated skies ----------------------------------------------------------------------
 def _sim(layers, size, baseline_m=50.0, yaw2=-5.6, time="2024-06-21T14:00:00Z"):
-    from dataclasses import replace
-
+    from cbh.evaluate import station_variant
     from cbh.sim import SkySimulator, parse_scene
 
-    st = load_station(station_path("unb-lea"))
-    cams = dict(st.cameras)
-    cams["cam2"] = replace(cams["cam2"], position_m=np.array([baseline_m, 0.0, 0.0]), R_world_from_cam=rotation_from_angles(yaw2))
-    st = replace(st, cameras=cams)
+    st = station_variant(load_station(station_path("unb-lea")), baseline_m, yaw2)
     sim = SkySimulator(st, parse_scene({"name": "t", "time_utc": time, "layers": layers}), size_px=size)
     shot = sim.render()
     return sim, shot
@@ -137,24 +133,20 @@ def _check(sim, shot, tol_single=0.02, tol_multi=0.05, dense_layers_m=None):
     ``cbh/pipeline/heightmap.py``), so no height map can cover it. ``dense_layers_m``: only the
     pixels of these true layers count (None = all layers; see the three-layer test for why).
     """
+    from cbh.evaluate import score_pair
+
     v1 = shot.views["cam1"]
     pipe = Pipeline(sim.station)
     r = pipe.process(v1.image, shot.views["cam2"].image, shot.time_utc)
-    truth = sorted(l.height_m for l in shot.layers)
+    fov = sim.station.cameras["cam1"].zenith_map() <= pipe.config.masks.max_zenith_deg
+    sc = score_pair(r, v1.height_m, [l.height_m for l in shot.layers], fov, dense_layers_m)
     found = [(round(l.height_m), round(l.median_height_m), l.points) for l in r.layers]
-    assert len(r.layers) == len(truth), (found, truth)  # every layer found, none spurious
-    tol = tol_single if len(truth) == 1 and truth[0] < 3000 else tol_multi
-    for layer, h in zip(r.layers, truth):
-        assert abs(layer.height_m - h) <= tol * h, (found, truth)
-    if truth:
-        fov = sim.station.cameras["cam1"].zenith_map() <= pipe.config.masks.max_zenith_deg
-        cloud = np.isfinite(v1.height_m) & fov
-        if dense_layers_m is not None:
-            cloud &= np.isin(v1.height_m, np.asarray(dense_layers_m, np.float32))
-        have = cloud & np.isfinite(r.height_map)
-        ape = np.abs(r.height_map[have] - v1.height_m[have]) / v1.height_m[have]
-        assert np.median(ape) <= 0.02, float(np.median(ape))
-        assert have.sum() >= 0.70 * cloud.sum(), have.sum() / cloud.sum()
+    assert sc.layers_match, (found, sc.truth_m)  # every layer found, none spurious
+    tol = tol_single if len(sc.truth_m) == 1 and sc.truth_m[0] < 3000 else tol_multi
+    assert all(e <= tol for e in sc.layer_error), (found, sc.truth_m)
+    if sc.truth_m:
+        assert sc.dense_mdape <= 0.02, sc.dense_mdape
+        assert sc.dense_coverage >= 0.70, sc.dense_coverage
     return r
 
 
@@ -167,14 +159,10 @@ def _scene(name):
 
 
 def _sim_scene(name, size, baseline_m, yaw2):
-    from dataclasses import replace
-
+    from cbh.evaluate import station_variant
     from cbh.sim import SkySimulator, load_scene
 
-    st = load_station(station_path("unb-lea"))
-    cams = dict(st.cameras)
-    cams["cam2"] = replace(cams["cam2"], position_m=np.array([baseline_m, 0.0, 0.0]), R_world_from_cam=rotation_from_angles(yaw2))
-    sim = SkySimulator(replace(st, cameras=cams), load_scene(name), size_px=size)
+    sim = SkySimulator(station_variant(load_station(station_path("unb-lea")), baseline_m, yaw2), load_scene(name), size_px=size)
     return sim, sim.render()
 
 

@@ -1,0 +1,59 @@
+"""Scoring a pair result against simulator ground truth (the issue-4 accuracy bars).
+
+Used by the tests and by ``benchmarks/eval_scenes.py``. Dense-map numbers are over the pixels
+that are cloud in truth *inside the analysed field of view* (zenith ≤ the pipeline's
+``masks.max_zenith_deg``): the pipeline masks everything beyond it by design.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .result import PairResult
+from .station import Station, rotation_from_angles
+
+__all__ = ["SceneScore", "score_pair", "station_variant"]
+
+
+@dataclass(frozen=True)
+class SceneScore:
+    truth_m: list[float]  # true layer heights, ascending [m]
+    found_m: list[float]  # reported cloud-base heights, ascending [m]
+    layer_error: list[float]  # |found − truth| / truth per layer (when the counts agree)
+    dense_mdape: float  # median |h − h_true| / h_true over covered true-cloud pixels
+    dense_coverage: float  # covered / true-cloud pixels in the analysed field
+
+    @property
+    def layers_match(self) -> bool:
+        return len(self.truth_m) == len(self.found_m)
+
+
+def station_variant(station: Station, baseline_m: float, yaw2_deg: float, camera: str = "cam2") -> Station:
+    """``station`` with ``camera`` moved to ``baseline_m`` east of the origin and yawed ``yaw2_deg``."""
+    cams = dict(station.cameras)
+    cams[camera] = replace(cams[camera], position_m=np.array([baseline_m, 0.0, 0.0]),
+                           R_world_from_cam=rotation_from_angles(yaw2_deg))
+    return replace(station, cameras=cams)
+
+
+def score_pair(result: PairResult, truth_height_m: np.ndarray, truth_layers_m, fov: np.ndarray,
+               dense_layers_m=None) -> SceneScore:
+    """Score ``result`` against camera 1's true height map (H, W) and true layer heights.
+
+    ``fov``: camera 1's analysed field of view (H, W) bool. ``dense_layers_m``: count only
+    the pixels of these true layers in the dense-map numbers (None = all).
+    """
+    truth = sorted(float(h) for h in truth_layers_m)
+    found = [float(l.height_m) for l in result.layers]
+    err = [abs(f - t) / t for f, t in zip(found, truth)] if len(found) == len(truth) else []
+    cloud = np.isfinite(truth_height_m) & fov
+    if dense_layers_m is not None:
+        cloud &= np.isin(truth_height_m, np.asarray(dense_layers_m, np.float32))
+    have = cloud & np.isfinite(result.height_map)
+    ape = np.abs(result.height_map[have] - truth_height_m[have]) / truth_height_m[have]
+    return SceneScore(
+        truth_m=truth, found_m=found, layer_error=err,
+        dense_mdape=float(np.median(ape)) if ape.size else float("nan"),
+        dense_coverage=float(have.sum() / cloud.sum()) if cloud.any() else float("nan"),
+    )
