@@ -92,10 +92,10 @@ def test_replay_errors_are_one_line(tmp_path, short_session, capsys):
     cases = [
         (["replay", str(sess), "--rerun", "show"], "unknown mode"),
         (["replay", str(sess), "--rerun", "save"], "needs an output"),
-        (["replay", str(sess), "--reprocess", "--rerun", "x.rrd"], "--station"),
-        (["replay", str(sess), "--record", "x.mcap", "--rerun", "x.rrd"], "--reprocess"),
-        (["replay", str(tmp_path / "none.mcap"), "--rerun", "x.rrd"], "not found"),
-        (["replay", str(sess), "--rerun", "x.rrd", "--reprocess", "--station", str(REPO / "configs" / "unb-lea.toml")],
+        (["replay", str(sess), "--reprocess", "--rerun", str(tmp_path / "x.rrd")], "--station"),
+        (["replay", str(sess), "--record", str(tmp_path / "x.mcap"), "--rerun", str(tmp_path / "x.rrd")], "--reprocess"),
+        (["replay", str(tmp_path / "none.mcap"), "--rerun", str(tmp_path / "x.rrd")], "not found"),
+        (["replay", str(sess), "--rerun", str(tmp_path / "x.rrd"), "--reprocess", "--station", str(REPO / "configs" / "unb-lea.toml")],
          "1920x1920"),  # recorded 640 px images against the full-size calibration
     ]
     cut = tmp_path / "cut.mcap"

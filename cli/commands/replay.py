@@ -47,6 +47,13 @@ def replay_cmd(
         first = next(s.pairs(layers_only=True), None)
         pair_names = cameras or (",".join(first.result.cameras) if first else None)
         pipeline = Pipeline(st, pair_names, cfg)
+        probe = next(s.pairs(), None)
+        if probe is not None:  # a size mismatch fails before any output file is opened
+            from cbh.imageio import check_image_size
+
+            for cam in pipeline.cameras:
+                if cam in probe.images:
+                    check_image_size(probe.images[cam].frame(probe.index).image, st.camera(cam).model, f"recorded {cam}")
         if record is not None:
             recorder = McapRecorder(record, st, pipeline.config.to_dict())
     sink = None
