@@ -533,56 +533,18 @@ class RunSetup:
     def process(self, f1: Frame, f2: Frame) -> PairResult:
         return self.pipeline.process(f1.image, f2.image, f1.time_utc)
 
-    def run(self, status: bool = True, on_pair: Callable | None = None) -> ServiceStats:
-        """Run the service with a live status line (rich) unless ``status`` is False."""
-        import sys
+    def service(self, on_pair: Callable | None = None) -> Service:
+        """The :class:`Service` for this run; ``on_pair(stats, result)`` is called after each pair."""
+        return Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair)
 
-        for n in self.notes:
-            print(n, file=sys.stderr)
-        if not status:
-            svc = Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair)
-            return svc.run()
-        from rich.console import Console
-
-        console = Console(stderr=True)
-        if console.is_terminal:
-            from rich.live import Live
-            from rich.text import Text
-
-            with Live(Text("starting…"), console=console, refresh_per_second=4, transient=False) as live:
-                def show(st, result):
-                    live.update(Text(st.line()))
-                    if on_pair is not None:
-                        on_pair(st, result)
-
-                svc = Service(self.sources, self.process, self.sinks, self.config, on_pair=show)
-                return svc.run()
-
-        def plain(st, result):  # not a terminal: one line per processed pair
-            if result is not None:
-                print(f"{result.time_utc.isoformat().replace('+00:00', 'Z')}  {st.line()}", file=sys.stderr, flush=True)
-            if on_pair is not None:
-                on_pair(st, result)
-
-        svc = Service(self.sources, self.process, self.sinks, self.config, on_pair=plain)
-        return svc.run()
-
-    def report(self, stats: ServiceStats) -> None:
-        """Print the end-of-run summary (stdout)."""
-        print(f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
-              f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
-              f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}")
-        if stats.last_layers_m:
-            print("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
-                  + f" above the station ({self.station.altitude_m:.0f} m a.s.l.)")
-        rec = self.recorder
-        if rec is not None:
-            paths = getattr(rec, "paths", None) or [getattr(rec, "path", "?")]
-            for p in paths:
-                print(f"recorded: {p}")
-        for s in self.sinks:
-            if type(s).__name__ == "LayerExporter":
-                print(f"exported: {getattr(s, 'path', '?')}")
+    def outputs(self) -> list[tuple[str, str]]:
+        """What this run writes: ("recorded" | "exported", path) pairs."""
+        out = []
+        if self.recorder is not None:
+            for p in getattr(self.recorder, "paths", None) or [getattr(self.recorder, "path", "?")]:
+                out.append(("recorded", str(p)))
+        out += [("exported", str(s.path)) for s in self.sinks if type(s).__name__ == "LayerExporter"]
+        return out
 
 
 def _rerun_args(spec: str) -> tuple[str, str | None]:
