@@ -18,10 +18,9 @@ row with ``layer = -1`` and empty heights, so every processed time step appears)
 ``flags``                  quality flags of the pair, ``;``-separated
 =========================  ======================================================================
 
-CSV rows are flushed as they are written (a killed writer leaves a readable file). Parquet
-keeps a ``ParquetWriter`` open and writes a row group every ``row_group_rows`` rows and on
-``close``: the file is readable only after ``close`` (regenerate it from the MCAP recording
-with ``cbh export`` if the writer was killed).
+Both live formats are readable at any moment, also while ``cbh run`` writes them and after a
+kill: CSV rows are flushed as they are written; the Parquet table is rewritten to a temporary
+file and atomically renamed over the export after every pair.
 
 The NetCDF file follows CF-1.8 in the style of ceilometer products (E-PROFILE, Vaisala CL61):
 dimensions ``time`` and ``layer``; ``cloud_base_height`` [m above ground] and
@@ -142,14 +141,20 @@ class LayerExporter:
     Parameters
     ----------
     path : str or Path
-        ``.csv`` (appended to if it exists with the same header) or ``.parquet`` (must not exist).
+        ``.csv`` (appended to if it exists with the same header) or ``.parquet`` (appended to if
+        it is a cbh layer table).
     station : cbh.station.Station
         Gives the altitude for ``cloud_base_altitude_m``.
-    row_group_rows : int
-        Parquet only: rows per row group.
+    max_rows : int
+        Parquet only: after this many rows the export continues in ``<stem>-001.parquet``, … .
+
+    Both formats are complete and readable after every pair, also while the service runs and
+    after a kill: CSV rows are flushed as written; the Parquet file is rewritten to a temporary
+    file and atomically renamed over the old one after each pair (layer rows are small: a day
+    at a 10 s cadence is about 26 000 rows).
     """
 
-    def __init__(self, path, station, *, row_group_rows: int = 512, fmt: str | None = None):
+    def __init__(self, path, station, *, max_rows: int = 200_000, fmt: str | None = None):
         self.path = Path(path)
         self.altitude_m = float(station.altitude_m)
         self.rows_written = 0
@@ -181,16 +186,21 @@ class LayerExporter:
                     self._fh.close()  # the caller reports the error (e.g. disk full)
                     raise
         else:
-            import pyarrow.parquet as pq
-
+            if max_rows < 1:
+                raise ConfigError(f"export.max_rows: must be >= 1, got {max_rows}")
+            self.max_rows = int(max_rows)
+            self.paths = [self.path]
+            self._rows: list[dict] = []
             if self.path.exists():
-                raise RecordingError(f"{self.path}: exists and Parquet files cannot be appended to; "
-                                     "choose a new path or remove it")
-            if row_group_rows < 1:
-                raise ConfigError(f"export.row_group_rows: must be >= 1, got {row_group_rows}")
-            self.row_group_rows = int(row_group_rows)
-            self._buf: list[dict] = []
-            self._pq = pq.ParquetWriter(str(self.path), _arrow_schema())
+                import pyarrow.parquet as pq
+
+                try:
+                    table = pq.read_table(self.path)
+                except Exception as exc:  # pyarrow raises several types for a foreign file
+                    raise RecordingError(f"{self.path}: exists and is not a readable Parquet file ({exc})") from None
+                if table.schema.names != _arrow_schema().names:
+                    raise RecordingError(f"{self.path}: exists with other columns; cannot append layer rows to it")
+                self._rows = table.to_pylist()
 
     def write(self, frames: tuple[Frame, Frame] | None, result: PairResult) -> None:
         """Append the rows of one result (``frames`` are not used)."""
@@ -205,15 +215,27 @@ class LayerExporter:
                 self._csv.writerow([_csv_value(k, r[k]) for k in COLUMNS])
             self._fh.flush()
         else:
-            self._buf.extend(rows)
-            if len(self._buf) >= self.row_group_rows:
-                self._flush_parquet()
+            if len(self._rows) + len(rows) > self.max_rows:
+                self.path = self.paths[0].with_name(f"{self.paths[0].stem}-{len(self.paths):03d}.parquet")
+                self.paths.append(self.path)
+                self._rows = []
+            self._rows.extend(rows)
+            self._write_parquet()
         self.rows_written += len(rows)
 
-    def _flush_parquet(self) -> None:
-        if self._buf:
-            self._pq.write_table(_arrow_table(self._buf))
-            self._buf = []
+    def _write_parquet(self) -> None:
+        """Write all rows to a temporary file and rename it over the export (atomic)."""
+        import os
+
+        import pyarrow.parquet as pq
+
+        tmp = self.path.with_name(f".{self.path.name}.tmp")
+        try:
+            pq.write_table(_arrow_table(self._rows), str(tmp))
+            os.replace(tmp, self.path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
 
     def close(self) -> None:
         """Flush and close (writes the Parquet footer). Idempotent."""
@@ -222,9 +244,8 @@ class LayerExporter:
         self._closed = True
         if self.format == "csv":
             self._fh.close()
-        else:
-            self._flush_parquet()
-            self._pq.close()
+        elif not self.path.exists():
+            self._write_parquet()  # a run with no pair still leaves a (header-only) table
 
     def __enter__(self) -> "LayerExporter":
         return self

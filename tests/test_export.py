@@ -77,8 +77,12 @@ def test_csv_appends_to_its_own_file_only(tmp_path, station):
         LayerExporter(other, station)
     pq = tmp_path / "l.parquet"
     pq.write_bytes(b"x")
-    with pytest.raises(RecordingError, match="cannot be appended"):
+    with pytest.raises(RecordingError, match="not a readable Parquet file"):
         LayerExporter(pq, station)
+    other.unlink()
+    pd.DataFrame({"a": [1]}).to_parquet(tmp_path / "o.parquet")
+    with pytest.raises(RecordingError, match="other columns"):
+        LayerExporter(tmp_path / "o.parquet", station)
     with pytest.raises(ConfigError, match="unknown format"):
         LayerExporter(tmp_path / "l.txt", station)
 
@@ -212,3 +216,26 @@ def test_sample_recording_exports_its_layer_heights():
         with xr.open_dataset(out) as ds:
             for i, hs in enumerate(recorded):
                 assert list(ds.cloud_base_height.values[i, : len(hs)]) == hs
+
+
+def test_parquet_is_complete_after_every_pair_appends_and_rolls_over(tmp_path, station):
+    import pandas as pd
+
+    from cbh.export import LayerExporter
+
+    out = tmp_path / "live.parquet"
+    exp = LayerExporter(out, station, max_rows=4)
+    exp.write(*synthetic_pair(station, 0))  # one layer
+    # readable while the writer is still open (a forecaster polling the file, or after a kill)
+    assert len(pd.read_parquet(out)) == 1
+    exp.write(*synthetic_pair(station, 1))  # two layers
+    assert len(pd.read_parquet(out)) == 3
+    exp.write(*synthetic_pair(station, 1))  # 3 + 2 > 4 rows: continues in live-001.parquet
+    exp.close()
+    assert [p.name for p in exp.paths] == ["live.parquet", "live-001.parquet"]
+    assert len(pd.read_parquet(tmp_path / "live-001.parquet")) == 2
+    assert not list(tmp_path.glob(".*.tmp"))
+    with LayerExporter(out, station) as again:  # appends to an existing cbh table
+        again.write(*synthetic_pair(station, 0))
+    df = pd.read_parquet(out)
+    assert len(df) == 4 and df["cloud_base_height_m"].iloc[0] == df["cloud_base_height_m"].iloc[3]
