@@ -28,10 +28,19 @@ app = typer.Typer(
 )
 
 
+def _show_version(value: bool) -> None:
+    if value:
+        import cbh
+
+        print(f"cbh {cbh.__version__}")
+        raise typer.Exit(0)
+
+
 @app.callback()
 def _root(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug messages to stderr."),
     log_file: str = typer.Option(None, "--log-file", help="Also write structured (JSON lines) logs to this file."),
+    version: bool = typer.Option(False, "--version", callback=_show_version, is_eager=True, help="Print the version and exit."),
 ) -> None:
     """Cloud-base height from two upward-looking fisheye cameras."""
     from cli.logs import setup_logging

@@ -107,3 +107,10 @@ def test_missing_files_exit_2(tmp_path, capsys):
     assert "pixels file not found" in capsys.readouterr().err
     assert main(["triangulate", "--station", STATION, "--pixels", "x.csv", "--cameras", "cam1,camX"]) == 2
     assert "camX" in capsys.readouterr().err
+
+
+def test_version_flag(capsys):
+    import cbh
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"cbh {cbh.__version__}"
