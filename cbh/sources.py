@@ -385,7 +385,7 @@ class HttpSource:
 
     def _read_part(self, timeout_s: float) -> Frame | None:
         """One part of the multipart stream; None when it is not complete within ``timeout_s``."""
-        conn, b = self._conn, self._boundary
+        conn = self._conn
         deadline = time.monotonic() + timeout_s
         while True:
             frame = self._parse_part()

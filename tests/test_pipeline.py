@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from cbh.errors import ImageError
-from cbh.pipeline import FilteringConfig, HeightMapConfig, LayersConfig, Pipeline, PipelineConfig, working_factor
+from cbh.pipeline import FilteringConfig, LayersConfig, Pipeline, PipelineConfig, working_factor
 from cbh.pipeline.heightmap import nearest_fill, rasterize_heights
 from cbh.pipeline.layers import histogram_layers, layer_stats
 from cbh.pipeline.segment import normalized_blue_red, segment
 from cbh.pipeline.config import SegmentationConfig
 from cbh.presets import station_path
-from cbh.station import load_station, rotation_from_angles
+from cbh.station import load_station
 
 T = datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
 

@@ -7,40 +7,11 @@
 Stages: :mod:`.masks`, :mod:`.segment`, :mod:`.match`, :mod:`.heightmap`, :mod:`.layers`,
 orchestrated by :class:`Pipeline` (:mod:`.run`); configuration in :mod:`.config`.
 """
-from .config import (
-    DISConfig,
-    FilteringConfig,
-    HeightMapConfig,
-    LayersConfig,
-    LKConfig,
-    MasksConfig,
-    MatchingConfig,
-    ORBConfig,
-    PipelineConfig,
-    SegmentationConfig,
-    SweepConfig,
-)
+from . import config as _config
+from .config import *  # noqa: F401,F403 - every stage config, listed once in config.__all__
 from .layers import LAYER_METHODS
 from .match import MATCHERS, PairGeometry
 from .run import Pipeline, working_factor
 from .segment import SEGMENTERS
 
-__all__ = [
-    "Pipeline",
-    "PipelineConfig",
-    "MasksConfig",
-    "SegmentationConfig",
-    "LKConfig",
-    "ORBConfig",
-    "DISConfig",
-    "SweepConfig",
-    "MatchingConfig",
-    "FilteringConfig",
-    "HeightMapConfig",
-    "LayersConfig",
-    "PairGeometry",
-    "SEGMENTERS",
-    "MATCHERS",
-    "LAYER_METHODS",
-    "working_factor",
-]
+__all__ = ["Pipeline", *_config.__all__, "PairGeometry", "SEGMENTERS", "MATCHERS", "LAYER_METHODS", "working_factor"]

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import HeightMapConfig
 
 __all__ = ["rasterize_heights", "nearest_fill", "upsample_map"]
 
