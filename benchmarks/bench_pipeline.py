@@ -28,7 +28,7 @@ def main() -> None:
     from cbh.pipeline import Pipeline
     from cbh.presets import station_path
     from cbh.sim import SkySimulator, load_scene
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     sim = SkySimulator(load_station(station_path("unb-lea")), load_scene(args.scene), size_px=args.size)
     shot = sim.render()

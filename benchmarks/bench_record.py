@@ -27,9 +27,9 @@ def main(argv=None) -> int:
 
     from dataclasses import replace
 
-    from cbh.export import export_sessions
-    from cbh.record import McapRecorder, open_session
-    from cbh.viz import RerunSink
+    from cbh.outputs.export import export_sessions
+    from cbh.outputs.record import McapRecorder, open_session
+    from cbh.outputs.rerun_view import RerunSink
     from tests.test_record import small_station, synthetic_pair
 
     st = small_station(a.size)

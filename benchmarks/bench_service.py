@@ -29,16 +29,16 @@ def main() -> None:
     ap.add_argument("--export", default="parquet", choices=("csv", "parquet"))
     a = ap.parse_args()
 
-    from cbh.camera_server import CameraServer
+    from cbh.sim.camera_server import CameraServer
     from cbh.pipeline import Pipeline, PipelineConfig
     from cbh.presets import scene_path, station_path
-    from cbh.record import McapRecorder
-    from cbh.export import LayerExporter
+    from cbh.outputs.record import McapRecorder
+    from cbh.outputs.export import LayerExporter
     from cbh.result import Frame
-    from cbh.service import Service, ServiceConfig
+    from cbh.live.service import Service, ServiceConfig
     from cbh.sim import SkySimulator, load_scene
-    from cbh.sources import MemorySource, open_source
-    from cbh.station import load_station
+    from cbh.live.sources import MemorySource, open_source
+    from cbh.geometry.station import load_station
 
     t = time.perf_counter()
     scene = load_scene(scene_path())

@@ -25,7 +25,7 @@ def main() -> None:
     from cbh.imageio import encode_jpeg
     from cbh.presets import station_path
     from cbh.sim import SkySimulator, load_scene
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     station = load_station(station_path())
     print(f"cv2 threads: {cv2.getNumThreads()}")

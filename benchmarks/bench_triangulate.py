@@ -10,7 +10,7 @@ import time
 import numpy as np
 import torch
 
-from cbh.triangulate import triangulate, triangulate_svd, triangulate_svd_loop
+from cbh.geometry.triangulate import triangulate, triangulate_svd, triangulate_svd_loop
 
 
 def rays(n, dtype, seed=0):

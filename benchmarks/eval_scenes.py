@@ -8,11 +8,11 @@ from __future__ import annotations
 import argparse
 import time
 
-from cbh.evaluate import score_pair, station_variant
+from cbh.sim.evaluate import score_pair, station_variant
 from cbh.pipeline import Pipeline
 from cbh.presets import list_scenes, station_path
 from cbh.sim import SkySimulator, load_scene
-from cbh.station import load_station
+from cbh.geometry.station import load_station
 
 
 def main():

@@ -1,9 +1,9 @@
 """cbh: cloud-base height mapping from two upward-looking fisheye cameras.
 
-The library: camera models (:mod:`cbh.camera`), stations (:mod:`cbh.station`), triangulation
-(:mod:`cbh.triangulate`), the simulator (:mod:`cbh.sim`), the pair pipeline
-(:mod:`cbh.pipeline`), sources and the live service (:mod:`cbh.sources`, :mod:`cbh.service`),
-recording (:mod:`cbh.record`), Rerun (:mod:`cbh.viz`) and export (:mod:`cbh.export`).
+The library: camera models (:mod:`cbh.geometry.camera`), stations (:mod:`cbh.geometry.station`), triangulation
+(:mod:`cbh.geometry.triangulate`), the simulator (:mod:`cbh.sim`), the pair pipeline
+(:mod:`cbh.pipeline`), sources and the live service (:mod:`cbh.live.sources`, :mod:`cbh.live.service`),
+recording (:mod:`cbh.outputs.record`), Rerun (:mod:`cbh.outputs.rerun_view`) and export (:mod:`cbh.outputs.export`).
 Frames and units: docs/conventions.md. Importing cbh imports nothing heavy.
 """
 from importlib.metadata import PackageNotFoundError, version

@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .camera import CameraModel
-from .errors import ImageError
+from cbh.errors import ImageError
+
+if TYPE_CHECKING:  # only for the annotation: shared helpers import no wing
+    from cbh.geometry.camera import CameraModel
 
 __all__ = ["read_image", "decode_image", "encode_jpeg", "check_image_size"]
 

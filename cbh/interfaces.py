@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
-from .result import Frame, PairResult
+from cbh.result import Frame, PairResult
 
 
 @runtime_checkable

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .errors import ConfigError
+from cbh.errors import ConfigError
 
 __all__ = ["configs_dir", "station_path", "scene_path", "list_scenes", "DEFAULT_STATION", "DEFAULT_SCENE"]
 

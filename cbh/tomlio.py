@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
+from cbh.errors import ConfigError
 
 __all__ = ["read_toml", "dumps_toml"]
 

@@ -43,13 +43,13 @@ def _root(
     version: bool = typer.Option(False, "--version", callback=_show_version, is_eager=True, help="Print the version and exit."),
 ) -> None:
     """Cloud-base height from two upward-looking fisheye cameras."""
-    from cli.logs import setup_logging
+    from cbh.cli.logs import setup_logging
 
     setup_logging(verbose=verbose, log_file=log_file)
 
 
 for _name in COMMANDS:
-    importlib.import_module(f"cli.commands.{_name}").register(app)
+    importlib.import_module(f"cbh.cli.commands.{_name}").register(app)
 
 
 def fail(message: str, code: int = 2) -> "typer.Exit":

@@ -12,7 +12,7 @@ import numpy as np
 
 from cbh.imageio import read_image
 from cbh.pipeline import Pipeline, PipelineConfig
-from cbh.station import load_station
+from cbh.geometry.station import load_station
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "wahrsis-2015-10-29"

@@ -27,9 +27,9 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
 
     from cbh.pipeline import Pipeline
-    from cbh.record import McapRecorder
+    from cbh.outputs.record import McapRecorder
     from cbh.sim import SkySimulator, load_scene
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     station = load_station(a.station).scaled(a.size)
     sim = SkySimulator(station, load_scene(a.scene), size_px=a.size)

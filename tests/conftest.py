@@ -25,6 +25,6 @@ def shared() -> Path:
 
 @pytest.fixture(scope="session")
 def unb_station():
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     return load_station(REPO / "configs" / "unb-lea.toml")

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from cbh.camera import EquidistantModel, EquisolidModel, OCamModel, format_ocamcalib, read_ocamcalib
+from cbh.geometry.camera import EquidistantModel, EquisolidModel, OCamModel, format_ocamcalib, read_ocamcalib
 from cbh.errors import CalibrationError
 
 from .conftest import OCAM_FILE

@@ -32,7 +32,7 @@ def _clear(res):
 def test_live_exporter_round_trip_is_exact(tmp_path, station, suffix):
     import pandas as pd
 
-    from cbh.export import COLUMNS, LayerExporter
+    from cbh.outputs.export import COLUMNS, LayerExporter
 
     out = tmp_path / f"layers{suffix}"
     made = []
@@ -64,7 +64,7 @@ def test_live_exporter_round_trip_is_exact(tmp_path, station, suffix):
 def test_csv_appends_to_its_own_file_only(tmp_path, station):
     import pandas as pd
 
-    from cbh.export import LayerExporter
+    from cbh.outputs.export import LayerExporter
 
     out = tmp_path / "l.csv"
     for k in range(2):
@@ -92,7 +92,7 @@ def two_sessions(tmp_path_factory, station):
     d = tmp_path_factory.mktemp("ex")
     _, made_a = write_session(d / "a.mcap", station, n=3)
     # second session continues 60 s later
-    from cbh.record import McapRecorder
+    from cbh.outputs.record import McapRecorder
 
     rec = McapRecorder(d / "b.mcap", station, {})
     made_b = []
@@ -109,7 +109,7 @@ def test_export_of_sessions_gives_exactly_the_recorded_heights(tmp_path, two_ses
     import pandas as pd
     import xarray as xr
 
-    from cbh.export import export_sessions
+    from cbh.outputs.export import export_sessions
 
     a, b, made = two_sessions
     out = tmp_path / {"csv": "x.csv", "parquet": "x.parquet", "netcdf": "x.nc"}[fmt]
@@ -133,7 +133,7 @@ def test_netcdf_is_cf_with_expected_variables_units_and_fill_values(tmp_path, tw
     import netCDF4
     import xarray as xr
 
-    from cbh.export import FILL_VALUE, export_sessions
+    from cbh.outputs.export import FILL_VALUE, export_sessions
 
     a, b, made = two_sessions
     out = tmp_path / "cbh.nc"
@@ -169,7 +169,7 @@ def test_netcdf_is_cf_with_expected_variables_units_and_fill_values(tmp_path, tw
 
 
 def test_export_cli_and_errors(tmp_path, two_sessions, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     a, b, _ = two_sessions
     assert main(["export", str(a), str(b), "--out", str(tmp_path / "o.nc")]) == 0
@@ -190,7 +190,7 @@ def test_export_cli_and_errors(tmp_path, two_sessions, capsys):
 def test_sessions_of_different_stations_are_refused(tmp_path, station):
     from dataclasses import replace
 
-    from cbh.export import export_sessions
+    from cbh.outputs.export import export_sessions
 
     write_session(tmp_path / "a.mcap", station, n=1)
     write_session(tmp_path / "b.mcap", replace(station, name="elsewhere"), n=1)
@@ -202,8 +202,8 @@ def test_sample_recording_exports_its_layer_heights():
     """The repository's sample session: exported heights equal those in its /pair/layers."""
     import xarray as xr
 
-    from cbh.export import export_sessions
-    from cbh.record import open_session
+    from cbh.outputs.export import export_sessions
+    from cbh.outputs.record import open_session
 
     s = open_session(SAMPLE)
     recorded = [[l.height_m for l in p.result.layers] for p in s.pairs(layers_only=True)]
@@ -221,7 +221,7 @@ def test_sample_recording_exports_its_layer_heights():
 def test_parquet_is_complete_after_every_pair_appends_and_rolls_over(tmp_path, station):
     import pandas as pd
 
-    from cbh.export import LayerExporter
+    from cbh.outputs.export import LayerExporter
 
     out = tmp_path / "live.parquet"
     exp = LayerExporter(out, station, max_rows=4)

@@ -11,7 +11,7 @@ SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
 
 
 def test_inspect_reports_span_frames_drops_topics_layers(tmp_path, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     path = tmp_path / "s.mcap"
     _, made = write_session(path, small_station(), n=4)
@@ -33,7 +33,7 @@ def test_inspect_reports_span_frames_drops_topics_layers(tmp_path, capsys):
 
 
 def test_inspect_sample(capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     assert main(["inspect", str(SAMPLE), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
@@ -41,7 +41,7 @@ def test_inspect_sample(capsys):
 
 
 def test_repair_of_truncated_file(tmp_path, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     data = SAMPLE.read_bytes()
     cut = tmp_path / "killed.mcap"
@@ -58,7 +58,7 @@ def test_repair_of_truncated_file(tmp_path, capsys):
 
 
 def test_foreign_files(tmp_path, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     for name, content in [("a.mcap", b"hello world, this is not mcap"), ("b.mcap", b"")]:
         p = tmp_path / name

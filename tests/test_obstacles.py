@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from cbh.errors import ImageError, InputError
-from cbh.obstacles import obstacle_mask_from_frames
+from cbh.pipeline.obstacles import obstacle_mask_from_frames
 from cbh.presets import station_path
 from cbh.sim import SkySimulator, load_scene
-from cbh.station import load_station
-from cli.main import main
+from cbh.geometry.station import load_station
+from cbh.cli.main import main
 
 
 def sequence(scene, n=6, size=480, cam="cam1", step_s=30):

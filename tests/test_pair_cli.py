@@ -5,14 +5,14 @@ import cv2
 import numpy as np
 import pytest
 
-from cli.main import main
+from cbh.cli.main import main
 
 
 @pytest.fixture(scope="module")
 def sim_pair(tmp_path_factory):
     from cbh.presets import station_path
     from cbh.sim import SkySimulator, parse_scene
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     d = tmp_path_factory.mktemp("pair")
     scene = parse_scene({"name": "t", "time_utc": "2024-06-21T14:00:00Z",

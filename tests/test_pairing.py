@@ -1,4 +1,4 @@
-"""Pairing two cameras' frames by nearest time stamp within a tolerance (cbh.pairing)."""
+"""Pairing two cameras' frames by nearest time stamp within a tolerance (cbh.live.pairing)."""
 from __future__ import annotations
 
 from datetime import datetime, timedelta, timezone
@@ -6,7 +6,7 @@ from datetime import datetime, timedelta, timezone
 import pytest
 
 from cbh.errors import ConfigError
-from cbh.pairing import Pairer
+from cbh.live.pairing import Pairer
 from cbh.result import Frame
 
 T0 = datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc)

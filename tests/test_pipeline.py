@@ -16,7 +16,7 @@ from cbh.pipeline.layers import histogram_layers, layer_stats
 from cbh.pipeline.segment import normalized_blue_red, segment
 from cbh.pipeline.config import SegmentationConfig
 from cbh.presets import station_path
-from cbh.station import load_station
+from cbh.geometry.station import load_station
 
 T = datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
 
@@ -115,7 +115,7 @@ def test_wrong_image_size_is_an_image_error():
 
 # --- simulated skies ----------------------------------------------------------------------
 def _sim(layers, size, baseline_m=50.0, yaw2=-5.6, time="2024-06-21T14:00:00Z"):
-    from cbh.evaluate import station_variant
+    from cbh.sim.evaluate import station_variant
     from cbh.sim import SkySimulator, parse_scene
 
     st = station_variant(load_station(station_path("unb-lea")), baseline_m, yaw2)
@@ -133,7 +133,7 @@ def _check(sim, shot, tol_single=0.02, tol_multi=0.05, dense_layers_m=None):
     ``cbh/pipeline/heightmap.py``), so no height map can cover it. ``dense_layers_m``: only the
     pixels of these true layers count (None = all layers; see the three-layer test for why).
     """
-    from cbh.evaluate import score_pair
+    from cbh.sim.evaluate import score_pair
 
     v1 = shot.views["cam1"]
     pipe = Pipeline(sim.station)
@@ -159,7 +159,7 @@ def _scene(name):
 
 
 def _sim_scene(name, size, baseline_m, yaw2):
-    from cbh.evaluate import station_variant
+    from cbh.sim.evaluate import station_variant
     from cbh.sim import SkySimulator, load_scene
 
     sim = SkySimulator(station_variant(load_station(station_path("unb-lea")), baseline_m, yaw2), load_scene(name), size_px=size)

@@ -20,7 +20,7 @@ SIZE = 240  # px: small images keep the tests fast
 
 
 def small_station(size: int = SIZE):
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     return load_station(REPO / "configs" / "unb-lea.toml").scaled(size)
 
@@ -75,7 +75,7 @@ def synthetic_pair(station, k: int, heights=(1800.0, 4200.0), n_points: int = 60
 
 
 def write_session(path, station, n: int = 4, **kw):
-    from cbh.record import McapRecorder
+    from cbh.outputs.record import McapRecorder
 
     rec = McapRecorder(path, station, {"segment": {"method": "rbr", "threshold": 0.6}}, **kw)
     made = []
@@ -102,7 +102,7 @@ def session_file(tmp_path_factory, station):
 
 
 def test_round_trip_gives_back_every_pair_exactly(session_file, station):
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     path, made = session_file
     s = open_session(path)
@@ -133,8 +133,8 @@ def test_round_trip_gives_back_every_pair_exactly(session_file, station):
 
 
 def test_metadata_topics_and_status(session_file, station):
-    from cbh.record import open_session
-    from cbh.station import parse_station
+    from cbh.outputs.record import open_session
+    from cbh.geometry.station import parse_station
     import tomllib
 
     path, made = session_file
@@ -178,7 +178,7 @@ def test_generic_protobuf_decoder_reads_every_message(session_file):
 
 
 def test_rotation_by_size_and_time(tmp_path, station):
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     rec, made = write_session(tmp_path / "big.mcap", station, n=5, rotate_mb=0.001)
     assert len(rec.paths) >= 4 and rec.paths[0] == tmp_path / "big.mcap"
@@ -193,7 +193,7 @@ def test_rotation_by_size_and_time(tmp_path, station):
 
 
 def test_frames_without_encoded_bytes_are_encoded_once(tmp_path, station):
-    from cbh.record import McapRecorder, open_session
+    from cbh.outputs.record import McapRecorder, open_session
 
     frames, res = synthetic_pair(station, 0, encode=False)
     with McapRecorder(tmp_path / "x.mcap", station, {}) as rec:
@@ -205,7 +205,7 @@ def test_frames_without_encoded_bytes_are_encoded_once(tmp_path, station):
 
 
 def test_foreign_and_truncated_files_give_one_line_errors(tmp_path, session_file):
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap at all" * 10)
@@ -236,7 +236,7 @@ def test_foreign_and_truncated_files_give_one_line_errors(tmp_path, session_file
 
 @pytest.mark.parametrize("fraction", [0.35, 0.8])
 def test_recover_truncated_file_keeps_every_complete_pair(tmp_path, session_file, fraction):
-    from cbh.record import open_session, recover
+    from cbh.outputs.record import open_session, recover
 
     path, made = session_file
     data = path.read_bytes()
@@ -258,7 +258,7 @@ KILL_SCRIPT = r"""
 import sys, time
 sys.path.insert(0, sys.argv[2])
 from tests.test_record import small_station, synthetic_pair
-from cbh.record import McapRecorder
+from cbh.outputs.record import McapRecorder
 st = small_station()
 rec = McapRecorder(sys.argv[1], st, {"k": 1})
 for k in range(1000):
@@ -271,7 +271,7 @@ for k in range(1000):
 
 
 def test_sigkill_loses_at_most_the_pair_in_flight(tmp_path):
-    from cbh.record import open_session, recover
+    from cbh.outputs.record import open_session, recover
 
     out = tmp_path / "killed.mcap"
     written = -1
@@ -294,7 +294,7 @@ def test_sigkill_loses_at_most_the_pair_in_flight(tmp_path):
 
 def test_bad_arguments(tmp_path, station):
     from cbh.errors import ConfigError
-    from cbh.record import McapRecorder
+    from cbh.outputs.record import McapRecorder
 
     with pytest.raises(ConfigError, match="rotate_mb"):
         McapRecorder(tmp_path / "a.mcap", station, {}, rotate_mb=0)
@@ -302,7 +302,7 @@ def test_bad_arguments(tmp_path, station):
         McapRecorder(tmp_path / "nodir" / "a.mcap", station, {})
     rec = McapRecorder(tmp_path / "empty.mcap", station, {})
     rec.close()
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     s = open_session(tmp_path / "empty.mcap")
     assert s.pair_count == 0 and s.time_span is None

@@ -13,7 +13,7 @@ SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
 
 
 def test_sample_recording_is_small_and_complete():
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     assert SAMPLE.stat().st_size <= 20e6
     s = open_session(SAMPLE)
@@ -24,7 +24,7 @@ def test_sample_recording_is_small_and_complete():
 
 @needs_cli
 def test_replay_sample_into_verified_rrd_on_the_capture_time_line(tmp_path, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     out = tmp_path / "replay.rrd"
     assert main(["replay", str(SAMPLE), "--rerun", "save", str(out)]) == 0
@@ -53,7 +53,7 @@ def test_rerun_mcap_loader_reads_the_recording(tmp_path):
 @pytest.fixture(scope="module")
 def short_session(tmp_path_factory):
     """The sample's first two pairs, re-recorded, and its station as a TOML file."""
-    from cbh.record import McapRecorder, open_session
+    from cbh.outputs.record import McapRecorder, open_session
 
     d = tmp_path_factory.mktemp("rp")
     s = open_session(SAMPLE)
@@ -68,8 +68,8 @@ def short_session(tmp_path_factory):
 
 @needs_cli
 def test_reprocess_reruns_the_pipeline_and_records(tmp_path, short_session, capsys):
-    from cbh.record import open_session
-    from cli.main import main
+    from cbh.outputs.record import open_session
+    from cbh.cli.main import main
 
     sess, st = short_session
     out, rrd = tmp_path / "new.mcap", tmp_path / "new.rrd"
@@ -86,7 +86,7 @@ def test_reprocess_reruns_the_pipeline_and_records(tmp_path, short_session, caps
 
 
 def test_replay_errors_are_one_line(tmp_path, short_session, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     sess, st = short_session
     cases = [

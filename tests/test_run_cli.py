@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from cli.main import main
+from cbh.cli.main import main
 
 SIZE = 320
 
@@ -23,7 +23,7 @@ SIZE = 320
 def sim320():
     from cbh.presets import scene_path, station_path
     from cbh.sim import SkySimulator, load_scene
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     return SkySimulator(load_station(station_path()), load_scene(scene_path()), size_px=SIZE)
 
@@ -36,7 +36,7 @@ def station320(sim320, tmp_path_factory) -> Path:
 
 
 def test_default_simulated_run_records_six_pairs_that_all_read_back(tmp_path, capsys):
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     out = tmp_path / "demo.mcap"
     rc = main(["run", "--size", str(SIZE), "--record", str(out)])
@@ -74,8 +74,8 @@ def test_record_without_path_goes_to_recordings(tmp_path, monkeypatch, capsys):
 
 def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_path, capsys):
     """MJPEG camera 1 and snapshot camera 2 on loopback; cam2 goes offline, cam1 sends garbage."""
-    from cbh.camera_server import CameraServer, sim_frames
-    from cbh.record import open_session
+    from cbh.sim.camera_server import CameraServer, sim_frames
+    from cbh.outputs.record import open_session
 
     out = tmp_path / "live.mcap"
     with CameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0) as srv:
@@ -108,8 +108,8 @@ def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_pat
 
 @pytest.mark.slow  # two FFmpeg RTSP handshakes and stream probes: ~10 s
 def test_two_rtsp_cameras_pair_on_their_stream_clocks(sim320, station320, tmp_path, capsys):
-    from cbh.camera_server import RtspCameraServer, sim_frames
-    from cbh.record import open_session
+    from cbh.sim.camera_server import RtspCameraServer, sim_frames
+    from cbh.outputs.record import open_session
 
     out = tmp_path / "rtsp.mcap"
     with RtspCameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0) as srv:
@@ -163,7 +163,7 @@ def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs Linux /dev/full")
 def test_full_disk_is_one_error_and_the_recording_stays_valid(tmp_path, capsys):
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     (tmp_path / "full.csv").symlink_to("/dev/full")  # every write: ENOSPC
     rc = main(["run", "--size", "64", "--frames", "2", "--record", str(tmp_path / "ok.mcap"),
@@ -177,7 +177,7 @@ def test_full_disk_is_one_error_and_the_recording_stays_valid(tmp_path, capsys):
 
 def _start(tmp_path, *extra):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "cli.main", "run", "--size", str(SIZE), "--frames", "100000",
+    cmd = [sys.executable, "-m", "cbh.cli.main", "run", "--size", str(SIZE), "--frames", "100000",
            "--record", str(tmp_path / "run.mcap"), "--export", str(tmp_path / "run.csv"), *extra]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                          cwd=Path(__file__).resolve().parents[1])
@@ -202,7 +202,7 @@ def _wait_pairs(p, lines, n, timeout_s=60.0):
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signal_finishes_the_pair_closes_files_and_exits_0(tmp_path, sig):
-    from cbh.record import open_session
+    from cbh.outputs.record import open_session
 
     p, lines, th = _start(tmp_path)
     _wait_pairs(p, lines, 2)
@@ -222,7 +222,7 @@ def test_signal_finishes_the_pair_closes_files_and_exits_0(tmp_path, sig):
 
 
 def test_sigkill_loses_at_most_the_pair_in_flight(tmp_path):
-    from cbh.record import open_session, recover
+    from cbh.outputs.record import open_session, recover
 
     p, lines, th = _start(tmp_path)
     _wait_pairs(p, lines, 3)

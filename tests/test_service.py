@@ -1,4 +1,4 @@
-"""The service loop (cbh.service): pairing, cadence, backpressure, faults, sinks.
+"""The service loop (cbh.live.service): pairing, cadence, backpressure, faults, sinks.
 
 These tests exercise the loop's mechanics with a light ``process`` callable standing in
 for the pipeline (the end-to-end runs with the real simulator and pipeline are in
@@ -16,8 +16,8 @@ import pytest
 
 from cbh.errors import ConfigError, RecordingError, SourceError
 from cbh.result import Frame, Histogram, Layer, PairResult, PointSet
-from cbh.service import MemorySink, Service, ServiceConfig
-from cbh.sources import DirectorySource, MemorySource
+from cbh.live.service import MemorySink, Service, ServiceConfig
+from cbh.live.sources import DirectorySource, MemorySource
 
 T0 = datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc)
 JPEG = cv2.imencode(".jpg", np.full((16, 16, 3), 90, np.uint8))[1].tobytes()
@@ -127,8 +127,8 @@ class FullDisk(MemorySink):
 
 def test_full_disk_stops_with_one_error_and_keeps_what_was_recorded(tmp_path):
     from cbh.presets import station_path
-    from cbh.record import McapRecorder, open_session
-    from cbh.station import load_station
+    from cbh.outputs.record import McapRecorder, open_session
+    from cbh.geometry.station import load_station
 
     rec = McapRecorder(tmp_path / "kept.mcap", load_station(station_path()), {})
     good, full = MemorySink(), FullDisk(ok=2)
@@ -158,7 +158,7 @@ class Flaky:
 
     def read(self, timeout_s):
         if not self.frames:
-            from cbh.sources import EndOfStream
+            from cbh.live.sources import EndOfStream
 
             raise EndOfStream(self.camera)
         return self.frames.pop(0)

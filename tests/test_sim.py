@@ -15,8 +15,8 @@ from cbh.presets import list_scenes, station_path
 from cbh.result import Frame
 from cbh.sim import CloudLayer, Scene, SkySimulator, load_scene, parse_scene
 from cbh.sim.sky import sun_direction
-from cbh.station import load_station
-from cbh.triangulate import triangulate_pixels
+from cbh.geometry.station import load_station
+from cbh.geometry.triangulate import triangulate_pixels
 
 SIZE = 480
 PRESETS = ("single-cumulus", "two-layers", "three-layers", "overcast", "clear-sky", "sun-behind-clouds")
@@ -449,7 +449,7 @@ def test_bad_scene_other_errors(tmp_path, station):
 # --- CLI ---------------------------------------------------------------------------------------
 
 def test_cli_writes_images_truth_and_station(tmp_path, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     from cbh.imageio import read_image
 
@@ -477,7 +477,7 @@ def test_cli_writes_images_truth_and_station(tmp_path, capsys):
 
 
 def test_cli_bad_scene_exits_2(tmp_path, capsys):
-    from cli.main import main
+    from cbh.cli.main import main
 
     bad = tmp_path / "bad.toml"
     bad.write_text("[[layers]]\nheight_m = 1000.0\ncoverage = 2.0\n")

@@ -1,4 +1,4 @@
-"""Frame sources (cbh.sources) against a loopback HTTP camera, files and directories."""
+"""Frame sources (cbh.live.sources) against a loopback HTTP camera, files and directories."""
 from __future__ import annotations
 
 import os
@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from cbh.camera_server import CameraServer
+from cbh.sim.camera_server import CameraServer
 from cbh.errors import ConfigError, ImageError, SourceError
 from cbh.result import Frame
-from cbh.sources import (
+from cbh.live.sources import (
     DirectorySource, EndOfStream, HttpSource, MemorySource, VideoSource, open_source, parse_time_header,
     time_from_name,
 )
@@ -304,7 +304,7 @@ def test_memory_source_ends():
 # --- RTSP (loopback RTP/JPEG server, OpenCV's FFmpeg client) ----------------------------------
 
 def test_rtsp_stream_frames_in_order_with_stream_clock():
-    from cbh.camera_server import RtspCameraServer
+    from cbh.sim.camera_server import RtspCameraServer
 
     def pattern(cam, t):  # a white bar whose column moves with time: decoded content is checkable
         k = round((t - T0).total_seconds())

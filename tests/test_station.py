@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from cbh.errors import ConfigError
-from cbh.station import load_station, parse_station, rotation_from_angles
+from cbh.geometry.station import load_station, parse_station, rotation_from_angles
 
 from .conftest import OCAM_FILE
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from cbh.triangulate import TriangulationLimits, triangulate, triangulate_svd, triangulate_svd_loop
+from cbh.geometry.triangulate import TriangulationLimits, triangulate, triangulate_svd, triangulate_svd_loop
 
 
 def random_scene(n, seed=0, baseline=50.0):

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from cli.main import main
+from cbh.cli.main import main
 
 from .conftest import REPO
 

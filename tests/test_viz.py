@@ -25,7 +25,7 @@ def rrd_print(path, verbose: str = "") -> str:
 
 
 def test_parse_rerun_spec():
-    from cbh.viz import parse_rerun_spec
+    from cbh.outputs.rerun_view import parse_rerun_spec
 
     assert parse_rerun_spec("spawn") == ("spawn", None)
     assert parse_rerun_spec("save", "out.rrd") == ("save", "out.rrd")
@@ -41,7 +41,7 @@ def test_parse_rerun_spec():
 
 
 def test_height_colors_follow_the_scale_and_mark_nan():
-    from cbh.viz import height_colors
+    from cbh.outputs.rerun_view import height_colors
 
     c = height_colors(np.array([0.0, 5000.0, 10000.0, np.nan, 20000.0]))
     assert c.shape == (5, 3) and c.dtype == np.uint8
@@ -53,7 +53,7 @@ def test_height_colors_follow_the_scale_and_mark_nan():
 
 @needs_cli
 def test_save_mode_writes_a_verified_rrd_with_the_default_blueprint(tmp_path):
-    from cbh.viz import RerunSink
+    from cbh.outputs.rerun_view import RerunSink
 
     st = small_station()
     out_a, out_b = tmp_path / "a.rrd", tmp_path / "b.rrd"
@@ -81,7 +81,7 @@ def test_save_mode_writes_a_verified_rrd_with_the_default_blueprint(tmp_path):
 
 def test_bad_save_target(tmp_path):
     from cbh.errors import RecordingError
-    from cbh.viz import RerunSink
+    from cbh.outputs.rerun_view import RerunSink
 
     with pytest.raises(RecordingError, match="does not exist"):
         RerunSink(small_station(), "save", str(tmp_path / "missing" / "x.rrd"))
@@ -91,7 +91,7 @@ def test_serve_and_connect_modes_start_and_close_cleanly():
     """A served stream on a free port and a second sink connected to it (no viewer is spawned)."""
     import socket
 
-    from cbh.viz import RerunSink
+    from cbh.outputs.rerun_view import RerunSink
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

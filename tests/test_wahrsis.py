@@ -8,7 +8,7 @@ import pytest
 
 from cbh.imageio import read_image
 from cbh.pipeline import Pipeline
-from cbh.station import load_station
+from cbh.geometry.station import load_station
 
 T = datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc)
 

@@ -7,11 +7,11 @@
 Stages: :mod:`.masks`, :mod:`.segment`, :mod:`.match`, :mod:`.heightmap`, :mod:`.layers`,
 orchestrated by :class:`Pipeline` (:mod:`.run`); configuration in :mod:`.config`.
 """
-from . import config as _config
-from .config import *  # noqa: F401,F403 - every stage config, listed once in config.__all__
-from .layers import LAYER_METHODS
-from .match import MATCHERS, PairGeometry
-from .run import Pipeline, working_factor
-from .segment import SEGMENTERS
+from cbh.pipeline import config as _config
+from cbh.pipeline.config import *  # noqa: F401,F403 - every stage config, listed once in config.__all__
+from cbh.pipeline.layers import LAYER_METHODS
+from cbh.pipeline.match import MATCHERS, PairGeometry
+from cbh.pipeline.run import Pipeline, working_factor
+from cbh.pipeline.segment import SEGMENTERS
 
 __all__ = ["Pipeline", *_config.__all__, "PairGeometry", "SEGMENTERS", "MATCHERS", "LAYER_METHODS", "working_factor"]

@@ -18,7 +18,7 @@ import dataclasses
 import typing
 from dataclasses import dataclass, field
 
-from ..errors import ConfigError
+from cbh.errors import ConfigError
 
 __all__ = [
     "MasksConfig",

@@ -52,9 +52,9 @@ import math
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..result import Histogram, Layer
-from .config import FilteringConfig, LayersConfig
+from cbh.errors import ConfigError
+from cbh.result import Histogram, Layer
+from cbh.pipeline.config import FilteringConfig, LayersConfig
 
 __all__ = ["LAYER_METHODS", "histogram_layers", "layer_stats", "layer_covers", "get_layer_method", "angular_noise", "height_noise"]
 

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ImageError
-from ..station import Camera
-from .config import MasksConfig
+from cbh.errors import ImageError
+from cbh.geometry.station import Camera
+from cbh.pipeline.config import MasksConfig
 
 __all__ = ["static_sky_mask", "load_obstacle_mask", "sun_direction_enu", "angle_map_deg", "saturation_mask"]
 

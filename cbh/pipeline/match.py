@@ -33,10 +33,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..station import Camera
-from ..triangulate import TriangulationLimits, triangulate
-from .config import FilteringConfig, MatchingConfig
+from cbh.errors import ConfigError
+from cbh.geometry.station import Camera
+from cbh.geometry.triangulate import TriangulationLimits, triangulate
+from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
 __all__ = ["PairGeometry", "MatchInput", "Matches", "MATCHERS", "get_matcher", "triangulate_matches", "sample_map"]
 
@@ -98,7 +98,7 @@ class PairGeometry:
     def planes(self):
         """:class:`~cbh.pipeline.sweep.PlaneMaps` camera 1 → camera 2 (built on first use)."""
         if self._planes is None:
-            from .sweep import plane_maps
+            from cbh.pipeline.sweep import plane_maps
 
             self._planes = plane_maps(self.cam1, self.cam2, self.rays1_world)
         return self._planes
@@ -248,7 +248,7 @@ def _dis(inp: MatchInput, cfg: MatchingConfig) -> Matches:
 
 
 def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
-    from .sweep import sweep_matches
+    from cbh.pipeline.sweep import sweep_matches
 
     g = inp.geometry
     px1, px2, _ = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, float(g.cam1.position_m[2]), cfg.sweep)

@@ -28,16 +28,16 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from ..errors import ConfigError, ImageError
-from ..imageio import check_image_size
-from ..result import Histogram, PairResult, PointSet
-from ..station import Camera, Station
-from .config import PipelineConfig
-from .heightmap import nearest_fill, rasterize_heights, upsample_map
-from .layers import angular_noise, get_layer_method, height_noise, layer_covers, layer_stats
-from .masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
-from .match import MatchInput, PairGeometry, get_matcher, triangulate_matches
-from .segment import segment
+from cbh.errors import ConfigError, ImageError
+from cbh.imageio import check_image_size
+from cbh.result import Histogram, PairResult, PointSet
+from cbh.geometry.station import Camera, Station
+from cbh.pipeline.config import PipelineConfig
+from cbh.pipeline.heightmap import nearest_fill, rasterize_heights, upsample_map
+from cbh.pipeline.layers import angular_noise, get_layer_method, height_noise, layer_covers, layer_stats
+from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
+from cbh.pipeline.match import MatchInput, PairGeometry, get_matcher, triangulate_matches
+from cbh.pipeline.segment import segment
 
 __all__ = ["Pipeline", "working_factor"]
 

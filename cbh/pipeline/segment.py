@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import ConfigError
-from .config import SegmentationConfig
+from cbh.errors import ConfigError
+from cbh.pipeline.config import SegmentationConfig
 
 __all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter"]
 

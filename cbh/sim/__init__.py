@@ -8,14 +8,14 @@
 Example::
 
     from cbh.sim import SkySimulator, load_scene
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
     sim = SkySimulator(load_station("configs/unb-lea.toml"), load_scene("two-layers"), size_px=480)
     shot = sim.render()                      # all cameras at the scene's start time
     shot.views["cam1"].image                 # (480, 480, 3) uint8 BGR
     shot.views["cam1"].height_m              # (480, 480) float32, NaN off-cloud
 """
-from .render import SimShot, SimView, SkySimulator
-from .scene import CloudLayer, Imperfection, Obstacle, Scene, load_scene, parse_scene
+from cbh.sim.render import SimShot, SimView, SkySimulator
+from cbh.sim.scene import CloudLayer, Imperfection, Obstacle, Scene, load_scene, parse_scene
 
 __all__ = [
     "SkySimulator", "SimShot", "SimView", "Scene", "CloudLayer", "Obstacle", "Imperfection",

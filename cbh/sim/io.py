@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .render import SimShot
+from cbh.sim.render import SimShot
 
 __all__ = ["time_tag", "image_path", "write_shot"]
 
@@ -36,7 +36,7 @@ def write_shot(shot: SimShot, out_dir: str | Path, jpeg_quality: int = 92) -> di
     Images are stamped (named) with the nominal time: a camera with a clock offset captured
     later than its name says, as a real one would (the truth JSON has the real times).
     """
-    from ..imageio import encode_jpeg
+    from cbh.imageio import encode_jpeg
 
     out = Path(out_dir)
     tag = time_tag(shot.time_utc)

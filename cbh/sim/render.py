@@ -22,12 +22,12 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..result import Frame, to_ns
-from ..station import Camera, Station, rot_x, rot_y, rot_z
-from .noise import FADE_ZERO_PX, FINEST_PX_PER_WAVELENGTH, TILE_PX, LayerTexture, fade_weight, sample_tile
-from .scene import CloudLayer, Scene
-from .sky import GROUND_BGR, SUN_BGR, SUN_RADIUS_DEG, obstacle_profile, sun_direction, sun_position
+from cbh.errors import ConfigError
+from cbh.result import Frame, to_ns
+from cbh.geometry.station import Camera, Station, rot_x, rot_y, rot_z
+from cbh.sim.noise import FADE_ZERO_PX, FINEST_PX_PER_WAVELENGTH, TILE_PX, LayerTexture, fade_weight, sample_tile
+from cbh.sim.scene import CloudLayer, Scene
+from cbh.sim.sky import GROUND_BGR, SUN_BGR, SUN_RADIUS_DEG, obstacle_profile, sun_direction, sun_position
 
 __all__ = ["SkySimulator", "SimShot", "SimView"]
 
@@ -290,7 +290,7 @@ class _LayerState:
 
 
 class SkySimulator:
-    """Renders a :class:`Scene` through a :class:`~cbh.station.Station`'s cameras.
+    """Renders a :class:`Scene` through a :class:`~cbh.geometry.station.Station`'s cameras.
 
     Parameters
     ----------
@@ -308,7 +308,7 @@ class SkySimulator:
 
     Examples
     --------
-    >>> from cbh.station import load_station
+    >>> from cbh.geometry.station import load_station
     >>> from cbh.presets import station_path
     >>> sim = SkySimulator(load_station(station_path()), load_scene("single-cumulus"), size_px=96)  # doctest: +SKIP
     >>> shot = sim.render()  # doctest: +SKIP
@@ -391,7 +391,7 @@ class SkySimulator:
 
         The frame is stamped with the nominal time (a clock offset is the camera's error).
         """
-        from ..imageio import decode_image, encode_jpeg
+        from cbh.imageio import decode_image, encode_jpeg
 
         v = self.view(camera, time_utc)
         data = encode_jpeg(v.image, self.scene.image.jpeg_quality)
@@ -552,7 +552,7 @@ class SkySimulator:
             height.reshape(-1)[cs.obstacle_idx] = np.nan
             mask.reshape(-1)[cs.obstacle_idx] = False
         if scene.image.jpeg_roundtrip:
-            from ..imageio import decode_image, encode_jpeg
+            from cbh.imageio import decode_image, encode_jpeg
 
             image = decode_image(encode_jpeg(image, scene.image.jpeg_quality), "simulated image")
         return image, height, mask

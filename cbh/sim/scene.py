@@ -1,6 +1,6 @@
 """Synthetic sky scenes: cloud layers, sun, sky, obstacles, camera imperfections (TOML).
 
-A scene says *what is in the sky*; the station (:mod:`cbh.station`) says *who looks at it*.
+A scene says *what is in the sky*; the station (:mod:`cbh.geometry.station`) says *who looks at it*.
 :class:`cbh.sim.SkySimulator` renders one through the other. Every table and key is optional
 except ``[[layers]]`` entries' ``height_m``; unknown keys are a :class:`~cbh.errors.ConfigError`
 naming the key path (e.g. ``layers[1].coverage``). Heights are above the station's ENU origin.
@@ -61,8 +61,8 @@ from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ..errors import ConfigError
-from ..tomlio import read_toml
+from cbh.errors import ConfigError
+from cbh.tomlio import read_toml
 
 __all__ = [
     "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
@@ -417,7 +417,7 @@ def load_scene(path: str | Path) -> Scene:
     """
     p = Path(path)
     if not p.exists() and p.suffix != ".toml":
-        from ..presets import scene_path
+        from cbh.presets import scene_path
 
         p = scene_path(str(path))
     data = read_toml(p, "scene")

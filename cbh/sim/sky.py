@@ -9,7 +9,7 @@ from datetime import datetime
 
 import numpy as np
 
-from .scene import Obstacle, Scene
+from cbh.sim.scene import Obstacle, Scene
 
 __all__ = ["sun_position", "sun_direction", "obstacle_profile", "OBSTACLE_BGR", "SUN_RADIUS_DEG"]
 

@@ -19,7 +19,7 @@ def export_cmd(
 ) -> None:
     """Layer heights per time step (cloud base above ground and sea level, cover, confidence)."""
     from cbh.errors import ConfigError
-    from cbh.export import export_sessions
+    from cbh.outputs.export import export_sessions
 
     if fmt is None:
         fmt = _SUFFIX.get(out.suffix.lower())

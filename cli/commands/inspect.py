@@ -18,8 +18,8 @@ def inspect_cmd(
 ) -> None:
     """Time span, frames, drops, topics and layer statistics of a recording."""
     from cbh.errors import RecordingError
-    from cbh.record import open_session, recover
-    from cbh.record.describe import describe_session, format_description
+    from cbh.outputs.record import open_session, recover
+    from cbh.outputs.record.describe import describe_session, format_description
 
     paths = session
     repaired = None

@@ -28,10 +28,10 @@ def mask_cmd(
 
     from cbh.errors import ImageError, RecordingError
     from cbh.imageio import check_image_size
-    from cbh.obstacles import obstacle_mask_from_frames
+    from cbh.pipeline.obstacles import obstacle_mask_from_frames
     from cbh.presets import station_path
-    from cbh.sources import EndOfStream, open_source
-    from cbh.station import load_station
+    from cbh.live.sources import EndOfStream, open_source
+    from cbh.geometry.station import load_station
 
     st = load_station(station_path(station) if station else station_path())
     cam = st.camera(camera)

@@ -65,7 +65,7 @@ def pair_cmd(
 
     from cbh.imageio import read_image
     from cbh.pipeline import Pipeline
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     st = load_station(station)
     pipe = Pipeline(st, cameras)

@@ -26,8 +26,8 @@ def replay_cmd(
     import time
 
     from cbh.errors import ConfigError
-    from cbh.record import McapRecorder, open_session
-    from cbh.viz import RerunSink, parse_rerun_spec
+    from cbh.outputs.record import McapRecorder, open_session
+    from cbh.outputs.rerun_view import RerunSink, parse_rerun_spec
 
     log = logging.getLogger("cbh.replay")
     if (station or record or cameras) and not reprocess:
@@ -40,7 +40,7 @@ def replay_cmd(
     st = s.station
     if reprocess:
         from cbh.pipeline import Pipeline, PipelineConfig
-        from cbh.station import load_station
+        from cbh.geometry.station import load_station
 
         st = load_station(station)
         cfg = None if "pipeline" in st.sections else PipelineConfig.from_dict(s.config, where="recorded pipeline config")

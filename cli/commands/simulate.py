@@ -33,7 +33,7 @@ def simulate_cmd(
     from cbh.presets import scene_path, station_path
     from cbh.sim import SkySimulator, load_scene
     from cbh.sim.io import time_tag, write_shot
-    from cbh.station import load_station
+    from cbh.geometry.station import load_station
 
     if frames < 1:
         raise ConfigError(f"--frames must be >= 1, got {frames}")

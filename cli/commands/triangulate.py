@@ -20,8 +20,8 @@ def triangulate_cmd(
     """Triangulate pixel pairs; print heights, ray-miss distances and, given true heights, MAE/MAPE/RMSE."""
     import numpy as np
 
-    from cbh.station import load_station
-    from cbh.validation import height_metrics, read_pixel_pairs, triangulate_pixel_pairs
+    from cbh.geometry.station import load_station
+    from cbh.geometry.validation import height_metrics, read_pixel_pairs, triangulate_pixel_pairs
 
     st = load_station(station)
     cam1, cam2 = st.pair(cameras)

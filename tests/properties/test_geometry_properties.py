@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cbh.camera import EquisolidModel, OCamModel
-from cbh.station import rotation_from_angles
-from cbh.triangulate import triangulate
+from cbh.geometry.camera import EquisolidModel, OCamModel
+from cbh.geometry.station import rotation_from_angles
+from cbh.geometry.triangulate import triangulate
 
 pytestmark = pytest.mark.slow
 

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, RecordingError
-from .result import Frame, PairResult, to_ns
+from cbh.errors import ConfigError, RecordingError
+from cbh.result import Frame, PairResult, to_ns
 
 __all__ = ["RerunSink", "default_blueprint", "log_pair", "log_station", "parse_rerun_spec", "height_colors",
            "MODES", "TIMELINE"]
@@ -186,7 +186,7 @@ class RerunSink:
 
     Parameters
     ----------
-    station : cbh.station.Station
+    station : cbh.geometry.station.Station
     mode : {"spawn", "serve", "connect", "save"}
     target : str, optional
         URL for ``connect`` (default: the local viewer), PATH.rrd for ``save``.
@@ -229,7 +229,7 @@ class RerunSink:
 
     def write(self, frames: tuple[Frame, Frame], result: PairResult) -> None:
         """Log one pair (images as received; a frame without bytes is JPEG-encoded once)."""
-        from .imageio import encode_jpeg
+        from cbh.imageio import encode_jpeg
 
         images = {}
         for fr in frames:

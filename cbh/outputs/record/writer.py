@@ -2,8 +2,8 @@
 
 Each message goes into its own zstd chunk (``chunk_size=1``) and the file is flushed after
 each pair, so a writer killed with SIGKILL leaves every earlier pair on disk as complete
-records: :func:`cbh.record.recover` rewrites them into a valid file. The topics and the
-metadata record are listed in :mod:`cbh.record`.
+records: :func:`cbh.outputs.record.recover` rewrites them into a valid file. The topics and the
+metadata record are listed in :mod:`cbh.outputs.record`.
 """
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import RecordingError
-from ..result import Frame, PairResult, from_ns, to_ns
-from .schemas import cbh_types, foxglove_types
+from cbh.errors import RecordingError
+from cbh.result import Frame, PairResult, from_ns, to_ns
+from cbh.outputs.record.schemas import cbh_types, foxglove_types
 
 __all__ = ["McapRecorder", "cbh_version", "METADATA_NAME", "FRAME_ID_WORLD"]
 
@@ -130,7 +130,7 @@ class McapRecorder:
         A ``.mcap`` file, or a directory (created if needed) in which files are named
         ``<station>-<UTC capture time of the first pair>.mcap``. Rotated files of a ``.mcap``
         path are named ``<stem>-001.mcap``, ``<stem>-002.mcap`` …
-    station : cbh.station.Station
+    station : cbh.geometry.station.Station
         Stored as self-contained TOML in the metadata record.
     config : dict
         The resolved pipeline configuration (stored as JSON).
@@ -149,7 +149,7 @@ class McapRecorder:
 
     def __init__(self, path, station, config: dict, rotate_mb: float | None = None,
                  rotate_s: float | None = None, *, fsync: bool = False, compression: str = "zstd"):
-        from ..errors import ConfigError
+        from cbh.errors import ConfigError
 
         if compression not in ("zstd", "lz4", "none"):
             raise ConfigError(f"record.compression: unknown {compression!r} (valid: zstd, lz4, none)")
@@ -273,7 +273,7 @@ class McapRecorder:
             os.fsync(f.fh.fileno())
 
     def _pair_messages(self, frames, result: PairResult, t_ns: int) -> list:
-        from ..imageio import encode_jpeg
+        from cbh.imageio import encode_jpeg
 
         T, F = cbh_types(), foxglove_types()
         cam1, cam2 = result.cameras

@@ -1,7 +1,7 @@
 """The live service behind ``cbh run``: camera readers, pairing, processing, sinks, faults.
 
 Threads: one reader per camera pulls frames from its :class:`~cbh.interfaces.FrameSource`
-into a bounded queue; the calling thread pairs them (:class:`cbh.pairing.Pairer`), processes
+into a bounded queue; the calling thread pairs them (:class:`cbh.live.pairing.Pairer`), processes
 one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultSink`.
 
 - **Cadence** (``cadence_s``): a pair is processed only if its time is at least
@@ -36,9 +36,9 @@ from datetime import datetime
 from pathlib import Path
 from typing import Callable
 
-from .errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
-from .result import Frame, PairResult
-from .sources import EndOfStream, decode_frame
+from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
+from cbh.result import Frame, PairResult
+from cbh.live.sources import EndOfStream, decode_frame
 
 __all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySink", "STATES"]
 
@@ -324,7 +324,7 @@ class Service:
     # -- main loop ----------------------------------------------------------------------------
     def run(self, handle_signals: bool = True) -> ServiceStats:
         """Run until a stop condition; returns the counters. Every sink is closed on return."""
-        from .pairing import Pairer
+        from cbh.live.pairing import Pairer
 
         old = {}
         if handle_signals and threading.current_thread() is threading.main_thread():
@@ -549,7 +549,7 @@ class RunSetup:
 
 def _rerun_args(spec: str) -> tuple[str, str | None]:
     """``--rerun`` value → (mode, target): ``MODE``, ``MODE=TARGET`` (``connect=URL``,
-    ``save=PATH.rrd``), or a bare URL / PATH.rrd (validated by :func:`cbh.viz.parse_rerun_spec`)."""
+    ``save=PATH.rrd``), or a bare URL / PATH.rrd (validated by :func:`cbh.outputs.rerun_view.parse_rerun_spec`)."""
     s = spec.strip()
     for mode in ("spawn", "serve", "connect", "save"):
         for sep in ("=", ":"):
@@ -571,9 +571,9 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     """
     from datetime import timezone
 
-    from .presets import scene_path, station_path
-    from .sources import open_source
-    from .station import load_station
+    from cbh.presets import scene_path, station_path
+    from cbh.live.sources import open_source
+    from cbh.geometry.station import load_station
 
     st = load_station(station_path(station) if station else station_path())
     overrides: dict[str, str] = {}
@@ -597,7 +597,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     ServiceConfig.from_dict(cfg_dict)  # cheap checks first: errors before the simulator is built
     rerun_args = None
     if rerun is not None:
-        from .viz import parse_rerun_spec
+        from cbh.outputs.rerun_view import parse_rerun_spec
 
         rerun_args = parse_rerun_spec(*_rerun_args(rerun))
     if export is not None and Path(export).suffix.lower() not in (".csv", ".parquet"):
@@ -607,7 +607,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     notes = []
     sim = None
     if simulated:
-        from .sim import SkySimulator, load_scene
+        from cbh.sim import SkySimulator, load_scene
 
         sc = load_scene(scene_path(scene) if scene else scene_path())
         sim = SkySimulator(st, sc, size_px=size_px)
@@ -632,7 +632,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         interval_s=config.snapshot_interval_s, stall_timeout_s=config.stall_timeout_s,
         sim_step_s=step, sim_realtime=realtime, base_dir=base_dir, prefix=n if same_dir else None,
     ) for n in names]
-    from .pipeline import Pipeline, PipelineConfig
+    from cbh.pipeline import Pipeline, PipelineConfig
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
     pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg)
@@ -640,7 +640,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     recorder = None
     try:
         if record is not None:
-            from .record import McapRecorder
+            from cbh.outputs.record import McapRecorder
 
             if record is True:
                 from datetime import datetime
@@ -657,11 +657,11 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
                                                              rotate_s=rotate_s))
             sinks.append(recorder)
         if export is not None:
-            from .export import LayerExporter
+            from cbh.outputs.export import LayerExporter
 
             sinks.append(_open_sink(export, lambda: LayerExporter(export, st)))
         if rerun is not None:
-            from .viz import RerunSink
+            from cbh.outputs.rerun_view import RerunSink
 
             sinks.append(RerunSink(st, mode=rerun_args[0], target=rerun_args[1]))
     except BaseException:

@@ -50,8 +50,8 @@ from pathlib import Path
 from typing import Iterable
 
 
-from .errors import ConfigError, ImageError, SourceError
-from .result import Frame
+from cbh.errors import ConfigError, ImageError, SourceError
+from cbh.result import Frame
 
 __all__ = [
     "EndOfStream", "HttpSource", "MjpegSource", "SnapshotSource", "VideoSource", "DirectorySource",
@@ -94,7 +94,7 @@ def _finish(frame_bytes: bytes, camera: str, t: datetime, seq: int, decode: bool
     """
     fmt = "png" if frame_bytes[:8] == b"\x89PNG\r\n\x1a\n" else "jpeg"
     if decode:
-        from .imageio import decode_image
+        from cbh.imageio import decode_image
 
         img = decode_image(frame_bytes, what=what)
     else:
@@ -511,7 +511,7 @@ class VideoSource:
     def read(self, timeout_s: float) -> Frame | None:
         import cv2
 
-        from .imageio import encode_jpeg
+        from cbh.imageio import encode_jpeg
 
         if self._cap is None:
             raise SourceError(f"{self.camera}: source not open")
@@ -824,7 +824,7 @@ def open_source(camera, spec: str, *, sim=None, start_utc: datetime | None = Non
 def decode_frame(frame: Frame, what: str | None = None) -> Frame:
     """Decode ``frame.encoded`` into ``frame.image`` if not yet decoded (ImageError if corrupt)."""
     if frame.image is None:
-        from .imageio import decode_image
+        from cbh.imageio import decode_image
 
         frame.image = decode_image(frame.encoded or b"", what=what or f"{frame.camera} frame {frame.sequence}")
     return frame

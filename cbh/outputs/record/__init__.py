@@ -34,9 +34,9 @@ killed writer loses at most the pair in flight and :func:`recover` (``cbh inspec
 """
 from __future__ import annotations
 
-from .reader import RecordedImage, RecordedPair, Session, TopicInfo, open_session
-from .recover import RecoveryReport, recover
-from .writer import McapRecorder, cbh_version
+from cbh.outputs.record.reader import RecordedImage, RecordedPair, Session, TopicInfo, open_session
+from cbh.outputs.record.recover import RecoveryReport, recover
+from cbh.outputs.record.writer import McapRecorder, cbh_version
 
 __all__ = [
     "McapRecorder", "open_session", "recover", "Session", "RecordedPair", "RecordedImage",

@@ -15,7 +15,7 @@ its connections are cut and new ones refused with 503) and :meth:`CameraServer.c
 Run one for a demo (it writes the station scaled to ``--size`` and prints the ``cbh run``
 command line to use it)::
 
-    python -m cbh.camera_server --scene two-layers --size 960 --fps 1 --port 8080
+    python -m cbh.sim.camera_server --scene two-layers --size 960 --fps 1 --port 8080
 
 :class:`RtspCameraServer` does the same over RTSP (RTP/JPEG), for tests of the RTSP path.
 """
@@ -45,7 +45,7 @@ def sim_frames(sim) -> Callable[[str, datetime], bytes]:
             f = sim.frame(camera, t)
         if f.encoded is not None:
             return f.encoded
-        from .imageio import encode_jpeg
+        from cbh.imageio import encode_jpeg
 
         return encode_jpeg(f.image)
 
@@ -232,14 +232,14 @@ def _iso(t: datetime) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m cbh.camera_server``: serve a simulated station's cameras until Ctrl-C."""
+    """``python -m cbh.sim.camera_server``: serve a simulated station's cameras until Ctrl-C."""
     import argparse
 
-    from .presets import DEFAULT_SCENE, scene_path, station_path
-    from .sim import SkySimulator, load_scene
-    from .station import load_station
+    from cbh.presets import DEFAULT_SCENE, scene_path, station_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.geometry.station import load_station
 
-    ap = argparse.ArgumentParser(prog="python -m cbh.camera_server", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m cbh.sim.camera_server", description=__doc__.split("\n\n")[0])
     ap.add_argument("--station", default=None, help="station TOML or preset (default unb-lea)")
     ap.add_argument("--scene", default=DEFAULT_SCENE, help="scene TOML or preset")
     ap.add_argument("--size", type=int, default=960, help="image width [px]")

@@ -10,8 +10,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .result import PairResult
-from .station import Station, rotation_from_angles
+from cbh.result import PairResult
+from cbh.geometry.station import Station, rotation_from_angles
 
 __all__ = ["SceneScore", "score_pair", "station_variant"]
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CalibrationError, check_shape
+from cbh.errors import CalibrationError, check_shape
 
 __all__ = [
     "CameraModel",

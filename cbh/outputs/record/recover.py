@@ -4,8 +4,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import RecordingError
-from .reader import MAGIC, PAIR_TOPIC
+from cbh.errors import RecordingError
+from cbh.outputs.record.reader import MAGIC, PAIR_TOPIC
 
 __all__ = ["recover", "RecoveryReport"]
 

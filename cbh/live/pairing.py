@@ -25,8 +25,8 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
-from .errors import ConfigError
-from .result import Frame
+from cbh.errors import ConfigError
+from cbh.result import Frame
 
 __all__ = ["Pairer", "PairingStats"]
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .station import Camera
-from .triangulate import Triangulation, TriangulationLimits, triangulate
+from cbh.errors import InputError
+from cbh.geometry.station import Camera
+from cbh.geometry.triangulate import Triangulation, TriangulationLimits, triangulate
 
 __all__ = ["PixelPairs", "read_pixel_pairs", "triangulate_pixel_pairs", "height_metrics"]
 

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, RecordingError
-from .result import Frame, PairResult
+from cbh.errors import ConfigError, RecordingError
+from cbh.result import Frame, PairResult
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
            "netcdf_dataset", "write_netcdf", "export_sessions", "FORMATS", "FILL_VALUE", "KNOWN_FLAGS"]
@@ -143,7 +143,7 @@ class LayerExporter:
     path : str or Path
         ``.csv`` (appended to if it exists with the same header) or ``.parquet`` (appended to if
         it is a cbh layer table).
-    station : cbh.station.Station
+    station : cbh.geometry.station.Station
         Gives the altitude for ``cloud_base_altitude_m``.
     max_rows : int
         Parquet only: after this many rows the export continues in ``<stem>-001.parquet``, … .
@@ -265,7 +265,7 @@ def session_records(paths) -> tuple[list[PairRecord], dict]:
     info : dict
         station name, latitude_deg, longitude_deg, altitude_m, cameras, cbh_version.
     """
-    from .record import open_session
+    from cbh.outputs.record import open_session
 
     recs: list[PairRecord] = []
     info: dict | None = None

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import CameraModel
-from .errors import ImageError, InputError
+from cbh.geometry.camera import CameraModel
+from cbh.errors import ImageError, InputError
 
 __all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames"]
 

@@ -10,10 +10,10 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import CbhError, RecordingError
-from ..result import Frame, Histogram, Layer, PairResult, PointSet, from_ns
-from .schemas import cbh_types, foxglove_types
-from .writer import METADATA_NAME, POINT_DTYPE
+from cbh.errors import CbhError, RecordingError
+from cbh.result import Frame, Histogram, Layer, PairResult, PointSet, from_ns
+from cbh.outputs.record.schemas import cbh_types, foxglove_types
+from cbh.outputs.record.writer import METADATA_NAME, POINT_DTYPE
 
 __all__ = ["open_session", "Session", "RecordedPair", "RecordedImage", "TopicInfo", "check_mcap_file"]
 
@@ -57,7 +57,7 @@ class RecordedImage:
 
     def decode(self) -> np.ndarray:
         """BGR uint8 (H, W, 3)."""
-        from ..imageio import decode_image
+        from cbh.imageio import decode_image
 
         return decode_image(self.data, what=f"recorded {self.camera} image at {self.time_utc.isoformat()}")
 
@@ -234,9 +234,9 @@ class Session:
 
     @property
     def station(self):
-        """The recorded station (:class:`cbh.station.Station`); masks whose file is gone are dropped."""
+        """The recorded station (:class:`cbh.geometry.station.Station`); masks whose file is gone are dropped."""
         if self._station is None:
-            from ..station import parse_station
+            from cbh.geometry.station import parse_station
 
             try:
                 data = tomllib.loads(self.station_toml)

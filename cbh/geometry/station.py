@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from .camera import MODELS, CameraModel, OCamModel, read_ocamcalib
-from .errors import CalibrationError, ConfigError
-from .tomlio import dumps_toml, read_toml
+from cbh.geometry.camera import MODELS, CameraModel, OCamModel, read_ocamcalib
+from cbh.errors import CalibrationError, ConfigError
+from cbh.tomlio import dumps_toml, read_toml
 
 __all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
 

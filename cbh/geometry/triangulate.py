@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ShapeError
+from cbh.errors import ShapeError
 
 __all__ = ["Triangulation", "triangulate", "triangulate_svd", "TriangulationLimits"]
 
@@ -288,7 +288,7 @@ def _from_lambdas(o1, d1, o2, d2, l1, l2, limits):
 
 
 def triangulate_pixels(cam1, px1, cam2, px2, limits: TriangulationLimits = TriangulationLimits()) -> Triangulation:
-    """Triangulate pixel correspondences (N, 2) of two station cameras (:class:`cbh.station.Camera`)."""
+    """Triangulate pixel correspondences (N, 2) of two station cameras (:class:`cbh.geometry.station.Camera`)."""
     d1 = cam1.pixel_to_world(px1)
     d2 = cam2.pixel_to_world(px2)
     return triangulate(cam1.position_m, d1, cam2.position_m, d2, limits)

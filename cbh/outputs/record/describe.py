@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .reader import Session
+from cbh.outputs.record.reader import Session
 
 __all__ = ["describe_session", "format_description"]
 

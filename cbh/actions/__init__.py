@@ -1,0 +1,1 @@
+"""What each command does, in library terms: cli -> actions -> {live, outputs, pipeline, sim} -> geometry."""
