@@ -46,7 +46,7 @@ def run_cmd(
     flight, closes every file, exit 0).
     """
     from cbh.errors import ConfigError
-    from cbh.live.service import build_run
+    from cbh.actions.run import build_run
 
     if record_path is not None and not record:
         raise ConfigError(f"unexpected argument {record_path!r} (a recording path goes after --record)")

@@ -1,0 +1,181 @@
+"""``cbh run`` in library terms: station, sources, pipeline and sinks wired into one service.
+
+The live wing (:mod:`cbh.live`) knows neither the pipeline nor any output; this action builds
+them and hands the service a processor and sinks.
+"""
+from __future__ import annotations
+
+import errno
+from pathlib import Path
+from typing import Callable
+
+from cbh.errors import ConfigError, RecordingError
+from cbh.live.service import Service, ServiceConfig
+from cbh.result import Frame, PairResult
+
+__all__ = ["RunSetup", "build_run", "open_sink"]
+
+
+def open_sink(path, make):
+    """Create a sink; an OS error (disk full, permission) becomes one RecordingError naming ``path``."""
+    try:
+        return make()
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise RecordingError(f"disk full while creating {path}") from None
+        raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+
+
+class RunSetup:
+    """A ready-to-run service with its station, sources, pipeline and sinks (see :func:`build_run`)."""
+
+    def __init__(self, station, cameras, sources, pipeline, sinks, config: ServiceConfig, recorder, notes):
+        self.station, self.cameras, self.sources = station, cameras, sources
+        self.pipeline, self.sinks, self.config = pipeline, sinks, config
+        self.recorder = recorder  # McapRecorder or None
+        self.notes = notes
+
+    def process(self, f1: Frame, f2: Frame) -> PairResult:
+        return self.pipeline.process(f1.image, f2.image, f1.time_utc)
+
+    def service(self, on_pair: Callable | None = None) -> Service:
+        """The :class:`Service` for this run; ``on_pair(stats, result)`` is called after each pair."""
+        return Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair)
+
+    def outputs(self) -> list[tuple[str, str]]:
+        """What this run writes: ("recorded" | "exported", path) pairs."""
+        out = []
+        if self.recorder is not None:
+            for p in getattr(self.recorder, "paths", None) or [getattr(self.recorder, "path", "?")]:
+                out.append(("recorded", str(p)))
+        out += [("exported", str(s.path)) for s in self.sinks if type(s).__name__ == "LayerExporter"]
+        return out
+
+
+def _rerun_args(spec: str) -> tuple[str, str | None]:
+    """``--rerun`` value → (mode, target): ``MODE``, ``MODE=TARGET`` (``connect=URL``,
+    ``save=PATH.rrd``), or a bare URL / PATH.rrd (validated by :func:`cbh.outputs.rerun_view.parse_rerun_spec`)."""
+    s = spec.strip()
+    for mode in ("spawn", "serve", "connect", "save"):
+        for sep in ("=", ":"):
+            if s.lower().startswith(mode + sep):
+                return mode, s[len(mode) + 1:] or None
+    return s, None
+
+
+def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None, rerun=None, export=None,
+              cadence_s=None, frames=None, duration_s=None, size_px=None, pair_tolerance_s=None, watch=False,
+              realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6) -> RunSetup:
+    """Assemble ``cbh run``: station, sources, pipeline, sinks, service config (no thread started).
+
+    Cameras without a ``--source`` use their station ``source`` key; cameras with neither are
+    simulated (``--scene``, default ``two-layers``). A run whose sources are all simulated and
+    that has neither ``frames`` nor ``duration_s`` processes ``demo_frames`` pairs.
+    ``record``: None (off), True (``recordings/<station>-<UTC>.mcap``) or a path (a ``.mcap``
+    file, or a directory).
+    """
+    from datetime import timezone
+
+    from cbh.presets import scene_path, station_path
+    from cbh.live.sources import open_source
+    from cbh.geometry.station import load_station
+
+    st = load_station(station_path(station) if station else station_path())
+    overrides: dict[str, str] = {}
+    for s in sources:
+        cam, sep, spec = s.partition("=")
+        if not sep or not cam.strip() or not spec.strip():
+            raise ConfigError(f"--source {s!r}: expected CAMERA=SPEC, e.g. cam1=rtsp://host/stream")
+        if cam.strip() not in st.cameras:
+            raise ConfigError(f"--source {s!r}: no camera {cam.strip()!r} in station {st.name!r} "
+                              f"(cameras: {', '.join(st.cameras)})")
+        overrides[cam.strip()] = spec.strip()
+    c1, c2 = st.pair(cameras)
+    names = (c1.name, c2.name)
+    specs = {n: overrides.get(n) or st.cameras[n].source or "sim" for n in names}
+    simulated = [n for n in names if specs[n].lower() in ("sim", "simulator", "sim:")]
+    if simulated and len(simulated) != 2:
+        raise ConfigError(f"camera {simulated[0]} would be simulated and the other not: give both a source, or neither")
+    cfg_dict = dict(st.sections.get("service", {}))
+    over = {"cadence_s": cadence_s, "frames": frames, "duration_s": duration_s, "pair_tolerance_s": pair_tolerance_s}
+    cfg_dict.update({k: v for k, v in over.items() if v is not None})
+    ServiceConfig.from_dict(cfg_dict)  # cheap checks first: errors before the simulator is built
+    rerun_args = None
+    if rerun is not None:
+        from cbh.outputs.rerun_view import parse_rerun_spec
+
+        rerun_args = parse_rerun_spec(*_rerun_args(rerun))
+    if export is not None and Path(export).suffix.lower() not in (".csv", ".parquet"):
+        raise ConfigError(f"--export {export}: the file must end in .csv or .parquet")
+    if record is None and (rotate_mb is not None or rotate_s is not None):
+        raise ConfigError("--rotate-mb/--rotate-s need --record")
+    notes = []
+    sim = None
+    if simulated:
+        from cbh.sim import SkySimulator, load_scene
+
+        sc = load_scene(scene_path(scene) if scene else scene_path())
+        sim = SkySimulator(st, sc, size_px=size_px)
+        st = sim.station
+        if "frames" not in cfg_dict and "duration_s" not in cfg_dict:
+            cfg_dict["frames"] = demo_frames
+            notes.append(f"simulated station {st.name} (scene {sc.name}): {demo_frames} pairs; "
+                         "--frames/--duration for more")
+        start = sc.time_utc.astimezone(timezone.utc)
+    else:
+        if size_px is not None:
+            raise ConfigError("--size applies to simulated cameras only (real frames must match the calibration)")
+        if scene is not None:
+            raise ConfigError("--scene applies to simulated cameras only, but both cameras have a source")
+        start = None
+    config = ServiceConfig.from_dict(cfg_dict)
+    step = config.cadence_s if config.cadence_s > 0 else 10.0
+    base_dir = st.path.parent if st.path is not None else None
+    same_dir = specs[names[0]] == specs[names[1]]
+    srcs = [open_source(
+        st.cameras[n], specs[n], sim=sim, start_utc=start, watch=watch, decode=False,
+        interval_s=config.snapshot_interval_s, stall_timeout_s=config.stall_timeout_s,
+        sim_step_s=step, sim_realtime=realtime, base_dir=base_dir, prefix=n if same_dir else None,
+    ) for n in names]
+    from cbh.pipeline import Pipeline, PipelineConfig
+
+    pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
+    pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg)
+    sinks = []
+    recorder = None
+    try:
+        if record is not None:
+            from cbh.outputs.record import McapRecorder
+
+            if record is True:
+                from datetime import datetime
+
+                stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+                out = Path("recordings") / f"{st.name}-{stamp}.mcap"
+                try:
+                    out.parent.mkdir(parents=True, exist_ok=True)
+                except OSError as exc:
+                    raise RecordingError(f"cannot create {out.parent}: {exc.strerror}") from None
+            else:
+                out = Path(record)
+            recorder = open_sink(out, lambda: McapRecorder(out, st, pcfg.to_dict(), rotate_mb=rotate_mb,
+                                                             rotate_s=rotate_s))
+            sinks.append(recorder)
+        if export is not None:
+            from cbh.outputs.export import LayerExporter
+
+            sinks.append(open_sink(export, lambda: LayerExporter(export, st)))
+        if rerun is not None:
+            from cbh.outputs.rerun_view import RerunSink
+
+            sinks.append(RerunSink(st, mode=rerun_args[0], target=rerun_args[1]))
+    except BaseException:
+        for s in sinks:
+            try:
+                s.close()
+            except Exception:
+                pass
+        raise
+    return RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)

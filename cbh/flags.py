@@ -1,0 +1,58 @@
+"""Quality flags of a frame pair: one enumeration with FIXED bit values.
+
+Results carry flag *names* (``PairResult.flags``, a list of str); MCAP, CSV/Parquet and the
+NetCDF ``quality_flag`` variable (``flag_masks`` / ``flag_meanings``) all use these bits, so a
+file's bits never depend on which flags it happens to contain. New flags are appended with the
+next free bit; a bit is never reused or renumbered.
+"""
+from __future__ import annotations
+
+import enum
+from typing import Iterable
+
+__all__ = ["Flag", "flag_bits", "flag_names", "check_flags", "INVALIDATING"]
+
+
+class Flag(enum.IntFlag):
+    """Quality flags (bit values are part of the file formats: never change them)."""
+
+    time_unknown = 1 << 0  # the pair has no capture time (sun masks and motion unavailable)
+    sun_glare = 1 << 1  # a saturated sun/glare region was masked
+    cover_incomplete = 1 << 2  # the layers' covers add up to less than the cloud fraction
+    few_points = 1 << 3  # too few triangulated points for a layer
+    clear_sky = 1 << 4  # no cloud in the usable sky
+    overcast_no_texture = 1 << 5  # cloud everywhere but too little texture to match
+    geometry_mismatch = 1 << 6  # the correspondences disagree with the station geometry
+    sun_misaligned = 1 << 7  # the detected sun is off the predicted sun by more than the tolerance
+    time_jump = 1 << 8  # a frame's time jumped against the other camera or the wall clock
+    clock_offset = 1 << 9  # the cameras' clocks differ by more than the pairing tolerance
+    exposure_mismatch = 1 << 10  # the cameras' photometric difference is large (corrected, reported)
+    identical_images = 1 << 11  # both cameras delivered the same image
+
+
+#: Flags whose layers must not be reported as valid (exported with the flag, left out of
+#: "latest layers").
+INVALIDATING = frozenset({"geometry_mismatch", "identical_images"})
+
+
+def check_flags(names: Iterable[str]) -> list[str]:
+    """The names, validated against :class:`Flag` (ValueError naming an unknown flag)."""
+    out = []
+    for n in names:
+        if n not in Flag.__members__:
+            raise ValueError(f"unknown quality flag {n!r} (known: {', '.join(Flag.__members__)})")
+        out.append(n)
+    return out
+
+
+def flag_bits(names: Iterable[str]) -> int:
+    """Flag names → integer bit mask (fixed bits of :class:`Flag`)."""
+    bits = 0
+    for n in check_flags(names):
+        bits |= int(Flag[n])
+    return bits
+
+
+def flag_names(bits: int) -> list[str]:
+    """Integer bit mask → flag names, in bit order."""
+    return [f.name for f in Flag if int(bits) & int(f)]
