@@ -116,8 +116,8 @@ class PairResult:
 
     Attributes
     ----------
-    time_utc : datetime
-        Capture time of camera 1's frame.
+    time_utc : datetime or None
+        Capture time of camera 1's frame; None = unknown (flag ``time_unknown``).
     cameras : tuple of str
         (camera 1, camera 2) names.
     layers : list of Layer
@@ -135,7 +135,7 @@ class PairResult:
         Quality flags (e.g. "few_points", "sun_glare", "overcast_no_texture").
     """
 
-    time_utc: datetime
+    time_utc: datetime | None
     cameras: tuple[str, str]
     layers: list[Layer]
     histogram: Histogram
@@ -152,7 +152,7 @@ class PairResult:
         h = self.points.height_m.astype(np.float64)
         n = len(h)
         return {
-            "time_utc": self.time_utc.isoformat().replace("+00:00", "Z"),
+            "time_utc": self.time_utc.isoformat().replace("+00:00", "Z") if self.time_utc is not None else None,
             "layers": [l.to_dict() for l in self.layers],
             "points": {
                 "count": n,

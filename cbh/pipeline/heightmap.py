@@ -15,10 +15,48 @@ cloud) is not under-covered by the map but outside the analysed sky by design.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
-__all__ = ["rasterize_heights", "nearest_fill", "upsample_map"]
+__all__ = ["HeightMap", "dense_height_map", "rasterize_heights", "nearest_fill", "upsample_map"]
+
+
+@dataclass(frozen=True)
+class HeightMap:
+    """Stage 6: camera 1's dense cloud-base height map (NaN = unknown)."""
+
+    working_m: np.ndarray  # (h, w) float32 at working size [m]
+    nearest_m: np.ndarray  # (h, w) float32: height of each pixel's nearest measured pixel [m]
+    full_m: np.ndarray  # (H, W) float32 at camera 1's full size [m]
+
+
+def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray, cloud: np.ndarray,
+                     cfg, full_size: tuple[int, int]) -> HeightMap:
+    """Splat heights onto camera 1's working grid, fill holes inside the cloud mask (see module doc).
+
+    Parameters
+    ----------
+    shape : (h, w)
+        Working grid size.
+    px : ndarray, shape (N, 2), float
+        Camera 1 working-size pixels of the heights.
+    height_m : ndarray, shape (N,)
+    cloud : ndarray, shape (h, w), bool
+        Camera 1's cloud mask: holes are filled only there.
+    cfg : HeightMapConfig
+    full_size : (W, H)
+        Camera 1's full image size.
+    """
+    hmap = rasterize_heights(shape, px, height_m)
+    known = np.isfinite(hmap)
+    nearest, dist = nearest_fill(hmap)
+    if cfg.fill == "nearest":
+        fill = cloud & ~known & (dist <= cfg.fill_max_px)
+        hmap = hmap.copy()
+        hmap[fill] = nearest[fill]
+    return HeightMap(working_m=hmap, nearest_m=nearest, full_m=upsample_map(hmap, full_size[0], full_size[1]))
 
 
 def rasterize_heights(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray) -> np.ndarray:

@@ -49,6 +49,7 @@ Contract of every method in :data:`LAYER_METHODS`::
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -196,6 +197,54 @@ def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndar
         points=n,
         confidence=float(min(max(conf, 0.0), 1.0)),
     )
+
+
+_COVER_SLACK = 0.1  # flag cover_incomplete when more than this share of the cloud is in no layer
+
+
+@dataclass(frozen=True)
+class LayerSet:
+    """Stage 7: the supported layers of a pair."""
+
+    layers: list[Layer]  # ascending by height
+    histogram: Histogram
+    label: np.ndarray  # (N,) int16: each point's index into ``layers``, -1 = none
+    cover_incomplete: bool  # over ``_COVER_SLACK`` of the cloud lies in no reported layer
+
+
+def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram,
+                     intervals: list[tuple[float, float]], cloud: np.ndarray, usable: np.ndarray,
+                     nearest_m: np.ndarray, cloud_fraction: float, cfg: LayersConfig) -> LayerSet:
+    """Keep the candidate intervals with enough support (points, share of points, cover).
+
+    Parameters
+    ----------
+    heights_m, noise_m : ndarray, shape (N,)
+        Point heights and their predicted noise [m].
+    hist, intervals
+        Output of the layer method (:data:`LAYER_METHODS`).
+    cloud, usable : ndarray, shape (H, W), bool
+        Camera 1's cloud mask and usable sky (working size).
+    nearest_m : ndarray, shape (H, W), float32
+        Nearest measured height of each pixel (:func:`cbh.pipeline.heightmap.nearest_fill`).
+    cloud_fraction : float
+        Camera 1's cloud fraction, 0..1.
+    """
+    label = np.full(len(heights_m), -1, np.int16)
+    cover_of, unassigned = layer_covers(cloud, usable, nearest_m, intervals)
+    layers = []
+    for k, (lo, hi) in enumerate(intervals):
+        sel = (heights_m >= lo) & (heights_m < hi)
+        n = int(sel.sum())
+        if n < cfg.min_points or n < cfg.min_fraction * len(heights_m) or cover_of[k] < cfg.min_cover:
+            unassigned += cover_of[k]  # cloud of an unsupported height interval: in no layer
+            continue
+        label[sel] = len(layers)
+        layers.append(layer_stats(heights_m[sel], cover_of[k], cfg, noise_m[sel]))
+    incomplete = bool(layers) and unassigned > max(_COVER_SLACK * cloud_fraction, 0.005)
+    if not isinstance(hist, Histogram):
+        hist = Histogram(np.zeros(1), np.zeros(0))
+    return LayerSet(layers=layers, histogram=hist, label=label, cover_incomplete=incomplete)
 
 
 LAYER_METHODS = {"histogram": histogram_layers}

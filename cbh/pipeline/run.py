@@ -24,27 +24,29 @@ from __future__ import annotations
 import logging
 import math
 import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
+import cv2
 import numpy as np
 
 from cbh.errors import ConfigError, ImageError
 from cbh.imageio import check_image_size
-from cbh.result import Histogram, PairResult, PointSet
+from cbh.result import PairResult, PointSet
 from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
-from cbh.pipeline.heightmap import nearest_fill, rasterize_heights, upsample_map
-from cbh.pipeline.layers import angular_noise, get_layer_method, height_noise, layer_covers, layer_stats
+from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
+from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
-from cbh.pipeline.match import MatchInput, PairGeometry, get_matcher, triangulate_matches
+from cbh.pipeline.match import MatchInput, PairGeometry, TriangulatedMatches, get_matcher, triangulate_matches
 from cbh.pipeline.segment import segment
 
-__all__ = ["Pipeline", "working_factor"]
+__all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation", "Correspondences", "Points"]
 
 log = logging.getLogger(__name__)
 
 _MAX_DISPLAY_MATCHES = 5000
-_COVER_SLACK = 0.1  # flag cover_incomplete when more than this share of the cloud is in no layer
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 
 
@@ -145,8 +147,6 @@ class Pipeline:
 
     def to_working(self, i: int, image: np.ndarray) -> np.ndarray:
         """Resize a full-size image of camera ``i`` to working size."""
-        import cv2
-
         cam = (self.cam1, self.cam2)[i]
         if self.factors[i] == 1.0:
             return image
@@ -167,8 +167,8 @@ class Pipeline:
             BGR images of camera 1 and camera 2 at their calibration sizes.
         time_utc : datetime or None
             Capture time (timezone-aware; used for the sun position). None: unknown; the sun is
-            then masked only where it saturates, the result is stamped with the current time
-            and flagged ``time_unknown``.
+            then masked only where it saturates and the result is flagged ``time_unknown``
+            (its ``time_utc`` stays None: cbh never invents a capture time).
 
         Returns
         -------
@@ -180,36 +180,46 @@ class Pipeline:
         ImageError
             An image is not (H, W, 3) uint8 or does not match its calibration size.
         """
-        cfg = self.config
         for img, cam in ((image1, self.cam1_full), (image2, self.cam2_full)):
             if not isinstance(img, np.ndarray) or img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
                 shape = getattr(img, "shape", None)
                 raise ImageError(f"{cam.name}: expected a BGR uint8 (H, W, 3) image, got {shape}")
             check_image_size(img, cam.model, cam.name)
-        timing: dict[str, float] = {}
-        flags: list[str] = []
-        known_time = time_utc is not None
-        if not known_time:
-            time_utc = datetime.now(timezone.utc)
-            flags.append("time_unknown")
-        elif time_utc.tzinfo is None:
-            raise ConfigError("process: time_utc must be timezone-aware (UTC)")
-        time_utc = time_utc.astimezone(timezone.utc)
+        if time_utc is not None:
+            if time_utc.tzinfo is None:
+                raise ConfigError("process: time_utc must be timezone-aware (UTC)")
+            time_utc = time_utc.astimezone(timezone.utc)
+        ctx = PairContext(time_utc=time_utc)
+        if time_utc is None:
+            ctx.flags.append("time_unknown")
         t_all = time.perf_counter()
+        with _timed(ctx, "resize"):
+            work = (self.to_working(0, image1), self.to_working(1, image2))
+        with _timed(ctx, "masks"):
+            masks = self.stage_masks(work, ctx)
+        with _timed(ctx, "segmentation"):
+            seg = self.stage_segment(work, masks)
+        corr = self.stage_match(work, masks, seg, ctx)
+        with _timed(ctx, "height_map"):
+            hmap = self.stage_height_map(seg, corr)
+        with _timed(ctx, "layers"):
+            pts = self.stage_points(corr)
+            lay = self.stage_layers(pts, seg, masks, hmap, ctx)
+        self._quality_flags(pts, seg, ctx)
+        ctx.timing["total"] = _ms(t_all)
+        return self._assemble(ctx, seg, hmap, pts, lay)
 
-        t = time.perf_counter()
-        w1, w2 = self.to_working(0, image1), self.to_working(1, image2)
-        timing["resize"] = _ms(t)
-
-        # masks
-        t = time.perf_counter()
-        usable, sun_angle = [], []
+    # --- stages ---------------------------------------------------------------------------
+    def stage_masks(self, work: tuple[np.ndarray, np.ndarray], ctx: "PairContext") -> "Masks":
+        """Usable sky per camera (static mask, sun disk, saturated glare) and the sun angle maps."""
+        cfg = self.config
         sun_dir = None
-        if known_time and (cfg.masks.sun or cfg.segmentation.method == "nbr_adaptive"):
-            sun_dir, sun_zen = sun_direction_enu(self.station.latitude_deg, self.station.longitude_deg, time_utc)
+        if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method == "nbr_adaptive"):
+            sun_dir, sun_zen = sun_direction_enu(self.station.latitude_deg, self.station.longitude_deg, ctx.time_utc)
             if sun_zen >= 90.0:
                 sun_dir = None
-        for i, (cam, img) in enumerate(((self.cam1, w1), (self.cam2, w2))):
+        usable, sun_angle = [], []
+        for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
             u = self.static_mask(i)
             ang = angle_map_deg(cam, sun_dir, self.rays_cam(i)) if sun_dir is not None else None
             if cfg.masks.sun and ang is not None:
@@ -219,65 +229,56 @@ class Pipeline:
                 if sat.any():
                     u = u & ~sat
                     if i == 0:
-                        flags.append("sun_glare")
+                        ctx.flags.append("sun_glare")
             usable.append(u)
             sun_angle.append(ang)
-        timing["masks"] = _ms(t)
+        return Masks(usable=(usable[0], usable[1]), sun_angle=(sun_angle[0], sun_angle[1]), sun_dir_enu=sun_dir)
 
-        # segmentation
-        t = time.perf_counter()
+    def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
+        """Cloud mask and cloud fraction of each camera's usable sky."""
         clouds, fractions = [], {}
-        for i, (cam, img) in enumerate(((self.cam1, w1), (self.cam2, w2))):
-            c, frac = segment(img, usable[i], self.zenith(i), sun_angle[i], cfg.segmentation)
+        for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
+            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation)
             clouds.append(c)
             fractions[cam.name] = frac
-        timing["segmentation"] = _ms(t)
+        return Segmentation(clouds=(clouds[0], clouds[1]), fractions=fractions)
 
-        # correspondences
-        import cv2
-
+    def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext") -> "Correspondences":
+        """Correspondences of every configured method, triangulated and geometrically checked."""
+        cfg = self.config
         geom = self.geometry
         inp = MatchInput(
             geometry=geom,
-            gray1=cv2.cvtColor(w1, cv2.COLOR_BGR2GRAY), gray2=cv2.cvtColor(w2, cv2.COLOR_BGR2GRAY),
-            cloud1=clouds[0], usable1=usable[0], usable2=usable[1], cloud2=clouds[1],
+            gray1=cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), gray2=cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY),
+            cloud1=seg.clouds[0], usable1=masks.usable[0], usable2=masks.usable[1], cloud2=seg.clouds[1],
         )
         raw = []
-        if clouds[0].any():
+        if seg.clouds[0].any():
             for name in cfg.matching.methods:
-                t = time.perf_counter()
-                raw.append(get_matcher(name)(inp, cfg.matching))
-                timing[f"match_{name}"] = _ms(t)
+                with _timed(ctx, f"match_{name}"):
+                    raw.append(get_matcher(name)(inp, cfg.matching))
+        with _timed(ctx, "triangulation"):
+            tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
+        return Correspondences(triangulated=tris)
 
-        # triangulation and rejection
-        t = time.perf_counter()
-        tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
-        timing["triangulation"] = _ms(t)
-
-        # dense height map (working size, then camera 1's full grid)
-        t = time.perf_counter()
-        shape1 = (self.cam1.model.height, self.cam1.model.width)
-        dense = [tr for tr in tris if tr.matches.dense]
-        src = dense if dense else tris
+    def stage_height_map(self, seg: "Segmentation", corr: "Correspondences") -> HeightMap:
+        """Dense height map on camera 1's working grid (dense matches preferred), and at full size."""
+        dense = [tr for tr in corr.triangulated if tr.matches.dense]
+        src = dense if dense else corr.triangulated
         if src:
             px = np.concatenate([tr.matches.px1 for tr in src])
             hh = np.concatenate([tr.height_m for tr in src])
         else:
             px, hh = np.zeros((0, 2)), np.zeros(0)
-        hmap_w = rasterize_heights(shape1, px, hh)
-        known = np.isfinite(hmap_w)
-        nearest, dist = nearest_fill(hmap_w)
-        if cfg.height_map.fill == "nearest":
-            fill = clouds[0] & ~known & (dist <= cfg.height_map.fill_max_px)
-            hmap_w = hmap_w.copy()
-            hmap_w[fill] = nearest[fill]
-        hmap_full = upsample_map(hmap_w, self.cam1_full.model.width, self.cam1_full.model.height)
-        timing["height_map"] = _ms(t)
+        shape1 = (self.cam1.model.height, self.cam1.model.width)
+        return dense_height_map(shape1, px, hh, seg.clouds[0], self.config.height_map,
+                                (self.cam1_full.model.width, self.cam1_full.model.height))
 
-        # point set (dense correspondences thinned to a regular grid)
-        t = time.perf_counter()
+    def stage_points(self, corr: "Correspondences") -> "Points":
+        """All kept correspondences as points (dense ones thinned to a grid), with predicted noise."""
+        cfg = self.config
         parts = []
-        for tr in tris:
+        for tr in corr.triangulated:
             m = tr.matches
             stride = getattr(cfg.matching, m.method).point_stride_px if m.dense else 1
             keep = np.ones(len(m), bool)
@@ -292,67 +293,118 @@ class Pipeline:
             p2 = self.to_full_px(1, np.concatenate([p[4] for p in parts]))
         else:
             xyz, miss, p1, p2 = np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
-        heights = xyz[:, 2]
-        noise = height_noise(xyz, self.cam1.position_m, self.cam2.position_m,
-                             angular_noise(np.concatenate([tr.miss_m for tr in tris if not tr.matches.dense] or [np.zeros(0)]),
-                                           np.concatenate([np.linalg.norm(tr.point_m - self.cam1.position_m, axis=1)
-                                                           for tr in tris if not tr.matches.dense] or [np.zeros(0)])))
+        sparse = [tr for tr in corr.triangulated if not tr.matches.dense]
+        dtheta = angular_noise(
+            np.concatenate([tr.miss_m for tr in sparse] or [np.zeros(0)]),
+            np.concatenate([np.linalg.norm(tr.point_m - self.cam1.position_m, axis=1) for tr in sparse] or [np.zeros(0)]))
+        noise = height_noise(xyz, self.cam1.position_m, self.cam2.position_m, dtheta)
+        return Points(xyz_m=xyz, miss_m=miss, px1=p1, px2=p2, noise_m=noise,
+                      per_method=[(p[0], len(p[1])) for p in parts])
 
-        # layers
-        hist, intervals = self._layers(heights, cfg.layers, cfg.filtering)
-        label = np.full(len(heights), -1, np.int16)
-        cover_of, unassigned = layer_covers(clouds[0], usable[0], nearest, intervals)
-        layers = []
-        ly = cfg.layers
-        for k, (lo, hi) in enumerate(intervals):
-            sel = (heights >= lo) & (heights < hi)
-            n = int(sel.sum())
-            if n < ly.min_points or n < ly.min_fraction * len(heights) or cover_of[k] < ly.min_cover:
-                unassigned += cover_of[k]  # cloud of an unsupported height interval: in no layer
-                continue
-            label[sel] = len(layers)
-            layers.append(layer_stats(heights[sel], cover_of[k], ly, noise[sel]))
-        frac1 = fractions[self.cam1.name]
-        if layers and unassigned > max(_COVER_SLACK * frac1, 0.005):
-            flags.append("cover_incomplete")  # the layers' covers add up to less than the cloud fraction
-        timing["layers"] = _ms(t)
+    def stage_layers(self, pts: "Points", seg: "Segmentation", masks: "Masks", hmap: HeightMap,
+                     ctx: "PairContext") -> LayerSet:
+        """Height histogram → candidate intervals → supported layers with covers."""
+        hist, intervals = self._layers(pts.xyz_m[:, 2], self.config.layers, self.config.filtering)
+        lay = supported_layers(pts.xyz_m[:, 2], pts.noise_m, hist, intervals, seg.clouds[0], masks.usable[0],
+                               hmap.nearest_m, seg.fractions[self.cam1.name], self.config.layers)
+        if lay.cover_incomplete:
+            ctx.flags.append("cover_incomplete")
+        return lay
 
-        if len(heights) < cfg.layers.min_points:
-            flags.append("few_points")
-        if fractions[self.cam1.name] < 0.01:
-            flags.append("clear_sky")
-        elif fractions[self.cam1.name] > 0.9 and len(heights) < cfg.layers.min_points:
-            flags.append("overcast_no_texture")
-        timing["total"] = _ms(t_all)
+    def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext") -> None:
+        n = len(pts.xyz_m)
+        frac1 = seg.fractions[self.cam1.name]
+        if n < self.config.layers.min_points:
+            ctx.flags.append("few_points")
+        if frac1 < 0.01:
+            ctx.flags.append("clear_sky")
+        elif frac1 > 0.9 and n < self.config.layers.min_points:
+            ctx.flags.append("overcast_no_texture")
 
-        matches = {}
-        off = 0
-        for method, pts, _, _, _ in parts:
-            n = len(pts)
+    def _assemble(self, ctx: "PairContext", seg: "Segmentation", hmap: HeightMap, pts: "Points",
+                  lay: LayerSet) -> PairResult:
+        matches, off = {}, 0
+        for method, n in pts.per_method:
             step = max(1, int(math.ceil(n / _MAX_DISPLAY_MATCHES)))
             sl = slice(off, off + n, step)
-            matches[method] = np.concatenate([p1[sl], p2[sl]], axis=1).astype(np.float32)
+            matches[method] = np.concatenate([pts.px1[sl], pts.px2[sl]], axis=1).astype(np.float32)
             off += n
-
+        full = (self.cam1_full.model, self.cam2_full.model)
         return PairResult(
-            time_utc=time_utc,
+            time_utc=ctx.time_utc,
             cameras=self.cameras,
-            layers=layers,
-            histogram=hist if isinstance(hist, Histogram) else Histogram(np.zeros(1), np.zeros(0)),
+            layers=lay.layers,
+            histogram=lay.histogram,
             points=PointSet(
-                xyz_m=xyz.astype(np.float32), miss_m=miss.astype(np.float32),
-                px1=p1.astype(np.float32), px2=p2.astype(np.float32), layer=label,
+                xyz_m=pts.xyz_m.astype(np.float32), miss_m=pts.miss_m.astype(np.float32),
+                px1=pts.px1.astype(np.float32), px2=pts.px2.astype(np.float32), layer=lay.label,
             ),
-            height_map=hmap_full.astype(np.float32, copy=False),
+            height_map=hmap.full_m.astype(np.float32, copy=False),
             cloud_masks={
-                self.cam1.name: upsample_map(clouds[0].view(np.uint8), self.cam1_full.model.width, self.cam1_full.model.height).astype(bool),
-                self.cam2.name: upsample_map(clouds[1].view(np.uint8), self.cam2_full.model.width, self.cam2_full.model.height).astype(bool),
+                name: upsample_map(c.view(np.uint8), m.width, m.height).astype(bool)
+                for name, c, m in zip(self.cameras, seg.clouds, full)
             },
-            cloud_fraction=fractions,
-            timing_ms=timing,
-            flags=flags,
+            cloud_fraction=seg.fractions,
+            timing_ms=ctx.timing,
+            flags=ctx.flags,
             matches=matches,
         )
+
+
+# --- typed intermediate results -------------------------------------------------------------
+
+@dataclass
+class PairContext:
+    """Per-pair mutable state: the capture time (None = unknown), flags and stage timings."""
+
+    time_utc: datetime | None
+    flags: list[str] = field(default_factory=list)
+    timing: dict[str, float] = field(default_factory=dict)  # stage → wall time [ms]
+
+
+@dataclass(frozen=True)
+class Masks:
+    """Stage 2: usable sky per camera at working size."""
+
+    usable: tuple[np.ndarray, np.ndarray]  # (H, W) bool each
+    sun_angle: tuple[np.ndarray | None, np.ndarray | None]  # (H, W) float32 [deg] angle to the sun, None = unknown
+    sun_dir_enu: np.ndarray | None  # (3,) unit vector to the sun in ENU, None = unknown or below the horizon
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """Stage 3: cloud masks (working size) and cloud fraction of each camera's usable sky."""
+
+    clouds: tuple[np.ndarray, np.ndarray]  # (H, W) bool each
+    fractions: dict[str, float]  # camera name → 0..1
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Stages 4–5: every method's matches, triangulated and checked."""
+
+    triangulated: list[TriangulatedMatches]
+
+
+@dataclass(frozen=True)
+class Points:
+    """Kept correspondences as ENU points (dense ones thinned), full-size pixels."""
+
+    xyz_m: np.ndarray  # (N, 3) ENU [m]
+    miss_m: np.ndarray  # (N,) ray miss distance [m]
+    px1: np.ndarray  # (N, 2) camera 1 pixels (full size)
+    px2: np.ndarray  # (N, 2) camera 2 pixels (full size)
+    noise_m: np.ndarray  # (N,) predicted height noise [m]
+    per_method: list[tuple[str, int]]  # (method, count) in the order of the arrays
+
+
+@contextmanager
+def _timed(ctx: PairContext, stage: str):
+    t = time.perf_counter()
+    try:
+        yield
+    finally:
+        ctx.timing[stage] = ctx.timing.get(stage, 0.0) + _ms(t)
 
 
 def _ms(t0: float) -> float:
