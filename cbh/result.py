@@ -6,6 +6,7 @@ Frames and units: docs/conventions.md.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
@@ -39,22 +40,25 @@ class Frame:
         Station camera name.
     time_utc : datetime
         Capture time, timezone-aware UTC.
-    image : ndarray, shape (H, W, 3), uint8
-        Decoded BGR image.
+    image : ndarray, shape (H, W, 3), uint8, or None
+        Decoded BGR image; None while still encoded (sources may defer decoding).
     encoded : bytes or None
         The bytes as received (e.g. JPEG), recorded without re-encoding.
     format : str
         Format of ``encoded`` ("jpeg", "png").
     sequence : int
         Per-source frame counter.
+    received_s : float or None
+        ``time.monotonic()`` when the frame was received (for latency), None = unknown.
     """
 
     camera: str
     time_utc: datetime
-    image: np.ndarray
+    image: np.ndarray | None
     encoded: bytes | None = None
     format: str = "jpeg"
     sequence: int = 0
+    received_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -67,16 +71,28 @@ class Layer:
     cover: float  # fraction of camera 1's usable sky covered by this layer, 0..1
     points: int  # number of triangulated points supporting it
     confidence: float  # 0..1
+    altitude_m: float = math.nan  # cloud-base altitude above mean sea level [m] (height_m + station altitude)
+    motion_east_ms: float = math.nan  # layer motion over the ground, east component [m/s], NaN = unknown
+    motion_north_ms: float = math.nan  # layer motion over the ground, north component [m/s], NaN = unknown
 
     def to_dict(self) -> dict:
+        """JSON-ready: floats, with None where a value is unknown (NaN)."""
         return {
-            "height_m": float(self.height_m),
-            "median_height_m": float(self.median_height_m),
-            "spread_m": float(self.spread_m),
-            "cover": float(self.cover),
+            "height_m": _num(self.height_m),
+            "altitude_m": _num(self.altitude_m),
+            "median_height_m": _num(self.median_height_m),
+            "spread_m": _num(self.spread_m),
+            "cover": _num(self.cover),
             "points": int(self.points),
-            "confidence": float(self.confidence),
+            "confidence": _num(self.confidence),
+            "motion_east_ms": _num(self.motion_east_ms),
+            "motion_north_ms": _num(self.motion_north_ms),
         }
+
+
+def _num(v: float) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
 
 
 @dataclass(frozen=True)
@@ -132,7 +148,11 @@ class PairResult:
     timing_ms : dict of str → float
         Wall time of each pipeline stage [ms].
     flags : list of str
-        Quality flags (e.g. "few_points", "sun_glare", "overcast_no_texture").
+        Quality flags: names of :class:`cbh.flags.Flag` (fixed bits in every file format).
+    diagnostics : dict of str → float
+        Named scalar quality measures of the pair (e.g. the geometry self-check's residual,
+        the sun residual, the clock offset, the photometric difference); each key carries its
+        unit in its name (``_deg``, ``_px``, ``_s``) and is documented where it is computed.
     """
 
     time_utc: datetime | None
@@ -146,6 +166,7 @@ class PairResult:
     timing_ms: dict[str, float] = field(default_factory=dict)
     flags: list[str] = field(default_factory=list)
     matches: dict[str, np.ndarray] = field(default_factory=dict)  # method → (M, 4) x1,y1,x2,y2 kept matches (for display)
+    diagnostics: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The JSON object ``cbh pair --json`` prints."""
@@ -164,4 +185,5 @@ class PairResult:
             "cloud_fraction": {k: float(v) for k, v in self.cloud_fraction.items()},
             "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
             "flags": list(self.flags),
+            "diagnostics": {k: _num(v) for k, v in self.diagnostics.items()},
         }

@@ -46,12 +46,8 @@ class RunSetup:
 
     def outputs(self) -> list[tuple[str, str]]:
         """What this run writes: ("recorded" | "exported", path) pairs."""
-        out = []
-        if self.recorder is not None:
-            for p in getattr(self.recorder, "paths", None) or [getattr(self.recorder, "path", "?")]:
-                out.append(("recorded", str(p)))
-        out += [("exported", str(s.path)) for s in self.sinks if type(s).__name__ == "LayerExporter"]
-        return out
+        return [(s.kind, str(p)) for s in self.sinks if s.kind in ("recorded", "exported")
+                for p in s.output_paths()]
 
 
 def _rerun_args(spec: str) -> tuple[str, str | None]:

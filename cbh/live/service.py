@@ -36,6 +36,7 @@ from datetime import datetime
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
+from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult
 from cbh.live.sources import EndOfStream, decode_frame
 
@@ -157,7 +158,7 @@ class ServiceStats:
                 f" unpaired {sum(self.unpaired.values())}{extra} | latency {lat} | layers {layers} | {src}")
 
 
-class MemorySink:
+class MemorySink(ResultSink):
     """A :class:`~cbh.interfaces.ResultSink` that keeps everything in a list (tests)."""
 
     def __init__(self):
@@ -184,7 +185,7 @@ class _Reader(threading.Thread):
                  wake: threading.Event, opened: bool):
         super().__init__(name=f"cbh-reader-{source.camera}", daemon=True)
         self.src, self.cfg, self.status = source, cfg, status
-        self.live = bool(getattr(source, "live", True))
+        self.live = bool(source.live)
         self.q: queue.Queue = queue.Queue(maxsize=cfg.queue_frames)
         self._stop_ev, self._wake = stop, wake
         self._opened = opened
@@ -214,7 +215,7 @@ class _Reader(threading.Thread):
                         continue
                     backoff = self.cfg.backoff_initial_s
                     self.status.frames += 1
-                    frame._cbh_recv_s = time.monotonic()  # for the latency figure
+                    frame.received_s = time.monotonic()  # for the latency figure
                     self._put(frame)
                 except ImageError as exc:
                     self.status.corrupt += 1
@@ -334,10 +335,10 @@ class Service:
             # finite sources are opened now, so a missing file is one clear error at start
             opened = []
             for s in self.sources:
-                if not getattr(s, "live", True):
+                if not s.live:
                     s.open()
                     self.stats.sources[s.camera].state = "streaming"
-                opened.append(not getattr(s, "live", True))
+                opened.append(not s.live)
             pairer = Pairer(self.cameras, self.cfg.pair_tolerance_s,
                             max_waiting=max(2 * self.cfg.queue_frames, 8))
             self.stats.unpaired = pairer.stats.unpaired
@@ -470,18 +471,17 @@ class Service:
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
         st.last_layers_m = [float(l.height_m) for l in result.layers]
-        recv = max(getattr(f1, "_cbh_recv_s", t0), getattr(f2, "_cbh_recv_s", t0))
+        recv = max(f1.received_s if f1.received_s is not None else t0,
+                   f2.received_s if f2.received_s is not None else t0)
         st.latency_s = time.monotonic() - recv
         status = st.to_dict()
         for sink in self.sinks:
-            ws = getattr(sink, "write_status", None)
-            if ws is not None:
-                try:
-                    ws(result.time_utc, status)
-                except Exception as exc:
-                    err = _sink_error(sink, exc, "writing status to")
-                    self.stop("sink failed")
-                    raise err from None
+            try:
+                sink.write_status(result.time_utc, status)
+            except Exception as exc:
+                err = _sink_error(sink, exc, "writing status to")
+                self.stop("sink failed")
+                raise err from None
         log.info("pair processed", extra={
             "cbh_time_utc": result.time_utc.isoformat(), "cbh_layers_m": st.last_layers_m,
             "cbh_process_s": round(st.process_s, 3), "cbh_latency_s": round(st.latency_s, 3),
@@ -498,7 +498,8 @@ class Service:
 
 
 def _sink_error(sink, exc: Exception, doing: str) -> RecordingError:
-    name = getattr(sink, "path", None) or type(sink).__name__
+    paths = sink.output_paths()
+    name = paths[-1] if paths else type(sink).__name__
     if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
         return RecordingError(f"disk full while {doing} {name}: stopped; everything written before is kept")
     if isinstance(exc, OSError):

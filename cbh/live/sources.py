@@ -51,6 +51,7 @@ from typing import Iterable
 
 
 from cbh.errors import ConfigError, ImageError, SourceError
+from cbh.interfaces import FrameSource
 from cbh.result import Frame
 
 __all__ = [
@@ -285,7 +286,7 @@ def _boundary(content_type: str) -> bytes | None:
     return (b if b.startswith("--") else "--" + b).encode("latin-1")
 
 
-class HttpSource:
+class HttpSource(FrameSource):
     """An IP camera over HTTP: MJPEG stream (multipart/x-mixed-replace) or snapshot polling.
 
     Parameters
@@ -452,7 +453,7 @@ def SnapshotSource(camera: str, url: str, interval_s: float = 1.0, **kw) -> Http
 
 # --- OpenCV: RTSP and video files -------------------------------------------------------------
 
-class VideoSource:
+class VideoSource(FrameSource):
     """RTSP stream or video file through OpenCV's FFmpeg backend.
 
     There are no compressed bytes per frame, so each frame is JPEG-encoded (quality
@@ -557,7 +558,7 @@ class VideoSource:
 
 # --- directory of timestamped images ---------------------------------------------------------
 
-class DirectorySource:
+class DirectorySource(FrameSource):
     """Images in a directory, in time order; with ``watch`` new files are picked up as they arrive.
 
     Time stamps from the file names (module docstring), else modification times. A watched
@@ -664,7 +665,7 @@ def _sim_lock(sim) -> threading.Lock:
         return _SIM_LOCKS.setdefault(id(sim), threading.Lock())
 
 
-class SimSource:
+class SimSource(FrameSource):
     """Frames from :class:`cbh.sim.SkySimulator` at simulated times ``start_utc + k · step_s``.
 
     Parameters
@@ -723,7 +724,7 @@ class SimSource:
         pass
 
 
-class MemorySource:
+class MemorySource(FrameSource):
     """Frames from a list (tests, replays); ``live`` makes it behave like a camera for the service.
 
     ``pace_s`` > 0 delays each frame by that many wall seconds.

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
+from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
@@ -135,7 +136,7 @@ def _arrow_table(rows: list[dict]):
     return pa.table(cols, schema=schema)
 
 
-class LayerExporter:
+class LayerExporter(ResultSink):
     """Appends layer rows as pairs are produced (a :class:`cbh.interfaces.ResultSink`).
 
     Parameters
@@ -154,8 +155,15 @@ class LayerExporter:
     at a 10 s cadence is about 26 000 rows).
     """
 
+    kind = "exported"
+
+    def output_paths(self) -> list[Path]:
+        return list(self.paths)
+
+
     def __init__(self, path, station, *, max_rows: int = 200_000, fmt: str | None = None):
         self.path = Path(path)
+        self.paths = [self.path]
         self.altitude_m = float(station.altitude_m)
         self.rows_written = 0
         self._closed = False

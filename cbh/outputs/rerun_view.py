@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
+from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult, to_ns
 
 __all__ = ["RerunSink", "default_blueprint", "log_pair", "log_station", "parse_rerun_spec", "height_colors",
@@ -181,7 +182,7 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
         rec.log(f"/cloud_fraction/{cam}", rr.Scalars(float(frac)))
 
 
-class RerunSink:
+class RerunSink(ResultSink):
     """Live Rerun view of the service (a :class:`cbh.interfaces.ResultSink`).
 
     Parameters
@@ -195,6 +196,12 @@ class RerunSink:
     grpc_port : int, optional
         Port of the ``serve`` mode (default: Rerun's, 9876). The URL is in :attr:`url`.
     """
+
+    kind = "viewer"
+
+    def output_paths(self) -> list[Path]:
+        return [Path(self.target)] if self.mode == "save" else []
+
 
     def __init__(self, station, mode: str = "spawn", target: str | None = None, *,
                  cameras: tuple[str, str] | None = None, recording_name: str | None = None,

@@ -25,7 +25,7 @@ import logging
 import math
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 
 import cv2
@@ -309,7 +309,8 @@ class Pipeline:
                                hmap.nearest_m, seg.fractions[self.cam1.name], self.config.layers)
         if lay.cover_incomplete:
             ctx.flags.append("cover_incomplete")
-        return lay
+        alt = self.station.altitude_m
+        return replace(lay, layers=[replace(L, altitude_m=L.height_m + alt) for L in lay.layers])
 
     def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext") -> None:
         n = len(pts.xyz_m)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import RecordingError
+from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult, from_ns, to_ns
 from cbh.outputs.record.schemas import cbh_types, foxglove_types
 
@@ -121,7 +122,7 @@ class _File:
         self.fh.close()
 
 
-class McapRecorder:
+class McapRecorder(ResultSink):
     """Records frame pairs and their results to MCAP (a :class:`cbh.interfaces.ResultSink`).
 
     Parameters
@@ -189,10 +190,15 @@ class McapRecorder:
 
     # --- files --------------------------------------------------------------------------
 
+    kind = "recorded"
+
     @property
     def paths(self) -> list[Path]:
         """Files written so far (in order)."""
         return list(self._paths)
+
+    def output_paths(self) -> list[Path]:
+        return self.paths
 
     @property
     def pairs_written(self) -> int:
