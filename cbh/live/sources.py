@@ -53,6 +53,7 @@ from typing import Iterable
 from cbh.errors import ConfigError, ImageError, SourceError
 from cbh.interfaces import FrameSource
 from cbh.result import Frame
+from cbh.timeutil import parse_time_header, time_from_name
 
 __all__ = [
     "EndOfStream", "HttpSource", "MjpegSource", "SnapshotSource", "VideoSource", "DirectorySource",
@@ -105,48 +106,6 @@ def _finish(frame_bytes: bytes, camera: str, t: datetime, seq: int, decode: bool
             raise ImageError(f"{what}: corrupt image data ({len(frame_bytes)} bytes, no JPEG/PNG header)")
         img = None
     return Frame(camera=camera, time_utc=t, image=img, encoded=frame_bytes, format=fmt, sequence=seq)
-
-
-# --- time stamps ----------------------------------------------------------------------------
-
-_NAME_TIME = re.compile(
-    r"(?<!\d)(\d{4})-?(\d{2})-?(\d{2})[T_ \-]?(\d{2})[:\-]?(\d{2})[:\-]?(\d{2})(?:[.,](\d{1,9}))?(Z)?(?!\d)"
-)
-
-
-def time_from_name(name: str) -> datetime | None:
-    """UTC time encoded in a file name (see the module docstring), or None.
-
-    >>> time_from_name("cam1_20151029T045801.250Z.jpg").isoformat()
-    '2015-10-29T04:58:01.250000+00:00'
-    """
-    m = _NAME_TIME.search(name)
-    if not m:
-        return None
-    y, mo, d, h, mi, s, frac = m.groups()[:7]
-    try:
-        t = datetime(int(y), int(mo), int(d), int(h), int(mi), int(s), tzinfo=timezone.utc)
-    except ValueError:
-        return None
-    if frac:
-        t += timedelta(microseconds=int(round(int(frac) / 10 ** len(frac) * 1e6)))
-    return t
-
-
-def parse_time_header(value: str | None) -> datetime | None:
-    """A camera's time header: Unix seconds (``1446094681.25``) or ISO 8601 (``...Z``); None if absent/unreadable."""
-    if not value:
-        return None
-    value = value.strip()
-    try:
-        return datetime.fromtimestamp(float(value), tz=timezone.utc)
-    except (ValueError, OverflowError, OSError):
-        pass
-    try:
-        t = datetime.fromisoformat(value.replace("Z", "+00:00"))
-    except ValueError:
-        return None
-    return t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
 
 
 # --- HTTP (MJPEG stream and snapshots) --------------------------------------------------------

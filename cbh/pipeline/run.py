@@ -38,7 +38,8 @@ from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
-from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
+from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import MatchInput, PairGeometry, TriangulatedMatches, get_matcher, triangulate_matches
 from cbh.pipeline.segment import segment
 
@@ -215,7 +216,9 @@ class Pipeline:
         cfg = self.config
         sun_dir = None
         if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method == "nbr_adaptive"):
-            sun_dir, sun_zen = sun_direction_enu(self.station.latitude_deg, self.station.longitude_deg, ctx.time_utc)
+            st = self.station
+            sun = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, ctx.time_utc)
+            sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
             if sun_zen >= 90.0:
                 sun_dir = None
         usable, sun_angle = [], []

@@ -63,6 +63,7 @@ from pathlib import Path
 
 from cbh.errors import ConfigError
 from cbh.tomlio import read_toml
+from cbh.timeutil import parse_utc
 
 __all__ = [
     "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
@@ -268,18 +269,7 @@ def _vec(where: str, value, n: int, **kw) -> tuple[float, ...]:
 
 
 def _time(where: str, value) -> datetime:
-    if isinstance(value, datetime):
-        t = value
-    elif isinstance(value, str):
-        try:
-            t = datetime.fromisoformat(value.strip().replace("Z", "+00:00"))
-        except ValueError:
-            raise ConfigError(f"scene: {where}: not an ISO 8601 time: {value!r}") from None
-    else:
-        raise ConfigError(f"scene: {where}: expected a UTC time like 2024-06-21T15:00:00Z, got {value!r}")
-    if t.tzinfo is None:
-        raise ConfigError(f"scene: {where}: time needs a UTC offset (end it with Z), got {value!r}")
-    return t.astimezone(timezone.utc)
+    return parse_utc(value, f"scene: {where}", error=ConfigError)
 
 
 def _choice(where: str, value, choices) -> str:
