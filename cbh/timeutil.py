@@ -17,7 +17,7 @@ from datetime import datetime, timedelta, timezone
 
 from cbh.errors import InputError
 
-__all__ = ["parse_utc", "time_from_name", "parse_time_header", "format_utc", "EXAMPLE"]
+__all__ = ["parse_utc", "time_from_name", "parse_time_header", "format_utc", "wait_until", "EXAMPLE"]
 
 #: The form every message asks for.
 EXAMPLE = "2024-06-21T14:00:00Z"
@@ -112,3 +112,17 @@ def format_utc(t: datetime | None) -> str:
     if t is None:
         return "unknown"
     return t.astimezone(timezone.utc).isoformat().replace("+00:00", "Z")
+
+
+def wait_until(t_monotonic: float, timeout_s: float) -> bool:
+    """Sleep until ``time.monotonic()`` reaches ``t_monotonic`` if that comes within ``timeout_s``
+    [s] and return True; otherwise sleep ``timeout_s`` and return False (a source's pacing)."""
+    import time
+
+    wait = t_monotonic - time.monotonic()
+    if wait > timeout_s:
+        time.sleep(max(timeout_s, 0.0))
+        return False
+    if wait > 0:
+        time.sleep(wait)
+    return True

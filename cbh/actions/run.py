@@ -75,7 +75,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     from datetime import timezone
 
     from cbh.presets import scene_path, station_path
-    from cbh.live.sources import open_source
+    from cbh.live.sources import is_sim_spec, open_source
     from cbh.geometry.station import load_station
 
     st = load_station(station_path(station) if station else station_path())
@@ -91,7 +91,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     c1, c2 = st.pair(cameras)
     names = (c1.name, c2.name)
     specs = {n: overrides.get(n) or st.cameras[n].source or "sim" for n in names}
-    simulated = [n for n in names if specs[n].lower() in ("sim", "simulator", "sim:")]
+    simulated = [n for n in names if is_sim_spec(specs[n])]
     if simulated and len(simulated) != 2:
         raise ConfigError(f"camera {simulated[0]} would be simulated and the other not: give both a source, or neither")
     cfg_dict = dict(st.sections.get("service", {}))
@@ -130,11 +130,16 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     step = config.cadence_s if config.cadence_s > 0 else 10.0
     base_dir = st.path.parent if st.path is not None else None
     same_dir = specs[names[0]] == specs[names[1]]
-    srcs = [open_source(
-        st.cameras[n], specs[n], sim=sim, start_utc=start, watch=watch, decode=False,
-        interval_s=config.snapshot_interval_s, stall_timeout_s=config.stall_timeout_s,
-        sim_step_s=step, sim_realtime=realtime, base_dir=base_dir, prefix=n if same_dir else None,
-    ) for n in names]
+    srcs = []
+    for n in names:
+        if sim is not None:
+            from cbh.sim import SimSource
+
+            srcs.append(SimSource(n, sim, step_s=step, start_utc=start, realtime=realtime))
+        else:
+            srcs.append(open_source(
+                st.cameras[n], specs[n], watch=watch, decode=False, interval_s=config.snapshot_interval_s,
+                stall_timeout_s=config.stall_timeout_s, base_dir=base_dir, prefix=n if same_dir else None))
     from cbh.pipeline import Pipeline, PipelineConfig
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
