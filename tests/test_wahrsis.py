@@ -19,7 +19,7 @@ def result(shared, repo):
     st = load_station(repo / "configs" / "wahrsis-2015-10-29.toml")
     i1, _ = read_image(d / "2015-10-29-12-58-01-wahrsis3-med.jpg")
     i2, _ = read_image(d / "2015-10-29-12-58-01-wahrsis4-med.jpg")
-    return Pipeline(st).process(i1, i2, T)
+    return Pipeline(st).process(i1, i2, T, channels="bgr")
 
 
 def test_real_pair_matches_the_authors_statistics(result):

@@ -283,7 +283,7 @@ class Service:
     sources : sequence of FrameSource
         Exactly two: camera 1's and camera 2's (pairs come out in this order).
     process : callable (Frame, Frame) → PairResult
-        Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc)``.
+        Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr")``.
         Frames arrive decoded (``image`` set).
     sinks : sequence of ResultSink
         Each gets ``write((f1, f2), result)`` per pair, ``write_status(time_utc, stats)`` if it
