@@ -12,11 +12,25 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-__all__ = ["Frame", "Layer", "Histogram", "PointSet", "PairResult", "to_ns", "from_ns", "layer_table", "LAYER_TABLE_COLUMNS"]
+__all__ = ["Frame", "Layer", "Histogram", "PointSet", "PairResult", "to_ns", "from_ns", "require_time", "layer_table", "LAYER_TABLE_COLUMNS"]
+
+
+def require_time(result: "PairResult", what: str) -> datetime:
+    """The result's capture time, or :class:`cbh.errors.RecordingError` naming ``what`` when it is
+    unknown: recordings, the Rerun time line and the layer tables place every pair at its time,
+    and cbh never invents one."""
+    if result.time_utc is None:
+        from cbh.errors import RecordingError
+
+        raise RecordingError(f"{what}: the pair's capture time is unknown (flag time_unknown); it cannot be "
+                             "placed on a time line: give the time (ISO 8601 with Z) when processing it")
+    return result.time_utc
 
 
 def to_ns(t: datetime) -> int:
     """UTC datetime → integer nanoseconds since the Unix epoch."""
+    if t is None:
+        raise ValueError("time unknown (None): cannot convert to nanoseconds since the epoch")
     if t.tzinfo is None:
         raise ValueError("naive datetime: cbh times must be timezone-aware UTC")
     delta = t - datetime(1970, 1, 1, tzinfo=timezone.utc)
@@ -196,7 +210,7 @@ LAYER_TABLE_COLUMNS = (
 )
 
 
-def layer_table(results) -> "pandas.DataFrame":  # noqa: F821 - pandas is imported lazily
+def layer_table(results) -> "pd.DataFrame":  # noqa: F821 - pandas (pd) is imported lazily
     """The layers of many pair results as a pandas DataFrame: one row per layer.
 
     Parameters

@@ -376,7 +376,8 @@ class Service:
             try:
                 sink.close()
             except Exception as exc:
-                log.error(f"closing {type(sink).__name__} failed: {exc}", extra={"cbh_sink": type(sink).__name__})
+                # raised below (the CLI prints it once): only the structured log gets it here
+                log.debug(f"closing {type(sink).__name__} failed: {exc}", extra={"cbh_sink": type(sink).__name__})
                 if err is None:
                     err = _sink_error(sink, exc, "closing")
         return err
@@ -465,7 +466,7 @@ class Service:
                 sink.write(pair, result)
             except Exception as exc:
                 err = _sink_error(sink, exc, "writing")
-                log.error(str(err), extra={"cbh_event": "sink_failed"})
+                log.debug(str(err), extra={"cbh_event": "sink_failed"})  # raised: printed once by the caller
                 self.stop("sink failed")
                 raise err from None
         st.pairs_processed += 1
