@@ -31,13 +31,14 @@ import queue
 import signal
 import threading
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult
+from cbh.tomlio import dataclass_from_table
 from cbh.live.sources import EndOfStream, decode_frame
 
 __all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySink", "STATES"]
@@ -78,17 +79,9 @@ class ServiceConfig:
 
     @classmethod
     def from_dict(cls, d: dict | None, where: str = "service") -> "ServiceConfig":
-        """From a TOML table; unknown keys and wrong types raise :class:`ConfigError` naming the key."""
-        d = dict(d or {})
-        names = {f.name: f for f in fields(cls)}
-        kw = {}
-        for k, v in d.items():
-            if k not in names:
-                raise ConfigError(f"{where}.{k}: unknown key (allowed: {', '.join(names)})")
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ConfigError(f"{where}.{k}: expected a number, got {v!r}")
-            kw[k] = int(v) if k in ("queue_frames", "frames") else float(v)
-        return cls(**kw)
+        """From a TOML table; unknown keys, wrong types and non-finite numbers raise
+        :class:`ConfigError` naming the key (:func:`cbh.tomlio.dataclass_from_table`)."""
+        return dataclass_from_table(cls, dict(d or {}), where)
 
     def to_dict(self) -> dict:
         return {k: v for k, v in asdict(self).items() if v is not None}
