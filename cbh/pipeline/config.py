@@ -34,10 +34,18 @@ __all__ = [
     "PipelineConfig",
 ]
 
-SEGMENTATION_METHODS = ("nbr", "nbr_adaptive", "otsu")
-MATCHING_METHODS = ("lk", "orb", "dis", "sweep")
-LAYER_METHODS = ("histogram",)
 FILL_METHODS = ("none", "nearest")
+# Method names are not listed here: validation asks the registries (SEGMENTERS in .segment,
+# MATCHERS in .match, LAYER_METHODS in .layers), so a registered method is a valid name.
+
+
+def _registries() -> tuple[dict, dict, dict]:
+    """(segmenters, matchers, layer methods): the name → function registries of the stages."""
+    from cbh.pipeline.layers import LAYER_METHODS  # here: those modules import this one
+    from cbh.pipeline.match import MATCHERS
+    from cbh.pipeline.segment import SEGMENTERS
+
+    return SEGMENTERS, MATCHERS, LAYER_METHODS
 
 
 @dataclass(frozen=True)
@@ -219,16 +227,17 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.masks.sun_radius_deg", m.sun_radius_deg, strict=False)
     if not 0 <= m.saturation_level <= 255:
         raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
-    _choice(f"{where}.segmentation.method", cfg.segmentation.method, SEGMENTATION_METHODS)
+    segmenters, matchers, layer_methods = _registries()
+    _choice(f"{where}.segmentation.method", cfg.segmentation.method, tuple(segmenters))
     if not 0 <= cfg.segmentation.grey_chroma <= 1:
         raise ConfigError(f"{where}.segmentation.grey_chroma: must be in 0..1, got {cfg.segmentation.grey_chroma}")
     if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:
         raise ConfigError(f"{where}.segmentation.otsu_min: must be <= otsu_max")
     mt = cfg.matching
     if not mt.methods:
-        raise ConfigError(f"{where}.matching.methods: give at least one method (valid: {', '.join(MATCHING_METHODS)})")
+        raise ConfigError(f"{where}.matching.methods: give at least one method (valid: {', '.join(matchers)})")
     for i, name in enumerate(mt.methods):
-        _choice(f"{where}.matching.methods[{i}]", name, MATCHING_METHODS)
+        _choice(f"{where}.matching.methods[{i}]", name, tuple(matchers))
     if len(set(mt.methods)) != len(mt.methods):
         raise ConfigError(f"{where}.matching.methods: duplicate method in {list(mt.methods)}")
     if mt.lk.window_px < 5 or mt.lk.window_px % 2 == 0:
@@ -273,7 +282,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
     _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
     ly = cfg.layers
-    _choice(f"{where}.layers.method", ly.method, LAYER_METHODS)
+    _choice(f"{where}.layers.method", ly.method, tuple(layer_methods))
     for k in ("bin_log", "smooth_log", "min_separation_log"):
         _positive(f"{where}.layers.{k}", getattr(ly, k))
     if not 0 <= ly.base_percentile <= 50:
