@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from cbh.errors import ImageError
@@ -71,8 +72,6 @@ def as_bgr(image, channels: str | None = None, what: str = "image", model: Camer
 
 def decode_image(data: bytes, what: str = "image") -> np.ndarray:
     """Decode JPEG/PNG bytes to a BGR uint8 (H, W, 3) array; :class:`ImageError` if corrupt."""
-    import cv2
-
     if not data:
         raise ImageError(f"{what}: empty image data")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
@@ -97,8 +96,6 @@ def read_image(path: str | Path) -> tuple[np.ndarray, bytes]:
 
 def encode_jpeg(image: np.ndarray, quality: int = 92) -> bytes:
     """BGR uint8 image → JPEG bytes."""
-    import cv2
-
     ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:  # pragma: no cover - OpenCV always encodes uint8 BGR
         raise ImageError("JPEG encoding failed")

@@ -9,8 +9,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # pandas is imported when a table is made
+    import pandas as pd
 
 __all__ = ["Frame", "Layer", "Histogram", "PointSet", "PairResult", "to_ns", "from_ns", "require_time", "layer_table", "LAYER_TABLE_COLUMNS"]
 
@@ -210,7 +214,7 @@ LAYER_TABLE_COLUMNS = (
 )
 
 
-def layer_table(results) -> "pd.DataFrame":  # noqa: F821 - pandas (pd) is imported lazily
+def layer_table(results) -> "pd.DataFrame":
     """The layers of many pair results as a pandas DataFrame: one row per layer.
 
     Parameters

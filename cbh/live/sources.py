@@ -48,6 +48,7 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Iterable
 
+import cv2
 
 from cbh.errors import ConfigError, ImageError, SourceError
 from cbh.interfaces import EndOfStream, FrameSource
@@ -425,8 +426,6 @@ class VideoSource(FrameSource):
         return f"VideoSource({self.camera!r}, {_redact(self.uri)!r})"
 
     def open(self) -> None:
-        import cv2
-
         self.close()
         if not self.live and not Path(self.uri).is_file():
             raise SourceError(f"{self.camera}: video file not found: {self.uri}")
@@ -453,8 +452,6 @@ class VideoSource(FrameSource):
                 cap.set(cv2.CAP_PROP_POS_FRAMES, self._done)
 
     def read(self, timeout_s: float) -> Frame | None:
-        import cv2
-
         from cbh.imageio import encode_jpeg
 
         if self._cap is None:

@@ -22,6 +22,7 @@ import logging
 import uuid
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
@@ -73,8 +74,6 @@ def parse_rerun_spec(mode: str, target: str | None = None) -> tuple[str, str | N
 
 def height_colors(height_m: np.ndarray, height_range_m=HEIGHT_RANGE_M) -> np.ndarray:
     """Turbo colours for heights: (N,) [m] → (N, 3) uint8 RGB; NaN → grey."""
-    import cv2
-
     h = np.asarray(height_m, np.float64).ravel()
     lo, hi = height_range_m
     u = np.clip((np.nan_to_num(h, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1)

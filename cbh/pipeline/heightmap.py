@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 
@@ -104,8 +105,6 @@ def nearest_fill(hmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     dist_px : ndarray, shape (H, W), float32
         Distance to it [px] (0 on measured pixels, inf if nothing is measured).
     """
-    import cv2
-
     known = np.isfinite(hmap)
     if not known.any():
         return np.full_like(hmap, np.nan), np.full(hmap.shape, np.inf, np.float32)
@@ -119,8 +118,6 @@ def nearest_fill(hmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def upsample_map(hmap: np.ndarray, width: int, height: int) -> np.ndarray:
     """Nearest-neighbour resize of a (working-size) map to (height, width) (NaN preserved)."""
-    import cv2
-
     if hmap.shape == (height, width):
         return hmap
     return cv2.resize(hmap, (width, height), interpolation=cv2.INTER_NEAREST)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cbh.errors import ImageError
@@ -19,8 +20,6 @@ __all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation
 
 def load_obstacle_mask(path: Path, width: int, height: int) -> np.ndarray:
     """Read an obstacle mask image (non-zero = usable sky) resized to (height, width), bool."""
-    import cv2
-
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise ImageError(f"obstacle mask: cannot read image {path}")
@@ -57,8 +56,6 @@ def angle_map_deg(cam: Camera, direction_world: np.ndarray, rays_cam: np.ndarray
     ``rays_cam``: the camera's ray map (H, W, 3) as float32, if the caller caches one
     (default: ``cam.model.ray_map()``).
     """
-    import cv2
-
     d_cam = np.asarray(direction_world, np.float64) @ cam.R_world_from_cam  # into the camera frame
     if rays_cam is None:
         rays_cam = cam.model.ray_map().astype(np.float32)
@@ -69,8 +66,6 @@ def angle_map_deg(cam: Camera, direction_world: np.ndarray, rays_cam: np.ndarray
 
 def saturation_mask(image_bgr: np.ndarray, cfg: MasksConfig) -> np.ndarray:
     """Saturated blobs (all channels ≥ level), grown by ``saturation_grow_px``, shape (H, W), bool."""
-    import cv2
-
     lvl = int(cfg.saturation_level)
     sat = cv2.inRange(image_bgr, (lvl, lvl, lvl), (255, 255, 255))
     if not cv2.countNonZero(sat):

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from cbh.errors import ConfigError
@@ -45,8 +46,6 @@ _OUTSIDE = -1.0e5  # map value for "no pixel": far outside any image
 
 def sample_map(map_x: np.ndarray, map_y: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Bilinear lookup of a remap table at sub-pixel points (N, 2) → (N, 2) float64."""
-    import cv2
-
     if len(pts) == 0:
         return np.zeros((0, 2))
     n = len(pts)
@@ -109,8 +108,6 @@ class PairGeometry:
 
     def warp2(self, image2: np.ndarray) -> np.ndarray:
         """Image 2 resampled onto camera 1's grid with the infinity mapping (0 where unseen)."""
-        import cv2
-
         return cv2.remap(image2, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
@@ -163,8 +160,6 @@ def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
 
 
 def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
-    import cv2
-
     c = cfg.lk
     feats = cv2.goodFeaturesToTrack(
         inp.gray1, maxCorners=c.max_points, qualityLevel=c.quality, minDistance=c.min_distance_px,
@@ -200,8 +195,6 @@ def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
 
 
 def _orb(inp: MatchInput, cfg: MatchingConfig) -> Matches:
-    import cv2
-
     c = cfg.orb
     orb = cv2.ORB_create(nfeatures=c.max_features, fastThreshold=5)
     k1, d1 = orb.detectAndCompute(inp.gray1, inp.cloud1.astype(np.uint8))
@@ -226,8 +219,6 @@ _DIS_PRESETS = {"ultrafast": 0, "fast": 1, "medium": 2}
 
 
 def _dis(inp: MatchInput, cfg: MatchingConfig) -> Matches:
-    import cv2
-
     c = cfg.dis
     dis = cv2.DISOpticalFlow.create(_DIS_PRESETS[c.preset])
     w2 = inp.warped2

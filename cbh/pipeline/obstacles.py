@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from cbh.geometry.camera import CameraModel
@@ -52,8 +53,6 @@ def obstacle_mask_from_frames(images, model: CameraModel, cfg: ObstacleMaskConfi
     mask : ndarray, shape (H, W), uint8
         255 = usable sky, 0 = static obstacle or outside the image circle.
     """
-    import cv2
-
     images = list(images)
     if len(images) < cfg.min_frames:
         raise InputError(f"obstacle mask: need at least {cfg.min_frames} frames, got {len(images)}")

@@ -26,6 +26,7 @@ Everything per pixel runs through OpenCV (multi-threaded; ≈ 5 ms per 960² ima
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from cbh.errors import ConfigError
@@ -36,8 +37,6 @@ __all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmen
 
 def normalized_blue_red(image_bgr: np.ndarray) -> np.ndarray:
     """NBR = (B − R)/(B + R) of a BGR uint8 image, shape (H, W), float32 (0 where B + R = 0)."""
-    import cv2
-
     b, _, r = cv2.split(image_bgr)
     s = cv2.add(b, r, dtype=cv2.CV_32F)
     d = cv2.subtract(b, r, dtype=cv2.CV_32F)
@@ -46,8 +45,6 @@ def normalized_blue_red(image_bgr: np.ndarray) -> np.ndarray:
 
 def chroma(image_bgr: np.ndarray) -> np.ndarray:
     """(max − min)/max of the channels of a BGR uint8 image, (H, W) float32 (0 where black)."""
-    import cv2
-
     b, g, r = cv2.split(image_bgr)
     mx = cv2.max(cv2.max(b, g), r)
     mn = cv2.min(cv2.min(b, g), r)
@@ -59,8 +56,6 @@ def _nbr(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma
 
 
 def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
-    import cv2
-
     span = max(90.0 - cfg.horizon_start_deg, 1e-6)
     ramp = cv2.min(cv2.max(cv2.subtract(np.asarray(zenith_deg, np.float32), cfg.horizon_start_deg), 0.0), span)
     t = cv2.add(cv2.multiply(ramp, (cfg.horizon_threshold - cfg.threshold) / span), cfg.threshold)
@@ -77,8 +72,6 @@ def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
 
 
 def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
-    import cv2
-
     v = nbr[usable]
     if v.size < 16:
         return np.zeros_like(usable)
@@ -103,8 +96,6 @@ def get_segmenter(name: str):
 
 def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig) -> tuple[np.ndarray, float]:
     """Cloud mask (H, W) bool and cloud fraction of the usable sky (0..1, 0 if none usable)."""
-    import cv2
-
     nbr = normalized_blue_red(image_bgr)
     b, g, r = cv2.split(image_bgr)
     bright = cv2.max(cv2.max(b, g), r) >= cfg.min_brightness

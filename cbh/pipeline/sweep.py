@@ -87,6 +87,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 __all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes"]
@@ -119,8 +120,6 @@ class PlaneMaps:
 
     def at(self, s: float, sl=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 for one plane, on the region ``sl``."""
-        import cv2
-
         if getattr(self, "_planes_key", None) != sl:  # contiguous (h, w) planes of the region, cached
             self._planes = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
             self._planes_key = sl
@@ -145,8 +144,6 @@ class PlaneMaps:
         return cache[factor]
 
     def _downsampled(self, factor: int) -> "PlaneMaps":
-        import cv2
-
         def rs(m):
             h, w = m.shape[:2]
             return cv2.resize(m, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
@@ -183,8 +180,6 @@ def plane_maps(cam1, cam2, rays1_world: np.ndarray) -> PlaneMaps:
 
 
 def _box(img, k):
-    import cv2
-
     return cv2.boxFilter(img, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT)
 
 
@@ -194,8 +189,6 @@ def _zncc_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.
     All per-pixel arithmetic goes through OpenCV (multi-threaded, no numpy temporaries):
     ZNCC = (E[i1·w] − μ1·μ2) / sqrt(var1·var2 + 1e-3) over a ``window_px`` box.
     """
-    import cv2
-
     k = int(window_px)
     mu1 = _box(i1, k)
     var1 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT), cv2.multiply(mu1, mu1)), 0.0)
@@ -262,8 +255,6 @@ class _Best3:
         self.best = None
 
     def add(self, j: int, cur: np.ndarray) -> None:
-        import cv2
-
         if self.best is None:
             self.best, self.left, self.right = cur.copy(), cur.copy(), cur.copy()
             self.j = np.zeros(cur.shape, np.int32)
@@ -360,7 +351,6 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
     """
     import time
 
-    import cv2
 
     timing: dict[str, float] = {}
     t0 = time.perf_counter()

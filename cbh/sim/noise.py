@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 __all__ = ["TILE_PX", "TILE_WAVELENGTH_PX", "MIN_PX_PER_WAVELENGTH", "Octave", "LayerTexture", "make_tiles", "sample_tile"]
@@ -216,8 +217,6 @@ def sample_tile(tile_padded: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.nda
     -------
     ndarray, shape (h, w), float32
     """
-    import cv2
-
     m1, m2 = cv2.convertMaps(u, v, cv2.CV_16SC2)
     np.bitwise_and(m1, TILE_PX - 1, out=m1)
     return cv2.remap(tile_padded, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

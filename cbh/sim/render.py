@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 from datetime import datetime, timedelta, timezone
 from typing import Iterator
 
+import cv2
 import numpy as np
 
 from cbh.errors import ConfigError
@@ -194,7 +195,6 @@ class _CameraState:
             if m == 1:
                 # full resolution: half of level 1's, interpolated (exact for a smooth lens,
                 # and 4x cheaper than differentiating the full-size ray map)
-                import cv2
 
                 alpha0 = cv2.resize(alpha, (self.W, self.H), interpolation=cv2.INTER_LINEAR) * np.float32(0.5)
                 self.levels[0].inv_fp /= alpha0
@@ -415,8 +415,6 @@ class SkySimulator:
     # --- rendering -----------------------------------------------------------------------
     def _texture(self, cs: _CameraState, ls: _LayerState, offset_m: tuple[float, float]):
         """Shape and detail fields of a layer on camera ``cs``'s full-res grid, (H, W) float32 each."""
-        import cv2
-
         tex = ls.tex
         dh = ls.layer.height_m - float(cs.true.position_m[2])
         # texture coordinate of a pixel: (cam_en + dh·tan − offset)·scale + tile offset
@@ -460,8 +458,6 @@ class SkySimulator:
         return shape, detail
 
     def _render_camera(self, cs: _CameraState, t: datetime):
-        import cv2
-
         scene = self.scene
         H, W = cs.H, cs.W
         zs, az = self.sun(t)

@@ -8,6 +8,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Iterator
 
+import cv2
 import numpy as np
 
 from cbh.errors import CbhError, RecordingError
@@ -93,8 +94,6 @@ class TopicInfo:
 
 
 def _decode_masks(data: bytes, what: str) -> np.ndarray:
-    import cv2
-
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise RecordingError(f"{what}: corrupt PNG")

@@ -14,6 +14,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cbh.errors import RecordingError
@@ -57,8 +58,6 @@ def _utc_name(ns: int) -> str:
 
 
 def _png(image: np.ndarray, what: str) -> bytes:
-    import cv2
-
     ok, buf = cv2.imencode(".png", image)
     if not ok:  # pragma: no cover - OpenCV encodes uint8/uint16 PNG
         raise RecordingError(f"PNG encoding of {what} failed")
