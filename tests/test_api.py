@@ -14,8 +14,6 @@ import pytest
 import cbh
 from cbh.errors import ImageError, InputError
 
-from .conftest import REPO
-
 T = datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
 
 
@@ -116,3 +114,27 @@ def test_layer_table_has_one_row_per_layer(from_paths):
     assert math.isclose(row["altitude_m"], L.height_m + 1050.0, abs_tol=1e-6)
 
 # The README's library example runs verbatim in tests/test_wahrsis.py (its result is the real pair's).
+
+
+def test_outputs_refuse_a_result_without_a_time(tmp_path):
+    """Recordings, the Rerun time line and layer tables place each pair at its time: a result
+    whose time is unknown is refused with one clear error, never stamped with a made-up time."""
+    from cbh.errors import RecordingError
+    from cbh.outputs.export import LayerExporter
+    from cbh.outputs.record import McapRecorder
+    from cbh.outputs.rerun_view import RerunSink
+
+    from .conftest import small_station, synthetic_pair
+
+    st = small_station()
+    frames, res = synthetic_pair(st, 0)
+    res.time_utc = None
+    with McapRecorder(tmp_path / "x.mcap", st, {}) as rec:
+        with pytest.raises(RecordingError, match="capture time is unknown"):
+            rec.write(frames, res)
+    with LayerExporter(tmp_path / "x.csv", st) as exp:
+        with pytest.raises(RecordingError, match="capture time is unknown"):
+            exp.write(frames, res)
+    with RerunSink(st, "save", str(tmp_path / "x.rrd")) as sink:
+        with pytest.raises(RecordingError, match="capture time is unknown"):
+            sink.write(frames, res)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cbh.errors import ConfigError, RecordingError
-from tests.test_record import small_station, synthetic_pair, write_session
+from .conftest import small_station, synthetic_pair, write_session
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"

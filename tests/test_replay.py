@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_viz import RERUN, needs_cli, rrd_print, rrd_verify
+from .conftest import RERUN, needs_cli, rrd_print, rrd_verify
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"

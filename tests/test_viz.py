@@ -2,27 +2,13 @@
 from __future__ import annotations
 
 import re
-import shutil
-import subprocess
 
 import numpy as np
 import pytest
 
 from cbh.errors import ConfigError
-from tests.test_record import small_station, synthetic_pair
 
-RERUN = shutil.which("rerun")
-needs_cli = pytest.mark.skipif(RERUN is None, reason="the rerun CLI (from rerun-sdk) is not on PATH")
-
-
-def rrd_verify(path) -> subprocess.CompletedProcess:
-    return subprocess.run([RERUN, "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120)
-
-
-def rrd_print(path, verbose: str = "") -> str:
-    args = [RERUN, "rrd", "print"] + ([verbose] if verbose else []) + [str(path)]
-    return subprocess.run(args, capture_output=True, text=True, timeout=120).stdout
-
+from .conftest import needs_cli, rrd_print, rrd_verify, small_station, synthetic_pair
 
 def test_parse_rerun_spec():
     from cbh.outputs.rerun_view import parse_rerun_spec
