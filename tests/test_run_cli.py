@@ -17,6 +17,18 @@ import pytest
 from cbh.cli.main import main
 
 SIZE = 320
+LOW_LAYER_M = 1200.0  # the default scene (two-layers): broken cumulus at 1200 m under altocumulus at 3500 m
+# At 320 px the zenith parallax of the 1200 m layer over the 50 m baseline is about
+# 102 px/rad · 50 / 1200 ≈ 4.2 px; the layer-aggregated disparity is good to ≈ 0.1 px, i.e.
+# 2.4 % of the height: the lower layer's base must come out within 5 % (measured: 1228 m, 2.3 %).
+LOW_LAYER_TOL = 0.05
+
+
+def assert_low_layer(result) -> None:
+    """The lowest reported layer is the scene's 1200 m cumulus, to the resolution of 320 px."""
+    assert result.layers, "no layer found"
+    low = min(l.height_m for l in result.layers)
+    assert abs(low - LOW_LAYER_M) <= LOW_LAYER_TOL * LOW_LAYER_M, [l.height_m for l in result.layers]
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +64,7 @@ def test_default_simulated_run_records_six_pairs_that_all_read_back(tmp_path, ca
         f1, f2 = p.frames()
         assert f1.image.shape == (SIZE, SIZE, 3) and f2.image.shape == (SIZE, SIZE, 3)
         assert p.result.height_map.shape[0] > 0
+        assert_low_layer(p.result)
     # simulator frames 10 s apart (default step), starting at the scene's time
     dts = [(b.time_utc - a.time_utc).total_seconds() for a, b in zip(pairs, pairs[1:])]
     assert dts == [10.0] * 5
@@ -100,6 +113,8 @@ def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_pat
     assert all(p.images["cam1"].time_utc == p.images["cam2"].time_utc for p in pairs)
     times = [p.time_utc for p in pairs]
     assert times == sorted(times) and len(set(times)) == 8
+    for p in pairs:  # both images of a pair show the same simulated sky: the layer is where it is
+        assert_low_layer(p.result)
     last = list(s.statuses())[-1][1]
     assert last["reconnects"]["cam2"] >= 1, last
     assert last["corrupt"]["cam1"] >= 1, last
@@ -122,8 +137,8 @@ def test_two_rtsp_cameras_pair_on_their_stream_clocks(sim320, station320, tmp_pa
         # the same frame index of both streams: well within half the 0.25 s frame interval
         dt = abs((p.images["cam1"].time_utc - p.images["cam2"].time_utc).total_seconds())
         assert dt < 0.125
-        # and therefore the same simulated sky: a layer near the scene's lower base is found
-        assert p.result.layers
+        # and therefore the same simulated sky: a layer at the scene's lower base is found
+        assert_low_layer(p.result)
 
 
 def test_directories_of_timestamped_images(sim320, station320, tmp_path, capsys):
@@ -175,9 +190,12 @@ def test_full_disk_is_one_error_and_the_recording_stays_valid(tmp_path, capsys):
 
 # --- signals (subprocesses) -----------------------------------------------------------------
 
+SIGNAL_SIZE = 160  # px: these tests are about the process's life cycle, not about heights
+
+
 def _start(tmp_path, *extra):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "cbh.cli.main", "run", "--size", str(SIZE), "--frames", "100000",
+    cmd = [sys.executable, "-m", "cbh.cli.main", "run", "--size", str(SIGNAL_SIZE), "--frames", "100000",
            "--record", str(tmp_path / "run.mcap"), "--export", str(tmp_path / "run.csv"), *extra]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                          cwd=Path(__file__).resolve().parents[1])

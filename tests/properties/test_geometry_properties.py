@@ -1,4 +1,5 @@
-"""Property tests (hypothesis) of the geometry invariants; slow, run with `pytest -m slow`."""
+"""Property tests (hypothesis) of the geometry invariants; cheap (about 3 s together), so they run
+in the default tier."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,8 +10,6 @@ from hypothesis import strategies as st
 from cbh.geometry.camera import EquisolidModel, OCamModel
 from cbh.geometry.station import rotation_from_angles
 from cbh.geometry.triangulate import triangulate
-
-pytestmark = pytest.mark.slow
 
 angles = st.floats(-180, 180, allow_nan=False)
 small = st.floats(-10, 10, allow_nan=False)
