@@ -8,8 +8,8 @@ from cbh.timeutil import format_utc
 
 def run_with_status(setup, status: bool = True):
     """Run ``setup.service()`` (a :class:`cbh.actions.run.RunSetup`) and return its stats."""
-    for n in setup.notes:
-        print(n, file=sys.stderr)
+    for n in setup.notes:  # e.g. the demo run's pair count: say how to ask for more
+        print(n + ("; --frames/--duration for more" if n.startswith("simulated station") else ""), file=sys.stderr)
     if not status:
         return setup.service().run()
     from rich.console import Console

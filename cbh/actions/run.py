@@ -102,9 +102,9 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     for s in sources:
         cam, sep, spec = s.partition("=")
         if not sep or not cam.strip() or not spec.strip():
-            raise ConfigError(f"--source {s!r}: expected CAMERA=SPEC, e.g. cam1=rtsp://host/stream")
+            raise ConfigError(f"camera source {s!r}: expected CAMERA=SPEC, e.g. cam1=rtsp://host/stream")
         if cam.strip() not in st.cameras:
-            raise ConfigError(f"--source {s!r}: no camera {cam.strip()!r} in station {st.name!r} "
+            raise ConfigError(f"camera source {s!r}: no camera {cam.strip()!r} in station {st.name!r} "
                               f"(cameras: {', '.join(st.cameras)})")
         overrides[cam.strip()] = spec.strip()
     c1, c2 = st.pair(cameras)
@@ -123,9 +123,9 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
 
         rerun_args = parse_rerun_spec(*_rerun_args(rerun))
     if export is not None and Path(export).suffix.lower() not in (".csv", ".parquet"):
-        raise ConfigError(f"--export {export}: the file must end in .csv or .parquet")
+        raise ConfigError(f"export file {export}: the name must end in .csv or .parquet")
     if record is None and (rotate_mb is not None or rotate_s is not None):
-        raise ConfigError("--rotate-mb/--rotate-s need --record")
+        raise ConfigError("file rotation (rotate_mb, rotate_s) needs a recording")
     notes = []
     sim = None
     if simulated:
@@ -136,14 +136,13 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         st = sim.station
         if "frames" not in cfg_dict and "duration_s" not in cfg_dict:
             cfg_dict["frames"] = demo_frames
-            notes.append(f"simulated station {st.name} (scene {sc.name}): {demo_frames} pairs; "
-                         "--frames/--duration for more")
+            notes.append(f"simulated station {st.name} (scene {sc.name}): {demo_frames} pairs")
         start = sc.time_utc.astimezone(timezone.utc)
     else:
         if size_px is not None:
-            raise ConfigError("--size applies to simulated cameras only (real frames must match the calibration)")
+            raise ConfigError("an image size applies to simulated cameras only (real frames must match the calibration)")
         if scene is not None:
-            raise ConfigError("--scene applies to simulated cameras only, but both cameras have a source")
+            raise ConfigError("a scene applies to simulated cameras only, but both cameras have a source")
         start = None
     config = ServiceConfig.from_dict(cfg_dict)
     step = config.cadence_s if config.cadence_s > 0 else 10.0

@@ -162,7 +162,7 @@ class Station:
         else:
             parts = [p.strip() for p in names.split(",")] if isinstance(names, str) else list(names)
             if len(parts) != 2 or not all(parts):
-                raise ConfigError(f"--cameras needs two names separated by a comma, got {names!r}")
+                raise ConfigError(f"a camera pair needs two names separated by a comma, got {names!r}")
             a, b = parts
         if a == b:
             raise ConfigError(f"the two cameras of a pair must differ (got {a!r} twice)")
