@@ -37,7 +37,7 @@ import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
 from cbh.interfaces import ResultSink
-from cbh.result import Frame, PairResult, to_ns
+from cbh.result import Frame, PairResult, require_time, to_ns
 
 __all__ = ["RerunSink", "default_blueprint", "log_pair", "log_station", "parse_rerun_spec", "height_colors",
            "legend_image", "display_histogram", "cloud_outline",
@@ -237,7 +237,7 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
     """
     import rerun as rr
 
-    rec.set_time(TIMELINE, timestamp=np.datetime64(to_ns(result.time_utc), "ns"))
+    rec.set_time(TIMELINE, timestamp=np.datetime64(to_ns(require_time(result, "Rerun view")), "ns"))
     cam1, cam2 = result.cameras
     for cam, (data, fmt) in images.items():
         media = {"jpeg": "image/jpeg", "jpg": "image/jpeg", "png": "image/png"}.get(fmt.lower())
