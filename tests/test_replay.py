@@ -106,3 +106,14 @@ def test_replay_errors_are_one_line(tmp_path, short_session, capsys):
         assert main(args) == 2, args
         err = capsys.readouterr().err.strip()
         assert err.startswith("cbh: error:") and msg in err and "\n" not in err, (args, err)
+
+
+def test_reprocess_never_records_onto_its_own_input(short_session, capsys):
+    from cbh.cli.main import main
+
+    sess, st = short_session
+    before = sess.read_bytes()
+    assert main(["replay", str(sess), "--no-rerun", "--reprocess", "--station", str(st), "--record", str(sess)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cbh: error:") and "record to a new file" in err and "\n" not in err
+    assert sess.read_bytes() == before
