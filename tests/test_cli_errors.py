@@ -114,3 +114,22 @@ def test_a_failing_sink_is_reported_once(tmp_path, capsys, monkeypatch):
     assert main(["run", "--frames", "2", "--size", "96", "-q", "--export", str(out_csv)]) == 2
     line = one_error_line(capsys.readouterr().err)
     assert "disk full" in line and str(out_csv) in line
+
+
+def test_greyscale_images_to_pair_are_refused(tmp_path, capsys):
+    """A greyscale image cannot be segmented (the cloud test is the blue/red ratio): one line,
+    where it used to give cloud fraction 1.00 (issue 10, point 5)."""
+    import cv2
+    import numpy as np
+
+    from cbh.presets import station_path
+    from cbh.geometry.station import load_station
+
+    st = load_station(station_path("unb-lea")).scaled(96)
+    (tmp_path / "station.toml").write_text(st.to_toml())
+    grey = (np.random.default_rng(0).random((96, 96)) * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "g1.png"), grey)
+    cv2.imwrite(str(tmp_path / "g2.png"), grey)
+    assert main(["pair", str(tmp_path / "g1.png"), str(tmp_path / "g2.png"), "--station", str(tmp_path / "station.toml"),
+                 "--time", "2024-06-21T14:00:00Z"]) == 2
+    assert "greyscale" in one_error_line(capsys.readouterr().err)
