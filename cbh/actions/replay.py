@@ -64,13 +64,12 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         n = _replay_recorded(s, rerun, Path(session).stem, on_viewer)
         return ReplayReport(n, False, rerun[0] if rerun else None, rerun[1] if rerun else None,
                             None, None, time.perf_counter() - t0)
-    setup = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem)
-    viewer = next((k for k in setup.sinks if k.kind == "viewer"), None)
+    setup, viewer = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem)
     if viewer is not None and on_viewer is not None:
         on_viewer(viewer)
     stats = setup.service().run()
     return ReplayReport(stats.pairs_processed, True, rerun[0] if rerun else None, rerun[1] if rerun else None,
-                        getattr(viewer, "url", None), Path(record) if record is not None else None,
+                        viewer.url if viewer is not None else None, Path(record) if record is not None else None,
                         time.perf_counter() - t0, failed=stats.pairs_failed)
 
 
@@ -95,7 +94,8 @@ def _replay_recorded(s, rerun, name: str, on_viewer) -> int:
     return n
 
 
-def _reprocess_setup(s, station, cameras, rerun, record, name: str) -> RunSetup:
+def _reprocess_setup(s, station, cameras, rerun, record, name: str):
+    """(RunSetup over the recording's frames, the RerunSink or None)."""
     from cbh.geometry.station import Station, load_station
     from cbh.imageio import check_image_size
     from cbh.outputs.record import McapRecorder, RecordingSource
@@ -116,7 +116,7 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str) -> RunSetup:
     sources = [RecordingSource(s, c) for c in pipeline.cameras]
     service_cfg = {k: v for k, v in st.sections.get("service", {}).items() if k == "pair_tolerance_s"}
     config = ServiceConfig.from_dict(service_cfg)
-    sinks, recorder = [], None
+    sinks, recorder, viewer = [], None, None
     try:
         if record is not None:
             recorder = open_sink(record, lambda: McapRecorder(record, st, pipeline.config.to_dict()))
@@ -126,9 +126,10 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str) -> RunSetup:
 
             if rerun[0] == "save":
                 check_writable(rerun[1])
-            sinks.append(RerunSink(st, rerun[0], rerun[1], cameras=pipeline.cameras, recording_name=name))
+            viewer = RerunSink(st, rerun[0], rerun[1], cameras=pipeline.cameras, recording_name=name)
+            sinks.append(viewer)
     except BaseException:
         for k in sinks:
             k.close()
         raise
-    return RunSetup(st, pipeline.cameras, sources, pipeline, sinks, config, recorder, [])
+    return RunSetup(st, pipeline.cameras, sources, pipeline, sinks, config, recorder, []), viewer
