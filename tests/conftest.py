@@ -126,3 +126,22 @@ def rrd_verify(path) -> subprocess.CompletedProcess:
 def rrd_print(path, verbose: str = "") -> str:
     args = [RERUN, "rrd", "print"] + ([verbose] if verbose else []) + [str(path)]
     return subprocess.run(args, capture_output=True, text=True, timeout=120).stdout
+
+
+# --- one small simulated sky, shared -------------------------------------------------------------
+
+SKY_LAYER_M = 1500.0  # the layer of :func:`small_sky`
+
+
+@pytest.fixture(scope="session")
+def small_sky():
+    """(simulator, shot): the unb-lea station at 320 px under one cumulus layer at 1500 m
+    (coverage 0.4), 2024-06-21 14:00 UTC; rendered once per test session."""
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim import SkySimulator, parse_scene
+
+    sc = parse_scene({"name": "small-sky", "time_utc": "2024-06-21T14:00:00Z",
+                      "layers": [{"height_m": SKY_LAYER_M, "coverage": 0.4, "texture_scale_m": 800.0, "seed": 3}]})
+    sim = SkySimulator(load_station(station_path("unb-lea")), sc, size_px=320)
+    return sim, sim.render()

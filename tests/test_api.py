@@ -18,16 +18,10 @@ T = datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
 
 
 @pytest.fixture(scope="module")
-def pair_files(tmp_path_factory):
-    """A simulated 320 px pair (one cumulus layer at 1500 m) as PNG files and its station."""
-    from cbh.presets import station_path
-    from cbh.sim import SkySimulator, parse_scene
-
+def pair_files(tmp_path_factory, small_sky):
+    """The shared simulated 320 px pair (one cumulus layer at 1500 m) as PNG files and its station."""
+    sim, shot = small_sky
     d = tmp_path_factory.mktemp("api")
-    scene = parse_scene({"name": "t", "time_utc": "2024-06-21T14:00:00Z",
-                         "layers": [{"height_m": 1500.0, "coverage": 0.4, "texture_scale_m": 800.0, "seed": 3}]})
-    sim = SkySimulator(cbh.load_station(station_path("unb-lea")), scene, size_px=320)
-    shot = sim.render()
     (d / "station.toml").write_text(sim.station.to_toml())
     for cam in ("cam1", "cam2"):
         cv2.imwrite(str(d / f"{cam}.png"), shot.views[cam].image)
