@@ -8,8 +8,17 @@ import subprocess
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
+import os
+
 import numpy as np
 import pytest
+from hypothesis import settings
+
+# Property tests run in the default tier, so they are reproducible there: the same examples on
+# every run (derandomize). HYPOTHESIS_PROFILE=explore searches fresh random examples.
+settings.register_profile("default-tier", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default-tier"))
 
 from cbh.result import Frame, Histogram, Layer, PairResult, PointSet
 
