@@ -35,7 +35,8 @@ import numpy as np
 
 from cbh.errors import ConfigError
 
-__all__ = ["GroundGrid", "parse_ground", "GROUND_KEYS", "layer_labels", "cloud_maps", "shadow_map",
+__all__ = ["GroundGrid", "parse_ground", "GROUND_KEYS", "layer_labels", "cloud_maps", "shadow_map", "layer_shadows",
+           "combine_layers",
            "sun_blocked", "lookup_layer", "CLEAR", "UNKNOWN"]
 
 #: Keys of the station file's optional ``[ground]`` table and their defaults.
@@ -210,8 +211,8 @@ def cloud_maps(camera, labels: np.ndarray, layer_heights_m, grid: GroundGrid) ->
     return out
 
 
-def _combine(values: list[np.ndarray], shape) -> np.ndarray:
-    """Any layer 1 → 1; all layers 0 → 0; else NaN."""
+def combine_layers(values: list[np.ndarray], shape) -> np.ndarray:
+    """Per-layer maps → one: any layer 1 → 1; every layer 0 → 0; else NaN."""
     if not values:
         return np.full(shape, np.nan, np.float32)
     v = np.stack(values)
@@ -221,26 +222,39 @@ def _combine(values: list[np.ndarray], shape) -> np.ndarray:
     return out
 
 
+def layer_shadows(camera, labels: np.ndarray, layer_heights_m, sun_dir_enu, grid: GroundGrid) -> np.ndarray:
+    """Each layer's shadow on the ground, shape (L, n, n), float32 (1 / 0 / NaN).
+
+    Layer k shades cell ``g`` when its cloud map is 1 at ``g + s_xy · h_k / s_z``.
+    """
+    X, Y = _cells(grid)
+    out = np.full((len(layer_heights_m), grid.n, grid.n), np.nan, np.float32)
+    if sun_dir_enu is None or float(sun_dir_enu[2]) <= 0.0:
+        return out
+    s = np.asarray(sun_dir_enu, np.float64)
+    for k, h in enumerate(layer_heights_m):
+        t = float(h) / s[2]
+        pts = np.stack([X + s[0] * t, Y + s[1] * t, np.full_like(X, float(h))], axis=-1)
+        out[k] = lookup_layer(camera, labels, k, pts)
+    return out
+
+
 def shadow_map(camera, labels: np.ndarray, layer_heights_m, sun_dir_enu, grid: GroundGrid,
-               cloud_fraction: float | None = None) -> np.ndarray:
+               cloud_fraction: float | None = None, by_layer: np.ndarray | None = None) -> np.ndarray:
     """Cloud shadow on the ground, shape (n, n), float32: 1 shaded, 0 sunlit, NaN unknown.
 
     ``sun_dir_enu``: unit vector towards the sun (3,), None = unknown. ``cloud_fraction``:
     camera 1's cloud fraction; 0 (a clear sky) makes the whole grid sunlit even without layers.
+    ``by_layer``: :func:`layer_shadows` if already computed.
     """
     shape = (grid.n, grid.n)
     if sun_dir_enu is None or float(sun_dir_enu[2]) <= 0.0:
         return np.full(shape, np.nan, np.float32)
     if len(layer_heights_m) == 0:
         return np.zeros(shape, np.float32) if cloud_fraction == 0 else np.full(shape, np.nan, np.float32)
-    s = np.asarray(sun_dir_enu, np.float64)
-    X, Y = _cells(grid)
-    vals = []
-    for k, h in enumerate(layer_heights_m):
-        t = float(h) / s[2]
-        pts = np.stack([X + s[0] * t, Y + s[1] * t, np.full_like(X, float(h))], axis=-1)
-        vals.append(lookup_layer(camera, labels, k, pts))
-    return _combine(vals, shape)
+    if by_layer is None:
+        by_layer = layer_shadows(camera, labels, layer_heights_m, sun_dir_enu, grid)
+    return combine_layers(list(by_layer), shape)
 
 
 def sun_blocked(camera, labels: np.ndarray, layer_heights_m, motions_ms, sun_dir_enu, lead_s: float,
@@ -276,4 +290,4 @@ def sun_blocked(camera, labels: np.ndarray, layer_heights_m, motions_ms, sun_dir
         t = float(h) / s[2]
         p = np.array([at_m[0] + s[0] * t - ve * lead_s, at_m[1] + s[1] * t - vn * lead_s, float(h)])
         vals.append(lookup_layer(camera, labels, k, p))
-    return float(_combine(vals, ()))
+    return float(combine_layers(vals, ()))
