@@ -43,13 +43,14 @@ def _labels(sim, scene, t, *, sun_disk: bool):
     """Camera 1's truth labels at time t (perfect segmentation and heights: tests the geometry)."""
     from cbh.geometry import ground
     from cbh.pipeline.config import MasksConfig
-    from cbh.pipeline.masks import angle_map_deg, static_sky_mask, sun_direction_enu
+    from cbh.geometry.sun import sun_position
+    from cbh.pipeline.masks import angle_map_deg, static_sky_mask
 
     st = sim.station
     cam = st.cameras["cam1"]
     v = sim.view("cam1", t)
     usable = static_sky_mask(cam, MasksConfig())
-    sun, _ = sun_direction_enu(st.latitude_deg, st.longitude_deg, t)
+    sun = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, t).direction_enu
     if sun_disk:
         usable &= angle_map_deg(cam, sun) > MasksConfig().sun_radius_deg
     heights = [l.height_m for l in scene.layers]
@@ -103,13 +104,13 @@ def test_sun_blocked_forecast_follows_the_layer_motion(probe_world, lead, min_ag
     """Frozen advection with the scene's wind: the forecast at every probe point against the
     simulator rendered ``lead`` seconds later (whose clouds move with exactly that wind)."""
     from cbh.geometry import ground
-    from cbh.pipeline.masks import sun_direction_enu
+    from cbh.geometry.sun import sun_position
 
     sim, scene, probes = probe_world
     t = scene.time_utc
     cam, labels, heights, _ = _labels(sim, scene, t, sun_disk=False)
     st = sim.station
-    sun_later, _ = sun_direction_enu(st.latitude_deg, st.longitude_deg, t + timedelta(seconds=lead))
+    sun_later = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, t + timedelta(seconds=lead)).direction_enu
     truth = _truth_shaded(sim, probes, sun_later, t + timedelta(seconds=lead))
     winds = [l.wind_ms for l in scene.layers]
     pred = np.array([ground.sun_blocked(cam, labels, heights, winds, sun_later, lead, at_m=(x, y)) for _, x, y in probes])

@@ -6,7 +6,7 @@ Products:
 * ``cloudmap`` / ``shadow``: camera 1's cloud mask of every recorded pair projected onto the
   station's ground grid (:mod:`cbh.geometry.ground`; grid from the ``[ground]`` table of the
   recorded station, or of ``station`` when given), with the sun from the one sun function
-  (:func:`cbh.pipeline.masks.sun_direction_enu`); written by :mod:`cbh.outputs.maps`.
+  (:func:`cbh.geometry.sun.sun_position`); written by :mod:`cbh.outputs.maps`.
 
 Usable sky for the maps is rebuilt from the recorded pipeline config: image circle, zenith
 limit and the masked sun disk (the obstacle mask is not recorded with the pairs, so horizon
@@ -30,11 +30,17 @@ from cbh.geometry import ground
 from cbh.outputs import export as layer_export
 from cbh.outputs.maps import LEAD_TIMES_S, MAP_FORMATS, PRODUCTS, GroundMaps, write_maps_netcdf, write_maps_npz
 
-__all__ = ["export", "ground_maps", "PairGround", "pair_ground", "SUFFIX_FORMATS", "MAX_FALLBACK_S"]
+__all__ = ["export", "format_from_suffix", "ground_maps", "PairGround", "pair_ground", "SUFFIX_FORMATS",
+           "MAX_FALLBACK_S"]
 
 SUFFIX_FORMATS = {".csv": "csv", ".parquet": "parquet", ".nc": "netcdf", ".nc4": "netcdf", ".netcdf": "netcdf",
                   ".npz": "npz"}
 MAX_FALLBACK_S = 120.0  # oldest previous pair the "now" sun-blocking answer may come from [s]
+
+
+def format_from_suffix(out) -> str | None:
+    """csv | parquet | netcdf | npz from the output's suffix; None for an unknown suffix."""
+    return SUFFIX_FORMATS.get(Path(out).suffix.lower())
 
 
 class PairGround:
@@ -49,10 +55,11 @@ class PairGround:
 
 
 def _sun(station, t):
-    from cbh.pipeline.masks import sun_direction_enu
+    """(unit vector to the sun in ENU, apparent zenith [deg]) from the one sun function."""
+    from cbh.geometry.sun import sun_position
 
-    d, zen = sun_direction_enu(station.latitude_deg, station.longitude_deg, t)
-    return d, zen
+    sp = sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, t)
+    return sp.direction_enu, sp.zenith_deg
 
 
 def pair_ground(station, masks_cfg, result) -> PairGround:
@@ -194,7 +201,7 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
     """
     out = Path(out)
     if fmt is None:
-        fmt = SUFFIX_FORMATS.get(out.suffix.lower())
+        fmt = format_from_suffix(out)
         if fmt is None and daily:
             fmt = "netcdf"
         if fmt is None:

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cbh.errors import ConfigError
+from cbh.tomlio import check_keys, number, table
 
 __all__ = ["GroundGrid", "parse_ground", "GROUND_KEYS", "layer_labels", "cloud_maps", "shadow_map", "layer_shadows",
            "combine_layers",
@@ -105,17 +106,9 @@ class GroundGrid:
 
 def parse_ground(d: dict, latitude_deg: float, longitude_deg: float) -> GroundGrid:
     """Validate a ``[ground]`` table (strict keys; defaults in :data:`GROUND_KEYS`)."""
-    if not isinstance(d, dict):
-        raise ConfigError("ground: expected a table")
-    extra = sorted(set(d) - set(GROUND_KEYS))
-    if extra:
-        raise ConfigError(f"ground.{extra[0]}: unknown key (allowed: {', '.join(GROUND_KEYS)})")
-    vals = {}
-    for key, default in GROUND_KEYS.items():
-        v = d.get(key, default)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise ConfigError(f"ground.{key}: expected a finite number > 0, got {v!r}")
-        vals[key] = float(v)
+    table("ground", d)
+    check_keys("ground", d, GROUND_KEYS)
+    vals = {key: number(f"ground.{key}", d.get(key, default), positive=True) for key, default in GROUND_KEYS.items()}
     g = GroundGrid(vals["resolution_m"], vals["extent_m"], float(latitude_deg), float(longitude_deg))
     if vals["extent_m"] < vals["resolution_m"]:
         raise ConfigError(f"ground.extent_m: {vals['extent_m']} is smaller than ground.resolution_m {vals['resolution_m']}")

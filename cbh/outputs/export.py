@@ -58,7 +58,7 @@ import numpy as np
 from cbh.errors import ConfigError, RecordingError
 from cbh.flags import Flag, flag_bits
 from cbh.interfaces import ResultSink
-from cbh.result import Frame, PairResult
+from cbh.result import Frame, PairResult, require_time
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
            "netcdf_dataset", "write_netcdf", "export_sessions", "FORMATS", "FILL_VALUE", "okta",
@@ -353,6 +353,7 @@ class LayerExporter(ResultSink):
 
     def write(self, frames: tuple[Frame, Frame] | None, result: PairResult) -> None:
         """Append the rows of one result (``frames`` are not used)."""
+        require_time(result, f"exporting to {self.path}")
         self.write_record(pair_record(result, self.altitude_m))
 
     def write_record(self, rec: PairRecord) -> None:
@@ -460,15 +461,12 @@ def _all_diagnostics(records) -> tuple[str, ...]:
     return tuple(sorted({k for r in records for k in r.diagnostics}))
 
 
-def layer_table(records):
-    """pandas DataFrame: :data:`COLUMNS` + one column per diagnostics key (time_utc as datetime64[ns, UTC]).
-
-    ``records``: :class:`PairRecord` or :class:`cbh.result.PairResult` objects (a result's
-    altitude comes from its layers' ``altitude_m``).
-    """
+def layer_table(records: list[PairRecord]):
+    """The export table of pair records as a pandas DataFrame: :data:`COLUMNS` + one column per
+    diagnostics key (time_utc as datetime64[ns, UTC]). For PairResults in a script, the simpler
+    :func:`cbh.layer_table` (cbh.result) is the API."""
     import pandas as pd
 
-    records = [r if isinstance(r, PairRecord) else pair_record(r, math.nan) for r in records]
     diags = _all_diagnostics(records)
     rows = [row for r in records for row in record_rows(r, diags)]
     df = pd.DataFrame(rows, columns=list(COLUMNS + diags))
