@@ -171,3 +171,44 @@ def test_station_metadata_is_strict_and_survives_a_recording(tmp_path, repo):
     p.write_text(text + '\n[station.metadata]\nsite = 3\n')
     with pytest.raises(ConfigError, match="station.metadata.site: expected a string"):
         load_station(p)
+
+
+@pytest.mark.slow
+def test_shadow_map_through_the_whole_pipeline(unb_station):
+    """End to end: simulated frames → Pipeline (segmentation, matching, heights, layers) →
+    the export's ground labels → shadow map, against probe cameras on the ground."""
+    from cbh.actions.export import pair_ground
+    from cbh.geometry import ground
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.config import PipelineConfig
+    from cbh.presets import scene_path
+    from cbh.sim import SkySimulator
+    from cbh.sim.scene import load_scene
+
+    c1 = unb_station.cameras["cam1"]
+    cams = dict(unb_station.cameras)
+    probes = []
+    for i, x in enumerate(PROBES):
+        for j, y in enumerate(PROBES):
+            name = f"p{i}_{j}"
+            cams[name] = replace(c1, name=name, position_m=np.array([x, y, 0.0]))
+            probes.append((name, float(x), float(y)))
+    scene = load_scene(scene_path("two-layers"))
+    sim = SkySimulator(replace(unb_station, cameras=cams).scaled(640), scene)
+    t = scene.time_utc
+    st = replace(sim.station, cameras={k: sim.station.cameras[k] for k in ("cam1", "cam2")})
+    f1, f2 = sim.frame("cam1", t), sim.frame("cam2", t)
+    cfg = PipelineConfig()
+    res = Pipeline(st, config=cfg).process(f1.image, f2.image, t, channels="bgr")
+    assert len(res.layers) == 2
+    pg = pair_ground(st, cfg.masks, res)
+    grid = ground.GroundGrid(25.0, 2500.0, unb_station.latitude_deg, unb_station.longitude_deg)
+    shadow = ground.shadow_map(pg.camera, pg.labels, pg.heights, pg.sun_dir, grid)
+    truth = _truth_shaded(sim, probes, pg.sun_dir, t)
+    v = np.array([shadow[grid.index(x, y)] for _, x, y in probes])
+    known = np.isfinite(v)
+    agree = float(np.mean(v[known] == truth[known]))
+    # Segmentation errors at cloud edges and the working size add to the geometric edge
+    # mismatch of the test above (0.97); measured 0.92 of the 76 % of probes known (640 px).
+    print(f"end-to-end shadow agreement {agree:.3f} over {known.mean():.2f} of the probes")
+    assert known.mean() >= 0.5 and agree >= 0.85, (agree, known.mean())
