@@ -588,7 +588,9 @@ def netcdf_dataset(records: list[PairRecord], info: dict):
                                      "identical_images are not valid"),
     }
     for key in _all_diagnostics(records):
-        name = key if _NC_NAME.match(key) and key not in data_vars else "diagnostic_" + re.sub(r"\W", "_", key)
+        taken = set(data_vars) | {"time", "layer", "station_latitude", "station_longitude", "station_altitude",
+                                  "station_name"}
+        name = key if _NC_NAME.match(key) and key not in taken else "diagnostic_" + re.sub(r"\W", "_", key)
         data_vars[name] = fvar(("time",), per_time(lambda r: r.diagnostics.get(key, nan)),
                                long_name=f"pair diagnostic {key}", units=diagnostic_units(key))
     coords = {
