@@ -277,3 +277,23 @@ def test_map_exports_read_back_as_cf_grids_and_pysteps_arrays(tmp_path, moving):
         np.testing.assert_allclose(z["motion"][1], MOTION[0][1] * 10.0 / 200.0, rtol=1e-6)
     assert main(["export", str(path), "--product", "rain", "--out", str(tmp_path / "x.nc")]) == 2
     assert main(["export", str(path), "--product", "shadow", "--format", "csv", "--out", str(tmp_path / "x.csv")]) == 2
+
+
+def test_motion_quality_goes_through_mcap_and_tables(tmp_path, station):
+    import pandas as pd
+
+    from cbh.outputs.export import export_sessions
+    from cbh.outputs.record import open_session
+    from cbh.result import Layer
+
+    if "motion_tracks" not in Layer.__dataclass_fields__:
+        pytest.skip("Layer has no motion_spread_ms/motion_tracks (the motion estimator is not merged)")
+    frames, res = synthetic_pair(station, 1)
+    res = replace(res, layers=[replace(l, motion_east_ms=4.0, motion_north_ms=1.0, motion_spread_ms=0.25 * (i + 1),
+                                       motion_tracks=40 + i) for i, l in enumerate(res.layers)])
+    _write(tmp_path / "q.mcap", station, [(frames, res)])
+    got = next(open_session(tmp_path / "q.mcap").pairs(layers_only=True)).result.layers
+    assert [(l.motion_spread_ms, l.motion_tracks) for l in got] == [(0.25, 40), (0.5, 41)]
+    export_sessions([tmp_path / "q.mcap"], "parquet", tmp_path / "q.parquet")
+    df = pd.read_parquet(tmp_path / "q.parquet")
+    assert list(df.motion_spread_ms) == [0.25, 0.5] and list(df.motion_tracks) == [40, 41]

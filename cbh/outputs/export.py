@@ -15,6 +15,8 @@ numbered from 1 (the lowest) in every output: table, NetCDF ``layer`` coordinate
 ``cover_okta``             the layer's cover in okta, 0..8 (:func:`okta`)
 ``motion_east_ms``         layer motion over the ground, east component [m/s]; empty = unknown
 ``motion_north_ms``        layer motion over the ground, north component [m/s]; empty = unknown
+``motion_spread_ms``       robust spread of the layer's track velocities [m/s]; empty = unknown
+``motion_tracks``          feature tracks behind the layer's motion; 0 = no motion
 ``points``                 triangulated points supporting the layer
 ``confidence``             0..1
 ``cloud_fraction``         total cloud fraction of the reference camera, 0..1
@@ -67,7 +69,8 @@ __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_rec
 log = logging.getLogger(__name__)
 
 COLUMNS = ("time_utc", "layer", "cloud_base_height_m", "cloud_base_altitude_m", "median_height_m", "spread_m",
-           "cover", "cover_okta", "motion_east_ms", "motion_north_ms", "points", "confidence", "cloud_fraction",
+           "cover", "cover_okta", "motion_east_ms", "motion_north_ms", "motion_spread_ms",
+           "motion_tracks", "points", "confidence", "cloud_fraction",
            "total_okta", "ceiling_m", "n_layers", "quality_flag", "flags")
 FORMATS = ("csv", "parquet", "netcdf")
 FILL_VALUE = -9999.0  # NetCDF _FillValue of the float layer variables
@@ -133,6 +136,8 @@ class PairRecord:
     point_count: int = 0
     motion_east_ms: list[float] = field(default_factory=list)
     motion_north_ms: list[float] = field(default_factory=list)
+    motion_spread_ms: list[float] = field(default_factory=list)
+    motion_tracks: list[int] = field(default_factory=list)
     diagnostics: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -159,6 +164,9 @@ def pair_record(result: PairResult, station_altitude_m: float, altitude_m: list[
         confidence=[float(l.confidence) for l in L], cloud_fraction=float(cf), flags=list(result.flags),
         point_count=len(result.points),
         motion_east_ms=[float(l.motion_east_ms) for l in L], motion_north_ms=[float(l.motion_north_ms) for l in L],
+        # the motion's quality (getattr: layers made before the motion estimator carry none)
+        motion_spread_ms=[float(getattr(l, "motion_spread_ms", math.nan)) for l in L],
+        motion_tracks=[int(getattr(l, "motion_tracks", 0)) for l in L],
         diagnostics={str(k): float(v) for k, v in result.diagnostics.items()},
     )
 
@@ -173,14 +181,18 @@ def record_rows(r: PairRecord, diagnostics: tuple[str, ...] = ()) -> list[dict]:
     common.update({k: float(r.diagnostics.get(k, nan)) for k in diagnostics})
     if not r.height_m:
         return [dict(common, layer=0, cloud_base_height_m=nan, cloud_base_altitude_m=nan, median_height_m=nan,
-                     spread_m=nan, cover=0.0, cover_okta=0, motion_east_ms=nan, motion_north_ms=nan, points=0,
+                     spread_m=nan, cover=0.0, cover_okta=0, motion_east_ms=nan, motion_north_ms=nan,
+                     motion_spread_ms=nan, motion_tracks=0, points=0,
                      confidence=nan)]
     n = len(r.height_m)
     me = r.motion_east_ms or [nan] * n
     mn = r.motion_north_ms or [nan] * n
+    ms = r.motion_spread_ms or [nan] * n
+    mt = r.motion_tracks or [0] * n
     return [dict(common, layer=i + 1, cloud_base_height_m=r.height_m[i], cloud_base_altitude_m=r.altitude_m[i],
                  median_height_m=r.median_height_m[i], spread_m=r.spread_m[i], cover=r.cover[i],
-                 cover_okta=okta(r.cover[i]), motion_east_ms=me[i], motion_north_ms=mn[i], points=r.points[i],
+                 cover_okta=okta(r.cover[i]), motion_east_ms=me[i], motion_north_ms=mn[i],
+                 motion_spread_ms=ms[i], motion_tracks=mt[i], points=r.points[i],
                  confidence=r.confidence[i]) for i in range(n)]
 
 
@@ -218,7 +230,7 @@ def _arrow_schema(diagnostics: tuple[str, ...] = ()):
         ("time_utc", pa.timestamp("us", tz="UTC")), ("layer", pa.int32()),
         ("cloud_base_height_m", f64), ("cloud_base_altitude_m", f64),
         ("median_height_m", f64), ("spread_m", f64), ("cover", f64), ("cover_okta", pa.int8()),
-        ("motion_east_ms", f64), ("motion_north_ms", f64),
+        ("motion_east_ms", f64), ("motion_north_ms", f64), ("motion_spread_ms", f64), ("motion_tracks", pa.int32()),
         ("points", pa.int64()), ("confidence", f64), ("cloud_fraction", f64), ("total_okta", pa.int8()),
         ("ceiling_m", f64), ("n_layers", pa.int32()), ("quality_flag", pa.int64()), ("flags", pa.string()),
         *[(k, f64) for k in diagnostics],
@@ -564,6 +576,11 @@ def netcdf_dataset(records: list[PairRecord], info: dict):
                                   units="m s-1"),
         "cloud_motion_north": fvar(("time", "layer"), vn,
                                    long_name="northward motion of the cloud layer over the ground", units="m s-1"),
+        "cloud_motion_spread": fvar(("time", "layer"), grid("motion_spread_ms"),
+                                    long_name="robust spread (1.4826 MAD) of the layer's track velocities",
+                                    units="m s-1"),
+        "cloud_motion_tracks": fvar(("time", "layer"), grid("motion_tracks", np.int32, -1),
+                                    long_name="feature tracks behind the layer's motion", units="1"),
         "cloud_motion_speed": fvar(("time", "layer"), np.hypot(ve, vn), long_name="speed of the cloud layer over the ground",
                                    units="m s-1"),
         "cloud_motion_direction": fvar(("time", "layer"), np.degrees(np.arctan2(ve, vn)) % 360.0,

@@ -19,8 +19,9 @@ Topics
                                                          NaN = unknown (lossless)
 ``/pair/histogram``            cbh.Histogram             edges_m (B + 1), counts (B)
 ``/pair/layers``               cbh.PairLayers            layers (height_m, altitude_m, cover, points,
-                                                         confidence, motion_east_ms/motion_north_ms
-                                                         [m/s, absent = unknown] …), cloud fraction,
+                                                         confidence, motion_east_ms/motion_north_ms/
+                                                         motion_spread_ms [m/s, absent = unknown],
+                                                         motion_tracks …), cloud fraction,
                                                          flags (names) and flag_bits (cbh.flags.Flag),
                                                          diagnostics (name, value), timing;
                                                          written last: a pair is complete once it is there

@@ -145,10 +145,13 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
         elif len(parts) == 2 and parts[1] == "cloud_mask":
             masks[parts[0]] = _decode_masks(m.data, f"{what} {topic}")
     nan = float("nan")
+    has_quality = "motion_tracks" in Layer.__dataclass_fields__  # Layer carries the motion's quality
     layers = [Layer(l.height_m, l.median_height_m, l.spread_m, l.cover, int(l.points), l.confidence,
                     altitude_m=l.altitude_m,
                     motion_east_ms=l.motion_east_ms if l.HasField("motion_east_ms") else nan,
-                    motion_north_ms=l.motion_north_ms if l.HasField("motion_north_ms") else nan)
+                    motion_north_ms=l.motion_north_ms if l.HasField("motion_north_ms") else nan,
+                    **({"motion_spread_ms": l.motion_spread_ms if l.HasField("motion_spread_ms") else nan,
+                        "motion_tracks": int(l.motion_tracks)} if has_quality else {}))
               for l in pl.layers]
     hist_msg = msgs.get("/pair/histogram")
     hist = (Histogram(np.asarray(hist_msg.edges_m, np.float64), np.asarray(hist_msg.counts, np.float64))

@@ -32,6 +32,8 @@ _MESSAGES: list[tuple[str, list[tuple]]] = [
         # which read back as NaN (unknown), never as 0 m/s
         ("motion_east_ms", 8, _D, _OPT, None),  # layer motion over the ground, east [m/s]
         ("motion_north_ms", 9, _D, _OPT, None),  # layer motion over the ground, north [m/s]
+        ("motion_spread_ms", 10, _D, _OPT, None),  # robust spread of the track velocities [m/s]
+        ("motion_tracks", 11, _U32, False, None),  # feature tracks behind the motion (0 = none)
     ]),
     ("Diagnostic", [("name", 1, _S, False, None), ("value", 2, _D, False, None)]),  # PairResult.diagnostics
     ("CloudFraction", [("camera", 1, _S, False, None), ("fraction", 2, _D, False, None)]),

@@ -333,8 +333,9 @@ class McapRecorder(ResultSink):
                               spread_m=float(layer.spread_m), cover=float(layer.cover), points=int(layer.points),
                               confidence=float(layer.confidence),
                               altitude_m=a if math.isfinite(a) else float(layer.height_m) + alt)
-            for name in ("motion_east_ms", "motion_north_ms"):  # unknown (NaN): field left absent
-                v = float(getattr(layer, name))
+            m.motion_tracks = int(getattr(layer, "motion_tracks", 0))
+            for name in ("motion_east_ms", "motion_north_ms", "motion_spread_ms"):  # unknown (NaN): left absent
+                v = float(getattr(layer, name, math.nan))
                 if math.isfinite(v):
                     setattr(m, name, v)
         for name, value in result.diagnostics.items():
