@@ -297,3 +297,28 @@ def test_motion_quality_goes_through_mcap_and_tables(tmp_path, station):
     export_sessions([tmp_path / "q.mcap"], "parquet", tmp_path / "q.parquet")
     df = pd.read_parquet(tmp_path / "q.parquet")
     assert list(df.motion_spread_ms) == [0.25, 0.5] and list(df.motion_tracks) == [40, 41]
+
+
+def test_npz_drives_pysteps_extrapolation(tmp_path, moving):
+    """The NPZ is what pysteps takes: its semi-Lagrangian extrapolation moves the field by the
+    exported motion (east = columns, north = rows, cells per time step)."""
+    pytest.importorskip("pysteps", reason="pysteps is not installed (python3.11 -m pip install pysteps)")
+    from scipy import ndimage
+    from pysteps.extrapolation.semilagrangian import extrapolate
+
+    from cbh.actions.export import export
+
+    path, _ = moving
+    out = tmp_path / "c.npz"
+    export([path], out, product="cloudmap")
+    with np.load(out) as z:
+        field = np.nan_to_num(z["field"][-1].astype(np.float64))
+        motion = z["motion"].astype(np.float64)
+    steps = 16  # 16 steps x (0.3125, 0.1) cells = (5, 1.6) cells
+    moved = extrapolate(field, motion, steps)[-1]
+    want = steps * np.array([motion[1, 0, 0], motion[0, 0, 0]])  # (rows, columns)
+    # the same field translated by the motion (linear interpolation), NaN where it left the grid
+    expected = ndimage.shift(field, want, order=1, mode="constant", cval=np.nan)
+    both = np.isfinite(moved) & np.isfinite(expected)
+    assert both.mean() > 0.7 and field.sum() > 20  # 26 x 29 of 31 x 31 cells stay on the grid
+    assert np.abs(moved[both] - expected[both]).max() < 0.05
