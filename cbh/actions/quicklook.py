@@ -57,6 +57,8 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
         c = ceiling_index(r.cover)
         if c is not None:
             ceil[i] = r.height_m[c]
+    cf = np.array([r.cloud_fraction for r in records])
+    times, (H, C, VE, VN, ceil, cf), bad = _break_gaps(times, (H, C, VE, VN, ceil, cf), bad)
     okta_cmap = ListedColormap(plt.get_cmap("viridis_r")(np.linspace(0.05, 0.95, 9)))
     norm = BoundaryNorm(np.arange(-0.5, 9.5, 1.0), 9)
 
@@ -76,7 +78,7 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
             ax.scatter(times[flagged], H[flagged, k] / 1000.0, marker="x", c="tab:red", s=30, zorder=4,
                        label="invalid (flagged)" if k == 0 else None)
     if np.isfinite(ceil).any():
-        ax.step(times, ceil / 1000.0, where="mid", color="k", lw=1.0, label="ceiling (≥ 5 okta)", zorder=2)
+        ax.plot(times, ceil / 1000.0, color="k", lw=1.0, label="ceiling (≥ 5 okta)", zorder=2)
     top = np.nanmax(H) if np.isfinite(H).any() else 1000.0
     ax.set_ylim(0, max(1.0, top * 1.2 / 1000.0))
     ax.set_ylabel("cloud base above ground [km]")
@@ -91,9 +93,8 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
                  fontsize=11)
 
     ax = axes[1]
-    cf = np.array([r.cloud_fraction for r in records])
-    ax.fill_between(times, 0, cf, step="mid", color="0.75")
-    ax.step(times, cf, where="mid", color="0.3", lw=1)
+    ax.fill_between(times, 0, cf, where=np.isfinite(cf), color="0.75")
+    ax.plot(times, cf, color="0.3", lw=1)
     ax.set_ylim(0, 1)
     ax.set_ylabel("cloud\nfraction")
     ax.grid(alpha=0.3)
@@ -105,10 +106,10 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
     speed = np.hypot(VE, VN)
     direction = np.degrees(np.arctan2(VE, VN)) % 360.0
     known = np.isfinite(speed).any()
-    for ax, data, label in ((axes[2], speed, "speed\n[m/s]"), (axes[3], direction, "moves towards\n[deg from N]")):
+    for ax, data, label, lw in ((axes[2], speed, "speed\n[m/s]", 0.8),
+                                (axes[3], direction, "moves towards\n[deg from N]", 0.0)):  # no lines across 0/360
         for k in range(n_l):
-            ok = np.isfinite(data[:, k])
-            ax.plot(times[ok], data[ok, k], marker=MARKERS[k % len(MARKERS)], ms=3.5, lw=0.8, label=f"layer {k + 1}")
+            ax.plot(times, data[:, k], marker=MARKERS[k % len(MARKERS)], ms=3.5, lw=lw, label=f"layer {k + 1}")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         if not known:
@@ -131,6 +132,22 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
         raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
     finally:
         plt.close(fig)
+
+
+def _break_gaps(times: np.ndarray, arrays: tuple, bad: np.ndarray):
+    """Insert an all-NaN step in every gap longer than 3 median cadences (at least 60 s), so
+    that lines and fills do not bridge the time between sessions."""
+    if len(times) < 3:
+        return times, arrays, bad
+    dt = np.diff(times).astype("timedelta64[us]").astype(np.float64) / 1e6
+    limit = max(3.0 * float(np.median(dt)), 60.0)
+    gaps = np.flatnonzero(dt > limit)
+    if not gaps.size:
+        return times, arrays, bad
+    mids = times[gaps] + (times[gaps + 1] - times[gaps]) / 2
+    times = np.insert(times, gaps + 1, mids)
+    arrays = tuple(np.insert(a, gaps + 1, np.nan, axis=0) for a in arrays)
+    return times, arrays, np.insert(bad, gaps + 1, False)
 
 
 def quicklook(sessions, out, *, title: str | None = None) -> str:
