@@ -48,3 +48,16 @@ def test_quicklook_errors_are_one_line(tmp_path, capsys):
     assert main(["quicklook", str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("cbh: error:") and "\n" not in err
+
+
+def test_gaps_between_sessions_are_not_bridged():
+    from cbh.actions.quicklook import _break_gaps
+
+    t0 = np.datetime64("2024-06-21T14:00:00", "us")
+    times = t0 + np.array([0, 10, 20, 30, 7200, 7210], "timedelta64[s]")
+    cf = np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6])
+    t2, (cf2,), bad = _break_gaps(times, (cf,), np.zeros(6, bool))
+    assert len(t2) == 7 and np.isnan(cf2[4]) and t2[4] == t0 + np.timedelta64(3615, "s")
+    assert list(cf2[~np.isnan(cf2)]) == list(cf) and not bad.any()
+    t3, (cf3,), _ = _break_gaps(times[:4], (cf[:4],), np.zeros(4, bool))  # a regular cadence: unchanged
+    assert len(t3) == 4 and np.array_equal(cf3, cf[:4])
