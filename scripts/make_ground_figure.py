@@ -19,6 +19,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 
 from cbh.actions.export import ground_maps  # noqa: E402
 from cbh.cli.main import main as cbh  # noqa: E402
+from cbh.outputs.maps import to_float  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -37,13 +38,12 @@ def main() -> None:
     fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), constrained_layout=True)
     grey = ListedColormap(["#cfe3f5", "#4a4a4a"])
     for k, ax in enumerate(axes[:2]):
-        a = m.layer_cloud[i, k]
-        ax.imshow(np.where(np.isnan(a), np.nan, a), origin="lower", extent=ext, cmap=grey, vmin=0, vmax=1,
+        ax.imshow(to_float(m.layer_cloud[i, k]), origin="lower", extent=ext, cmap=grey, vmin=0, vmax=1,
                   interpolation="nearest")
         ax.set_title(f"layer {k + 1} at {m.layer_height_m[i, k]:.0f} m: cloud overhead\n"
                      "(dark cloud, light clear, white unknown)", fontsize=10)
     ax = axes[2]
-    ax.imshow(m.shadow[i], origin="lower", extent=ext, cmap=ListedColormap(["#f7e08a", "#5b5b73"]), vmin=0, vmax=1,
+    ax.imshow(to_float(m.shadow[i]), origin="lower", extent=ext, cmap=ListedColormap(["#f7e08a", "#5b5b73"]), vmin=0, vmax=1,
               interpolation="nearest")
     az = np.radians(m.sun_azimuth_deg[i])
     ax.annotate("", xy=(2.5 * np.sin(az), 2.5 * np.cos(az)), xytext=(0, 0),

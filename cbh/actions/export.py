@@ -18,6 +18,7 @@ advected by the layer motion over the time between the pairs (at most ``MAX_FALL
 """
 from __future__ import annotations
 
+import logging
 import math
 from datetime import timedelta
 from pathlib import Path
@@ -28,10 +29,13 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.flags import INVALIDATING
 from cbh.geometry import ground
 from cbh.outputs import export as layer_export
-from cbh.outputs.maps import LEAD_TIMES_S, MAP_FORMATS, PRODUCTS, GroundMaps, write_maps_netcdf, write_maps_npz
+from cbh.outputs.maps import (LEAD_TIMES_S, MAP_FORMATS, PRODUCTS, GroundMaps, to_byte, write_maps_netcdf,
+                              write_maps_npz)
 
 __all__ = ["export", "format_from_suffix", "ground_maps", "PairGround", "pair_ground", "SUFFIX_FORMATS",
            "MAX_FALLBACK_S"]
+
+log = logging.getLogger(__name__)
 
 SUFFIX_FORMATS = {".csv": "csv", ".parquet": "parquet", ".nc": "netcdf", ".nc4": "netcdf", ".netcdf": "netcdf",
                   ".npz": "npz"}
@@ -111,12 +115,18 @@ def _sun_blocked(station, pg: PairGround, prev: PairGround | None) -> list[float
     return out
 
 
-def ground_maps(sessions, station=None) -> GroundMaps:
-    """Cloud and shadow maps of every pair of the sessions (time order)."""
+def ground_maps(sessions, station=None, products=PRODUCTS) -> GroundMaps:
+    """Cloud and/or shadow maps of every pair of the sessions (time order).
+
+    Pairs are streamed (one pair's images and height map in memory at a time); the maps are
+    held as int8 (1 / 0 / −1 unknown): about T × (L + 1) × n² bytes per product, e.g. 175 MB
+    for a day at a 60 s cadence on the default 201 × 201 grid with two layers. Only the maps of
+    ``products`` are computed (the others stay empty, shape (T, 0, 0)).
+    """
     from cbh.outputs.record import open_session
     from cbh.pipeline.config import PipelineConfig
 
-    items = []
+    opened = []
     st0 = None
     for path in sessions:
         s = open_session(path)
@@ -126,48 +136,60 @@ def ground_maps(sessions, station=None) -> GroundMaps:
         elif st.name != st0.name:
             raise RecordingError(f"{path}: station {st.name!r} differs from {st0.name!r}; one station at a time")
         cfg = PipelineConfig.from_dict(s.config, where="recorded pipeline config")
-        for pair in s.pairs():
-            items.append((pair.result.time_utc, st, cfg.masks, pair.result))
-    if not items:
+        heads = [(p.time_utc, len(p.result.layers)) for p in s.pairs(layers_only=True)]  # cheap first pass
+        opened.append((s, st, cfg, heads))
+    times = sorted({t for *_, heads in opened for t, _ in heads})
+    if not times:
         raise RecordingError("no complete pairs in the recording(s): nothing to export")
-    items.sort(key=lambda x: x[0])
+    index = {t: i for i, t in enumerate(times)}
     grid = st0.ground
-    T, n = len(items), grid.n
-    Lmax = max(1, max(len(r.layers) for *_, r in items))
-    nanf = np.float32(np.nan)
-    layer_cloud = np.full((T, Lmax, n, n), nanf, np.float32)
-    cloud = np.full((T, n, n), nanf, np.float32)
-    shadow = np.full((T, n, n), nanf, np.float32)
-    shadow_layer = np.full((T, n, n), -1, np.int16)
+    T, n = len(times), grid.n
+    Lmax = max(1, max(k for *_, heads in opened for _, k in heads))
+    want_cloud, want_shadow = "cloudmap" in products, "shadow" in products
+    cn, sn = (n if want_cloud else 0), (n if want_shadow else 0)
+    layer_cloud = np.full((T, Lmax if want_cloud else 0, cn, cn), -1, np.int8)
+    cloud = np.full((T, cn, cn), -1, np.int8)
+    shadow = np.full((T, sn, sn), -1, np.int8)
+    shadow_layer = np.full((T, sn, sn), -1, np.int8)
     heights = np.full((T, Lmax), np.nan)
     covers = np.full((T, Lmax), np.nan)
     motion = np.full((T, Lmax, 2), np.nan)
     zen = np.full(T, np.nan)
     az = np.full(T, np.nan)
-    blocked = np.full((T, len(LEAD_TIMES_S)), nanf, np.float32)
+    blocked = np.full((T, len(LEAD_TIMES_S)), np.nan, np.float32)
+    done = np.zeros(T, bool)
     prev = None
-    for i, (t, st, mcfg, res) in enumerate(items):
-        pg = pair_ground(st, mcfg, res)
-        k = len(pg.heights)
-        heights[i, :k], covers[i, :k] = pg.heights, pg.covers
-        motion[i, :k] = np.array(pg.motions).reshape(k, 2)
-        zen[i] = pg.sun_zenith_deg
-        if pg.sun_dir is not None:
-            az[i] = math.degrees(math.atan2(pg.sun_dir[0], pg.sun_dir[1])) % 360.0
-        if pg.valid:
-            lc = ground.cloud_maps(pg.camera, pg.labels, pg.heights, grid)
-            layer_cloud[i, :k] = lc
-            if k:
-                cloud[i] = ground.combine_layers(list(lc), (n, n))
-            elif pg.cloud_fraction == 0:
-                cloud[i] = 0.0
-            shadow[i], shadow_layer[i] = _shadow(pg, grid)
-        blocked[i] = _sun_blocked(st, pg, prev)
-        prev = pg
-    md = dict(st0.metadata)
-    return GroundMaps(grid=grid, times=[x[0] for x in items], layer_cloud=layer_cloud, cloud=cloud, shadow=shadow,
+    for s, st, cfg, heads in sorted(opened, key=lambda o: o[3][0][0] if o[3] else times[0]):
+        for pair in s.pairs():
+            res = pair.result
+            i = index[res.time_utc]
+            if done[i]:
+                log.warning("dropping a second pair at %s (same session given twice?)", res.time_utc.isoformat())
+                continue
+            done[i] = True
+            pg = pair_ground(st, cfg.masks, res)
+            k = len(pg.heights)
+            heights[i, :k], covers[i, :k] = pg.heights, pg.covers
+            motion[i, :k] = np.array(pg.motions).reshape(k, 2)
+            zen[i] = pg.sun_zenith_deg
+            if pg.sun_dir is not None:
+                az[i] = math.degrees(math.atan2(pg.sun_dir[0], pg.sun_dir[1])) % 360.0
+            if pg.valid and want_cloud:
+                lc = ground.cloud_maps(pg.camera, pg.labels, pg.heights, grid)
+                layer_cloud[i, :k] = to_byte(lc)
+                if k:
+                    cloud[i] = to_byte(ground.combine_layers(list(lc), (n, n)))
+                elif pg.cloud_fraction == 0:
+                    cloud[i] = 0
+            if pg.valid and want_shadow:
+                sm, owner = _shadow(pg, grid)
+                shadow[i], shadow_layer[i] = to_byte(sm), owner
+            blocked[i] = _sun_blocked(st, pg, prev if prev is not None and prev.time_utc < res.time_utc else None)
+            prev = pg
+    return GroundMaps(grid=grid, times=times, layer_cloud=layer_cloud, cloud=cloud, shadow=shadow,
                       layer_height_m=heights, layer_cover=covers, motion_ms=motion, sun_zenith_deg=zen,
-                      sun_azimuth_deg=az, sun_blocked=blocked, shadow_layer=shadow_layer, station=st0.name, attrs=md)
+                      sun_azimuth_deg=az, sun_blocked=blocked, shadow_layer=shadow_layer, station=st0.name,
+                      attrs=dict(st0.metadata))
 
 
 def _shadow(pg: PairGround, grid) -> tuple[np.ndarray, np.ndarray]:
@@ -175,7 +197,7 @@ def _shadow(pg: PairGround, grid) -> tuple[np.ndarray, np.ndarray]:
     by_layer = ground.layer_shadows(pg.camera, pg.labels, pg.heights, pg.sun_dir, grid)
     sm = ground.shadow_map(pg.camera, pg.labels, pg.heights, pg.sun_dir, grid, cloud_fraction=pg.cloud_fraction,
                            by_layer=by_layer)
-    owner = np.full(sm.shape, -1, np.int16)
+    owner = np.full(sm.shape, -1, np.int8)
     for k in range(by_layer.shape[0] - 1, -1, -1):  # lowest layer last: it wins
         owner[by_layer[k] == 1] = k
     return sm, owner
@@ -223,7 +245,7 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
         raise ConfigError(f"--format: {fmt!r} is not a map format (valid: {', '.join(MAP_FORMATS)})")
     if not out.parent.is_dir():
         raise RecordingError(f"output directory does not exist: {out.parent}")
-    maps = ground_maps(sessions, station)
+    maps = ground_maps(sessions, station, products=(product,))
     (write_maps_netcdf if fmt == "netcdf" else write_maps_npz)(maps, product, out)
     g = maps.grid
     return (f"wrote {product} of {len(maps.times)} time steps on a {g.n}x{g.n} grid "

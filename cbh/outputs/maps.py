@@ -7,6 +7,7 @@ NetCDF (``--format netcdf``), CF-1.8:
 
 =================================  ==================================================================
 ``cloud_map(time, y, x)``          byte: 1 cloud overhead in some layer, 0 clear, fill −1 unknown
+                                   (product ``cloudmap``)
 ``layer_cloud_map(time, layer,     byte: the same per layer (each layer drawn at its own height)
 y, x)``                            (product ``cloudmap``)
 ``shadow_map(time, y, x)``         byte: 1 cloud shadow on the ground, 0 sunlit, fill −1 unknown
@@ -41,7 +42,7 @@ import numpy as np
 from cbh.errors import ConfigError, RecordingError
 from cbh.geometry.ground import GroundGrid
 
-__all__ = ["GroundMaps", "PRODUCTS", "MAP_FORMATS", "LEAD_TIMES_S", "write_maps_netcdf", "write_maps_npz",
+__all__ = ["GroundMaps", "to_byte", "to_float", "PRODUCTS", "MAP_FORMATS", "LEAD_TIMES_S", "write_maps_netcdf", "write_maps_npz",
            "pysteps_motion"]
 
 PRODUCTS = ("cloudmap", "shadow")
@@ -57,15 +58,16 @@ class GroundMaps:
     ----------
     grid : GroundGrid
     times : list of datetime (T,)
-    layer_cloud : ndarray (T, L, n, n) float32 — 1 / 0 / NaN per layer (NaN also for absent layers)
-    cloud : ndarray (T, n, n) float32 — cloud overhead in any layer
-    shadow : ndarray (T, n, n) float32
+    layer_cloud : ndarray (T, L, n, n) int8 — 1 / 0 / −1 unknown per layer (−1 also for absent
+        layers); shape (T, 0, 0, 0) when the cloud map was not computed
+    cloud : ndarray (T, n, n) int8 — cloud overhead in any layer (or (T, 0, 0))
+    shadow : ndarray (T, n, n) int8 — 1 shaded, 0 sunlit, −1 unknown (or (T, 0, 0))
     layer_height_m : ndarray (T, L) float64, NaN = no such layer
     layer_cover : ndarray (T, L) float64
     motion_ms : ndarray (T, L, 2) float64 — (east, north) [m/s], NaN = unknown
     sun_zenith_deg, sun_azimuth_deg : ndarray (T,) float64
     sun_blocked : ndarray (T, len(LEAD_TIMES_S)) float32 — 1 / 0 / NaN
-    shadow_layer : ndarray (T, n, n) int16 — lowest layer shading the cell, −1 none
+    shadow_layer : ndarray (T, n, n) int8 — lowest layer shading the cell, −1 none
     station : str
     attrs : dict — global attributes (institution … from [station.metadata])
     """
@@ -86,10 +88,21 @@ class GroundMaps:
     attrs: dict
 
 
-def _byte(a: np.ndarray) -> np.ndarray:
+def to_byte(a: np.ndarray) -> np.ndarray:
+    """1 / 0 / NaN float map → int8 1 / 0 / −1 (unknown); int8 input is returned as is."""
+    a = np.asarray(a)
+    if a.dtype == np.int8:
+        return a
     out = np.full(a.shape, -1, np.int8)
     out[a == 0] = 0
     out[a == 1] = 1
+    return out
+
+
+def to_float(a: np.ndarray) -> np.ndarray:
+    """int8 1 / 0 / −1 map → float32 1 / 0 / NaN."""
+    out = np.asarray(a, np.float32).copy()
+    out[out < 0] = np.nan
     return out
 
 
@@ -112,10 +125,7 @@ def write_maps_netcdf(maps: GroundMaps, product: str, out) -> None:
             "longitude_of_projection_origin": g.longitude_deg, "false_easting": 0.0, "false_northing": 0.0,
             "comment": "local east/north metres about the station's ENU origin (tangent plane; within ~3 m of "
                        "azimuthal equidistant at 6 km)"}),
-        "cloud_map": (("time", "y", "x"), _byte(maps.cloud), dict(
-            long_name="cloud overhead in any layer (camera 1's cloud mask projected to each layer's height)",
-            flag_meanings="clear cloud", **flag, **gm)),
-        "sun_blocked": (("time", "lead_time"), _byte(maps.sun_blocked), dict(
+        "sun_blocked": (("time", "lead_time"), to_byte(maps.sun_blocked), dict(
             long_name="sun behind cloud at the station, now and after lead_time if the layer motion holds",
             flag_meanings="sun_visible sun_blocked", **flag)),
         "layer_height": (("time", "layer"), maps.layer_height_m, {
@@ -128,11 +138,14 @@ def write_maps_netcdf(maps: GroundMaps, product: str, out) -> None:
         "sun_azimuth": (("time",), maps.sun_azimuth_deg, {"standard_name": "solar_azimuth_angle", "units": "degree"}),
     }
     if product == "cloudmap":
-        data_vars["layer_cloud_map"] = (("time", "layer", "y", "x"), _byte(maps.layer_cloud), dict(
+        data_vars["cloud_map"] = (("time", "y", "x"), to_byte(maps.cloud), dict(
+            long_name="cloud overhead in any layer (camera 1's cloud mask projected to each layer's height)",
+            flag_meanings="clear cloud", **flag, **gm))
+        data_vars["layer_cloud_map"] = (("time", "layer", "y", "x"), to_byte(maps.layer_cloud), dict(
             long_name="cloud of the layer overhead (drawn at the layer's height)", flag_meanings="clear cloud",
             **flag, **gm))
     else:
-        data_vars["shadow_map"] = (("time", "y", "x"), _byte(maps.shadow), dict(
+        data_vars["shadow_map"] = (("time", "y", "x"), to_byte(maps.shadow), dict(
             long_name="cloud shadow on the ground (along the sun direction)", flag_meanings="sunlit shaded",
             **flag, **gm))
     coords = {
@@ -210,7 +223,7 @@ def write_maps_npz(maps: GroundMaps, product: str, out) -> None:
     timestep_s = float(np.median(np.diff(t))) if len(t) > 1 else 60.0
     if not timestep_s > 0 or not math.isfinite(timestep_s):
         timestep_s = 60.0
-    field = maps.cloud if product == "cloudmap" else maps.shadow
+    field = to_float(maps.cloud if product == "cloudmap" else maps.shadow)
     motion, known = pysteps_motion(maps, product, len(t) - 1, timestep_s)
     lat, lon = g.lat_lon()
     half = g.resolution_m / 2
