@@ -322,3 +322,19 @@ def test_npz_drives_pysteps_extrapolation(tmp_path, moving):
     both = np.isfinite(moved) & np.isfinite(expected)
     assert both.mean() > 0.7 and field.sum() > 20  # 26 x 29 of 31 x 31 cells stay on the grid
     assert np.abs(moved[both] - expected[both]).max() < 0.05
+
+
+def test_map_grid_from_a_given_station_file(tmp_path, moving, repo):
+    import xarray as xr
+
+    from cbh.cli.main import main
+
+    path, _ = moving
+    st = tmp_path / "station.toml"
+    st.write_text((repo / "configs" / "unb-lea.toml").read_text() + "\n[ground]\nresolution_m = 500.0\nextent_m = 2000.0\n")
+    out = tmp_path / "s.nc"
+    assert main(["export", str(path), "--product", "shadow", "--station", str(st), "--out", str(out)]) == 0
+    with xr.open_dataset(out) as ds:
+        assert ds.shadow_map.shape == (3, 9, 9) and float(ds.x[-1]) == 2000.0
+    st.write_text((repo / "configs" / "unb-lea.toml").read_text() + "\n[ground]\nresolution = 500.0\n")
+    assert main(["export", str(path), "--product", "shadow", "--station", str(st), "--out", str(out)]) == 2
