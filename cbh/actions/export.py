@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
@@ -47,15 +48,20 @@ def format_from_suffix(out) -> str | None:
     return SUFFIX_FORMATS.get(Path(out).suffix.lower())
 
 
+@dataclass
 class PairGround:
-    """One pair on the ground: camera 1, its labels, the layers and the sun (see :func:`pair_ground`)."""
+    """One pair on the ground (see :func:`pair_ground`)."""
 
-    def __init__(self, camera, labels, heights, covers, motions, sun_dir, sun_zenith_deg, cloud_fraction, time_utc,
-                 valid):
-        self.camera, self.labels = camera, labels
-        self.heights, self.covers, self.motions = heights, covers, motions
-        self.sun_dir, self.sun_zenith_deg = sun_dir, sun_zenith_deg
-        self.cloud_fraction, self.time_utc, self.valid = cloud_fraction, time_utc, valid
+    camera: object  # camera 1 (cbh.geometry.station.Camera) at the size of the recorded mask
+    labels: np.ndarray  # (H, W) int16: layer index / ground.CLEAR / ground.UNKNOWN
+    heights: list  # layer heights above the ENU origin [m]
+    covers: list  # layer covers, 0..1
+    motions: list  # (east, north) per layer [m/s], NaN = unknown
+    sun_dir: np.ndarray | None  # (3,) unit vector to the sun in ENU, None below the horizon
+    sun_zenith_deg: float
+    cloud_fraction: float  # camera 1's, 0..1
+    time_utc: object  # datetime
+    valid: bool  # False when the pair carries an invalidating flag
 
 
 def _sun(station, t):
