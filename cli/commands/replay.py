@@ -68,12 +68,18 @@ def replay_cmd(
             sink = RerunSink(st, mode, tgt, cameras=cams, recording_name=session.stem)
             if sink.url:
                 print(f"serving on {sink.url}: connect a viewer with `rerun --connect {sink.url}`")
+        chain = None
+        if pipeline is not None:
+            from cbh.actions.run import MotionChain
+
+            chain = MotionChain()  # motion and clock offset from each pair to the next, as in the live run
         for pair in s.pairs():
             if pipeline is not None:
                 f1, f2 = pair.frames()
                 if (f1.camera, f2.camera) != pipeline.cameras:
                     f1, f2 = pair.images[pipeline.cameras[0]].frame(pair.index), pair.images[pipeline.cameras[1]].frame(pair.index)
-                result = pipeline.process(f1.image, f2.image, pair.time_utc)
+                result = pipeline.process(f1.image, f2.image, pair.time_utc, previous=chain.previous(pair.time_utc))
+                chain.keep(result)
                 if recorder is not None:
                     recorder.write((f1, f2), result)
                 if sink is not None:

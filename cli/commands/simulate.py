@@ -18,6 +18,7 @@ def simulate_cmd(
     cadence_s: float = typer.Option(10.0, "--cadence-s", help="Seconds between frames."),
     start: str = typer.Option(None, "--start", help="Start time, ISO 8601 UTC (default: the scene's time_utc)."),
     size: int = typer.Option(None, "--size", help="Render this many pixels wide (calibration scaled)."),
+    clock_offset: list[str] = typer.Option([], "--clock-offset", help="CAMERA=SECONDS: the camera captures this late (stamps stay nominal); overrides the scene's."),
 ) -> None:
     """Render N frames of every camera of a station looking at a scene; write images, truth, station.
 
@@ -32,6 +33,7 @@ def simulate_cmd(
     from cbh.errors import ConfigError
     from cbh.presets import scene_path, station_path
     from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.scene import with_clock_offsets
     from cbh.sim.io import time_tag, write_shot
     from cbh.geometry.station import load_station
 
@@ -54,6 +56,8 @@ def simulate_cmd(
     st = load_station(station_path(station) if station else station_path())
     scene_file = scene_path(scene)
     sc = load_scene(scene_file)
+    if clock_offset:
+        sc = with_clock_offsets(sc, clock_offset)
     sim = SkySimulator(st, sc, size_px=size)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out: not a directory: {out}")
