@@ -227,3 +227,81 @@ def test_offset_target_at_960_px():
     layers within 2 % from the second pair of the run on."""
     sim, sc = _sim(3.0, size=960)
     _check_offset_run(_run(sim, sc, 4), 0.02)
+
+
+@pytest.fixture(scope="module")
+def sequence_dir(tmp_path_factory):
+    """`cbh simulate` folder: 3 frames 10 s apart at 480 px (what a directory source reads)."""
+    from cbh.cli.main import main
+
+    out = tmp_path_factory.mktemp("seq")
+    rc = main(["simulate", "--scene", "two-layers", "--out", str(out), "--frames", "3", "--cadence-s", "10",
+               "--size", "480"])
+    assert rc == 0
+    return out
+
+
+def test_simulate_clock_offset_option_shifts_camera2_only(tmp_path):
+    from cbh.cli.main import main
+    from cbh.imageio import read_image
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out, extra in ((a, []), (b, ["--clock-offset", "cam2=3"])):
+        assert main(["simulate", "--out", str(out), "--size", "320", *extra]) == 0
+    n1 = sorted((a / "cam1").iterdir())[0].name
+    n2 = sorted((a / "cam2").iterdir())[0].name
+    assert (b / "cam2" / n2).exists()  # stamped with the nominal time
+    im = lambda p: read_image(p)[0].astype(np.int16)  # noqa: E731
+    assert np.abs(im(a / "cam1" / n1) - im(b / "cam1" / n1)).mean() < 2.0  # sensor noise only
+    assert np.abs(im(a / "cam2" / n2) - im(b / "cam2" / n2)).mean() > 4.0  # clouds moved by 3 s of wind
+    assert main(["simulate", "--out", str(tmp_path / "c"), "--clock-offset", "cam2"]) == 2
+
+
+def test_cbh_pair_with_previous_prints_motion(sequence_dir, capsys):
+    from cbh.cli.main import main
+
+    c1 = sorted((sequence_dir / "cam1").iterdir())
+    c2 = sorted((sequence_dir / "cam2").iterdir())
+    st = str(sequence_dir / "station.toml")
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--previous", str(c1[0]), str(c2[0]), "--json"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    import json
+
+    s = json.loads(out)
+    assert s["diagnostics"]["motion_dt_s"] == 10.0
+    low = min(s["layers"], key=lambda l: l["height_m"])
+    # 480 px: 153 px/rad, the low layer moves 8 px in 10 s; speed within 5 % (module docstring)
+    assert abs(math.hypot(low["motion_east_ms"], low["motion_north_ms"]) / math.hypot(6, 2) - 1) <= 0.05
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--previous", str(c1[0]), str(c2[0])])
+    out = capsys.readouterr().out
+    assert rc == 0 and "east_ms" in out and "motion over 10 s" in out
+    # without --previous the table has no motion columns (and no motion)
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--json"])
+    assert rc == 0 and json.loads(capsys.readouterr().out)["layers"][0]["motion_east_ms"] is None
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--previous-time", "2024-06-21T14:00:00Z"])
+    assert rc == 2 and "--previous-time needs --previous" in capsys.readouterr().err
+    rc = main(["pair", str(c1[0]), str(c2[0]), "--station", st, "--previous", str(c1[1]), str(c2[1])])
+    assert rc == 2 and "must be captured before" in capsys.readouterr().err
+
+
+def test_run_on_directories_gives_motion_from_the_second_pair(sequence_dir):
+    """`cbh run --source cam1=DIR --source cam2=DIR --cadence-s 0`: the service's results carry
+    each layer's motion from the second pair on (the export writes what the results carry)."""
+    from cbh.actions.run import build_run
+    from cbh.live.service import MemorySink
+
+    setup = build_run(station=str(sequence_dir / "station.toml"), cadence_s=0,
+                      sources=[f"cam1={sequence_dir / 'cam1'}", f"cam2={sequence_dir / 'cam2'}"])
+    sink = MemorySink()
+    svc = setup.service()
+    svc.sinks.append(sink)
+    svc.run(handle_signals=False)
+    results = [r for _, r in sink.items]
+    assert len(results) == 3
+    assert all(math.isnan(l.motion_east_ms) for l in results[0].layers)
+    for r in results[1:]:
+        low = min(r.layers, key=lambda l: l.height_m)
+        assert abs(math.hypot(low.motion_east_ms, low.motion_north_ms) / math.hypot(6, 2) - 1) <= 0.05
+        assert abs(r.diagnostics["clock_offset_s"]) <= 0.3  # 480 px: 0.15 s band × 640/480, rounded up
+        assert "clock_offset" not in r.flags

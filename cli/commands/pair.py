@@ -65,7 +65,7 @@ def pair_cmd(
     time: str = typer.Option(None, "--time", help="Capture time, ISO 8601 (default: UTC stamp in the file name, else unknown)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     height_map: Path = typer.Option(None, "--height-map", help="Write camera 1's height map (float32 .npy, NaN unknown)."),
-    previous: tuple[Path, Path] = typer.Option((None, None), "--previous", help="The pair before (P1 P2): adds each layer's motion and the clock offset."),
+    previous: tuple[Path, Path] = typer.Option(None, "--previous", help="The pair before (P1 P2): adds each layer's motion and the clock offset."),
     previous_time: str = typer.Option(None, "--previous-time", help="Capture time of --previous, ISO 8601 (default: UTC stamp in P1's name)."),
 ) -> None:
     """Cloud layers and point statistics from one image pair (heights above the ENU origin)."""
@@ -81,7 +81,7 @@ def pair_cmd(
     img2, _ = read_image(image2)
     t = parse_time(time) if time else time_from_name(image1)
     state = None
-    with_motion = previous[0] is not None
+    with_motion = bool(previous) and previous[0] is not None
     if with_motion:
         from cbh.errors import InputError
 
