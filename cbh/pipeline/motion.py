@@ -47,10 +47,12 @@ pair's estimate is the median over matches weighted by ``cross(B', w)²`` (inver
 camera 2 captures late).
 
 **Compensation.** With a known offset δ, camera 2's image is moved back to camera 1's capture
-time before matching (:func:`compensation_map`): a pixel showing layer L is taken from where
+time before matching (:func:`compensate_camera2`): a pixel showing layer L is taken from where
 that layer's motion carries it in δ, ``a = a2 + w_L·δ`` with ``w_L = v_L / (h_L − z2)`` (exact
 geometry on a coarse grid, interpolated); which layer a pixel shows is decided photometrically
-(the layer whose motion over the cadence maps it best onto camera 2's previous frame). Every
+(the layer whose motion over the cadence maps it best onto camera 2's previous frame), with
+occlusion (a lower layer hides a higher one; what it uncovers within δ comes from the
+previous frame). Every
 matcher and the triangulation then see a synchronised pair. The layer motions are the
 previous pair's. Estimates are made on the compensated pair (the residual offset, added to
 the one used). A pair whose estimate moves the running value by more than ``rematch_s`` (the
@@ -58,8 +60,9 @@ first pairs of a run with an offset) is matched again with the new value and thi
 motions, up to three more times while the compensation still moves by more than 0.1 px, so
 the second pair of a run is already compensated; in steady state a pair is matched once.
 
-Limits (measured, README): the warp cannot know what a moving low layer uncovers in δ (a band
-of about |w_low − w_high|·δ along its edges), and interpolation blurs camera 2 a little; at
+Limits (measured, README): what a moving low layer uncovers in δ (a band of about
+|w_low − w_high|·δ along its edges) is only approximated from the previous frame, and
+resampling blurs camera 2 a little; at
 960 px working size both layers of the two-layer scene come out within 1.5 % at a 3 s offset,
 at 640 px the high layer (2.9 px of parallax) is 3–4 % low. An offset with all motion along
 the baseline is unobservable (``clock_offset_s`` stays NaN; heights then absorb it).
@@ -76,7 +79,7 @@ import numpy as np
 from cbh.result import Layer
 
 __all__ = ["PairState", "Tracks", "track_back", "plane_offsets", "offset_per_match", "offset_estimate",
-           "compensation_map", "layer_motion", "running_offset"]
+           "compensate_camera2", "layer_motion", "running_offset"]
 
 
 @dataclass(frozen=True)
@@ -256,16 +259,23 @@ def _grids(h: int, w: int, grid_px: int):
     return _GRIDS[key]
 
 
-def compensation_map(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates: list[np.ndarray],
-                     delta_s: float, dt_s: float, grid_px: int = 8) -> np.ndarray:
-    """Remap table that moves camera 2's current image back to camera 1's capture time.
+def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates: list[np.ndarray],
+                       delta_s: float, dt_s: float, grid_px: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Camera 2's current image moved back to camera 1's capture time (δ earlier).
 
     Each layer L moves camera 2's plane offsets by ``w_L = v_L / (h_L − z2)`` per second, so
-    the point seen at pixel u at camera 1's time is seen δ later where
-    ``a = a2(u) + w_L·δ``. That displacement is exact geometry (evaluated on a grid every
-    ``grid_px`` pixels and interpolated: it is smooth within a layer). Which layer a pixel shows
-    is decided photometrically: the layer whose motion over ``dt_s`` maps the pixel onto the
-    most similar place of camera 2's previous frame (absolute difference, 9 × 9 box mean).
+    the point seen at pixel u at camera 1's time is seen δ later where ``a = a2(u) + w_L·δ``:
+    exact geometry, evaluated on a grid every ``grid_px`` pixels and interpolated (smooth within
+    a layer). Which layer each pixel shows:
+
+    1. in the current frame, photometrically: the layer whose motion over ``dt_s`` maps the
+       pixel onto the most similar place of the previous frame (absolute difference, 9 × 9
+       box mean);
+    2. at camera 1's time, pixel u shows layer L if L's source pixel in the current frame shows
+       L; the lowest such layer wins (a lower cloud hides a higher one);
+    3. a pixel that no layer explains was uncovered by a lower layer within δ: its look at
+       camera 1's time is not in the current frame, so it is taken from the previous frame
+       (δ − dt later there, with the highest layer's motion).
 
     Parameters
     ----------
@@ -274,14 +284,16 @@ def compensation_map(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates: l
     cam2 : Camera
         Camera 2 at working size.
     rates : list of ndarray (2,)
-        ``w_L`` of each layer with a known motion [1/s].
+        ``w_L`` of each layer with a known motion, lowest layer first [1/s].
     delta_s, dt_s : float
         Clock offset of camera 2 [s]; time between the frames [s].
 
     Returns
     -------
-    ndarray, shape (H, W, 2), float32
-        ``cv2.remap`` table (x, y): the compensated image at u is the current image at ``map[u]``.
+    image : ndarray, shape (H, W), uint8
+        The compensated image (bicubic resampling).
+    map : ndarray, shape (H, W, 2), float32
+        Where each pixel was taken from in the current frame (``cv2.remap`` table, x then y).
     """
     h, w = gray_now.shape[:2]
     grid, gshape, ident, coarse_lookup = _grids(h, w, grid_px)
@@ -295,21 +307,31 @@ def compensation_map(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates: l
         disp = np.where(np.isfinite(p) & seen, p - grid, 0.0).reshape(gshape + (2,)).astype(np.float32)
         return cv2.add(ident, cv2.remap(disp, coarse_lookup, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
 
-    maps = [field(np.asarray(r, np.float64) * delta_s) for r in rates]
+    def sample(img, m):
+        return cv2.remap(img, m, None, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+
+    rates = [np.asarray(r, np.float64) for r in rates]
+    maps = [field(r * delta_s) for r in rates]
     if len(maps) == 1:
-        return maps[0]
-    best, out = None, maps[0].copy()
-    for i, r in enumerate(rates):  # photometric test: does layer i's motion map the pixel onto its previous look?
-        back = cv2.remap(gray_prev, field(-np.asarray(r, np.float64) * dt_s), None, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
-        cost = cv2.boxFilter(cv2.absdiff(back, gray_now), cv2.CV_32F, (9, 9))
-        if best is None:
-            best = cost
-        else:
-            better = cv2.compare(cost, best, cv2.CMP_LT)
-            cv2.copyTo(maps[i], better, out)
-            best = cv2.min(best, cost)
-    return out
+        return sample(gray_now, maps[0]), maps[0]
+    costs = [cv2.boxFilter(cv2.absdiff(cv2.remap(gray_prev, field(-r * dt_s), None, cv2.INTER_LINEAR,
+                                                 borderMode=cv2.BORDER_REPLICATE), gray_now), cv2.CV_32F, (9, 9))
+             for r in rates]
+    label_now = np.argmin(np.stack(costs), axis=0).astype(np.uint8)
+    free = np.full((h, w), 255, np.uint8)  # 255: no layer chosen yet
+    chosen = free.copy()
+    out = maps[-1].copy()
+    for i, m in enumerate(maps):  # lowest first: it hides the ones above
+        src = cv2.remap(label_now, m, None, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        take = cv2.bitwise_and(cv2.compare(src, i, cv2.CMP_EQ), cv2.compare(chosen, free, cv2.CMP_EQ))
+        chosen[take > 0] = i
+        cv2.copyTo(m, take, out)
+    image = sample(gray_now, out)
+    hole = chosen == 255
+    if hole.any():
+        fill = sample(gray_prev, field(-rates[-1] * (dt_s - delta_s)))
+        image[hole] = fill[hole]
+    return image, out
 
 
 def layer_motion(layers: list[Layer], samples: list[tuple[np.ndarray, np.ndarray, float]], min_tracks: int) -> list[Layer]:

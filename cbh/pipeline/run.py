@@ -47,7 +47,7 @@ from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
 from cbh.pipeline.match import Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher, sample_map, triangulate_matches
-from cbh.pipeline.motion import (PairState, assign_layers, compensation_map, layer_motion, offset_estimate,
+from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
                                  offset_per_match, plane_offsets, running_offset, track_back)
 from cbh.pipeline.segment import segment
 
@@ -230,8 +230,7 @@ class Pipeline:
             comp = None
             if math.isfinite(used) and abs(used) >= mcfg.compensate_min_s and rates:
                 with _timed(ctx, "compensation"):
-                    comp = compensation_map(gray[1], mot.prev_gray[1], self.cam2, rates, used, mot.dt_s)
-                    g2 = cv2.remap(gray[1], comp, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                    g2, comp = compensate_camera2(gray[1], mot.prev_gray[1], self.cam2, rates, used, mot.dt_s)
                     c2 = cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
                                    borderMode=cv2.BORDER_REPLICATE).astype(bool)
                 corr = self.stage_match(work, masks, seg, ctx, gray=(gray[0], g2), cloud2=c2)
