@@ -11,8 +11,10 @@ the same last pair, ``--repeat`` times each:
   this pair's offset estimate; with ``--clock-offset``, camera 2 captures that late and the
   compensation of camera 2 runs too, reported on its own line).
 
-Prints the median totals and the median ``motion`` / ``compensation`` stage times [ms]. Bar
-(issue 13): motion and offset estimation add ≤ 15 % to the per-pair time.
+Prints the median stage times of both, the wall times, and the ``motion`` (and
+``compensation``) stage against the pair without [ms, %]. Bar (issue 13): motion and offset
+estimation add ≤ 15 % to the per-pair time. On a loaded machine compare the stage times: the
+wall-time difference then carries the load's noise.
 """
 from __future__ import annotations
 
@@ -53,23 +55,24 @@ def main() -> None:
     without, with_ = [], []
     for _ in range(args.repeat):  # interleaved, so that machine load hits both alike
         t0 = time.perf_counter()
-        pipe.process(im1, im2, t)
-        without.append((time.perf_counter() - t0) * 1000)
+        r0 = pipe.process(im1, im2, t)
+        without.append(((time.perf_counter() - t0) * 1000, r0.timing_ms))
         t0 = time.perf_counter()
         r = pipe.process(im1, im2, t, previous=state)
-        with_.append(((time.perf_counter() - t0) * 1000, r.timing_ms.get("motion", 0.0),
-                      r.timing_ms.get("compensation", 0.0)))
-    w0 = statistics.median(without)
+        with_.append(((time.perf_counter() - t0) * 1000, r.timing_ms))
+    med = lambda runs, k: statistics.median(x[1].get(k, 0.0) for x in runs)  # noqa: E731
+    w0 = statistics.median(x[0] for x in without)
     w1 = statistics.median(x[0] for x in with_)
-    mot = statistics.median(x[1] for x in with_)
-    comp = statistics.median(x[2] for x in with_)
-    print(f"  without motion        {w0:8.1f} ms")
-    print(f"  with motion + offset  {w1:8.1f} ms   (+{100 * (w1 - w0) / w0:.1f} %)")
-    print(f"    stage 'motion' (tracks, per-layer motion, offset estimate)  {mot:7.1f} ms  "
-          f"({100 * mot / w0:.1f} % of the pair without)")
+    stages = list(dict.fromkeys([*without[0][1], *with_[0][1]]))
+    print(f"  {'stage [ms]':<16} {'without':>9} {'with':>9}")
+    for k in stages:
+        print(f"  {k:<16} {med(without, k):9.1f} {med(with_, k):9.1f}")
+    print(f"  {'wall':<16} {w0:9.1f} {w1:9.1f}   (+{100 * (w1 - w0) / w0:.1f} %)")
+    mot, comp = med(with_, "motion"), med(with_, "compensation")
+    print(f"motion + offset estimation (stage 'motion': tracks in both cameras, per-layer motion, offset): "
+          f"{mot:.1f} ms = {100 * mot / w0:.1f} % of the pair without")
     if args.clock_offset:
-        print(f"    stage 'compensation' (camera 2 moved back by the offset)    {comp:7.1f} ms  "
-              f"({100 * comp / w0:.1f} %)")
+        print(f"compensation of camera 2 (stage 'compensation'): {comp:.1f} ms = {100 * comp / w0:.1f} %")
     print("layers: " + ", ".join(
         f"{l.height_m:.0f} m ({l.motion_east_ms:+.2f}, {l.motion_north_ms:+.2f}) m/s" for l in r.layers)
         + f"   clock offset {r.diagnostics['clock_offset_s']:+.2f} s")

@@ -113,7 +113,7 @@ def test_identical_consecutive_frames_give_exactly_zero_motion():
     across the baseline, so it stays unknown (NaN)."""
     from cbh.pipeline import Pipeline
 
-    sim, sc = _sim()
+    sim, sc = _sim(size=480)
     shot = sim.render(sc.time_utc)
     pipe = Pipeline(sim.station)
     a = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
@@ -129,7 +129,7 @@ def test_identical_consecutive_frames_give_exactly_zero_motion():
 def test_no_motion_across_a_gap_or_without_time():
     from cbh.pipeline import Pipeline
 
-    sim, sc = _sim()
+    sim, sc = _sim(size=320)
     s0 = sim.render(sc.time_utc)
     s1 = sim.render(sc.time_utc + timedelta(seconds=200))
     pipe = Pipeline(sim.station)

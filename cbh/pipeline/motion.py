@@ -249,13 +249,16 @@ _GRIDS: dict = {}  # (h, w, grid_px) → identity map and coarse-grid lookups (s
 
 
 def _grids(h: int, w: int, grid_px: int):
+    """Coarse grid nodes placed where ``cv2.resize`` (INTER_LINEAR, × grid_px) samples: node k
+    at pixel ``grid_px·k + (grid_px − 1)/2``; and the identity remap table (H, W, 2)."""
     key = (h, w, grid_px)
     if key not in _GRIDS:
-        gy, gx = np.mgrid[0:h + grid_px:grid_px, 0:w + grid_px:grid_px].astype(np.float64)
+        nh, nw = -(-h // grid_px), -(-w // grid_px)
+        c = (grid_px - 1) / 2.0
+        gy, gx = np.mgrid[0:nh, 0:nw].astype(np.float64) * grid_px + c
         ident = np.dstack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)))
-        coarse = np.ascontiguousarray(ident / np.float32(grid_px))  # grid node k sits at pixel k·grid_px
         _GRIDS.clear()
-        _GRIDS[key] = (np.stack([gx.ravel(), gy.ravel()], axis=1), gy.shape, ident, coarse)
+        _GRIDS[key] = (np.stack([gx.ravel(), gy.ravel()], axis=1), gy.shape, ident)
     return _GRIDS[key]
 
 
@@ -296,7 +299,7 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
         Where each pixel was taken from in the current frame (``cv2.remap`` table, x then y).
     """
     h, w = gray_now.shape[:2]
-    grid, gshape, ident, coarse_lookup = _grids(h, w, grid_px)
+    grid, gshape, ident = _grids(h, w, grid_px)
     a2 = plane_offsets(cam2, grid)
     seen = np.isfinite(a2).all(axis=1, keepdims=True)
 
@@ -305,7 +308,8 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
         d = np.concatenate([a, np.ones((len(a), 1))], axis=1)
         p = cam2.direction_to_pixel(d / np.linalg.norm(d, axis=1, keepdims=True))
         disp = np.where(np.isfinite(p) & seen, p - grid, 0.0).reshape(gshape + (2,)).astype(np.float32)
-        return cv2.add(ident, cv2.remap(disp, coarse_lookup, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+        full = cv2.resize(disp, (gshape[1] * grid_px, gshape[0] * grid_px), interpolation=cv2.INTER_LINEAR)
+        return cv2.add(ident, full[:h, :w])
 
     def sample(img, m):
         return cv2.remap(img, m, None, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
@@ -314,23 +318,25 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
     maps = [field(r * delta_s) for r in rates]
     if len(maps) == 1:
         return sample(gray_now, maps[0]), maps[0]
-    costs = [cv2.boxFilter(cv2.absdiff(cv2.remap(gray_prev, field(-r * dt_s), None, cv2.INTER_LINEAR,
-                                                 borderMode=cv2.BORDER_REPLICATE), gray_now), cv2.CV_32F, (9, 9))
-             for r in rates]
-    label_now = np.argmin(np.stack(costs), axis=0).astype(np.uint8)
+    label_now, best = None, None  # per pixel of the current frame: the layer of the lowest cost
+    for i, r in enumerate(rates):
+        back = cv2.remap(gray_prev, field(-r * dt_s), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        cost = cv2.boxFilter(cv2.absdiff(back, gray_now), cv2.CV_32F, (9, 9))
+        if best is None:
+            label_now, best = np.zeros((h, w), np.uint8), cost
+        else:
+            label_now[cv2.compare(cost, best, cv2.CMP_LT) > 0] = i
+            best = cv2.min(best, cost)
     free = np.full((h, w), 255, np.uint8)  # 255: no layer chosen yet
-    chosen = free.copy()
     out = maps[-1].copy()
     for i, m in enumerate(maps):  # lowest first: it hides the ones above
         src = cv2.remap(label_now, m, None, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-        take = cv2.bitwise_and(cv2.compare(src, i, cv2.CMP_EQ), cv2.compare(chosen, free, cv2.CMP_EQ))
-        chosen[take > 0] = i
+        take = cv2.bitwise_and(cv2.compare(src, i, cv2.CMP_EQ), free)
         cv2.copyTo(m, take, out)
+        free = cv2.bitwise_and(free, cv2.bitwise_not(take))
     image = sample(gray_now, out)
-    hole = chosen == 255
-    if hole.any():
-        fill = sample(gray_prev, field(-rates[-1] * (dt_s - delta_s)))
-        image[hole] = fill[hole]
+    if cv2.countNonZero(free):
+        cv2.copyTo(sample(gray_prev, field(-rates[-1] * (dt_s - delta_s))), free, image)
     return image, out
 
 
