@@ -153,7 +153,7 @@ def track_back(gray_now: np.ndarray, gray_prev: np.ndarray, px: np.ndarray, cfg)
         z = np.zeros((0, 2))
         return Tracks(z, z.copy(), np.zeros(0, bool))
     lk = dict(winSize=(cfg.window_px, cfg.window_px), maxLevel=cfg.levels,
-              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
     prev, st, _ = cv2.calcOpticalFlowPyrLK(gray_now, gray_prev, px, None, **lk)
     back, st2, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_now, prev, px.copy(),
                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
