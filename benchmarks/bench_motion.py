@@ -47,7 +47,7 @@ def main() -> None:
     pipe = Pipeline(sim.station)
     state = None
     for s in shots[:-1]:  # warm-up: caches, and the state of the pair before the timed one
-        state = pipe.process(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, previous=state).state
+        state = pipe.process(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, channels="bgr", previous=state).state
     last = shots[-1]
     im1, im2, t = last.views["cam1"].image, last.views["cam2"].image, last.time_utc
     print(f"pair {im1.shape[1]}x{im1.shape[0]}, scene {sc.name}, camera 2 clock offset {args.clock_offset:+g} s, "
@@ -55,10 +55,10 @@ def main() -> None:
     without, with_ = [], []
     for _ in range(args.repeat):  # interleaved, so that machine load hits both alike
         t0 = time.perf_counter()
-        r0 = pipe.process(im1, im2, t)
+        r0 = pipe.process(im1, im2, t, channels="bgr")
         without.append(((time.perf_counter() - t0) * 1000, r0.timing_ms))
         t0 = time.perf_counter()
-        r = pipe.process(im1, im2, t, previous=state)
+        r = pipe.process(im1, im2, t, channels="bgr", previous=state)
         with_.append(((time.perf_counter() - t0) * 1000, r.timing_ms))
     med = lambda runs, k: statistics.median(x[1].get(k, 0.0) for x in runs)  # noqa: E731
     w0 = statistics.median(x[0] for x in without)

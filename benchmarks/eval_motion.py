@@ -42,9 +42,8 @@ def main() -> None:
             argv += ["--clock-offset", f"cam2={args.clock_offset}"]
         assert cbh(argv) == 0
     from cbh.actions.run import MotionChain
-    from cbh.cli.commands.pair import time_from_name
+    from cbh.timeutil import time_from_name
     from cbh.geometry.station import load_station
-    from cbh.imageio import read_image
     from cbh.pipeline import Pipeline
     from cbh.sim.io import time_tag
 
@@ -56,8 +55,8 @@ def main() -> None:
     worst = {"height_pct": 0.0, "speed_pct": 0.0, "dir_deg": 0.0, "offset_s": 0.0}
     missing = 0
     for f1, f2 in zip(*files):
-        t = time_from_name(f1)
-        r = pipe.process(read_image(f1)[0], read_image(f2)[0], t, previous=chain.previous(t))
+        t = time_from_name(f1.name)
+        r = pipe.process(f1, f2, t, previous=chain.previous(t))
         chain.keep(r)
         truth = json.loads((d / "truth" / f"{time_tag(t)}.json").read_text())
         from datetime import datetime

@@ -51,7 +51,7 @@ def _run(sim, sc, n: int):
     state, out = None, []
     for i in range(n):
         shot = sim.render(sc.time_utc + timedelta(seconds=CADENCE_S * i))
-        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, previous=state)
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr", previous=state)
         state = r.state
         out.append(r)
     return out
@@ -116,9 +116,9 @@ def test_identical_consecutive_frames_give_exactly_zero_motion():
     sim, sc = _sim(size=480)
     shot = sim.render(sc.time_utc)
     pipe = Pipeline(sim.station)
-    a = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+    a = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     b = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc + timedelta(seconds=10),
-                     previous=a.state)
+                     channels="bgr", previous=a.state)
     assert len(b.layers) == 2
     for L in b.layers:
         assert L.motion_tracks >= 50
@@ -133,10 +133,10 @@ def test_no_motion_across_a_gap_or_without_time():
     s0 = sim.render(sc.time_utc)
     s1 = sim.render(sc.time_utc + timedelta(seconds=200))
     pipe = Pipeline(sim.station)
-    a = pipe.process(s0.views["cam1"].image, s0.views["cam2"].image, s0.time_utc)
-    b = pipe.process(s1.views["cam1"].image, s1.views["cam2"].image, s1.time_utc, previous=a.state)
+    a = pipe.process(s0.views["cam1"].image, s0.views["cam2"].image, s0.time_utc, channels="bgr")
+    b = pipe.process(s1.views["cam1"].image, s1.views["cam2"].image, s1.time_utc, channels="bgr", previous=a.state)
     assert all(math.isnan(l.motion_east_ms) for l in b.layers)  # 200 s > max_gap_s (120 s)
-    c = pipe.process(s1.views["cam1"].image, s1.views["cam2"].image, None, previous=a.state)
+    c = pipe.process(s1.views["cam1"].image, s1.views["cam2"].image, None, channels="bgr", previous=a.state)
     assert all(math.isnan(l.motion_east_ms) for l in c.layers) and "time_unknown" in c.flags
 
 
