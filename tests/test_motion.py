@@ -20,7 +20,6 @@ Tolerances from the physics:
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from datetime import timedelta
 
 import numpy as np
@@ -251,7 +250,10 @@ def test_simulate_clock_offset_option_shifts_camera2_only(tmp_path):
     n1 = sorted((a / "cam1").iterdir())[0].name
     n2 = sorted((a / "cam2").iterdir())[0].name
     assert (b / "cam2" / n2).exists()  # stamped with the nominal time
-    im = lambda p: read_image(p)[0].astype(np.int16)  # noqa: E731
+
+    def im(p):
+        return read_image(p)[0].astype(np.int16)
+
     assert np.abs(im(a / "cam1" / n1) - im(b / "cam1" / n1)).mean() < 2.0  # sensor noise only
     assert np.abs(im(a / "cam2" / n2) - im(b / "cam2" / n2)).mean() > 4.0  # clouds moved by 3 s of wind
     assert main(["simulate", "--out", str(tmp_path / "c"), "--clock-offset", "cam2"]) == 2
