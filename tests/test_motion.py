@@ -307,3 +307,16 @@ def test_run_on_directories_gives_motion_from_the_second_pair(sequence_dir):
         assert abs(math.hypot(low.motion_east_ms, low.motion_north_ms) / math.hypot(6, 2) - 1) <= 0.05
         assert abs(r.diagnostics["clock_offset_s"]) <= 0.3  # 480 px: 0.15 s band × 640/480, rounded up
         assert "clock_offset" not in r.flags
+
+
+def test_run_flags_offsets_above_its_pairing_tolerance(sequence_dir):
+    from cbh.actions.run import build_run
+
+    srcs = [f"cam1={sequence_dir / 'cam1'}", f"cam2={sequence_dir / 'cam2'}"]
+    for tol in (0.5, 5.0):
+        setup = build_run(station=str(sequence_dir / "station.toml"), sources=srcs, pair_tolerance_s=tol)
+        try:
+            assert setup.pipeline.config.motion.offset_tolerance_s == tol
+        finally:
+            for s in setup.sources:
+                s.close()
