@@ -320,3 +320,30 @@ def test_run_flags_offsets_above_its_pairing_tolerance(sequence_dir):
         finally:
             for s in setup.sources:
                 s.close()
+
+
+def test_wind_along_the_baseline_leaves_the_offset_unknown():
+    """Both layers drifting east, along the 50 m east-west baseline: a clock offset would only
+    scale the parallax along the baseline (indistinguishable from a height change), so the
+    offset is reported unknown (NaN), never a confident number; the motion is still measured."""
+    from dataclasses import replace as dc_replace
+
+    from cbh.pipeline import Pipeline
+
+    sim, sc = _sim(size=480)
+    c1, c2 = sim.station.pair(None)
+    assert abs(c2.position_m[1] - c1.position_m[1]) < 1e-6  # the baseline is east-west
+    sc = dc_replace(sc, layers=tuple(dc_replace(l, wind_ms=(w, 0.0)) for l, w in zip(sc.layers, (6.0, -8.0))))
+    from cbh.sim import SkySimulator
+
+    sim = SkySimulator(sim.station, sc)
+    pipe = Pipeline(sim.station)
+    state = None
+    for i in range(2):
+        shot = sim.render(sc.time_utc + timedelta(seconds=CADENCE_S * i))
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr",
+                         previous=state)
+        state = r.state
+    assert math.isnan(r.diagnostics["clock_offset_s"]) and "clock_offset" not in r.flags
+    low = min(r.layers, key=lambda l: l.height_m)
+    assert abs(low.motion_east_ms / 6.0 - 1) <= 0.05 and abs(low.motion_north_ms) <= 0.05 * 6.0

@@ -42,7 +42,10 @@ baseline B, camera-2 height above camera 1 Δz), with q = 1/h::
 two equations, two unknowns per match: the component of the parallax *across* the baseline,
 which a static scene cannot produce, measures δ, and needs motion across the baseline
 (a wind along the baseline leaves δ unobservable: NaN, and heights then absorb it). Each
-pair's estimate is the median over matches weighted by ``cross(B', w)²`` (inverse variance);
+pair's estimate is the median over matches weighted by ``cross(B', w)²`` (inverse variance),
+NaN unless a quarter of the matches see motion across the baseline and the estimate's
+standard error is ≤ 0.1 s (:func:`offset_estimate`: with the wind along the baseline only
+wrong tracks pass, and they would give a confident wrong number);
 ``clock_offset_s`` is the median of the last ``offset_history`` pair estimates (positive:
 camera 2 captures late).
 
@@ -224,25 +227,33 @@ def _weighted_median(v: np.ndarray, w: np.ndarray) -> float:
 
 
 def offset_estimate(delta_s: np.ndarray, q_inv_m: np.ndarray, weight: np.ndarray, min_height_m: float,
-                    max_height_m: float, max_offset_s: float, dt_s: float, min_matches: int = 20) -> float:
+                    max_height_m: float, max_offset_s: float, dt_s: float, min_matches: int = 20,
+                    min_share: float = 0.25, max_error_s: float = 0.1) -> float:
     """One pair's clock offset: weighted median of the plausible per-match offsets [s].
 
     A match counts when its height 1/q is in the filtering range, |δ| ≤ ``max_offset_s``, and
     the motion across the baseline over the cadence, √weight · dt, is at least 0.01 (1 % of
     the height: a few pixels), so that δ is observable. Weights are capped at twice the median
-    weight (a spurious track with a large motion would otherwise dominate). NaN with fewer
-    than ``min_matches``.
+    weight (a spurious track with a large motion would otherwise dominate).
+
+    NaN (unknown, never a guess) unless at least ``min_matches`` matches and ``min_share`` of
+    the matches at a plausible height count, and the estimate's standard error (1.4826 · MAD
+    / √n) is at most ``max_error_s``: with all motion along the baseline only wrong tracks
+    pass the observability test, few and scattered.
     """
     with np.errstate(invalid="ignore", divide="ignore"):
         h = 1.0 / q_inv_m
-        ok = (np.isfinite(delta_s) & np.isfinite(h) & (h >= min_height_m) & (h <= max_height_m)
-              & (np.abs(delta_s) <= max_offset_s) & (np.sqrt(weight) * dt_s >= 0.01))
-    if ok.sum() < min_matches:
+        plausible = np.isfinite(delta_s) & np.isfinite(h) & (h >= min_height_m) & (h <= max_height_m)
+        ok = plausible & (np.abs(delta_s) <= max_offset_s) & (np.sqrt(weight) * dt_s >= 0.01)
+    n = int(ok.sum())
+    if n < min_matches or n < min_share * int(plausible.sum()):
         return math.nan
-    # weights grow with the motion squared: a wrong track (a large spurious motion) must not
-    # outvote the rest, so no match weighs more than twice the median match
+    d = delta_s[ok]
     w = np.minimum(weight[ok], 2.0 * np.median(weight[ok]))
-    return _weighted_median(delta_s[ok], w)
+    est = _weighted_median(d, w)
+    if 1.4826 * float(np.median(np.abs(d - est))) / math.sqrt(n) > max_error_s:
+        return math.nan
+    return est
 
 
 _GRIDS: dict = {}  # (h, w, grid_px) → identity map and coarse-grid lookups (shared by every pair)
