@@ -347,3 +347,15 @@ def test_wind_along_the_baseline_leaves_the_offset_unknown():
     assert math.isnan(r.diagnostics["clock_offset_s"]) and "clock_offset" not in r.flags
     low = min(r.layers, key=lambda l: l.height_m)
     assert abs(low.motion_east_ms / 6.0 - 1) <= 0.05 and abs(low.motion_north_ms) <= 0.05 * 6.0
+
+
+@pytest.mark.parametrize("table, key", [({"window_px": 4}, "window_px"), ({"max_gap_s": -1}, "max_gap_s"),
+                                        ({"nope": 1}, "nope"), ({"clock_offset": "yes"}, "clock_offset")])
+def test_motion_config_errors_name_the_key(table, key):
+    from cbh.errors import ConfigError
+    from cbh.pipeline import PipelineConfig
+
+    with pytest.raises(ConfigError, match=f"pipeline.motion.{key}"):
+        PipelineConfig.from_dict({"motion": table})
+    cfg = PipelineConfig.from_dict({"motion": {"max_gap_s": 60, "clock_offset": False}})
+    assert PipelineConfig.from_dict(cfg.to_dict()) == cfg and cfg.motion.max_gap_s == 60.0
