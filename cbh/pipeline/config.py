@@ -31,6 +31,7 @@ __all__ = [
     "FilteringConfig",
     "HeightMapConfig",
     "LayersConfig",
+    "MotionConfig",
     "PipelineConfig",
 ]
 
@@ -171,6 +172,27 @@ class LayersConfig:
 
 
 @dataclass(frozen=True)
+class MotionConfig:
+    """Cloud motion per layer and camera 2's clock offset, from the previous pair (see
+    :mod:`cbh.pipeline.motion`; the previous pair itself is state, not configuration)."""
+
+    enabled: bool = True  # track clouds between consecutive pairs (needs ``previous`` and capture times)
+    max_gap_s: float = 120.0  # no motion across a longer time between consecutive pairs [s]
+    max_points: int = 500  # features tracked per camera (of the LK stereo matches) [1]
+    window_px: int = 15  # LK window side, at working size [px]
+    levels: int = 5  # pyramid levels above the base (cloud displacements up to ~2^levels windows) [1]
+    fb_max_px: float = 0.3  # forward-backward disagreement allowed, at working size [px]
+    min_tracks: int = 10  # a layer needs this many tracks for a motion [1]
+    layer_tolerance_log: float = 0.1  # a track belongs to a layer within this |ln(h / h_layer)| (or 3 spreads) [1]
+    clock_offset: bool = True  # estimate camera 2's clock offset and compensate it in the matching
+    offset_history: int = 15  # pairs in the running (median) clock-offset estimate [1]
+    offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
+    compensate_min_s: float = 0.1  # compensate camera 2 only above this |offset| (the estimate is good to ≈ 0.05 s) [s]
+    rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
+    max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
+
+
+@dataclass(frozen=True)
 class PipelineConfig:
     """The whole pipeline. ``working_radius_px``: images are downsampled (models scaled exactly)
     so that the 90° radius of each lens is at most this many pixels; 0 = full size."""
@@ -182,6 +204,7 @@ class PipelineConfig:
     filtering: FilteringConfig = field(default_factory=FilteringConfig)
     height_map: HeightMapConfig = field(default_factory=HeightMapConfig)
     layers: LayersConfig = field(default_factory=LayersConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
 
     @classmethod
     def from_dict(cls, data: dict | None, where: str = "pipeline") -> "PipelineConfig":
@@ -280,3 +303,12 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
         raise ConfigError(f"{where}.layers.base_percentile: must be in 0..50, got {ly.base_percentile}")
     if not 0 < ly.valley_ratio <= 1:
         raise ConfigError(f"{where}.layers.valley_ratio: must be in (0, 1], got {ly.valley_ratio}")
+    mo = cfg.motion
+    for k in ("max_gap_s", "max_points", "fb_max_px", "min_tracks", "layer_tolerance_log", "offset_history",
+              "offset_tolerance_s", "rematch_s", "max_offset_s"):
+        _positive(f"{where}.motion.{k}", getattr(mo, k))
+    _positive(f"{where}.motion.compensate_min_s", mo.compensate_min_s, strict=False)
+    if mo.window_px < 5 or mo.window_px % 2 == 0:
+        raise ConfigError(f"{where}.motion.window_px: must be an odd number >= 5, got {mo.window_px}")
+    if not 0 <= mo.levels <= 8:
+        raise ConfigError(f"{where}.motion.levels: must be in 0..8, got {mo.levels}")
