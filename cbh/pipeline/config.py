@@ -22,6 +22,7 @@ from cbh.errors import ConfigError
 
 __all__ = [
     "MasksConfig",
+    "PhotometricConfig",
     "SegmentationConfig",
     "LKConfig",
     "ORBConfig",
@@ -34,7 +35,7 @@ __all__ = [
     "PipelineConfig",
 ]
 
-SEGMENTATION_METHODS = ("nbr", "nbr_adaptive", "otsu")
+SEGMENTATION_METHODS = ("hybrid", "nbr", "nbr_adaptive", "otsu")
 MATCHING_METHODS = ("lk", "orb", "dis", "sweep")
 LAYER_METHODS = ("histogram",)
 FILL_METHODS = ("none", "nearest")
@@ -58,7 +59,13 @@ class MasksConfig:
 class SegmentationConfig:
     """Cloud / clear-sky classification on the normalized blue-red ratio NBR = (B−R)/(B+R)."""
 
-    method: str = "nbr_adaptive"  # one of: nbr, nbr_adaptive, otsu
+    method: str = "hybrid"  # one of: hybrid, nbr, nbr_adaptive, otsu
+    clear_percentile: float = 85.0  # hybrid: a region's clear-sky reference = this percentile of its NBR / chroma [%]
+    min_gap: float = 0.06  # hybrid: smallest blue deficit (reference − NBR) of cloud; below it one class only [1]
+    fixed_threshold: float = 0.15  # hybrid: one-class images are cloud when their median NBR is below this [1]
+    texture_cv: float = 0.03  # hybrid: a one-class sky whose median local contrast (std/mean, 7 px) exceeds this is cloud [1]
+    chroma_weight: float = 0.3  # hybrid: weight of the desaturation cue against the blue deficit, 0..1 [1]
+    score_threshold: float = 0.45  # hybrid: cloud where the combined cloudiness score exceeds this [1]
     threshold: float = 0.10  # NBR below this is cloud (nbr; base of nbr_adaptive) [1]
     sun_threshold: float = -0.05  # nbr_adaptive: threshold right at the sun [1]
     sun_scale_deg: float = 25.0  # nbr_adaptive: e-folding angle of the sun term [deg]
@@ -68,6 +75,16 @@ class SegmentationConfig:
     otsu_min: float = -0.05  # otsu: clamp of the Otsu threshold, lower end [1]
     otsu_max: float = 0.20  # otsu: clamp of the Otsu threshold, upper end [1]
     min_brightness: int = 8  # pixels darker than this (max channel) are not classified [0..255]
+
+
+@dataclass(frozen=True)
+class PhotometricConfig:
+    """Camera 2's colour response relative to camera 1 (see :mod:`cbh.pipeline.photometric`)."""
+
+    correct: bool = True  # estimate, report and remove camera 2's gain / gamma / white balance [-]
+    max_gain: float = 1.5  # flag exposure_mismatch beyond ×/÷ this gain (half a stop = 1.41) [1]
+    max_gamma: float = 1.25  # … or beyond ×/÷ this tone-curve exponent [1]
+    max_wb: float = 1.15  # … or beyond ×/÷ this red or blue white-balance gain [1]
 
 
 @dataclass(frozen=True)
@@ -177,6 +194,7 @@ class PipelineConfig:
 
     working_radius_px: float = 480.0  # lens radius at 90 deg after downsampling [px]; 0 = no downsampling
     masks: MasksConfig = field(default_factory=MasksConfig)
+    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     filtering: FilteringConfig = field(default_factory=FilteringConfig)
@@ -279,6 +297,19 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if not 0 <= m.saturation_level <= 255:
         raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
     _choice(f"{where}.segmentation.method", cfg.segmentation.method, SEGMENTATION_METHODS)
+    ph = cfg.photometric
+    for k in ("max_gain", "max_gamma", "max_wb"):
+        if not getattr(ph, k) >= 1.0:
+            raise ConfigError(f"{where}.photometric.{k}: must be >= 1, got {getattr(ph, k)}")
+    sg = cfg.segmentation
+    if not 50.0 <= sg.clear_percentile < 100.0:
+        raise ConfigError(f"{where}.segmentation.clear_percentile: must be in [50, 100), got {sg.clear_percentile}")
+    _positive(f"{where}.segmentation.min_gap", sg.min_gap)
+    _positive(f"{where}.segmentation.texture_cv", sg.texture_cv, strict=False)
+    if not 0 <= sg.chroma_weight <= 1:
+        raise ConfigError(f"{where}.segmentation.chroma_weight: must be in 0..1, got {sg.chroma_weight}")
+    if not 0 < sg.score_threshold < 1:
+        raise ConfigError(f"{where}.segmentation.score_threshold: must be in (0, 1), got {sg.score_threshold}")
     if not 0 <= cfg.segmentation.grey_chroma <= 1:
         raise ConfigError(f"{where}.segmentation.grey_chroma: must be in 0..1, got {cfg.segmentation.grey_chroma}")
     if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:

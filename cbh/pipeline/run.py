@@ -7,7 +7,10 @@ Stages (each a pure function in its own module; timed into ``PairResult.timing_m
    (chosen so that width and height scale identically), so the geometry stays exact.
 2. ``masks``: image circle ∩ zenith limit ∩ obstacle mask (cached per camera), minus the sun
    disk (pvlib) and saturated blobs.
-3. ``segmentation``: cloud mask and fraction per camera.
+2b. ``photometric``: camera 2's gain, gamma and white balance relative to camera 1, estimated
+   in the common field of view, reported in ``diagnostics`` (flag ``exposure_mismatch`` when
+   large) and removed from camera 2's image before segmentation and matching.
+3. ``segmentation``: cloud mask and fraction per camera (colour images only).
 4. ``match_<method>``: correspondences per configured method (:mod:`.match`).
 5. ``triangulation``: all correspondences at once, geometric rejection.
 6. ``height_map``: dense map on camera 1's grid, returned at camera 1's full image size.
@@ -40,6 +43,7 @@ from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
 from cbh.pipeline.match import MatchInput, PairGeometry, TriangulatedMatches, get_matcher, triangulate_matches
+from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import segment
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation", "Correspondences", "Points"]
@@ -197,6 +201,8 @@ class Pipeline:
             work = (self.to_working(0, image1), self.to_working(1, image2))
         with _timed(ctx, "masks"):
             masks = self.stage_masks(work, ctx)
+        with _timed(ctx, "photometric"):
+            work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
             seg = self.stage_segment(work, masks)
         corr = self.stage_match(work, masks, seg, ctx)
@@ -214,7 +220,7 @@ class Pipeline:
         """Usable sky per camera (static mask, sun disk, saturated glare) and the sun angle maps."""
         cfg = self.config
         sun_dir = None
-        if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method == "nbr_adaptive"):
+        if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method in ("nbr_adaptive", "hybrid")):
             sun_dir, sun_zen = sun_direction_enu(self.station.latitude_deg, self.station.longitude_deg, ctx.time_utc)
             if sun_zen >= 90.0:
                 sun_dir = None
@@ -234,11 +240,35 @@ class Pipeline:
             sun_angle.append(ang)
         return Masks(usable=(usable[0], usable[1]), sun_angle=(sun_angle[0], sun_angle[1]), sun_dir_enu=sun_dir)
 
+    def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
+                          ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
+        """Camera 2's colour response relative to camera 1, reported and removed (:mod:`.photometric`).
+
+        Returns the working images with the brighter camera mapped onto the darker one's
+        response (unchanged when ``photometric.correct`` is off or nothing could be estimated).
+        """
+        pc = self.config.photometric
+        if not pc.correct:
+            return work
+        resp = estimate_response(work[0], work[1], self.geometry, masks.usable[0], masks.usable[1])
+        if not resp.pixels:
+            return work
+        ctx.diagnostics.update(resp.diagnostics())
+        if resp.is_large(pc.max_gain, pc.max_gamma, pc.max_wb):
+            ctx.flags.append("exposure_mismatch")
+        if resp.is_identity:
+            return work
+        lut21, lut12 = resp.matching_luts()
+        if resp.brightens():  # camera 2 is the darker one: map camera 1 down onto it instead
+            return (cv2.LUT(work[0], lut12), work[1])
+        return (work[0], cv2.LUT(work[1], lut21))
+
     def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky."""
         clouds, fractions = [], {}
         for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
-            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation)
+            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
+                              what=cam.name)
             clouds.append(c)
             fractions[cam.name] = frac
         return Segmentation(clouds=(clouds[0], clouds[1]), fractions=fractions)
@@ -348,6 +378,7 @@ class Pipeline:
             cloud_fraction=seg.fractions,
             timing_ms=ctx.timing,
             flags=ctx.flags,
+            diagnostics=dict(ctx.diagnostics),
             matches=matches,
         )
 
@@ -361,6 +392,7 @@ class PairContext:
     time_utc: datetime | None
     flags: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)  # stage → wall time [ms]
+    diagnostics: dict[str, float] = field(default_factory=dict)  # named quality measures (units in names)
 
 
 @dataclass(frozen=True)

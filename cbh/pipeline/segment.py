@@ -26,12 +26,15 @@ Everything per pixel runs through OpenCV (multi-threaded; ≈ 5 ms per 960² ima
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from cbh.errors import ConfigError
+from cbh.errors import ConfigError, ImageError
 from cbh.pipeline.config import SegmentationConfig
 
-__all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter"]
+__all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter", "check_colour", "is_greyscale",
+           "local_contrast", "clear_sky_reference", "li_threshold"]
 
 
 def normalized_blue_red(image_bgr: np.ndarray) -> np.ndarray:
@@ -54,14 +57,16 @@ def chroma(image_bgr: np.ndarray) -> np.ndarray:
     return cv2.divide(cv2.subtract(mx, mn, dtype=cv2.CV_32F), cv2.max(mx, 1).astype(np.float32))
 
 
-def _nbr(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
+def _nbr(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
     return (nbr < cfg.threshold) & usable
 
 
-def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
+def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
     import cv2
 
     span = max(90.0 - cfg.horizon_start_deg, 1e-6)
+    if zenith_deg is None:  # no geometry: no horizon ramp
+        zenith_deg = np.zeros(nbr.shape, np.float32)
     ramp = cv2.min(cv2.max(cv2.subtract(np.asarray(zenith_deg, np.float32), cfg.horizon_start_deg), 0.0), span)
     t = cv2.add(cv2.multiply(ramp, (cfg.horizon_threshold - cfg.threshold) / span), cfg.threshold)
     cloud = cv2.compare(nbr, t, cv2.CMP_LT)
@@ -76,7 +81,7 @@ def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
     return (cloud > 0) & usable
 
 
-def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
+def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
     import cv2
 
     v = nbr[usable]
@@ -90,7 +95,169 @@ def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chrom
     return (nbr < t) & usable
 
 
-SEGMENTERS = {"nbr": _nbr, "nbr_adaptive": _nbr_adaptive, "otsu": _otsu}
+# --- hybrid: per-image, per-region adaptive (the default) ---------------------------------------
+
+_Z_EDGES_DEG = (0.0, 20.0, 35.0, 48.0, 58.0, 66.0, 73.0, 90.0)  # zenith bins of the clear-sky reference
+_PSI_EDGES_DEG = (0.0, 12.0, 22.0, 35.0, 55.0, 80.0, 180.0)  # sun-angle bins
+_BLOCKS = 10  # without geometry: the image is cut into _BLOCKS × _BLOCKS regions
+_MIN_BIN = 150  # a bin needs this many sampled usable pixels for its own reference
+_SAMPLES = 60000  # pixels sampled for the reference (subsampled on a regular grid)
+
+
+def li_threshold(values: np.ndarray, tol: float = 1e-4) -> float:
+    """Minimum-cross-entropy threshold (Li & Lee 1993, Li & Tam 1998 iteration) of 1-D values.
+
+    Values at or below the threshold are the low class. Works on any real range (shifted to
+    positive internally); returns the median for a constant input.
+    """
+    v = np.asarray(values, np.float64).ravel()
+    if v.size == 0:
+        return 0.0
+    lo = float(v.min())
+    x = v - lo + 1e-3  # positive: the cross entropy takes logs of the class means
+    t = float(x.mean())
+    for _ in range(100):
+        a, b = x[x <= t], x[x > t]
+        if not a.size or not b.size:
+            break
+        ma, mb = a.mean(), b.mean()
+        t_new = (mb - ma) / (math.log(mb) - math.log(ma)) if mb > ma else t
+        if abs(t_new - t) < tol:
+            t = t_new
+            break
+        t = t_new
+    return float(t + lo - 1e-3)
+
+
+def _region_coords(shape, usable, zenith_deg, sun_angle_deg):
+    """Per-pixel region coordinates (u, v) and their bin edges for the clear-sky reference."""
+    H, W = shape
+    if zenith_deg is not None:
+        u, ue = np.asarray(zenith_deg, np.float32), np.asarray(_Z_EDGES_DEG, np.float32)
+        if sun_angle_deg is not None:
+            return u, ue, np.asarray(sun_angle_deg, np.float32), np.asarray(_PSI_EDGES_DEG, np.float32)
+        return u, ue, None, None
+    ys, xs = np.nonzero(usable) if usable.any() else (np.array([0, H - 1]), np.array([0, W - 1]))
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    yy = np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W))
+    xx = np.broadcast_to(np.arange(W, dtype=np.float32)[None, :], (H, W))
+    return (yy, np.linspace(y0, y1, _BLOCKS + 1, dtype=np.float32),
+            xx, np.linspace(x0, x1, _BLOCKS + 1, dtype=np.float32))
+
+
+def _bin_reference(values, bu, bv, nu, nv, q):
+    """q-th percentile of ``values`` in each (u, v) bin: (nu, nv) float64, NaN where too few."""
+    ref = np.full((nu, nv), np.nan)
+    key = bu * nv + bv
+    order = np.argsort(key, kind="stable")
+    ks, vs = key[order], values[order]
+    bounds = np.searchsorted(ks, np.arange(nu * nv + 1))
+    for k in range(nu * nv):
+        a, b = bounds[k], bounds[k + 1]
+        if b - a >= _MIN_BIN:
+            ref.flat[k] = np.percentile(vs[a:b], q)
+    return ref
+
+
+def _fill_bins(ref: np.ndarray, fallback: float) -> np.ndarray:
+    """Empty bins take the mean of filled neighbours (repeated), then ``fallback``."""
+    ref = ref.copy()
+    for _ in range(sum(ref.shape)):
+        nan = np.isnan(ref)
+        if not nan.any() or nan.all():
+            break
+        p = np.pad(ref, 1, constant_values=np.nan)
+        nb = np.stack([p[:-2, 1:-1], p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]])
+        cnt = np.sum(~np.isnan(nb), axis=0)
+        s = np.nansum(nb, axis=0)
+        fill = nan & (cnt > 0)
+        ref[fill] = s[fill] / cnt[fill]
+    ref[np.isnan(ref)] = fallback
+    return ref
+
+
+def _interp_bins(ref, u, ue, v, ve):
+    """Bilinear interpolation of a bin table between bin centres at every pixel, (H, W) float32."""
+    import cv2
+
+    def frac_index(x, e):
+        c = 0.5 * (e[:-1] + e[1:])
+        return np.interp(x.ravel(), c, np.arange(len(c), dtype=np.float32)).reshape(x.shape).astype(np.float32)
+
+    fu = frac_index(u, ue)
+    fv = frac_index(v, ve) if v is not None else np.zeros_like(fu)
+    table = np.ascontiguousarray(ref.T if v is not None else ref[:, :1].T, np.float32)  # rows = v, cols = u
+    return cv2.remap(table, fu, fv, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float):
+    """Upper envelope of a per-pixel feature over regions of the sky, interpolated per pixel.
+
+    Clear sky is the bluest and most saturated thing in the sky (Rayleigh scattering), and its
+    colour varies smoothly with the zenith angle and the angle to the sun. So, per region (bins
+    of zenith × sun angle when the geometry is known, else a 6 × 6 grid of image blocks), the
+    ``q``-th percentile of the feature is the clear-sky value as long as at least 100 − q % of
+    the region is clear; cloudy regions (fewer clear pixels) are filled from their neighbours.
+
+    Returns
+    -------
+    ref : ndarray, shape (H, W), float32
+        Reference value at every pixel (bilinear between region centres).
+    """
+    H, W = feature.shape
+    u, ue, v, ve = _region_coords((H, W), usable, zenith_deg, sun_angle_deg)
+    step = max(1, int(math.sqrt(max(int(np.count_nonzero(usable)), 1) / _SAMPLES)))
+    sl = (slice(step // 2, None, step), slice(step // 2, None, step))
+    m = usable[sl]
+    fs = feature[sl][m]
+    if fs.size == 0:
+        return np.zeros((H, W), np.float32)
+    nu, nv = len(ue) - 1, (len(ve) - 1 if ve is not None else 1)
+    bu = np.clip(np.searchsorted(ue, u[sl][m], side="right") - 1, 0, nu - 1)
+    bv = np.clip(np.searchsorted(ve, v[sl][m], side="right") - 1, 0, nv - 1) if ve is not None else np.zeros_like(bu)
+    ref = _fill_bins(_bin_reference(fs, bu, bv, nu, nv, q), float(np.percentile(fs, q)))
+    if ve is None:
+        ref = np.repeat(ref, 2, axis=1)
+    return _interp_bins(ref, u, ue, v, ve)
+
+
+def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
+    """Per-image, per-region adaptive segmentation (see the module docstring, ``hybrid``)."""
+    import cv2
+
+    if not usable.any():
+        return np.zeros_like(usable)
+    ref_n = clear_sky_reference(nbr, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile)
+    r_n = cv2.subtract(ref_n, nbr)  # blue deficit against the clear sky of the same region
+    if chroma is not None:
+        ref_s = clear_sky_reference(chroma, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile)
+        r_s = cv2.divide(cv2.subtract(ref_s, chroma), cv2.max(ref_s, 0.02))  # relative desaturation
+    else:
+        r_s = None
+    rv = r_n[usable]
+    step = max(1, rv.size // _SAMPLES)
+    rs = rv[::step]
+    t = li_threshold(rs)
+    lo, hi = rs[rs <= t], rs[rs > t]
+    bimodal = (lo.size >= 0.02 * rs.size and hi.size >= 0.02 * rs.size
+               and float(np.median(hi) - np.median(lo)) >= cfg.min_gap)
+    if not bimodal:  # one class only: the whole usable sky is clear or cloud (fixed threshold)
+        med = float(np.median(nbr[usable]))
+        smooth = image_bgr is None or float(np.median(local_contrast(image_bgr)[usable])) < cfg.texture_cv
+        if med >= cfg.fixed_threshold and smooth:  # clear: only what stands out from the clear sky
+            score = cv2.divide(r_n, cfg.min_gap * 2.0)
+        else:
+            return usable.copy()
+    else:
+        gap = max(float(np.median(hi)), cfg.min_gap)  # blue deficit of typical cloud
+        score = cv2.divide(r_n, gap)
+    if r_s is not None:
+        score = cv2.addWeighted(score, 1.0 - cfg.chroma_weight, r_s, cfg.chroma_weight, 0.0)
+    cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
+    return cloud & usable
+
+
+SEGMENTERS = {"hybrid": _hybrid, "nbr": _nbr, "nbr_adaptive": _nbr_adaptive, "otsu": _otsu}
 
 
 def get_segmenter(name: str):
@@ -101,14 +268,67 @@ def get_segmenter(name: str):
         raise ConfigError(f"unknown segmentation method {name!r} (valid: {', '.join(SEGMENTERS)})") from None
 
 
-def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig) -> tuple[np.ndarray, float]:
-    """Cloud mask (H, W) bool and cloud fraction of the usable sky (0..1, 0 if none usable)."""
+def is_greyscale(image) -> bool:
+    """True for a 2-D image or a 3-channel one whose channels are all identical."""
     import cv2
 
+    a = np.asarray(image)
+    if a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1):
+        return True
+    if a.ndim != 3 or a.shape[2] != 3:
+        return False
+    b, g, r = cv2.split(np.ascontiguousarray(a))
+    return not cv2.norm(b, g, cv2.NORM_INF) and not cv2.norm(b, r, cv2.NORM_INF)
+
+
+def check_colour(image, what: str = "image") -> None:
+    """Raise :class:`~cbh.errors.ImageError` unless ``image`` is a colour (H, W, 3) uint8 image."""
+    a = image
+    if not isinstance(a, np.ndarray) or a.dtype != np.uint8 or a.ndim not in (2, 3):
+        raise ImageError(f"{what}: expected a BGR uint8 (H, W, 3) image, got {getattr(a, 'shape', type(a).__name__)}")
+    if is_greyscale(a):
+        raise ImageError(f"{what}: greyscale image; segmentation needs colour (clear sky and cloud differ by "
+                         "their blue-red ratio)")
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ImageError(f"{what}: expected 3 colour channels, got shape {a.shape}")
+
+
+def local_contrast(image_bgr: np.ndarray, window_px: int = 7) -> np.ndarray:
+    """Local standard deviation / local mean of the grey image in a box, (H, W) float32."""
+    import cv2
+
+    g = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    k = (window_px, window_px)
+    m = cv2.blur(g, k)
+    var = cv2.subtract(cv2.blur(cv2.multiply(g, g), k), cv2.multiply(m, m))
+    return cv2.divide(cv2.sqrt(cv2.max(var, 0.0)), cv2.max(m, 1.0))
+
+
+def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig,
+            what: str = "image") -> tuple[np.ndarray, float]:
+    """Cloud mask (H, W) bool and cloud fraction of the usable sky (0..1, 0 if none usable).
+
+    Parameters
+    ----------
+    image_bgr : ndarray, shape (H, W, 3), uint8
+        Colour image (a greyscale one raises :class:`~cbh.errors.ImageError`).
+    usable : ndarray, shape (H, W), bool
+        Sky that may be classified.
+    zenith_deg, sun_angle_deg : ndarray, shape (H, W), float32, or None
+        Zenith angle and angle to the sun of each pixel [deg]; None = unknown (no geometry:
+        ``hybrid`` then uses image regions, ``nbr_adaptive`` no horizon ramp).
+    cfg : SegmentationConfig
+    what : str
+        Name of the image in error messages.
+    """
+    import cv2
+
+    check_colour(image_bgr, what)
     nbr = normalized_blue_red(image_bgr)
     b, g, r = cv2.split(image_bgr)
     bright = cv2.max(cv2.max(b, g), r) >= cfg.min_brightness
     usable = usable & bright
-    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chroma(image_bgr))
+    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chroma(image_bgr),
+                                      image_bgr=image_bgr)
     n = int(np.count_nonzero(usable))
     return cloud, (float(np.count_nonzero(cloud)) / n if n else 0.0)
