@@ -182,6 +182,7 @@ class LayersConfig:
     min_separation_log: float = 0.18  # peaks closer than this in ln(height) are one layer [1]
     valley_ratio: float = 0.5  # two peaks are separate only if the valley is below this × the lower peak [1]
     base_percentile: float = 10.0  # a layer's cloud-base height = this percentile of its points [%]
+    noise_margin: float = 1.2  # the spread is "explained by noise" up to this × the predicted noise [1]
     min_points: int = 50  # a layer needs at least this many points [1]
     min_fraction: float = 0.04  # … and this fraction of all points [1]
     min_cover: float = 0.005  # … and this fraction of camera 1's usable sky [1]
@@ -366,6 +367,8 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _choice(f"{where}.layers.method", ly.method, LAYER_METHODS)
     for k in ("bin_log", "smooth_log", "min_separation_log"):
         _positive(f"{where}.layers.{k}", getattr(ly, k))
+    if not ly.noise_margin >= 1.0:
+        raise ConfigError(f"{where}.layers.noise_margin: must be >= 1, got {ly.noise_margin}")
     if not 0 <= ly.base_percentile <= 50:
         raise ConfigError(f"{where}.layers.base_percentile: must be in 0..50, got {ly.base_percentile}")
     if not 0 < ly.valley_ratio <= 1:

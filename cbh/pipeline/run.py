@@ -42,7 +42,7 @@ from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
-from cbh.pipeline.match import MatchInput, PairGeometry, TriangulatedMatches, get_matcher, triangulate_matches
+from cbh.pipeline.match import EPIPOLAR_METHODS, MatchInput, PairGeometry, TriangulatedMatches, get_matcher, triangulate_matches
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import segment
 
@@ -51,6 +51,7 @@ __all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation",
 log = logging.getLogger(__name__)
 
 _MAX_DISPLAY_MATCHES = 5000
+_MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 
 
@@ -324,6 +325,8 @@ class Pipeline:
         else:
             xyz, miss, p1, p2 = np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
         sparse = [tr for tr in corr.triangulated if not tr.matches.dense]
+        if sum(len(tr.miss_m) for tr in sparse) < _MIN_NOISE_MATCHES:  # none survived: dense 2-D matches
+            sparse = [tr for tr in corr.triangulated if tr.matches.method not in EPIPOLAR_METHODS]
         dtheta = angular_noise(
             np.concatenate([tr.miss_m for tr in sparse] or [np.zeros(0)]),
             np.concatenate([np.linalg.norm(tr.point_m - self.cam1.position_m, axis=1) for tr in sparse] or [np.zeros(0)]))
