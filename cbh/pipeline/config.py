@@ -62,6 +62,7 @@ class SegmentationConfig:
     method: str = "hybrid"  # one of: hybrid, nbr, nbr_adaptive, otsu
     clear_percentile: float = 85.0  # hybrid: a region's clear-sky reference = this percentile of its NBR / chroma [%]
     min_gap: float = 0.06  # hybrid: smallest blue deficit (reference − NBR) of cloud; below it one class only [1]
+    chroma_gap: float = 0.06  # hybrid: … or half of it when the cloud class is this much greyer (chroma) and half as saturated [1]
     fixed_threshold: float = 0.15  # hybrid: one-class images are cloud when their median NBR is below this [1]
     texture_cv: float = 0.03  # hybrid: a one-class sky whose median local contrast (std/mean, 7 px) exceeds this is cloud [1]
     chroma_weight: float = 0.3  # hybrid: weight of the desaturation cue against the blue deficit, 0..1 [1]
@@ -75,6 +76,7 @@ class SegmentationConfig:
     otsu_min: float = -0.05  # otsu: clamp of the Otsu threshold, lower end [1]
     otsu_max: float = 0.20  # otsu: clamp of the Otsu threshold, upper end [1]
     min_brightness: int = 8  # pixels darker than this (max channel) are not classified [0..255]
+    max_side_px: int = 1600  # larger images are classified area-averaged to this long side; 0 = never [px]
 
 
 @dataclass(frozen=True)
@@ -306,11 +308,13 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if not 50.0 <= sg.clear_percentile < 100.0:
         raise ConfigError(f"{where}.segmentation.clear_percentile: must be in [50, 100), got {sg.clear_percentile}")
     _positive(f"{where}.segmentation.min_gap", sg.min_gap)
+    _positive(f"{where}.segmentation.chroma_gap", sg.chroma_gap)
     _positive(f"{where}.segmentation.texture_cv", sg.texture_cv, strict=False)
     if not 0 <= sg.chroma_weight <= 1:
         raise ConfigError(f"{where}.segmentation.chroma_weight: must be in 0..1, got {sg.chroma_weight}")
     if not 0 < sg.score_threshold < 1:
         raise ConfigError(f"{where}.segmentation.score_threshold: must be in (0, 1), got {sg.score_threshold}")
+    _positive(f"{where}.segmentation.max_side_px", sg.max_side_px, strict=False)
     if not 0 <= cfg.segmentation.grey_chroma <= 1:
         raise ConfigError(f"{where}.segmentation.grey_chroma: must be in 0..1, got {cfg.segmentation.grey_chroma}")
     if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:

@@ -99,8 +99,9 @@ def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chrom
 
 _Z_EDGES_DEG = (0.0, 20.0, 35.0, 48.0, 58.0, 66.0, 73.0, 90.0)  # zenith bins of the clear-sky reference
 _PSI_EDGES_DEG = (0.0, 12.0, 22.0, 35.0, 55.0, 80.0, 180.0)  # sun-angle bins
-_BLOCKS = 10  # without geometry: the image is cut into _BLOCKS × _BLOCKS regions
+_BLOCKS = 6  # without geometry: the image is cut into _BLOCKS × _BLOCKS regions
 _MIN_BIN = 150  # a bin needs this many sampled usable pixels for its own reference
+_DETECT_CIRCLE = True
 _SAMPLES = 60000  # pixels sampled for the reference (subsampled on a regular grid)
 
 
@@ -129,8 +130,48 @@ def li_threshold(values: np.ndarray, tol: float = 1e-4) -> float:
     return float(t + lo - 1e-3)
 
 
-def _region_coords(shape, usable, zenith_deg, sun_angle_deg):
-    """Per-pixel region coordinates (u, v) and their bin edges for the clear-sky reference."""
+def _fisheye_circle(usable: np.ndarray, box) -> tuple[float, float, float] | None:
+    """(cy, cx, radius) when the usable pixels form a disk inside a dark frame (an all-sky image), else None.
+
+    The usable pixels fill π/4 of their bounding box within 0.65–0.88 and the box's corner
+    squares (a tenth of its side) are nearly empty (< 10 % usable).
+    """
+    y0, y1, x0, x1 = box
+    h, w = y1 - y0, x1 - x0
+    if min(h, w) < 32 or not 0.8 < h / w < 1.25:
+        return None
+    sub = usable[y0:y1, x0:x1]
+    fill = float(np.count_nonzero(sub)) / (h * w)
+    k = max(2, min(h, w) // 10)
+    corners = [sub[:k, :k], sub[:k, -k:], sub[-k:, :k], sub[-k:, -k:]]
+    if not 0.65 <= fill <= 0.88 or max(float(c.mean()) for c in corners) > 0.1:
+        return None
+    return 0.5 * (y0 + y1 - 1), 0.5 * (x0 + x1 - 1), 0.5 * max(h, w)
+
+
+def _saturated_sun(image_bgr: np.ndarray, usable: np.ndarray, level: int = 250) -> tuple[float, float] | None:
+    """(row, col) of the largest saturated blob (the sun) of at least 0.02 % of the image, else None."""
+    import cv2
+
+    sat = cv2.inRange(image_bgr, (level, level, level), (255, 255, 255))
+    n, _, stats, cent = cv2.connectedComponentsWithStats(sat, connectivity=8)
+    if n < 2:
+        return None
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    if stats[k, cv2.CC_STAT_AREA] < 2e-4 * sat.size:
+        return None
+    return float(cent[k, 1]), float(cent[k, 0])
+
+
+def _region_coords(shape, usable, zenith_deg, sun_angle_deg, image_bgr=None):
+    """Per-pixel region coordinates (u, v) and their bin edges for the clear-sky reference.
+
+    With geometry: zenith angle × angle to the sun (or zenith only). Without: the radius of an
+    all-sky image's disk (:func:`_fisheye_circle`) as a stand-in for the zenith angle, else a
+    grid of image blocks (a crop or an ordinary photograph).
+    """
+    import cv2
+
     H, W = shape
     if zenith_deg is not None:
         u, ue = np.asarray(zenith_deg, np.float32), np.asarray(_Z_EDGES_DEG, np.float32)
@@ -139,6 +180,16 @@ def _region_coords(shape, usable, zenith_deg, sun_angle_deg):
         return u, ue, None, None
     ys, xs = np.nonzero(usable) if usable.any() else (np.array([0, H - 1]), np.array([0, W - 1]))
     y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    circle = _fisheye_circle(usable, (y0, y1, x0, x1)) if _DETECT_CIRCLE else None
+    if circle is not None:  # an all-sky image without its calibration: radius as a stand-in for zenith
+        cy, cx, r = circle
+        yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+        rr = cv2.magnitude(xx - np.float32(cx), yy - np.float32(cy)) * np.float32(90.0 / r)
+        sun = _saturated_sun(image_bgr, usable) if image_bgr is not None else None
+        if sun is None:
+            return rr, np.asarray(_Z_EDGES_DEG, np.float32), None, None
+        psi = cv2.magnitude(xx - np.float32(sun[1]), yy - np.float32(sun[0])) * np.float32(90.0 / r)
+        return rr, np.asarray(_Z_EDGES_DEG, np.float32), psi, np.asarray(_PSI_EDGES_DEG, np.float32)
     yy = np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W))
     xx = np.broadcast_to(np.arange(W, dtype=np.float32)[None, :], (H, W))
     return (yy, np.linspace(y0, y1, _BLOCKS + 1, dtype=np.float32),
@@ -157,6 +208,43 @@ def _bin_reference(values, bu, bv, nu, nv, q):
         if b - a >= _MIN_BIN:
             ref.flat[k] = np.percentile(vs[a:b], q)
     return ref
+
+
+def _raise_cloudy_bins(ref: np.ndarray, tolerance: float = 0.06) -> np.ndarray:
+    """Regions too cloudy for their own envelope take a smooth surface through the clear ones.
+
+    A region that is (almost) all cloud has an envelope at the *cloud's* value, far below its
+    neighbours'. A quadratic surface in the bin indices is fitted to the envelopes, iteratively
+    dropping bins more than 2 robust deviations (and ``tolerance``) below it (an upper fit: the
+    clear sky is the top of the distribution); bins that stay below the final surface by more
+    than ``tolerance`` take the surface's value.
+    """
+    ok = ~np.isnan(ref)
+    if ok.sum() < 8:
+        return ref
+    iu, iv = np.meshgrid(np.arange(ref.shape[0], dtype=np.float64), np.arange(ref.shape[1], dtype=np.float64), indexing="ij")
+    su, sv = max(ref.shape[0] - 1, 1), max(ref.shape[1] - 1, 1)
+    iu, iv = iu / su, iv / sv
+    cols = [np.ones_like(iu), iu, iu * iu] + ([iv, iv * iv, iu * iv] if ref.shape[1] > 1 else [])
+    A = np.stack([c[ok] for c in cols], axis=1)
+    y = ref[ok]
+    keep = np.ones(len(y), bool)
+    for _ in range(4):
+        if keep.sum() < A.shape[1] + 2:
+            return ref
+        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        e = y - A @ coef
+        s = 1.4826 * float(np.median(np.abs(e[keep] - np.median(e[keep])))) + 1e-6
+        new = e > -max(2.0 * s, tolerance)
+        if (new == keep).all():
+            break
+        keep = new
+    fit = np.full(ref.shape, np.nan)
+    fit[ok] = A @ coef
+    low = ok & (ref < fit - tolerance)
+    out = ref.copy()
+    out[low] = fit[low]
+    return out
 
 
 def _fill_bins(ref: np.ndarray, fallback: float) -> np.ndarray:
@@ -190,7 +278,7 @@ def _interp_bins(ref, u, ue, v, ve):
     return cv2.remap(table, fu, fv, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float):
+def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float, image_bgr=None):
     """Upper envelope of a per-pixel feature over regions of the sky, interpolated per pixel.
 
     Clear sky is the bluest and most saturated thing in the sky (Rayleigh scattering), and its
@@ -205,7 +293,7 @@ def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float):
         Reference value at every pixel (bilinear between region centres).
     """
     H, W = feature.shape
-    u, ue, v, ve = _region_coords((H, W), usable, zenith_deg, sun_angle_deg)
+    u, ue, v, ve = _region_coords((H, W), usable, zenith_deg, sun_angle_deg, image_bgr)
     step = max(1, int(math.sqrt(max(int(np.count_nonzero(usable)), 1) / _SAMPLES)))
     sl = (slice(step // 2, None, step), slice(step // 2, None, step))
     m = usable[sl]
@@ -215,7 +303,7 @@ def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float):
     nu, nv = len(ue) - 1, (len(ve) - 1 if ve is not None else 1)
     bu = np.clip(np.searchsorted(ue, u[sl][m], side="right") - 1, 0, nu - 1)
     bv = np.clip(np.searchsorted(ve, v[sl][m], side="right") - 1, 0, nv - 1) if ve is not None else np.zeros_like(bu)
-    ref = _fill_bins(_bin_reference(fs, bu, bv, nu, nv, q), float(np.percentile(fs, q)))
+    ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)), float(np.percentile(fs, q)))
     if ve is None:
         ref = np.repeat(ref, 2, axis=1)
     return _interp_bins(ref, u, ue, v, ve)
@@ -227,10 +315,10 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
 
     if not usable.any():
         return np.zeros_like(usable)
-    ref_n = clear_sky_reference(nbr, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile)
+    ref_n = clear_sky_reference(nbr, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile, image_bgr)
     r_n = cv2.subtract(ref_n, nbr)  # blue deficit against the clear sky of the same region
     if chroma is not None:
-        ref_s = clear_sky_reference(chroma, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile)
+        ref_s = clear_sky_reference(chroma, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile, image_bgr)
         r_s = cv2.divide(cv2.subtract(ref_s, chroma), cv2.max(ref_s, 0.02))  # relative desaturation
     else:
         r_s = None
@@ -239,11 +327,22 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     rs = rv[::step]
     t = li_threshold(rs)
     lo, hi = rs[rs <= t], rs[rs > t]
-    bimodal = (lo.size >= 0.02 * rs.size and hi.size >= 0.02 * rs.size
-               and float(np.median(hi) - np.median(lo)) >= cfg.min_gap)
+    bimodal = False
+    contrast = local_contrast(image_bgr)[usable][::step] if image_bgr is not None else None
+    if lo.size >= 0.02 * rs.size and hi.size >= 0.02 * rs.size:
+        # the cloud class's blue deficit against the clear sky (whose own deficit is ≈ 0: a lower
+        # class far below 0 is a tail of one broad class, not clear sky)
+        gap_n = float(np.median(hi) - max(float(np.median(lo)), 0.0))
+        bimodal = gap_n >= cfg.min_gap
+        if not bimodal and gap_n >= cfg.min_gap / 2 and chroma is not None:
+            # a pale (hazy, over-exposed) sky: a small blue deficit, but the high class is grey and
+            # the low class is not (textured overcast: both classes equally grey)
+            cs = chroma[usable][::step]
+            c_lo, c_hi = float(np.median(cs[rs <= t])), float(np.median(cs[rs > t]))
+            bimodal = c_lo - c_hi >= cfg.chroma_gap and c_hi <= 0.5 * c_lo
     if not bimodal:  # one class only: the whole usable sky is clear or cloud (fixed threshold)
         med = float(np.median(nbr[usable]))
-        smooth = image_bgr is None or float(np.median(local_contrast(image_bgr)[usable])) < cfg.texture_cv
+        smooth = contrast is None or float(np.median(contrast)) < cfg.texture_cv
         if med >= cfg.fixed_threshold and smooth:  # clear: only what stands out from the clear sky
             score = cv2.divide(r_n, cfg.min_gap * 2.0)
         else:
@@ -320,10 +419,28 @@ def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
     cfg : SegmentationConfig
     what : str
         Name of the image in error messages.
+
+    Images larger than ``cfg.max_side_px`` on their long side are classified area-averaged
+    to that size (less sensor and JPEG noise per pixel, and fast on 24-megapixel frames) and
+    the mask is brought back to full size.
     """
     import cv2
 
     check_colour(image_bgr, what)
+    H, W = image_bgr.shape[:2]
+    if cfg.max_side_px and max(H, W) > cfg.max_side_px:  # classify area-averaged, bring the mask back
+        f = cfg.max_side_px / max(H, W)
+        size = (max(1, round(W * f)), max(1, round(H * f)))
+        small = cv2.resize(image_bgr, size, interpolation=cv2.INTER_AREA)
+        u = cv2.resize(usable.view(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        rs = lambda a: None if a is None else cv2.resize(np.asarray(a, np.float32), size, interpolation=cv2.INTER_LINEAR)  # noqa: E731
+        c, _ = segment(small, u, rs(zenith_deg), rs(sun_angle_deg), cfg, what)
+        cloud = cv2.resize(c.view(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+        b, g, r = cv2.split(image_bgr)
+        usable = usable & (cv2.max(cv2.max(b, g), r) >= cfg.min_brightness)
+        cloud &= usable
+        n = int(np.count_nonzero(usable))
+        return cloud, (float(np.count_nonzero(cloud)) / n if n else 0.0)
     nbr = normalized_blue_red(image_bgr)
     b, g, r = cv2.split(image_bgr)
     bright = cv2.max(cv2.max(b, g), r) >= cfg.min_brightness
