@@ -92,8 +92,11 @@ def segment_image(image: np.ndarray, station=None, camera: str | None = None, ti
             sun_angle = angle_map_deg(cam, sun_dir)
             if cfg.masks.sun:
                 usable &= sun_angle > cfg.masks.sun_radius_deg
-    if cfg.masks.saturation:
-        usable &= ~saturation_mask(work, cfg.masks)
+    if cfg.masks.saturation:  # as the pipeline: with a known sun, only saturation near it is glare
+        sat = saturation_mask(work, cfg.masks)
+        if sun_angle is not None and cfg.masks.glare_radius_deg < 180.0:
+            sat &= sun_angle <= cfg.masks.glare_radius_deg
+        usable &= ~sat
     zenith = np.asarray(cam.zenith_map(), np.float32)
     cloud, frac = segment(work, usable, zenith, sun_angle, cfg.segmentation, what=what)
     usable &= _bright(work, cfg)

@@ -53,6 +53,7 @@ class MasksConfig:
     saturation_level: int = 250  # a pixel is saturated when all channels reach this [0..255]
     saturation_min_area_px: int = 20  # smallest saturated blob kept, at working size [px]
     saturation_grow_px: int = 6  # dilation of saturated blobs, at working size [px]
+    glare_radius_deg: float = 30.0  # with a known sun, only saturation within this angle of it is glare; beyond: over-exposed cloud (180 = all glare) [deg]
 
 
 @dataclass(frozen=True)
@@ -297,6 +298,8 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if not 0 < m.max_zenith_deg <= 90:
         raise ConfigError(f"{where}.masks.max_zenith_deg: must be in (0, 90], got {m.max_zenith_deg}")
     _positive(f"{where}.masks.sun_radius_deg", m.sun_radius_deg, strict=False)
+    if not 0 < m.glare_radius_deg <= 180:
+        raise ConfigError(f"{where}.masks.glare_radius_deg: must be in (0, 180], got {m.glare_radius_deg}")
     if not 0 <= m.saturation_level <= 255:
         raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
     _choice(f"{where}.segmentation.method", cfg.segmentation.method, SEGMENTATION_METHODS)

@@ -233,6 +233,10 @@ class Pipeline:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
                 sat = saturation_mask(img, cfg.masks)
+                if ang is not None and cfg.masks.glare_radius_deg < 180.0:
+                    # saturated far from the sun: over-exposed cloud (clear sky never saturates
+                    # all three channels), which stays usable sky and segments as cloud
+                    sat &= ang <= cfg.masks.glare_radius_deg
                 if sat.any():
                     u = u & ~sat
                     if i == 0:
