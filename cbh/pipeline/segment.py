@@ -34,7 +34,7 @@ from cbh.errors import ConfigError, ImageError
 from cbh.pipeline.config import SegmentationConfig
 
 __all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter", "check_colour", "is_greyscale",
-           "local_contrast", "clear_sky_reference", "li_threshold"]
+           "local_contrast", "clear_sky_reference", "clear_sky_references", "li_threshold"]
 
 
 def normalized_blue_red(image_bgr: np.ndarray) -> np.ndarray:
@@ -100,29 +100,36 @@ def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chrom
 _Z_EDGES_DEG = (0.0, 20.0, 35.0, 48.0, 58.0, 66.0, 73.0, 90.0)  # zenith bins of the clear-sky reference
 _PSI_EDGES_DEG = (0.0, 12.0, 22.0, 35.0, 55.0, 80.0, 180.0)  # sun-angle bins
 _BLOCKS = 6  # without geometry: the image is cut into _BLOCKS × _BLOCKS regions
-_MIN_BIN = 150  # a bin needs this many sampled usable pixels for its own reference
+_MIN_BIN = 100  # a bin needs this many sampled usable pixels for its own reference
 _DETECT_CIRCLE = True
-_SAMPLES = 60000  # pixels sampled for the reference (subsampled on a regular grid)
+_SAMPLES = 25000  # pixels sampled for the reference (subsampled on a regular grid)
+_REF_STRIDE = 4  # the references are interpolated on a grid this much coarser, then resized
 
 
-def li_threshold(values: np.ndarray, tol: float = 1e-4) -> float:
-    """Minimum-cross-entropy threshold (Li & Lee 1993, Li & Tam 1998 iteration) of 1-D values.
+def li_threshold(values: np.ndarray, tol: float = 1e-4, bins: int = 512) -> float:
+    """Minimum-cross-entropy threshold (Li & Lee 1993; Li & Tam 1998 iteration) of 1-D values.
 
-    Values at or below the threshold are the low class. Works on any real range (shifted to
-    positive internally); returns the median for a constant input.
+    Values at or below the threshold are the low class. Iterates on a ``bins``-bin histogram
+    (the threshold is good to a bin width, range / 512). Works on any real range (shifted to
+    positive internally); returns the value itself for a constant input.
     """
     v = np.asarray(values, np.float64).ravel()
     if v.size == 0:
         return 0.0
-    lo = float(v.min())
-    x = v - lo + 1e-3  # positive: the cross entropy takes logs of the class means
-    t = float(x.mean())
+    lo, hi = float(v.min()), float(v.max())
+    if hi - lo < 1e-9:
+        return lo
+    counts, edges = np.histogram(v, bins=bins, range=(lo, hi))
+    x = 0.5 * (edges[:-1] + edges[1:]) - lo + 1e-3  # positive: the cross entropy takes logs of the class means
+    cw, cm = np.cumsum(counts), np.cumsum(counts * x)
+    t = float(cm[-1] / cw[-1])
     for _ in range(100):
-        a, b = x[x <= t], x[x > t]
-        if not a.size or not b.size:
+        k = min(max(int(np.searchsorted(x, t, side="right")) - 1, 0), bins - 2)  # bins 0..k: low class
+        n0, n1 = cw[k], cw[-1] - cw[k]
+        if n0 == 0 or n1 == 0:
             break
-        ma, mb = a.mean(), b.mean()
-        t_new = (mb - ma) / (math.log(mb) - math.log(ma)) if mb > ma else t
+        m0, m1 = cm[k] / n0, (cm[-1] - cm[k]) / n1
+        t_new = (m1 - m0) / (math.log(m1) - math.log(m0)) if m1 > m0 else t
         if abs(t_new - t) < tol:
             t = t_new
             break
@@ -197,16 +204,19 @@ def _region_coords(shape, usable, zenith_deg, sun_angle_deg, image_bgr=None):
 
 
 def _bin_reference(values, bu, bv, nu, nv, q):
-    """q-th percentile of ``values`` in each (u, v) bin: (nu, nv) float64, NaN where too few."""
+    """q-th percentile of ``values`` in each (u, v) bin: (nu, nv) float64, NaN where too few.
+
+    One sort by (bin, value); each bin's percentile is then read at its rank (nearest rank).
+    """
     ref = np.full((nu, nv), np.nan)
     key = bu * nv + bv
-    order = np.argsort(key, kind="stable")
+    order = np.lexsort((values, key))
     ks, vs = key[order], values[order]
     bounds = np.searchsorted(ks, np.arange(nu * nv + 1))
-    for k in range(nu * nv):
-        a, b = bounds[k], bounds[k + 1]
-        if b - a >= _MIN_BIN:
-            ref.flat[k] = np.percentile(vs[a:b], q)
+    a, b = bounds[:-1], bounds[1:]
+    ok = (b - a) >= _MIN_BIN
+    rank = a[ok] + np.round((b[ok] - a[ok] - 1) * (q / 100.0)).astype(np.int64)
+    ref.flat[np.flatnonzero(ok)] = vs[rank]
     return ref
 
 
@@ -283,30 +293,47 @@ def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float, im
 
     Clear sky is the bluest and most saturated thing in the sky (Rayleigh scattering), and its
     colour varies smoothly with the zenith angle and the angle to the sun. So, per region (bins
-    of zenith × sun angle when the geometry is known, else a 6 × 6 grid of image blocks), the
+    of zenith × sun angle when the geometry is known; else zenith-like rings of an all-sky
+    image, around a saturated sun if there is one, or a 6 × 6 grid of image blocks), the
     ``q``-th percentile of the feature is the clear-sky value as long as at least 100 − q % of
-    the region is clear; cloudy regions (fewer clear pixels) are filled from their neighbours.
+    the region is clear. Regions far below a smooth surface through the others (all cloud) are
+    raised to it; empty ones are filled from their neighbours.
 
     Returns
     -------
     ref : ndarray, shape (H, W), float32
         Reference value at every pixel (bilinear between region centres).
     """
-    H, W = feature.shape
+    return clear_sky_references([feature], usable, zenith_deg, sun_angle_deg, q, image_bgr)[0]
+
+
+def clear_sky_references(features, usable, zenith_deg, sun_angle_deg, q: float, image_bgr=None) -> list[np.ndarray]:
+    """:func:`clear_sky_reference` of several (H, W) features sharing one set of regions."""
+    import cv2
+
+    H, W = usable.shape
     u, ue, v, ve = _region_coords((H, W), usable, zenith_deg, sun_angle_deg, image_bgr)
     step = max(1, int(math.sqrt(max(int(np.count_nonzero(usable)), 1) / _SAMPLES)))
     sl = (slice(step // 2, None, step), slice(step // 2, None, step))
     m = usable[sl]
-    fs = feature[sl][m]
-    if fs.size == 0:
-        return np.zeros((H, W), np.float32)
     nu, nv = len(ue) - 1, (len(ve) - 1 if ve is not None else 1)
     bu = np.clip(np.searchsorted(ue, u[sl][m], side="right") - 1, 0, nu - 1)
     bv = np.clip(np.searchsorted(ve, v[sl][m], side="right") - 1, 0, nv - 1) if ve is not None else np.zeros_like(bu)
-    ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)), float(np.percentile(fs, q)))
-    if ve is None:
-        ref = np.repeat(ref, 2, axis=1)
-    return _interp_bins(ref, u, ue, v, ve)
+    # the references are smooth: interpolate them on a 4× coarser grid, then resize
+    c = (slice(0, None, _REF_STRIDE), slice(0, None, _REF_STRIDE))
+    us, vs = np.ascontiguousarray(u[c]), (np.ascontiguousarray(v[c]) if v is not None else None)
+    out = []
+    for feature in features:
+        fs = feature[sl][m]
+        if fs.size == 0:
+            out.append(np.zeros((H, W), np.float32))
+            continue
+        ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)), float(np.percentile(fs, q)))
+        if ve is None:
+            ref = np.repeat(ref, 2, axis=1)
+        small = _interp_bins(ref, us, ue, vs, ve)
+        out.append(cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR))
+    return out
 
 
 def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
@@ -315,10 +342,12 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
 
     if not usable.any():
         return np.zeros_like(usable)
-    ref_n = clear_sky_reference(nbr, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile, image_bgr)
+    refs = clear_sky_references([nbr] if chroma is None else [nbr, chroma], usable, zenith_deg, sun_angle_deg,
+                                cfg.clear_percentile, image_bgr)
+    ref_n = refs[0]
     r_n = cv2.subtract(ref_n, nbr)  # blue deficit against the clear sky of the same region
     if chroma is not None:
-        ref_s = clear_sky_reference(chroma, usable, zenith_deg, sun_angle_deg, cfg.clear_percentile, image_bgr)
+        ref_s = refs[1]
         r_s = cv2.divide(cv2.subtract(ref_s, chroma), cv2.max(ref_s, 0.02))  # relative desaturation
     else:
         r_s = None
@@ -328,7 +357,6 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     t = li_threshold(rs)
     lo, hi = rs[rs <= t], rs[rs > t]
     bimodal = False
-    contrast = local_contrast(image_bgr)[usable][::step] if image_bgr is not None else None
     if lo.size >= 0.02 * rs.size and hi.size >= 0.02 * rs.size:
         # the cloud class's blue deficit against the clear sky (whose own deficit is ≈ 0: a lower
         # class far below 0 is a tail of one broad class, not clear sky)
@@ -342,7 +370,7 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
             bimodal = c_lo - c_hi >= cfg.chroma_gap and c_hi <= 0.5 * c_lo
     if not bimodal:  # one class only: the whole usable sky is clear or cloud (fixed threshold)
         med = float(np.median(nbr[usable]))
-        smooth = contrast is None or float(np.median(contrast)) < cfg.texture_cv
+        smooth = image_bgr is None or float(np.median(local_contrast(image_bgr)[usable][::step])) < cfg.texture_cv
         if med >= cfg.fixed_threshold and smooth:  # clear: only what stands out from the clear sky
             score = cv2.divide(r_n, cfg.min_gap * 2.0)
         else:
