@@ -82,7 +82,7 @@ def test_independent_exposure_gives_the_same_layers_and_cloud_fractions(scene):
     """Real-appearance stereo under independent exposure: the issue's bars (layers within 2 %,
     no spurious layer, the cameras' cloud fractions within 0.05)."""
     sim, shot = _render(scene, {"cam2": Imperfection(camera="cam2", gain=GAIN, gamma=GAMMA, white_balance=WB)})
-    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     truth = [l.height_m for l in shot.layers]
     assert len(r.layers) == len(truth)
     for L, h in zip(r.layers, truth):
@@ -99,7 +99,7 @@ def test_independent_exposure_gives_the_same_layers_and_cloud_fractions(scene):
 def test_over_exposed_camera_keeps_its_saturated_cloud():
     """Camera 2 over-exposed (×1.5): its cloud saturates; far from the sun that is cloud, not glare."""
     sim, shot = _render("two-layers", {"cam2": Imperfection(camera="cam2", gain=1.5, gamma=1.15, white_balance=(1.1, 0.85))})
-    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     f = list(r.cloud_fraction.values())
     assert abs(f[0] - f[1]) <= 0.05
     assert [abs(L.height_m - h) <= 0.02 * h for L, h in zip(r.layers, [1200.0, 3500.0])] == [True, True]

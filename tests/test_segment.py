@@ -17,7 +17,8 @@ from cbh.cli.main import main
 from cbh.errors import ImageError
 from cbh.geometry.station import load_station
 from cbh.pipeline.config import SegmentationConfig
-from cbh.pipeline.masks import angle_map_deg, sun_direction_enu
+from cbh.geometry.sun import sun_position
+from cbh.pipeline.masks import angle_map_deg
 from cbh.pipeline.segment import li_threshold, segment
 from cbh.presets import station_path
 from cbh.sim import Imperfection, SkySimulator, load_scene
@@ -38,8 +39,8 @@ def _view(scene: str, response: str, size: int = SIZE):
     sim = SkySimulator(load_station(station_path()), sc, size_px=size)
     v = sim.view("cam1")
     cam = sim.station.cameras["cam1"]
-    d, _ = sun_direction_enu(sim.station.latitude_deg, sim.station.longitude_deg, v.stamp_utc)
-    sun = angle_map_deg(cam, d)
+    st = sim.station
+    sun = angle_map_deg(cam, sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, v.stamp_utc).direction_enu)
     zen = np.asarray(cam.zenith_map(), np.float32)
     usable = cam.model.image_circle_mask() & (zen <= 80.0) & (sun > 3.0)
     return v, usable, zen, sun
@@ -119,7 +120,7 @@ def test_pipeline_refuses_greyscale():
     colour = grey.copy()
     colour[..., 0] = 200
     with pytest.raises(ImageError, match="segmentation needs colour"):
-        Pipeline(st).process(grey, colour, None)
+        Pipeline(st).process(grey, colour, None, channels="bgr")
 
 
 # --- cbh segment -----------------------------------------------------------------------------

@@ -71,7 +71,8 @@ def segment_image(image: np.ndarray, station=None, camera: str | None = None, ti
         return SegmentedImage(cloud=cloud, usable=usable & _bright(image, cfg), cloud_fraction=frac)
 
     from cbh.imageio import check_image_size
-    from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
+    from cbh.geometry.sun import sun_position
+    from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
     from cbh.pipeline.run import working_factor
 
     cfg = config or PipelineConfig.from_dict(station.sections.get("pipeline", {}))
@@ -87,7 +88,8 @@ def segment_image(image: np.ndarray, station=None, camera: str | None = None, ti
     usable = static_sky_mask(cam, cfg.masks, obstacle)
     sun_angle = None
     if time_utc is not None:
-        sun_dir, sun_zen = sun_direction_enu(station.latitude_deg, station.longitude_deg, time_utc)
+        sun = sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, time_utc)
+        sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
         if sun_zen < 90.0:
             sun_angle = angle_map_deg(cam, sun_dir)
             if cfg.masks.sun:

@@ -31,9 +31,10 @@ import math
 import numpy as np
 
 from cbh.errors import ConfigError, ImageError
+from cbh.imageio import is_greyscale
 from cbh.pipeline.config import SegmentationConfig
 
-__all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter", "check_colour", "is_greyscale",
+__all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter", "check_colour",
            "local_contrast", "clear_sky_reference", "clear_sky_references", "li_threshold"]
 
 
@@ -393,19 +394,6 @@ def get_segmenter(name: str):
         return SEGMENTERS[name.lower()]
     except KeyError:
         raise ConfigError(f"unknown segmentation method {name!r} (valid: {', '.join(SEGMENTERS)})") from None
-
-
-def is_greyscale(image) -> bool:
-    """True for a 2-D image or a 3-channel one whose channels are all identical."""
-    import cv2
-
-    a = np.asarray(image)
-    if a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1):
-        return True
-    if a.ndim != 3 or a.shape[2] != 3:
-        return False
-    b, g, r = cv2.split(np.ascontiguousarray(a))
-    return not cv2.norm(b, g, cv2.NORM_INF) and not cv2.norm(b, r, cv2.NORM_INF)
 
 
 def check_colour(image, what: str = "image") -> None:

@@ -21,9 +21,9 @@ def segment_cmd(
 ) -> None:
     """Classify every pixel as cloud or clear sky (default method: hybrid; refuses greyscale)."""
     from cbh.actions.segment import segment_files
-    from cbh.cli.commands.pair import parse_time
+    from cbh.timeutil import parse_utc
 
-    rows = segment_files(images, out, station, camera, parse_time(time) if time else None)
+    rows = segment_files(images, out, station, camera, parse_utc(time, "--time") if time else None)
     if as_json:
         print(json.dumps({"images": rows}, indent=2))
     else:
