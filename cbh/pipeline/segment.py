@@ -133,7 +133,6 @@ _Z_EDGES_DEG = (0.0, 20.0, 35.0, 48.0, 58.0, 66.0, 73.0, 90.0)  # zenith bins of
 _PSI_EDGES_DEG = (0.0, 12.0, 22.0, 35.0, 55.0, 80.0, 180.0)  # sun-angle bins
 _BLOCKS = 6  # without geometry: the image is cut into _BLOCKS × _BLOCKS regions
 _MIN_BIN = 100  # a bin needs this many sampled usable pixels for its own reference
-_DETECT_CIRCLE = True
 _SAMPLES = 25000  # pixels sampled for the reference (subsampled on a regular grid)
 _REF_STRIDE = 4  # the references are interpolated on a grid this much coarser, then resized
 
@@ -219,7 +218,7 @@ def _region_coords(shape, usable, zenith_deg, sun_angle_deg, image_bgr=None):
         return u, ue, None, None
     ys, xs = np.nonzero(usable) if usable.any() else (np.array([0, H - 1]), np.array([0, W - 1]))
     y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-    circle = _fisheye_circle(usable, (y0, y1, x0, x1)) if _DETECT_CIRCLE else None
+    circle = _fisheye_circle(usable, (y0, y1, x0, x1))
     if circle is not None:  # an all-sky image without its calibration: radius as a stand-in for zenith
         cy, cx, r = circle
         yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
