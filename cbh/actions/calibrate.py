@@ -167,7 +167,8 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     ConfigError, ImageError, SourceError
         Bad station, missing/unknown cameras in ``sources``, unreadable images.
     """
-    from cbh.geometry.calibrate import PairObservations, SunObservations, fit_orientations, rotation_from_far_matches
+    from cbh.geometry.calibrate import (PairObservations, SunObservations, SunPairObservations,
+                                        fit_orientations, rotation_from_far_matches)
     from cbh.geometry.station import angles_from_rotation, load_station
     from cbh.imageio import decode_image
     from cbh.live.pairing import Pairer
@@ -330,6 +331,8 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     for n, o in sun_obs.items():  # each sun-tracked camera on its own first
         start[n] = fit_orientations({n: R0[n]}, {n: o}, [], reference=n).cameras[n].R_world_from_cam
     pairs = []
+    start_station = dict(start)  # the alternative start: the station file's relative rotations
+    start = dict(start)
     for other in names[1:]:
         obs = pair_obs[other]
         if not obs:
@@ -347,15 +350,30 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
             raise CalibrationError(f"only {int(inl.sum())} consistent cloud correspondences between {ref} and {other}")
         if other not in sun_obs:
             start[other] = start[ref] @ R_rel
-        # keep an even subsample per pair, so no single pair dominates
-        keep = np.flatnonzero(inl)
+        # every correspondence (even subsample per pair, so no single pair dominates); the
+        # robust fit sorts out mismatches
         cap = opt.max_matches_per_pair * max(len(obs), 1)
+        keep = np.arange(len(ra))
         if len(keep) > cap:
             keep = keep[:: len(keep) // cap + 1]
         ppr = _px_per_rad(work_cam[other])
-        pairs.append(PairObservations(ref, other, ra[keep], rb[keep], t, opt.match_sigma_px / ppr))
-    fit = fit_orientations(start, sun_obs, pairs, reference=ref)
-    n_orb = {p.cam_b: len(p.rays_a) for p in pairs}
+        pairs.append(PairObservations(ref, other, ra[keep], rb[keep], t, opt.match_sigma_px / ppr, "orb"))
+    # the sun seen by both cameras of a pair at once: a relative constraint at infinity, used
+    # for cameras without a usable sun track of their own
+    sun_pairs = []
+    for other in names[1:]:
+        if ref in sun_obs and other in sun_obs:
+            continue
+        ta = {t: r for t, r in zip(data[ref].times, data[ref].rays)}
+        both = [(ta[t], r) for t, r in zip(data[other].times, data[other].rays) if t in ta]
+        if len(both) > 2:  # many: drop those that disagree with the rest by more than 1 deg
+            A0, B0 = start[ref], start[other]
+            dis = np.array([math.degrees(math.acos(min(1.0, float((A0 @ a) @ (B0 @ b))))) for a, b in both])
+            both = [x for x, d in zip(both, dis) if abs(d - np.median(dis)) <= 1.0]
+        if both:
+            sun_pairs.append(SunPairObservations(ref, other, np.array([b[0] for b in both]),
+                                                 np.array([b[1] for b in both]), opt.sun_sigma_deg * math.sqrt(2.0)))
+    fit = _best_fit([start, start_station], sun_obs, pairs, ref, loss="cauchy", scale=3.0, sun_pairs=sun_pairs)
     # --- refinement: LK matches (sub-pixel) with the fitted geometry, then the fit again --------
     if opt.refine_pairs > 0 and pairs:
         from dataclasses import replace as _replace
@@ -377,15 +395,14 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
                 if len(m):
                     ra_l.append(pipe.cam1.model.pixel_to_ray(m.px1))
                     rb_l.append(pipe.cam2.model.pixel_to_ray(m.px2))
-            if not ra_l:
-                new_pairs.append(p)
-                continue
-            ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
-            ppr = _px_per_rad(work_cam[p.cam_b])
-            new_pairs.append(PairObservations(ref, p.cam_b, ra, rb, p.baseline_m, opt.lk_sigma_px / ppr))
+            new_pairs.append(p)  # the ORB correspondences stay (LK alone can be few on real skies)
+            if ra_l:
+                ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
+                ppr = _px_per_rad(work_cam[p.cam_b])
+                new_pairs.append(PairObservations(ref, p.cam_b, ra, rb, p.baseline_m, opt.lk_sigma_px / ppr, "lk"))
         start2 = {n: fit.cameras[n].R_world_from_cam for n in names}
         pairs = new_pairs
-        fit = fit_orientations(start2, sun_obs, pairs, reference=ref)
+        fit = _best_fit([start2], sun_obs, pairs, ref, sun_pairs=sun_pairs)
 
     # --- report and station file ---------------------------------------------------------------
     t_first = min(data[n].t_first for n in names)
@@ -413,15 +430,14 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
             "sun_residuals": sres,
         }
     pair_rep = []
-    for p in pairs:
-        e = fit.epipolar_rad[(p.cam_a, p.cam_b)]
+    for p, e in zip(pairs, fit.epipolar_rad):
         ppr_full = _px_per_rad(station.cameras[p.cam_b])
         inl = np.abs(e) <= 3.0 * p.sigma_rad * 2.0
         pair_rep.append({
             "cameras": [p.cam_a, p.cam_b],
+            "method": p.method,
             "pairs_matched": pair_counts[p.cam_b],
-            "orb_matches": n_orb.get(p.cam_b, 0),
-            "refined_pairs": len(stash[p.cam_b]) if opt.refine_pairs > 0 else 0,
+            "refined_pairs": len(stash[p.cam_b]) if p.method == "lk" else 0,
             "matches_used": int(len(e)),
             "matches_inlier": int(inl.sum()),
             "epipolar_rms_deg": _num(math.degrees(float(np.sqrt(np.mean(e[inl] ** 2))))) if inl.any() else None,
@@ -454,13 +470,40 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     from cbh.geometry.station import parse_station
     import tomllib
 
-    back = parse_station(tomllib.loads(new_text), base_dir=base, path=out)
+    try:
+        back = parse_station(tomllib.loads(new_text), base_dir=base, path=out)
+    except (tomllib.TOMLDecodeError, ConfigError) as exc:  # pragma: no cover - a bug here, said in one line
+        raise CalibrationError(f"internal: the rewritten station does not read back ({exc})") from None
     for n in names:
         err = np.abs(back.cameras[n].R_world_from_cam - fit.cameras[n].R_world_from_cam).max()
         if err > 1e-6:  # pragma: no cover - a bug in rewrite_station_angles
             raise CalibrationError(f"internal: rewritten station disagrees for {n} ({err:.2g})")
     _write_atomic(out, new_text)
     return report
+
+
+def _best_fit(starts: list[dict], sun_obs, pairs, ref, loss: str = "huber", scale: float = 2.0, sun_pairs=()):
+    """The fit with the lowest robust cost over several starting rotations.
+
+    Two starts: the RANSAC rotation of distant points (right when the station file is off by
+    degrees, biased by parallax when the clouds are close) and the station file's own
+    rotations (right when it is nearly calibrated). A start whose fit fails counts as worst.
+    """
+    from cbh.geometry.calibrate import fit_orientations
+
+    best, err, best_n = None, None, -1
+    for st in starts:
+        try:
+            f = fit_orientations(st, sun_obs, pairs, reference=ref, loss=loss, huber=scale, sun_pairs=sun_pairs)
+        except CalibrationError as exc:
+            err = err or exc
+            continue
+        n_in = sum(int(np.sum(np.abs(e) <= 3.0 * p.sigma_rad)) for e, p in zip(f.epipolar_rad, pairs))
+        if n_in > best_n:
+            best, best_n = f, n_in
+    if best is None:
+        raise err
+    return best
 
 
 def _summary(rep: dict) -> list[str]:
@@ -478,7 +521,8 @@ def _summary(rep: dict) -> list[str]:
             line += f" ({c['sun_note']})"
         out.append(line)
     for p in rep["pairs"]:
-        out.append(f"{p['cameras'][0]}-{p['cameras'][1]}: {p['matches_used']} cloud matches from {p['pairs_matched']} "
+        out.append(f"{p['cameras'][0]}-{p['cameras'][1]} {p['method']}: {p['matches_used']} cloud matches from "
+                   f"{p['refined_pairs'] or p['pairs_matched']} "
                    f"pairs, median epipolar residual {p['epipolar_median_px']:.2f} px")
     out.append(f"wrote {rep['out']} ({rep['elapsed_s']:.1f} s)")
     return out
@@ -543,13 +587,13 @@ def _comment(rep: dict) -> list[str]:
         lines.append(s)
         del b
     for p in rep["pairs"]:
-        lines.append(f"  {p['cameras'][0]}-{p['cameras'][1]}: {p['matches_used']} cloud matches from "
-                     f"{p['pairs_matched']} pairs, median epipolar residual {p['epipolar_median_px']:.2f} px")
+        lines.append(f"  {p['cameras'][0]}-{p['cameras'][1]} {p['method']}: {p['matches_used']} cloud matches from "
+                     f"{p['refined_pairs'] or p['pairs_matched']} pairs, median epipolar residual {p['epipolar_median_px']:.2f} px")
     return lines
 
 
 _CAMERA_HEADER = re.compile(r"^\s*\[\[\s*cameras\s*\]\]\s*(#.*)?$")
-_TABLE_HEADER = re.compile(r"^\s*\[")
+_TABLE_HEADER = re.compile(r"""^\s*\[\[?\s*[A-Za-z_"']""")
 _ANGLE_KEY = re.compile(r"^\s*(yaw_deg|pitch_deg|roll_deg)\s*=")
 _ROTATION_KEY = re.compile(r"^\s*rotation\s*=")
 _NAME_KEY = re.compile(r"""^\s*name\s*=\s*["']([^"']*)["']""")
@@ -582,8 +626,10 @@ def rewrite_station_angles(text: str, angles: dict[str, tuple[float, float, floa
                 result.extend("# " + c if not c.startswith("  ") else "#   " + c.strip() for c in comment)
                 inserted_comment = True
             # the camera's own keys: up to the next table header
-            j = i + 1
-            while j < len(lines) and not _TABLE_HEADER.match(lines[j]):
+            j, depth = i + 1, 0
+            while j < len(lines) and not (depth == 0 and _TABLE_HEADER.match(lines[j])):
+                code = lines[j].split("#", 1)[0]
+                depth += code.count("[") - code.count("]")
                 j += 1
             block = lines[i + 1:j]
             name = next((m.group(1) for m in map(_NAME_KEY.match, block) if m), None)

@@ -30,7 +30,7 @@ from cbh.errors import CalibrationError
 from cbh.geometry.station import angles_from_rotation
 
 __all__ = [
-    "SunObservations", "PairObservations", "CameraFit", "OrientationFit",
+    "SunObservations", "PairObservations", "SunPairObservations", "CameraFit", "OrientationFit",
     "epipolar_angle_rad", "fit_orientations", "rotation_from_far_matches", "rotvec_to_matrix",
 ]
 
@@ -92,6 +92,22 @@ class PairObservations:
     rays_b: np.ndarray
     baseline_m: np.ndarray
     sigma_rad: float
+    method: str = ""
+
+
+@dataclass
+class SunPairObservations:
+    """The sun seen by camera ``cam_a`` and camera ``cam_b`` in the same frame pair: ``rays_a``,
+    ``rays_b`` (N, 3) camera-frame unit rays. The sun is at infinity, so ``R_a · rays_a =
+    R_b · rays_b`` whatever the station's true north: this pins the relative rotation about the
+    axes across the sun direction, including the turn that shifts clouds along their epipolar
+    curves (which the epipolar constraint cannot tell from a height change)."""
+
+    cam_a: str
+    cam_b: str
+    rays_a: np.ndarray
+    rays_b: np.ndarray
+    sigma_deg: float = 0.07
 
 
 @dataclass
@@ -115,13 +131,14 @@ class CameraFit:
 
 @dataclass
 class OrientationFit:
-    """Result of :func:`fit_orientations`: per camera, and per pair the epipolar residuals [rad]
-    after the fit, and whether the absolute frame came from the sun."""
+    """Result of :func:`fit_orientations`: per camera, and per PairObservations the epipolar
+    residuals [rad] after the fit, and whether the absolute frame came from the sun."""
 
     cameras: dict[str, CameraFit]
-    epipolar_rad: dict[tuple[str, str], np.ndarray]
+    epipolar_rad: list[np.ndarray]  # per PairObservations, in order
     absolute: bool
     reference: str
+    cost: float = math.nan  # final robust cost (½ Σ ρ(r²), residuals in noise units)
 
 
 def _angle_jacobian(R0: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -144,8 +161,10 @@ def fit_orientations(
     pairs: list[PairObservations],
     *,
     reference: str,
+    sun_pairs: list[SunPairObservations] = (),
     huber: float = 2.0,
     max_sigma_deg: float = 0.5,
+    loss: str = "huber",
 ) -> OrientationFit:
     """Fit every camera's rotation to the sun detections and the correspondences, jointly.
 
@@ -158,10 +177,17 @@ def fit_orientations(
         ``reference`` camera is held at ``R0``.
     pairs : list of PairObservations
         Correspondences; every camera except a sun-fixed one must appear in some pair.
+    sun_pairs : list of SunPairObservations
+        The sun seen by two cameras at once (relative constraint, no absolute frame needed).
+        Trusted (plain least squares, not down-weighted): each detection passed the shape
+        tests of :func:`~cbh.pipeline.sundetect.detect_sun`, and one frame with the sun in both
+        cameras must be able to pin the turn the clouds cannot; the caller removes outliers.
     reference : str
         The camera that is held fixed when no sun track exists.
     huber : float
-        Huber loss scale in units of each residual's expected noise.
+        Robust loss scale in units of each residual's expected noise.
+    loss : str
+        scipy loss: "huber" (default), or "cauchy" for a first fit through many mismatches.
     max_sigma_deg : float
         An angle with a larger standard deviation is not determined: CalibrationError.
 
@@ -200,20 +226,30 @@ def fit_orientations(
             parts.append((np.cross(s @ R[n].T, d) * wgt).ravel())
         for a, b, ra, rb, t, wgt in pair_data:
             parts.append(epipolar_angle_rad(ra @ R[a].T, rb @ R[b].T, t) * wgt)
+        for sp in sun_pairs:
+            parts.append((np.cross(sp.rays_a @ R[sp.cam_a].T, sp.rays_b @ R[sp.cam_b].T)
+                          / math.radians(sp.sigma_deg)).ravel())
         return np.concatenate(parts) if parts else np.zeros(0)
 
     x0 = np.zeros(3 * len(free))
     n_res = len(residuals(x0))
     if n_res < len(x0) + 1:
         raise CalibrationError(f"too few observations ({n_res} residuals) for {len(free)} camera orientations")
-    sol = least_squares(residuals, x0, loss="huber", f_scale=huber, x_scale=1e-2, method="trf")
-    # a second pass started at the first solution, so the Huber weights fit the final residuals
-    sol = least_squares(residuals, sol.x, loss="huber", f_scale=huber, x_scale=1e-2, method="trf")
+    # the sun-pair rows (last) are trusted: plain least squares; every other row gets the robust loss
+    n_trusted = sum(3 * len(sp.rays_a) for sp in sun_pairs)
+    robust = np.ones(n_res, bool)
+    if n_trusted:
+        robust[n_res - n_trusted:] = False
+    rloss = _row_loss(loss, robust)
+    sol = least_squares(residuals, x0, loss=rloss, f_scale=huber, x_scale=1e-2, method="trf")
+    # a second pass started at the first solution, so the robust weights fit the final residuals
+    sol = least_squares(residuals, sol.x, loss=rloss, f_scale=huber, x_scale=1e-2, method="trf")
     r = sol.fun
     inl = np.abs(r) <= 3.0 * huber
     J = sol.jac[inl]
-    dof = max(int(inl.sum()) - len(x0), 1)
-    s2 = float(np.sum(r[inl] ** 2) / dof)
+    # the measured noise level (robust: 1.4826 × median |r|, in units of the expected noise)
+    # scales the covariance, so a data set noisier than assumed gets wider uncertainties
+    s2 = float((1.4826 * np.median(np.abs(r))) ** 2) * len(r) / max(int(inl.sum()), 1)
     try:
         cov = np.linalg.pinv(J.T @ J) * max(s2, 1e-12)
         sv = np.linalg.svd(J, compute_uv=False)
@@ -247,8 +283,33 @@ def fit_orientations(
             sres = np.degrees(np.arccos(cosang))
             ninl = int(np.sum(sres <= 3.0 * huber * sun[n].sigma_deg))
         fits[n] = CameraFit(n, before, after, sig, R[n], sres, ninl)
-    epi = {(a, b): epipolar_angle_rad(ra @ R[a].T, rb @ R[b].T, t) for a, b, ra, rb, t, _ in pair_data}
-    return OrientationFit(fits, epi, absolute, reference)
+    epi = [epipolar_angle_rad(ra @ R[a].T, rb @ R[b].T, t) for a, b, ra, rb, t, _ in pair_data]
+    return OrientationFit(fits, epi, absolute, reference, float(sol.cost))
+
+
+def _row_loss(kind: str, robust: np.ndarray):
+    """A scipy ``least_squares`` loss callable: ``kind`` ("huber" or "cauchy") on the rows where
+    ``robust`` is True, plain squares elsewhere. Returns rho, rho', rho'' of z = (f / f_scale)²."""
+    if kind not in ("huber", "cauchy"):
+        raise ValueError(f"unknown loss {kind!r}")
+
+    def loss(z):
+        out = np.empty((3, z.size))
+        out[0], out[1], out[2] = z, 1.0, 0.0
+        zr = z[robust]
+        if kind == "huber":
+            big = zr > 1.0
+            sq = np.sqrt(np.where(big, zr, 1.0))
+            out[0, robust] = np.where(big, 2.0 * sq - 1.0, zr)
+            out[1, robust] = np.where(big, 1.0 / sq, 1.0)
+            out[2, robust] = np.where(big, -0.5 / (sq * np.where(big, zr, 1.0)), 0.0)
+        else:
+            out[0, robust] = np.log1p(zr)
+            out[1, robust] = 1.0 / (1.0 + zr)
+            out[2, robust] = -1.0 / (1.0 + zr) ** 2
+        return out
+
+    return loss
 
 
 def rotation_from_far_matches(rays_a: np.ndarray, rays_b: np.ndarray, threshold_deg: float,
