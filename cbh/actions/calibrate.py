@@ -57,6 +57,7 @@ class CalibrateOptions:
     min_sun_azimuth_span_deg: float = 20.0
     max_matches_per_pair: int = 400  # RANSAC inliers kept per pair for the fit (even subsample)
     sun_sigma_deg: float = 0.05  # expected sun detection noise [deg]
+    sun_outlier_deg: float = 1.0  # a detection this far off after the fit is an outlier (not in the RMS) [deg]
     match_sigma_px: float = 0.7  # expected ORB keypoint noise, working size [px]
     lk_sigma_px: float = 0.15  # expected LK (refinement) noise, working size [px]
     refine_pairs: int = 40  # pairs re-matched with LK on the first fit's geometry (0 = no refinement)
@@ -413,6 +414,8 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
         before = angles_from_rotation(R0[n])
         full_ppd = _px_per_rad(station.cameras[n]) * math.pi / 180.0
         sres = []
+        good = cf.sun_residual_deg[cf.sun_residual_deg <= opt.sun_outlier_deg]
+        sun_rms = float(np.sqrt(np.mean(good ** 2))) if len(good) else math.nan
         if n in sun_obs:
             sres = [{"time_utc": _iso(t), "residual_deg": float(r)} for t, r in zip(data[n].times, cf.sun_residual_deg)]
         cams[n] = {
@@ -425,8 +428,9 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
             "sun_rejected": {k: v for k, v in data[n].reasons.items() if k != "ok"},
             "sun_used": n in sun_obs,
             "sun_note": sun_notes.get(n),
-            "sun_rms_deg": _num(cf.sun_rms_deg) if n in sun_obs else None,
-            "sun_rms_px": _num(cf.sun_rms_deg * full_ppd) if n in sun_obs else None,
+            "sun_rms_deg": _num(sun_rms) if n in sun_obs else None,
+            "sun_rms_px": _num(sun_rms * full_ppd) if n in sun_obs else None,
+            "sun_outliers": int(np.sum(cf.sun_residual_deg > opt.sun_outlier_deg)) if n in sun_obs else 0,
             "sun_residuals": sres,
         }
     pair_rep = []
@@ -516,7 +520,7 @@ def _summary(rep: dict) -> list[str]:
                 f"roll {a['roll']:.3f} -> {b['roll']:.3f} deg (sigma {max(s.values()):.3f} deg); "
                 f"{c['frames']} frames, sun in {c['sun_detections']}")
         if c["sun_used"]:
-            line += f", sun RMS {c['sun_rms_deg']:.3f} deg ({c['sun_rms_px']:.2f} px)"
+            line += f", sun RMS {c['sun_rms_deg']:.3f} deg ({c['sun_rms_px']:.2f} px), {c['sun_outliers']} outliers"
         elif c["sun_note"]:
             line += f" ({c['sun_note']})"
         out.append(line)

@@ -249,9 +249,10 @@ def fit_orientations(
     J = sol.jac[inl]
     # the measured noise level (robust: 1.4826 × median |r|, in units of the expected noise)
     # scales the covariance, so a data set noisier than assumed gets wider uncertainties
-    s2 = float((1.4826 * np.median(np.abs(r))) ** 2) * len(r) / max(int(inl.sum()), 1)
+    # (never below the expected noise: a suspiciously clean fit does not shrink the uncertainty)
+    s2 = max(float((1.4826 * np.median(np.abs(r))) ** 2) * len(r) / max(int(inl.sum()), 1), 1.0)
     try:
-        cov = np.linalg.pinv(J.T @ J) * max(s2, 1e-12)
+        cov = np.linalg.pinv(J.T @ J) * s2
         sv = np.linalg.svd(J, compute_uv=False)
     except np.linalg.LinAlgError:  # pragma: no cover
         raise CalibrationError("the orientation fit is degenerate") from None
@@ -265,7 +266,7 @@ def fit_orientations(
             Ja = _angle_jacobian(R0[n], sol.x[3 * i: 3 * i + 3])
             c = Ja @ cov[3 * i: 3 * i + 3, 3 * i: 3 * i + 3] @ Ja.T
             sig = tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(c))
-            if sv.min() < 1e-9 * sv.max():
+            if sv.min() < 1e-6 * sv.max():
                 sig = (math.inf,) * 3
             bad = [a for a, s in zip(_ANGLES, sig) if not s <= max_sigma_deg]
             if bad:
