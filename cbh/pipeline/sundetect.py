@@ -18,6 +18,9 @@ Method (:func:`detect_sun`):
    ``min_roundness`` and its fill of the disk of its mean radius at least ``min_fill``;
    and its farthest pixel at most ``max_extent_ratio`` × the disk's edge; otherwise a cloud
    edge cuts it or saturated cloud joins it (*occluded*): its centroid would be biased.
+5. The ring just outside the disk (1.15 to 1.6 times its radius) must be the sun's glow, even
+   all around: ``(p90 − p10) / median`` of its brightness at most ``max_ring_spread``. A
+   saturated cloud near a hidden sun has blue sky on one side and cloud on the other.
 """
 from __future__ import annotations
 
@@ -42,6 +45,7 @@ class SunDetectConfig:
     min_roundness: float = 0.85  # minor/major axis ratio of the blob's angular moments, at least [1]
     min_fill: float = 0.93  # blob area / area of the disk of its RMS radius · √2, at least [1]
     max_extent_ratio: float = 1.2  # farthest blob pixel / (√2 · RMS radius), at most (a disk: 1) [1]
+    max_ring_spread: float = 0.2  # (p90 − p10) / p50 of the brightness just outside the disk, at most [1]
 
 
 @dataclass(frozen=True)
@@ -178,5 +182,33 @@ def detect_sun(image_bgr: np.ndarray, cam: Camera, expected_ray_cam: np.ndarray 
     rho_max = float(np.sqrt(np.max(np.sum(q ** 2, axis=1))))
     if roundness < cfg.min_roundness or fill < cfg.min_fill or rho_max > cfg.max_extent_ratio * math.sqrt(2.0) * rms:
         return SunDetection(False, "occluded", area_px=area, radius_deg=radius_deg)
+    spread = _ring_spread(image_bgr, m, c, u, v, rho_max, usable)
+    if not spread <= cfg.max_ring_spread:
+        return SunDetection(False, "occluded", area_px=area, radius_deg=radius_deg)
     pc = m.ray_to_pixel(c[None, :])[0]
     return SunDetection(True, "ok", ray_cam=c, px=pc, area_px=area, radius_deg=radius_deg)
+
+
+def _ring_spread(image_bgr, m, c, u, v, rho_edge, usable) -> float:
+    """(p90 − p10) / p50 of the grey level in the ring 1.15–1.6 × ``rho_edge`` around ``c``
+    (inf when the ring is not seen)."""
+    h, w = image_bgr.shape[:2]
+    pc = m.ray_to_pixel(c[None, :])[0]
+    out = 1.6 * rho_edge
+    pe = m.ray_to_pixel((c * math.cos(out) + u * math.sin(out))[None, :])[0]
+    if not (np.all(np.isfinite(pc)) and np.all(np.isfinite(pe))):
+        return math.inf
+    rad = int(math.ceil(1.3 * float(np.linalg.norm(pe - pc)))) + 2
+    x0, y0 = max(int(pc[0]) - rad, 0), max(int(pc[1]) - rad, 0)
+    x1, y1 = min(int(pc[0]) + rad + 1, w), min(int(pc[1]) + rad + 1, h)
+    ys, xs = np.nonzero(usable[y0:y1, x0:x1])
+    if len(xs) < 30:
+        return math.inf
+    rays = m.pixel_to_ray(np.stack([xs + x0, ys + y0], axis=-1).astype(np.float64))
+    rho = np.hypot(rays @ u, rays @ v)
+    sel = (rho >= 1.15 * rho_edge) & (rho <= out) & (rays @ c > 0)
+    if sel.sum() < 30:
+        return math.inf
+    g = image_bgr[y0:y1, x0:x1][ys[sel], xs[sel]].astype(np.float64).mean(axis=1)
+    p10, p50, p90 = np.percentile(g, [10, 50, 90])
+    return float((p90 - p10) / max(p50, 1.0))
