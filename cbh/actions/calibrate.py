@@ -453,8 +453,21 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
         Rr0 = R0[ref].T @ R0[n]
         d_ang = math.degrees(math.acos(min(1.0, (np.trace(Rr0.T @ Rr) - 1.0) / 2.0)))
         R_rel_report[n] = {"relative_change_deg": d_ang}
+    warnings = []
+    for p, pr in zip(pairs, pair_rep):
+        expect_px = p.sigma_rad * _px_per_rad(station.cameras[p.cam_b])
+        if pr["epipolar_median_px"] is not None and pr["epipolar_median_px"] > 3.0 * expect_px:
+            warnings.append(
+                f"{p.cam_a}-{p.cam_b} {p.method}: the cloud matches stay {pr['epipolar_median_px']:.1f} px off their "
+                f"epipolar curves (expected ~{expect_px:.1f} px): the lens calibrations or the data do not support "
+                "one rotation; check the new station with `cbh pair` before using it")
+    for n in names:
+        c = cams[n]
+        if c["sun_used"] and c["sun_rms_deg"] is not None and c["sun_rms_deg"] > 5 * opt.sun_sigma_deg:
+            warnings.append(f"{n}: the sun detections scatter by {c['sun_rms_deg']:.2f} deg RMS around the fit")
     report = {
         "station": str(station_path),
+        "warnings": warnings,
         "out": str(out),
         "calibrated_utc": _iso(datetime.now(timezone.utc)),
         "data_from_utc": _iso(t_first),
@@ -528,6 +541,7 @@ def _summary(rep: dict) -> list[str]:
         out.append(f"{p['cameras'][0]}-{p['cameras'][1]} {p['method']}: {p['matches_used']} cloud matches from "
                    f"{p['refined_pairs'] or p['pairs_matched']} "
                    f"pairs, median epipolar residual {p['epipolar_median_px']:.2f} px")
+    out.extend(f"warning: {w}" for w in rep["warnings"])
     out.append(f"wrote {rep['out']} ({rep['elapsed_s']:.1f} s)")
     return out
 
