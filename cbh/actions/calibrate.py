@@ -175,7 +175,7 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     from cbh.live.pairing import Pairer
     from cbh.pipeline import Pipeline
     from cbh.pipeline.config import PipelineConfig
-    from cbh.pipeline.masks import sun_direction_enu
+    from cbh.geometry.sun import sun_position
     from cbh.pipeline.match import MatchInput, get_matcher
     from cbh.pipeline.sundetect import detect_sun
 
@@ -206,8 +206,8 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     def sun_at(t: datetime):
         key = int(t.timestamp())  # one pvlib call per second of data (the sun moves 0.004 deg/s)
         if key not in sun_cache:
-            d, z = sun_direction_enu(station.latitude_deg, station.longitude_deg, t)
-            sun_cache[key] = d if z < 90.0 else None
+            sp = sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, t)
+            sun_cache[key] = sp.direction_enu if sp.zenith_deg < 90.0 else None
         return sun_cache[key]
 
     def to_working(name: str, img: np.ndarray) -> np.ndarray:
