@@ -75,7 +75,7 @@ def main() -> None:
         tag = t.strftime("%Y%m%dT%H%M%S.000Z")
         i1, _ = read_image(data / "cam1" / f"cam1_{tag}.jpg")
         i2, _ = read_image(data / "cam2" / f"cam2_{tag}.jpg")
-        rb, ra = before.process(i1, i2, t), after.process(i1, i2, t)
+        rb, ra = before.process(i1, i2, t, channels="bgr"), after.process(i1, i2, t, channels="bgr")
         fmt = lambda r: ", ".join(f"{l.height_m:.0f} m ({l.confidence:.2f})" for l in r.layers) + (f" [{', '.join(r.flags)}]")
         print(f"{tag}: 2000 m layer before: {fmt(rb)}; after: {fmt(ra)}")
 

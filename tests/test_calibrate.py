@@ -281,7 +281,7 @@ def test_full_day_at_960px_meets_the_issue_targets(tmp_path, repo, capsys):
         tag = t.strftime("%Y%m%dT%H%M%S.000Z")
         i1, _ = read_image(tmp_path / "cam1" / f"cam1_{tag}.jpg")
         i2, _ = read_image(tmp_path / "cam2" / f"cam2_{tag}.jpg")
-        r = pipe.process(i1, i2, t)
+        r = pipe.process(i1, i2, t, channels="bgr")
         assert "geometry_mismatch" not in r.flags
         main_layer = max(r.layers, key=lambda l: l.cover)
         assert abs(main_layer.height_m - 2000.0) <= 20.0

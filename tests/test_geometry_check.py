@@ -43,7 +43,7 @@ def pipe(sim):
 
 
 def test_correct_station_is_not_flagged(pipe, shot):
-    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, T0)
+    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, T0, channels="bgr")
     assert "geometry_mismatch" not in r.flags and "identical_images" not in r.flags
     assert r.diagnostics["geometry_residual_px"] < 0.5  # matching noise, far below the 1 px floor
     assert r.diagnostics["geometry_inlier_fraction"] > 0.9
@@ -52,7 +52,7 @@ def test_correct_station_is_not_flagged(pipe, shot):
 
 def test_same_image_twice_is_always_flagged(pipe, shot):
     img = shot.views["cam1"].image
-    r = pipe.process(img, img.copy(), T0)
+    r = pipe.process(img, img.copy(), T0, channels="bgr")
     assert "identical_images" in r.flags
     assert "geometry_mismatch" in r.flags  # no parallax: the rays meet at infinity
 
@@ -62,13 +62,13 @@ def test_same_camera_twice_is_flagged(pipe, sim):
     its rays have camera 1's parallax, not the baseline's."""
     a = sim.render(T0, cameras=["cam1"]).views["cam1"].image
     b = sim.render(T0 + timedelta(seconds=10), cameras=["cam1"]).views["cam1"].image
-    r = pipe.process(a, b, T0)
+    r = pipe.process(a, b, T0, channels="bgr")
     assert "identical_images" not in r.flags
     assert "geometry_mismatch" in r.flags
 
 
 def test_swapped_cameras_are_flagged(pipe, shot):
-    r = pipe.process(shot.views["cam2"].image, shot.views["cam1"].image, T0)
+    r = pipe.process(shot.views["cam2"].image, shot.views["cam1"].image, T0, channels="bgr")
     assert "geometry_mismatch" in r.flags
 
 
@@ -82,7 +82,7 @@ def test_misoriented_camera_is_flagged(unb, repo, error_deg):
     scene = replace(scene, imperfections={"cam2": Imperfection("cam2", rotation_error_deg=error_deg)})
     s = SkySimulator(unb, scene, size_px=960)
     shot = s.render(T0)
-    r = Pipeline(s.station).process(shot.views["cam1"].image, shot.views["cam2"].image, T0)
+    r = Pipeline(s.station).process(shot.views["cam1"].image, shot.views["cam2"].image, T0, channels="bgr")
     assert "geometry_mismatch" in r.flags, r.diagnostics
 
 
@@ -94,7 +94,7 @@ def test_sun_check_reports_the_residual_and_flags_a_misaligned_camera(unb, repo)
     t = datetime(2024, 6, 21, 12, 30, tzinfo=timezone.utc)  # sun in the clear at zenith 56°
     s = SkySimulator(level, scene, size_px=480)
     shot = s.render(t)
-    r = Pipeline(s.station).process(shot.views["cam1"].image, shot.views["cam2"].image, t)
+    r = Pipeline(s.station).process(shot.views["cam1"].image, shot.views["cam2"].image, t, channels="bgr")
     d = r.diagnostics
     # camera 1 is (2.0, 0.3, −0.2)° off: at zenith 56° that moves the sun by ≈ 2.0·sin 56° ≈ 1.7°
     assert 1.0 < d["sun_residual_cam1_deg"] < 2.2
@@ -103,18 +103,18 @@ def test_sun_check_reports_the_residual_and_flags_a_misaligned_camera(unb, repo)
     assert "sun_misaligned" in r.flags
     ok = SkySimulator(level, replace(scene, imperfections={}), size_px=480)
     shot = ok.render(t)
-    r = Pipeline(ok.station).process(shot.views["cam1"].image, shot.views["cam2"].image, t)
+    r = Pipeline(ok.station).process(shot.views["cam1"].image, shot.views["cam2"].image, t, channels="bgr")
     # the detector's bias towards the brighter sky is ≤ 0.3° at 480 px
     assert r.diagnostics["sun_residual_deg"] < 0.3 and "sun_misaligned" not in r.flags
 
 
 def test_unknown_time_or_hidden_sun_leaves_the_sun_residual_out(pipe, shot):
-    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, None)
+    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, None, channels="bgr")
     assert "sun_residual_deg" not in r.diagnostics and "sun_misaligned" not in r.flags
 
 
 def test_checks_cost_a_few_milliseconds(pipe, shot):
-    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, T0)
+    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, T0, channels="bgr")
     # generous for a shared 2-core machine; typically ~2 ms and ~5 ms
     assert r.timing_ms["geometry_check"] < 50 and r.timing_ms["sun_check"] < 100
 
@@ -137,7 +137,8 @@ def test_service_leaves_flagged_layers_out_and_warns_once(caplog):
     seen = []
     with caplog.at_level(logging.WARNING, logger="cbh.live.service"):
         st = Service([MemorySource("cam1", frames("cam1")), MemorySource("cam2", frames("cam2"))], process, [],
-                     on_pair=lambda s, r: seen.append((r.time_utc, list(s.last_layers_m), s.line()))).run()
+                     on_pair=lambda s, r: r is not None and seen.append((r.time_utc, list(s.last_layers_m), s.line()))).run()
+    assert st.pairs_failed == 0, st.last_error
     seen = [x[1:] for x in sorted(seen)]
     assert st.pairs_processed == n and st.pairs_invalid == 3
     assert seen[0][0] == [2000.0]
@@ -158,7 +159,7 @@ def test_real_wahrsis_pair_is_not_flagged_but_its_sun_is(shared, repo):
     st = load_station(repo / "configs" / "wahrsis-2015-10-29.toml")
     i1, _ = read_image(d / "2015-10-29-12-58-01-wahrsis3-low.jpg")
     i2, _ = read_image(d / "2015-10-29-12-58-01-wahrsis4-low.jpg")
-    r = Pipeline(st).process(i1, i2, datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc))
+    r = Pipeline(st).process(i1, i2, datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc), channels="bgr")
     assert "geometry_mismatch" not in r.flags and "identical_images" not in r.flags
     assert "sun_misaligned" in r.flags
     assert 2.5 < r.diagnostics["sun_residual_cam2_deg"] < 4.5
