@@ -119,7 +119,7 @@ def test_checks_cost_a_few_milliseconds(pipe, shot):
     assert r.timing_ms["geometry_check"] < 50 and r.timing_ms["sun_check"] < 100
 
 
-def test_service_leaves_flagged_layers_out_and_warns_once(caplog):
+def test_service_leaves_flagged_layers_out_and_warns_once():
     from cbh.live.service import Service
     from cbh.live.sources import MemorySource
     from cbh.result import Frame, Histogram, Layer, PairResult, PointSet
@@ -134,10 +134,21 @@ def test_service_leaves_flagged_layers_out_and_warns_once(caplog):
                           Histogram(np.zeros(2), np.zeros(1)), PointSet.empty(), np.zeros((4, 4), np.float32),
                           {}, {}, flags=flags, diagnostics={"geometry_residual_px": 12.0 if flags else 0.1})
 
+    class Collect(logging.Handler):
+        records: list = []
+
+        def emit(self, record):
+            self.records.append(record)
+
+    handler = Collect(logging.WARNING)
+    svc_log = logging.getLogger("cbh.live.service")  # a handler of its own: other tests reconfigure logging
+    svc_log.addHandler(handler)
     seen = []
-    with caplog.at_level(logging.WARNING, logger="cbh.live.service"):
+    try:
         st = Service([MemorySource("cam1", frames("cam1")), MemorySource("cam2", frames("cam2"))], process, [],
                      on_pair=lambda s, r: r is not None and seen.append((r.time_utc, list(s.last_layers_m), s.line()))).run()
+    finally:
+        svc_log.removeHandler(handler)
     assert st.pairs_failed == 0, st.last_error
     seen = [x[1:] for x in sorted(seen)]
     assert st.pairs_processed == n and st.pairs_invalid == 3
@@ -145,7 +156,7 @@ def test_service_leaves_flagged_layers_out_and_warns_once(caplog):
     for layers, line in seen[1:4]:
         assert layers == [] and "not valid: geometry_mismatch" in line
     assert seen[4][0] == [2004.0]
-    warnings = [r for r in caplog.records if "disagree with the station geometry" in r.getMessage()]
+    warnings = [r for r in handler.records if "disagree with the station geometry" in r.getMessage()]
     assert len(warnings) == 1  # once, not per pair
     assert st.to_dict()["pairs_invalid"] == 3
 
