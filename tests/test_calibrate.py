@@ -285,3 +285,24 @@ def test_full_day_at_960px_meets_the_issue_targets(tmp_path, repo, capsys):
         assert "geometry_mismatch" not in r.flags
         main_layer = max(r.layers, key=lambda l: l.cover)
         assert abs(main_layer.height_m - 2000.0) <= 20.0
+
+
+def test_calibrate_reads_a_recording_of_cbh_run(tmp_path, repo, capsys):
+    """A .mcap from `cbh run --record` as the source of both cameras; the station is already
+    right, so the relative fit must leave camera 2 where it is (within 0.05°)."""
+    from cbh.sim import SkySimulator, load_scene
+
+    st = load_station(repo / "configs" / "unb-lea.toml")
+    sim = SkySimulator(st, load_scene(repo / "configs" / "scenes" / "two-layers.toml"), size_px=480)
+    (tmp_path / "st.toml").write_text(sim.station.to_toml())
+    rec = tmp_path / "s.mcap"
+    code, _, err = _run(["run", "--station", str(tmp_path / "st.toml"), "--frames", "3", "--record", str(rec), "-q"], capsys)
+    assert code == 0, err
+    out = tmp_path / "cal.toml"
+    code, stdout, err = _run(["calibrate", "--station", str(tmp_path / "st.toml"), "--source", f"cam1={rec}",
+                              "--source", f"cam2={rec}", "--out", str(out), "--relative-only", "--json"], capsys)
+    assert code == 0, err
+    rep = json.loads(stdout)
+    assert rep["cameras"]["cam1"]["frames"] == 3 and rep["cameras"]["cam2"]["frames"] == 3
+    cal = load_station(out)
+    assert angle_between_deg(cal.cameras["cam2"].R_world_from_cam, sim.station.cameras["cam2"].R_world_from_cam) < 0.05
