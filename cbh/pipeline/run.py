@@ -7,16 +7,16 @@ Stages (each a pure function in its own module; timed into ``PairResult.timing_m
    (chosen so that width and height scale identically), so the geometry stays exact.
 2. ``masks``: image circle ∩ zenith limit ∩ obstacle mask (cached per camera), minus the sun
    disk (pvlib) and saturated blobs.
+   ``sun_check``: the sun detected in each image against the sun predicted from the time and
+   the calibrated rotation (:mod:`.sundetect`): diagnostics ``sun_residual_deg`` (worst camera),
+   ``sun_residual_cam1_deg``, ``sun_residual_cam2_deg``, flag ``sun_misaligned``.
 3. ``segmentation``: cloud mask and fraction per camera.
 4. ``match_<method>``: correspondences per configured method (:mod:`.match`).
 5. ``triangulation``: all correspondences at once, geometric rejection.
-6. ``height_map``: dense map on camera 1's grid, returned at camera 1's full image size.
-5b. ``geometry_check``: the 2-D correspondences against the calibrated rotations and the
+   ``geometry_check``: the 2-D correspondences against the calibrated rotations and the
    baseline (:mod:`.geocheck`): diagnostics ``geometry_residual_px`` and
    ``geometry_inlier_fraction``, flags ``geometry_mismatch`` and ``identical_images``.
-2b. ``sun_check``: the sun detected in each image against the sun predicted from the time and
-   the calibrated rotation (:mod:`.sundetect`): diagnostics ``sun_residual_deg`` (worst camera),
-   ``sun_residual_cam1_deg``, ``sun_residual_cam2_deg``, flag ``sun_misaligned``.
+6. ``height_map``: dense map on camera 1's grid, returned at camera 1's full image size.
 7. ``layers``: log-height histogram → layers with support checks; each layer's ``cover`` is
    the share of camera 1's usable sky whose cloud pixels (own or nearest measured height) lie
    in its height interval, so the covers add up to the cloud fraction (flag
