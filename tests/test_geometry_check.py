@@ -130,9 +130,12 @@ def test_service_leaves_flagged_layers_out_and_warns_once():
     def process(f1, f2):
         i = int((f1.time_utc - T0).total_seconds() // 10)
         flags = ["geometry_mismatch"] if 1 <= i <= 3 else []
+        if i >= 2:
+            flags.append("sun_misaligned")
         return PairResult(f1.time_utc, ("cam1", "cam2"), [Layer(2000.0 + i, 2000.0, 10.0, 0.3, 100, 0.9)],
                           Histogram(np.zeros(2), np.zeros(1)), PointSet.empty(), np.zeros((4, 4), np.float32),
-                          {}, {}, flags=flags, diagnostics={"geometry_residual_px": 12.0 if flags else 0.1})
+                          {}, {}, flags=flags, diagnostics={"geometry_residual_px": 12.0 if i <= 3 else 0.1,
+                                                            "sun_residual_deg": 3.0 if i >= 2 else 0.1})
 
     class Collect(logging.Handler):
         records: list = []
@@ -158,6 +161,7 @@ def test_service_leaves_flagged_layers_out_and_warns_once():
     assert seen[4][0] == [2004.0]
     warnings = [r for r in handler.records if "disagree with the station geometry" in r.getMessage()]
     assert len(warnings) == 1  # once, not per pair
+    assert len([r for r in handler.records if "sun_misaligned" in r.getMessage()]) == 1
     assert st.to_dict()["pairs_invalid"] == 3
 
 

@@ -26,6 +26,7 @@ one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultS
 from __future__ import annotations
 
 import errno
+import math
 import logging
 import queue
 import signal
@@ -119,6 +120,7 @@ class ServiceStats:
     last_layers_m: list[float] = field(default_factory=list)  # latest VALID layer heights above the ENU origin [m]
     pairs_invalid: int = 0  # pairs whose flags invalidate their layers (cbh.flags.INVALIDATING)
     last_invalid: list[str] = field(default_factory=list)  # invalidating flags of the last pair ([] = valid)
+    sun_misaligned: bool = False  # the last pair that saw the sun saw it off (flag sun_misaligned)
     started_monotonic: float = field(default_factory=time.monotonic)
     stop_reason: str | None = None
     last_error: str | None = None
@@ -483,6 +485,14 @@ class Service:
                         extra={"cbh_event": "geometry_valid"})
         st.pairs_invalid += bool(invalid)
         st.last_invalid = invalid
+        if "sun_misaligned" in result.flags and not st.sun_misaligned:  # once per change, like the above
+            log.warning(f"pair at {f1.time_utc.isoformat()}: the sun is "
+                        f"{result.diagnostics.get('sun_residual_deg', float('nan')):.2f} deg from where the station's "
+                        "orientation puts it (sun_misaligned): a camera may have moved; `cbh calibrate` fits it again",
+                        extra={"cbh_event": "sun_misaligned"})
+            st.sun_misaligned = True
+        elif math.isfinite(result.diagnostics.get("sun_residual_deg", math.nan)) and "sun_misaligned" not in result.flags:
+            st.sun_misaligned = False  # the sun was seen where expected
         st.last_layers_m = [] if invalid else [float(l.height_m) for l in result.layers]
         recv = max(f1.received_s if f1.received_s is not None else t0,
                    f2.received_s if f2.received_s is not None else t0)
