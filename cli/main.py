@@ -15,7 +15,7 @@ import typer
 
 from cbh.errors import CbhError
 
-COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "calibrate")
+COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "quicklook", "calibrate")
 
 app = typer.Typer(
     name="cbh",
