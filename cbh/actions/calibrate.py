@@ -38,7 +38,7 @@ import numpy as np
 from cbh.errors import CalibrationError, CbhError, ConfigError, ImageError, SourceError
 from cbh.result import Frame
 
-__all__ = ["CalibrateOptions", "calibrate", "rewrite_station_angles", "parse_sources", "parse_utc"]
+__all__ = ["CalibrateOptions", "calibrate", "rewrite_station_angles", "parse_sources"]
 
 _IMAGE_GAP_S = 0.5
 
@@ -86,19 +86,6 @@ def parse_sources(specs: list[str]) -> dict[str, str]:
             raise ConfigError(f"--source: camera {cam.strip()!r} given twice")
         out[cam.strip()] = spec.strip()
     return out
-
-
-def parse_utc(value: str | None, option: str) -> datetime | None:
-    """An ISO 8601 UTC time (``2024-06-21T14:00:00Z``) or None; ConfigError naming ``option``."""
-    if value is None:
-        return None
-    try:
-        t = datetime.fromisoformat(value.strip().replace("Z", "+00:00"))
-    except ValueError:
-        raise ConfigError(f"{option}: not an ISO 8601 time: {value!r} (e.g. 2024-06-21T14:00:00Z)") from None
-    if t.tzinfo is None:
-        raise ConfigError(f"{option}: needs a UTC offset (end it with Z): {value!r}")
-    return t.astimezone(timezone.utc)
 
 
 def _check_sources(station, sources: dict[str, str]) -> dict[str, str]:
@@ -590,7 +577,10 @@ def _num(v):
 
 
 def _iso(t: datetime | None) -> str | None:
-    return None if t is None else t.astimezone(timezone.utc).isoformat().replace("+00:00", "Z")
+    """ISO 8601 UTC text (:func:`cbh.timeutil.format_utc`), None for None (JSON null)."""
+    from cbh.timeutil import format_utc
+
+    return None if t is None else format_utc(t)
 
 
 def _comment(rep: dict) -> list[str]:

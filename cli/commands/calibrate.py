@@ -22,9 +22,11 @@ def calibrate_cmd(
     relative_only: bool = typer.Option(False, "--relative-only", help="No sun: keep the first camera, fit the others to it from the clouds."),
 ) -> None:
     """Fit yaw, pitch and roll of every camera (sun track: absolute; clouds: relative) and write a station."""
-    from cbh.actions.calibrate import CalibrateOptions, calibrate, parse_sources, parse_utc
+    from cbh.actions.calibrate import CalibrateOptions, calibrate, parse_sources
+    from cbh.timeutil import parse_utc
 
-    opts = CalibrateOptions(from_utc=parse_utc(from_t, "--from"), to_utc=parse_utc(to_t, "--to"),
+    opts = CalibrateOptions(from_utc=None if from_t is None else parse_utc(from_t, "--from"),
+                            to_utc=None if to_t is None else parse_utc(to_t, "--to"),
                             duration_s=duration_s, relative_only=relative_only)
     rep = calibrate(station, parse_sources(source), out, opts)
     if json_out:
