@@ -110,13 +110,16 @@ def _recording_frames(camera: str, path: Path):
 
 def _source_frames(cam, spec: str, base_dir: Path, duration_s: float | None):
     """Frames of one camera (images not yet decoded), until the source ends or ``duration_s``."""
-    from cbh.live.sources import EndOfStream, open_source
+    from cbh.interfaces import EndOfStream
+    from cbh.live.sources import open_source
 
     if spec.lower().endswith(".mcap") or (Path(spec).is_dir() and any(Path(spec).glob("*.mcap"))):
-        p = Path(spec) if Path(spec).is_absolute() else (Path(spec) if Path(spec).exists() else base_dir / spec)
+        p = Path(spec) if Path(spec).is_absolute() or Path(spec).exists() else base_dir / spec
         yield from _recording_frames(cam.name, p)
         return
     src = open_source(cam, spec, decode=False, base_dir=base_dir)
+    if src.live and not duration_s:
+        raise ConfigError(f"{cam.name}: {spec} is a live stream: give --duration SECONDS to calibrate over it")
     src.open()
     t_end = time.monotonic() + duration_s if duration_s else None
     try:
@@ -128,7 +131,7 @@ def _source_frames(cam, spec: str, base_dir: Path, duration_s: float | None):
             except EndOfStream:
                 return
             if f is None:
-                if not getattr(src, "live", False) and t_end is None:
+                if not src.live and t_end is None:  # a finite source with nothing more
                     return
                 continue
             yield f
