@@ -270,6 +270,9 @@ def summary_lines(setup: RunSetup, stats) -> list[str]:
     lines = [f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
              f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
              f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}"]
+    if stats.pairs_invalid:
+        lines.append(f"{stats.pairs_invalid} pairs disagreed with the station geometry: their layers are flagged, "
+                     "not reported as valid" + (f" (last pair: {', '.join(stats.last_invalid)})" if stats.last_invalid else ""))
     if stats.last_layers_m:
         lines.append("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
                      + f" above the station ({setup.station.altitude_m:.0f} m a.s.l.)")
