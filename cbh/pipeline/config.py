@@ -213,6 +213,9 @@ class MotionConfig:
     compensate_min_s: float = 0.1  # compensate camera 2 only above this |offset| (the estimate is good to ≈ 0.05 s) [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
     max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
+
+
+@dataclass(frozen=True)
 class GeometryCheckConfig:
     """Per-pair check of the correspondences against the station geometry (:mod:`.geocheck`)."""
 
