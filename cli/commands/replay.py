@@ -19,6 +19,9 @@ def replay_cmd(
     cameras: str = typer.Option(None, "--cameras", help="Camera pair for --reprocess (default: the recorded pair)."),
     record: Path = typer.Option(None, "--record", help="With --reprocess: record the new results to NEW.mcap."),
     no_viewer: bool = typer.Option(False, "--no-rerun", help="Do not log to Rerun (e.g. only --reprocess --record)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --record file (never the input)."),
+    bind: str = typer.Option(None, "--bind", metavar="ADDR",
+                             help="Address of the --rerun serve server (default 127.0.0.1; 0.0.0.0: every interface)."),
 ) -> None:
     """Re-log a recorded session into Rerun with the default blueprint (images, cloud masks,
     matches, 3D points, histogram, layer heights over time)."""
@@ -55,7 +58,7 @@ def replay_cmd(
                 if cam in probe.images:
                     check_image_size(probe.images[cam].frame(probe.index).image, st.camera(cam).model, f"recorded {cam}")
         if record is not None:
-            recorder = McapRecorder(record, st, pipeline.config.to_dict())
+            recorder = McapRecorder(record, st, pipeline.config.to_dict(), overwrite=overwrite, protect=s.paths)
     sink = None
     n = 0
     t0 = time.perf_counter()
@@ -65,7 +68,7 @@ def replay_cmd(
             if cams is None:
                 first = next(s.pairs(layers_only=True), None)
                 cams = first.result.cameras if first else None
-            sink = RerunSink(st, mode, tgt, cameras=cams, recording_name=session.stem)
+            sink = RerunSink(st, mode, tgt, cameras=cams, recording_name=session.stem, bind=bind)
             if sink.url:
                 print(f"serving on {sink.url}: connect a viewer with `rerun --connect {sink.url}`")
         for pair in s.pairs():
