@@ -29,8 +29,10 @@ dimensions ``time`` and ``layer``; ``cloud_base_height`` [m above ground] and
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
+import os
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -150,7 +152,9 @@ class LayerExporter(ResultSink):
         Parquet only: after this many rows the export continues in ``<stem>-001.parquet``, … .
 
     Both formats are complete and readable after every pair, also while the service runs and
-    after a kill: CSV rows are flushed as written; the Parquet file is rewritten to a temporary
+    after a kill: a pair's CSV rows are appended with one unbuffered write, a write that fails
+    part-way (disk full) is cut back to the last complete row, and a torn last row left by an
+    earlier crash is removed (with a warning) when the file is opened again; the Parquet file is rewritten to a temporary
     file and atomically renamed over the old one after each pair (layer rows are small: a day
     at a 10 s cadence is about 26 000 rows).
     """
@@ -174,25 +178,7 @@ class LayerExporter(ResultSink):
         if not self.path.parent.is_dir():
             raise RecordingError(f"export directory does not exist: {self.path.parent}")
         if self.format == "csv":
-            header = ",".join(COLUMNS)
-            exists = self.path.is_file() and self.path.stat().st_size > 0
-            if exists:
-                with open(self.path, newline="") as fh:
-                    first = fh.readline().rstrip("\r\n")
-                if first != header:
-                    raise RecordingError(f"{self.path}: exists with other columns; cannot append layer rows to it")
-            try:
-                self._fh = open(self.path, "a", newline="")
-            except OSError as exc:
-                raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
-            self._csv = csv.writer(self._fh, lineterminator="\n")
-            if not exists:
-                try:
-                    self._csv.writerow(COLUMNS)
-                    self._fh.flush()
-                except OSError:
-                    self._fh.close()  # the caller reports the error (e.g. disk full)
-                    raise
+            self._open_csv()
         else:
             if max_rows < 1:
                 raise ConfigError(f"export.max_rows: must be >= 1, got {max_rows}")
@@ -219,9 +205,11 @@ class LayerExporter(ResultSink):
             raise RecordingError(f"write to a closed LayerExporter ({self.path})")
         rows = record_rows(rec)
         if self.format == "csv":
+            buf = io.StringIO()
+            w = csv.writer(buf, lineterminator="\n")
             for r in rows:
-                self._csv.writerow([_csv_value(k, r[k]) for k in COLUMNS])
-            self._fh.flush()
+                w.writerow([_csv_value(k, r[k]) for k in COLUMNS])
+            self._append_whole(buf.getvalue().encode("utf-8"))
         else:
             if len(self._rows) + len(rows) > self.max_rows:
                 self.path = self.paths[0].with_name(f"{self.paths[0].stem}-{len(self.paths):03d}.parquet")
@@ -230,6 +218,55 @@ class LayerExporter(ResultSink):
             self._rows.extend(rows)
             self._write_parquet()
         self.rows_written += len(rows)
+
+    # --- CSV: whole rows or nothing ------------------------------------------------------
+
+    def _open_csv(self) -> None:
+        """Open for appending (unbuffered); check the header; cut a torn last row left by a
+        crash or a full disk of an earlier run (warned); write the header of a new file."""
+        header = (",".join(COLUMNS) + "\n").encode()
+        try:
+            self._fh = open(self.path, "a+b", buffering=0)
+        except OSError as exc:
+            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
+        try:
+            fd = self._fh.fileno()
+            size = os.fstat(fd).st_size
+            if size:
+                os.lseek(fd, 0, os.SEEK_SET)
+                first = os.read(fd, len(header))
+                if first != header[: len(first)] or (size >= len(header) and first != header):
+                    raise RecordingError(f"{self.path}: exists with other columns; cannot append layer rows to it")
+                keep = _complete_length(fd, size)
+                if keep < len(header):
+                    keep = 0  # not even the header is complete: start over
+                if keep != size:
+                    os.ftruncate(fd, keep)
+                    log.warning(f"{self.path}: removed a torn last row ({size - keep} bytes) left by an "
+                                "interrupted earlier run", extra={"cbh_event": "csv_repaired"})
+                size = keep
+            if not size:
+                self._append_whole(header)
+        except BaseException:
+            self._fh.close()  # the caller reports the error (e.g. disk full)
+            raise
+
+    def _append_whole(self, data: bytes) -> None:
+        """Append ``data`` (whole rows) with one write; if it fails part-way (disk full), cut the
+        file back to the last complete row and re-raise: a reader never sees a torn row."""
+        fd = self._fh.fileno()
+        start = os.lseek(fd, 0, os.SEEK_END)
+        view = memoryview(data)
+        try:
+            while view:
+                n = os.write(fd, view)  # O_APPEND: at the end; short only when the disk fills
+                view = view[n:]
+        except OSError:
+            try:
+                os.ftruncate(fd, start)
+            except OSError:  # pragma: no cover - truncating never needs space
+                pass
+            raise
 
     def _write_parquet(self) -> None:
         """Write all rows to a temporary file and rename it over the export (atomic)."""
@@ -260,6 +297,20 @@ class LayerExporter(ResultSink):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _complete_length(fd: int, size: int) -> int:
+    """Bytes of the file up to and including its last newline (0 if none)."""
+    pos = size
+    while pos > 0:
+        n = min(65536, pos)
+        os.lseek(fd, pos - n, os.SEEK_SET)
+        chunk = os.read(fd, n)
+        i = chunk.rfind(b"\n")
+        if i >= 0:
+            return pos - n + i + 1
+        pos -= n
+    return 0
 
 
 # --- from recordings ----------------------------------------------------------------------
