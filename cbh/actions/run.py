@@ -13,7 +13,11 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.live.service import Service, ServiceConfig
 from cbh.result import Frame, PairResult
 
-__all__ = ["RunSetup", "build_run", "open_sink"]
+__all__ = ["RunSetup", "build_run", "open_sink", "DEFAULT_ROTATE_S"]
+
+#: A recording starts a new file after this much capture time unless --rotate-s/--rotate-mb
+#: say otherwise (bounds the writer's in-memory index; one file per hour) [s].
+DEFAULT_ROTATE_S = 3600.0
 
 
 def open_sink(path, make):
@@ -110,6 +114,10 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         raise ConfigError(f"--export {export}: the file must end in .csv or .parquet")
     if record is None and (rotate_mb is not None or rotate_s is not None):
         raise ConfigError("--rotate-mb/--rotate-s need --record")
+    if record is not None and rotate_mb is None and rotate_s is None:
+        # an MCAP writer keeps an index entry per message until the file is finished (~3 KB
+        # per pair): an unrotated recording grows the process without bound
+        rotate_s = DEFAULT_ROTATE_S
     notes = []
     sim = None
     if simulated:

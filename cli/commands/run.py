@@ -35,7 +35,7 @@ def run_cmd(
     watch: bool = typer.Option(False, "--watch", help="Image directories: keep polling for new files."),
     realtime: bool = typer.Option(False, "--realtime", help="Simulator: deliver frames at the cadence in wall time, like cameras."),
     rotate_mb: float = typer.Option(None, "--rotate-mb", help="Start a new MCAP file after this many MB."),
-    rotate_s: float = typer.Option(None, "--rotate-s", help="Start a new MCAP file after this many seconds."),
+    rotate_s: float = typer.Option(None, "--rotate-s", help="Start a new MCAP file after this many seconds of capture time (default 3600)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No status line."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --record PATH (default: refuse)."),
     bind: str = typer.Option(None, "--bind", metavar="ADDR",
