@@ -357,12 +357,31 @@ def open_session(path) -> Session:
         order = sorted(paths, key=lambda q: (Session([q]).start_ns or 0))
         if order != paths:
             s = Session(order)
-    s._tmp = tmp  # the repaired copies live as long as the session
+    if tmp is not None:  # the repaired copies live as long as the session
+        import shutil
+        import weakref
+
+        weakref.finalize(s, shutil.rmtree, tmp, True)
     return s
 
 
+def _mcap_state(path: Path) -> str:
+    """``complete`` (magic at both ends), ``truncated`` (magic at the start only) or ``foreign``."""
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(8) != MAGIC:
+                return "foreign"
+            size = fh.seek(0, 2)
+            if size < 16:
+                return "truncated"
+            fh.seek(size - 8)
+            return "complete" if fh.read(8) == MAGIC else "truncated"
+    except OSError:
+        return "foreign"
+
+
 def _usable(paths: list[Path]):
-    """(paths to read, TemporaryDirectory or None): truncated files replaced by repaired
+    """(paths to read, temporary directory or None): truncated files replaced by repaired
     copies, unreadable ones left out (warned)."""
     import logging
     import tempfile
@@ -372,17 +391,16 @@ def _usable(paths: list[Path]):
     log = logging.getLogger(__name__)
     out, tmp = [], None
     for p in paths:
-        try:
-            check_mcap_file(p)
+        state = _mcap_state(p)
+        if state == "complete":
             out.append(p)
             continue
-        except RecordingError as exc:
-            if "truncated" not in str(exc):
-                log.warning(f"{p}: skipped ({exc})")
-                continue
+        if state == "foreign":
+            log.warning(f"{p}: skipped (empty, unreadable or not an MCAP file)")
+            continue
         if tmp is None:
-            tmp = tempfile.TemporaryDirectory(prefix="cbh-recover-")
-        fixed = Path(tmp.name) / f"{len(out):04d}-{p.name}"
+            tmp = tempfile.mkdtemp(prefix="cbh-recover-")
+        fixed = Path(tmp) / f"{len(out):04d}-{p.name}"
         try:
             rep = recover(p, fixed)
             Session([fixed])  # readable as a cbh recording?
@@ -393,5 +411,9 @@ def _usable(paths: list[Path]):
                     f"(repair it for good with `cbh inspect {p} --repair OUT.mcap`)")
         out.append(fixed)
     if not out:
+        if tmp is not None:
+            import shutil
+
+            shutil.rmtree(tmp, ignore_errors=True)
         raise RecordingError(f"no readable recording among {len(paths)} files ({paths[0].parent})")
     return out, tmp
