@@ -307,7 +307,8 @@ def _check_baselines(cameras: dict[str, Camera], allow: bool) -> None:
             d = float(np.linalg.norm(cameras[b].position_m - cameras[a].position_m))
             if allow or lo <= d <= hi:
                 continue
-            what = "zero (both cameras at one place)" if d < 1e-6 else f"{d:.3g} m"
+            what = ("zero (both cameras at one place)" if d < 1e-6 else
+                    f"{d:.2f} m" if d < 1000 else f"{d / 1000:.1f} km")
             raise ConfigError(
                 f"cameras[{b}].position_m: baseline to {a} is {what}, outside the plausible "
                 f"{lo:g} m – {hi / 1000:g} km (positions are metres east, north, up); "

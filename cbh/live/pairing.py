@@ -22,8 +22,8 @@ dropped and counted.
 
 Clock jumps (``jump_s``): a frame slightly older than its camera's newest waiting frame is
 dropped (out of order), but one older by more than ``jump_s`` means the camera's clock stepped
-back: the frames queued before it are dropped and pairing resynchronizes on the new time (a
-single frame stamped years ahead cannot block its camera). Frames dropped because the other
+back: the waiting frames stamped after it are dropped and pairing resynchronizes on the new
+time (a single frame stamped years ahead cannot block its camera). Frames dropped because the other
 camera's waiting frame is more than ``jump_s`` away are reported by :meth:`Pairer.pop_disagreements`.
 """
 from __future__ import annotations
@@ -109,8 +109,8 @@ class Pairer:
             if self.jump_s is None or back_s <= self.jump_s:
                 self._drop(frame)
                 return
-            while q:  # the clock stepped back: what waits is on the old time line
-                self._drop(q.popleft())
+            while q and q[-1].time_utc > frame.time_utc:  # the clock stepped back: drop the
+                self._drop(q.pop())  # frames stamped after the new one (the bad time line)
         q.append(frame)
         while len(q) > self.max_waiting:
             self._drop(q.popleft())

@@ -496,8 +496,12 @@ class Service:
         from cbh.errors import InputError
 
         st = self.stats
-        why = {"duration": f"within --duration {self.cfg.duration_s:g} s", "sources ended": "before the sources ended"
-               }.get(st.stop_reason or "", f"(stopped: {st.stop_reason})")
+        if st.stop_reason == "duration":
+            why = f"within --duration {self.cfg.duration_s:g} s"
+        elif st.stop_reason == "sources ended":
+            why = "before the sources ended"
+        else:
+            why = f"(stopped: {st.stop_reason})"
         failed = [s.error if s.error.startswith(c) else f"{c}: {s.error}"
                   for c, s in st.sources.items() if s.error and s.state in ("failed", "backoff")]
         if failed:
@@ -547,45 +551,50 @@ class Service:
         prev = self._last_frame.get(cam)
         self._last_frame[cam] = (f.time_utc, f.received_s)
         clocked = r.src.clock  # simulated time is the scene's, not a clock
-        why, jump = None, 0.0
+        why, jump, kind = None, 0.0, ""
         if clocked:
             ahead = (f.time_utc - datetime.now(timezone.utc)).total_seconds()
             if ahead > tol:
-                why, jump = f"stamped {_iso(f.time_utc)}, {ahead:.0f} s ahead of the wall clock", ahead
+                why, jump, kind = f"stamped {_iso(f.time_utc)}, {ahead:.0f} s ahead of the wall clock", ahead, "future"
         if why is None and prev is not None:
             dt = (f.time_utc - prev[0]).total_seconds()
             if dt < -tol:
-                why, jump = f"time stepped back {-dt:.0f} s ({_iso(prev[0])} → {_iso(f.time_utc)})", dt
+                why, jump, kind = f"time stepped back {-dt:.0f} s ({_iso(prev[0])} → {_iso(f.time_utc)})", dt, "back"
             elif clocked and r.live and prev[1] is not None and f.received_s is not None:
                 drift = dt - (f.received_s - prev[1])
                 if drift > tol:
-                    why, jump = f"time jumped {drift:.0f} s ahead of the wall clock's advance ({_iso(prev[0])} → {_iso(f.time_utc)})", drift
+                    why, jump, kind = (f"time jumped {drift:.0f} s ahead of the wall clock's advance "
+                                       f"({_iso(prev[0])} → {_iso(f.time_utc)})", drift, "ahead")
         if why is None:
             return
         self._jumps[(cam, f.sequence, f.time_utc)] = jump
         while len(self._jumps) > 256:
             self._jumps.popitem(last=False)
-        self._throttle(f"jump:{cam}", logging.WARNING, f"{cam}: time jump: {why}; pairs resynchronized",
+        self._throttle(f"jump:{cam}:{kind}", logging.WARNING, f"{cam}: time jump: {why}; pairs resynchronized",
                        cbh_camera=cam, cbh_event="time_jump", cbh_jump_s=jump)
         self._events.put({"event": "time_jump", "camera": cam, "jump_s": round(jump, 3),
                           "frame_time_utc": _iso(f.time_utc), "time_utc": datetime.now(timezone.utc)})
 
     def _pull(self, readers: list[_Reader], pairer, live: bool) -> None:
-        """Move frames from the reader queues into the pairer (time-checked)."""
-        for r in readers:
-            other = readers[1] if r is readers[0] else readers[0]
-            while True:
+        """Move frames from the reader queues into the pairer (time-checked), one camera's
+        frame after the other's, so both time lines advance together (also across a jump)."""
+        moved = True
+        while moved:
+            moved = False
+            for r in readers:
+                other = readers[1] if r is readers[0] else readers[0]
                 # lossless: leave frames with a reader that is ahead of the other camera
                 # (it waits) instead of overflowing the pairer, unless the other has ended
                 if (not live and pairer.waiting()[r.src.camera] >= pairer.max_waiting - 1
                         and not (other.done and other.q.empty())):
-                    break
+                    continue
                 try:
                     f = r.q.get_nowait()
                 except queue.Empty:
-                    break
+                    continue
                 self._check_time(r, f)
                 pairer.push(f)
+                moved = True
         for a, b, dt in pairer.pop_disagreements():
             self._throttle(f"disagree:{a}", logging.WARNING,
                            f"{a} frame dropped: {b}'s clock is {abs(dt):.0f} s {'ahead' if dt > 0 else 'behind'} "
