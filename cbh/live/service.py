@@ -9,18 +9,26 @@ one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultS
   subsampled the same way as a live camera); the pairs in between are *skipped*. 0 = every pair.
 - **Falling behind** (any live source): when several pairs are waiting, the newest is processed
   and the older ones are *dropped* (counted); reader queues drop their oldest frame when full.
-  Memory stays bounded by ``queue_frames`` and the pairer's ``max_waiting`` per camera.
   With only finite sources (files, directories, lists, the simulator as fast as possible)
   nothing is dropped: readers wait for the processing.
+- **Bounded**: frames are taken from the reader queues only when no accepted pair waits, so
+  memory is bounded by ``queue_frames`` per camera and the pairer's ``max_waiting``, also at
+  full speed; ``duration_s`` is checked on every pass of the loop.
 - **Faults**: a source that raises :class:`SourceError` (or an OS error/timeout) is closed and
   reopened with exponential backoff (``backoff_initial_s`` doubling up to ``backoff_max_s``);
-  a corrupt frame (:class:`ImageError`) is counted and skipped. A pair the pipeline rejects is
-  counted as failed. None of these stop the service. Per-source state: ``connecting``,
-  ``streaming``, ``backoff``, ``ended`` (finite source done), ``failed`` (a finite source that
-  cannot be read).
+  a corrupt frame (:class:`ImageError`) is counted and skipped, and ``corrupt_limit`` of them in
+  a row from a live source count as a source error. A pair the pipeline rejects is counted as
+  failed. None of these stop the service. Per-source state: ``connecting``, ``streaming``,
+  ``backoff``, ``ended`` (finite source done), ``failed`` (a finite source that cannot be read).
+  An outage is warned about once when it begins (or its cause changes) and once when the source
+  recovers; repeated warnings are rate-limited (``log_repeat_s``). Outages, recoveries, ends,
+  failures and time jumps are written to every sink as status messages (``event`` in the stats).
+- **Time**: see :class:`Service` (``time_jump_s``): a jump is flagged ``time_jump``, warned and
+  resynchronized; it never silences the station.
 - **Stopping**: ``frames`` processed pairs, ``duration_s`` wall seconds, every source ended,
-  :meth:`Service.stop`, or SIGINT/SIGTERM (the pair in flight is finished, every sink closed).
-  A sink that fails to write (disk full, unwritable) stops the service with
+  :meth:`Service.stop`, or SIGINT/SIGTERM/SIGHUP (the pair in flight is finished, every sink
+  closed). A run that ends with no processed pair for any other reason raises a one-line
+  error saying why. A sink that fails to write (disk full, unwritable) stops the service with
   :class:`RecordingError` after closing every sink, so what was written is kept.
 """
 from __future__ import annotations
