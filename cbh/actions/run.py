@@ -6,6 +6,7 @@ them and hands the service a processor and sinks.
 from __future__ import annotations
 
 import errno
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -13,7 +14,7 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.live.service import Service, ServiceConfig
 from cbh.result import Frame, PairResult
 
-__all__ = ["RunSetup", "build_run", "open_sink", "DEFAULT_ROTATE_S"]
+__all__ = ["RunSetup", "MotionChain", "build_run", "open_sink", "check_writable", "summary_lines", "DEFAULT_ROTATE_S"]
 
 #: A recording starts a new file after this much capture time unless --rotate-s/--rotate-mb
 #: say otherwise (bounds the writer's in-memory index; one file per hour) [s].
@@ -30,6 +31,75 @@ def open_sink(path, make):
         raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
+def check_writable(path) -> None:
+    """:class:`RecordingError` (one line, naming ``path``) unless a file can be created at ``path``.
+
+    Used before handing a path to a writer that would fail later, or only in a background
+    thread (Rerun's ``.rrd`` writer). A probe file that did not exist before is removed again.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise RecordingError(f"{p}: is a directory; give a file name")
+    if not p.parent.is_dir():
+        raise RecordingError(f"{p}: directory {p.parent} does not exist")
+    existed = p.exists()
+    try:
+        with open(p, "ab"):
+            pass
+    except OSError as exc:
+        raise RecordingError(f"cannot write {p}: {exc.strerror or exc}") from None
+    if not existed:
+        p.unlink(missing_ok=True)
+
+
+class MotionChain:
+    """The temporal state a run hands from one processed pair to the next
+    (:class:`cbh.pipeline.motion.PairState`).
+
+    Motion is computed only between pairs that follow each other: after a failed pair
+    (:meth:`lost`) or a gap of more than ``gap_factor`` × the usual time between processed
+    pairs (the cadence, or the median of the recent gaps when that is longer: frames were
+    lost, dropped or corrupt), the next pair has no motion; the clock-offset history is kept
+    across (a camera's offset is near-constant).
+
+    Parameters
+    ----------
+    cadence_s : float
+        The run's cadence [s] (0 = every pair).
+    gap_factor : float
+        A gap is a hole above this many usual intervals [1].
+    """
+
+    def __init__(self, cadence_s: float = 0.0, gap_factor: float = 2.5):
+        self.cadence_s, self.gap_factor = float(cadence_s), float(gap_factor)
+        self.state = None
+        self._gaps: list[float] = []
+
+    def previous(self, time_utc):
+        """The state to pass as ``previous`` for a pair captured at ``time_utc``."""
+        s = self.state
+        if s is None or s.gray is None or time_utc is None or s.time_utc is None:
+            return s
+        gap = (time_utc - s.time_utc).total_seconds()
+        recent = sorted(self._gaps[-5:])
+        usual = max(self.cadence_s, recent[len(recent) // 2] if recent else 0.0)
+        if usual > 0 and gap > self.gap_factor * usual:
+            return s.without_frames()
+        return s
+
+    def keep(self, result: PairResult) -> None:
+        """Remember a processed pair's state (and the gap to the one before)."""
+        s = self.state
+        if s is not None and s.time_utc is not None and result.time_utc is not None:
+            gap = (result.time_utc - s.time_utc).total_seconds()
+            if gap > 0:
+                self._gaps = (self._gaps + [gap])[-5:]
+        self.state = result.state
+
+    def lost(self) -> None:
+        """A pair failed: no motion across it."""
+        if self.state is not None:
+            self.state = self.state.without_frames()
 
 
 class RunSetup:
@@ -40,9 +110,18 @@ class RunSetup:
         self.pipeline, self.sinks, self.config = pipeline, sinks, config
         self.recorder = recorder  # McapRecorder or None
         self.notes = notes
+        self.motion = MotionChain(config.cadence_s)
 
     def process(self, f1: Frame, f2: Frame) -> PairResult:
-        return self.pipeline.process(f1.image, f2.image, f1.time_utc)
+        """One pair through the pipeline, with the previous pair's state (motion, clock offset)."""
+        try:
+            result = self.pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr",
+                                           previous=self.motion.previous(f1.time_utc))
+        except Exception:
+            self.motion.lost()
+            raise
+        self.motion.keep(result)
+        return result
 
     def service(self, on_pair: Callable | None = None) -> Service:
         """The :class:`Service` for this run; ``on_pair(stats, result)`` is called after each pair."""
@@ -82,7 +161,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     from datetime import timezone
 
     from cbh.presets import scene_path, station_path
-    from cbh.live.sources import open_source
+    from cbh.live.sources import is_sim_spec, open_source
     from cbh.geometry.station import load_station
 
     st = load_station(station_path(station) if station else station_path())
@@ -98,7 +177,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     c1, c2 = st.pair(cameras)
     names = (c1.name, c2.name)
     specs = {n: overrides.get(n) or st.cameras[n].source or "sim" for n in names}
-    simulated = [n for n in names if specs[n].lower() in ("sim", "simulator", "sim:")]
+    simulated = [n for n in names if is_sim_spec(specs[n])]
     if simulated and len(simulated) != 2:
         raise ConfigError(f"camera {simulated[0]} would be simulated and the other not: give both a source, or neither")
     cfg_dict = dict(st.sections.get("service", {}))
@@ -141,14 +220,21 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     step = config.cadence_s if config.cadence_s > 0 else 10.0
     base_dir = st.path.parent if st.path is not None else None
     same_dir = specs[names[0]] == specs[names[1]]
-    srcs = [open_source(
-        st.cameras[n], specs[n], sim=sim, start_utc=start, watch=watch, decode=False,
-        interval_s=config.snapshot_interval_s, stall_timeout_s=config.stall_timeout_s,
-        sim_step_s=step, sim_realtime=realtime, base_dir=base_dir, prefix=n if same_dir else None,
-    ) for n in names]
+    srcs = []
+    for n in names:
+        if sim is not None:
+            from cbh.sim import SimSource
+
+            srcs.append(SimSource(n, sim, step_s=step, start_utc=start, realtime=realtime))
+        else:
+            srcs.append(open_source(
+                st.cameras[n], specs[n], watch=watch, decode=False, interval_s=config.snapshot_interval_s,
+                stall_timeout_s=config.stall_timeout_s, base_dir=base_dir, prefix=n if same_dir else None))
     from cbh.pipeline import Pipeline, PipelineConfig
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
+    # an offset above the pairing tolerance is what the clock_offset flag reports
+    pcfg = pcfg.replace(motion=replace(pcfg.motion, offset_tolerance_s=config.pair_tolerance_s))
     pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg)
     sinks = []
     recorder = None
@@ -180,6 +266,8 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         if rerun is not None:
             from cbh.outputs.rerun_view import RerunSink
 
+            if rerun_args[0] == "save":
+                check_writable(rerun_args[1])
             sinks.append(RerunSink(st, mode=rerun_args[0], target=rerun_args[1], bind=bind))
     except BaseException:
         for s in sinks:
@@ -189,3 +277,18 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
                 pass
         raise
     return RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)
+
+
+def summary_lines(setup: RunSetup, stats) -> list[str]:
+    """The end-of-run summary: counts, stop reason, latest layers, files written."""
+    lines = [f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
+             f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
+             f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}"]
+    if stats.pairs_invalid:
+        lines.append(f"{stats.pairs_invalid} pairs disagreed with the station geometry: their layers are flagged, "
+                     "not reported as valid" + (f" (last pair: {', '.join(stats.last_invalid)})" if stats.last_invalid else ""))
+    if stats.last_layers_m:
+        lines.append("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
+                     + f" above the station ({setup.station.altitude_m:.0f} m a.s.l.)")
+    lines += [f"{what}: {path}" for what, path in setup.outputs()]
+    return lines

@@ -34,19 +34,22 @@ one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultS
 from __future__ import annotations
 
 import errno
+import math
 import logging
 import queue
 import signal
 import threading
 import time
 from collections import OrderedDict, deque
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
+from cbh.flags import INVALIDATING
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult
+from cbh.tomlio import dataclass_from_table
 from cbh.live.sources import EndOfStream, decode_frame
 
 __all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySink", "STATES"]
@@ -95,17 +98,9 @@ class ServiceConfig:
 
     @classmethod
     def from_dict(cls, d: dict | None, where: str = "service") -> "ServiceConfig":
-        """From a TOML table; unknown keys and wrong types raise :class:`ConfigError` naming the key."""
-        d = dict(d or {})
-        names = {f.name: f for f in fields(cls)}
-        kw = {}
-        for k, v in d.items():
-            if k not in names:
-                raise ConfigError(f"{where}.{k}: unknown key (allowed: {', '.join(names)})")
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ConfigError(f"{where}.{k}: expected a number, got {v!r}")
-            kw[k] = int(v) if k in ("queue_frames", "frames", "corrupt_limit") else float(v)
-        return cls(**kw)
+        """From a TOML table; unknown keys, wrong types and non-finite numbers raise
+        :class:`ConfigError` naming the key (:func:`cbh.tomlio.dataclass_from_table`)."""
+        return dataclass_from_table(cls, dict(d or {}), where)
 
     def to_dict(self) -> dict:
         return {k: v for k, v in asdict(self).items() if v is not None}
@@ -139,7 +134,10 @@ class ServiceStats:
     latency_s: float | None = None  # frame received → result written, last pair [s]
     process_s: float | None = None  # pipeline time of the last pair [s]
     last_time_utc: datetime | None = None
-    last_layers_m: list[float] = field(default_factory=list)  # latest layer heights above the ENU origin [m]
+    last_layers_m: list[float] = field(default_factory=list)  # latest VALID layer heights above the ENU origin [m]
+    pairs_invalid: int = 0  # pairs whose flags invalidate their layers (cbh.flags.INVALIDATING)
+    last_invalid: list[str] = field(default_factory=list)  # invalidating flags of the last pair ([] = valid)
+    sun_misaligned: bool = False  # the last pair that saw the sun saw it off (flag sun_misaligned)
     started_monotonic: float = field(default_factory=time.monotonic)
     stop_reason: str | None = None
     last_error: str | None = None
@@ -157,12 +155,16 @@ class ServiceStats:
             "latency_s": self.latency_s,
             "process_s": self.process_s,
             "layers_m": list(self.last_layers_m),
+            "pairs_invalid": self.pairs_invalid,
+            "invalid_flags": list(self.last_invalid),
             "elapsed_s": round(time.monotonic() - self.started_monotonic, 3),
         }
 
     def line(self) -> str:
         """One-line status text."""
         layers = ", ".join(f"{h:.0f} m" for h in self.last_layers_m) or "-"
+        if self.last_invalid:
+            layers = f"- (not valid: {', '.join(self.last_invalid)})"
         src = " ".join(f"{c}:{s.state}" for c, s in self.sources.items())
         lat = f"{self.latency_s:.2f} s" if self.latency_s is not None else "-"
         extra = ""
@@ -390,7 +392,7 @@ class Service:
     sources : sequence of FrameSource
         Exactly two: camera 1's and camera 2's (pairs come out in this order).
     process : callable (Frame, Frame) → PairResult
-        Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc)``.
+        Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr")``.
         Frames arrive decoded (``image`` set).
     sinks : sequence of ResultSink
         Each gets ``write((f1, f2), result)`` per pair, ``write_status(time_utc, stats)`` after
@@ -528,6 +530,8 @@ class Service:
             try:
                 sink.close()
             except Exception as exc:
+                # raised below (the CLI prints it once): only the structured log gets it here
+                log.debug(f"closing {type(sink).__name__} failed: {exc}", extra={"cbh_sink": type(sink).__name__})
                 if err is None:
                     err = _sink_error(sink, exc, "closing")
         return err
@@ -699,11 +703,32 @@ class Service:
                 sink.write(pair, result)
             except Exception as exc:
                 err = _sink_error(sink, exc, "writing")
+                log.debug(str(err), extra={"cbh_event": "sink_failed"})  # raised: printed once by the caller
                 self.stop("sink failed")
                 raise err from None
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
-        st.last_layers_m = [float(l.height_m) for l in result.layers]
+        invalid = [f for f in result.flags if f in INVALIDATING]
+        if invalid and not st.last_invalid:  # one warning per change of state, not per pair
+            diag = ", ".join(f"{k} {v:.3g}" for k, v in result.diagnostics.items() if k.startswith(("geometry_", "sun_")))
+            log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(invalid)}: the cameras disagree with the "
+                        f"station geometry ({diag}); layers are not reported as valid until they agree again "
+                        "(check the sources and the orientation: `cbh calibrate`)",
+                        extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
+        elif not invalid and st.last_invalid:
+            log.warning(f"pair at {f1.time_utc.isoformat()}: the cameras agree with the station geometry again",
+                        extra={"cbh_event": "geometry_valid"})
+        st.pairs_invalid += bool(invalid)
+        st.last_invalid = invalid
+        if "sun_misaligned" in result.flags and not st.sun_misaligned:  # once per change, like the above
+            log.warning(f"pair at {f1.time_utc.isoformat()}: the sun is "
+                        f"{result.diagnostics.get('sun_residual_deg', float('nan')):.2f} deg from where the station's "
+                        "orientation puts it (sun_misaligned): a camera may have moved; `cbh calibrate` fits it again",
+                        extra={"cbh_event": "sun_misaligned"})
+            st.sun_misaligned = True
+        elif math.isfinite(result.diagnostics.get("sun_residual_deg", math.nan)) and "sun_misaligned" not in result.flags:
+            st.sun_misaligned = False  # the sun was seen where expected
+        st.last_layers_m = [] if invalid else [float(l.height_m) for l in result.layers]
         recv = max(f1.received_s if f1.received_s is not None else t0,
                    f2.received_s if f2.received_s is not None else t0)
         st.latency_s = time.monotonic() - recv

@@ -53,6 +53,9 @@ The file format::
     camera = "cam2"
     clock_offset_s = 2.0                   # the camera captures this late (its stamp is on time)
     rotation_error_deg = [0.5, 0.0, 0.0]   # true (yaw, pitch, roll) minus the station file's [deg]
+    gain = 1.0                             # colour response: exposure gain on linear values [1]
+    gamma = 1.0                            #   tone curve exponent: out = 255·(gain·wb·in/255)^gamma
+    white_balance = [1.0, 1.0]             #   (red, blue) channel gains relative to green [1]
 """
 from __future__ import annotations
 
@@ -62,11 +65,13 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from cbh.errors import ConfigError
+from cbh import tomlio
 from cbh.tomlio import read_toml
+from cbh.timeutil import parse_utc
 
 __all__ = [
     "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
-    "load_scene", "parse_scene", "DEFAULT_TIME_UTC",
+    "load_scene", "parse_scene", "with_clock_offsets", "DEFAULT_TIME_UTC",
 ]
 
 #: Start time of a scene that gives none (a clear mid-morning in Brasília).
@@ -167,6 +172,14 @@ class Imperfection:
     camera: str
     clock_offset_s: float = 0.0  # the camera captures this many seconds late [s]
     rotation_error_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # true minus nominal (yaw, pitch, roll) [deg]
+    gain: float = 1.0  # colour response: exposure gain applied to the rendered values [1]
+    gamma: float = 1.0  # tone-curve exponent: out = 255 · clip(gain · wb · in / 255)^gamma [1]
+    white_balance: tuple[float, float] = (1.0, 1.0)  # (red, blue) gains relative to green [1]
+
+    @property
+    def has_colour_response(self) -> bool:
+        """True when the camera's colour response differs from the identity."""
+        return (self.gain, self.gamma, tuple(self.white_balance)) != (1.0, 1.0, (1.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -216,77 +229,42 @@ class Scene:
 # --- parsing ------------------------------------------------------------------------------
 
 def _unknown(where: str, table: dict, allowed) -> None:
-    extra = sorted(set(table) - set(allowed))
-    if extra:
-        key = f"{where}.{extra[0]}" if where else extra[0]
-        raise ConfigError(f"scene: {key}: unknown key (allowed: {', '.join(sorted(allowed))})")
+    try:
+        tomlio.check_keys(where, table, allowed)
+    except ConfigError as exc:
+        raise ConfigError(f"scene: {exc}") from None
 
 
 def _table(where: str, value) -> dict:
-    if not isinstance(value, dict):
-        raise ConfigError(f"scene: {where}: expected a table")
-    return value
+    return tomlio.table(f"scene: {where}", value)
 
 
 def _num(where: str, value, *, lo=None, hi=None, lo_open=False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"scene: {where}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(f"scene: {where}: must be finite, got {value!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise ConfigError(f"scene: {where}: must be {'>' if lo_open else '>='} {lo:g}, got {value!r}")
-    if hi is not None and v > hi:
-        raise ConfigError(f"scene: {where}: must be <= {hi:g}, got {value!r}")
-    return v
+    return tomlio.number(f"scene: {where}", value, lo=lo, hi=hi, lo_open=lo_open)
 
 
 def _int(where: str, value, *, lo=None, hi=None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"scene: {where}: expected an integer, got {value!r}")
-    if (lo is not None and value < lo) or (hi is not None and value > hi):
-        raise ConfigError(f"scene: {where}: must be in {lo}..{hi}, got {value!r}")
-    return int(value)
+    return tomlio.integer(f"scene: {where}", value, lo=lo, hi=hi)
 
 
 def _bool(where: str, value) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"scene: {where}: expected true or false, got {value!r}")
-    return value
+    return tomlio.boolean(f"scene: {where}", value)
 
 
 def _str(where: str, value) -> str:
-    if not isinstance(value, str):
-        raise ConfigError(f"scene: {where}: expected a string, got {value!r}")
-    return value
+    return tomlio.string(f"scene: {where}", value)
 
 
 def _vec(where: str, value, n: int, **kw) -> tuple[float, ...]:
-    if not isinstance(value, list) or len(value) != n:
-        raise ConfigError(f"scene: {where}: expected a list of {n} numbers, got {value!r}")
-    return tuple(_num(f"{where}[{i}]", v, **kw) for i, v in enumerate(value))
+    return tomlio.vector(f"scene: {where}", value, n, **kw)
 
 
 def _time(where: str, value) -> datetime:
-    if isinstance(value, datetime):
-        t = value
-    elif isinstance(value, str):
-        try:
-            t = datetime.fromisoformat(value.strip().replace("Z", "+00:00"))
-        except ValueError:
-            raise ConfigError(f"scene: {where}: not an ISO 8601 time: {value!r}") from None
-    else:
-        raise ConfigError(f"scene: {where}: expected a UTC time like 2024-06-21T15:00:00Z, got {value!r}")
-    if t.tzinfo is None:
-        raise ConfigError(f"scene: {where}: time needs a UTC offset (end it with Z), got {value!r}")
-    return t.astimezone(timezone.utc)
+    return parse_utc(value, f"scene: {where}", error=ConfigError)
 
 
 def _choice(where: str, value, choices) -> str:
-    value = _str(where, value)
-    if value not in choices:
-        raise ConfigError(f"scene: {where}: unknown value {value!r} (choose from {', '.join(choices)})")
-    return value
+    return tomlio.choice(f"scene: {where}", value, choices)
 
 
 def _parse_layer(where: str, d) -> CloudLayer:
@@ -390,6 +368,9 @@ def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) ->
             clock_offset_s=_num(f"{w}.clock_offset_s", d.get("clock_offset_s", 0.0), lo=-3600.0, hi=3600.0),
             rotation_error_deg=_vec(f"{w}.rotation_error_deg", d.get("rotation_error_deg", [0.0, 0.0, 0.0]), 3,
                                     lo=-45.0, hi=45.0),
+            gain=_num(f"{w}.gain", d.get("gain", 1.0), lo=0.05, hi=20.0),
+            gamma=_num(f"{w}.gamma", d.get("gamma", 1.0), lo=0.2, hi=5.0),
+            white_balance=_vec(f"{w}.white_balance", d.get("white_balance", [1.0, 1.0]), 2, lo=0.2, hi=5.0),
         )
 
     return Scene(
@@ -426,3 +407,26 @@ def load_scene(path: str | Path) -> Scene:
     except ConfigError as exc:
         msg = str(exc)
         raise ConfigError(f"scene {p.name}: {msg.removeprefix('scene: ')}") from None
+
+
+def with_clock_offsets(scene: Scene, specs) -> Scene:
+    """The scene with per-camera clock offsets set from ``CAMERA=SECONDS`` strings (e.g. the
+    ``cbh simulate --clock-offset cam2=3`` option); other imperfections are kept.
+
+    Raises
+    ------
+    ConfigError
+        A spec that is not ``CAMERA=SECONDS`` with a finite number.
+    """
+    imps = dict(scene.imperfections)
+    for spec in specs:
+        cam, sep, val = str(spec).partition("=")
+        try:
+            sec = float(val)
+        except ValueError:
+            sec = math.nan
+        if not sep or not cam.strip() or not math.isfinite(sec):
+            raise ConfigError(f"--clock-offset {spec!r}: expected CAMERA=SECONDS, e.g. cam2=3")
+        cam = cam.strip()
+        imps[cam] = replace(imps.get(cam) or Imperfection(camera=cam), clock_offset_s=sec)
+    return replace(scene, imperfections=imps)
