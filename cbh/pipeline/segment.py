@@ -238,12 +238,15 @@ def _bin_reference(values, bu, bv, nu, nv, q):
     """q-th percentile of ``values`` in each (u, v) bin: (nu, nv) float64, NaN where too few.
 
     One sort by (bin, value); each bin's percentile is then read at its rank (nearest rank).
+    ``values`` must lie within [−1, 1] (NBR and chroma do).
     """
     ref = np.full((nu, nv), np.nan)
-    key = bu * nv + bv
-    order = np.lexsort((values, key))
-    ks, vs = key[order], values[order]
-    bounds = np.searchsorted(ks, np.arange(nu * nv + 1))
+    key = (bu * nv + bv).astype(np.float64)
+    # one float sort of bin·8 + value (values are NBR or chroma, within [−1, 1]: no overlap)
+    c = np.sort(key * 8.0 + np.clip(values, -1.0, 1.0))
+    ks = np.round(c / 8.0)
+    vs = c - 8.0 * ks
+    bounds = np.searchsorted(ks, np.arange(nu * nv + 1) - 0.5)
     a, b = bounds[:-1], bounds[1:]
     ok = (b - a) >= _MIN_BIN
     rank = a[ok] + np.round((b[ok] - a[ok] - 1) * (q / 100.0)).astype(np.int64)
@@ -382,9 +385,13 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
         r_s = cv2.divide(cv2.subtract(ref_s, chroma), cv2.max(ref_s, 0.02))  # relative desaturation
     else:
         r_s = None
-    rv = r_n[usable]
-    step = max(1, rv.size // _SAMPLES)
-    rs = rv[::step]
+    # class statistics on a regular subsample of the usable sky (≈ _SAMPLES pixels)
+    s = max(1, int(math.sqrt(max(int(np.count_nonzero(usable)), 1) / _SAMPLES)))
+    sub = (slice(s // 2, None, s), slice(s // 2, None, s))
+    us = usable[sub]
+    rs = r_n[sub][us]
+    if rs.size == 0:
+        return np.zeros_like(usable)
     t = li_threshold(rs)
     lo, hi = rs[rs <= t], rs[rs > t]
     bimodal = False
@@ -396,12 +403,12 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
         if not bimodal and gap_n >= cfg.min_gap / 2 and chroma is not None:
             # a pale (hazy, over-exposed) sky: a small blue deficit, but the high class is grey and
             # the low class is not (textured overcast: both classes equally grey)
-            cs = chroma[usable][::step]
+            cs = chroma[sub][us]
             c_lo, c_hi = float(np.median(cs[rs <= t])), float(np.median(cs[rs > t]))
             bimodal = c_lo - c_hi >= cfg.chroma_gap and c_hi <= 0.5 * c_lo
     if not bimodal:  # one class only: the whole usable sky is clear or cloud (fixed threshold)
-        med = float(np.median(nbr[usable]))
-        smooth = image_bgr is None or float(np.median(local_contrast(image_bgr)[usable][::step])) < cfg.texture_cv
+        med = float(np.median(nbr[sub][us]))
+        smooth = image_bgr is None or float(np.median(local_contrast(image_bgr)[sub][us])) < cfg.texture_cv
         if med >= cfg.fixed_threshold and smooth:  # clear: only what stands out from the clear sky
             score = cv2.divide(r_n, cfg.min_gap * 2.0)
         else:
