@@ -67,6 +67,7 @@ class SegmentationConfig:
     fixed_threshold: float = 0.15  # hybrid: one-class images are cloud when their median NBR is below this [1]
     texture_cv: float = 0.03  # hybrid: a one-class sky whose median local contrast (std/mean, 7 px) exceeds this is cloud [1]
     chroma_weight: float = 0.3  # hybrid: weight of the desaturation cue against the blue deficit, 0..1 [1]
+    brightness_weight: float = 0.25  # hybrid: score added per ln(1.5) of brightness difference from the clear sky nearby [1]
     score_threshold: float = 0.45  # hybrid: cloud where the combined cloudiness score exceeds this [1]
     threshold: float = 0.10  # NBR below this is cloud (nbr; base of nbr_adaptive) [1]
     sun_threshold: float = -0.05  # nbr_adaptive: threshold right at the sun [1]

@@ -254,14 +254,14 @@ def _bin_reference(values, bu, bv, nu, nv, q):
     return ref
 
 
-def _raise_cloudy_bins(ref: np.ndarray, tolerance: float = 0.06) -> np.ndarray:
+def _raise_cloudy_bins(ref: np.ndarray, tolerance: float = 0.02) -> np.ndarray:
     """Regions too cloudy for their own envelope take a smooth surface through the clear ones.
 
     A region that is (almost) all cloud has an envelope at the *cloud's* value, far below its
-    neighbours'. A quadratic surface in the bin indices is fitted to the envelopes, iteratively
-    dropping bins more than 2 robust deviations (and ``tolerance``) below it (an upper fit: the
-    clear sky is the top of the distribution); bins that stay below the final surface by more
-    than ``tolerance`` take the surface's value.
+    neighbours'. A quadratic surface in the bin indices is fitted to the envelopes, starting
+    from the upper half of the bins and then keeping those within ``tolerance`` below it or
+    above (an upper fit: clear sky is the top of the distribution, and most regions may be
+    cloudy); bins below the final surface by more than ``tolerance`` take the surface's value.
     """
     ok = ~np.isnan(ref)
     if ok.sum() < 8:
@@ -272,14 +272,15 @@ def _raise_cloudy_bins(ref: np.ndarray, tolerance: float = 0.06) -> np.ndarray:
     cols = [np.ones_like(iu), iu, iu * iu] + ([iv, iv * iv, iu * iv] if ref.shape[1] > 1 else [])
     A = np.stack([c[ok] for c in cols], axis=1)
     y = ref[ok]
-    keep = np.ones(len(y), bool)
-    for _ in range(4):
+    keep = y >= np.median(y)  # start from the upper half: with most regions cloudy, the clear ones
+    if keep.sum() < A.shape[1] + 2:
+        keep = np.ones(len(y), bool)
+    for _ in range(6):
         if keep.sum() < A.shape[1] + 2:
             return ref
         coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
         e = y - A @ coef
-        s = 1.4826 * float(np.median(np.abs(e[keep] - np.median(e[keep])))) + 1e-6
-        new = e > -max(2.0 * s, tolerance)
+        new = e > -tolerance
         if (new == keep).all():
             break
         keep = new
@@ -419,6 +420,16 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     if r_s is not None:
         score = cv2.addWeighted(score, 1.0 - cfg.chroma_weight, r_s, cfg.chroma_weight, 0.0)
     cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
+    if bimodal and image_bgr is not None and cfg.brightness_weight > 0:
+        # brightness cue: cloud is brighter (sunlit, thin) or darker (thick base) than the clear
+        # sky of the same region, which the first pass found; exposure cancels in the ratio
+        value = cv2.max(cv2.max(*cv2.split(image_bgr)[:2]), cv2.split(image_bgr)[2]).astype(np.float32)
+        clear = usable & ~cloud
+        if np.count_nonzero(clear) >= 0.05 * np.count_nonzero(usable):
+            v_ref = clear_sky_references([value / 255.0], clear, zenith_deg, sun_angle_deg, 50.0, image_bgr)[0]
+            dv = cv2.absdiff(cv2.log(cv2.max(value, 1.0)), cv2.log(cv2.max(v_ref * 255.0, 1.0)))
+            score = cv2.addWeighted(score, 1.0, dv, cfg.brightness_weight / math.log(1.5), 0.0)
+            cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
     return cloud & usable
 
 
