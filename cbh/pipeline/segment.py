@@ -36,7 +36,7 @@ refused by :func:`segment` (:class:`~cbh.errors.ImageError`): there is no blue-r
      the reference is cloud.
 
   Measured (``benchmarks/segmentation.py --simulate``, 24 simulated skies × camera colour
-  responses, with the station): 97.6 % accuracy, F1 97.4, against 84.2 % / 80.7 for
+  responses, with the station): 97.5 % accuracy, F1 97.2, against 84.2 % / 80.7 for
   ``nbr_adaptive`` and 73.9 % / 72.8 for the fixed NBR < 0.15.
 - ``nbr``: fixed threshold.
 - ``nbr_adaptive``: the threshold falls towards the sun and the horizon, where clear sky is
