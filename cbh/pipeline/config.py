@@ -257,6 +257,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.segmentation.texture_cv", sg.texture_cv, strict=False)
     if not 0 <= sg.chroma_weight <= 1:
         raise ConfigError(f"{where}.segmentation.chroma_weight: must be in 0..1, got {sg.chroma_weight}")
+    _positive(f"{where}.segmentation.brightness_weight", sg.brightness_weight, strict=False)
     if not 0 < sg.score_threshold < 1:
         raise ConfigError(f"{where}.segmentation.score_threshold: must be in (0, 1), got {sg.score_threshold}")
     _positive(f"{where}.segmentation.max_side_px", sg.max_side_px, strict=False)
