@@ -32,6 +32,9 @@ __all__ = [
     "FilteringConfig",
     "HeightMapConfig",
     "LayersConfig",
+    "MotionConfig",
+    "GeometryCheckConfig",
+    "SunCheckConfig",
     "PipelineConfig",
 ]
 
@@ -193,6 +196,46 @@ class LayersConfig:
 
 
 @dataclass(frozen=True)
+class MotionConfig:
+    """Cloud motion per layer and camera 2's clock offset, from the previous pair (see
+    :mod:`cbh.pipeline.motion`; the previous pair itself is state, not configuration)."""
+
+    enabled: bool = True  # track clouds between consecutive pairs (needs ``previous`` and capture times)
+    max_gap_s: float = 120.0  # no motion across a longer time between consecutive pairs [s]
+    max_points: int = 500  # features tracked per camera (of the LK stereo matches) [1]
+    window_px: int = 15  # LK window side, at working size [px]
+    levels: int = 5  # pyramid levels above the base (cloud displacements up to ~2^levels windows) [1]
+    fb_max_px: float = 0.3  # forward-backward disagreement allowed, at working size [px]
+    min_tracks: int = 10  # a layer needs this many tracks for a motion [1]
+    layer_tolerance_log: float = 0.1  # a track belongs to a layer within this |ln(h / h_layer)| (or 3 spreads) [1]
+    clock_offset: bool = True  # estimate camera 2's clock offset and compensate it in the matching
+    offset_history: int = 15  # pairs in the running (median) clock-offset estimate [1]
+    offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
+    compensate_min_s: float = 0.1  # compensate camera 2 only above this |offset| (the estimate is good to ≈ 0.05 s) [s]
+    rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
+    max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
+class GeometryCheckConfig:
+    """Per-pair check of the correspondences against the station geometry (:mod:`.geocheck`)."""
+
+    enabled: bool = True  # run the check (flag geometry_mismatch / identical_images)
+    max_residual_px: float = 1.0  # median epipolar distance allowed at least, camera 2 working size [px]
+    expected_miss_ratio: float = 0.0  # median epipolar angle the lens calibration is known to leave [rad]; 0 = none
+    min_inlier_fraction: float = 0.5  # share of 2-D matches consistent with the geometry, at least [1]
+    min_matches: int = 30  # fewer 2-D matches: no verdict [1]
+    max_matches: int = 3000  # at most this many matches are judged (even subsample) [1]
+    identical_max_dn: float = 0.5  # images closer than this mean grey difference are the same image [DN]
+
+
+@dataclass(frozen=True)
+class SunCheckConfig:
+    """Detected vs predicted sun in each camera (:mod:`.sundetect`), when the time is known."""
+
+    enabled: bool = True  # detect the sun and report sun_residual_deg
+    search_deg: float = 15.0  # look for the sun this far from its predicted direction [deg]
+    max_residual_deg: float = 1.0  # flag sun_misaligned beyond this [deg]
+
+
+@dataclass(frozen=True)
 class PipelineConfig:
     """The whole pipeline. ``working_radius_px``: images are downsampled (models scaled exactly)
     so that the 90° radius of each lens is at most this many pixels; 0 = full size."""
@@ -205,6 +248,9 @@ class PipelineConfig:
     filtering: FilteringConfig = field(default_factory=FilteringConfig)
     height_map: HeightMapConfig = field(default_factory=HeightMapConfig)
     layers: LayersConfig = field(default_factory=LayersConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    geometry_check: GeometryCheckConfig = field(default_factory=GeometryCheckConfig)
+    sun_check: SunCheckConfig = field(default_factory=SunCheckConfig)
 
     @classmethod
     def from_dict(cls, data: dict | None, where: str = "pipeline") -> "PipelineConfig":
@@ -313,6 +359,16 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     hm = cfg.height_map
     _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
     _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
+    gc = cfg.geometry_check
+    _positive(f"{where}.geometry_check.max_residual_px", gc.max_residual_px)
+    if not 0 <= gc.min_inlier_fraction <= 1:
+        raise ConfigError(f"{where}.geometry_check.min_inlier_fraction: must be in 0..1, got {gc.min_inlier_fraction}")
+    _positive(f"{where}.geometry_check.expected_miss_ratio", gc.expected_miss_ratio, strict=False)
+    _positive(f"{where}.geometry_check.min_matches", gc.min_matches)
+    _positive(f"{where}.geometry_check.max_matches", gc.max_matches)
+    _positive(f"{where}.geometry_check.identical_max_dn", gc.identical_max_dn, strict=False)
+    _positive(f"{where}.sun_check.search_deg", cfg.sun_check.search_deg)
+    _positive(f"{where}.sun_check.max_residual_deg", cfg.sun_check.max_residual_deg)
     ly = cfg.layers
     _choice(f"{where}.layers.method", ly.method, LAYER_METHODS)
     for k in ("bin_log", "smooth_log", "min_separation_log"):
@@ -323,3 +379,12 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
         raise ConfigError(f"{where}.layers.base_percentile: must be in 0..50, got {ly.base_percentile}")
     if not 0 < ly.valley_ratio <= 1:
         raise ConfigError(f"{where}.layers.valley_ratio: must be in (0, 1], got {ly.valley_ratio}")
+    mo = cfg.motion
+    for k in ("max_gap_s", "max_points", "fb_max_px", "min_tracks", "layer_tolerance_log", "offset_history",
+              "offset_tolerance_s", "rematch_s", "max_offset_s"):
+        _positive(f"{where}.motion.{k}", getattr(mo, k))
+    _positive(f"{where}.motion.compensate_min_s", mo.compensate_min_s, strict=False)
+    if mo.window_px < 5 or mo.window_px % 2 == 0:
+        raise ConfigError(f"{where}.motion.window_px: must be an odd number >= 5, got {mo.window_px}")
+    if not 0 <= mo.levels <= 8:
+        raise ConfigError(f"{where}.motion.levels: must be in 0..8, got {mo.levels}")

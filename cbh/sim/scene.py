@@ -59,6 +59,7 @@ The file format::
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -70,7 +71,7 @@ from cbh.timeutil import parse_utc
 
 __all__ = [
     "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
-    "load_scene", "parse_scene", "DEFAULT_TIME_UTC",
+    "load_scene", "parse_scene", "with_clock_offsets", "DEFAULT_TIME_UTC",
 ]
 
 #: Start time of a scene that gives none (a clear mid-morning in Brasília).
@@ -406,3 +407,26 @@ def load_scene(path: str | Path) -> Scene:
     except ConfigError as exc:
         msg = str(exc)
         raise ConfigError(f"scene {p.name}: {msg.removeprefix('scene: ')}") from None
+
+
+def with_clock_offsets(scene: Scene, specs) -> Scene:
+    """The scene with per-camera clock offsets set from ``CAMERA=SECONDS`` strings (e.g. the
+    ``cbh simulate --clock-offset cam2=3`` option); other imperfections are kept.
+
+    Raises
+    ------
+    ConfigError
+        A spec that is not ``CAMERA=SECONDS`` with a finite number.
+    """
+    imps = dict(scene.imperfections)
+    for spec in specs:
+        cam, sep, val = str(spec).partition("=")
+        try:
+            sec = float(val)
+        except ValueError:
+            sec = math.nan
+        if not sep or not cam.strip() or not math.isfinite(sec):
+            raise ConfigError(f"--clock-offset {spec!r}: expected CAMERA=SECONDS, e.g. cam2=3")
+        cam = cam.strip()
+        imps[cam] = replace(imps.get(cam) or Imperfection(camera=cam), clock_offset_s=sec)
+    return replace(scene, imperfections=imps)
