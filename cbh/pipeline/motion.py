@@ -66,8 +66,8 @@ the second pair of a run is already compensated; in steady state a pair is match
 Limits (measured, README): what a moving low layer uncovers in δ (a band of about
 |w_low − w_high|·δ along its edges) is only approximated from the previous frame, and
 resampling blurs camera 2 a little; at
-960 px working size both layers of the two-layer scene come out within 1.5 % at a 3 s offset,
-at 640 px the high layer (2.9 px of parallax) is 3–4 % low. An offset with all motion along
+960 px working size both layers of the two-layer scene come out within 0.7 % at a 3 s offset,
+at 640 px the high layer (2.9 px of parallax) is 2.5–3.1 % low. An offset with all motion along
 the baseline is unobservable (``clock_offset_s`` stays NaN; heights then absorb it).
 """
 from __future__ import annotations
