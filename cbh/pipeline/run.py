@@ -7,7 +7,10 @@ Stages (each a pure function in its own module; timed into ``PairResult.timing_m
    (chosen so that width and height scale identically), so the geometry stays exact.
 2. ``masks``: image circle ∩ zenith limit ∩ obstacle mask (cached per camera), minus the sun
    disk (pvlib) and saturated blobs.
-3. ``segmentation``: cloud mask and fraction per camera.
+2b. ``photometric``: camera 2's gain, gamma and white balance relative to camera 1, estimated
+   in the common field of view, reported in ``diagnostics`` (flag ``exposure_mismatch`` when
+   large) and removed from camera 2's image before segmentation and matching.
+3. ``segmentation``: cloud mask and fraction per camera (colour images only).
 4. ``match_<method>``: correspondences per configured method (:mod:`.match`).
 5. ``triangulation``: all correspondences at once, geometric rejection.
 6. ``height_map``: dense map on camera 1's grid, returned at camera 1's full image size.
@@ -48,9 +51,11 @@ from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
-from cbh.pipeline.match import Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher, sample_map, triangulate_matches
+from cbh.pipeline.match import (EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher,
+                                sample_map, triangulate_matches)
 from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
                                  offset_per_match, plane_offsets, running_offset, track_back)
+from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import segment
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation", "Correspondences", "Points"]
@@ -60,6 +65,7 @@ log = logging.getLogger(__name__)
 _MAX_DISPLAY_MATCHES = 5000
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
 _RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
+_MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 
 
@@ -222,6 +228,8 @@ class Pipeline:
             work = (self.to_working(0, image1), self.to_working(1, image2))
         with _timed(ctx, "masks"):
             masks = self.stage_masks(work, ctx)
+        with _timed(ctx, "photometric"):
+            work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
             seg = self.stage_segment(work, masks)
             gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
@@ -355,7 +363,7 @@ class Pipeline:
         """Usable sky per camera (static mask, sun disk, saturated glare) and the sun angle maps."""
         cfg = self.config
         sun_dir = None
-        if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method == "nbr_adaptive"):
+        if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method in ("nbr_adaptive", "hybrid")):
             st = self.station
             sun = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, ctx.time_utc)
             sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
@@ -369,6 +377,10 @@ class Pipeline:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
                 sat = saturation_mask(img, cfg.masks)
+                if ang is not None and cfg.masks.glare_radius_deg < 180.0:
+                    # saturated far from the sun: over-exposed cloud (clear sky never saturates
+                    # all three channels), which stays usable sky and segments as cloud
+                    sat &= ang <= cfg.masks.glare_radius_deg
                 if sat.any():
                     u = u & ~sat
                     if i == 0:
@@ -377,11 +389,35 @@ class Pipeline:
             sun_angle.append(ang)
         return Masks(usable=(usable[0], usable[1]), sun_angle=(sun_angle[0], sun_angle[1]), sun_dir_enu=sun_dir)
 
+    def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
+                          ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
+        """Camera 2's colour response relative to camera 1, reported and removed (:mod:`.photometric`).
+
+        Returns the working images with the brighter camera mapped onto the darker one's
+        response (unchanged when ``photometric.correct`` is off or nothing could be estimated).
+        """
+        pc = self.config.photometric
+        if not pc.correct:
+            return work
+        resp = estimate_response(work[0], work[1], self.geometry, masks.usable[0], masks.usable[1])
+        if not resp.pixels:
+            return work
+        ctx.diagnostics.update(resp.diagnostics())
+        if resp.is_large(pc.max_gain, pc.max_gamma, pc.max_wb):
+            ctx.flags.append("exposure_mismatch")
+        if resp.is_identity:
+            return work
+        lut21, lut12 = resp.matching_luts()
+        if resp.brightens():  # camera 2 is the darker one: map camera 1 down onto it instead
+            return (cv2.LUT(work[0], lut12), work[1])
+        return (work[0], cv2.LUT(work[1], lut21))
+
     def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky."""
         clouds, fractions = [], {}
         for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
-            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation)
+            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
+                              what=cam.name)
             clouds.append(c)
             fractions[cam.name] = frac
         return Segmentation(clouds=(clouds[0], clouds[1]), fractions=fractions)
@@ -444,6 +480,8 @@ class Pipeline:
         else:
             xyz, miss, p1, p2 = np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
         sparse = [tr for tr in corr.triangulated if not tr.matches.dense]
+        if sum(len(tr.miss_m) for tr in sparse) < _MIN_NOISE_MATCHES:  # none survived: dense 2-D matches
+            sparse = [tr for tr in corr.triangulated if tr.matches.method not in EPIPOLAR_METHODS]
         dtheta = angular_noise(
             np.concatenate([tr.miss_m for tr in sparse] or [np.zeros(0)]),
             np.concatenate([np.linalg.norm(tr.point_m - self.cam1.position_m, axis=1) for tr in sparse] or [np.zeros(0)]))
@@ -498,8 +536,8 @@ class Pipeline:
             cloud_fraction=seg.fractions,
             timing_ms=ctx.timing,
             flags=ctx.flags,
+            diagnostics=dict(ctx.diagnostics),
             matches=matches,
-            diagnostics=ctx.diagnostics,
         )
 
 
