@@ -211,7 +211,7 @@ class MotionConfig:
     clock_offset: bool = True  # estimate camera 2's clock offset and compensate it in the matching
     offset_history: int = 15  # pairs in the running (median) clock-offset estimate [1]
     offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
-    compensate_min_s: float = 0.1  # compensate camera 2 only above this |offset| (the estimate is good to ≈ 0.05 s) [s]
+    compensate_min_s: float = 0.2  # compensate camera 2 only above this |offset|: the estimate's systematic error reaches ≈ 0.15 s [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
     max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
 
