@@ -46,7 +46,7 @@ from cbh.geometry.ground import GroundGrid, parse_ground
 from cbh.errors import CalibrationError, ConfigError
 from cbh.tomlio import check_keys, dumps_toml, number, read_toml, string, table, vector
 
-__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
+__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "angles_from_rotation", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
 
 #: The level camera whose image top faces north: columns are camera x → west, y → south, z → up.
 B_LEVEL_NORTH_UP = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -88,6 +88,20 @@ def rotation_from_angles(yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll_deg:
     roll tilt the camera about its own x and y axes [deg].
     """
     return rot_z(-math.radians(yaw_deg)) @ B_LEVEL_NORTH_UP @ rot_x(math.radians(pitch_deg)) @ rot_y(math.radians(roll_deg))
+
+
+def angles_from_rotation(R_world_from_cam) -> tuple[float, float, float]:
+    """(yaw_deg, pitch_deg, roll_deg) with ``rotation_from_angles(*angles) == R`` (inverse).
+
+    Unique for |pitch| < 90°; every rotation has such angles.
+    """
+    R = np.asarray(R_world_from_cam, dtype=np.float64)
+    Q = B_LEVEL_NORTH_UP @ R  # = Rz(−yaw) · Rx(pitch) · Ry(roll)  (B is its own inverse and commutes with Rz)
+    yaw = math.atan2(Q[0, 1], Q[1, 1])  # Rz(yaw) · Q = Rx · Ry, whose [0, 1] element is 0
+    A = rot_z(yaw) @ Q
+    pitch = math.atan2(A[2, 1], A[1, 1])
+    roll = math.atan2(A[0, 2], A[0, 0])
+    return math.degrees(yaw), math.degrees(pitch), math.degrees(roll)
 
 
 @dataclass(frozen=True)
