@@ -16,7 +16,7 @@ import typer
 
 from cbh.errors import CbhError
 
-COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask")
+COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "reprocess")
 
 app = typer.Typer(
     name="cbh",

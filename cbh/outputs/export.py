@@ -439,3 +439,44 @@ def export_sessions(paths, fmt: str, out) -> tuple[int, int]:
             exp.write_record(r)
         n = exp.rows_written
     return n, len(records)
+
+
+# --- one batch of records, atomically (cbh reprocess: one file per station and day) -------
+
+def write_records(records: list[PairRecord], info: dict, out, fmt: str) -> Path:
+    """Write pair records (e.g. one station-day) to ``out`` as ``parquet`` or ``netcdf``, atomically.
+
+    The file is written under a temporary name in the same folder and renamed over ``out``
+    (``os.replace``), so ``out`` is either absent, the previous file, or complete: a crash or
+    Ctrl-C never leaves a half-written export. The tables are those of ``cbh export``
+    (:data:`COLUMNS`; :func:`netcdf_dataset`). An empty ``records`` list gives a Parquet table
+    with no rows; NetCDF needs at least one record (:class:`RecordingError` otherwise).
+
+    Returns
+    -------
+    Path
+        ``out``.
+    """
+    import os
+
+    fmt = fmt.lower()
+    if fmt not in ("parquet", "netcdf"):
+        raise ConfigError(f"write_records: format {fmt!r} (parquet or netcdf)")
+    if fmt == "netcdf" and not records:
+        raise RecordingError("write_records: no pair records: nothing to write to NetCDF")
+    out = Path(out)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        if fmt == "netcdf":
+            write_netcdf(records, info, tmp)
+        else:
+            import pyarrow.parquet as pq
+
+            pq.write_table(_arrow_table([row for r in records for row in record_rows(r)]), str(tmp))
+        os.replace(tmp, out)
+    except OSError as exc:
+        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out

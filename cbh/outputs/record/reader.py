@@ -324,6 +324,36 @@ class Session:
                 stats = {c.name: c.value for c in msg.counters}
             yield from_ns(t), stats
 
+    def images(self, cameras, start_ns: int | None = None, end_ns: int | None = None
+               ) -> Iterator[tuple[int, RecordedImage]]:
+        """(pair sequence, image) of the recorded camera images whose capture time (log time)
+        lies in [``start_ns``, ``end_ns``), read through the file's index (fast for a time slice).
+
+        Parameters
+        ----------
+        cameras : iterable of str
+            Camera names (topics ``/<camera>/image/compressed``).
+        start_ns, end_ns : int or None
+            Capture-time bounds [ns since the Unix epoch]; None = open.
+        """
+        from mcap.reader import make_reader
+
+        topics = [f"/{c}/image/compressed" for c in cameras]
+        T = foxglove_types()["CompressedImage"]
+        for p in self.paths:
+            try:
+                with open(p, "rb") as fh:
+                    reader = make_reader(fh)
+                    for _schema, channel, message in reader.iter_messages(
+                            topics=topics, start_time=start_ns, end_time=end_ns, log_time_order=False):
+                        m = T.FromString(message.data)
+                        cam = channel.topic.strip("/").split("/")[0]
+                        yield message.sequence, RecordedImage(cam, from_ns(_ts_ns(m.timestamp)), bytes(m.data), m.format)
+            except CbhError:
+                raise
+            except Exception as exc:
+                raise RecordingError(f"{p}: corrupt recording ({type(exc).__name__}: {exc})") from None
+
 
 def open_session(path) -> Session:
     """Open a recording: a ``.mcap`` file, a directory of rotated files, or a list of files.

@@ -1,0 +1,88 @@
+"""`cbh reprocess`: archives of a station or a network, per station and UTC day, on Ray."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    app.command("reprocess")(reprocess_cmd)
+
+
+def _utc(text: str | None, what: str):
+    from cbh.errors import ConfigError
+    from cbh.live.sources import parse_time_header
+
+    if text is None:
+        return None
+    t = parse_time_header(text)
+    if t is None:
+        raise ConfigError(f"{what}: not an ISO 8601 UTC time: {text!r} (e.g. 2024-06-21 or 2024-06-21T12:00:00Z)")
+    return t
+
+
+class _Progress:
+    """Rich progress bar on stderr (only on a terminal) and one JSON line per finished day on stdout."""
+
+    def __init__(self):
+        self.bar = self.task = None
+        self.failures = 0
+
+    def __call__(self, e: dict) -> None:
+        if e["event"] == "start" and e["pairs"] and sys.stderr.isatty():
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("reprocess"), BarColumn(), MofNCompleteColumn(),
+                                TextColumn("{task.fields[rate]:.2f} pairs/s"), TimeRemainingColumn(),
+                                TextColumn("failures {task.fields[failures]}"), console=Console(stderr=True))
+            self.task = self.bar.add_task("pairs", total=e["pairs"], rate=0.0, failures=0)
+            self.bar.start()
+        elif e["event"] == "chunk" and self.bar is not None:
+            self.failures += e["failures"]
+            self.bar.advance(self.task, e["pairs"])
+            t = self.bar.tasks[0]
+            self.bar.update(self.task, failures=self.failures, rate=(t.completed / t.elapsed) if t.elapsed else 0.0)
+        elif e["event"] == "day":
+            line = {k: e[k] for k in ("station", "day", "pairs", "records", "time_span_utc", "files")}
+            line["failures"] = len(e["failures"])
+            (self.bar.console.print if self.bar else print)(json.dumps(line), **({"highlight": False, "soft_wrap": True} if self.bar else {"flush": True}))
+
+    def stop(self):
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def reprocess_cmd(
+    station: list[str] = typer.Option(..., "--station", help="Station TOML (repeat for a network), or a network TOML ([[stations]])."),
+    source: list[str] = typer.Option([], "--source", help="CAM=PATH or STATION/CAM=PATH: image folder, recording (.mcap) or video."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder: OUT/<station>/cbh_<station>_<YYYYMMDD>.nc|.parquet, OUT/index.json."),
+    workers: int = typer.Option(None, "--workers", "-j", help="Ray actors (default: all CPUs)."),
+    address: str = typer.Option(None, "--address", help="Join a Ray cluster: auto | HOST:PORT | ray://HOST:PORT (default: a private local Ray)."),
+    t_from: str = typer.Option(None, "--from", help="First UTC time (ISO 8601) to process."),
+    t_to: str = typer.Option(None, "--to", help="Process pairs before this UTC time."),
+    device: str = typer.Option("cpu", "--device", help="cpu | cuda (each actor asks Ray for a GPU share)."),
+    fmt: str = typer.Option("netcdf,parquet", "--format", help="netcdf, parquet or both (comma-separated)."),
+    cameras: str = typer.Option(None, "--cameras", help="Camera pair, e.g. cam1,cam2 (default: the first two)."),
+    pair_tolerance_s: float = typer.Option(None, "--pair-tolerance-s", help="Largest |t1 - t2| of a pair [s] (default: the station's, 0.5)."),
+    chunk_pairs: int = typer.Option(32, "--chunk-pairs", help="Pairs per Ray task."),
+) -> None:
+    """Reprocess archives (image folders, recordings, videos): per station and UTC day, on Ray."""
+    from cbh.actions.reprocess import reprocess
+
+    progress = _Progress()
+    try:
+        plan, s = reprocess(station, source, cameras=cameras, on_event=progress, out=out, workers=workers,
+                            address=address, t_from=_utc(t_from, "--from"), t_to=_utc(t_to, "--to"), device=device,
+                            formats=tuple(fmt.split(",")), chunk_pairs=chunk_pairs, pair_tolerance_s=pair_tolerance_s)
+    finally:
+        progress.stop()
+    print(f"{s.pairs_processed} pairs processed ({s.failures} failed) in {s.elapsed_s:.1f} s "
+          f"({s.pairs_per_s:.2f} pairs/s, {s.workers} workers); days: {s.days_written} written, "
+          f"{s.days_resumed} already done, {s.days_failed} not finished; index: {s.index}")
+    if s.interrupted:
+        print("cbh: interrupted: finished days kept; run the same command again to resume", file=sys.stderr)
+        raise typer.Exit(130)

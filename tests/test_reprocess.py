@@ -1,0 +1,212 @@
+"""`cbh reprocess` on Ray, started locally with 2 workers, on small simulated archives (480 px).
+
+One Ray session serves the whole module (Ray takes seconds to start); each run makes and
+kills its own actors, as the command does.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+T0 = datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
+DAY2 = datetime(2024, 6, 22, 14, 0, tzinfo=timezone.utc)
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory) -> Path:
+    """Two UTC days of a simulated station in the folder-per-camera-per-day layout.
+
+    Day 1: three pairs with identical stamps. Day 2: camera 2's stamps 0.2 s late (paired
+    within the 0.5 s tolerance) and one extra camera-2 frame with no partner.
+    """
+    from cbh.presets import scene_path, station_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.io import time_tag, write_shot
+    from cbh.geometry.station import load_station
+
+    root = tmp_path_factory.mktemp("archive")
+    sim = SkySimulator(load_station(station_path()), load_scene(scene_path("two-layers")), size_px=480)
+    (root / "station.toml").write_text(sim.station.to_toml())
+    flat = root / "flat"
+    for start in (T0, DAY2):
+        for k in range(3):
+            write_shot(sim.render(start + timedelta(seconds=30 * k)), flat)
+    for cam in ("cam1", "cam2"):
+        for f in sorted((flat / cam).glob("*.jpg")):
+            t = datetime.strptime(f.name.split("_")[1][:15], "%Y%m%dT%H%M%S").replace(tzinfo=timezone.utc)
+            if cam == "cam2" and t.date() == DAY2.date():
+                t += timedelta(seconds=0.2)
+            dest = root / cam / f"{t:%Y-%m-%d}" / f"{cam}_{time_tag(t)}.jpg"
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(f, dest)
+    extra = DAY2 + timedelta(seconds=75)  # 15 s from any camera-1 frame: never paired
+    shutil.copy(next((root / "cam2" / "2024-06-22").glob("*.jpg")), root / "cam2" / "2024-06-22" / f"cam2_{time_tag(extra)}.jpg")
+    shutil.rmtree(flat)
+    return root
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    from cbh.actions.reprocess import start_ray
+
+    owned, cpus = start_ray(workers=2)
+    assert cpus >= 2
+    yield
+    if owned:
+        import ray
+
+        ray.shutdown()
+
+
+def _run(archive: Path, out: Path, **kw):
+    from cbh.actions.reprocess import reprocess
+
+    return reprocess([archive / "station.toml"], [f"cam1={archive / 'cam1'}", f"cam2={archive / 'cam2'}"],
+                     out=out, workers=2, chunk_pairs=2, **kw)
+
+
+@pytest.fixture(scope="module")
+def baseline(archive, ray_session, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    plan, summary = _run(archive, out)
+    return plan, summary, out
+
+
+def _heights_by_time(parquet: Path) -> dict:
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(parquet).to_pylist()
+    out: dict = {}
+    for r in rows:
+        out.setdefault(r["time_utc"], [])
+        if r["layer"] >= 0:
+            out[r["time_utc"]].append(r["cloud_base_height_m"])
+    return out
+
+
+def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
+    """Every day's heights equal `cbh pair` on the same two files (the pipeline keeps no state
+    between pairs and uses no temporal information here: identical, not just close); a second
+    run finds every day finished and processes no pair."""
+    import xarray as xr
+
+    from cbh.actions.reprocess import daily_paths
+    from cbh.cli.main import main
+
+    plan, s, out = baseline
+    assert (s.pairs_total, s.pairs_processed, s.failures, s.days_written, s.workers) == (6, 6, 0, 2, 2)
+    inv = plan.inventories["unb-lea"]
+    assert inv.frames == {"cam1": 6, "cam2": 7} and inv.unpaired == {"cam1": 0, "cam2": 1}
+    capsys.readouterr()
+    for w in plan.days:
+        paths = daily_paths(out, "unb-lea", w.day)
+        got = _heights_by_time(paths["parquet"])
+        ds = xr.open_dataset(paths["netcdf"])
+        assert ds.sizes["time"] == len(w.pairs) == 3
+        for i, p in enumerate(w.pairs):
+            assert abs((p.frame2.time_utc - p.frame1.time_utc).total_seconds()) <= 0.2 + 1e-6
+            assert main(["pair", p.frame1.path, p.frame2.path, "--station", str(archive / "station.toml"), "--json"]) == 0
+            ref = [l["height_m"] for l in json.loads(capsys.readouterr().out)["layers"]]
+            assert len(ref) >= 1
+            assert got[p.time_utc] == ref  # exact equality of float64 heights
+            nc = ds.cloud_base_height.values[i]
+            assert np.array_equal(nc[: len(ref)], np.array(ref)) and np.isnan(nc[len(ref):]).all()
+        ds.close()
+        side = json.loads(paths["sidecar"].read_text())
+        assert side["records"] == 3 and side["failures"] == []
+    index = json.loads((out / "index.json").read_text())
+    assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["written", "written"]
+    assert index["time_span_utc"] == ["2024-06-21T14:00:00Z", "2024-06-22T14:01:00Z"]
+
+    mtimes = {p: p.stat().st_mtime_ns for p in (out / "unb-lea").iterdir()}
+    _, s2 = _run(archive, out)
+    assert (s2.pairs_processed, s2.days_written, s2.days_resumed, s2.pairs_resumed) == (0, 0, 2, 6)
+    assert {p: p.stat().st_mtime_ns for p in (out / "unb-lea").iterdir()} == mtimes
+    index = json.loads((out / "index.json").read_text())
+    assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["resumed", "resumed"]
+
+
+def test_corrupt_image_in_the_middle_is_counted_not_fatal(archive, baseline, tmp_path):
+    from cbh.actions.reprocess import daily_paths
+
+    _, _, base_out = baseline
+    src = tmp_path / "src"
+    for cam in ("cam1", "cam2"):
+        shutil.copytree(archive / cam / "2024-06-21", src / cam)
+    bad = sorted((src / "cam1").glob("*.jpg"))[1]
+    bad.write_bytes(bad.read_bytes()[:200] + b"\x00" * 100)  # a JPEG cut short and overwritten
+    from cbh.actions.reprocess import reprocess
+
+    out = tmp_path / "out"
+    plan, s = reprocess([archive / "station.toml"], [f"cam1={src / 'cam1'}", f"cam2={src / 'cam2'}"],
+                        out=out, workers=2, chunk_pairs=1, formats=("parquet",))
+    assert (s.pairs_processed, s.failures, s.days_written) == (3, 1, 1)
+    day = T0.date()
+    side = json.loads(daily_paths(out, "unb-lea", day)["sidecar"].read_text())
+    assert side["records"] == 2 and len(side["failures"]) == 1
+    assert bad.name in side["failures"][0]["frames"][0] and "corrupt" in side["failures"][0]["reason"]
+    got = _heights_by_time(daily_paths(out, "unb-lea", day)["parquet"])
+    want = _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
+    assert len(got) == 2 and all(got[t] == want[t] for t in got)  # the other pairs are untouched
+    assert not daily_paths(out, "unb-lea", day)["netcdf"].exists()  # only the asked format
+
+
+def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_path):
+    """SIGKILL of an actor process while its first chunk is in flight: Ray restarts the actor,
+    retries the chunk, and the output equals the undisturbed run."""
+    from cbh.actions.reprocess import daily_paths
+
+    _, _, base_out = baseline
+    pids: list[int] = []
+    killed: list[int] = []
+
+    def on_event(e):
+        if e["event"] == "workers":
+            pids.extend(e["pids"])
+        elif e["event"] == "dispatch" and not killed:
+            os.kill(pids[e["slot"]], signal.SIGKILL)
+            killed.append(pids[e["slot"]])
+
+    _, s = _run(archive, tmp_path / "out", on_event=on_event)
+    assert killed
+    assert s.worker_restarts >= 1
+    assert (s.pairs_processed, s.failures, s.days_written, s.days_failed) == (6, 0, 2, 0)
+    for day in (T0.date(), DAY2.date()):
+        assert _heights_by_time(daily_paths(tmp_path / "out", "unb-lea", day)["parquet"]) == \
+            _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
+
+
+def test_network_file_and_source_binding_errors(archive, tmp_path):
+    """A network TOML lists stations; --source must name a camera of the pair; live URLs are refused."""
+    from cbh.actions.reprocess import load_jobs
+    from cbh.errors import ConfigError
+
+    net = tmp_path / "network.toml"
+    st = archive / "station.toml"
+    net.write_text(f'[[stations]]\nstation = "{st}"\n[stations.sources]\ncam1 = "{archive / "cam1"}"\n'
+                   f'cam2 = "{archive / "cam2"}"\n')
+    (job,) = load_jobs([net])
+    assert job.cameras == ("cam1", "cam2") and job.specs["cam2"] == str(archive / "cam2")
+    with pytest.raises(ConfigError, match="no station"):
+        load_jobs([st], ["cam9=/tmp"])
+    with pytest.raises(ConfigError, match="given twice"):
+        load_jobs([st, net])
+    from cbh.actions.archive import source_kind
+
+    with pytest.raises(ConfigError, match="archives"):
+        source_kind("rtsp://127.0.0.1/x")
+
+
+def test_cli_bad_input_is_one_line(tmp_path, capsys):
+    from cbh.cli.main import main
+
+    assert main(["reprocess", "--station", "unb-lea", "--out", str(tmp_path / "o"), "--format", "csv"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cbh: error: --format") and err.count("\n") == 1
