@@ -23,8 +23,9 @@ DAY2 = datetime(2024, 6, 22, 14, 0, tzinfo=timezone.utc)
 def archive(tmp_path_factory) -> Path:
     """Two UTC days of a simulated station in the folder-per-camera-per-day layout.
 
-    Day 1: three pairs with identical stamps. Day 2: camera 2's stamps 0.2 s late (paired
-    within the 0.5 s tolerance) and one extra camera-2 frame with no partner.
+    Day 1: three pairs with identical stamps and, in the middle (14:00:45), a pair whose
+    camera-1 JPEG is corrupt. Day 2: camera 2's stamps 0.2 s late (paired within the 0.5 s
+    tolerance) and one extra camera-2 frame with no partner.
     """
     from cbh.presets import scene_path, station_path
     from cbh.sim import SkySimulator, load_scene
@@ -49,6 +50,11 @@ def archive(tmp_path_factory) -> Path:
     extra = DAY2 + timedelta(seconds=75)  # 15 s from any camera-1 frame: never paired
     shutil.copy(next((root / "cam2" / "2024-06-22").glob("*.jpg")), root / "cam2" / "2024-06-22" / f"cam2_{time_tag(extra)}.jpg")
     shutil.rmtree(flat)
+    mid = T0 + timedelta(seconds=45)
+    for cam in ("cam1", "cam2"):
+        good = sorted((root / cam / "2024-06-21").glob("*.jpg"))[1].read_bytes()
+        (root / cam / "2024-06-21" / f"{cam}_{time_tag(mid)}.jpg").write_bytes(
+            good if cam == "cam2" else good[:200] + b"\x00" * 100)  # a JPEG cut short and overwritten
     return root
 
 
@@ -101,16 +107,17 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     from cbh.cli.main import main
 
     plan, s, out = baseline
-    assert (s.pairs_total, s.pairs_processed, s.failures, s.days_written, s.workers) == (6, 6, 0, 2, 2)
+    assert (s.pairs_total, s.pairs_processed, s.failures, s.days_written, s.workers) == (7, 7, 1, 2, 2)
     inv = plan.inventories["unb-lea"]
-    assert inv.frames == {"cam1": 6, "cam2": 7} and inv.unpaired == {"cam1": 0, "cam2": 1}
+    assert inv.frames == {"cam1": 7, "cam2": 8} and inv.unpaired == {"cam1": 0, "cam2": 1}
     capsys.readouterr()
     for w in plan.days:
         paths = daily_paths(out, "unb-lea", w.day)
         got = _heights_by_time(paths["parquet"])
         ds = xr.open_dataset(paths["netcdf"])
-        assert ds.sizes["time"] == len(w.pairs) == 3
-        for i, p in enumerate(w.pairs):
+        good = [p for p in w.pairs if p.time_utc != T0 + timedelta(seconds=45)]
+        assert ds.sizes["time"] == len(good) == 3
+        for i, p in enumerate(good):
             assert abs((p.frame2.time_utc - p.frame1.time_utc).total_seconds()) <= 0.2 + 1e-6
             assert main(["pair", p.frame1.path, p.frame2.path, "--station", str(archive / "station.toml"), "--json"]) == 0
             ref = [l["height_m"] for l in json.loads(capsys.readouterr().out)["layers"]]
@@ -120,42 +127,22 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
             assert np.array_equal(nc[: len(ref)], np.array(ref)) and np.isnan(nc[len(ref):]).all()
         ds.close()
         side = json.loads(paths["sidecar"].read_text())
-        assert side["records"] == 3 and side["failures"] == []
+        assert side["records"] == 3 and side["pairs"] == len(w.pairs)
+        if w.day == T0.date():  # the corrupt file in the middle: counted with its reason, not fatal
+            (f,) = side["failures"]
+            assert f["time_utc"] == "2024-06-21T14:00:45Z" and "corrupt" in f["reason"] and "cam1_" in f["frames"][0]
+        else:
+            assert side["failures"] == []
     index = json.loads((out / "index.json").read_text())
     assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["written", "written"]
     assert index["time_span_utc"] == ["2024-06-21T14:00:00Z", "2024-06-22T14:01:00Z"]
 
     mtimes = {p: p.stat().st_mtime_ns for p in (out / "unb-lea").iterdir()}
     _, s2 = _run(archive, out)
-    assert (s2.pairs_processed, s2.days_written, s2.days_resumed, s2.pairs_resumed) == (0, 0, 2, 6)
+    assert (s2.pairs_processed, s2.days_written, s2.days_resumed, s2.pairs_resumed) == (0, 0, 2, 7)
     assert {p: p.stat().st_mtime_ns for p in (out / "unb-lea").iterdir()} == mtimes
     index = json.loads((out / "index.json").read_text())
     assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["resumed", "resumed"]
-
-
-def test_corrupt_image_in_the_middle_is_counted_not_fatal(archive, baseline, tmp_path):
-    from cbh.actions.reprocess import daily_paths
-
-    _, _, base_out = baseline
-    src = tmp_path / "src"
-    for cam in ("cam1", "cam2"):
-        shutil.copytree(archive / cam / "2024-06-21", src / cam)
-    bad = sorted((src / "cam1").glob("*.jpg"))[1]
-    bad.write_bytes(bad.read_bytes()[:200] + b"\x00" * 100)  # a JPEG cut short and overwritten
-    from cbh.actions.reprocess import reprocess
-
-    out = tmp_path / "out"
-    plan, s = reprocess([archive / "station.toml"], [f"cam1={src / 'cam1'}", f"cam2={src / 'cam2'}"],
-                        out=out, workers=2, chunk_pairs=1, formats=("parquet",))
-    assert (s.pairs_processed, s.failures, s.days_written) == (3, 1, 1)
-    day = T0.date()
-    side = json.loads(daily_paths(out, "unb-lea", day)["sidecar"].read_text())
-    assert side["records"] == 2 and len(side["failures"]) == 1
-    assert bad.name in side["failures"][0]["frames"][0] and "corrupt" in side["failures"][0]["reason"]
-    got = _heights_by_time(daily_paths(out, "unb-lea", day)["parquet"])
-    want = _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
-    assert len(got) == 2 and all(got[t] == want[t] for t in got)  # the other pairs are untouched
-    assert not daily_paths(out, "unb-lea", day)["netcdf"].exists()  # only the asked format
 
 
 def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_path):
@@ -177,7 +164,7 @@ def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_
     _, s = _run(archive, tmp_path / "out", on_event=on_event)
     assert killed
     assert s.worker_restarts >= 1
-    assert (s.pairs_processed, s.failures, s.days_written, s.days_failed) == (6, 0, 2, 0)
+    assert (s.pairs_processed, s.failures, s.days_written, s.days_failed) == (7, 1, 2, 0)
     for day in (T0.date(), DAY2.date()):
         assert _heights_by_time(daily_paths(tmp_path / "out", "unb-lea", day)["parquet"]) == \
             _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
@@ -210,3 +197,75 @@ def test_cli_bad_input_is_one_line(tmp_path, capsys):
     assert main(["reprocess", "--station", "unb-lea", "--out", str(tmp_path / "o"), "--format", "csv"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("cbh: error: --format") and err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_truncated_recording_and_video_inputs(archive, ray_session, repo, tmp_path):
+    """A recording cut mid-write is repaired and its complete pairs processed; video files
+    are read frame by frame. Heights equal `Pipeline.process` on the same decoded images."""
+    import cv2
+
+    from cbh.actions.reprocess import reprocess
+    from cbh.outputs.record import open_session
+    from cbh.pipeline import Pipeline
+
+    # recording: the sample session cut at 60 % of its bytes (a killed writer)
+    rec = tmp_path / "session.mcap"
+    data = (repo / "recordings" / "sample-two-layers.mcap").read_bytes()
+    rec.write_bytes(data[: int(0.6 * len(data))])
+    full = open_session(repo / "recordings" / "sample-two-layers.mcap")
+    st_file = tmp_path / "rec-station.toml"
+    st_file.write_text(full.station.to_toml())
+    plan, s = reprocess([st_file], [f"cam1={rec}"], out=tmp_path / "out-rec", workers=2, chunk_pairs=2,
+                        formats=("parquet",))
+    inv = plan.inventories["unb-lea"]
+    assert len(inv.repaired) == 1 and 0 < inv.repaired[0]["pairs"] < 8
+    assert s.pairs_processed == inv.repaired[0]["pairs"] and s.failures == 0
+    pipe = Pipeline(full.station)
+    got = _heights_by_time(next((tmp_path / "out-rec" / "unb-lea").glob("*.parquet")))
+    for rp in list(full.pairs())[: s.pairs_processed]:
+        f1, f2 = rp.frames()
+        want = [l.height_m for l in pipe.process(f1.image, f2.image, rp.time_utc).layers]
+        assert got[rp.time_utc] == want
+
+    # video: day 1 of the archive as two MJPEG videos, 1 frame per second
+    vids = {}
+    for cam in ("cam1", "cam2"):
+        vids[cam] = tmp_path / f"{cam}_20240621T140000Z.avi"
+        w = cv2.VideoWriter(str(vids[cam]), cv2.VideoWriter_fourcc(*"MJPG"), 1.0, (480, 480))
+        for f in sorted((archive / cam / "2024-06-21").glob("*.jpg")):
+            w.write(cv2.imread(str(f)))
+        w.release()
+    plan, s = reprocess([archive / "station.toml"], [f"cam1={vids['cam1']}", f"cam2={vids['cam2']}"],
+                        out=tmp_path / "out-vid", workers=2, chunk_pairs=2, formats=("parquet",))
+    assert (s.pairs_processed, s.failures) == (3, 0)
+    (w,) = plan.days
+    assert [p.frame1.index for p in w.pairs] == [0, 1, 2]
+    steps = [(b.time_utc - a.time_utc).total_seconds() for a, b in zip(w.pairs, w.pairs[1:])]
+    assert np.allclose(steps, 1.0)
+    from cbh.geometry.station import load_station
+
+    pipe = Pipeline(load_station(archive / "station.toml"))
+    caps = {c: cv2.VideoCapture(str(v)) for c, v in vids.items()}
+    got = _heights_by_time(next((tmp_path / "out-vid" / "unb-lea").glob("*.parquet")))
+    for p in w.pairs:
+        im1, im2 = caps["cam1"].read()[1], caps["cam2"].read()[1]
+        assert got[p.time_utc] == [l.height_m for l in pipe.process(im1, im2, p.time_utc).layers]
+
+
+@pytest.mark.slow
+def test_ctrl_c_keeps_finished_days_and_rerun_finishes(archive, baseline, tmp_path):
+    """KeyboardInterrupt (Ctrl-C) after the first day is written: that day stays, the index
+    says interrupted, and the same command run again processes only the rest."""
+    def on_event(e):
+        if e["event"] == "day":
+            raise KeyboardInterrupt
+
+    out = tmp_path / "out"
+    _, s = _run(archive, out, on_event=on_event)
+    assert s.interrupted and s.days_written == 1 and s.days_failed == 1
+    index = json.loads((out / "index.json").read_text())
+    assert index["interrupted"] and [d["status"] for d in index["stations"]["unb-lea"]["days"]] == \
+        ["written", "not finished"]
+    _, s2 = _run(archive, out)
+    assert s2.days_resumed == 1 and s2.days_written == 1 and s2.pairs_processed in (3, 4)

@@ -642,8 +642,9 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
         pids = ray.get([a.pid.remote() for a in actors])
         emit({"event": "workers", "pids": list(pids)})
         while inflight or any(queues.values()):
-            for slot in range(n_workers):
-                while load[slot] < 2:
+            # breadth first: every actor gets one chunk before any gets a second (queued behind it)
+            for depth, slot in [(d, k) for d in (1, 2) for k in range(n_workers)]:
+                if load[slot] < depth:
                     item = next_chunk(slot)
                     if item is None:
                         break
