@@ -255,17 +255,27 @@ def test_truncated_recording_and_video_inputs(archive, ray_session, repo, tmp_pa
 
 @pytest.mark.slow
 def test_ctrl_c_keeps_finished_days_and_rerun_finishes(archive, baseline, tmp_path):
-    """KeyboardInterrupt (Ctrl-C) after the first day is written: that day stays, the index
-    says interrupted, and the same command run again processes only the rest."""
-    def on_event(e):
-        if e["event"] == "day":
-            raise KeyboardInterrupt
+    """A real Ctrl-C (SIGINT to the command's process group) once the first day is written:
+    exit code 130, that day kept, the index says interrupted; the same command run again
+    resumes (the finished day is not processed again) and finishes the rest."""
+    import subprocess
+    import sys
 
     out = tmp_path / "out"
-    _, s = _run(archive, out, on_event=on_event)
-    assert s.interrupted and s.days_written == 1 and s.days_failed == 1
+    cmd = [sys.executable, "-c", "import sys; from cbh.cli.main import main; sys.exit(main())", "reprocess", "--station", str(archive / "station.toml"),
+           "--source", f"cam1={archive / 'cam1'}", "--source", f"cam2={archive / 'cam2'}", "--out", str(out),
+           "--workers", "2", "--chunk-pairs", "1"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    first = json.loads(p.stdout.readline())  # the JSON line of the first finished day
+    os.killpg(p.pid, signal.SIGINT)
+    rest, err = p.communicate(timeout=120)
+    assert first["day"] == "2024-06-21" and first["records"] == 3
     index = json.loads((out / "index.json").read_text())
-    assert index["interrupted"] and [d["status"] for d in index["stations"]["unb-lea"]["days"]] == \
-        ["written", "not finished"]
+    statuses = [d["status"] for d in index["stations"]["unb-lea"]["days"]]
+    if p.returncode == 130:  # interrupted while day 2 was in flight (the usual case)
+        assert index["interrupted"] and statuses == ["written", "not finished"] and "interrupted" in err
+    else:  # day 2 finished before the signal arrived
+        assert p.returncode == 0 and statuses == ["written", "written"]
     _, s2 = _run(archive, out)
-    assert s2.days_resumed == 1 and s2.days_written == 1 and s2.pairs_processed in (3, 4)
+    assert s2.days_resumed + s2.days_written == 2 and s2.days_resumed >= 1
+    assert s2.pairs_processed == (3 if s2.days_written else 0)  # day 2 has 3 pairs

@@ -409,6 +409,15 @@ def start_ray(workers: int | None = None, address: str | None = None, device: st
     if address is None:
         # must be set before ray is imported: Ray then binds 127.0.0.1 instead of the host's address
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+        # local workers import the very cbh this process runs (Ray's worker processes do not
+        # always see a virtual environment's site-packages, and another cbh may be installed
+        # system-wide): its folder goes first on the path of every process Ray starts from here
+        import cbh
+
+        root = str(Path(cbh.__file__).resolve().parent.parent)
+        paths = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        if root not in paths:
+            os.environ["PYTHONPATH"] = os.pathsep.join([root] + paths)
     try:
         import ray
     except ImportError:
@@ -423,7 +432,8 @@ def start_ray(workers: int | None = None, address: str | None = None, device: st
                     import torch
 
                     gpus = torch.cuda.device_count()
-                ray.init(num_cpus=workers or os.cpu_count() or 1, num_gpus=gpus, **kw)
+                # "local": always a new private instance, never a `ray start` cluster found on this machine
+                ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, num_gpus=gpus, **kw)
             else:
                 ray.init(address=address, **kw)
         except (ConnectionError, ValueError, RuntimeError) as exc:
@@ -715,13 +725,14 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
         s.interrupted = True
         log.warning("interrupted: finished days are kept; a rerun resumes the rest")
     finally:
-        for a in actors:
-            try:
-                ray.kill(a, no_restart=True)
-            except Exception:
-                pass
         if owned:
-            ray.shutdown()
+            ray.shutdown()  # ends every actor with the private instance
+        else:
+            for a in actors:  # a shared cluster: free this run's CPUs/GPUs
+                try:
+                    ray.kill(a, no_restart=True)
+                except Exception:
+                    pass
         s.days_failed = len(todo) - s.days_written
         s.elapsed_s = time.perf_counter() - t_start
         s.index = _write_index(plan, sides, failed, s)

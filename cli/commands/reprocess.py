@@ -81,7 +81,7 @@ def reprocess_cmd(
     finally:
         progress.stop()
     print(f"{s.pairs_processed} pairs processed ({s.failures} failed) in {s.elapsed_s:.1f} s "
-          f"({s.pairs_per_s:.2f} pairs/s, {s.workers} workers); days: {s.days_written} written, "
+          f"({s.pairs_per_s:.2f} pairs/s, {s.workers} worker{'s' if s.workers != 1 else ''}); days: {s.days_written} written, "
           f"{s.days_resumed} already done, {s.days_failed} not finished; index: {s.index}")
     if s.interrupted:
         print("cbh: interrupted: finished days kept; run the same command again to resume", file=sys.stderr)
