@@ -35,9 +35,9 @@ def main() -> None:
     im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
     t = time.perf_counter()
     pipe = Pipeline(sim.station)
-    r = pipe.process(im1, im2, shot.time_utc)
+    r = pipe.process(im1, im2, shot.time_utc, channels="bgr")
     print(f"pair {im1.shape[1]}x{im1.shape[0]}  first call (builds caches): {(time.perf_counter() - t) * 1000:.0f} ms")
-    runs = [pipe.process(im1, im2, shot.time_utc).timing_ms for _ in range(args.repeat)]
+    runs = [pipe.process(im1, im2, shot.time_utc, channels="bgr").timing_ms for _ in range(args.repeat)]
     stages = list(runs[0])
     print(f"median of {args.repeat} runs [ms]:")
     for s in stages:

@@ -63,7 +63,7 @@ def plain_loop(root: Path) -> tuple[float, float, int]:
     t1 = None
     for p in pairs:
         imgs = load_images([p.frame1, p.frame2])
-        pipe.process(imgs[p.frame1], imgs[p.frame2], p.time_utc)
+        pipe.process(imgs[p.frame1], imgs[p.frame2], p.time_utc, channels="bgr")
         t1 = t1 or time.perf_counter()  # after the first pair (warm-up)
     t_end = time.perf_counter()
     return t_end - t0, (len(pairs) - 1) / (t_end - t1), len(pairs)

@@ -225,7 +225,7 @@ def test_truncated_recording_and_video_inputs(archive, ray_session, repo, tmp_pa
     got = _heights_by_time(next((tmp_path / "out-rec" / "unb-lea").glob("*.parquet")))
     for rp in list(full.pairs())[: s.pairs_processed]:
         f1, f2 = rp.frames()
-        want = [l.height_m for l in pipe.process(f1.image, f2.image, rp.time_utc).layers]
+        want = [l.height_m for l in pipe.process(f1.image, f2.image, rp.time_utc, channels="bgr").layers]
         assert got[rp.time_utc] == want
 
     # video: day 1 of the archive as two MJPEG videos, 1 frame per second
@@ -250,7 +250,7 @@ def test_truncated_recording_and_video_inputs(archive, ray_session, repo, tmp_pa
     got = _heights_by_time(next((tmp_path / "out-vid" / "unb-lea").glob("*.parquet")))
     for p in w.pairs:
         im1, im2 = caps["cam1"].read()[1], caps["cam2"].read()[1]
-        assert got[p.time_utc] == [l.height_m for l in pipe.process(im1, im2, p.time_utc).layers]
+        assert got[p.time_utc] == [l.height_m for l in pipe.process(im1, im2, p.time_utc, channels="bgr").layers]
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ image folder         every ``.jpg/.jpeg/.png`` below the folder, recursively: fl
                      (``cam1/2024-06-21/…``) or both cameras in one tree (files named
                      ``<camera>_…``: as soon as one file of the tree is, only those are taken, the
                      rule of ``cbh run``'s directory source). Time: the UTC stamp in the file name
-                     (:func:`cbh.live.sources.time_from_name`); a name with only a time of day takes
+                     (:func:`cbh.timeutil.time_from_name`); a name with only a time of day takes
                      the date from its folder (``2024-06-21/14-00-00.jpg``). A file without a stamp
                      is skipped and counted: an archive's modification times are not capture times.
 recording            a ``.mcap`` file of ``cbh run --record`` or a folder of them: its recorded pairs
@@ -39,8 +39,9 @@ import numpy as np
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError
 from cbh.live.pairing import Pairer
-from cbh.live.sources import IMAGE_SUFFIXES, VIDEO_SUFFIXES, camera_prefixed, time_from_name
+from cbh.live.sources import IMAGE_SUFFIXES, VIDEO_SUFFIXES, camera_prefixed, is_sim_spec
 from cbh.result import Frame, to_ns
+from cbh.timeutil import time_from_name
 
 __all__ = ["FrameRef", "PairRef", "Inventory", "scan_station", "pair_frames", "by_day", "load_images",
            "source_kind"]
@@ -100,7 +101,7 @@ def source_kind(spec: str) -> str:
     """``image folder`` | ``recording`` | ``video``, from a path; :class:`ConfigError` otherwise."""
     p = Path(spec)
     low = spec.lower()
-    if "://" in low or low in ("sim", "simulator", "sim:"):
+    if "://" in low or is_sim_spec(spec):
         raise ConfigError(f"source {spec!r}: reprocess reads archives (image folders, recordings, video "
                           "files), not live streams or the simulator")
     if p.is_file():

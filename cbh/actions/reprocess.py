@@ -304,8 +304,7 @@ class ChunkResult:
     index: int
     records: list  # cbh.outputs.export.PairRecord, time order
     failures: list[dict]  # {"time_utc", "frames", "reason"}
-    pid: int
-    restarted: bool  # this actor process is a restart after a crash
+    pid: int  # the actor process (a new pid in a slot: Ray restarted the actor)
     elapsed_s: float
 
 
@@ -339,13 +338,6 @@ class PairWorker:
         self.stations = {k: (parse_station(tomllib.loads(text)), tuple(cams)) for k, (text, cams) in stations.items()}
         self.device = device
         self._pipes: OrderedDict = OrderedDict()
-        self._restarted = False
-        try:
-            import ray
-
-            self._restarted = bool(ray.get_runtime_context().was_current_actor_reconstructed)
-        except Exception:  # not in a Ray actor (a plain object in tests or benchmarks)
-            pass
 
     def pid(self) -> int:
         return os.getpid()
@@ -377,7 +369,8 @@ class PairWorker:
             bad = img1 if isinstance(img1, Exception) else img2 if isinstance(img2, Exception) else None
             if bad is None:
                 try:
-                    records.append(pair_record(pipe.process(img1, img2, p.time_utc), st.altitude_m))
+                    result = pipe.process(img1, img2, p.time_utc, channels="bgr")  # decoded by OpenCV
+                    records.append(pair_record(result, st.altitude_m))
                     continue
                 except CbhError as exc:
                     bad = exc
@@ -386,7 +379,7 @@ class PairWorker:
             reason = str(bad) if isinstance(bad, CbhError) else f"{type(bad).__name__}: {bad}"
             failures.append({"time_utc": _iso(p.time_utc), "frames": [p.frame1.describe(), p.frame2.describe()],
                              "reason": reason})
-        return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(), self._restarted,
+        return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(),
                            time.perf_counter() - t0)
 
 
@@ -576,7 +569,7 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
 
     ``on_event(dict)`` is called on the driver with ``{"event": "start", "pairs", "days",
     "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "chunk", "pairs", "failures",
-    "pid", "restarted"}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
+    "pid", "elapsed_s"}``, ``{"event": "dispatch", "slot", …}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
     KeyboardInterrupt stops the run: finished days stay, the index is written, and the
     summary says ``interrupted``.
     """
@@ -709,7 +702,7 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
                                 extra={"cbh_station": chunk.station, "cbh_time": f["time_utc"]})
                 emit({"event": "chunk", "station": chunk.station, "day": chunk.day.isoformat(),
                       "pairs": len(res.records) + len(res.failures), "failures": len(res.failures),
-                      "pid": res.pid, "restarted": res.restarted, "elapsed_s": res.elapsed_s})
+                      "pid": res.pid, "elapsed_s": res.elapsed_s})
                 if len(got[key]) == expected[key]:
                     parts = sorted(got.pop(key), key=lambda r: r.index)
                     recs = [r for p in parts for r in p.records]

@@ -14,14 +14,9 @@ def register(app: typer.Typer) -> None:
 
 def _utc(text: str | None, what: str):
     from cbh.errors import ConfigError
-    from cbh.live.sources import parse_time_header
+    from cbh.timeutil import parse_utc
 
-    if text is None:
-        return None
-    t = parse_time_header(text)
-    if t is None:
-        raise ConfigError(f"{what}: not an ISO 8601 UTC time: {text!r} (e.g. 2024-06-21 or 2024-06-21T12:00:00Z)")
-    return t
+    return None if text is None else parse_utc(text, what, ConfigError)
 
 
 class _Progress:
@@ -62,8 +57,8 @@ def reprocess_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder: OUT/<station>/cbh_<station>_<YYYYMMDD>.nc|.parquet, OUT/index.json."),
     workers: int = typer.Option(None, "--workers", "-j", help="Ray actors (default: all CPUs)."),
     address: str = typer.Option(None, "--address", help="Join a Ray cluster: auto | HOST:PORT | ray://HOST:PORT (default: a private local Ray)."),
-    t_from: str = typer.Option(None, "--from", help="First UTC time (ISO 8601) to process."),
-    t_to: str = typer.Option(None, "--to", help="Process pairs before this UTC time."),
+    t_from: str = typer.Option(None, "--from", help="First time to process, ISO 8601 with a zone (2024-06-21T00:00:00Z)."),
+    t_to: str = typer.Option(None, "--to", help="Process pairs before this time (ISO 8601 with a zone)."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda (each actor asks Ray for a GPU share)."),
     fmt: str = typer.Option("netcdf,parquet", "--format", help="netcdf, parquet or both (comma-separated)."),
     cameras: str = typer.Option(None, "--cameras", help="Camera pair, e.g. cam1,cam2 (default: the first two)."),

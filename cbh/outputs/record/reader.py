@@ -315,30 +315,22 @@ class Session:
                 msgs = pending.pop(seq)
                 yield build_pair(seq, msgs, f"{self.paths[0].name} pair {seq}")
 
-    def statuses(self) -> Iterator[tuple[datetime, dict]]:
-        """(time, stats dict) of every ``/service/status`` message."""
-        for _topic, t, _seq, msg in self._messages({STATUS_TOPIC}):
-            try:
-                stats = json.loads(msg.json) if msg.json else {}
-            except json.JSONDecodeError:
-                stats = {c.name: c.value for c in msg.counters}
-            yield from_ns(t), stats
-
     def images(self, cameras, start_ns: int | None = None, end_ns: int | None = None
                ) -> Iterator[tuple[int, RecordedImage]]:
-        """(pair sequence, image) of the recorded camera images whose capture time (log time)
-        lies in [``start_ns``, ``end_ns``), read through the file's index (fast for a time slice).
+        """(pair index, image) of the recorded images of ``cameras``, in file order; with
+        ``start_ns``/``end_ns`` only those whose capture time (log time) lies in
+        [``start_ns``, ``end_ns``), read through the file's index (fast for a time slice).
 
         Parameters
         ----------
-        cameras : iterable of str
-            Camera names (topics ``/<camera>/image/compressed``).
+        cameras : str or iterable of str
+            Camera name(s) (topics ``/<camera>/image/compressed``; only these are read).
         start_ns, end_ns : int or None
             Capture-time bounds [ns since the Unix epoch]; None = open.
         """
         from mcap.reader import make_reader
 
-        topics = [f"/{c}/image/compressed" for c in cameras]
+        topics = [f"/{c}/image/compressed" for c in ([cameras] if isinstance(cameras, str) else cameras)]
         T = foxglove_types()["CompressedImage"]
         for p in self.paths:
             try:
@@ -354,6 +346,14 @@ class Session:
             except Exception as exc:
                 raise RecordingError(f"{p}: corrupt recording ({type(exc).__name__}: {exc})") from None
 
+    def statuses(self) -> Iterator[tuple[datetime, dict]]:
+        """(time, stats dict) of every ``/service/status`` message."""
+        for _topic, t, _seq, msg in self._messages({STATUS_TOPIC}):
+            try:
+                stats = json.loads(msg.json) if msg.json else {}
+            except json.JSONDecodeError:
+                stats = {c.name: c.value for c in msg.counters}
+            yield from_ns(t), stats
 
 def open_session(path) -> Session:
     """Open a recording: a ``.mcap`` file, a directory of rotated files, or a list of files.
