@@ -532,7 +532,7 @@ def _write_index(plan: Plan, sides: dict[tuple[str, date], dict], failed: dict[t
             side = sides.get(key) or w.done
             if side is not None:
                 days.append({"day": w.day.isoformat(), "status": "resumed" if key not in sides else "written",
-                             "pairs": side["pairs"], "records": side["records"], "failures": len(side["failures"]),
+                             "pairs": side["pairs"], "records": side["records"], "failures": side["failures"],
                              "time_span_utc": side["time_span_utc"], "files": side["files"],
                              "sidecar": str(daily_paths(opts.out, w.station, w.day)["sidecar"])})
                 if side["time_span_utc"]:

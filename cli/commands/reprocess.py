@@ -20,7 +20,8 @@ def _utc(text: str | None, what: str):
 
 
 class _Progress:
-    """Rich progress bar on stderr (only on a terminal) and one JSON line per finished day on stdout."""
+    """Rich progress bar on stderr (only on a terminal) and one JSON line per finished day on stdout
+    (shown above the bar when stdout is the same terminal)."""
 
     def __init__(self):
         self.bar = self.task = None
@@ -33,7 +34,8 @@ class _Progress:
 
             self.bar = Progress(TextColumn("reprocess"), BarColumn(), MofNCompleteColumn(),
                                 TextColumn("{task.fields[rate]:.2f} pairs/s"), TimeRemainingColumn(),
-                                TextColumn("failures {task.fields[failures]}"), console=Console(stderr=True))
+                                TextColumn("failures {task.fields[failures]}"), console=Console(stderr=True),
+                                redirect_stdout=sys.stdout.isatty(), redirect_stderr=False)  # piped stdout stays clean
             self.task = self.bar.add_task("pairs", total=e["pairs"], rate=0.0, failures=0)
             self.bar.start()
         elif e["event"] == "chunk" and self.bar is not None:
@@ -44,7 +46,7 @@ class _Progress:
         elif e["event"] == "day":
             line = {k: e[k] for k in ("station", "day", "pairs", "records", "time_span_utc", "files")}
             line["failures"] = len(e["failures"])
-            (self.bar.console.print if self.bar else print)(json.dumps(line), **({"highlight": False, "soft_wrap": True} if self.bar else {"flush": True}))
+            print(json.dumps(line), flush=True)
 
     def stop(self):
         if self.bar is not None:
@@ -75,6 +77,9 @@ def reprocess_cmd(
                             formats=tuple(fmt.split(",")), chunk_pairs=chunk_pairs, pair_tolerance_s=pair_tolerance_s)
     finally:
         progress.stop()
+    if not s.workers:
+        print(f"nothing to do: {s.days_resumed} days ({s.pairs_resumed} pairs) already done; index: {s.index}")
+        return
     print(f"{s.pairs_processed} pairs processed ({s.failures} failed) in {s.elapsed_s:.1f} s "
           f"({s.pairs_per_s:.2f} pairs/s, {s.workers} worker{'s' if s.workers != 1 else ''}); days: {s.days_written} written, "
           f"{s.days_resumed} already done, {s.days_failed} not finished; index: {s.index}")
