@@ -181,6 +181,18 @@ def test_network_file_and_source_binding_errors(archive, tmp_path):
                    f'cam2 = "{archive / "cam2"}"\n')
     (job,) = load_jobs([net])
     assert job.cameras == ("cam1", "cam2") and job.specs["cam2"] == str(archive / "cam2")
+    # two stations in one network: the work is partitioned by station and UTC day
+    st_b = tmp_path / "b.toml"
+    st_b.write_text(st.read_text().replace('name = "unb-lea"', 'name = "site-b"', 1))
+    net.write_text(net.read_text() + f'[[stations]]\nstation = "{st_b}"\n')
+    from cbh.actions.reprocess import ReprocessOptions, plan_reprocess
+
+    jobs = load_jobs([net], [f"site-b/cam1={archive / 'cam1'}", f"site-b/cam2={archive / 'cam2'}"])
+    plan = plan_reprocess(jobs, ReprocessOptions(out=tmp_path / "out", t_to=DAY2))
+    assert [(d.station, str(d.day), len(d.pairs)) for d in plan.days] == [
+        ("unb-lea", "2024-06-21", 4), ("site-b", "2024-06-21", 4)]  # --to: day 2 left out
+    with pytest.raises(ConfigError, match="STATION/cam1"):
+        load_jobs([net], [f"cam1={archive / 'cam1'}"])
     with pytest.raises(ConfigError, match="no station"):
         load_jobs([st], ["cam9=/tmp"])
     with pytest.raises(ConfigError, match="given twice"):

@@ -48,7 +48,7 @@ from datetime import date, datetime, timezone
 from pathlib import Path
 from typing import Callable
 
-from cbh.actions.archive import FrameRef, Inventory, PairRef, by_day, load_images, scan_station
+from cbh.actions.archive import Inventory, PairRef, by_day, load_images, scan_station
 from cbh.errors import CbhError, ConfigError, RecordingError
 
 __all__ = ["StationJob", "ReprocessOptions", "Plan", "DayWork", "Summary", "load_jobs", "plan_reprocess",

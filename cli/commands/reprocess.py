@@ -1,7 +1,6 @@
 """`cbh reprocess`: archives of a station or a network, per station and UTC day, on Ray."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -17,40 +16,6 @@ def _utc(text: str | None, what: str):
     from cbh.timeutil import parse_utc
 
     return None if text is None else parse_utc(text, what, ConfigError)
-
-
-class _Progress:
-    """Rich progress bar on stderr (only on a terminal) and one JSON line per finished day on stdout
-    (shown above the bar when stdout is the same terminal)."""
-
-    def __init__(self):
-        self.bar = self.task = None
-        self.failures = 0
-
-    def __call__(self, e: dict) -> None:
-        if e["event"] == "start" and e["pairs"] and sys.stderr.isatty():
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-            self.bar = Progress(TextColumn("reprocess"), BarColumn(), MofNCompleteColumn(),
-                                TextColumn("{task.fields[rate]:.2f} pairs/s"), TimeRemainingColumn(),
-                                TextColumn("failures {task.fields[failures]}"), console=Console(stderr=True),
-                                redirect_stdout=sys.stdout.isatty(), redirect_stderr=False)  # piped stdout stays clean
-            self.task = self.bar.add_task("pairs", total=e["pairs"], rate=0.0, failures=0)
-            self.bar.start()
-        elif e["event"] == "chunk" and self.bar is not None:
-            self.failures += e["failures"]
-            self.bar.advance(self.task, e["pairs"])
-            t = self.bar.tasks[0]
-            self.bar.update(self.task, failures=self.failures, rate=(t.completed / t.elapsed) if t.elapsed else 0.0)
-        elif e["event"] == "day":
-            line = {k: e[k] for k in ("station", "day", "pairs", "records", "time_span_utc", "files")}
-            line["failures"] = len(e["failures"])
-            print(json.dumps(line), flush=True)
-
-    def stop(self):
-        if self.bar is not None:
-            self.bar.stop()
 
 
 def reprocess_cmd(
@@ -69,8 +34,9 @@ def reprocess_cmd(
 ) -> None:
     """Reprocess archives (image folders, recordings, videos): per station and UTC day, on Ray."""
     from cbh.actions.reprocess import reprocess
+    from cbh.cli.progress import ReprocessProgress
 
-    progress = _Progress()
+    progress = ReprocessProgress()
     try:
         plan, s = reprocess(station, source, cameras=cameras, on_event=progress, out=out, workers=workers,
                             address=address, t_from=_utc(t_from, "--from"), t_to=_utc(t_to, "--to"), device=device,
