@@ -170,6 +170,31 @@ def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_
             _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
 
 
+@pytest.mark.slow
+def test_worker_that_ray_gives_up_on_is_replaced(archive, baseline, tmp_path):
+    """With Ray's restarts off, a killed actor's chunks fail in Ray; the run gives them to a
+    fresh actor and still writes every day, equal to the undisturbed run."""
+    from cbh.actions.reprocess import daily_paths
+
+    _, _, base_out = baseline
+    pids: list[int] = []
+    killed: list[int] = []
+
+    def on_event(e):
+        if e["event"] == "workers":
+            pids.extend(e["pids"])
+        elif e["event"] == "dispatch" and not killed:
+            os.kill(pids[e["slot"]], signal.SIGKILL)
+            killed.append(pids[e["slot"]])
+
+    _, s = _run(archive, tmp_path / "out", on_event=on_event, actor_restarts=0)
+    assert killed and s.retried_chunks >= 1
+    assert (s.pairs_processed, s.failures, s.days_written, s.days_failed) == (7, 1, 2, 0)
+    for day in (T0.date(), DAY2.date()):
+        assert _heights_by_time(daily_paths(tmp_path / "out", "unb-lea", day)["parquet"]) == \
+            _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
+
+
 def test_network_file_and_source_binding_errors(archive, tmp_path):
     """A network TOML lists stations; --source must name a camera of the pair; live URLs are refused."""
     from cbh.actions.reprocess import load_jobs

@@ -189,6 +189,7 @@ class ReprocessOptions:
     chunk_pairs: int = 32  # pairs per task
     pair_tolerance_s: float | None = None  # None: the station's [service] pair_tolerance_s (default 0.5 s)
     max_attempts: int = 3  # a chunk whose worker dies is given to a fresh actor at most this often
+    actor_restarts: int = 3  # Ray's max_restarts (and max_task_retries) of each actor
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -616,11 +617,12 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     gpu_share = 0.0
     if opts.device == "cuda":
         gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / n_workers)
-    actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share, max_restarts=3, max_task_retries=3)
+    actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share, max_restarts=opts.actor_restarts,
+                                               max_task_retries=opts.actor_restarts)
     stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs if j.name in queues}
     actors: list = []
     current: list[str | None] = []
-    inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt)
+    inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt, actor handle)
     load = [0] * n_workers
 
     def new_actor():
@@ -652,25 +654,26 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
                     if item is None:
                         break
                     chunk, attempt = item
-                    inflight[actors[slot].process.remote(chunk)] = (slot, chunk, attempt)
+                    inflight[actors[slot].process.remote(chunk)] = (slot, chunk, attempt, actors[slot])
                     load[slot] += 1
                     emit({"event": "dispatch", "slot": slot, "station": chunk.station, "day": chunk.day.isoformat(),
                           "chunk": chunk.index, "pairs": len(chunk.pairs)})
             ready, _ = ray.wait(list(inflight), num_returns=1, timeout=1.0)
             for ref in ready:
-                slot, chunk, attempt = inflight.pop(ref)
+                slot, chunk, attempt, actor = inflight.pop(ref)
                 load[slot] -= 1
                 key = (chunk.station, chunk.day)
                 try:
                     res: ChunkResult = ray.get(ref)
                 except ray.exceptions.RayActorError as exc:  # Ray's restarts and retries used up
                     s.retried_chunks += 1
-                    try:
-                        ray.kill(actors[slot], no_restart=True)
-                    except Exception:
-                        pass
-                    actors[slot] = new_actor()
-                    pids[slot] = None
+                    if actors[slot] is actor:  # not yet replaced (its other in-flight chunk may fail too)
+                        try:
+                            ray.kill(actor, no_restart=True)
+                        except Exception:
+                            pass
+                        actors[slot] = new_actor()
+                        pids[slot] = None
                     if attempt < opts.max_attempts:
                         queues[chunk.station].appendleft((chunk, attempt + 1))
                         log.warning("worker died on %s %s chunk %d; retrying on a fresh worker (%s)",
