@@ -15,7 +15,7 @@ import typer
 
 from cbh.errors import CbhError
 
-COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "reprocess")
+COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "quicklook", "reprocess")
 
 app = typer.Typer(
     name="cbh",

@@ -234,11 +234,15 @@ class Plan:
 def daily_paths(out: Path, station: str, day: date) -> dict[str, Path]:
     """Output files of one station-day: ``netcdf``, ``parquet`` and the ``sidecar`` JSON.
 
-    E-PROFILE style: one file per station and UTC day, named product_station_date.
+    E-PROFILE style, the names of ``cbh export --daily``
+    (:func:`cbh.outputs.export.daily_file_name`), in a folder per station.
     """
-    stem = f"cbh_{station}_{day:%Y%m%d}"
+    from cbh.outputs.export import daily_file_name
+
     d = Path(out) / station
-    return {"netcdf": d / f"{stem}.nc", "parquet": d / f"{stem}.parquet", "sidecar": d / f"{stem}.json"}
+    tag = f"{day:%Y%m%d}"
+    return {"netcdf": d / daily_file_name(station, tag, "netcdf"), "parquet": d / daily_file_name(station, tag, "parquet"),
+            "sidecar": d / daily_file_name(station, tag, "json")}
 
 
 def _station_hash(job: StationJob) -> str:
@@ -501,7 +505,8 @@ def _write_day(plan: Plan, job: StationJob, work: DayWork, records: list, failur
         uniq.append(r)
     st = job.station
     info = {"station": st.name, "latitude_deg": st.latitude_deg, "longitude_deg": st.longitude_deg,
-            "altitude_m": st.altitude_m, "cameras": job.cameras, "cbh_version": cbh.__version__}
+            "altitude_m": st.altitude_m, "cameras": job.cameras, "cbh_version": cbh.__version__,
+            "metadata": dict(st.metadata)}  # what cbh export's session_records gives write_netcdf
     files = []
     if uniq:
         for fmt in opts.formats:
