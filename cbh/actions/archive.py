@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 _RECORDING_MARGIN_S = 120.0  # camera images of a recorded pair lie within the pairing tolerance of it
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class FrameRef:
     """Where one camera frame is: an image file, a video frame or a recorded image.
 
@@ -77,7 +77,7 @@ class FrameRef:
         return self.path if self.kind == "image" else f"{self.path}#{self.index}"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class PairRef:
     """A frame pair to process; ``time_utc`` is camera 1's capture time (the pair's time)."""
 
