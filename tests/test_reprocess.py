@@ -133,6 +133,33 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
             assert f["time_utc"] == "2024-06-21T14:00:45Z" and "corrupt" in f["reason"] and "cam1_" in f["frames"][0]
         else:
             assert side["failures"] == []
+    # motion: chunks start with a lead-in pair, so every pair's motion equals one sequential run's
+    import pyarrow.parquet as pq
+
+    from cbh.actions.run import MotionChain
+    from cbh.errors import ImageError
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+
+    pipe, chain, n_moving = Pipeline(load_station(archive / "station.toml")), MotionChain(), 0
+    rows = [r for w in plan.days for r in pq.read_table(daily_paths(out, "unb-lea", w.day)["parquet"]).to_pylist()]
+    for p in [p for w in plan.days for p in w.pairs]:
+        try:
+            r = pipe.process(p.frame1.path, p.frame2.path, p.time_utc, previous=chain.previous(p.time_utc))
+        except ImageError:
+            chain.lost()
+            continue
+        chain.keep(r)
+        got_m = [(x["motion_east_ms"], x["motion_north_ms"]) for x in rows if x["time_utc"] == p.time_utc]
+        want_m = [(l.motion_east_ms, l.motion_north_ms) for l in r.layers]
+        assert [tuple(np.isnan(v) for v in m) for m in want_m] == [tuple(v is None for v in m) for m in got_m]
+        # equal up to summation order (the actors run OpenCV on one thread, this process on all):
+        # 1e-9 relative is far below anything physical (a 10 m/s cloud known to 1e-8 m/s)
+        assert np.allclose(np.array(want_m, float), np.array([[np.nan if v is None else v for v in m] for m in got_m]),
+                           rtol=1e-9, atol=0, equal_nan=True)
+        n_moving += all(v is not None for m in got_m for v in m)
+    assert n_moving >= 3  # pairs 2 and 3 of each day (after the corrupt one, too) move
+
     index = json.loads((out / "index.json").read_text())
     assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["written", "written"]
     assert index["time_span_utc"] == ["2024-06-21T14:00:00Z", "2024-06-22T14:01:00Z"]

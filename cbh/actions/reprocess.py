@@ -31,8 +31,16 @@ Engine: with ``address=None`` a private Ray instance starts on demand with ``num
 on the loopback interface only, and stops at the end; ``address="auto"``, ``"HOST:PORT"`` or
 ``"ray://HOST:PORT"`` joins an existing cluster, whose nodes must have cbh installed and see the
 input and output paths (a shared file system). Exactness: each pair is processed by exactly
-the code of ``cbh pair`` (``Pipeline.process`` on the decoded images and camera 1's time), and
-the pipeline keeps no state between pairs, so the heights equal ``cbh pair``'s.
+the code of ``cbh pair`` (``Pipeline.process`` on the decoded images and camera 1's time).
+
+Temporal state (cloud motion, camera 2's clock offset: :mod:`cbh.pipeline.motion`) is handed
+from pair to pair in time order as ``cbh run`` does (:class:`cbh.actions.run.MotionChain`).
+A chunk starts with a lead-in: the station's pair just before its first (possibly the previous
+day's last) is processed again for its state only, so every pair gets its motion exactly as in
+one sequential run, at one extra pair per chunk. The running clock-offset estimate (a median
+over the last pairs) restarts at each chunk; where a clock offset is compensated, the heights
+of a chunk's first pairs can differ from a sequential run's within the 0.5 % the issue allows.
+Where no temporal information is used the heights are identical to ``cbh pair``'s.
 """
 from __future__ import annotations
 
@@ -300,6 +308,7 @@ class Chunk:
     day: date
     index: int  # chunk number within the day
     pairs: tuple[PairRef, ...]
+    lead: PairRef | None = None  # the station's pair just before ``pairs[0]``: processed for its motion state only
 
 
 @dataclass
@@ -364,23 +373,33 @@ class PairWorker:
         """Every pair of the chunk: records of those processed, failures (with reasons) of the rest."""
         from cbh.outputs.export import pair_record
 
+        from cbh.actions.run import MotionChain
+
         t0 = time.perf_counter()
         pipe = self.pipeline(chunk.station)
         st = self.stations[chunk.station][0]
-        images = load_images([f for p in chunk.pairs for f in (p.frame1, p.frame2)])
+        lead = (chunk.lead,) if chunk.lead is not None else ()
+        images = load_images([f for p in lead + chunk.pairs for f in (p.frame1, p.frame2)])
+        motion = MotionChain()  # the temporal state handed from pair to pair, as in `cbh run`
         records, failures = [], []
-        for p in chunk.pairs:
+        for k, p in enumerate(lead + chunk.pairs):
             img1, img2 = images[p.frame1], images[p.frame2]
             bad = img1 if isinstance(img1, Exception) else img2 if isinstance(img2, Exception) else None
             if bad is None:
                 try:
-                    result = pipe.process(img1, img2, p.time_utc, channels="bgr")  # decoded by OpenCV
-                    records.append(pair_record(result, st.altitude_m))
+                    result = pipe.process(img1, img2, p.time_utc, channels="bgr",  # decoded by OpenCV
+                                          previous=motion.previous(p.time_utc))
+                    motion.keep(result)
+                    if k >= len(lead):
+                        records.append(pair_record(result, st.altitude_m))
                     continue
                 except CbhError as exc:
                     bad = exc
                 except Exception as exc:  # a bad input must not end a year-long run; counted and logged
                     bad = exc
+            motion.lost()
+            if k < len(lead):
+                continue  # the lead-in pair is another chunk's: counted there
             reason = str(bad) if isinstance(bad, CbhError) else f"{type(bad).__name__}: {bad}"
             failures.append({"time_utc": _iso(p.time_utc), "frames": [p.frame1.describe(), p.frame2.describe()],
                              "reason": reason})
@@ -601,10 +620,16 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     # chunks, per station queue (a worker stays with its station while it has work)
     queues: dict[str, deque] = defaultdict(deque)
     expected: dict[tuple[str, date], int] = {}
+    before: dict[tuple[str, date], PairRef | None] = {}  # the previous day's last pair: the day's lead-in
+    last: dict[str, PairRef] = {}
+    for w in sorted(plan.days, key=lambda d: (d.station, d.day)):
+        before[(w.station, w.day)] = last.get(w.station)
+        last[w.station] = w.pairs[-1]
     for w in todo:
         n = 0
         for i in range(0, len(w.pairs), opts.chunk_pairs):
-            queues[w.station].append((Chunk(w.station, w.day, n, tuple(w.pairs[i:i + opts.chunk_pairs])), 1))
+            lead = w.pairs[i - 1] if i else before[(w.station, w.day)]
+            queues[w.station].append((Chunk(w.station, w.day, n, tuple(w.pairs[i:i + opts.chunk_pairs]), lead), 1))
             n += 1
         expected[(w.station, w.day)] = n
     works = {(w.station, w.day): w for w in todo}
