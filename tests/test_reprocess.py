@@ -172,6 +172,7 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["resumed", "resumed"]
 
 
+@pytest.mark.slow  # a Ray worker killed and restarted: ~10 s; the default tier runs Ray in the test above
 def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_path):
     """SIGKILL of an actor process while its first chunk is in flight: Ray restarts the actor,
     retries the chunk, and the output equals the undisturbed run."""
