@@ -47,6 +47,7 @@ ceilometer products (E-PROFILE, Vaisala CL61): see :func:`netcdf_dataset`.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 import os
@@ -275,7 +276,9 @@ class LayerExporter(ResultSink):
         Diagnostics columns a new file starts with (keys seen later are added).
 
     Both formats are complete and readable after every pair, also while the service runs and
-    after a kill: CSV rows are flushed as written; the Parquet file is rewritten to a temporary
+    after a kill: a pair's CSV rows are appended with one unbuffered write, a write that fails
+    part-way (disk full) is cut back to the last complete row, and a torn last row left by an
+    earlier crash is removed (with a warning) when the file is opened again; the Parquet file is rewritten to a temporary
     file and atomically renamed over the old one after each pair (layer rows are small: a day
     at a 10 s cadence is about 26 000 rows).
     """
@@ -300,6 +303,7 @@ class LayerExporter(ResultSink):
         if not self.path.parent.is_dir():
             raise RecordingError(f"export directory does not exist: {self.path.parent}")
         if self.format == "csv":
+            self._repair_csv_tail()
             exists = self.path.is_file() and self.path.stat().st_size > 0
             if exists:
                 with open(self.path, newline="") as fh:
@@ -326,20 +330,6 @@ class LayerExporter(ResultSink):
                     raise RecordingError(f"{self.path}: exists with other columns; cannot append layer rows to it")
                 self.diagnostics = keys
                 self._rows = table.to_pylist()
-
-    def _open_csv(self, write_header: bool) -> None:
-        try:
-            self._fh = open(self.path, "a", newline="")
-        except OSError as exc:
-            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
-        self._csv = csv.writer(self._fh, lineterminator="\n")
-        if write_header:
-            try:
-                self._csv.writerow(COLUMNS + self.diagnostics)
-                self._fh.flush()
-            except OSError:
-                self._fh.close()  # the caller reports the error (e.g. disk full)
-                raise
 
     def _widen_csv(self, keys: tuple[str, ...]) -> None:
         """Rewrite the CSV with ``keys`` as its diagnostics columns (atomic rename)."""
@@ -381,9 +371,11 @@ class LayerExporter(ResultSink):
         rows = record_rows(rec, self.diagnostics)
         if self.format == "csv":
             cols = COLUMNS + self.diagnostics
+            buf = io.StringIO()
+            w = csv.writer(buf, lineterminator="\n")
             for r in rows:
-                self._csv.writerow([_csv_value(k, r[k]) for k in cols])
-            self._fh.flush()
+                w.writerow([_csv_value(k, r[k]) for k in cols])
+            self._append_whole(buf.getvalue().encode("utf-8"))
         else:
             if len(self._rows) + len(rows) > self.max_rows:
                 self.path = self.paths[0].with_name(f"{self.paths[0].stem}-{len(self.paths):03d}.parquet")
@@ -392,6 +384,61 @@ class LayerExporter(ResultSink):
             self._rows.extend(rows)
             self._write_parquet()
         self.rows_written += len(rows)
+
+    # --- CSV: whole rows or nothing ------------------------------------------------------
+
+    def _repair_csv_tail(self) -> None:
+        """Cut a torn last row (no final newline) left by a crash or a full disk of an earlier
+        run, with a warning. Only a file that starts like a cbh layer table is touched."""
+        try:
+            fd = os.open(self.path, os.O_RDWR)
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
+        try:
+            size = os.fstat(fd).st_size
+            head = os.pread(fd, 4096, 0).split(b"\n", 1)[0]
+            ours = ",".join(COLUMNS).encode()
+            if not size or not (head.startswith(ours) or ours.startswith(head)):
+                return  # empty, or not ours: the header check reports it
+            keep = _complete_length(fd, size)
+            if keep != size:
+                os.ftruncate(fd, keep)
+                log.warning(f"{self.path}: removed a torn last row ({size - keep} bytes) left by an "
+                            "interrupted earlier run", extra={"cbh_event": "csv_repaired"})
+        finally:
+            os.close(fd)
+
+    def _open_csv(self, write_header: bool) -> None:
+        """Open for appending, unbuffered (rows go out whole, see :meth:`_append_whole`)."""
+        try:
+            self._fh = open(self.path, "ab", buffering=0)
+        except OSError as exc:
+            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
+        if write_header:
+            try:
+                self._append_whole((",".join(COLUMNS + self.diagnostics) + "\n").encode())
+            except OSError:
+                self._fh.close()  # the caller reports the error (e.g. disk full)
+                raise
+
+    def _append_whole(self, data: bytes) -> None:
+        """Append ``data`` (whole rows) with one write; if it fails part-way (disk full), cut the
+        file back to the last complete row and re-raise: a reader never sees a torn row."""
+        fd = self._fh.fileno()
+        start = os.lseek(fd, 0, os.SEEK_END)
+        view = memoryview(data)
+        try:
+            while view:
+                n = os.write(fd, view)  # O_APPEND: at the end; short only when the disk fills
+                view = view[n:]
+        except OSError:
+            try:
+                os.ftruncate(fd, start)
+            except OSError:  # pragma: no cover - truncating never needs space
+                pass
+            raise
 
     def _write_parquet(self) -> None:
         """Write all rows to a temporary file and rename it over the export (atomic)."""
@@ -420,6 +467,20 @@ class LayerExporter(ResultSink):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _complete_length(fd: int, size: int) -> int:
+    """Bytes of the file up to and including its last newline (0 if none)."""
+    pos = size
+    while pos > 0:
+        n = min(65536, pos)
+        os.lseek(fd, pos - n, os.SEEK_SET)
+        chunk = os.read(fd, n)
+        i = chunk.rfind(b"\n")
+        if i >= 0:
+            return pos - n + i + 1
+        pos -= n
+    return 0
 
 
 # --- from recordings ----------------------------------------------------------------------

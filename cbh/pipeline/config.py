@@ -33,6 +33,8 @@ __all__ = [
     "HeightMapConfig",
     "LayersConfig",
     "MotionConfig",
+    "GeometryCheckConfig",
+    "SunCheckConfig",
     "PipelineConfig",
 ]
 
@@ -68,6 +70,7 @@ class SegmentationConfig:
     fixed_threshold: float = 0.15  # hybrid: one-class images are cloud when their median NBR is below this [1]
     texture_cv: float = 0.03  # hybrid: a one-class sky whose median local contrast (std/mean, 7 px) exceeds this is cloud [1]
     chroma_weight: float = 0.3  # hybrid: weight of the desaturation cue against the blue deficit, 0..1 [1]
+    brightness_weight: float = 0.25  # hybrid: score added per ln(1.5) of brightness difference from the clear sky nearby [1]
     score_threshold: float = 0.45  # hybrid: cloud where the combined cloudiness score exceeds this [1]
     threshold: float = 0.10  # NBR below this is cloud (nbr; base of nbr_adaptive) [1]
     sun_threshold: float = -0.05  # nbr_adaptive: threshold right at the sun [1]
@@ -208,9 +211,31 @@ class MotionConfig:
     clock_offset: bool = True  # estimate camera 2's clock offset and compensate it in the matching
     offset_history: int = 15  # pairs in the running (median) clock-offset estimate [1]
     offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
-    compensate_min_s: float = 0.1  # compensate camera 2 only above this |offset| (the estimate is good to ≈ 0.05 s) [s]
+    compensate_min_s: float = 0.2  # compensate camera 2 only above this |offset|: the estimate's systematic error reaches ≈ 0.15 s [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
     max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
+
+
+@dataclass(frozen=True)
+class GeometryCheckConfig:
+    """Per-pair check of the correspondences against the station geometry (:mod:`.geocheck`)."""
+
+    enabled: bool = True  # run the check (flag geometry_mismatch / identical_images)
+    max_residual_px: float = 1.0  # median epipolar distance allowed at least, camera 2 working size [px]
+    expected_miss_ratio: float = 0.0  # median epipolar angle the lens calibration is known to leave [rad]; 0 = none
+    min_inlier_fraction: float = 0.5  # share of 2-D matches consistent with the geometry, at least [1]
+    min_matches: int = 30  # fewer 2-D matches: no verdict [1]
+    max_matches: int = 3000  # at most this many matches are judged (even subsample) [1]
+    identical_max_dn: float = 0.5  # images closer than this mean grey difference are the same image [DN]
+
+
+@dataclass(frozen=True)
+class SunCheckConfig:
+    """Detected vs predicted sun in each camera (:mod:`.sundetect`), when the time is known."""
+
+    enabled: bool = True  # detect the sun and report sun_residual_deg
+    search_deg: float = 15.0  # look for the sun this far from its predicted direction [deg]
+    max_residual_deg: float = 1.0  # flag sun_misaligned beyond this [deg]
 
 
 @dataclass(frozen=True)
@@ -227,6 +252,8 @@ class PipelineConfig:
     height_map: HeightMapConfig = field(default_factory=HeightMapConfig)
     layers: LayersConfig = field(default_factory=LayersConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
+    geometry_check: GeometryCheckConfig = field(default_factory=GeometryCheckConfig)
+    sun_check: SunCheckConfig = field(default_factory=SunCheckConfig)
 
     @classmethod
     def from_dict(cls, data: dict | None, where: str = "pipeline") -> "PipelineConfig":
@@ -279,6 +306,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.segmentation.texture_cv", sg.texture_cv, strict=False)
     if not 0 <= sg.chroma_weight <= 1:
         raise ConfigError(f"{where}.segmentation.chroma_weight: must be in 0..1, got {sg.chroma_weight}")
+    _positive(f"{where}.segmentation.brightness_weight", sg.brightness_weight, strict=False)
     if not 0 < sg.score_threshold < 1:
         raise ConfigError(f"{where}.segmentation.score_threshold: must be in (0, 1), got {sg.score_threshold}")
     _positive(f"{where}.segmentation.max_side_px", sg.max_side_px, strict=False)
@@ -334,6 +362,16 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     hm = cfg.height_map
     _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
     _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
+    gc = cfg.geometry_check
+    _positive(f"{where}.geometry_check.max_residual_px", gc.max_residual_px)
+    if not 0 <= gc.min_inlier_fraction <= 1:
+        raise ConfigError(f"{where}.geometry_check.min_inlier_fraction: must be in 0..1, got {gc.min_inlier_fraction}")
+    _positive(f"{where}.geometry_check.expected_miss_ratio", gc.expected_miss_ratio, strict=False)
+    _positive(f"{where}.geometry_check.min_matches", gc.min_matches)
+    _positive(f"{where}.geometry_check.max_matches", gc.max_matches)
+    _positive(f"{where}.geometry_check.identical_max_dn", gc.identical_max_dn, strict=False)
+    _positive(f"{where}.sun_check.search_deg", cfg.sun_check.search_deg)
+    _positive(f"{where}.sun_check.max_residual_deg", cfg.sun_check.max_residual_deg)
     ly = cfg.layers
     _choice(f"{where}.layers.method", ly.method, LAYER_METHODS)
     for k in ("bin_log", "smooth_log", "min_separation_log"):

@@ -7,12 +7,18 @@ Stages (each a pure function in its own module; timed into ``PairResult.timing_m
    (chosen so that width and height scale identically), so the geometry stays exact.
 2. ``masks``: image circle ∩ zenith limit ∩ obstacle mask (cached per camera), minus the sun
    disk (pvlib) and saturated blobs.
+   ``sun_check``: the sun detected in each image against the sun predicted from the time and
+   the calibrated rotation (:mod:`.sundetect`): diagnostics ``sun_residual_deg`` (worst camera),
+   ``sun_residual_cam1_deg``, ``sun_residual_cam2_deg``, flag ``sun_misaligned``.
 2b. ``photometric``: camera 2's gain, gamma and white balance relative to camera 1, estimated
    in the common field of view, reported in ``diagnostics`` (flag ``exposure_mismatch`` when
    large) and removed from camera 2's image before segmentation and matching.
 3. ``segmentation``: cloud mask and fraction per camera (colour images only).
 4. ``match_<method>``: correspondences per configured method (:mod:`.match`).
 5. ``triangulation``: all correspondences at once, geometric rejection.
+   ``geometry_check``: the 2-D correspondences against the calibrated rotations and the
+   baseline (:mod:`.geocheck`): diagnostics ``geometry_residual_px`` and
+   ``geometry_inlier_fraction``, flags ``geometry_mismatch`` and ``identical_images``.
 6. ``height_map``: dense map on camera 1's grid, returned at camera 1's full image size.
 7. ``layers``: log-height histogram → layers with support checks; each layer's ``cover`` is
    the share of camera 1's usable sky whose cloud pixels (own or nearest measured height) lie
@@ -47,6 +53,8 @@ from cbh.timeutil import parse_utc
 from cbh.result import PairResult, PointSet
 from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
+from cbh.pipeline.geocheck import check_geometry, images_identical
+from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
@@ -228,6 +236,9 @@ class Pipeline:
             work = (self.to_working(0, image1), self.to_working(1, image2))
         with _timed(ctx, "masks"):
             masks = self.stage_masks(work, ctx)
+        with _timed(ctx, "sun_check"):
+            self.stage_sun_check(work, masks, ctx)
+        received = work  # as the cameras delivered them (the identical-image check needs these)
         with _timed(ctx, "photometric"):
             work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
@@ -268,6 +279,8 @@ class Pipeline:
             if attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not new_rates:
                 break
             used, rates = new, new_rates
+        with _timed(ctx, "geometry_check"):
+            self.stage_geometry_check(received, corr, ctx)
         self._quality_flags(pts, seg, ctx)
         offsets = mot.offsets_s + ((est.pair_offset_s,) if math.isfinite(est.pair_offset_s) else ())
         offsets = offsets[-mcfg.offset_history:]
@@ -447,6 +460,36 @@ class Pipeline:
             tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
         return Correspondences(triangulated=tris, raw=raw)
 
+    def stage_sun_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
+        """Detected vs predicted sun per camera → ``sun_residual_*_deg``, flag ``sun_misaligned``."""
+        cfg = self.config.sun_check
+        if not cfg.enabled or masks.sun_dir_enu is None:
+            return
+        res = []
+        for i, (cam, img, role) in enumerate(((self.cam1, work[0], "cam1"), (self.cam2, work[1], "cam2"))):
+            expected = masks.sun_dir_enu @ cam.R_world_from_cam
+            det = detect_sun(img, cam, expected, cfg.search_deg, usable=self.static_mask(i))
+            r = math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
+            ctx.diagnostics[f"sun_residual_{role}_deg"] = r
+            res.append(r)
+        seen = [r for r in res if math.isfinite(r)]
+        ctx.diagnostics["sun_residual_deg"] = max(seen) if seen else math.nan
+        if seen and max(seen) > cfg.max_residual_deg:
+            ctx.flags.append("sun_misaligned")
+
+    def stage_geometry_check(self, work, corr: "Correspondences", ctx: "PairContext") -> None:
+        """Correspondences vs station geometry → ``geometry_*`` diagnostics and flags."""
+        cfg = self.config.geometry_check
+        if not cfg.enabled:
+            return
+        if images_identical(work[0], work[1], cfg.identical_max_dn):
+            ctx.flags.append("identical_images")
+        chk = check_geometry(self.geometry, corr.raw, self.config.filtering, cfg)
+        ctx.diagnostics["geometry_residual_px"] = chk.residual_px
+        ctx.diagnostics["geometry_inlier_fraction"] = chk.inlier_fraction
+        if chk.mismatch:
+            ctx.flags.append("geometry_mismatch")
+
     def stage_height_map(self, seg: "Segmentation", corr: "Correspondences") -> HeightMap:
         """Dense height map on camera 1's working grid (dense matches preferred), and at full size."""
         dense = [tr for tr in corr.triangulated if tr.matches.dense]
@@ -597,7 +640,7 @@ class Correspondences:
     """Stages 4–5: every method's matches, triangulated and checked."""
 
     triangulated: list[TriangulatedMatches]
-    raw: list[Matches] = field(default_factory=list)  # before the geometric checks (the motion tracks LK's)
+    raw: list[Matches] = field(default_factory=list)  # every method's matches before rejection (the motion tracks LK's)
 
 
 @dataclass(frozen=True)
