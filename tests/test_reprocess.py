@@ -253,6 +253,8 @@ def test_network_file_and_source_binding_errors(archive, tmp_path):
 
     with pytest.raises(ConfigError, match="archives"):
         source_kind("rtsp://127.0.0.1/x")
+    (job,) = load_jobs([st], ["cam1=rtsp://127.0.0.1/x"])
+    assert job.specs["cam1"] == "rtsp://127.0.0.1/x"  # kept as given, so the scan says what is wrong
 
 
 def test_cli_bad_input_is_one_line(tmp_path, capsys):

@@ -158,7 +158,8 @@ def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJ
         specs = {}
         for c in (c1, c2):
             if c.name in e["sources"]:
-                specs[c.name] = str((e["base"] / e["sources"][c.name]).resolve())
+                src = e["sources"][c.name]
+                specs[c.name] = src if "://" in src else str((e["base"] / src).resolve())
             elif c.source:
                 base = st.path.parent if st.path is not None else Path.cwd()
                 specs[c.name] = str((base / c.source).resolve()) if "://" not in c.source else c.source
@@ -177,7 +178,7 @@ def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJ
         if len(hits) > 1:
             raise ConfigError(f"--source {text!r}: camera {cam!r} is in stations "
                               f"{', '.join(j['station'].name for j in hits)}; write STATION/{cam}=PATH")
-        hits[0]["specs"][cam] = str(Path(spec).expanduser().resolve())
+        hits[0]["specs"][cam] = spec if "://" in spec else str(Path(spec).expanduser().resolve())  # URLs: refused by the scan
     return [StationJob(j["station"].name, j["station"], j["cameras"], j["specs"]) for j in jobs]
 
 
