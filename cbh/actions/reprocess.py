@@ -443,19 +443,22 @@ def start_ray(workers: int | None = None, address: str | None = None, device: st
     owned = False
     if not ray.is_initialized():
         kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        gpus = 0
+        if address is None and device == "cuda":
+            import torch
+
+            gpus = torch.cuda.device_count()
+            if not gpus:  # say so before Ray's seconds of start-up
+                raise ConfigError("--device cuda: no CUDA device on this machine")
         try:
             if address is None:
-                gpus = 0
-                if device == "cuda":
-                    import torch
-
-                    gpus = torch.cuda.device_count()
                 # "local": always a new private instance, never a `ray start` cluster found on this machine
                 ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, num_gpus=gpus, **kw)
             else:
                 ray.init(address=address, **kw)
         except (ConnectionError, ValueError, RuntimeError) as exc:
-            raise ConfigError(f"--address {address}: cannot connect to Ray: {exc}") from None
+            where = f"--address {address}" if address else "local Ray"
+            raise ConfigError(f"{where}: cannot start or connect to Ray: {exc}") from None
         except ImportError as exc:  # ray:// needs the client extra
             raise ConfigError(f"--address {address}: {exc} (for ray:// addresses: pip install 'ray[client]')") from None
         owned = True
