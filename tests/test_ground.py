@@ -215,7 +215,7 @@ def test_shadow_map_through_the_whole_pipeline(unb_station):
     known = np.isfinite(v)
     agree = float(np.mean(v[known] == truth[known]))
     # Segmentation errors at cloud edges and the working size add to the geometric edge
-    # mismatch of the test above (0.97); measured 0.92 of the 76 % of probes known (640 px).
+    # mismatch of the test above (0.97 in this sky); measured 0.89 of the 73 % of probes known (640 px).
     print(f"end-to-end shadow agreement {agree:.3f} over {known.mean():.2f} of the probes")
     assert known.mean() >= 0.5 and agree >= 0.85, (agree, known.mean())
 
