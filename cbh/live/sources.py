@@ -57,7 +57,7 @@ from cbh.timeutil import parse_time_header, time_from_name, wait_until as _wait_
 __all__ = [
     "EndOfStream", "HttpSource", "MjpegSource", "SnapshotSource", "VideoSource", "DirectorySource",
     "MemorySource", "open_source", "is_sim_spec", "parse_time_header", "time_from_name", "SOURCE_KINDS",
-    "IMAGE_SUFFIXES", "VIDEO_SUFFIXES",
+    "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "camera_prefixed",
 ]
 
 log = logging.getLogger(__name__)
@@ -534,6 +534,12 @@ class VideoSource(FrameSource):
 
 # --- directory of timestamped images ---------------------------------------------------------
 
+def camera_prefixed(name: str, camera: str) -> bool:
+    """Whether a file name belongs to ``camera`` by the ``<camera>_…`` / ``<camera>-…`` /
+    ``<camera>.…`` naming rule of shared image directories."""
+    return name.startswith(camera) and name[len(camera):len(camera) + 1] in ("_", "-", ".")
+
+
 class DirectorySource(FrameSource):
     """Images in a directory, in time order; with ``watch`` new files are picked up as they arrive.
 
@@ -561,7 +567,7 @@ class DirectorySource(FrameSource):
 
     @staticmethod
     def _mine(name: str, prefix: str) -> bool:
-        return name.startswith(prefix) and name[len(prefix):len(prefix) + 1] in ("_", "-", ".")
+        return camera_prefixed(name, prefix)
 
     def open(self) -> None:
         if not self.path.is_dir():

@@ -765,6 +765,16 @@ def export_sessions(paths, fmt: str, out) -> tuple[int, int]:
 SUFFIXES = {"csv": ".csv", "parquet": ".parquet", "netcdf": ".nc"}
 
 
+def daily_file_name(station: str, day: str, fmt: str) -> str:
+    """E-PROFILE-style daily file name ``cbh_<station>_<YYYYMMDD>.<ext>`` (station name made file-safe).
+
+    ``day`` is ``YYYYMMDD`` (the keys of :func:`daily_groups`); ``fmt`` a key of :data:`SUFFIXES`
+    (``"json"`` gives the sidecar name ``cbh reprocess`` writes next to the data files).
+    """
+    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", str(station))
+    return f"cbh_{safe}_{day}{SUFFIXES.get(fmt, '.' + fmt)}"
+
+
 def export_daily(paths, fmt: str, out_dir) -> list[tuple[Path, int, int]]:
     """One file per UTC day, like E-PROFILE's daily files: ``OUT_DIR/cbh_<station>_<YYYYMMDD>.<ext>``.
 
@@ -781,10 +791,50 @@ def export_daily(paths, fmt: str, out_dir) -> list[tuple[Path, int, int]]:
     records, info = session_records(paths)
     if not records:
         raise RecordingError("no complete pairs in the recording(s): nothing to export")
-    station = re.sub(r"[^A-Za-z0-9_.-]", "_", str(info["station"]))
     done = []
     for day, recs in daily_groups(records).items():
-        path = out_dir / f"cbh_{station}_{day}{SUFFIXES[fmt]}"
+        path = out_dir / daily_file_name(info["station"], day, fmt)
         rows, steps = _write_records(recs, info, fmt, path)
         done.append((path, rows, steps))
     return done
+
+
+# --- one batch of records, atomically (cbh reprocess: one file per station and day) -------
+
+def write_records(records: list[PairRecord], info: dict, out, fmt: str) -> Path:
+    """Write pair records (e.g. one station-day) to ``out`` as ``parquet`` or ``netcdf``, atomically.
+
+    The file is written under a temporary name in the same folder and renamed over ``out``
+    (``os.replace``), so ``out`` is either absent, the previous file, or complete: a crash or
+    Ctrl-C never leaves a half-written export. The contents are those of ``cbh export``
+    (:func:`layer_table` columns with the records' diagnostics; :func:`netcdf_dataset`), written
+    in one go. NetCDF needs at least one record (:class:`RecordingError` otherwise); an empty
+    Parquet table has the columns and no rows.
+
+    Returns
+    -------
+    Path
+        ``out``.
+    """
+    fmt = _check_format(fmt)
+    if fmt not in ("parquet", "netcdf"):
+        raise ConfigError(f"write_records: format {fmt!r} (parquet or netcdf)")
+    if fmt == "netcdf" and not records:
+        raise RecordingError("write_records: no pair records: nothing to write to NetCDF")
+    out = Path(out)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        if fmt == "netcdf":
+            write_netcdf(records, info, tmp)
+        else:
+            import pyarrow.parquet as pq
+
+            diag = _all_diagnostics(records)
+            pq.write_table(_arrow_table([row for r in records for row in record_rows(r, diag)], diag), str(tmp))
+        os.replace(tmp, out)
+    except OSError as exc:
+        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out

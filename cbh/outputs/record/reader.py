@@ -325,10 +325,36 @@ class Session:
                 msgs = pending.pop(seq)
                 yield build_pair(seq, msgs, f"{self.paths[0].name} pair {seq}")
 
-    def images(self, camera: str) -> Iterator[tuple[int, RecordedImage]]:
-        """(pair index, image) of every recorded image of ``camera``, in file order (only that topic is read)."""
-        for _topic, _t, seq, m in self._messages({f"/{camera}/image/compressed"}):
-            yield seq, RecordedImage(camera, from_ns(_ts_ns(m.timestamp)), bytes(m.data), m.format)
+    def images(self, cameras, start_ns: int | None = None, end_ns: int | None = None
+               ) -> Iterator[tuple[int, RecordedImage]]:
+        """(pair index, image) of the recorded images of ``cameras``, in file order; with
+        ``start_ns``/``end_ns`` only those whose capture time (log time) lies in
+        [``start_ns``, ``end_ns``), read through the file's index (fast for a time slice).
+
+        Parameters
+        ----------
+        cameras : str or iterable of str
+            Camera name(s) (topics ``/<camera>/image/compressed``; only these are read).
+        start_ns, end_ns : int or None
+            Capture-time bounds [ns since the Unix epoch]; None = open.
+        """
+        from mcap.reader import make_reader
+
+        topics = [f"/{c}/image/compressed" for c in ([cameras] if isinstance(cameras, str) else cameras)]
+        T = foxglove_types()["CompressedImage"]
+        for p in self.paths:
+            try:
+                with open(p, "rb") as fh:
+                    reader = make_reader(fh)
+                    for _schema, channel, message in reader.iter_messages(
+                            topics=topics, start_time=start_ns, end_time=end_ns, log_time_order=False):
+                        m = T.FromString(message.data)
+                        cam = channel.topic.strip("/").split("/")[0]
+                        yield message.sequence, RecordedImage(cam, from_ns(_ts_ns(m.timestamp)), bytes(m.data), m.format)
+            except CbhError:
+                raise
+            except Exception as exc:
+                raise RecordingError(f"{p}: corrupt recording ({type(exc).__name__}: {exc})") from None
 
     def statuses(self) -> Iterator[tuple[datetime, dict]]:
         """(time, stats dict) of every ``/service/status`` message."""
@@ -338,7 +364,6 @@ class Session:
             except json.JSONDecodeError:
                 stats = {c.name: c.value for c in msg.counters}
             yield from_ns(t), stats
-
 
 def open_session(path) -> Session:
     """Open a recording: a ``.mcap`` file, a directory of rotated files, or a list of files.
