@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from datetime import date, datetime, timedelta
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError
@@ -146,8 +147,6 @@ def scan_images(camera: str, root: Path) -> tuple[list[FrameRef], list[dict]]:
 
 def scan_video(camera: str, path: Path) -> list[FrameRef]:
     """Frames of a video file with their capture times (:class:`cbh.errors.SourceError` if unreadable)."""
-    import cv2
-
     from cbh.live.sources import VideoSource
 
     src = VideoSource(camera, str(path))
@@ -351,8 +350,6 @@ def load_images(refs: list[FrameRef]) -> dict[FrameRef, np.ndarray | CbhError]:
 
 
 def _video_frames(path: str, refs: list[FrameRef]) -> dict[FrameRef, np.ndarray | CbhError]:
-    import cv2
-
     want = {r.index: r for r in refs}
     first, last = min(want), max(want)
     cap = cv2.VideoCapture(path, cv2.CAP_FFMPEG)

@@ -56,6 +56,8 @@ from datetime import date, datetime, timezone
 from pathlib import Path
 from typing import Callable
 
+import cv2
+
 from cbh.actions.archive import Inventory, PairRef, by_day, load_images, scan_station
 from cbh.errors import CbhError, ConfigError, RecordingError
 
@@ -343,8 +345,6 @@ class PairWorker:
     """
 
     def __init__(self, stations: dict, device: str = "cpu", threads: int = 1):
-        import cv2
-
         cv2.setNumThreads(int(threads))
         import tomllib
 

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from cbh.geometry.camera import MODELS, CameraModel, OCamModel, read_ocamcalib
@@ -315,8 +316,6 @@ def _rotation(where: str, value) -> np.ndarray:
 
 def _mask_size(where: str, mask: Path) -> tuple[int, int]:
     """(width, height) of a mask image [px]."""
-    import cv2
-
     img = cv2.imread(str(mask), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ConfigError(f"{where}.mask: not a readable image: {mask}")
