@@ -85,11 +85,16 @@ construction, so its ray miss is ≈ 0 (not a measurement of matching quality; t
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-__all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes"]
+from cbh.pipeline.peaks import find_peaks, peak_extent, valley_cuts
+
+__all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_pass", "fine_planes", "fine_pass",
+           "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
@@ -119,8 +124,6 @@ class PlaneMaps:
 
     def at(self, s: float, sl=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 for one plane, on the region ``sl``."""
-        import cv2
-
         if getattr(self, "_planes_key", None) != sl:  # contiguous (h, w) planes of the region, cached
             self._planes = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
             self._planes_key = sl
@@ -145,8 +148,6 @@ class PlaneMaps:
         return cache[factor]
 
     def _downsampled(self, factor: int) -> "PlaneMaps":
-        import cv2
-
         def rs(m):
             h, w = m.shape[:2]
             return cv2.resize(m, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
@@ -183,8 +184,6 @@ def plane_maps(cam1, cam2, rays1_world: np.ndarray) -> PlaneMaps:
 
 
 def _box(img, k):
-    import cv2
-
     return cv2.boxFilter(img, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT)
 
 
@@ -194,8 +193,6 @@ def _zncc_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.
     All per-pixel arithmetic goes through OpenCV (multi-threaded, no numpy temporaries):
     ZNCC = (E[i1·w] − μ1·μ2) / sqrt(var1·var2 + 1e-3) over a ``window_px`` box.
     """
-    import cv2
-
     k = int(window_px)
     mu1 = _box(i1, k)
     var1 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT), cv2.multiply(mu1, mu1)), 0.0)
@@ -251,27 +248,64 @@ def _bbox(mask: np.ndarray, pad: int, even: bool = False):
     return np.s_[int(y0): int(y1), int(x0): int(x1)]
 
 
+def _pool2(img: np.ndarray) -> np.ndarray:
+    """Mean of each 2 × 2 block, (h, w) → (h // 2, w // 2) (OpenCV's exact INTER_AREA path)."""
+    h, w = img.shape[:2]
+    return cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+
+
+def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, half_window: int, sl):
+    """ZNCC at half the resolution of the region ``sl``: yield (std1 (h/2, w/2), None) once, then
+    (j, score (h/2, w/2) float32) for every plane ``s_values[j]``.
+
+    The window is 2·``half_window`` px square (even) and centred on each half-resolution
+    pixel, i.e. on its 2 × 2 block of the region. A box sum over such a block-aligned window is
+    a ``half_window`` box sum over the 2 × 2 block sums, so the products (w, w², i1·w) are
+    pooled once at full resolution (the remap and two multiplies are all that runs there) and
+    the three box filters and the ZNCC arithmetic run on a quarter of the pixels: ≈ 3× less per
+    plane than a full-resolution ZNCC pooled afterwards (measured 2.3 vs 6.8 ms per plane on
+    an 860 px region, 2 cores). ``i1`` (h, w) float32 with h, w even.
+    """
+    k = int(half_window)
+    mu1 = _box(_pool2(i1), k)
+    var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(mu1, mu1)), 0.0)
+    yield cv2.sqrt(var1), None
+    for j, s in enumerate(s_values):
+        mx, my = maps.at(float(s), sl)
+        w = cv2.remap(gray2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        mu2 = _box(_pool2(w), k)
+        var2 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(w, w)), k), cv2.multiply(mu2, mu2)), 0.0)
+        cov = cv2.subtract(_box(_pool2(cv2.multiply(i1, w)), k), cv2.multiply(mu1, mu2))
+        den = cv2.sqrt(cv2.add(cv2.multiply(var1, var2), 1e-3))
+        yield j, cv2.divide(cov, den)
+
+
 class _Best3:
     """Streaming best plane: after ``add(j, score)`` for j = 0, 1, … (consecutive planes),
     ``result()`` = (index j (h, w) int32, its score, score of plane j−1, score of plane j+1).
 
     OpenCV masked copies; no (P, h, w) stack is needed. Ties keep the first plane.
+    ``neighbours=False``: only the index and the score are tracked (left, right are None).
     """
 
-    def __init__(self):
+    def __init__(self, neighbours: bool = True):
         self.best = None
+        self.neighbours = neighbours
+        self.left = self.right = None
 
     def add(self, j: int, cur: np.ndarray) -> None:
-        import cv2
-
         if self.best is None:
-            self.best, self.left, self.right = cur.copy(), cur.copy(), cur.copy()
+            self.best = cur.copy()
+            if self.neighbours:
+                self.left, self.right = cur.copy(), cur.copy()
             self.j = np.zeros(cur.shape, np.int32)
             self._q = np.empty(cur.shape, np.int32)
         else:
-            cv2.copyTo(cur, cv2.compare(self.j, j - 1, cv2.CMP_EQ), self.right)
+            if self.neighbours:
+                cv2.copyTo(cur, cv2.compare(self.j, j - 1, cv2.CMP_EQ), self.right)
             gt = cv2.compare(cur, self.best, cv2.CMP_GT)
-            cv2.copyTo(self.prev, gt, self.left)
+            if self.neighbours:
+                cv2.copyTo(self.prev, gt, self.left)
             cv2.copyTo(cur, gt, self.best)
             self._q.fill(j)  # (np.copyto with where= is ~20x slower than OpenCV's masked copy)
             cv2.copyTo(self._q, gt, self.j)
@@ -281,63 +315,252 @@ class _Best3:
         return self.j, self.best, self.left, self.right
 
 
-def _best3(scores):
+def _best3(scores, neighbours: bool = True):
     """Best plane index j, its score and the scores of planes j−1 and j+1 of a stack (P, h, w)."""
-    b = _Best3()
+    b = _Best3(neighbours)
     for q in range(len(scores)):
         b.add(q, scores[q])
     return b.result()
 
 
-def _refine(scores, j: np.ndarray, c0: np.ndarray, s_values: np.ndarray, ds: float, cm1=None, cp1=None) -> np.ndarray:
-    """s of the peak of the parabola through the scores of planes j−1, j, j+1 (where adjacent)."""
+def _refine(j: np.ndarray, c0: np.ndarray, cm1: np.ndarray, cp1: np.ndarray, s_values: np.ndarray,
+            ds: float) -> np.ndarray:
+    """s of the peak of the parabola through the scores of planes j−1, j, j+1 (where adjacent), float32."""
     n = len(s_values)
-    if cm1 is None:
-        _, _, cm1, cp1 = _best3(scores)
     gap = np.diff(s_values, prepend=-np.inf, append=np.inf)
     adj = (j > 0) & (j < n - 1) & (gap[j] < 1.01 * ds) & (gap[np.minimum(j + 1, n)] < 1.01 * ds)
     den = cm1 - 2.0 * c0 + cp1
     with np.errstate(invalid="ignore", divide="ignore"):
         delta = np.where(adj & (den < 0), 0.5 * (cm1 - cp1) / den, 0.0)
-    return s_values[j] + np.clip(delta, -0.5, 0.5) * ds
+    return (s_values.astype(np.float32)[j] + np.clip(delta, -0.5, 0.5).astype(np.float32) * np.float32(ds))
 
 
-def _peaks(votes: np.ndarray, min_votes: float, extent_ratio: float, valley_ratio: float,
-           valleys: bool = False) -> list[tuple[int, int]]:
-    """Index ranges [lo, hi] of the peaks of a vote histogram (merging peaks without a deep valley).
+def _gauss1d(v: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of a 1-D histogram, zeros outside (scipy's ``gaussian_filter1d`` with
+    ``mode="constant"`` and its default 4 σ truncation, without importing scipy)."""
+    r = int(4.0 * sigma + 0.5)
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return np.convolve(np.asarray(v, np.float64), k / k.sum(), mode="same")
 
-    ``valleys``: the ranges tile the histogram, split at the lowest point between peaks.
+
+# --- the passes ----------------------------------------------------------------------------
+
+@dataclass
+class CoarseLayers:
+    """Pass 1: layer hypotheses from the coarse votes."""
+
+    s: np.ndarray  # (Pc,) float64: the coarse planes [1/m]
+    ds: float  # their spacing [1/m]
+    ranges: list[tuple[int, int]]  # index range [lo, hi] of each hypothesis in ``s``
+    layers_m: list[float]  # the hypotheses' heights above the ENU origin [m]
+
+
+@dataclass
+class FineCost:
+    """Pass 2: every fine plane's ZNCC at half resolution over the cloud's bounding region."""
+
+    region: tuple  # (slice y, slice x) of the working-size image (even start and size)
+    s: np.ndarray  # (P,) float64: the fine planes [1/m], ascending
+    ds: float  # nominal spacing [1/m]
+    cost: np.ndarray  # (P, h/2, w/2) float32: ZNCC × textured-cloud fraction of each 2 × 2 block
+    textured: np.ndarray  # (h/2, w/2) float32: textured-cloud fraction of each 2 × 2 block
+    ok: np.ndarray  # (h, w) bool: accepted pixels (textured cloud whose best ZNCC ≥ min_zncc)
+    ok_frac: np.ndarray  # (h/2, w/2) float32: accepted fraction of each 2 × 2 block
+
+
+@dataclass
+class LayerLabels:
+    """Pass 3: the layers of the image in s, and the layer of every half-resolution pixel."""
+
+    cuts_s: np.ndarray  # (L − 1,) s of the boundaries between neighbouring layers [1/m]
+    votes: np.ndarray  # (B,) vote histogram over s (bins of ``bin_s``)
+    bin_s: float  # [1/m]
+    vote_ranges: list[tuple[int, int]]  # bins [lo, hi] of each layer (they tile the histogram)
+    plane_layer: np.ndarray  # (P,) int: the layer of each fine plane
+    label: np.ndarray  # (h/2, w/2) uint8: each pixel's layer
+    own_plane: np.ndarray  # (h/2, w/2) int32: each pixel's own best plane (no aggregation)
+    s_wide: np.ndarray  # (h/2, w/2) float32: s of the wide-box winner, refined [1/m]
+
+
+def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s_min: float, s_max: float,
+                o1z: float, cfg) -> CoarseLayers | None:
+    """Pass 1: at 1/``coarse_factor`` size, every plane from ``s_min`` to ``s_max`` one coarse pixel apart;
+    each cloud pixel votes for its best plane (ZNCC ≥ ``min_zncc``); the vote peaks are the
+    layer hypotheses. None: no cloud at coarse size."""
+    f = int(cfg.coarse_factor)
+    if f > 1:
+        cm = maps.downsampled(f)
+        h, w = g1.shape
+        h2, w2 = g2.shape
+        c1 = cv2.resize(g1, (w // f, h // f), interpolation=cv2.INTER_AREA)
+        c2 = cv2.resize(g2, (w2 // f, h2 // f), interpolation=cv2.INTER_AREA)
+        ccloud = cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
+    else:
+        cm, c1, c2, ccloud = maps, g1, g2, cloud1
+    if not ccloud.any():
+        return None
+    ds_c = cfg.coarse_step_px / cm.scale_px
+    s = np.arange(s_min, s_max + ds_c, ds_c)
+    slc = _bbox(ccloud, cfg.coarse_window_px, even=True)
+    it = _zncc_half_iter(np.ascontiguousarray(c1[slc]), c2, cm, s, cfg.coarse_window_px // 2, slc)
+    next(it)
+    run = _Best3(neighbours=False)
+    for q, sc in it:
+        run.add(q, sc)
+    best, cbest, _, _ = run.result()
+    cl = _pool2(ccloud[slc].astype(np.float32)) >= 0.5
+    good = cl & (cbest >= cfg.min_zncc)
+    votes = np.bincount(best[good], minlength=len(s)).astype(np.float64)
+    peaks = find_peaks(votes, cfg.min_vote_fraction * float(cl.sum()), cfg.valley_ratio)
+    ranges = [peak_extent(votes, p, cfg.extent_ratio) for p in peaks]
+    return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges])
+
+
+def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: float, cfg) -> tuple[np.ndarray, float]:
+    """The fine planes (ascending s, ``step_px`` apart): the far range from infinity up to
+    ``far_px`` of parallax, and each coarse hypothesis's extent ± 1.5 coarse steps; at most
+    ``max_planes`` (thinned uniformly beyond). Returns (s (P,), nominal step ds)."""
+    ds = cfg.step_px / scale_px
+    parts = [np.arange(0.0, min(cfg.far_px / scale_px, s_max) + 0.5 * ds, ds)]
+    for lo, hi in coarse.ranges:
+        a = max(coarse.s[lo] - 1.5 * coarse.ds, s_min)
+        b = min(coarse.s[hi] + 1.5 * coarse.ds, s_max)
+        parts.append(np.arange(a, b + 0.5 * ds, ds))
+    s = np.unique(np.round(np.concatenate(parts) / ds) * ds)
+    if len(s) > cfg.max_planes:  # too many: thin uniformly (coarser steps)
+        s = s[np.linspace(0, len(s) - 1, cfg.max_planes).round().astype(int)]
+    return s, ds
+
+
+def fine_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s: np.ndarray, ds: float,
+              cfg) -> FineCost:
+    """Pass 2: at working size, each fine plane's ZNCC (``window_px`` rounded up to even) at half
+    resolution; a pixel is accepted when it is textured cloud (window grey-level standard
+    deviation ≥ ``min_texture``) and its 2 × 2 block's best ZNCC is ≥ ``min_zncc``. Streamed over
+    the planes: only the (P, h/2, w/2) cost stack is kept."""
+    sl = _bbox(cloud1, cfg.window_px, even=True)
+    i1 = np.ascontiguousarray(g1[sl])
+    h, w = i1.shape
+    k = int(cfg.window_px)
+    mu = _box(i1, k)
+    var = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT),
+                               cv2.multiply(mu, mu)), 0.0)
+    m0 = cloud1[sl] & (var >= float(cfg.min_texture) ** 2)  # textured cloud pixels: the candidates
+    textured = _pool2(m0.astype(np.float32))
+    it = _zncc_half_iter(i1, g2, maps, s, k // 2, sl)
+    next(it)
+    cost = np.empty((len(s), h // 2, w // 2), np.float32)
+    best = None
+    for q, score in it:
+        best = score.copy() if best is None else cv2.max(best, score, dst=best)
+        cv2.multiply(score, textured, dst=cost[q])
+    ok = m0 & (cv2.resize(best, (w, h), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
+    return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)))
+
+
+def label_pass(fine: FineCost, cfg) -> LayerLabels:
+    """Pass 3: the layers of the image and each pixel's layer (half resolution).
+
+    The winners of the wide-box (``aggregate_px``) cost vote, in bins of half a plane step, for
+    the layers (only boxes whose mean ZNCC is above the ``vote_percentile``: a box that
+    straddles two layers correlates worse and would fill the valley between their peaks); the
+    histogram's peaks, split at the valleys, are the layers; each pixel takes the layer whose
+    planes its ``label_px`` box cost prefers.
     """
-    v = votes.astype(np.float64)
-    left = np.concatenate([[-np.inf], v[:-1]])
-    right = np.concatenate([v[1:], [-np.inf]])
-    peaks = [int(i) for i in np.flatnonzero((v > left) & (v >= right) & (v >= min_votes))]
-    merged = True
-    while merged and len(peaks) > 1:  # neighbours without a valley below valley_ratio × lower peak
-        merged = False
-        for i in range(len(peaks) - 1):
-            a, b = peaks[i], peaks[i + 1]
-            if v[a: b + 1].min() > valley_ratio * min(v[a], v[b]):
-                peaks.pop(i + 1 if v[a] >= v[b] else i)
-                merged = True
-                break
-    out = []
-    if valleys:
-        cuts = [a + int(np.argmin(v[a: b + 1])) for a, b in zip(peaks[:-1], peaks[1:])]
-        return [(lo, hi) for lo, hi in zip([0] + [c + 1 for c in cuts], cuts + [len(v) - 1])] if peaks else []
-    for p in peaks:
-        lo = p
-        while lo > 0 and v[lo - 1] >= extent_ratio * v[p] and v[lo - 1] <= v[lo]:
-            lo -= 1
-        hi = p
-        while hi < len(v) - 1 and v[hi + 1] >= extent_ratio * v[p] and v[hi + 1] <= v[hi]:
-            hi += 1
-        out.append((lo, hi))
-    return out
+    s, ds, cost = fine.s, fine.ds, fine.cost
+    k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
+    kl = max(1, (int(cfg.label_px) // 2) | 1)
+    jw, cw, lw, rw = _best3([_box(c, k2) for c in cost])
+    s_w = _refine(jw, cw, lw, rw, s, ds)
+    bw = 0.5 * ds
+    nb = int(np.ceil(s[-1] / bw)) + 2
+    vote = fine.ok_frac > 0
+    if cfg.vote_percentile > 0 and vote.any():
+        mean_w = cw / np.maximum(_box(fine.textured, k2), 1e-6)
+        vote &= mean_w >= np.percentile(mean_w[vote], cfg.vote_percentile)
+    votes = np.bincount(np.clip((s_w[vote] / bw).round().astype(int), 0, nb - 1), weights=fine.ok_frac[vote],
+                        minlength=nb)
+    smooth = _gauss1d(votes, _VOTE_SMOOTH_BINS)
+    peaks = find_peaks(smooth, cfg.min_vote_fraction * float(fine.ok_frac.sum()), cfg.valley_ratio)
+    cut_bins = valley_cuts(smooth, peaks)
+    ranges = list(zip([0] + [c + 1 for c in cut_bins], cut_bins + [nb - 1])) if peaks else []
+    cuts = np.array([bw * (c + 0.5) for c in cut_bins])
+    plane_layer = np.searchsorted(cuts, s)
+    hh, wh = cost.shape[1:]
+    label = np.zeros((hh, wh), np.uint8)
+    own = np.zeros((hh, wh), np.int32)
+    if len(ranges) > 1:
+        best_l: list = [None] * len(ranges)
+        for q in range(len(s)):
+            L = int(plane_layer[q])
+            b = _box(cost[q], kl) if kl > 1 else cost[q]
+            best_l[L] = b.copy() if best_l[L] is None else cv2.max(best_l[L], b, dst=best_l[L])
+        label = _best3([b if b is not None else np.full((hh, wh), -np.inf, np.float32) for b in best_l],
+                       neighbours=False)[0].astype(np.uint8)
+        own = _best3(cost, neighbours=False)[0]
+    return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
+
+
+def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.ndarray:
+    """Pass 4: each pixel's s, refined (parabola through the three best planes) on its layer's cost
+    summed over an ``aggregate_px`` box of that layer's pixels only — and of those only the ones
+    whose own best plane lies in the layer's range: a pixel labelled into the layer by mistake
+    (occluded in camera 2, or at a boundary) has its cost peak outside the range, and its sloped
+    cost would pull the parabola towards the range's edge (−3 … −5 % bias on the far layer at
+    B = 30 m before). Far layers (``far_aggregate_px``) get a box grown like 1/parallax. The
+    half-resolution s is brought back to working size bilinearly (a box average varies smoothly
+    inside a layer).
+
+    Returns
+    -------
+    ndarray, shape (h, w), float32
+        s [1/m] of every pixel of the region (meaningful where ``fine.ok``).
+    """
+    s, ds, cost = fine.s, fine.ds, fine.cost
+    h, w = fine.ok.shape
+    k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
+    n_layers = max(len(lab.vote_ranges), 1)
+    edges = np.concatenate([[-np.inf], lab.cuts_s, [np.inf]])
+    lab_full = cv2.resize(lab.label, (w, h), interpolation=cv2.INTER_NEAREST)
+    s_px = np.zeros((h, w), np.float32)
+    for L in range(n_layers):
+        here = fine.ok & (lab_full == L)
+        if not here.any():
+            continue
+        sel = np.flatnonzero((s >= edges[L] - 1.01 * ds) & (s <= edges[L + 1] + 1.01 * ds))
+        if len(sel) < 3:
+            s_half = lab.s_wide
+        else:
+            kL = k2
+            if cfg.far_aggregate_px > 0 and lab.vote_ranges:  # far layers: the box grows like 1/parallax
+                lo_b, hi_b = lab.vote_ranges[L]
+                p_l = lab.bin_s * (lo_b + int(np.argmax(lab.votes[lo_b: hi_b + 1]))) * scale_px
+                grow = min(max(cfg.far_aggregate_px / max(p_l, 1e-6), 1.0), _MAX_GROW)
+                kL = max(3, int(round(k2 * grow)) | 1)
+            mL = lab.label == L
+            if n_layers > 1:  # only pixels whose own best plane is in this layer
+                mL &= lab.plane_layer[lab.own_plane] == L
+            mL = mL.astype(np.float32)
+            ja, ca, la, ra = _best3([_box(cv2.multiply(cost[q], mL), kL) for q in sel])
+            s_half = _refine(ja, ca, la, ra, s[sel], ds)
+        up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
+        cv2.copyTo(up, here.view(np.uint8), s_px)
+    return s_px
+
+
+def _per_pixel(g1, g2, cloud1, maps, s, ds, cfg):
+    """``aggregate_px`` = 1: each textured cloud pixel's own best plane (full-resolution ZNCC),
+    refined by the parabola. Returns (region, ok (h, w) bool, s (h, w) float32)."""
+    sl = _bbox(cloud1, cfg.window_px)
+    sf, std1 = zncc_planes(g1, g2, maps, s, cfg.window_px, sl)
+    j, c0, cm1, cp1 = _best3(sf)
+    ok = cloud1[sl] & (std1 >= cfg.min_texture) & (c0 >= cfg.min_zncc)
+    return sl, ok, _refine(j, c0, cm1, cp1, s, ds)
 
 
 def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float, cfg):
-    """Dense plane-sweep correspondences (see module doc).
+    """Dense plane-sweep correspondences (see module doc): coarse → fine → label → refine.
 
     Parameters
     ----------
@@ -356,12 +579,8 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
     px1 : ndarray, shape (N, 2), float64 — camera-1 pixels (integer coordinates)
     px2 : ndarray, shape (N, 2), float64 — camera-2 pixels
     info : dict — ``planes`` (fine s values), ``layers_m`` (coarse layer hypotheses [m]),
-        ``timing_ms`` (per step)
+        ``timing_ms`` (per pass), and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
     """
-    import time
-
-    import cv2
-
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -371,158 +590,35 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
         timing[name] = (t1 - t0) * 1000.0
         t0 = t1
 
-    empty = np.zeros((0, 2)), np.zeros((0, 2)), {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing}
+    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing}
+    empty = np.zeros((0, 2)), np.zeros((0, 2)), info
     if not cloud1.any() or maps.scale_px <= 0:
         return empty
     g1 = gray1.astype(np.float32)
     g2 = gray2.astype(np.float32)
     s_min = 1.0 / max(cfg.max_height_m - o1z, 1.0)
     s_max = 1.0 / max(cfg.min_height_m - o1z, 1.0)
-
-    # 1. coarse pass: layer hypotheses from the votes of all cloud pixels
-    f = int(cfg.coarse_factor)
-    if f > 1:
-        cm = maps.downsampled(f)
-        h, w = g1.shape
-        c1 = cv2.resize(g1, (w // f, h // f), interpolation=cv2.INTER_AREA)
-        h2, w2 = g2.shape
-        c2 = cv2.resize(g2, (w2 // f, h2 // f), interpolation=cv2.INTER_AREA)
-        ccloud = cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
-    else:
-        cm, c1, c2, ccloud = maps, g1, g2, cloud1
-    if not ccloud.any():
+    coarse = coarse_pass(g1, g2, cloud1, maps, s_min, s_max, o1z, cfg)
+    if coarse is None:
         return empty
-    ds_c = cfg.coarse_step_px / cm.scale_px
-    s_coarse = np.arange(s_min, s_max + ds_c, ds_c)
-    slc = _bbox(ccloud, cfg.coarse_window_px)
-    it = _zncc_iter(np.ascontiguousarray(c1[slc]), c2, cm, s_coarse, cfg.coarse_window_px, slc)
-    next(it)
-    run = _Best3()
-    for q, sc in it:
-        run.add(q, sc)
-    best, cbest, _, _ = run.result()
-    good = ccloud[slc] & (cbest >= cfg.min_zncc)
-    votes = np.bincount(best[good], minlength=len(s_coarse)).astype(np.float64)
-    n_cloud = float(ccloud.sum())
-    ranges = _peaks(votes, cfg.min_vote_fraction * n_cloud, cfg.extent_ratio, cfg.valley_ratio)
-    layers_m = [float(o1z + 1.0 / s_coarse[(lo + hi) // 2]) for lo, hi in ranges]
+    s_fine, ds = fine_planes(coarse, maps.scale_px, s_min, s_max, cfg)
+    info.update(planes=s_fine, layers_m=coarse.layers_m)
     lap("coarse")
-
-    # 2. fine pass at working resolution over the far range and the union of the peaks' extents
-    ds = cfg.step_px / maps.scale_px
-    s_fine = [np.arange(0.0, min(cfg.far_px / maps.scale_px, s_max) + 0.5 * ds, ds)]  # from infinity
-    for lo, hi in ranges:
-        a = max(s_coarse[lo] - 1.5 * ds_c, s_min)
-        b = min(s_coarse[hi] + 1.5 * ds_c, s_max)
-        s_fine.append(np.arange(a, b + 0.5 * ds, ds))
-    s_fine = np.unique(np.round(np.concatenate(s_fine) / ds) * ds)
-    if len(s_fine) > cfg.max_planes:  # too many: thin uniformly (coarser steps)
-        s_fine = s_fine[np.linspace(0, len(s_fine) - 1, cfg.max_planes).round().astype(int)]
-    info = {"planes": s_fine, "layers_m": layers_m, "timing_ms": timing}
-    aggregate = cfg.aggregate_px > 1
-    sl = _bbox(cloud1, cfg.window_px, even=aggregate)
-    i1 = np.ascontiguousarray(g1[sl])
-    h, w = i1.shape
-    it = _zncc_iter(i1, g2, maps, s_fine, cfg.window_px, sl)
-    std1, _ = next(it)
-    m0 = cloud1[sl] & (std1 >= cfg.min_texture)  # textured cloud pixels: the candidates
-    if not aggregate:  # per-pixel best plane, refined by a parabola
-        sf, _ = zncc_planes(g1, g2, maps, s_fine, cfg.window_px, sl)
-        j, c0, cm1, cp1 = _best3(sf)
-        ok = m0 & (c0 >= cfg.min_zncc)
-        s_px = _refine(sf, j, c0, s_fine, ds, cm1, cp1)
+    if cfg.aggregate_px > 1:
+        fine = fine_pass(g1, g2, cloud1, maps, s_fine, ds, cfg)
         lap("fine")
-    else:
-        # 3. aggregation at half resolution. Each plane's ZNCC (textured cloud pixels only) is
-        #    pooled 2 × 2; a box of aggregate_px // 2 there is the aggregate_px box at working size.
-        #    The layers are the peaks of the votes of the wide-box winners; each pixel is labelled
-        #    with the layer whose planes its own (label_px box) cost prefers, then its height is
-        #    refined on its layer's cost summed over the same layer's pixels only (sharp at layer
-        #    boundaries), and brought back to working size by bilinear interpolation (it varies
-        #    smoothly inside a layer: it is a box average itself).
-        hh, wh = h // 2, w // 2
-        m0f = m0.astype(np.float32)
-        pooled = np.empty((len(s_fine), hh, wh), np.float32)
-        c0 = None
-        for q, score in it:
-            c0 = score.copy() if c0 is None else cv2.max(c0, score, dst=c0)
-            pooled[q] = cv2.resize(cv2.multiply(score, m0f), (wh, hh), interpolation=cv2.INTER_AREA)
-        ok = m0 & (c0 >= cfg.min_zncc)
-        lap("fine")
-        if not ok.any():
-            return empty[0], empty[1], info
-        k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
-        kl = max(1, (int(cfg.label_px) // 2) | 1)
-        okh = cv2.resize(ok.astype(np.float32), (wh, hh), interpolation=cv2.INTER_AREA)
-        run = _Best3()
-        for q in range(len(s_fine)):
-            run.add(q, _box(pooled[q], k2))
-        jw, cw, lw, rw = run.result()
-        s_w = _refine(None, jw, cw, s_fine, ds, lw, rw).astype(np.float32)
-        from scipy.ndimage import gaussian_filter1d
-
-        bw = 0.5 * ds
-        nb = int(np.ceil(s_fine[-1] / bw)) + 2
-        vote = okh > 0
-        if cfg.vote_percentile > 0 and vote.any():  # boxes that straddle two layers correlate worse:
-            # leave them out of the votes, or they fill the valley between the layers' peaks
-            mean_w = cw / np.maximum(_box(cv2.resize(m0f, (wh, hh), interpolation=cv2.INTER_AREA), k2), 1e-6)
-            vote &= mean_w >= np.percentile(mean_w[vote], cfg.vote_percentile)
-        votes = np.bincount(np.clip((s_w[vote] / bw).round().astype(int), 0, nb - 1), weights=okh[vote], minlength=nb)
-        fr = _peaks(gaussian_filter1d(votes, _VOTE_SMOOTH_BINS, mode="constant"),
-                    cfg.min_vote_fraction * float(okh.sum()), 0.0, cfg.valley_ratio, valleys=True)
-        cuts = np.array([bw * (b + 0.5) for (_, b) in fr[:-1]])
-        edges = np.concatenate([[-np.inf], cuts, [np.inf]])
-        info["votes"], info["vote_bin_s"], info["cuts_s"] = votes, bw, cuts
-        plane_layer = np.searchsorted(cuts, s_fine)
-        lab_h = np.zeros((hh, wh), np.uint8)
-        if len(fr) > 1:
-            best_l = [None] * len(fr)
-            for q in range(len(s_fine)):
-                L = int(plane_layer[q])
-                b = _box(pooled[q], kl) if kl > 1 else pooled[q]
-                best_l[L] = b.copy() if best_l[L] is None else cv2.max(best_l[L], b, dst=best_l[L])
-            stack = np.stack([b if b is not None else np.full((hh, wh), -np.inf, np.float32) for b in best_l])
-            lab_h = stack.argmax(axis=0).astype(np.uint8)
-        lab = cv2.resize(lab_h, (w, h), interpolation=cv2.INTER_NEAREST)
-        if len(fr) > 1:
-            run = _Best3()
-            for q in range(len(s_fine)):
-                run.add(q, pooled[q])
-            j_loc = run.result()[0]
-        else:
-            j_loc = np.zeros((hh, wh), np.int32)
+        if not fine.ok.any():
+            return empty
+        lab = label_pass(fine, cfg)
+        info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
-        s_px = np.empty((h, w), np.float32)
-        for L in range(max(len(fr), 1)):
-            here = ok & (lab == L)
-            if not here.any():
-                continue
-            lo_e, hi_e = (edges[L], edges[L + 1]) if fr else (-np.inf, np.inf)
-            sel = np.flatnonzero((s_fine >= lo_e - 1.01 * ds) & (s_fine <= hi_e + 1.01 * ds))
-            if len(sel) < 3:
-                s_half = s_w
-            else:
-                kL = k2
-                if cfg.far_aggregate_px > 0 and fr:  # far layers: the box grows like 1/parallax
-                    lo_b, hi_b = fr[L]
-                    p_l = bw * (lo_b + int(np.argmax(votes[lo_b: hi_b + 1]))) * maps.scale_px
-                    grow = min(max(cfg.far_aggregate_px / max(p_l, 1e-6), 1.0), _MAX_GROW)
-                    kL = max(3, int(round(k2 * grow)) | 1)
-                mL = (lab_h == L)
-                if len(fr) > 1:  # only pixels whose own (2 × 2 pooled) best plane is in this layer:
-                    mL &= plane_layer[j_loc] == L  # mislabelled ones would bias the parabola
-                mL = mL.astype(np.float32)
-                run = _Best3()
-                for i, q in enumerate(sel):
-                    run.add(i, _box(cv2.multiply(pooled[q], mL), kL))
-                ja, ca, la, ra = run.result()
-                s_half = _refine(None, ja, ca, s_fine[sel], ds, la, ra).astype(np.float32)
-            up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
-            np.copyto(s_px, up, where=here)
+        region, ok, s_px = fine.region, fine.ok, refine_pass(fine, lab, maps.scale_px, cfg)
         lap("refine")
+    else:
+        region, ok, s_px = _per_pixel(g1, g2, cloud1, maps, s_fine, ds, cfg)
+        lap("fine")
     ys, xs = np.nonzero(ok)
-    yi, xi = ys + sl[0].start, xs + sl[1].start
+    yi, xi = ys + region[0].start, xs + region[1].start
     px1 = np.stack([xi, yi], axis=-1).astype(np.float64)
     px2 = maps.points(s_px[ys, xs], yi, xi)
     lap("points")
