@@ -143,12 +143,14 @@ class Matches:
     px1: np.ndarray  # (N, 2) float64
     px2: np.ndarray  # (N, 2) float64
     dense: bool = False  # one correspondence per camera-1 pixel at integer coordinates
+    ray2_world: np.ndarray | None = None  # (N, 3) float32: camera-2 ENU ray, where the method knows it exactly
 
     def __len__(self) -> int:
         return int(self.px1.shape[0])
 
     def take(self, keep: np.ndarray) -> "Matches":
-        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense)
+        r2 = None if self.ray2_world is None else self.ray2_world[keep]
+        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2)
 
 
 def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
@@ -251,9 +253,15 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     from cbh.pipeline.sweep import sweep_matches
 
     g = inp.geometry
-    px1, px2, _ = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, float(g.cam1.position_m[2]), cfg.sweep)
+    px1, px2, info = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, float(g.cam1.position_m[2]), cfg.sweep)
     keep = _in_cam2(inp, px2)
-    return Matches("sweep", px1[keep], px2[keep], dense=True)
+    px1, px2, s = px1[keep], px2[keep], info["s"][keep]
+    # the camera-2 ray of a plane-sweep match is known exactly: the point o1 + d·(h − o1z)/d_z
+    # seen from o2 is along d − s·d_z·B (s = 1/(h − o1z)); no fisheye back-projection of px2 needed
+    d1 = g.rays1_world.reshape(-1, 3)[px1[:, 1].astype(np.int64) * g.rays1_world.shape[1] + px1[:, 0].astype(np.int64)]
+    base = (g.cam2.position_m - g.cam1.position_m).astype(np.float32)
+    d2 = d1 - (s * d1[:, 2])[:, None] * base[None, :]
+    return Matches("sweep", px1, px2, dense=True, ray2_world=d2)
 
 
 MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis, "sweep": _sweep}
@@ -297,7 +305,7 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) ->
         d1 = geom.rays1_world.reshape(-1, 3)[idx]
     else:
         d1 = _rays_world(geom.cam1, m.px1)
-    d2 = _rays_world(geom.cam2, m.px2)
+    d2 = _rays_world(geom.cam2, m.px2) if m.ray2_world is None else m.ray2_world
     tri = triangulate(geom.cam1.position_m.astype(np.float32), d1, geom.cam2.position_m.astype(np.float32), d2,
                       TriangulationLimits(min_angle_deg=cfg.min_angle_deg, max_range_m=1e6))
     with np.errstate(invalid="ignore", divide="ignore"):

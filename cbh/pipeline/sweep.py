@@ -133,12 +133,19 @@ class PlaneMaps:
         return out[0], out[1]
 
     def points(self, s: np.ndarray, yi: np.ndarray, xi: np.ndarray) -> np.ndarray:
-        """Camera-2 pixels (N, 2) float64 at per-pixel s (N,) for camera-1 pixels (yi, xi)."""
+        """Camera-2 pixels (N, 2) float64 at per-pixel s (N,) for camera-1 pixels (yi, xi).
+
+        Evaluated in float32 (the tables' precision; 6e-5 px at 1000 px), returned as float64.
+        """
         w = self.m0.shape[1]
         idx = np.asarray(yi, np.int64) * w + np.asarray(xi, np.int64)  # flat gathers: ~3× faster
-        s = np.asarray(s, np.float64)[:, None]
-        m0, a, b = (m.reshape(-1, 2)[idx].astype(np.float64) for m in (self.m0, self.a, self.b))
-        return m0 + (a + b * s) * s
+        s = np.asarray(s, np.float32)[:, None]
+        m0, a, b = (m.reshape(-1, 2)[idx] for m in (self.m0, self.a, self.b))
+        b *= s
+        b += a
+        b *= s
+        b += m0
+        return b.astype(np.float64)
 
     def downsampled(self, factor: int) -> "PlaneMaps":
         """The same mapping between images downsampled by an integer ``factor`` (INTER_AREA; cached)."""
@@ -578,8 +585,9 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
     -------
     px1 : ndarray, shape (N, 2), float64 — camera-1 pixels (integer coordinates)
     px2 : ndarray, shape (N, 2), float64 — camera-2 pixels
-    info : dict — ``planes`` (fine s values), ``layers_m`` (coarse layer hypotheses [m]),
-        ``timing_ms`` (per pass), and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
+    info : dict — ``s`` (N,) float32 (each match's plane, s = 1/(h − o1z) [1/m]), ``planes``
+        (fine s values), ``layers_m`` (coarse layer hypotheses [m]), ``timing_ms`` (per pass),
+        and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
     """
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -590,7 +598,7 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
         timing[name] = (t1 - t0) * 1000.0
         t0 = t1
 
-    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing}
+    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing, "s": np.zeros(0, np.float32)}
     empty = np.zeros((0, 2)), np.zeros((0, 2)), info
     if not cloud1.any() or maps.scale_px <= 0:
         return empty
@@ -620,6 +628,8 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
     ys, xs = np.nonzero(ok)
     yi, xi = ys + region[0].start, xs + region[1].start
     px1 = np.stack([xi, yi], axis=-1).astype(np.float64)
-    px2 = maps.points(s_px[ys, xs], yi, xi)
+    s_ok = s_px[ys, xs]
+    px2 = maps.points(s_ok, yi, xi)
+    info["s"] = s_ok
     lap("points")
     return px1, px2, info
