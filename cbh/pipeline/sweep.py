@@ -191,7 +191,7 @@ def plane_maps(cam1, cam2, rays1_world: np.ndarray) -> PlaneMaps:
 
 
 def _box(img, k):
-    return cv2.boxFilter(img, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT)
+    return cv2.boxFilter(img, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT_101)
 
 
 def _zncc_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, window_px: int, sl):
@@ -202,13 +202,13 @@ def _zncc_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.
     """
     k = int(window_px)
     mu1 = _box(i1, k)
-    var1 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT), cv2.multiply(mu1, mu1)), 0.0)
+    var1 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101), cv2.multiply(mu1, mu1)), 0.0)
     yield cv2.sqrt(var1), None
     for j, s in enumerate(s_values):
         mx, my = maps.at(float(s), sl)
         w = cv2.remap(gray2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         mu2 = _box(w, k)
-        var2 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(w, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT), cv2.multiply(mu2, mu2)), 0.0)
+        var2 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(w, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101), cv2.multiply(mu2, mu2)), 0.0)
         cov = cv2.subtract(_box(cv2.multiply(i1, w), k), cv2.multiply(mu1, mu2))
         den = cv2.sqrt(cv2.add(cv2.multiply(var1, var2), 1e-3))
         yield j, cv2.divide(cov, den)
@@ -418,8 +418,15 @@ def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneM
     best, cbest, _, _ = run.result()
     cl = _pool2(ccloud[slc].astype(np.float32)) >= 0.5
     good = cl & (cbest >= cfg.min_zncc)
-    votes = np.bincount(best[good], minlength=len(s)).astype(np.float64)
-    peaks = find_peaks(votes, cfg.min_vote_fraction * float(cl.sum()), cfg.valley_ratio)
+    return coarse_hypotheses(best[good], float(cl.sum()), s, ds_c, o1z, cfg)
+
+
+def coarse_hypotheses(best_plane: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: float, o1z: float,
+                      cfg) -> CoarseLayers:
+    """Layer hypotheses from the coarse votes: ``best_plane`` (N,) int, the best plane of each voting
+    cloud pixel (ZNCC ≥ ``min_zncc``) of ``n_cloud``; peaks need ``min_vote_fraction`` of them."""
+    votes = np.bincount(np.asarray(best_plane, np.int64), minlength=len(s)).astype(np.float64)
+    peaks = find_peaks(votes, cfg.min_vote_fraction * n_cloud, cfg.valley_ratio)
     ranges = [peak_extent(votes, p, cfg.extent_ratio) for p in peaks]
     return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges])
 
@@ -451,7 +458,7 @@ def fine_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMap
     h, w = i1.shape
     k = int(cfg.window_px)
     mu = _box(i1, k)
-    var = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT),
+    var = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101),
                                cv2.multiply(mu, mu)), 0.0)
     m0 = cloud1[sl] & (var >= float(cfg.min_texture) ** 2)  # textured cloud pixels: the candidates
     textured = _pool2(m0.astype(np.float32))
@@ -464,6 +471,55 @@ def fine_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMap
         cv2.multiply(score, textured, dst=cost[q])
     ok = m0 & (cv2.resize(best, (w, h), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
     return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)))
+
+
+def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, total: float, cfg):
+    """The layers of the image from the wide-box winners' votes (see :func:`label_pass`).
+
+    Parameters
+    ----------
+    s_vote, weight : ndarray, shape (N,)
+        Refined s [1/m] of each voting pixel and its weight (accepted fraction of its block).
+    s : ndarray, shape (P,)
+        The fine planes [1/m].
+    ds : float
+        Their nominal spacing [1/m].
+    total : float
+        Total weight of the accepted pixels (a layer needs ``min_vote_fraction`` of it).
+
+    Returns
+    -------
+    votes (B,), bin width [1/m], bin ranges [lo, hi] of each layer (tiling the histogram),
+    cuts (L − 1,) [1/m] between neighbouring layers, plane_layer (P,) int.
+    """
+    bw = 0.5 * ds
+    nb = int(np.ceil(s[-1] / bw)) + 2
+    idx = np.clip(np.rint(np.asarray(s_vote, np.float64) / bw).astype(np.int64), 0, nb - 1)
+    votes = np.bincount(idx, weights=np.asarray(weight, np.float64), minlength=nb)
+    smooth = _gauss1d(votes, _VOTE_SMOOTH_BINS)
+    peaks = find_peaks(smooth, cfg.min_vote_fraction * total, cfg.valley_ratio)
+    cut_bins = valley_cuts(smooth, peaks)
+    ranges = list(zip([0] + [c + 1 for c in cut_bins], cut_bins + [nb - 1])) if peaks else []
+    cuts = np.array([bw * (c + 0.5) for c in cut_bins])
+    return votes, bw, ranges, cuts, np.searchsorted(cuts, s)
+
+
+def layer_planes(lab: "LayerLabels", L: int, s: np.ndarray, ds: float) -> np.ndarray:
+    """Indices of the fine planes of layer ``L`` (its s range ± one plane step)."""
+    edges = np.concatenate([[-np.inf], lab.cuts_s, [np.inf]])
+    return np.flatnonzero((s >= edges[L] - 1.01 * ds) & (s <= edges[L + 1] + 1.01 * ds))
+
+
+def layer_box(lab: "LayerLabels", L: int, scale_px: float, cfg) -> int:
+    """Aggregation box [half-resolution px] of layer ``L``: ``aggregate_px`` / 2, grown like
+    1/parallax for far layers (``far_aggregate_px``, at most ``_MAX_GROW`` ×)."""
+    k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
+    if cfg.far_aggregate_px > 0 and lab.vote_ranges:
+        lo_b, hi_b = lab.vote_ranges[L]
+        p_l = lab.bin_s * (lo_b + int(np.argmax(lab.votes[lo_b: hi_b + 1]))) * scale_px
+        grow = min(max(cfg.far_aggregate_px / max(p_l, 1e-6), 1.0), _MAX_GROW)
+        return max(3, int(round(k2 * grow)) | 1)
+    return k2
 
 
 def label_pass(fine: FineCost, cfg) -> LayerLabels:
@@ -480,20 +536,12 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     kl = max(1, (int(cfg.label_px) // 2) | 1)
     jw, cw, lw, rw = _best3([_box(c, k2) for c in cost])
     s_w = _refine(jw, cw, lw, rw, s, ds)
-    bw = 0.5 * ds
-    nb = int(np.ceil(s[-1] / bw)) + 2
     vote = fine.ok_frac > 0
     if cfg.vote_percentile > 0 and vote.any():
         mean_w = cw / np.maximum(_box(fine.textured, k2), 1e-6)
         vote &= mean_w >= np.percentile(mean_w[vote], cfg.vote_percentile)
-    votes = np.bincount(np.clip((s_w[vote] / bw).round().astype(int), 0, nb - 1), weights=fine.ok_frac[vote],
-                        minlength=nb)
-    smooth = _gauss1d(votes, _VOTE_SMOOTH_BINS)
-    peaks = find_peaks(smooth, cfg.min_vote_fraction * float(fine.ok_frac.sum()), cfg.valley_ratio)
-    cut_bins = valley_cuts(smooth, peaks)
-    ranges = list(zip([0] + [c + 1 for c in cut_bins], cut_bins + [nb - 1])) if peaks else []
-    cuts = np.array([bw * (c + 0.5) for c in cut_bins])
-    plane_layer = np.searchsorted(cuts, s)
+    votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote], fine.ok_frac[vote], s, ds,
+                                                       float(fine.ok_frac.sum()), cfg)
     hh, wh = cost.shape[1:]
     label = np.zeros((hh, wh), np.uint8)
     own = np.zeros((hh, wh), np.int32)
@@ -526,25 +574,18 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
     """
     s, ds, cost = fine.s, fine.ds, fine.cost
     h, w = fine.ok.shape
-    k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
     n_layers = max(len(lab.vote_ranges), 1)
-    edges = np.concatenate([[-np.inf], lab.cuts_s, [np.inf]])
     lab_full = cv2.resize(lab.label, (w, h), interpolation=cv2.INTER_NEAREST)
     s_px = np.zeros((h, w), np.float32)
     for L in range(n_layers):
         here = fine.ok & (lab_full == L)
         if not here.any():
             continue
-        sel = np.flatnonzero((s >= edges[L] - 1.01 * ds) & (s <= edges[L + 1] + 1.01 * ds))
+        sel = layer_planes(lab, L, s, ds)
         if len(sel) < 3:
             s_half = lab.s_wide
         else:
-            kL = k2
-            if cfg.far_aggregate_px > 0 and lab.vote_ranges:  # far layers: the box grows like 1/parallax
-                lo_b, hi_b = lab.vote_ranges[L]
-                p_l = lab.bin_s * (lo_b + int(np.argmax(lab.votes[lo_b: hi_b + 1]))) * scale_px
-                grow = min(max(cfg.far_aggregate_px / max(p_l, 1e-6), 1.0), _MAX_GROW)
-                kL = max(3, int(round(k2 * grow)) | 1)
+            kL = layer_box(lab, L, scale_px, cfg)
             mL = lab.label == L
             if n_layers > 1:  # only pixels whose own best plane is in this layer
                 mL &= lab.plane_layer[lab.own_plane] == L
