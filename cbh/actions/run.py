@@ -63,14 +63,14 @@ def _rerun_args(spec: str) -> tuple[str, str | None]:
 
 def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None, rerun=None, export=None,
               cadence_s=None, frames=None, duration_s=None, size_px=None, pair_tolerance_s=None, watch=False,
-              realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6) -> RunSetup:
+              realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6, device: str = "cpu") -> RunSetup:
     """Assemble ``cbh run``: station, sources, pipeline, sinks, service config (no thread started).
 
     Cameras without a ``--source`` use their station ``source`` key; cameras with neither are
     simulated (``--scene``, default ``two-layers``). A run whose sources are all simulated and
     that has neither ``frames`` nor ``duration_s`` processes ``demo_frames`` pairs.
     ``record``: None (off), True (``recordings/<station>-<UTC>.mcap``) or a path (a ``.mcap``
-    file, or a directory).
+    file, or a directory). ``device``: where the pipeline's dense work runs (``cpu``, ``cuda`` …).
     """
     from datetime import timezone
 
@@ -138,7 +138,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     from cbh.pipeline import Pipeline, PipelineConfig
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
-    pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg)
+    pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg, device=device)
     sinks = []
     recorder = None
     try:

@@ -38,7 +38,7 @@ from cbh.geometry.station import Camera
 from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
-__all__ = ["PairGeometry", "MatchInput", "Matches", "MATCHERS", "get_matcher", "triangulate_matches", "sample_map"]
+__all__ = ["PairGeometry", "MatchInput", "Matches", "MATCHERS", "MATCHER_BACKENDS", "get_matcher", "triangulate_matches", "sample_map"]
 
 _OUTSIDE = -1.0e5  # map value for "no pixel": far outside any image
 
@@ -103,6 +103,18 @@ class PairGeometry:
             self._planes = plane_maps(self.cam1, self.cam2, self.rays1_world)
         return self._planes
 
+    def torch_planes(self, device):
+        """The plane tables on a torch ``device`` (:class:`~cbh.pipeline.torch_ops.TorchPlaneMaps`),
+        uploaded on first use and kept: one upload per camera pair and device."""
+        cache = self.__dict__.setdefault("_torch_planes", {})
+        key = str(device)
+        if key not in cache:
+            from cbh.pipeline.torch_ops import TorchPlaneMaps
+
+            m2 = self.cam2.model
+            cache[key] = TorchPlaneMaps(self.planes, (m2.width, m2.height), device)
+        return cache[key]
+
     def infinity(self, px1: np.ndarray) -> np.ndarray:
         """Camera-2 pixels (N, 2) of the points at infinity seen at camera-1 pixels ``px1`` (N, 2)."""
         return sample_map(self.map_x, self.map_y, px1)
@@ -125,6 +137,7 @@ class MatchInput:
     usable1: np.ndarray  # (H1, W1) bool
     usable2: np.ndarray  # (H2, W2) bool
     cloud2: np.ndarray  # (H2, W2) bool
+    device: object = None  # torch.device for the methods with a torch backend; None = OpenCV/numpy
     _warped2: np.ndarray | None = None
 
     @property
@@ -250,10 +263,16 @@ def _dis(inp: MatchInput, cfg: MatchingConfig) -> Matches:
 
 
 def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
-    from cbh.pipeline.sweep import sweep_matches
-
     g = inp.geometry
-    px1, px2, info = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, float(g.cam1.position_m[2]), cfg.sweep)
+    o1z = float(g.cam1.position_m[2])
+    if inp.device is not None:
+        from cbh.pipeline.torch_ops import sweep_matches_torch
+
+        px1, px2, info = sweep_matches_torch(inp.gray1, inp.gray2, inp.cloud1, g.torch_planes(inp.device), o1z, cfg.sweep)
+    else:
+        from cbh.pipeline.sweep import sweep_matches
+
+        px1, px2, info = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
     keep = _in_cam2(inp, px2)
     px1, px2, s = px1[keep], px2[keep], info["s"][keep]
     # the camera-2 ray of a plane-sweep match is known exactly: the point o1 + d·(h − o1z)/d_z
@@ -265,6 +284,11 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
 
 
 MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis, "sweep": _sweep}
+
+# The backends each method runs on. "opencv": numpy/OpenCV on the CPU (always available; the
+# sparse matchers stay there: a few thousand features, nothing for a GPU to gain); "torch": any
+# torch device (CPU or CUDA), used when the pipeline runs on a device (Pipeline(device=...)).
+MATCHER_BACKENDS = {"lk": ("opencv",), "orb": ("opencv",), "dis": ("opencv",), "sweep": ("opencv", "torch")}
 
 
 def get_matcher(name: str):

@@ -50,6 +50,19 @@ _MAX_DISPLAY_MATCHES = 5000
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 
 
+def _resolve_backend(device: str, backend: str):
+    """(torch device or "cpu", "opencv" | "torch") from the user's ``device`` and ``backend``."""
+    if backend not in ("auto", "opencv", "torch"):
+        raise ConfigError(f"backend must be auto, opencv or torch, got {backend!r}")
+    if str(device) == "cpu" and backend in ("auto", "opencv"):
+        return "cpu", "opencv"
+    if backend == "opencv":
+        raise ConfigError(f"backend opencv runs on device cpu only, not {device!r}")
+    from cbh.pipeline.torch_ops import resolve_device
+
+    return resolve_device(device), "torch"
+
+
 def working_factor(cam: Camera, working_radius_px: float) -> float:
     """Exact downsampling factor (≤ 1) for a camera: its 90° radius becomes ≤ ``working_radius_px``
     (up to 5 % more, so that an image is not resampled by a hair, e.g. 960 → 959 px, which
@@ -90,6 +103,15 @@ class Pipeline:
         ``"cam1,cam2"`` (default: the first two cameras of the station).
     config : PipelineConfig or None
         Default: the station's ``[pipeline]`` table (or all defaults).
+    device : str
+        ``"cpu"`` (default) or a torch device (``"cuda"``, ``"cuda:1"``): where the dense
+        per-pair work runs (the plane sweep, the sun angle maps). Its per-camera tables (plane
+        maps, ray maps) are uploaded once, on first use.
+    backend : str
+        ``"auto"`` (default): numpy/OpenCV on ``"cpu"`` (the faster there), torch elsewhere;
+        ``"torch"``: torch on any device (also the CPU: the parity tests use it);
+        ``"opencv"``: numpy/OpenCV (``device="cpu"`` only). The sparse matchers (lk, orb, dis)
+        always run on OpenCV (:data:`~cbh.pipeline.match.MATCHER_BACKENDS`).
 
     Examples
     --------
@@ -98,8 +120,10 @@ class Pipeline:
     >>> result.summary()["layers"]                      # doctest: +SKIP
     """
 
-    def __init__(self, station: Station, cameras: str | None = None, config: PipelineConfig | None = None):
+    def __init__(self, station: Station, cameras: str | None = None, config: PipelineConfig | None = None,
+                 device: str = "cpu", backend: str = "auto"):
         self.station = station
+        self.device, self.backend = _resolve_backend(device, backend)
         self.config = config if config is not None else PipelineConfig.from_dict(station.sections.get("pipeline", {}))
         if not isinstance(self.config, PipelineConfig):
             raise ConfigError(f"pipeline config: expected a PipelineConfig, got {type(self.config).__name__}")
@@ -132,6 +156,15 @@ class Pipeline:
                 obstacle = load_obstacle_mask(cam.mask, cam.model.width, cam.model.height)
             self._static[i] = static_sky_mask(cam, self.config.masks, obstacle)
         return self._static[i]
+
+    def rays_cam_device(self, i: int):
+        """:meth:`rays_cam` as a tensor on the pipeline's device (uploaded once)."""
+        key = ("dev", i)
+        if key not in self._rays:
+            import torch
+
+            self._rays[key] = torch.as_tensor(self.rays_cam(i), device=self.device)
+        return self._rays[key]
 
     def rays_cam(self, i: int) -> np.ndarray:
         """Ray map of camera ``i`` at working size in its own frame, (H, W, 3) float32 (cached)."""
@@ -209,6 +242,16 @@ class Pipeline:
         ctx.timing["total"] = _ms(t_all)
         return self._assemble(ctx, seg, hmap, pts, lay)
 
+    def process_batch(self, pairs) -> list[PairResult]:
+        """:meth:`process` for several pairs ``[(image1, image2, time_utc), …]``, results in order.
+
+        The per-camera tables are uploaded once and shared; on a torch device each pair's
+        plane sweep evaluates all its planes in one batched call. Pairs are not stacked into
+        one kernel across pairs: each pair's planes and cloud region differ, and the stages
+        between (segmentation, sparse matching) run on the CPU anyway.
+        """
+        return [self.process(im1, im2, t) for im1, im2, t in pairs]
+
     # --- stages ---------------------------------------------------------------------------
     def stage_masks(self, work: tuple[np.ndarray, np.ndarray], ctx: "PairContext") -> "Masks":
         """Usable sky per camera (static mask, sun disk, saturated glare) and the sun angle maps."""
@@ -221,7 +264,7 @@ class Pipeline:
         usable, sun_angle = [], []
         for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
             u = self.static_mask(i)
-            ang = angle_map_deg(cam, sun_dir, self.rays_cam(i)) if sun_dir is not None else None
+            ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
@@ -233,6 +276,15 @@ class Pipeline:
             usable.append(u)
             sun_angle.append(ang)
         return Masks(usable=(usable[0], usable[1]), sun_angle=(sun_angle[0], sun_angle[1]), sun_dir_enu=sun_dir)
+
+    def _angle_map(self, i: int, sun_dir: np.ndarray) -> np.ndarray:
+        cam = (self.cam1, self.cam2)[i]
+        if self.backend == "torch":
+            from cbh.pipeline.torch_ops import angle_map_deg_torch
+
+            d_cam = np.asarray(sun_dir, np.float64) @ cam.R_world_from_cam
+            return angle_map_deg_torch(self.rays_cam_device(i), d_cam).cpu().numpy()
+        return angle_map_deg(cam, sun_dir, self.rays_cam(i))
 
     def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky."""
@@ -251,6 +303,7 @@ class Pipeline:
             geometry=geom,
             gray1=cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), gray2=cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY),
             cloud1=seg.clouds[0], usable1=masks.usable[0], usable2=masks.usable[1], cloud2=seg.clouds[1],
+            device=self.device if self.backend == "torch" else None,
         )
         raw = []
         if seg.clouds[0].any():

@@ -59,6 +59,7 @@ def pair_cmd(
     time: str = typer.Option(None, "--time", help="Capture time, ISO 8601 (default: UTC stamp in the file name, else unknown)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     height_map: Path = typer.Option(None, "--height-map", help="Write camera 1's height map (float32 .npy, NaN unknown)."),
+    device: str = typer.Option("cpu", "--device", help="Where the dense work runs: cpu (default) or a torch device, e.g. cuda."),
 ) -> None:
     """Cloud layers and point statistics from one image pair (heights above the ENU origin)."""
     import numpy as np
@@ -68,7 +69,7 @@ def pair_cmd(
     from cbh.geometry.station import load_station
 
     st = load_station(station)
-    pipe = Pipeline(st, cameras)
+    pipe = Pipeline(st, cameras, device=device)
     img1, _ = read_image(image1)
     img2, _ = read_image(image2)
     t = parse_time(time) if time else time_from_name(image1)

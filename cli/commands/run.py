@@ -37,6 +37,7 @@ def run_cmd(
     rotate_mb: float = typer.Option(None, "--rotate-mb", help="Start a new MCAP file after this many MB."),
     rotate_s: float = typer.Option(None, "--rotate-s", help="Start a new MCAP file after this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No status line."),
+    device: str = typer.Option("cpu", "--device", help="Where the dense work runs: cpu (default) or a torch device, e.g. cuda."),
 ) -> None:
     """Run the service: pair the two cameras' frames, compute cloud-base heights, record/view/export.
 
@@ -55,7 +56,7 @@ def run_cmd(
         record=(record_path or True) if record else None, rerun=rerun, export=export,
         cadence_s=cadence_s, frames=frames, duration_s=duration, size_px=size,
         pair_tolerance_s=pair_tolerance_s, watch=watch, realtime=realtime,
-        rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES,
+        rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES, device=device,
     )
     stats = _run_with_status(setup, status=not quiet)
     _report(setup, stats)
