@@ -28,3 +28,18 @@ def unb_station():
     from cbh.geometry.station import load_station
 
     return load_station(REPO / "configs" / "unb-lea.toml")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _table_cache(tmp_path_factory):
+    """The pipeline's on-disk table cache (cbh/pipeline/tables.py) in a per-session directory, so
+    the suite neither reads stale entries from nor fills the user's ~/.cache/cbh."""
+    import os
+
+    old = os.environ.get("CBH_CACHE_DIR")
+    os.environ["CBH_CACHE_DIR"] = str(tmp_path_factory.mktemp("cbh-cache"))
+    yield
+    if old is None:
+        os.environ.pop("CBH_CACHE_DIR", None)
+    else:
+        os.environ["CBH_CACHE_DIR"] = old

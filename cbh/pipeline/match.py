@@ -86,13 +86,37 @@ class PairGeometry:
 
     def __post_init__(self):
         m = self.cam1.model
-        rays = (self.cam1.model.ray_map().reshape(-1, 3) @ self.cam1.R_world_from_cam.T)
-        self.rays1_world = rays.reshape(m.height, m.width, 3).astype(np.float32)
-        px2 = self.cam2.direction_to_pixel(rays)
+        rays = self._rays1()
+        px2 = self.cam2.direction_to_pixel(rays.reshape(-1, 3).astype(np.float64))
         ok = np.isfinite(px2).all(axis=1) & self.cam2.model.contains(np.nan_to_num(px2, nan=-1e6))
         px2[~ok] = _OUTSIDE
         self.map_x = px2[:, 0].reshape(m.height, m.width).astype(np.float32)
         self.map_y = px2[:, 1].reshape(m.height, m.width).astype(np.float32)
+
+    def _rays1(self) -> np.ndarray:
+        m = self.cam1.model
+        rays = (m.ray_map().reshape(-1, 3) @ self.cam1.R_world_from_cam.T)
+        self.rays1_world = rays.reshape(m.height, m.width, 3).astype(np.float32)
+        return rays
+
+    @classmethod
+    def from_tables(cls, cam1: Camera, cam2: Camera, map_x: np.ndarray, map_y: np.ndarray, planes=None) -> "PairGeometry":
+        """The geometry from cached tables (:mod:`.tables`): the remap table as stored, the rays
+        recomputed (cheap), the plane maps if given."""
+        g = cls.__new__(cls)
+        g.cam1, g.cam2 = cam1, cam2
+        g.map_x, g.map_y = map_x, map_y
+        g._rays1()
+        g._planes = planes
+        return g
+
+    def tables(self) -> dict[str, np.ndarray]:
+        """The expensive tables, for :func:`~cbh.pipeline.tables.save_tables`."""
+        out = {"map_x": self.map_x, "map_y": self.map_y}
+        if self._planes is not None:
+            p = self._planes
+            out.update(plane_m0=p.m0, plane_a=p.a, plane_b=p.b, plane_scalars=np.array([p.s_a, p.scale_px]))
+        return out
 
     @property
     def planes(self):

@@ -135,11 +135,41 @@ class Pipeline:
         self._rays: dict[int, np.ndarray] = {}
         self._zenith: dict[int, np.ndarray] = {}
         self._geometry: PairGeometry | None = None
+        self._tables_key: str | None = None  # set once the disk cache was consulted (cbh.pipeline.tables)
+        self._tables_loaded = False
         self._layers = get_layer_method(self.config.layers.method)
         for name in self.config.matching.methods:
             get_matcher(name)
 
     # --- caches ---------------------------------------------------------------------------
+    def _load_tables(self) -> None:
+        """Fill the per-camera caches from the disk cache (:mod:`cbh.pipeline.tables`), if there."""
+        from cbh.pipeline.sweep import PlaneMaps
+        from cbh.pipeline.tables import load_tables, tables_key
+
+        self._tables_key = tables_key(self.cam1, self.cam2, self.config.masks)
+        t = load_tables(self._tables_key)
+        if t is None:
+            return
+        try:
+            planes = None
+            if "plane_m0" in t:
+                s_a, scale = (float(v) for v in t["plane_scalars"])
+                planes = PlaneMaps(t["plane_m0"], t["plane_a"], t["plane_b"], s_a, scale)
+            self._geometry = PairGeometry.from_tables(self.cam1, self.cam2, t["map_x"], t["map_y"], planes)
+            self._static = {0: t["static0"], 1: t["static1"]}
+            self._tables_loaded = True
+        except (KeyError, ValueError) as e:  # an entry of another layout: rebuild
+            log.warning("table cache entry unusable (%s); rebuilding", e)
+            self._geometry, self._static = None, {}
+
+    def _save_tables(self) -> None:
+        from cbh.pipeline.tables import save_tables
+
+        if self._geometry is None or len(self._static) < 2:
+            return
+        save_tables(self._tables_key, {**self._geometry.tables(), "static0": self._static[0], "static1": self._static[1]})
+
     @property
     def geometry(self) -> PairGeometry:
         """Infinity remap table and camera-1 rays at working size (built on first use)."""
@@ -226,6 +256,9 @@ class Pipeline:
         if time_utc is None:
             ctx.flags.append("time_unknown")
         t_all = time.perf_counter()
+        first = self._tables_key is None
+        if first:
+            self._load_tables()
         with _timed(ctx, "resize"):
             work = (self.to_working(0, image1), self.to_working(1, image2))
         with _timed(ctx, "masks"):
@@ -239,6 +272,8 @@ class Pipeline:
             pts = self.stage_points(corr)
             lay = self.stage_layers(pts, seg, masks, hmap, ctx)
         self._quality_flags(pts, seg, ctx)
+        if first and not self._tables_loaded:
+            self._save_tables()
         ctx.timing["total"] = _ms(t_all)
         return self._assemble(ctx, seg, hmap, pts, lay)
 
