@@ -124,13 +124,12 @@ class PlaneMaps:
 
     def at(self, s: float, sl=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 for one plane, on the region ``sl``."""
-        if getattr(self, "_planes_key", None) != sl:  # contiguous (h, w) planes of the region, cached
-            self._planes = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
+        if getattr(self, "_planes_key", None) != sl:  # (h, w, 3) tables (m0, a, b) per axis, cached
+            self._planes = [cv2.merge([np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)])
+                            for k in (0, 1)]
             self._planes_key = sl
-        out = []
-        for m0, a, b in self._planes:
-            out.append(cv2.scaleAdd(b, float(s * s), cv2.scaleAdd(a, float(s), m0)))
-        return out[0], out[1]
+        coef = np.array([[1.0, float(s), float(s) * float(s)]])  # one pass per axis: m0 + a·s + b·s²
+        return cv2.transform(self._planes[0], coef), cv2.transform(self._planes[1], coef)
 
     def points(self, s: np.ndarray, yi: np.ndarray, xi: np.ndarray) -> np.ndarray:
         """Camera-2 pixels (N, 2) float64 at per-pixel s (N,) for camera-1 pixels (yi, xi).
