@@ -593,10 +593,12 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
         if not here.any():
             continue
         sel = layer_planes(lab, L, s, ds)
-        if len(sel) < 3:
+        kL = layer_box(lab, L, scale_px, cfg)
+        k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
+        if len(sel) < 3 or (n_layers == 1 and kL == k2 and len(sel) == len(s)):
+            # (one layer on its own box over every plane: exactly the wide-box winner of pass 3)
             s_half = lab.s_wide
         else:
-            kL = layer_box(lab, L, scale_px, cfg)
             mL = lab.label == L
             if n_layers > 1:  # only pixels whose own best plane is in this layer
                 mL &= lab.plane_layer[lab.own_plane] == L

@@ -311,10 +311,11 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
         if not bool(here.any()):
             continue
         sel = layer_planes(lab, L, s, ds)
-        if len(sel) < 3:
-            s_half = lab.s_wide
+        kL = layer_box(lab, L, scale_px, cfg)
+        k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
+        if len(sel) < 3 or (n_layers == 1 and kL == k2 and len(sel) == len(s)):
+            s_half = lab.s_wide  # as the OpenCV twin: the wide-box winner itself
         else:
-            kL = layer_box(lab, L, scale_px, cfg)
             mL = lab.label == L
             if n_layers > 1:
                 mL = mL & (plane_layer[lab.own_plane] == L)
