@@ -56,7 +56,7 @@ import numpy as np
 from cbh.errors import ConfigError
 from cbh.result import Histogram, Layer
 from cbh.pipeline.config import FilteringConfig, LayersConfig
-from cbh.pipeline.peaks import find_peaks, valley_cuts
+from cbh.pipeline.peaks import find_peaks, smooth_gaussian, valley_cuts
 
 __all__ = ["LAYER_METHODS", "histogram_layers", "layer_stats", "layer_covers", "get_layer_method", "angular_noise", "height_noise"]
 
@@ -85,12 +85,6 @@ def height_noise(xyz_m: np.ndarray, o1: np.ndarray, o2: np.ndarray, dtheta_rad: 
     return np.abs(v[:, 2]) * r * dtheta_rad / np.maximum(b_perp, 1e-6)
 
 
-def _smooth(counts: np.ndarray, sigma_bins: float) -> np.ndarray:
-    from scipy.ndimage import gaussian_filter1d
-
-    return gaussian_filter1d(counts.astype(np.float64), sigma_bins, mode="constant") if sigma_bins > 0 else counts
-
-
 def histogram_layers(heights_m: np.ndarray, cfg: LayersConfig, limits: FilteringConfig = FilteringConfig()):
     """Candidate layer intervals from a smoothed log-height histogram (see module doc).
 
@@ -110,7 +104,7 @@ def histogram_layers(heights_m: np.ndarray, cfg: LayersConfig, limits: Filtering
     hist = Histogram(edges_m=np.exp(edges_log), counts=counts.astype(np.float64))
     if counts.sum() == 0:
         return hist, []
-    s = _smooth(counts, cfg.smooth_log / cfg.bin_log)
+    s = smooth_gaussian(counts, cfg.smooth_log / cfg.bin_log)
     peaks = find_peaks(s, 0.0, cfg.valley_ratio, cfg.min_separation_log / cfg.bin_log)
     cuts = [lo] + [edges_log[v] + 0.5 * cfg.bin_log for v in valley_cuts(s, peaks)]
     cuts.append(hi)

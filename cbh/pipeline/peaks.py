@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["find_peaks", "valley_cuts", "peak_extent"]
+__all__ = ["find_peaks", "valley_cuts", "peak_extent", "smooth_gaussian"]
 
 
 def find_peaks(values: np.ndarray, min_height: float = 0.0, valley_ratio: float = 0.5,
@@ -77,3 +77,17 @@ def peak_extent(values: np.ndarray, peak: int, ratio: float) -> tuple[int, int]:
     while hi < len(v) - 1 and ratio * v[peak] <= v[hi + 1] <= v[hi]:
         hi += 1
     return lo, hi
+
+
+def smooth_gaussian(values: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of a 1-D histogram with zeros outside, float64 (scipy's
+    ``gaussian_filter1d(values, sigma, mode="constant")`` with its 4 σ truncation; no scipy import).
+    ``sigma`` ≤ 0: the values unchanged."""
+    v = np.asarray(values, np.float64)
+    if sigma <= 0:
+        return v
+    r = int(4.0 * sigma + 0.5)
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    out = np.convolve(v, k / k.sum(), mode="full")  # "same" centres wrongly when the kernel is longer
+    return out[r: r + len(v)]

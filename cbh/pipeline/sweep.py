@@ -25,33 +25,46 @@ Score: zero-mean normalised cross-correlation (ZNCC) over a ``window_px`` box, c
 box filters (O(1) per pixel per plane). ZNCC is invariant to gain and offset, so the
 view-dependent brightness of a cloud seen from two places does not bias it.
 
-Two passes:
+Resolution: the ZNCC is evaluated at *half* the working resolution, over 2k × 2k windows (k =
+``window_px // 2``; 8 px for the default 9) centred on each 2 × 2 block of working pixels:
+such a window's sums are k × k box sums of 2 × 2 block sums, so per plane only the remap and
+two products run at working size, and the three box filters and the ZNCC arithmetic on a
+quarter of the pixels (:func:`_zncc_half_iter`). Everything downstream (layer votes, labels,
+refinement) already worked on 2 × 2 pooled scores; the per-pixel acceptance now uses the
+block's score.
 
-1. *Coarse*: at 1/``coarse_factor`` resolution, all planes from ``max_height_m`` down to
-   ``min_height_m`` at one coarse pixel per step. Each cloud pixel votes for its best plane
-   (if ZNCC ≥ ``min_zncc``); peaks of the vote histogram over s are the layer hypotheses,
-   each with the extent of s around it where its votes stay above ``extent_ratio`` × peak.
-   High layers (a few pixels of parallax) are not resolved at coarse size, so:
-2. *Fine*: at working resolution, at ``step_px`` per plane, every plane of the *far range*
-   (parallax ≤ ``far_px``, from infinity on) and the union of the coarse extents (± 1.5 coarse
-   steps). A cloud pixel is matched if its best plane's ZNCC ≥ ``min_zncc`` and its window
-   has texture (grey-level standard deviation ≥ ``min_texture``). The planes are streamed
-   (no (planes, H, W) stack at working size): per plane, the running best score and the ZNCC
-   of the textured cloud pixels pooled 2 × 2.
-3. *Layers and heights* (``aggregate_px`` > 1, the default), at half resolution on the pooled
-   scores (a box of ``aggregate_px // 2`` there is the ``aggregate_px`` box at working size):
-   the winners of the wide-box cost vote, in bins of half a plane step, for the layers of the
-   image (votes only from the boxes whose mean ZNCC is above the ``vote_percentile``: a box
-   that straddles two layers correlates worse and would fill the valley between their peaks);
-   each pixel is labelled with the layer whose planes its ``label_px`` box cost prefers; its
-   height is refined (parabola through the three best planes) on its layer's cost summed over
-   that layer's pixels only — and of those, only the ones whose own (2 × 2 pooled) best plane
-   lies in the layer's range: a pixel labelled into the layer by mistake (occluded in camera 2,
-   or at a boundary) has its cost peak outside the range, and its sloped cost would pull the
-   parabola towards the range's edge (−3 … −5 % bias on the far layer at B = 30 m before) — so
-   it is sharp at layer boundaries; the half-resolution s is
+The passes (each a function with a typed result; :func:`sweep_matches` runs them in order):
+
+1. :func:`coarse_pass` → :class:`CoarseLayers`. At 1/``coarse_factor`` size, all planes from
+   ``max_height_m`` down to ``min_height_m`` at one coarse pixel per step. Each cloud pixel
+   votes for its best plane (if ZNCC ≥ ``min_zncc``); peaks of the vote histogram over s
+   (:mod:`.peaks`, the finder the layer histogram uses too) are the layer hypotheses, each with
+   the extent of s around it where its votes stay above ``extent_ratio`` × peak. High layers
+   (a few pixels of parallax) are not resolved at coarse size, so :func:`fine_planes` takes
+   every plane of the *far range* (parallax ≤ ``far_px``, from infinity on) and the union of
+   the coarse extents (± 1.5 coarse steps), ``step_px`` apart.
+2. :func:`fine_pass` → :class:`FineCost`. At working size, every fine plane's ZNCC; a cloud
+   pixel is accepted if its window has texture (grey-level standard deviation ≥
+   ``min_texture``) and its block's best ZNCC ≥ ``min_zncc``. The planes are streamed: only the
+   (planes, h/2, w/2) cost stack (ZNCC × textured fraction of the block) is kept.
+3. :func:`label_pass` → :class:`LayerLabels`. The winners of the wide-box (``aggregate_px``)
+   cost vote, in bins of half a plane step, for the layers of the image (votes only from the
+   boxes whose mean ZNCC is above the ``vote_percentile``: a box that straddles two layers
+   correlates worse and would fill the valley between their peaks); each pixel is labelled
+   with the layer whose planes its ``label_px`` box cost prefers.
+4. :func:`refine_pass`. Each pixel's height is refined (parabola through the three best
+   planes) on its layer's cost summed over that layer's pixels only — and of those, only the
+   ones whose own best plane lies in the layer's range: a pixel labelled into the layer by
+   mistake (occluded in camera 2, or at a boundary) has its cost peak outside the range, and
+   its sloped cost would pull the parabola towards the range's edge (−3 … −5 % bias on the far
+   layer at B = 30 m before) — so it is sharp at layer boundaries; the half-resolution s is
    brought back to working size bilinearly (a box average varies smoothly inside a layer).
-   With ``aggregate_px`` = 1 each pixel keeps its own best plane, refined by the parabola.
+   With ``aggregate_px`` = 1 each pixel keeps its own best plane (full-resolution ZNCC,
+   :func:`zncc_planes`), refined by the parabola.
+
+The same passes run on a torch device in :mod:`.torch_ops` (same 1-D steps:
+:func:`coarse_hypotheses`, :func:`fine_planes`, :func:`vote_layers`, :func:`layer_planes`,
+:func:`layer_box`).
 
 Far layers (``far_aggregate_px``): the parallax noise of a box average falls like 1/box
 side, while 2 % of a far layer's height is a small parallax (2 % of p). A layer whose vote
@@ -72,16 +85,18 @@ of a lower cloud (a third of them; many occluded in camera 2) take a lower layer
 dense-map median error 2.2 % over all three layers, coverage 69 %. Use a larger
 working size (``working_radius_px``: parallax scales with it) or a longer baseline there.
 
-Speed (1920 px pair, working size 960 px, 2-core machine): ≈ 0.35–0.4 s for the sweep, of
-which the fine pass (≈ 12 ms per plane: remap, three box filters, a dozen OpenCV arithmetic
-calls) is about half. Everything per pixel goes through OpenCV (multi-threaded, no numpy
-temporaries); numpy's masked ``copyto`` and ``argmax`` over a stack axis are avoided (20× and
-10× slower).
+Speed (1920 px pair, working size 960 px, single-thread CPU time, two-layers scene): coarse
+≈ 21 ms (25 planes at 480 px), fine ≈ 67 ms (17 planes, ≈ 4 ms each: remap 1.1, plane map 0.5
+(one ``cv2.transform`` per axis), the rest products, 2 × 2 pools, half-size boxes and
+arithmetic), label ≈ 20 ms, refine ≈ 14 ms, points ≈ 10 ms. Everything per pixel goes through
+OpenCV (multi-threaded, no numpy temporaries); numpy's masked ``copyto`` and ``argmax`` over a
+stack axis are avoided (20× and 10× slower).
 
 Output: one correspondence per accepted cloud pixel of camera 1 (``dense=True``), px2 = the
-plane mapping at the refined s. Such a correspondence lies on the epipolar geometry by
-construction, so its ray miss is ≈ 0 (not a measurement of matching quality; the sparse
-``lk`` matches carry that).
+plane mapping at the refined s, and ``info["s"]``, the refined s of each (the matcher turns
+it into the exact camera-2 ray, so triangulation needs no fisheye back-projection of px2).
+Such a correspondence lies on the epipolar geometry by construction, so its ray miss is ≈ 0
+(not a measurement of matching quality; the sparse ``lk`` matches carry that).
 """
 from __future__ import annotations
 
@@ -91,7 +106,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from cbh.pipeline.peaks import find_peaks, peak_extent, valley_cuts
+from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
 
 __all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_pass", "fine_planes", "fine_pass",
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
@@ -353,15 +368,6 @@ def _refine(j: np.ndarray, c0: np.ndarray, cm1: np.ndarray, cp1: np.ndarray, s_v
     return (s_values.astype(np.float32)[j] + np.clip(delta, -0.5, 0.5).astype(np.float32) * np.float32(ds))
 
 
-def _gauss1d(v: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian smoothing of a 1-D histogram, zeros outside (scipy's ``gaussian_filter1d`` with
-    ``mode="constant"`` and its default 4 σ truncation, without importing scipy)."""
-    r = int(4.0 * sigma + 0.5)
-    x = np.arange(-r, r + 1, dtype=np.float64)
-    k = np.exp(-0.5 * (x / sigma) ** 2)
-    return np.convolve(np.asarray(v, np.float64), k / k.sum(), mode="same")
-
-
 # --- the passes ----------------------------------------------------------------------------
 
 @dataclass
@@ -507,7 +513,7 @@ def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float
     nb = int(np.ceil(s[-1] / bw)) + 2
     idx = np.clip(np.rint(np.asarray(s_vote, np.float64) / bw).astype(np.int64), 0, nb - 1)
     votes = np.bincount(idx, weights=np.asarray(weight, np.float64), minlength=nb)
-    smooth = _gauss1d(votes, _VOTE_SMOOTH_BINS)
+    smooth = smooth_gaussian(votes, _VOTE_SMOOTH_BINS)
     peaks = find_peaks(smooth, cfg.min_vote_fraction * total, cfg.valley_ratio)
     cut_bins = valley_cuts(smooth, peaks)
     ranges = list(zip([0] + [c + 1 for c in cut_bins], cut_bins + [nb - 1])) if peaks else []
