@@ -47,16 +47,16 @@ def main() -> None:
     except ConfigError as e:
         print(f"skipped: {e}")
         return
-    r = pipe.process(im1, im2, shot.time_utc)
+    r = pipe.process(im1, im2, shot.time_utc, channels="bgr")
     print(f"pair {im1.shape[1]}x{im1.shape[0]}  first call (builds caches): {(time.perf_counter() - t) * 1000:.0f} ms")
-    runs = [pipe.process(im1, im2, shot.time_utc).timing_ms for _ in range(args.repeat)]
+    runs = [pipe.process(im1, im2, shot.time_utc, channels="bgr").timing_ms for _ in range(args.repeat)]
     stages = list(runs[0])
     print(f"median of {args.repeat} runs [ms]:")
     for s in stages:
         print(f"  {s:<14} {statistics.median(r[s] for r in runs):8.1f}")
     if args.batch:
         t = time.perf_counter()
-        pipe.process_batch([(im1, im2, shot.time_utc)] * args.batch)
+        pipe.process_batch([(im1, im2, shot.time_utc)] * args.batch, channels="bgr")
         dt = time.perf_counter() - t
         print(f"process_batch of {args.batch}: {args.batch / dt:.2f} pairs/s on {args.device}")
     if "sweep" in pipe.config.matching.methods and pipe.backend == "opencv":  # the sweep's own steps

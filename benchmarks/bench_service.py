@@ -58,7 +58,7 @@ def main() -> None:
 
     def process(f1, f2):
         t0 = time.perf_counter()
-        r = pipe.process(f1.image, f2.image, f1.time_utc)
+        r = pipe.process(f1.image, f2.image, f1.time_utc, channels="bgr")
         pipe_s.append(time.perf_counter() - t0)
         return r
 

@@ -30,7 +30,7 @@ def main():
             shot = sim.render()
             pipe = Pipeline(sim.station)
             t0 = time.perf_counter()
-            r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+            r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
             dt = time.perf_counter() - t0
             fov = sim.station.cameras["cam1"].zenith_map() <= pipe.config.masks.max_zenith_deg
             sc = score_pair(r, shot.views["cam1"].height_m, [l.height_m for l in shot.layers], fov)

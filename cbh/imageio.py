@@ -11,7 +11,62 @@ from cbh.errors import ImageError
 if TYPE_CHECKING:  # only for the annotation: shared helpers import no wing
     from cbh.geometry.camera import CameraModel
 
-__all__ = ["read_image", "decode_image", "encode_jpeg", "check_image_size"]
+__all__ = ["read_image", "decode_image", "encode_jpeg", "check_image_size", "as_bgr", "CHANNEL_ORDERS"]
+
+#: Channel orders an array argument may declare: "rgb" (PIL, imageio, matplotlib), "bgr" (OpenCV).
+CHANNEL_ORDERS = ("rgb", "bgr")
+
+
+def _is_grey(img: np.ndarray) -> bool:
+    """True if the three channels are equal (a greyscale image stored as colour)."""
+    sub = img[::7, ::7]  # cheap test first: colour shows up in any subsample
+    if not (np.array_equal(sub[..., 0], sub[..., 1]) and np.array_equal(sub[..., 1], sub[..., 2])):
+        return False
+    return bool(np.array_equal(img[..., 0], img[..., 1]) and np.array_equal(img[..., 1], img[..., 2]))
+
+
+def as_bgr(image, channels: str | None = None, what: str = "image", model: CameraModel | None = None) -> np.ndarray:
+    """An image argument → BGR uint8 (H, W, 3), the order the pipeline works in.
+
+    Parameters
+    ----------
+    image : str, Path or ndarray
+        A file path (JPEG/PNG, read as BGR), or a uint8 array (H, W, 3) whose channel order
+        ``channels`` declares.
+    channels : {"rgb", "bgr"}, optional
+        Required for arrays: a bare array is never guessed to be BGR (an RGB array read as BGR
+        swaps blue and red, and the blue/red cloud test then sees cloud everywhere).
+    what : str
+        Names the image in error messages.
+    model : CameraModel, optional
+        If given, the image must have its calibration size (checked before the colour test).
+
+    Raises
+    ------
+    ImageError
+        Unreadable file, an array without ``channels``, wrong shape or dtype, or a greyscale
+        image (2-D, one channel, or three equal channels): cloud segmentation needs colour.
+    """
+    if isinstance(image, (str, Path)):
+        img = read_image(image)[0]
+    elif isinstance(image, np.ndarray):
+        if channels is None:
+            raise ImageError(f"{what}: an array has no declared channel order; pass channels='rgb' "
+                             "(PIL, imageio, matplotlib) or channels='bgr' (OpenCV), or give the file path")
+        if str(channels).lower() not in CHANNEL_ORDERS:
+            raise ImageError(f"{what}: channels must be 'rgb' or 'bgr', got {channels!r}")
+        if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 1):
+            raise ImageError(f"{what}: greyscale image {image.shape}: cloud segmentation needs a colour image")
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ImageError(f"{what}: expected a uint8 (H, W, 3) colour image, got {image.dtype} {image.shape}")
+        img = image[..., ::-1] if str(channels).lower() == "rgb" else image
+    else:
+        raise ImageError(f"{what}: expected a file path or a uint8 (H, W, 3) array, got {type(image).__name__}")
+    if model is not None:
+        check_image_size(img, model, what)
+    if _is_grey(img):
+        raise ImageError(f"{what}: greyscale image (its three channels are equal): cloud segmentation needs colour")
+    return np.ascontiguousarray(img)
 
 
 def decode_image(data: bytes, what: str = "image") -> np.ndarray:

@@ -16,7 +16,11 @@ from pathlib import Path
 
 from cbh.result import Frame, PairResult
 
-__all__ = ["FrameSource", "ResultSink"]
+__all__ = ["FrameSource", "ResultSink", "EndOfStream"]
+
+
+class EndOfStream(Exception):
+    """A finite source has no more frames (not an error)."""
 
 
 class FrameSource(ABC):
@@ -24,7 +28,7 @@ class FrameSource(ABC):
 
     ``read`` blocks up to ``timeout_s`` and returns a :class:`Frame` or None (no frame yet);
     it raises :class:`cbh.errors.SourceError` when the camera failed (the caller reconnects
-    with backoff by calling ``open`` again) and :class:`cbh.live.sources.EndOfStream` when a
+    with backoff by calling ``open`` again) and :class:`EndOfStream` when a
     finite source is exhausted.
 
     Attributes

@@ -1,10 +1,13 @@
 """Logging set-up for the CLI (the library only ever calls logging.getLogger(__name__))."""
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import sys
 import time
+
+from cbh.errors import ConfigError
 
 
 class JsonFormatter(logging.Formatter):
@@ -23,6 +26,50 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(d, default=str)
 
 
+class _LogFileHandler(logging.FileHandler):
+    """A JSON-lines log file that never floods stderr: on the first failed write (disk full,
+    device gone) it warns once on stderr and stops logging to the file; the run goes on."""
+
+    def __init__(self, path: str):
+        try:
+            super().__init__(path, encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"cannot open log file {path}: {exc.strerror or exc}") from None
+        self.failed = False
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        if self.failed:
+            return
+        self.failed = True
+        exc = sys.exc_info()[1]
+        why = "disk full" if isinstance(exc, OSError) and exc.errno == errno.ENOSPC else (
+            getattr(exc, "strerror", None) or str(exc) or type(exc).__name__)
+        print(f"cbh: warning: cannot write log file {self.baseFilename} ({why}); logging to it stopped",
+              file=sys.stderr)
+        logging.getLogger("cbh").removeHandler(self)
+        try:
+            self.stream and self.stream.close()
+        except OSError:
+            pass
+        self.stream = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not self.failed:
+            super().emit(record)
+
+    def flush(self) -> None:
+        try:
+            super().flush()
+        except OSError:
+            self.handleError(None)
+
+    def close(self) -> None:
+        try:
+            super().close()
+        except OSError:
+            pass
+
+
 def setup_logging(verbose: bool = False, log_file: str | None = None) -> None:
     root = logging.getLogger("cbh")
     root.handlers.clear()
@@ -32,7 +79,7 @@ def setup_logging(verbose: bool = False, log_file: str | None = None) -> None:
     h.setFormatter(logging.Formatter("cbh: %(levelname)s: %(message)s"))
     root.addHandler(h)
     if log_file:
-        fh = logging.FileHandler(log_file)
+        fh = _LogFileHandler(log_file)
         fh.setLevel(logging.DEBUG)
         fh.setFormatter(JsonFormatter())
         root.addHandler(fh)

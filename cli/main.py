@@ -11,7 +11,6 @@ import importlib
 import logging
 import sys
 
-import click
 import typer
 
 from cbh.errors import CbhError
@@ -58,27 +57,67 @@ def fail(message: str, code: int = 2) -> "typer.Exit":
     return typer.Exit(code)
 
 
+def _exceptions(name: str) -> tuple[type, ...]:
+    """Exception class ``name`` from every click that can raise it here: the installed typer may
+    bundle its own click (``typer._click``, with Exit/Abort in ``typer.exceptions``) besides,
+    or instead of, the standalone ``click``."""
+    found = []
+    for mod in ("typer.exceptions", "typer._click.exceptions", "click.exceptions"):
+        try:
+            cls = getattr(importlib.import_module(mod), name, None)
+        except ImportError:
+            continue
+        if isinstance(cls, type) and cls not in found:
+            found.append(cls)
+    return tuple(found)
+
+
+_EXIT = _exceptions("Exit")
+_ABORT = _exceptions("Abort")
+_CLICK_ERROR = _exceptions("ClickException")
+_NO_ARGS = _exceptions("NoArgsIsHelpError")  # bare `cbh`: the help text is the answer
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _usage_message(exc) -> str:
+    """A click usage error as one line: what is wrong, and where to read more."""
+    msg = _one_line(exc.format_message())
+    ctx = getattr(exc, "ctx", None)
+    path = ctx.command_path if ctx is not None and ctx.command_path else "cbh"
+    return f"{msg} (see `{path} --help`)" if hasattr(exc, "ctx") else msg
+
+
+def _os_message(exc: OSError) -> str:
+    if exc.errno == errno.ENOSPC:
+        return f"disk full while writing {exc.filename or 'output'}"
+    return f"{exc.strerror or exc}" + (f": {exc.filename}" if exc.filename else "")
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; every error ends as ONE line ``cbh: error: …`` on stderr and exit code 2."""
+    code = 0
     try:
         rv = app(args=argv, standalone_mode=False, prog_name="cbh")
-        return rv if isinstance(rv, int) else 0
-    except click.exceptions.Exit as exc:
+        code = rv if isinstance(rv, int) else 0
+    except _EXIT as exc:
         code = exc.exit_code
-    except click.ClickException as exc:
-        exc.show()
-        code = exc.exit_code
-    except click.exceptions.Abort:
+    except _ABORT:
         print("cbh: aborted", file=sys.stderr)
         code = 130
+    except _NO_ARGS as exc:
+        print(exc.format_message(), file=sys.stderr)
+        code = 2
+    except _CLICK_ERROR as exc:  # usage errors: bad option values, missing arguments, unknown commands
+        print(f"cbh: error: {_usage_message(exc)}", file=sys.stderr)
+        code = 2
     except CbhError as exc:
-        print(f"cbh: error: {exc}", file=sys.stderr)
+        print(f"cbh: error: {_one_line(exc)}", file=sys.stderr)
         code = 2
     except OSError as exc:
-        if exc.errno == errno.ENOSPC:
-            msg = f"disk full while writing {exc.filename or 'output'}"
-        else:
-            msg = f"{exc.strerror or exc}" + (f": {exc.filename}" if exc.filename else "")
-        print(f"cbh: error: {msg}", file=sys.stderr)
+        print(f"cbh: error: {_one_line(_os_message(exc))}", file=sys.stderr)
         code = 2
     except KeyboardInterrupt:
         code = 130

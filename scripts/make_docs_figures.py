@@ -24,7 +24,7 @@ def main():
     im1, _ = read_image(DATA / "2015-10-29-12-58-01-wahrsis3-med.jpg")
     im2, _ = read_image(DATA / "2015-10-29-12-58-01-wahrsis4-med.jpg")
     pipe = Pipeline(st, None, PipelineConfig.from_dict(st.sections.get("pipeline", {})))
-    r = pipe.process(im1, im2, datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc))
+    r = pipe.process(im1, im2, datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc), channels="bgr")
     h = r.height_map
     known = np.isfinite(h)
     v = np.clip((np.nan_to_num(h, nan=LO_M) - LO_M) / (HI_M - LO_M), 0, 1)

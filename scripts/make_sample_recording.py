@@ -43,7 +43,7 @@ def main(argv=None) -> int:
         for k in range(a.pairs):
             t = first + timedelta(seconds=a.cadence * k)
             f1, f2 = sim.frame(pipe.cameras[0], t), sim.frame(pipe.cameras[1], t)
-            result = pipe.process(f1.image, f2.image, t)
+            result = pipe.process(f1.image, f2.image, t, channels="bgr")
             rec.write((f1, f2), result)
             print(f"pair {k}: {t.isoformat()} layers "
                   + ", ".join(f"{l.height_m:.0f} m" for l in result.layers), flush=True)

@@ -110,7 +110,7 @@ def test_wrong_image_size_is_an_image_error():
     pipe = Pipeline(st)
     ok = np.zeros((240, 240, 3), np.uint8)
     with pytest.raises(ImageError, match="240x240"):
-        pipe.process(np.zeros((200, 240, 3), np.uint8), ok, T)
+        pipe.process(np.zeros((200, 240, 3), np.uint8), ok, T, channels="bgr")
 
 
 # --- simulated skies ----------------------------------------------------------------------
@@ -137,7 +137,7 @@ def _check(sim, shot, tol_single=0.02, tol_multi=0.05, dense_layers_m=None):
 
     v1 = shot.views["cam1"]
     pipe = Pipeline(sim.station)
-    r = pipe.process(v1.image, shot.views["cam2"].image, shot.time_utc)
+    r = pipe.process(v1.image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     fov = sim.station.cameras["cam1"].zenith_map() <= pipe.config.masks.max_zenith_deg
     sc = score_pair(r, v1.height_m, [l.height_m for l in shot.layers], fov, dense_layers_m)
     found = [(round(l.height_m), round(l.median_height_m), l.points) for l in r.layers]
@@ -168,7 +168,7 @@ def _sim_scene(name, size, baseline_m, yaw2):
 
 def test_clear_sky_gives_no_layer():
     sim, shot = _sim([], 480)
-    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     assert r.layers == []
     assert r.cloud_fraction["cam1"] < 0.01 and "clear_sky" in r.flags
     assert np.isnan(r.height_map).all()
@@ -269,7 +269,7 @@ def test_layer_covers_add_up_to_the_cloud_fraction_and_match_the_truth():
     sim = SkySimulator(load_station(station_path("unb-lea")), load_scene("two-layers"), size_px=480)
     shot = sim.render()
     v1 = shot.views["cam1"]
-    r = Pipeline(sim.station).process(v1.image, shot.views["cam2"].image, shot.time_utc)
+    r = Pipeline(sim.station).process(v1.image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     assert len(r.layers) == 2
     assert sum(l.cover for l in r.layers) == pytest.approx(r.cloud_fraction["cam1"], abs=0.01)
     assert "cover_incomplete" not in r.flags

@@ -205,8 +205,10 @@ def test_service_config_from_table():
         ServiceConfig.from_dict({"cadense_s": 10})
     with pytest.raises(ConfigError, match="service.pair_tolerance_s"):
         ServiceConfig.from_dict({"pair_tolerance_s": 0})
-    with pytest.raises(ConfigError, match="expected a number"):
+    with pytest.raises(ConfigError, match="service.frames: expected an integer"):
         ServiceConfig.from_dict({"frames": "3"})
+    with pytest.raises(ConfigError, match="service.duration_s: must be finite"):
+        ServiceConfig.from_dict({"duration_s": float("inf")})
 
 
 def test_lossless_run_waits_for_a_slow_camera_instead_of_dropping():

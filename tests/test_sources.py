@@ -282,7 +282,7 @@ def test_open_source_errors_name_the_problem(tmp_path):
         open_source("cam1", "ftp://host/x")
     with pytest.raises(ConfigError, match="no such file"):
         open_source("cam1", str(tmp_path / "nope"))
-    with pytest.raises(ConfigError, match="needs a simulated scene"):
+    with pytest.raises(ConfigError, match="caller builds"):  # the live wing never imports the simulator
         open_source("cam1", "sim")
     write_img(tmp_path / "one.jpg")
     with pytest.raises(ConfigError, match="single image"):

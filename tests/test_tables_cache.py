@@ -22,11 +22,11 @@ def test_cached_tables_equal_built_tables(unb_station, tmp_path, monkeypatch):
     sim, shot = _small(unb_station)
     im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
     built = Pipeline(sim.station)
-    r1 = built.process(im1, im2, shot.time_utc)
+    r1 = built.process(im1, im2, shot.time_utc, channels="bgr")
     files = list(tmp_path.glob("tables-*.npz"))
     assert len(files) == 1
     cached = Pipeline(sim.station)
-    r2 = cached.process(im1, im2, shot.time_utc)
+    r2 = cached.process(im1, im2, shot.time_utc, channels="bgr")
     assert cached._tables_loaded and not built._tables_loaded
     g1, g2 = built.geometry, cached.geometry
     assert np.array_equal(g1.map_x, g2.map_x) and np.array_equal(g1.rays1_world, g2.rays1_world)
@@ -44,5 +44,5 @@ def test_key_changes_with_the_camera_and_the_cache_can_be_off(unb_station, tmp_p
     assert tables_key(p.cam1, cam2, p.config.masks) != tables_key(p.cam1, moved, p.config.masks)
     monkeypatch.setenv("CBH_CACHE_DIR", "off")
     sim, shot = _small(unb_station)
-    Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+    Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     assert not list(tmp_path.iterdir())

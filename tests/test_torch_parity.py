@@ -51,7 +51,7 @@ def scene():
     shot = sim.render()
     pipe = Pipeline(sim.station)
     im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
-    r = pipe.process(im1, im2, shot.time_utc)
+    r = pipe.process(im1, im2, shot.time_utc, channels="bgr")
     g1, g2 = (cv2.cvtColor(pipe.to_working(i, im), cv2.COLOR_BGR2GRAY).astype(np.float32) for i, im in ((0, im1), (1, im2)))
     cloud = cv2.resize(r.cloud_masks["cam1"].view(np.uint8), (g1.shape[1], g1.shape[0]),
                        interpolation=cv2.INTER_NEAREST) > 0
@@ -128,7 +128,7 @@ def test_every_sweep_pass_agrees(scene):
 def test_pipeline_on_torch_matches_opencv(scene):
     shot, r_n = scene["shot"], scene["result"]
     r_t = Pipeline(scene["sim"].station, device="cpu", backend="torch").process(
-        shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+        shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     h_n, h_t = [L.height_m for L in r_n.layers], [L.height_m for L in r_t.layers]
     assert len(h_n) == len(h_t) == 2
     assert np.allclose(h_n, h_t, rtol=2e-3)
@@ -166,5 +166,5 @@ def test_device_choices_are_checked(unb_station):
 def test_pipeline_on_cuda_matches_cpu(scene):
     shot, r_n = scene["shot"], scene["result"]
     r_c = Pipeline(scene["sim"].station, device="cuda").process(
-        shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+        shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     assert np.allclose([L.height_m for L in r_n.layers], [L.height_m for L in r_c.layers], rtol=2e-3)

@@ -13,7 +13,7 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.live.service import Service, ServiceConfig
 from cbh.result import Frame, PairResult
 
-__all__ = ["RunSetup", "build_run", "open_sink"]
+__all__ = ["RunSetup", "build_run", "open_sink", "check_writable", "summary_lines"]
 
 
 def open_sink(path, make):
@@ -26,6 +26,25 @@ def open_sink(path, make):
         raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
+def check_writable(path) -> None:
+    """:class:`RecordingError` (one line, naming ``path``) unless a file can be created at ``path``.
+
+    Used before handing a path to a writer that would fail later, or only in a background
+    thread (Rerun's ``.rrd`` writer). A probe file that did not exist before is removed again.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise RecordingError(f"{p}: is a directory; give a file name")
+    if not p.parent.is_dir():
+        raise RecordingError(f"{p}: directory {p.parent} does not exist")
+    existed = p.exists()
+    try:
+        with open(p, "ab"):
+            pass
+    except OSError as exc:
+        raise RecordingError(f"cannot write {p}: {exc.strerror or exc}") from None
+    if not existed:
+        p.unlink(missing_ok=True)
 
 
 class RunSetup:
@@ -38,7 +57,7 @@ class RunSetup:
         self.notes = notes
 
     def process(self, f1: Frame, f2: Frame) -> PairResult:
-        return self.pipeline.process(f1.image, f2.image, f1.time_utc)
+        return self.pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr")
 
     def service(self, on_pair: Callable | None = None) -> Service:
         """The :class:`Service` for this run; ``on_pair(stats, result)`` is called after each pair."""
@@ -75,7 +94,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     from datetime import timezone
 
     from cbh.presets import scene_path, station_path
-    from cbh.live.sources import open_source
+    from cbh.live.sources import is_sim_spec, open_source
     from cbh.geometry.station import load_station
 
     st = load_station(station_path(station) if station else station_path())
@@ -91,7 +110,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     c1, c2 = st.pair(cameras)
     names = (c1.name, c2.name)
     specs = {n: overrides.get(n) or st.cameras[n].source or "sim" for n in names}
-    simulated = [n for n in names if specs[n].lower() in ("sim", "simulator", "sim:")]
+    simulated = [n for n in names if is_sim_spec(specs[n])]
     if simulated and len(simulated) != 2:
         raise ConfigError(f"camera {simulated[0]} would be simulated and the other not: give both a source, or neither")
     cfg_dict = dict(st.sections.get("service", {}))
@@ -130,11 +149,16 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     step = config.cadence_s if config.cadence_s > 0 else 10.0
     base_dir = st.path.parent if st.path is not None else None
     same_dir = specs[names[0]] == specs[names[1]]
-    srcs = [open_source(
-        st.cameras[n], specs[n], sim=sim, start_utc=start, watch=watch, decode=False,
-        interval_s=config.snapshot_interval_s, stall_timeout_s=config.stall_timeout_s,
-        sim_step_s=step, sim_realtime=realtime, base_dir=base_dir, prefix=n if same_dir else None,
-    ) for n in names]
+    srcs = []
+    for n in names:
+        if sim is not None:
+            from cbh.sim import SimSource
+
+            srcs.append(SimSource(n, sim, step_s=step, start_utc=start, realtime=realtime))
+        else:
+            srcs.append(open_source(
+                st.cameras[n], specs[n], watch=watch, decode=False, interval_s=config.snapshot_interval_s,
+                stall_timeout_s=config.stall_timeout_s, base_dir=base_dir, prefix=n if same_dir else None))
     from cbh.pipeline import Pipeline, PipelineConfig
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
@@ -166,6 +190,8 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         if rerun is not None:
             from cbh.outputs.rerun_view import RerunSink
 
+            if rerun_args[0] == "save":
+                check_writable(rerun_args[1])
             sinks.append(RerunSink(st, mode=rerun_args[0], target=rerun_args[1]))
     except BaseException:
         for s in sinks:
@@ -175,3 +201,15 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
                 pass
         raise
     return RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)
+
+
+def summary_lines(setup: RunSetup, stats) -> list[str]:
+    """The end-of-run summary: counts, stop reason, latest layers, files written."""
+    lines = [f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
+             f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
+             f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}"]
+    if stats.last_layers_m:
+        lines.append("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
+                     + f" above the station ({setup.station.altitude_m:.0f} m a.s.l.)")
+    lines += [f"{what}: {path}" for what, path in setup.outputs()]
+    return lines

@@ -33,7 +33,7 @@ import numpy as np
 
 from cbh.geometry.camera import MODELS, CameraModel, OCamModel, read_ocamcalib
 from cbh.errors import CalibrationError, ConfigError
-from cbh.tomlio import dumps_toml, read_toml
+from cbh.tomlio import dumps_toml, read_toml, check_keys, number, vector
 
 __all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
 
@@ -209,25 +209,15 @@ class Station:
 # --- parsing ------------------------------------------------------------------------------
 
 def _num(where: str, value, *, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{where}: expected a number, got {value!r}")
-    if not math.isfinite(value):
-        raise ConfigError(f"{where}: must be finite, got {value!r}")
-    if positive and value <= 0:
-        raise ConfigError(f"{where}: must be > 0, got {value!r}")
-    return float(value)
+    return number(where, value, positive=positive)
 
 
 def _vec(where: str, value, n: int) -> list[float]:
-    if not isinstance(value, list) or len(value) != n:
-        raise ConfigError(f"{where}: expected a list of {n} numbers, got {value!r}")
-    return [_num(f"{where}[{i}]", v) for i, v in enumerate(value)]
+    return list(vector(where, value, n))
 
 
 def _unknown(where: str, table: dict, allowed: set) -> None:
-    extra = sorted(set(table) - allowed)
-    if extra:
-        raise ConfigError(f"{where}.{extra[0]}: unknown key (allowed: {', '.join(sorted(allowed))})")
+    check_keys(where, table, allowed)
 
 
 def parse_intrinsics(where: str, d: dict) -> CameraModel:

@@ -91,6 +91,9 @@ def _check(name, a, n=None):
 def triangulate(o1, d1, o2, d2, limits: TriangulationLimits = TriangulationLimits(), *, chunk: int = 1 << 16) -> Triangulation:
     """Closest approach of N ray pairs.
 
+    One core (:func:`_closest_approach`) for numpy and torch: both backends give the same
+    numbers (to rounding) and the same answer on degenerate input.
+
     Parameters
     ----------
     o1, o2 : array, shape (3,) or (N, 3)
@@ -100,12 +103,15 @@ def triangulate(o1, d1, o2, d2, limits: TriangulationLimits = TriangulationLimit
     limits : TriangulationLimits
         Validity thresholds.
     chunk : int
-        numpy backend: pairs per block (keeps temporaries in cache).
+        Pairs per block on the CPU (keeps temporaries in cache); a GPU takes all at once.
 
     Returns
     -------
     Triangulation
-        Same backend and dtype as ``d1``.
+        Same backend and dtype as ``d1`` (other dtypes: float64). Degenerate pairs (parallel
+        rays, a zero-length direction, NaN input) have no common perpendicular: their point,
+        miss distance and ranges are NaN and they are not valid; parallel rays have angle 0°
+        (or 180°), a zero-length direction angle NaN.
 
     Examples
     --------
@@ -119,128 +125,110 @@ def triangulate(o1, d1, o2, d2, limits: TriangulationLimits = TriangulationLimit
     for name, a in (("o1", o1), ("d1", d1), ("o2", o2), ("d2", d2)):
         _check(name, a, n)
     if xp is np:
-        return _tri_numpy(o1, d1, o2, d2, limits, n, chunk)
-    import torch
+        dtype = d1.dtype if d1.dtype in (np.float32, np.float64) else np.float64
+        conv = lambda a: np.asarray(a, dtype=dtype)  # noqa: E731
+        cols = lambda a: np.ascontiguousarray(a.T)  # noqa: E731 - (3, m) rows: contiguous components
+        step, errstate = max(1, int(chunk)), np.errstate(divide="ignore", invalid="ignore")
+    else:
+        import torch
 
-    dtype = d1.dtype if d1.dtype in (torch.float32, torch.float64) else torch.float64
-    dev = d1.device
-    o1, o2, d1, d2 = (torch.as_tensor(a, dtype=dtype, device=dev).reshape(-1, 3).expand(n, 3) for a in (o1, o2, d1, d2))
-    step = n if dev.type != "cpu" else chunk  # CPU: blocks keep temporaries in cache
-    if step >= n:
-        return _tri_core(torch, o1, d1, o2, d2, limits)
-    # preallocated outputs, one block at a time: retaining per-block results makes the CPU
-    # allocator thrash (measured 30x slower at 1e7 pairs)
-    out = Triangulation(
-        torch.empty((n, 3), dtype=dtype), None, *(torch.empty(n, dtype=dtype) for _ in range(4)),
-        torch.empty(n, dtype=torch.bool),
-    )
-    for i in range(0, n, step):
-        part = _tri_core(torch, o1[i : i + step], d1[i : i + step], o2[i : i + step], d2[i : i + step], limits)
-        for f in ("point_m", "miss_m", "range1_m", "range2_m", "angle_deg", "valid"):
-            getattr(out, f)[i : i + step] = getattr(part, f)
-    return Triangulation(out.point_m, out.point_m[:, 2], *(getattr(out, f) for f in ("miss_m", "range1_m", "range2_m", "angle_deg", "valid")))
+        dtype = d1.dtype if d1.dtype in (torch.float32, torch.float64) else torch.float64
+        dev = d1.device
+        conv = lambda a: torch.as_tensor(a, dtype=dtype, device=dev)  # noqa: E731
+        cols = lambda a: a.T.contiguous()  # noqa: E731
+        step = n if dev.type != "cpu" else max(1, int(chunk))
+        from contextlib import nullcontext as errstate_
 
-
-def _tri_numpy(o1, d1, o2, d2, limits, n, chunk):
-    """numpy closest approach in cache-sized blocks of contiguous (3, m) rows, in place."""
-    dtype = d1.dtype if d1.dtype in (np.float32, np.float64) else np.float64
-    d1 = np.asarray(d1, dtype=dtype).reshape(-1, 3)
-    d2 = np.asarray(d2, dtype=dtype).reshape(-1, 3)
-    o1 = np.asarray(o1, dtype=dtype)
-    o2 = np.asarray(o2, dtype=dtype)
-    point = np.empty((n, 3), dtype)
-    miss = np.empty(n, dtype)
-    r1 = np.empty(n, dtype)
-    r2 = np.empty(n, dtype)
-    angle = np.empty(n, dtype)
-    valid = np.empty(n, bool)
-    per_pair1 = o1.ndim == 2 and o1.shape[0] == n and n > 1
-    per_pair2 = o2.ndim == 2 and o2.shape[0] == n and n > 1
-    o1 = o1 if per_pair1 else o1.reshape(3)
-    o2 = o2 if per_pair2 else o2.reshape(3)
-    tiny = np.finfo(dtype).tiny
-    cos_min = np.cos(np.radians(limits.min_angle_deg))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for i in range(0, n, chunk):
-            j = min(i + chunk, n)
-            ax, ay, az = np.ascontiguousarray(d1[i:j].T)
-            bx, by, bz = np.ascontiguousarray(d2[i:j].T)
-            O1 = o1[i:j].T if per_pair1 else o1
-            O2 = o2[i:j].T if per_pair2 else o2
-            wx, wy, wz = O2[0] - O1[0], O2[1] - O1[1], O2[2] - O1[2]
-            nx = ay * bz; nx -= az * by
-            ny = az * bx; ny -= ax * bz
-            nz = ax * by; nz -= ay * bx
-            nn = nx * nx; nn += ny * ny; nn += nz * nz
-            inv = 1.0 / nn
-            s = (wy * bz - wz * by) * nx; s += (wz * bx - wx * bz) * ny; s += (wx * by - wy * bx) * nz; s *= inv
-            t = (wy * az - wz * ay) * nx; t += (wz * ax - wx * az) * ny; t += (wx * ay - wy * ax) * nz; t *= inv
-            la = ax * ax; la += ay * ay; la += az * az; np.sqrt(la, out=la)
-            lb = bx * bx; lb += by * by; lb += bz * bz; np.sqrt(lb, out=lb)
-            for k, (o, a, b) in enumerate(((0, ax, bx), (1, ay, by), (2, az, bz))):
-                q = s * a; q += O1[o]; q2 = t * b; q2 += O2[o]; q += q2; q *= 0.5
-                point[i:j, k] = q
-            m = wx * nx; m += wy * ny; m += wz * nz; np.abs(m, out=m)
-            nl = np.sqrt(nn)
-            miss[i:j] = m / nl
-            np.multiply(s, la, out=r1[i:j])
-            np.multiply(t, lb, out=r2[i:j])
-            dot = ax * bx; dot += ay * by; dot += az * bz
-            # angle = asin(|d1×d2| / (|d1||d2|)), mirrored past 90° (dot < 0): asin is ~5x
-            # cheaper than arctan2 here and as accurate for the small angles that matter
-            q = nl / (la * lb)
-            np.clip(q, 0.0, 1.0, out=q)
-            np.arcsin(q, out=q)
-            np.subtract(np.pi, q, out=q, where=dot < 0)
-            q *= 180.0 / np.pi
-            angle[i:j] = q
-            v = nn > tiny
-            v &= r1[i:j] > 0
-            v &= r2[i:j] > 0
-            # angle ≥ min without re-reading the angle: cos(angle) ≤ cos(min) or ≥ 90°
-            la *= lb
-            la *= cos_min
-            v &= dot <= la
-            v &= r1[i:j] <= limits.max_range_m
-            v &= r2[i:j] <= limits.max_range_m
-            valid[i:j] = v
-    miss[~np.isfinite(miss)] = np.nan  # parallel rays: no common perpendicular
+        errstate = errstate_()
+    d1, d2 = conv(d1).reshape(-1, 3), conv(d2).reshape(-1, 3)
+    o1, o2 = conv(o1), conv(o2)
+    per1 = o1.ndim == 2 and o1.shape[0] == n and n > 1
+    per2 = o2.ndim == 2 and o2.shape[0] == n and n > 1
+    o1 = o1 if per1 else o1.reshape(3)
+    o2 = o2 if per2 else o2.reshape(3)
+    # preallocated outputs filled block by block: retaining per-block results makes torch's
+    # CPU allocator thrash (measured 30x slower at 1e7 pairs)
+    point = xp.empty((n, 3), dtype=dtype) if xp is np else xp.empty((n, 3), dtype=dtype, device=d1.device)
+    like = lambda dt: xp.empty(n, dtype=dt) if xp is np else xp.empty(n, dtype=dt, device=d1.device)  # noqa: E731
+    miss, r1, r2, angle = like(dtype), like(dtype), like(dtype), like(dtype)
+    valid = like(bool if xp is np else xp.bool)
+    cos_min = float(np.cos(np.radians(limits.min_angle_deg)))
+    with errstate:
+        for i in range(0, n, step):
+            j = min(i + step, n)
+            O1 = cols(o1[i:j]) if per1 else o1
+            O2 = cols(o2[i:j]) if per2 else o2
+            p, m, a1, a2, ang, v = _closest_approach(xp, O1, cols(d1[i:j]), O2, cols(d2[i:j]), cos_min,
+                                                     float(limits.max_range_m))
+            for k in range(3):
+                point[i:j, k] = p[k]
+            miss[i:j], r1[i:j], r2[i:j], angle[i:j], valid[i:j] = m, a1, a2, ang, v
     return Triangulation(point, point[:, 2], miss, r1, r2, angle, valid)
 
 
-def _tri_core(xp, o1, d1, o2, d2, limits):
-    # Cross-product form of the closest approach (stable in float32 for near-parallel rays,
-    # unlike a·c − b²): n = d1 × d2, w = o2 − o1,
-    #   s = ((w × d2) · n) / |n|²   (along ray 1),   t = ((w × d1) · n) / |n|²   (along ray 2),
-    #   miss = |w · n| / |n|,   angle = atan2(|n|, d1 · d2).
-    ax, ay, az = d1[:, 0], d1[:, 1], d1[:, 2]
-    bx, by, bz = d2[:, 0], d2[:, 1], d2[:, 2]
-    wx, wy, wz = o2[:, 0] - o1[:, 0], o2[:, 1] - o1[:, 1], o2[:, 2] - o1[:, 2]
-    nx = ay * bz - az * by
-    ny = az * bx - ax * bz
-    nz = ax * by - ay * bx
-    nn = nx * nx + ny * ny + nz * nz
-    tiny = xp.finfo(nn.dtype).tiny
-    ok = nn > tiny
-    inv = 1.0 / xp.where(ok, nn, xp.ones_like(nn))
-    # (w × d2) · n and (w × d1) · n as scalar triple products
-    s = ((wy * bz - wz * by) * nx + (wz * bx - wx * bz) * ny + (wx * by - wy * bx) * nz) * inv
-    t = ((wy * az - wz * ay) * nx + (wz * ax - wx * az) * ny + (wx * ay - wy * ax) * nz) * inv
-    p1x, p1y, p1z = o1[:, 0] + s * ax, o1[:, 1] + s * ay, o1[:, 2] + s * az
-    p2x, p2y, p2z = o2[:, 0] + t * bx, o2[:, 1] + t * by, o2[:, 2] + t * bz
-    point = xp.stack([(p1x + p2x) * 0.5, (p1y + p2y) * 0.5, (p1z + p2z) * 0.5], -1)
-    nlen = xp.sqrt(nn)
-    miss = xp.abs(wx * nx + wy * ny + wz * nz) / xp.where(ok, nlen, xp.ones_like(nlen))
-    r1 = s * xp.sqrt(ax * ax + ay * ay + az * az)
-    r2 = t * xp.sqrt(bx * bx + by * by + bz * bz)
-    dot = ax * bx + ay * by + az * bz
-    angle = np.degrees(np.arctan2(nlen, dot)) if xp is np else xp.rad2deg(xp.atan2(nlen, dot))
-    valid = (
-        ok & (r1 > 0) & (r2 > 0)
-        & (angle >= limits.min_angle_deg)
-        & (r1 <= limits.max_range_m) & (r2 <= limits.max_range_m)
-    )
-    return Triangulation(point, point[:, 2], miss, r1, r2, angle, valid)
+def _closest_approach(xp, O1, a, O2, b, cos_min: float, max_range_m: float):
+    """The triangulation core, for numpy (``xp = np``) and torch (``xp = torch``) alike.
+
+    ``a``, ``b``: ray directions as (3, m) component rows; ``O1``, ``O2``: origins, (3,) or
+    (3, m). Cross-product form of the closest approach (stable in float32 for near-parallel
+    rays, unlike a·c − b²): n = a × b, w = O2 − O1,
+    s = ((w × b) · n) / |n|² along ray 1, t = ((w × a) · n) / |n|² along ray 2,
+    miss = |w · n| / |n|, angle = asin(|n| / (|a||b|)) mirrored past 90° (asin is ~5x cheaper
+    than arctan2 here and as accurate for the small angles that matter).
+    Where |n|² is not above the dtype's tiny (parallel rays, a zero direction) or the input
+    is NaN, s, t, the point, miss and ranges are NaN and the pair is invalid.
+
+    Returns (point components (3 arrays), miss, range1, range2, angle_deg, valid), each (m,).
+    """
+    ax, ay, az = a[0], a[1], a[2]
+    bx, by, bz = b[0], b[1], b[2]
+    wx, wy, wz = O2[0] - O1[0], O2[1] - O1[1], O2[2] - O1[2]
+    nx = ay * bz; nx -= az * by  # noqa: E702 - in-place arithmetic, the same in numpy and torch
+    ny = az * bx; ny -= ax * bz  # noqa: E702
+    nz = ax * by; nz -= ay * bx  # noqa: E702
+    nn = nx * nx; nn += ny * ny; nn += nz * nz  # noqa: E702
+    ok = nn > xp.finfo(nn.dtype).tiny
+    inv = 1.0 / nn  # inf where nn = 0: s, t, miss become NaN (0 · inf, 0 / 0) ...
+    if not bool(ok.all()):
+        inv[~ok] = float("nan")  # ... and also where nn is subnormal: no common perpendicular
+    s = (wy * bz - wz * by) * nx; s += (wz * bx - wx * bz) * ny; s += (wx * by - wy * bx) * nz; s *= inv  # noqa: E702
+    t = (wy * az - wz * ay) * nx; t += (wz * ax - wx * az) * ny; t += (wx * ay - wy * ax) * nz; t *= inv  # noqa: E702
+    la = ax * ax; la += ay * ay; la += az * az; la = xp.sqrt(la)  # noqa: E702
+    lb = bx * bx; lb += by * by; lb += bz * bz; lb = xp.sqrt(lb)  # noqa: E702
+    point = []
+    for oa, ob, da, db in ((O1[0], O2[0], ax, bx), (O1[1], O2[1], ay, by), (O1[2], O2[2], az, bz)):
+        q = s * da; q += oa; q2 = t * db; q2 += ob; q += q2; q *= 0.5  # noqa: E702
+        point.append(q)
+    nl = xp.sqrt(nn)
+    miss = wx * nx; miss += wy * ny; miss += wz * nz; miss = xp.abs(miss); miss *= inv; miss *= nl  # noqa: E702
+    r1 = s * la
+    r2 = t * lb
+    dot = ax * bx; dot += ay * by; dot += az * bz  # noqa: E702
+    la *= lb  # |a||b|
+    q = nl / la
+    angle = _asin_deg(xp, q, dot < 0)
+    # angle ≥ min without re-reading the angle: cos(angle) ≤ cos(min)
+    la *= cos_min
+    valid = dot <= la
+    valid &= ok
+    valid &= r1 > 0
+    valid &= r2 > 0
+    valid &= r1 <= max_range_m
+    valid &= r2 <= max_range_m
+    return point, miss, r1, r2, angle, valid
+
+
+def _asin_deg(xp, q, obtuse):
+    """asin(clip(q, 0, 1)) in degrees, mirrored to 180° − x where ``obtuse``; in place on ``q``."""
+    if xp is np:
+        np.clip(q, 0.0, 1.0, out=q)
+        np.arcsin(q, out=q)
+        np.subtract(np.pi, q, out=q, where=obtuse)
+    else:
+        q = q.clamp_(0.0, 1.0).asin_()
+        q = xp.where(obtuse, np.pi - q, q)
+    q *= 180.0 / np.pi
+    return q
 
 
 def triangulate_svd(o1, d1, o2, d2, limits: TriangulationLimits = TriangulationLimits()) -> Triangulation:

@@ -28,42 +28,50 @@ def read_pixel_pairs(path: str | Path) -> PixelPairs:
     """Read a CSV with columns x1,y1,x2,y2[,true_height_m]. Errors name the row and column."""
     path = Path(path)
     try:
-        fh = path.open(newline="")
+        fh = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"pixels file not found: {path}") from None
+    except IsADirectoryError:
+        raise InputError(f"pixels file is a directory: {path}") from None
     except OSError as exc:
         raise InputError(f"cannot read {path}: {exc.strerror}") from None
-    with fh:
-        reader = csv.DictReader(fh)
-        cols = [c.strip() for c in (reader.fieldnames or [])]
-        reader.fieldnames = cols
-        missing = [c for c in REQUIRED if c not in cols]
-        if missing:
-            raise InputError(f"{path.name}: missing column {missing[0]!r} (need x1,y1,x2,y2[,true_height_m])")
-        has_truth = "true_height_m" in cols
-        rows = []
-        try:
-            for i, row in enumerate(reader, start=2):  # row 1 is the header
-                vals = []
-                for c in REQUIRED + (("true_height_m",) if has_truth else ()):
-                    cell = (row.get(c) or "").strip()
-                    if c == "true_height_m" and cell == "":
-                        vals.append(math.nan)
-                        continue
-                    try:
-                        v = float(cell)
-                    except ValueError:
-                        raise InputError(f"{path.name}: row {i}, column {c}: not a number: {cell!r}") from None
-                    if not math.isfinite(v):
-                        raise InputError(f"{path.name}: row {i}, column {c}: not finite: {cell!r}")
-                    vals.append(v)
-                rows.append(vals)
-        except UnicodeDecodeError:
-            raise InputError(f"{path.name}: not a text CSV file") from None
+    try:
+        with fh:
+            rows, has_truth = _read_rows(csv.DictReader(fh), path.name)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path.name}: not a UTF-8 text CSV file (undecodable byte at offset {exc.start})") from None
+    except csv.Error as exc:
+        raise InputError(f"{path.name}: malformed CSV: {exc}") from None
     if not rows:
         raise InputError(f"{path.name}: no data rows")
     a = np.array(rows, dtype=np.float64)
     return PixelPairs(a[:, 0:2], a[:, 2:4], a[:, 4] if has_truth else None)
+
+
+def _read_rows(reader: csv.DictReader, name: str) -> tuple[list[list[float]], bool]:
+    cols = [c.strip() for c in (reader.fieldnames or [])]
+    reader.fieldnames = cols
+    missing = [c for c in REQUIRED if c not in cols]
+    if missing:
+        raise InputError(f"{name}: missing column {missing[0]!r} (need x1,y1,x2,y2[,true_height_m])")
+    has_truth = "true_height_m" in cols
+    rows = []
+    for i, row in enumerate(reader, start=2):  # row 1 is the header
+        vals = []
+        for c in REQUIRED + (("true_height_m",) if has_truth else ()):
+            cell = (row.get(c) or "").strip()
+            if c == "true_height_m" and cell == "":
+                vals.append(math.nan)
+                continue
+            try:
+                v = float(cell)
+            except ValueError:
+                raise InputError(f"{name}: row {i}, column {c}: not a number: {cell!r}") from None
+            if not math.isfinite(v):
+                raise InputError(f"{name}: row {i}, column {c}: not finite: {cell!r}")
+            vals.append(v)
+        rows.append(vals)
+    return rows, has_truth
 
 
 def triangulate_pixel_pairs(

@@ -31,13 +31,14 @@ import queue
 import signal
 import threading
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult
+from cbh.tomlio import dataclass_from_table
 from cbh.live.sources import EndOfStream, decode_frame
 
 __all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySink", "STATES"]
@@ -78,17 +79,9 @@ class ServiceConfig:
 
     @classmethod
     def from_dict(cls, d: dict | None, where: str = "service") -> "ServiceConfig":
-        """From a TOML table; unknown keys and wrong types raise :class:`ConfigError` naming the key."""
-        d = dict(d or {})
-        names = {f.name: f for f in fields(cls)}
-        kw = {}
-        for k, v in d.items():
-            if k not in names:
-                raise ConfigError(f"{where}.{k}: unknown key (allowed: {', '.join(names)})")
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ConfigError(f"{where}.{k}: expected a number, got {v!r}")
-            kw[k] = int(v) if k in ("queue_frames", "frames") else float(v)
-        return cls(**kw)
+        """From a TOML table; unknown keys, wrong types and non-finite numbers raise
+        :class:`ConfigError` naming the key (:func:`cbh.tomlio.dataclass_from_table`)."""
+        return dataclass_from_table(cls, dict(d or {}), where)
 
     def to_dict(self) -> dict:
         return {k: v for k, v in asdict(self).items() if v is not None}
@@ -283,7 +276,7 @@ class Service:
     sources : sequence of FrameSource
         Exactly two: camera 1's and camera 2's (pairs come out in this order).
     process : callable (Frame, Frame) → PairResult
-        Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc)``.
+        Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr")``.
         Frames arrive decoded (``image`` set).
     sinks : sequence of ResultSink
         Each gets ``write((f1, f2), result)`` per pair, ``write_status(time_utc, stats)`` if it
@@ -376,7 +369,8 @@ class Service:
             try:
                 sink.close()
             except Exception as exc:
-                log.error(f"closing {type(sink).__name__} failed: {exc}", extra={"cbh_sink": type(sink).__name__})
+                # raised below (the CLI prints it once): only the structured log gets it here
+                log.debug(f"closing {type(sink).__name__} failed: {exc}", extra={"cbh_sink": type(sink).__name__})
                 if err is None:
                     err = _sink_error(sink, exc, "closing")
         return err
@@ -465,7 +459,7 @@ class Service:
                 sink.write(pair, result)
             except Exception as exc:
                 err = _sink_error(sink, exc, "writing")
-                log.error(str(err), extra={"cbh_event": "sink_failed"})
+                log.debug(str(err), extra={"cbh_event": "sink_failed"})  # raised: printed once by the caller
                 self.stop("sink failed")
                 raise err from None
         st.pairs_processed += 1

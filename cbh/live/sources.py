@@ -15,7 +15,7 @@ HTTP snapshot      ``http://host/snap.jpg`` (or ``snapshot+http``) ``X-Timestamp
 RTSP               ``rtsp://host/stream``                          stream clock + smallest receive lag
 video file         ``clip.mp4`` (any file OpenCV/FFmpeg reads)     start + position in the file
 image directory    ``path/to/dir/`` (``--watch``: keep polling)    time in the file name, else mtime
-simulator          ``sim``                                         simulated time
+simulator          ``sim`` (built by the caller: cbh.sim.SimSource) simulated time
 in-memory list     (API only: :class:`MemorySource`)               the frames' own
 =================  ============================================  ==================================
 
@@ -41,7 +41,6 @@ import logging
 import os
 import re
 import socket
-import threading
 import time
 import urllib.parse
 from collections import deque
@@ -51,12 +50,13 @@ from typing import Iterable
 
 
 from cbh.errors import ConfigError, ImageError, SourceError
-from cbh.interfaces import FrameSource
+from cbh.interfaces import EndOfStream, FrameSource
 from cbh.result import Frame
+from cbh.timeutil import parse_time_header, time_from_name, wait_until as _wait_until
 
 __all__ = [
     "EndOfStream", "HttpSource", "MjpegSource", "SnapshotSource", "VideoSource", "DirectorySource",
-    "SimSource", "MemorySource", "open_source", "parse_time_header", "time_from_name", "SOURCE_KINDS",
+    "MemorySource", "open_source", "is_sim_spec", "parse_time_header", "time_from_name", "SOURCE_KINDS",
     "IMAGE_SUFFIXES", "VIDEO_SUFFIXES",
 ]
 
@@ -64,21 +64,6 @@ log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".mjpg", ".mjpeg", ".webm", ".ts")
-
-
-def _wait_until(t_monotonic: float, timeout_s: float) -> bool:
-    """Sleep until ``t_monotonic`` if it comes within ``timeout_s``; else sleep ``timeout_s`` and return False."""
-    wait = t_monotonic - time.monotonic()
-    if wait > timeout_s:
-        time.sleep(max(timeout_s, 0.0))
-        return False
-    if wait > 0:
-        time.sleep(wait)
-    return True
-
-
-class EndOfStream(Exception):
-    """A finite source has no more frames (not an error)."""
 
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
@@ -105,48 +90,6 @@ def _finish(frame_bytes: bytes, camera: str, t: datetime, seq: int, decode: bool
             raise ImageError(f"{what}: corrupt image data ({len(frame_bytes)} bytes, no JPEG/PNG header)")
         img = None
     return Frame(camera=camera, time_utc=t, image=img, encoded=frame_bytes, format=fmt, sequence=seq)
-
-
-# --- time stamps ----------------------------------------------------------------------------
-
-_NAME_TIME = re.compile(
-    r"(?<!\d)(\d{4})-?(\d{2})-?(\d{2})[T_ \-]?(\d{2})[:\-]?(\d{2})[:\-]?(\d{2})(?:[.,](\d{1,9}))?(Z)?(?!\d)"
-)
-
-
-def time_from_name(name: str) -> datetime | None:
-    """UTC time encoded in a file name (see the module docstring), or None.
-
-    >>> time_from_name("cam1_20151029T045801.250Z.jpg").isoformat()
-    '2015-10-29T04:58:01.250000+00:00'
-    """
-    m = _NAME_TIME.search(name)
-    if not m:
-        return None
-    y, mo, d, h, mi, s, frac = m.groups()[:7]
-    try:
-        t = datetime(int(y), int(mo), int(d), int(h), int(mi), int(s), tzinfo=timezone.utc)
-    except ValueError:
-        return None
-    if frac:
-        t += timedelta(microseconds=int(round(int(frac) / 10 ** len(frac) * 1e6)))
-    return t
-
-
-def parse_time_header(value: str | None) -> datetime | None:
-    """A camera's time header: Unix seconds (``1446094681.25``) or ISO 8601 (``...Z``); None if absent/unreadable."""
-    if not value:
-        return None
-    value = value.strip()
-    try:
-        return datetime.fromtimestamp(float(value), tz=timezone.utc)
-    except (ValueError, OverflowError, OSError):
-        pass
-    try:
-        t = datetime.fromisoformat(value.replace("Z", "+00:00"))
-    except ValueError:
-        return None
-    return t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
 
 
 # --- HTTP (MJPEG stream and snapshots) --------------------------------------------------------
@@ -654,75 +597,7 @@ class DirectorySource(FrameSource):
         pass
 
 
-# --- simulator and in-memory list --------------------------------------------------------------
-
-_SIM_LOCKS: dict[int, threading.Lock] = {}
-_SIM_LOCKS_GUARD = threading.Lock()
-
-
-def _sim_lock(sim) -> threading.Lock:
-    with _SIM_LOCKS_GUARD:
-        return _SIM_LOCKS.setdefault(id(sim), threading.Lock())
-
-
-class SimSource(FrameSource):
-    """Frames from :class:`cbh.sim.SkySimulator` at simulated times ``start_utc + k · step_s``.
-
-    Parameters
-    ----------
-    camera : str
-    sim : SkySimulator
-        Shared by both cameras' sources (calls are serialised by a lock).
-    step_s : float
-        Simulated time between frames [s].
-    start_utc : datetime or None
-        First frame's time (default: now, rounded down to the second).
-    realtime : bool
-        Deliver frame k at wall time open + k · ``pace_s`` (a live camera; the service may drop
-        old pairs); False: as fast as they are consumed (lossless).
-    pace_s : float or None
-        Wall time between frames in realtime mode (default ``step_s``).
-    frames : int or None
-        Stop after this many frames (None: endless).
-    """
-
-    kind = "sim"
-
-    def __init__(self, camera: str, sim, step_s: float = 10.0, start_utc: datetime | None = None,
-                 realtime: bool = False, pace_s: float | None = None, frames: int | None = None):
-        if step_s <= 0:
-            raise ConfigError(f"simulator step must be > 0 s, got {step_s}")
-        self.camera, self.sim, self.step_s = camera, sim, float(step_s)
-        self.start_utc = start_utc or _now().replace(microsecond=0)
-        self.live = bool(realtime)
-        self.pace_s = self.step_s if pace_s is None else float(pace_s)
-        self.frames = frames
-        self._k = 0
-        self._t0 = None
-
-    def __repr__(self) -> str:
-        return f"SimSource({self.camera!r}, step_s={self.step_s})"
-
-    def open(self) -> None:
-        if self._t0 is None:
-            self._t0 = time.monotonic()
-
-    def read(self, timeout_s: float) -> Frame | None:
-        if self.frames is not None and self._k >= self.frames:
-            raise EndOfStream(self.camera)
-        if self.live:
-            if not _wait_until(self._t0 + self._k * self.pace_s, timeout_s):
-                return None
-        t = self.start_utc + timedelta(seconds=self._k * self.step_s)
-        with _sim_lock(self.sim):
-            f = self.sim.frame(self.camera, t)
-        self._k += 1
-        f.sequence = self._k
-        return f
-
-    def close(self) -> None:
-        pass
-
+# --- in-memory list ---------------------------------------------------------------------------
 
 class MemorySource(FrameSource):
     """Frames from a list (tests, replays); ``live`` makes it behave like a camera for the service.
@@ -762,10 +637,13 @@ class MemorySource(FrameSource):
 SOURCE_KINDS = ("http", "mjpeg", "snapshot", "rtsp", "video", "directory", "sim")
 
 
-def open_source(camera, spec: str, *, sim=None, start_utc: datetime | None = None, watch: bool = False,
-                decode: bool = True, interval_s: float = 1.0, stall_timeout_s: float = 10.0,
-                sim_step_s: float = 10.0, sim_realtime: bool = False, sim_frames: int | None = None,
-                base_dir: str | Path | None = None, prefix: str | None = None):
+def is_sim_spec(spec: str) -> bool:
+    """True for the source spec that names the simulator (``sim``), which the live wing does not build."""
+    return str(spec).strip().lower() in ("sim", "sim:", "simulator")
+
+
+def open_source(camera, spec: str, *, watch: bool = False, decode: bool = True, interval_s: float = 1.0,
+                stall_timeout_s: float = 10.0, base_dir: str | Path | None = None, prefix: str | None = None):
     """The source for one camera from a spec string (URL scheme or path kind).
 
     Parameters
@@ -773,11 +651,9 @@ def open_source(camera, spec: str, *, sim=None, start_utc: datetime | None = Non
     camera : Camera or str
         Station camera (or its name).
     spec : str
-        ``sim``; ``rtsp://…``; ``http(s)://…`` (auto: MJPEG or snapshot by Content-Type),
+        ``rtsp://…``; ``http(s)://…`` (auto: MJPEG or snapshot by Content-Type),
         ``mjpeg+http://…``, ``snapshot+http://…``; a directory; a video file. Relative paths
         are taken from ``base_dir`` (e.g. the station file's folder) when given.
-    sim : SkySimulator, optional
-        Needed for ``sim``.
 
     Returns
     -------
@@ -789,10 +665,8 @@ def open_source(camera, spec: str, *, sim=None, start_utc: datetime | None = Non
     if not spec:
         raise ConfigError(f"{name}: empty source")
     low = spec.lower()
-    if low in ("sim", "sim:", "simulator"):
-        if sim is None:
-            raise ConfigError(f"{name}: source 'sim' needs a simulated scene (--scene)")
-        return SimSource(name, sim, step_s=sim_step_s, start_utc=start_utc, realtime=sim_realtime, frames=sim_frames)
+    if is_sim_spec(low):
+        raise ConfigError(f"{name}: source 'sim' is the simulator, which the caller builds (cbh.sim.SimSource)")
     scheme = low.split("://", 1)[0] if "://" in low else ""
     if scheme in ("rtsp", "rtsps", "rtmp"):
         return VideoSource(name, spec, stall_timeout_s=stall_timeout_s)

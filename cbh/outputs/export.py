@@ -39,7 +39,7 @@ import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
 from cbh.interfaces import ResultSink
-from cbh.result import Frame, PairResult
+from cbh.result import Frame, PairResult, require_time
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
            "netcdf_dataset", "write_netcdf", "export_sessions", "FORMATS", "FILL_VALUE", "KNOWN_FLAGS"]
@@ -212,6 +212,7 @@ class LayerExporter(ResultSink):
 
     def write(self, frames: tuple[Frame, Frame] | None, result: PairResult) -> None:
         """Append the rows of one result (``frames`` are not used)."""
+        require_time(result, f"exporting to {self.path}")
         self.write_record(pair_record(result, self.altitude_m))
 
     def write_record(self, rec: PairRecord) -> None:

@@ -1,16 +1,26 @@
 """Rerun visualisation: the default blueprint, a live :class:`RerunSink`, and ``log_pair``.
 
+What a meteorologist sees first (the default blueprint): both raw sky images with the cloud
+mask drawn as a thin outline, the 3D cloud-base points, the height histogram and the layer
+heights over time. One height colour map (turbo over ``HEIGHT_RANGE_M``, with a legend) is
+used for the matches in the images, the 3D points, the height map and the layer time series,
+so a colour means the same height everywhere.
+
 Entities (time line ``capture_time``, UTC):
 
-- ``/<cam>/image`` (EncodedImage, bytes as received), ``/<cam>/cloud_mask`` (SegmentationImage:
-  0 sky, 1 cloud, drawn over the image), ``/<cam>/matches`` (Points2D of the triangulated
-  correspondences, coloured by height), ``/<cam1>/flow`` (LineStrips2D x1,y1 → x2,y2 of the
-  kept matches);
+- ``/<cam>/image`` (EncodedImage, bytes as received), ``/<cam>/cloud_outline`` (LineStrips2D:
+  the cloud mask's contours), ``/<cam>/cloud_mask`` (SegmentationImage, light fill; hidden by
+  default), ``/<cam>/matches`` (Points2D: a subsample of at most ``MAX_SHOWN_MATCHES`` kept
+  correspondences coloured by height; hidden by default), ``/<cam1>/flow`` (LineStrips2D
+  x1,y1 → x2,y2; hidden by default);
 - ``/world/points`` (Points3D, ENU [m], coloured by height), ``/world/cameras`` (positions and
-  optical axes, static);
+  optical axes, static, one label for the pair), ``/world/motion`` (Arrows3D: each layer's
+  displacement over ``MOTION_ARROW_S`` seconds at its height);
 - ``/height_map`` (DepthImage [m above ground] on camera 1's grid, decimated to ≤ 960 px);
-- ``/histogram`` (BarChart of point heights), ``/layers/<i>`` (Scalars: layer i's cloud-base
-  height [m above ground]), ``/cloud_fraction/<cam>`` (Scalars 0..1).
+- ``/histogram`` (BarChart of point heights in linear bins, ~60 bars up to the highest
+  point), ``/layers/<i>`` (Scalars: layer i+1's cloud-base height [m above ground], each
+  sample coloured by its height), ``/cloud_fraction/<cam>`` (Scalars 0..1);
+- ``/legend`` (Image: the height colour scale, static).
 
 Modes: ``spawn`` (start a viewer), ``serve`` (gRPC server; viewers connect to the printed URL),
 ``connect`` (to a running viewer, ``target`` = URL, default the local one), ``save``
@@ -22,13 +32,15 @@ import logging
 import uuid
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
 from cbh.interfaces import ResultSink
-from cbh.result import Frame, PairResult, to_ns
+from cbh.result import Frame, PairResult, require_time, to_ns
 
 __all__ = ["RerunSink", "default_blueprint", "log_pair", "log_station", "parse_rerun_spec", "height_colors",
+           "legend_image", "display_histogram", "cloud_outline",
            "MODES", "TIMELINE"]
 
 log = logging.getLogger(__name__)
@@ -36,8 +48,11 @@ log = logging.getLogger(__name__)
 MODES = ("spawn", "serve", "connect", "save")
 TIMELINE = "capture_time"
 HEIGHT_RANGE_M = (0.0, 10_000.0)  # colour scale of heights [m above ground]
-MAX_FLOW_LINES = 2000
+MAX_SHOWN_MATCHES = 300  # matches shown per camera (a subsample: the cloud must stay visible)
 MAX_HEIGHT_MAP_PX = 960  # the height map is shown decimated to at most this size [px]
+MAX_OUTLINE_PX = 480  # the cloud outline is traced on the mask decimated to at most this size [px]
+HIST_BARS = 60  # about this many histogram bars, whatever the height range
+MOTION_ARROW_S = 300.0  # motion arrows show the displacement over this time [s]
 
 
 def parse_rerun_spec(mode: str, target: str | None = None) -> tuple[str, str | None]:
@@ -71,38 +86,113 @@ def parse_rerun_spec(mode: str, target: str | None = None) -> tuple[str, str | N
     return m, (str(target) if target else None)
 
 
-def height_colors(height_m: np.ndarray, height_range_m=HEIGHT_RANGE_M) -> np.ndarray:
-    """Turbo colours for heights: (N,) [m] → (N, 3) uint8 RGB; NaN → grey."""
-    import cv2
+def _turbo_lut() -> np.ndarray:
+    """(256, 3) uint8 RGB: OpenCV's turbo, the same map Rerun uses for the DepthImage."""
+    return cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(-1, 1), cv2.COLORMAP_TURBO)[:, 0, ::-1].copy()
 
+
+def height_colors(height_m: np.ndarray, height_range_m=HEIGHT_RANGE_M) -> np.ndarray:
+    """The one height colour map: (N,) heights [m] → (N, 3) uint8 RGB (turbo); NaN → grey."""
     h = np.asarray(height_m, np.float64).ravel()
     lo, hi = height_range_m
     u = np.clip((np.nan_to_num(h, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1)
-    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(-1, 1), cv2.COLORMAP_TURBO)[:, 0, ::-1]
-    rgb = lut[np.round(u * 255).astype(int)]
+    rgb = _turbo_lut()[np.round(u * 255).astype(int)]
     rgb[~np.isfinite(h)] = (128, 128, 128)
     return rgb.astype(np.uint8)
 
 
-def default_blueprint(cam1: str, cam2: str):
-    """Both fisheye images (cloud masks, matches), the 3D cloud-base points, the height map,
-    the height histogram, layer heights and cloud fraction over time."""
+def legend_image(height_range_m=HEIGHT_RANGE_M, width_px: int = 600) -> np.ndarray:
+    """The height colour scale as an RGB image (≈ 70 × ``width_px``) with km ticks."""
+    lo, hi = height_range_m
+    bar_h, pad = 26, 12
+    img = np.full((bar_h + 44, width_px + 2 * pad, 3), 255, np.uint8)
+    x = np.linspace(lo, hi, width_px)
+    img[6:6 + bar_h, pad:pad + width_px] = height_colors(x, height_range_m)[None, :, :]
+    step_km = max(1, int(round((hi - lo) / 1000.0 / 10)))
+    for km in range(int(np.ceil(lo / 1000)), int(hi // 1000) + 1, step_km):
+        xp = pad + int(round((km * 1000.0 - lo) / (hi - lo) * (width_px - 1)))
+        cv2.line(img, (xp, 6 + bar_h), (xp, 12 + bar_h), (0, 0, 0), 1)
+        label = f"{km}"
+        (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
+        cv2.putText(img, label, (xp - tw // 2, 28 + bar_h), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "cloud-base height above ground [km]", (pad, bar_h + 42), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+
+def display_histogram(edges_m: np.ndarray, counts: np.ndarray, bars: int = HIST_BARS):
+    """Re-bin the pipeline's log-height histogram into ~``bars`` linear bins for display.
+
+    Returns (centres_m, counts, width_m); the range runs from 0 to the highest occupied bin,
+    rounded up to a whole km, so the bars are wide enough to see at default zoom.
+    """
+    edges_m = np.asarray(edges_m, np.float64)
+    counts = np.asarray(counts, np.float64)
+    occupied = np.flatnonzero(counts > 0)
+    if not occupied.size:
+        return np.zeros(0), np.zeros(0), 1.0
+    top = max(1000.0, np.ceil(edges_m[occupied[-1] + 1] / 1000.0) * 1000.0)
+    width = next(w for w in (25, 50, 100, 200, 250, 500, 1000, 2000) if top / w <= bars)
+    lin = np.arange(0.0, top + width, width)
+    centres = 0.5 * (edges_m[:-1] + edges_m[1:])
+    out, _ = np.histogram(centres, bins=lin, weights=counts)
+    return 0.5 * (lin[:-1] + lin[1:]), out, float(width)
+
+
+def cloud_outline(mask: np.ndarray, max_px: int = MAX_OUTLINE_PX) -> list[np.ndarray]:
+    """Contours of a cloud mask as polylines in full-size pixel coordinates.
+
+    The mask is traced decimated to at most ``max_px`` (an outline, not a measurement);
+    coordinates follow docs/conventions.md (pixel centres at integers; x' = (x + 0.5) s - 0.5).
+    """
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return []
+    step = max(1, -(-max(m.shape) // max_px))
+    small = m[::step, ::step].astype(np.uint8)
+    contours, _ = cv2.findContours(small, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for c in contours:
+        if len(c) < 4:
+            continue
+        pts = c[:, 0, :].astype(np.float32) * step + (step - 1) / 2.0
+        out.append(np.vstack([pts, pts[:1]]))
+    return out
+
+
+def default_blueprint(cam1: str, cam2: str, height_range_m=HEIGHT_RANGE_M):
+    """The raw sky first: both fisheye images with the cloud outline (matches, flow and the
+    mask fill are there but hidden, one click away), the 3D cloud base with motion arrows,
+    the height map, the histogram, layer heights and cloud fraction over time, the legend."""
     import rerun.blueprint as rrb
+
+    hidden = rrb.EntityBehavior(visible=False)
+
+    def sky(cam: str, extra: tuple[str, ...] = ()):
+        return rrb.Spatial2DView(origin=f"/{cam}", name=cam,
+                                 overrides={f"/{cam}/{e}": hidden for e in ("matches", "cloud_mask") + extra})
 
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
-                rrb.Spatial2DView(origin=f"/{cam1}", name=f"{cam1}: image, clouds, matches"),
-                rrb.Spatial2DView(origin=f"/{cam2}", name=f"{cam2}: image, clouds, matches"),
+                sky(cam1, ("flow",)),
+                sky(cam2),
                 rrb.Tabs(
-                    rrb.Spatial3DView(origin="/world", name="cloud base (ENU)"),
-                    rrb.Spatial2DView(origin="/height_map", name="height map"),
+                    rrb.Spatial3DView(origin="/world", name="cloud base (ENU, m)"),
+                    rrb.Spatial2DView(origin="/height_map", name=f"height map ({cam1})"),
                 ),
             ),
             rrb.Horizontal(
-                rrb.BarChartView(origin="/histogram", name="height histogram"),
-                rrb.TimeSeriesView(origin="/layers", name="layer heights [m above ground]"),
-                rrb.TimeSeriesView(origin="/cloud_fraction", name="cloud fraction"),
+                rrb.BarChartView(origin="/histogram", name="points per height [m]"),
+                rrb.TimeSeriesView(origin="/layers", name="layer base [m above ground]",
+                                   axis_y=rrb.ScalarAxis(range=tuple(float(v) for v in height_range_m))),
+                rrb.Vertical(
+                    rrb.TimeSeriesView(origin="/cloud_fraction", name="cloud fraction",
+                                       axis_y=rrb.ScalarAxis(range=(0.0, 1.0))),
+                    rrb.Spatial2DView(origin="/legend", name="height colour scale"),
+                    row_shares=[3, 1],
+                ),
+                column_shares=[2, 3, 2],
             ),
             row_shares=[3, 2],
         ),
@@ -110,23 +200,28 @@ def default_blueprint(cam1: str, cam2: str):
     )
 
 
-def log_station(rec, station, cameras: tuple[str, str]) -> None:
+def log_station(rec, station, cameras: tuple[str, str], height_range_m=HEIGHT_RANGE_M) -> None:
     """Static entities: ENU axes, camera positions and optical axes, mask annotation, series styles."""
     import rerun as rr
 
     rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     cams = [station.cameras[c] for c in cameras if c in station.cameras] or list(station.cameras.values())
     pos = np.array([c.position_m for c in cams], np.float64)
-    rec.log("/world/cameras", rr.Points3D(pos, labels=[c.name for c in cams], radii=-6.0,
-                                         colors=[(255, 255, 255)] * len(cams)), static=True)
+    rec.log("/world/cameras", rr.Points3D(pos, radii=-6.0, colors=[(255, 255, 255)] * len(cams)), static=True)
+    # one label for the pair: per-camera labels 50 m apart overlap at a 10 km scale ("cam12")
+    base = float(np.linalg.norm(pos[-1] - pos[0])) if len(pos) > 1 else 0.0
+    rec.log("/world/cameras/label", rr.Points3D(pos.mean(axis=0, keepdims=True), radii=0.0,
+                                                labels=[f"{' + '.join(c.name for c in cams)} ({base:.0f} m apart)"]),
+            static=True)
     axes = np.array([c.R_world_from_cam[:, 2] for c in cams]) * 500.0  # optical axes, 500 m long
     rec.log("/world/cameras/axes", rr.Arrows3D(vectors=axes, origins=pos, colors=[(255, 255, 0)] * len(cams)),
             static=True)
     for c in cameras:
-        rec.log(f"/{c}", rr.AnnotationContext([(0, "sky", (0, 0, 0, 0)), (1, "cloud", (255, 60, 200, 255))]),
+        rec.log(f"/{c}", rr.AnnotationContext([(0, "sky", (0, 0, 0, 0)), (1, "cloud", (255, 255, 255, 255))]),
                 static=True)
-    for name in station.cameras:
-        rec.log(f"/cloud_fraction/{name}", rr.SeriesLines(names=f"{name}"), static=True)
+    for name, colour in zip(cameras, ((235, 235, 235), (140, 180, 255))):
+        rec.log(f"/cloud_fraction/{name}", rr.SeriesLines(names=name, colors=[colour]), static=True)
+    rec.log("/legend", rr.Image(legend_image(height_range_m)), static=True)
 
 
 def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, max_layers_styled: list | None = None,
@@ -142,7 +237,7 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
     """
     import rerun as rr
 
-    rec.set_time(TIMELINE, timestamp=np.datetime64(to_ns(result.time_utc), "ns"))
+    rec.set_time(TIMELINE, timestamp=np.datetime64(to_ns(require_time(result, "Rerun view")), "ns"))
     cam1, cam2 = result.cameras
     for cam, (data, fmt) in images.items():
         media = {"jpeg": "image/jpeg", "jpg": "image/jpeg", "png": "image/png"}.get(fmt.lower())
@@ -150,34 +245,55 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
             raise RecordingError(f"{cam}: cannot show image format {fmt!r} in Rerun (jpeg or png)")
         rec.log(f"/{cam}/image", rr.EncodedImage(contents=bytes(data), media_type=media, draw_order=0.0))
     for cam, mask in result.cloud_masks.items():
-        rec.log(f"/{cam}/cloud_mask", rr.SegmentationImage(np.asarray(mask, bool).astype(np.uint8), opacity=0.35,
+        rec.log(f"/{cam}/cloud_outline", rr.LineStrips2D(cloud_outline(mask), colors=[(255, 255, 255)], radii=-1.0,
+                                                         draw_order=1.5))
+        rec.log(f"/{cam}/cloud_mask", rr.SegmentationImage(np.asarray(mask, bool).astype(np.uint8), opacity=0.2,
                                                            draw_order=1.0))
     pts = result.points
     h = pts.height_m
     cols = height_colors(h, height_range_m)
     rec.log("/world/points", rr.Points3D(np.asarray(pts.xyz_m, np.float32), colors=cols, radii=-2.0))
-    rec.log(f"/{cam1}/matches", rr.Points2D(np.asarray(pts.px1, np.float32), colors=cols, radii=-2.5, draw_order=2.0))
-    rec.log(f"/{cam2}/matches", rr.Points2D(np.asarray(pts.px2, np.float32), colors=cols, radii=-2.5, draw_order=2.0))
+    shown = np.arange(len(h))[:: max(1, -(-len(h) // MAX_SHOWN_MATCHES))]
+    rec.log(f"/{cam1}/matches", rr.Points2D(np.asarray(pts.px1, np.float32)[shown], colors=cols[shown], radii=-2.5,
+                                            draw_order=2.0))
+    rec.log(f"/{cam2}/matches", rr.Points2D(np.asarray(pts.px2, np.float32)[shown], colors=cols[shown], radii=-2.5,
+                                            draw_order=2.0))
     if result.matches:
-        flow = np.concatenate([np.asarray(a, np.float32).reshape(-1, 4) for a in result.matches.values()])[:MAX_FLOW_LINES]
+        flow = np.concatenate([np.asarray(a, np.float32).reshape(-1, 4) for a in result.matches.values()])
+        flow = flow[:: max(1, -(-len(flow) // MAX_SHOWN_MATCHES))]
         rec.log(f"/{cam1}/flow", rr.LineStrips2D(flow.reshape(-1, 2, 2), colors=[(0, 255, 255)], radii=-0.75,
-                                                  draw_order=1.5))
+                                                  draw_order=1.8))
     hm = np.asarray(result.height_map, np.float32)
     if hm.ndim == 2 and hm.size:
         step = max(1, -(-max(hm.shape) // MAX_HEIGHT_MAP_PX))
         hm = hm[::step, ::step]  # a display copy; the recording keeps the full map
         rec.log("/height_map", rr.DepthImage(np.nan_to_num(hm, nan=0.0), meter=1.0, colormap="turbo",
                                              depth_range=tuple(float(v) for v in height_range_m)))
-    edges = np.asarray(result.histogram.edges_m, np.float64)
-    counts = np.asarray(result.histogram.counts, np.float64)
+    centres, counts, width = display_histogram(result.histogram.edges_m, result.histogram.counts)
     if counts.size:
-        rec.log("/histogram", rr.BarChart(counts, abscissa=0.5 * (edges[:-1] + edges[1:])))
+        rec.log("/histogram", rr.BarChart(counts, abscissa=centres, widths=[width] * len(counts), color=(90, 90, 90)))
     styled = max_layers_styled if max_layers_styled is not None else []
+    arrows, origins, arrow_cols, arrow_labels = [], [], [], []
     for i, layer in enumerate(result.layers):
         if i not in styled:
-            rec.log(f"/layers/{i}", rr.SeriesPoints(names=f"layer {i + 1}", marker_sizes=4.0), static=True)
+            rec.log(f"/layers/{i}", rr.SeriesPoints(names=f"layer {i + 1}", marker_sizes=5.0), static=True)
             styled.append(i)
-        rec.log(f"/layers/{i}", rr.Scalars(float(layer.height_m)))
+        colour = height_colors(np.array([layer.height_m]), height_range_m)[0]
+        rec.log(f"/layers/{i}", rr.Scalars(float(layer.height_m)), rr.SeriesPoints.from_fields(colors=[colour]))
+        ve, vn = float(layer.motion_east_ms), float(layer.motion_north_ms)
+        if np.isfinite(ve) and np.isfinite(vn):
+            sel = np.asarray(pts.layer) == i
+            centre = np.asarray(pts.xyz_m, np.float64)[sel].mean(axis=0) if sel.any() else np.array([0, 0, layer.height_m])
+            origins.append(centre)
+            arrows.append([ve * MOTION_ARROW_S, vn * MOTION_ARROW_S, 0.0])
+            arrow_cols.append(colour)
+            speed, bearing = float(np.hypot(ve, vn)), float(np.degrees(np.arctan2(ve, vn)) % 360.0)
+            arrow_labels.append(f"layer {i + 1}: {speed:.1f} m/s towards {bearing:.0f}°")
+    if arrows:
+        rec.log("/world/motion", rr.Arrows3D(vectors=np.array(arrows), origins=np.array(origins), colors=arrow_cols,
+                                             labels=arrow_labels, radii=-3.0))
+    else:
+        rec.log("/world/motion", rr.Clear(recursive=False))
     for cam, frac in result.cloud_fraction.items():
         rec.log(f"/cloud_fraction/{cam}", rr.Scalars(float(frac)))
 
@@ -199,10 +315,6 @@ class RerunSink(ResultSink):
 
     kind = "viewer"
 
-    def output_paths(self) -> list[Path]:
-        return [Path(self.target)] if self.mode == "save" else []
-
-
     def __init__(self, station, mode: str = "spawn", target: str | None = None, *,
                  cameras: tuple[str, str] | None = None, recording_name: str | None = None,
                  height_range_m=HEIGHT_RANGE_M, grpc_port: int | None = None):
@@ -219,7 +331,7 @@ class RerunSink(ResultSink):
         self.rec = rr.RecordingStream("cbh", recording_id=uuid.uuid4())
         if recording_name:
             self.rec.send_recording_name(recording_name)
-        bp = default_blueprint(*self.cameras)
+        bp = default_blueprint(*self.cameras, height_range_m=self.height_range_m)
         if self.mode == "save":
             out = Path(self.target)
             if not out.parent.is_dir():
@@ -232,7 +344,10 @@ class RerunSink(ResultSink):
             log.info("Rerun server: connect a viewer with `rerun --connect %s`", self.url)
         else:
             self.rec.connect_grpc(self.target, default_blueprint=bp)
-        log_station(self.rec, station, self.cameras)
+        log_station(self.rec, station, self.cameras, self.height_range_m)
+
+    def output_paths(self) -> list[Path]:
+        return [Path(self.target)] if self.mode == "save" else []
 
     def write(self, frames: tuple[Frame, Frame], result: PairResult) -> None:
         """Log one pair (images as received; a frame without bytes is JPEG-encoded once)."""

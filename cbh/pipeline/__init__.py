@@ -2,7 +2,7 @@
 
 >>> from cbh.pipeline import Pipeline, PipelineConfig            # doctest: +SKIP
 >>> cfg = PipelineConfig.from_dict(station.sections.get("pipeline", {}))   # doctest: +SKIP
->>> result = Pipeline(station, "cam1,cam2", cfg).process(img1, img2, time_utc)   # doctest: +SKIP
+>>> result = Pipeline(station, "cam1,cam2", cfg).process(img1, img2, time_utc, channels="bgr")   # doctest: +SKIP
 
 Stages: :mod:`.masks`, :mod:`.segment`, :mod:`.match`, :mod:`.heightmap`, :mod:`.layers`,
 orchestrated by :class:`Pipeline` (:mod:`.run`); configuration in :mod:`.config`.

@@ -15,10 +15,10 @@ True
 from __future__ import annotations
 
 import dataclasses
-import typing
 from dataclasses import dataclass, field
 
 from cbh.errors import ConfigError
+from cbh.tomlio import dataclass_from_table, dataclass_to_dict
 
 __all__ = [
     "MasksConfig",
@@ -186,78 +186,19 @@ class PipelineConfig:
     @classmethod
     def from_dict(cls, data: dict | None, where: str = "pipeline") -> "PipelineConfig":
         """Validate a ``[pipeline]`` table (missing keys take defaults)."""
-        cfg = _build(cls, data or {}, where)
+        cfg = dataclass_from_table(cls, data or {}, where)
         _validate(cfg, where)
         return cfg
 
     def to_dict(self) -> dict:
         """Plain dict (TOML/JSON-ready) that :meth:`from_dict` reads back to an equal config."""
-        return _to_dict(self)
+        return dataclass_to_dict(self)
 
     def replace(self, **changes) -> "PipelineConfig":
         """A copy with top-level fields replaced (validated)."""
         cfg = dataclasses.replace(self, **changes)
         _validate(cfg, "pipeline")
         return cfg
-
-
-# --- generic strict dict -> dataclass ---------------------------------------------------------
-
-def _build(cls, data, where):
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    extra = sorted(set(data) - names)
-    if extra:
-        raise ConfigError(f"{where}.{extra[0]}: unknown key (allowed: {', '.join(sorted(names))})")
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        kwargs[f.name] = _coerce(hints[f.name], data[f.name], f"{where}.{f.name}")
-    return cls(**kwargs)
-
-
-def _coerce(tp, value, where):
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, value, where)
-    origin = typing.get_origin(tp)
-    if origin is tuple:
-        if isinstance(value, str):
-            value = [value]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        return tuple(_coerce(typing.get_args(tp)[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{where}: unsupported type")  # pragma: no cover
-
-
-def _to_dict(obj):
-    out = {}
-    for f in dataclasses.fields(obj):
-        v = getattr(obj, f.name)
-        if dataclasses.is_dataclass(v):
-            v = _to_dict(v)
-        elif isinstance(v, tuple):
-            v = list(v)
-        out[f.name] = v
-    return out
 
 
 def _choice(where, value, valid):

@@ -1,12 +1,11 @@
 """Stage 1: which pixels of a camera are usable sky.
 
 Static part (cached per camera): image circle ∩ zenith ≤ ``max_zenith_deg`` ∩ the station's
-obstacle mask image. Per frame: minus a disk around the sun (pvlib position for the station's
-latitude/longitude and the frame's UTC time) and minus saturated blobs (sun, glare).
+obstacle mask image. Per frame: minus a disk around the sun (:func:`cbh.geometry.sun.sun_position` for the
+station and the frame's UTC time) and minus saturated blobs (sun, glare).
 """
 from __future__ import annotations
 
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +14,7 @@ from cbh.errors import ImageError
 from cbh.geometry.station import Camera
 from cbh.pipeline.config import MasksConfig
 
-__all__ = ["static_sky_mask", "load_obstacle_mask", "sun_direction_enu", "angle_map_deg", "saturation_mask"]
+__all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask"]
 
 
 def load_obstacle_mask(path: Path, width: int, height: int) -> np.ndarray:
@@ -50,18 +49,6 @@ def static_sky_mask(cam: Camera, cfg: MasksConfig, obstacle: np.ndarray | None =
     if obstacle is not None and cfg.static_mask:
         m &= obstacle
     return m
-
-
-def sun_direction_enu(latitude_deg: float, longitude_deg: float, time_utc: datetime) -> tuple[np.ndarray, float]:
-    """Unit vector towards the sun in ENU and its apparent zenith angle [deg] (pvlib SPA)."""
-    import pandas as pd
-    import pvlib
-
-    pos = pvlib.solarposition.get_solarposition(pd.DatetimeIndex([time_utc]), latitude_deg, longitude_deg)
-    zen = float(np.radians(pos["apparent_zenith"].iloc[0]))
-    az = float(np.radians(pos["azimuth"].iloc[0]))  # clockwise from north
-    d = np.array([np.sin(zen) * np.sin(az), np.sin(zen) * np.cos(az), np.cos(zen)])
-    return d, float(np.degrees(zen))
 
 
 def angle_map_deg(cam: Camera, direction_world: np.ndarray, rays_cam: np.ndarray | None = None) -> np.ndarray:

@@ -26,19 +26,21 @@ import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
+from datetime import datetime
 
 import cv2
 import numpy as np
 
-from cbh.errors import ConfigError, ImageError
-from cbh.imageio import check_image_size
+from cbh.errors import ConfigError
+from cbh.imageio import as_bgr
+from cbh.timeutil import parse_utc
 from cbh.result import PairResult, PointSet
 from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
-from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask, sun_direction_enu
+from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import MatchInput, PairGeometry, TriangulatedMatches, get_matcher, triangulate_matches
 from cbh.pipeline.segment import segment
 
@@ -116,7 +118,7 @@ class Pipeline:
     Examples
     --------
     >>> pipe = Pipeline(station)                       # doctest: +SKIP
-    >>> result = pipe.process(img1, img2, time_utc)     # doctest: +SKIP
+    >>> result = pipe.process("cam1.jpg", "cam2.jpg", time_utc)     # doctest: +SKIP
     >>> result.summary()["layers"]                      # doctest: +SKIP
     """
 
@@ -221,17 +223,23 @@ class Pipeline:
         return px if f == 1.0 else (px + 0.5) / f - 0.5
 
     # --- the pair -------------------------------------------------------------------------
-    def process(self, image1: np.ndarray, image2: np.ndarray, time_utc: datetime | None) -> PairResult:
+    def process(self, image1, image2, time_utc: datetime | str | None = None, *,
+                channels: str | None = None) -> PairResult:
         """Run every stage on one synchronized pair.
 
         Parameters
         ----------
-        image1, image2 : ndarray, shape (H, W, 3), uint8
-            BGR images of camera 1 and camera 2 at their calibration sizes.
-        time_utc : datetime or None
-            Capture time (timezone-aware; used for the sun position). None: unknown; the sun is
-            then masked only where it saturates and the result is flagged ``time_unknown``
-            (its ``time_utc`` stays None: cbh never invents a capture time).
+        image1, image2 : str, Path or ndarray, shape (H, W, 3), uint8
+            Camera 1's and camera 2's images at their calibration sizes: file paths, or arrays
+            whose channel order ``channels`` declares.
+        time_utc : datetime, str or None
+            Capture time (timezone-aware, or ISO 8601 text with a zone; used for the sun
+            position). None: unknown; the sun is then masked only where it saturates and the
+            result is flagged ``time_unknown`` (its ``time_utc`` stays None: cbh never invents
+            a capture time).
+        channels : {"rgb", "bgr"}, optional
+            Channel order of array inputs: ``"rgb"`` for PIL/imageio/matplotlib arrays,
+            ``"bgr"`` for OpenCV's. Required for arrays (a bare array is refused, never guessed).
 
         Returns
         -------
@@ -241,17 +249,15 @@ class Pipeline:
         Raises
         ------
         ImageError
-            An image is not (H, W, 3) uint8 or does not match its calibration size.
+            An array without ``channels``, a greyscale image, wrong shape/dtype, or an image
+            that does not match its calibration size.
+        InputError
+            ``time_utc`` without a zone.
         """
-        for img, cam in ((image1, self.cam1_full), (image2, self.cam2_full)):
-            if not isinstance(img, np.ndarray) or img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
-                shape = getattr(img, "shape", None)
-                raise ImageError(f"{cam.name}: expected a BGR uint8 (H, W, 3) image, got {shape}")
-            check_image_size(img, cam.model, cam.name)
+        image1 = as_bgr(image1, channels, self.cam1_full.name, self.cam1_full.model)
+        image2 = as_bgr(image2, channels, self.cam2_full.name, self.cam2_full.model)
         if time_utc is not None:
-            if time_utc.tzinfo is None:
-                raise ConfigError("process: time_utc must be timezone-aware (UTC)")
-            time_utc = time_utc.astimezone(timezone.utc)
+            time_utc = parse_utc(time_utc, "time_utc")
         ctx = PairContext(time_utc=time_utc)
         if time_utc is None:
             ctx.flags.append("time_unknown")
@@ -277,15 +283,16 @@ class Pipeline:
         ctx.timing["total"] = _ms(t_all)
         return self._assemble(ctx, seg, hmap, pts, lay)
 
-    def process_batch(self, pairs) -> list[PairResult]:
-        """:meth:`process` for several pairs ``[(image1, image2, time_utc), …]``, results in order.
+    def process_batch(self, pairs, *, channels: str | None = None) -> list[PairResult]:
+        """:meth:`process` for several pairs ``[(image1, image2, time_utc), …]`` (paths or arrays
+        of ``channels`` order, as :meth:`process`), results in order.
 
         The per-camera tables are uploaded once and shared; on a torch device each pair's
         plane sweep evaluates all its planes in one batched call. Pairs are not stacked into
         one kernel across pairs: each pair's planes and cloud region differ, and the stages
         between (segmentation, sparse matching) run on the CPU anyway.
         """
-        return [self.process(im1, im2, t) for im1, im2, t in pairs]
+        return [self.process(im1, im2, t, channels=channels) for im1, im2, t in pairs]
 
     # --- stages ---------------------------------------------------------------------------
     def stage_masks(self, work: tuple[np.ndarray, np.ndarray], ctx: "PairContext") -> "Masks":
@@ -293,7 +300,9 @@ class Pipeline:
         cfg = self.config
         sun_dir = None
         if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method == "nbr_adaptive"):
-            sun_dir, sun_zen = sun_direction_enu(self.station.latitude_deg, self.station.longitude_deg, ctx.time_utc)
+            st = self.station
+            sun = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, ctx.time_utc)
+            sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
             if sun_zen >= 90.0:
                 sun_dir = None
         usable, sun_angle = [], []

@@ -3,6 +3,7 @@
 - :mod:`cbh.sim.scene`: the scene TOML (layers, sun, sky, image, obstacles, imperfections).
 - :mod:`cbh.sim.noise`: the world-space fractal cloud texture.
 - :mod:`cbh.sim.render`: :class:`SkySimulator` renders a scene through a station's cameras.
+- :mod:`cbh.sim.source`: :class:`SimSource`, the simulator as a frame source for the service.
 - :mod:`cbh.sim.io`: writing shots (images + truth) to a folder, as ``cbh simulate`` does.
 
 Example::
@@ -15,9 +16,10 @@ Example::
     shot.views["cam1"].height_m              # (480, 480) float32, NaN off-cloud
 """
 from cbh.sim.render import SimShot, SimView, SkySimulator
+from cbh.sim.source import SimSource
 from cbh.sim.scene import CloudLayer, Imperfection, Obstacle, Scene, load_scene, parse_scene
 
 __all__ = [
     "SkySimulator", "SimShot", "SimView", "Scene", "CloudLayer", "Obstacle", "Imperfection",
-    "load_scene", "parse_scene",
+    "load_scene", "parse_scene", "SimSource",
 ]

@@ -289,6 +289,10 @@ class _LayerState:
         self.edge = EDGE_WIDTH * layer.edge_softness
 
 
+#: Largest simulated image width [px]: 8192² BGR + float32 truth maps are ~0.5 GB per camera.
+MAX_SIZE_PX = 8192
+
+
 class SkySimulator:
     """Renders a :class:`Scene` through a :class:`~cbh.geometry.station.Station`'s cameras.
 
@@ -317,7 +321,9 @@ class SkySimulator:
     def __init__(self, station: Station, scene: Scene, size_px: int | None = None):
         if size_px is not None:
             if isinstance(size_px, bool) or not isinstance(size_px, (int, np.integer)) or size_px < 16:
-                raise ConfigError(f"size_px must be an integer >= 16, got {size_px!r}")
+                raise ConfigError(f"image size must be an integer >= 16 px, got {size_px!r}")
+            if size_px > MAX_SIZE_PX:  # refused before anything is allocated
+                raise ConfigError(f"image size {size_px} px is above the simulator's maximum of {MAX_SIZE_PX} px")
             station = station.scaled(int(size_px))
         for cam in scene.imperfections:
             if cam not in station.cameras:

@@ -56,13 +56,14 @@ The file format::
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
 from cbh.errors import ConfigError
+from cbh import tomlio
 from cbh.tomlio import read_toml
+from cbh.timeutil import parse_utc
 
 __all__ = [
     "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
@@ -216,77 +217,42 @@ class Scene:
 # --- parsing ------------------------------------------------------------------------------
 
 def _unknown(where: str, table: dict, allowed) -> None:
-    extra = sorted(set(table) - set(allowed))
-    if extra:
-        key = f"{where}.{extra[0]}" if where else extra[0]
-        raise ConfigError(f"scene: {key}: unknown key (allowed: {', '.join(sorted(allowed))})")
+    try:
+        tomlio.check_keys(where, table, allowed)
+    except ConfigError as exc:
+        raise ConfigError(f"scene: {exc}") from None
 
 
 def _table(where: str, value) -> dict:
-    if not isinstance(value, dict):
-        raise ConfigError(f"scene: {where}: expected a table")
-    return value
+    return tomlio.table(f"scene: {where}", value)
 
 
 def _num(where: str, value, *, lo=None, hi=None, lo_open=False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"scene: {where}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(f"scene: {where}: must be finite, got {value!r}")
-    if lo is not None and (v <= lo if lo_open else v < lo):
-        raise ConfigError(f"scene: {where}: must be {'>' if lo_open else '>='} {lo:g}, got {value!r}")
-    if hi is not None and v > hi:
-        raise ConfigError(f"scene: {where}: must be <= {hi:g}, got {value!r}")
-    return v
+    return tomlio.number(f"scene: {where}", value, lo=lo, hi=hi, lo_open=lo_open)
 
 
 def _int(where: str, value, *, lo=None, hi=None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"scene: {where}: expected an integer, got {value!r}")
-    if (lo is not None and value < lo) or (hi is not None and value > hi):
-        raise ConfigError(f"scene: {where}: must be in {lo}..{hi}, got {value!r}")
-    return int(value)
+    return tomlio.integer(f"scene: {where}", value, lo=lo, hi=hi)
 
 
 def _bool(where: str, value) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"scene: {where}: expected true or false, got {value!r}")
-    return value
+    return tomlio.boolean(f"scene: {where}", value)
 
 
 def _str(where: str, value) -> str:
-    if not isinstance(value, str):
-        raise ConfigError(f"scene: {where}: expected a string, got {value!r}")
-    return value
+    return tomlio.string(f"scene: {where}", value)
 
 
 def _vec(where: str, value, n: int, **kw) -> tuple[float, ...]:
-    if not isinstance(value, list) or len(value) != n:
-        raise ConfigError(f"scene: {where}: expected a list of {n} numbers, got {value!r}")
-    return tuple(_num(f"{where}[{i}]", v, **kw) for i, v in enumerate(value))
+    return tomlio.vector(f"scene: {where}", value, n, **kw)
 
 
 def _time(where: str, value) -> datetime:
-    if isinstance(value, datetime):
-        t = value
-    elif isinstance(value, str):
-        try:
-            t = datetime.fromisoformat(value.strip().replace("Z", "+00:00"))
-        except ValueError:
-            raise ConfigError(f"scene: {where}: not an ISO 8601 time: {value!r}") from None
-    else:
-        raise ConfigError(f"scene: {where}: expected a UTC time like 2024-06-21T15:00:00Z, got {value!r}")
-    if t.tzinfo is None:
-        raise ConfigError(f"scene: {where}: time needs a UTC offset (end it with Z), got {value!r}")
-    return t.astimezone(timezone.utc)
+    return parse_utc(value, f"scene: {where}", error=ConfigError)
 
 
 def _choice(where: str, value, choices) -> str:
-    value = _str(where, value)
-    if value not in choices:
-        raise ConfigError(f"scene: {where}: unknown value {value!r} (choose from {', '.join(choices)})")
-    return value
+    return tomlio.choice(f"scene: {where}", value, choices)
 
 
 def _parse_layer(where: str, d) -> CloudLayer:

@@ -4,11 +4,11 @@ Colours are BGR in digital numbers (DN, 0–255 before clipping); angles in degr
 """
 from __future__ import annotations
 
-import math
 from datetime import datetime
 
 import numpy as np
 
+from cbh.geometry.sun import direction_enu, sun_position as _sun
 from cbh.sim.scene import Obstacle, Scene
 
 __all__ = ["sun_position", "sun_direction", "obstacle_profile", "OBSTACLE_BGR", "SUN_RADIUS_DEG"]
@@ -21,22 +21,14 @@ GROUND_BGR = (60.0, 68.0, 72.0)  # below the horizon (tilted cameras)
 
 def sun_position(scene: Scene, latitude_deg: float, longitude_deg: float, altitude_m: float,
                  time_utc: datetime) -> tuple[float, float]:
-    """(zenith_deg, azimuth_deg) of the sun: the scene's fixed one, or pvlib's for the site and time."""
+    """(zenith_deg, azimuth_deg) of the sun: the scene's fixed one, or :func:`cbh.geometry.sun.sun_position`."""
     if scene.sun.position == "fixed":
         return float(scene.sun.zenith_deg), float(scene.sun.azimuth_deg)
-    import pandas as pd
-    import pvlib
-
-    sp = pvlib.solarposition.get_solarposition(
-        pd.DatetimeIndex([time_utc]), latitude_deg, longitude_deg, altitude=altitude_m
-    )
-    return float(sp["apparent_zenith"].iloc[0]), float(sp["azimuth"].iloc[0]) % 360.0
+    sp = _sun(latitude_deg, longitude_deg, altitude_m, time_utc)
+    return sp.zenith_deg, sp.azimuth_deg
 
 
-def sun_direction(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
-    """Unit ENU vector towards (zenith, azimuth), shape (3,)."""
-    z, a = math.radians(zenith_deg), math.radians(azimuth_deg)
-    return np.array([math.sin(z) * math.sin(a), math.sin(z) * math.cos(a), math.cos(z)])
+sun_direction = direction_enu  # (zenith_deg, azimuth_deg) → unit ENU vector: the geometry's one function
 
 
 def obstacle_profile(obstacles: tuple[Obstacle, ...], bins_per_deg: int = 10) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,8 @@ from pathlib import Path
 
 import typer
 
-_SUFFIX = {".csv": "csv", ".parquet": "parquet", ".nc": "netcdf", ".nc4": "netcdf", ".netcdf": "netcdf"}
+from cbh.actions.export import export, format_from_suffix
+from cbh.errors import ConfigError
 
 
 def register(app: typer.Typer) -> None:
@@ -18,12 +19,7 @@ def export_cmd(
     fmt: str = typer.Option(None, "--format", "-f", help="csv | parquet | netcdf (default: from the --out suffix)."),
 ) -> None:
     """Layer heights per time step (cloud base above ground and sea level, cover, confidence)."""
-    from cbh.errors import ConfigError
-    from cbh.outputs.export import export_sessions
-
-    if fmt is None:
-        fmt = _SUFFIX.get(out.suffix.lower())
-        if fmt is None:
-            raise ConfigError(f"--format: not given and {out.name!r} has no known suffix (.csv, .parquet, .nc)")
-    rows, steps = export_sessions(sessions, fmt, out)
+    if fmt is None and format_from_suffix(out) is None:
+        raise ConfigError(f"--format: not given and {out.name!r} has no known suffix (.csv, .parquet, .nc)")
+    rows, steps = export(sessions, out, fmt)
     print(f"wrote {steps} time steps ({rows} rows) to {out}")

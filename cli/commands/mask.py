@@ -5,6 +5,8 @@ from pathlib import Path
 
 import typer
 
+from cbh.actions.mask import obstacle_mask
+
 
 def register(app: typer.Typer) -> None:
     app.command("mask")(mask_cmd)
@@ -22,38 +24,4 @@ def mask_cmd(
 
     Reference the written PNG as the camera's `mask` in the station file.
     """
-    import time
-
-    import cv2
-
-    from cbh.errors import ImageError, RecordingError
-    from cbh.imageio import check_image_size
-    from cbh.pipeline.obstacles import obstacle_mask_from_frames
-    from cbh.presets import station_path
-    from cbh.live.sources import EndOfStream, open_source
-    from cbh.geometry.station import load_station
-
-    st = load_station(station_path(station) if station else station_path())
-    cam = st.camera(camera)
-    src = open_source(cam, source, base_dir=Path.cwd())
-    images, deadline = [], time.monotonic() + timeout_s
-    src.open()
-    try:
-        while len(images) < frames and time.monotonic() < deadline:
-            try:
-                f = src.read(1.0)
-            except EndOfStream:
-                break
-            except ImageError:
-                continue  # a corrupt frame: skip it
-            if f is not None:
-                check_image_size(f.image, cam.model, f"{camera} frame {len(images)}")
-                images.append(f.image)
-    finally:
-        src.close()
-    mask = obstacle_mask_from_frames(images, cam.model)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), mask):
-        raise RecordingError(f"cannot write mask image {out}")
-    usable = (mask > 0).sum() / max(1, cam.model.image_circle_mask().sum())
-    print(f"{camera}: {len(images)} frames -> {out} ({100 * (1 - usable):.1f} % of the image circle masked)")
+    print(obstacle_mask(source, camera, out, station=station, frames=frames, timeout_s=timeout_s).line())

@@ -5,6 +5,10 @@ from pathlib import Path
 
 import typer
 
+from cbh.actions.replay import replay
+from cbh.errors import ConfigError
+from cbh.outputs.rerun_view import parse_rerun_spec
+
 
 def register(app: typer.Typer) -> None:
     app.command("replay")(replay_cmd)
@@ -22,74 +26,13 @@ def replay_cmd(
 ) -> None:
     """Re-log a recorded session into Rerun with the default blueprint (images, cloud masks,
     matches, 3D points, histogram, layer heights over time)."""
-    import logging
-    import time
-
-    from cbh.errors import ConfigError
-    from cbh.outputs.record import McapRecorder, open_session
-    from cbh.outputs.rerun_view import RerunSink, parse_rerun_spec
-
-    log = logging.getLogger("cbh.replay")
     if (station or record or cameras) and not reprocess:
         raise ConfigError("--station, --cameras and --record need --reprocess")
     if reprocess and station is None:
         raise ConfigError("--reprocess needs --station STATION.toml")
-    mode, tgt = parse_rerun_spec(rerun, target)
-    s = open_session(session)
-    pipeline = recorder = None
-    st = s.station
-    if reprocess:
-        from cbh.pipeline import Pipeline, PipelineConfig
-        from cbh.geometry.station import load_station
-
-        st = load_station(station)
-        cfg = None if "pipeline" in st.sections else PipelineConfig.from_dict(s.config, where="recorded pipeline config")
-        first = next(s.pairs(layers_only=True), None)
-        pair_names = cameras or (",".join(first.result.cameras) if first else None)
-        pipeline = Pipeline(st, pair_names, cfg)
-        probe = next(s.pairs(), None)
-        if probe is not None:  # a size mismatch fails before any output file is opened
-            from cbh.imageio import check_image_size
-
-            for cam in pipeline.cameras:
-                if cam in probe.images:
-                    check_image_size(probe.images[cam].frame(probe.index).image, st.camera(cam).model, f"recorded {cam}")
-        if record is not None:
-            recorder = McapRecorder(record, st, pipeline.config.to_dict())
-    sink = None
-    n = 0
-    t0 = time.perf_counter()
-    try:
-        if not no_viewer:
-            cams = pipeline.cameras if pipeline else None
-            if cams is None:
-                first = next(s.pairs(layers_only=True), None)
-                cams = first.result.cameras if first else None
-            sink = RerunSink(st, mode, tgt, cameras=cams, recording_name=session.stem)
-            if sink.url:
-                print(f"serving on {sink.url}: connect a viewer with `rerun --connect {sink.url}`")
-        for pair in s.pairs():
-            if pipeline is not None:
-                f1, f2 = pair.frames()
-                if (f1.camera, f2.camera) != pipeline.cameras:
-                    f1, f2 = pair.images[pipeline.cameras[0]].frame(pair.index), pair.images[pipeline.cameras[1]].frame(pair.index)
-                result = pipeline.process(f1.image, f2.image, pair.time_utc)
-                if recorder is not None:
-                    recorder.write((f1, f2), result)
-                if sink is not None:
-                    sink.write((f1, f2), result)
-            elif sink is not None:
-                sink.write_images({c: (im.data, im.format) for c, im in pair.images.items()}, pair.result)
-            n += 1
-        if sink is not None:
-            for t, stats in s.statuses():
-                sink.log_status(t, stats)
-    finally:
-        if sink is not None:
-            sink.close()
-        if recorder is not None:
-            recorder.close()
-    what = "reprocessed" if reprocess else "replayed"
-    dest = {"save": f" into {tgt}", "connect": f" to {tgt or 'the local viewer'}"}.get(mode, "") if sink else ""
-    print(f"{what} {n} pairs{dest} in {time.perf_counter() - t0:.1f} s" + (f"; recorded {record}" if recorder else ""))
-    log.debug("replay done")
+    spec = None if no_viewer else parse_rerun_spec(rerun, target)
+    r = replay(session, rerun=spec, station=station, cameras=cameras, record=record,
+               on_viewer=lambda s: s.url and print(f"serving on {s.url}: connect a viewer with `rerun --connect {s.url}`"))
+    dest = {"save": f" into {r.target}", "connect": f" to {r.target or 'the local viewer'}"}.get(r.mode, "")
+    print(f"{'reprocessed' if r.reprocessed else 'replayed'} {r.pairs} pairs{dest} in {r.seconds:.1f} s"
+          + (f" ({r.failed} failed)" if r.failed else "") + (f"; recorded {r.recorded}" if r.recorded else ""))

@@ -5,6 +5,10 @@ from pathlib import Path
 
 import typer
 
+from cbh.actions.run import build_run, summary_lines
+from cbh.cli.status import run_with_status
+from cbh.errors import ConfigError
+
 #: Pairs a simulated run processes when neither --frames nor --duration is given (the demo).
 DEMO_FRAMES = 6
 
@@ -46,9 +50,6 @@ def run_cmd(
     --frames/--duration, when finite sources end, or on Ctrl-C/SIGTERM (finishes the pair in
     flight, closes every file, exit 0).
     """
-    from cbh.errors import ConfigError
-    from cbh.actions.run import build_run
-
     if record_path is not None and not record:
         raise ConfigError(f"unexpected argument {record_path!r} (a recording path goes after --record)")
     setup = build_run(
@@ -58,42 +59,4 @@ def run_cmd(
         pair_tolerance_s=pair_tolerance_s, watch=watch, realtime=realtime,
         rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES, device=device,
     )
-    stats = _run_with_status(setup, status=not quiet)
-    _report(setup, stats)
-
-
-def _run_with_status(setup, status: bool):
-    """Run the service; a live status line on a terminal, one line per pair otherwise."""
-    import sys
-
-    for n in setup.notes:
-        print(n, file=sys.stderr)
-    if not status:
-        return setup.service().run()
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    if console.is_terminal:
-        from rich.live import Live
-        from rich.text import Text
-
-        with Live(Text("starting…"), console=console, refresh_per_second=4, transient=False) as live:
-            return setup.service(on_pair=lambda st, result: live.update(Text(st.line()))).run()
-
-    def plain(st, result):
-        if result is not None:
-            print(f"{result.time_utc.isoformat().replace('+00:00', 'Z')}  {st.line()}", file=sys.stderr, flush=True)
-
-    return setup.service(on_pair=plain).run()
-
-
-def _report(setup, stats) -> None:
-    """The end-of-run summary (stdout)."""
-    print(f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
-          f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
-          f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}")
-    if stats.last_layers_m:
-        print("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
-              + f" above the station ({setup.station.altitude_m:.0f} m a.s.l.)")
-    for what, path in setup.outputs():
-        print(f"{what}: {path}")
+    print("\n".join(summary_lines(setup, run_with_status(setup, status=not quiet))))

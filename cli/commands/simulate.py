@@ -5,6 +5,9 @@ from pathlib import Path
 
 import typer
 
+from cbh.actions.simulate import simulate_to_folder
+from cbh.timeutil import parse_utc
+
 
 def register(app: typer.Typer) -> None:
     app.command("simulate")(simulate_cmd)
@@ -16,8 +19,8 @@ def simulate_cmd(
     out: Path = typer.Option(..., "--out", help="Output folder (created)."),
     frames: int = typer.Option(1, "--frames", help="Number of frames."),
     cadence_s: float = typer.Option(10.0, "--cadence-s", help="Seconds between frames."),
-    start: str = typer.Option(None, "--start", help="Start time, ISO 8601 UTC (default: the scene's time_utc)."),
-    size: int = typer.Option(None, "--size", help="Render this many pixels wide (calibration scaled)."),
+    start: str = typer.Option(None, "--start", help="Start time, ISO 8601 with a zone (default: the scene's time_utc)."),
+    size: int = typer.Option(None, "--size", help="Render this many pixels wide (calibration scaled; at most 8192)."),
 ) -> None:
     """Render N frames of every camera of a station looking at a scene; write images, truth, station.
 
@@ -25,56 +28,7 @@ def simulate_cmd(
     height_m, cloud_mask) and .json (layers, sun), OUT/station.toml (the scaled station: OUT can
     be processed as it is) and OUT/scene.toml.
     """
-    import math
-    import time
-    from datetime import datetime, timezone
-
-    from cbh.errors import ConfigError
-    from cbh.presets import scene_path, station_path
-    from cbh.sim import SkySimulator, load_scene
-    from cbh.sim.io import time_tag, write_shot
-    from cbh.geometry.station import load_station
-
-    if frames < 1:
-        raise ConfigError(f"--frames must be >= 1, got {frames}")
-    if not (math.isfinite(cadence_s) and cadence_s > 0):
-        raise ConfigError(f"--cadence-s must be > 0, got {cadence_s}")
-    if size is not None and size < 16:
-        raise ConfigError(f"--size must be >= 16 pixels, got {size}")
-    t0 = None
-    if start is not None:
-        try:
-            t0 = datetime.fromisoformat(start.strip().replace("Z", "+00:00"))
-        except ValueError:
-            raise ConfigError(f"--start: not an ISO 8601 time: {start!r} (e.g. 2024-06-21T14:00:00Z)") from None
-        if t0.tzinfo is None:
-            raise ConfigError(f"--start: needs a UTC offset (end it with Z): {start!r}")
-        t0 = t0.astimezone(timezone.utc)
-
-    st = load_station(station_path(station) if station else station_path())
-    scene_file = scene_path(scene)
-    sc = load_scene(scene_file)
-    sim = SkySimulator(st, sc, size_px=size)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out: not a directory: {out}")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "station.toml").write_text(sim.station.to_toml())
-    (out / "scene.toml").write_bytes(Path(scene_file).read_bytes())
-
-    from datetime import timedelta
-
-    t0 = sc.time_utc if t0 is None else t0
-    for i in range(frames):
-        tic = time.perf_counter()
-        shot = sim.render(t0 + timedelta(seconds=i * cadence_s))
-        write_shot(shot, out, sc.image.jpeg_quality)
-        clouds = "  ".join(
-            f"{name}: cloud {100.0 * v.cloud_mask.mean():.1f} %" for name, v in shot.views.items()
-        )
-        layers = ", ".join(f"{l.height_m:g} m" for l in shot.layers) or "none"
-        print(
-            f"{time_tag(shot.time_utc)}  {clouds}  layers {layers}  "
-            f"sun z={shot.sun_zenith_deg:.1f} az={shot.sun_azimuth_deg:.1f} deg  "
-            f"({time.perf_counter() - tic:.2f} s)",
-            flush=True,
-        )
+    t0 = parse_utc(start, "--start") if start is not None else None
+    for step in simulate_to_folder(out, station=station, scene=scene, frames=frames, cadence_s=cadence_s,
+                                   start_utc=t0, size_px=size):
+        print(step.line(), flush=True)

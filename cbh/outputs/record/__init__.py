@@ -36,9 +36,10 @@ from __future__ import annotations
 
 from cbh.outputs.record.reader import RecordedImage, RecordedPair, Session, TopicInfo, open_session
 from cbh.outputs.record.recover import RecoveryReport, recover
+from cbh.outputs.record.source import RecordingSource
 from cbh.outputs.record.writer import McapRecorder, cbh_version
 
 __all__ = [
     "McapRecorder", "open_session", "recover", "Session", "RecordedPair", "RecordedImage",
-    "TopicInfo", "RecoveryReport", "cbh_version",
+    "TopicInfo", "RecoveryReport", "cbh_version", "RecordingSource",
 ]

@@ -315,6 +315,11 @@ class Session:
                 msgs = pending.pop(seq)
                 yield build_pair(seq, msgs, f"{self.paths[0].name} pair {seq}")
 
+    def images(self, camera: str) -> Iterator[tuple[int, RecordedImage]]:
+        """(pair index, image) of every recorded image of ``camera``, in file order (only that topic is read)."""
+        for _topic, _t, seq, m in self._messages({f"/{camera}/image/compressed"}):
+            yield seq, RecordedImage(camera, from_ns(_ts_ns(m.timestamp)), bytes(m.data), m.format)
+
     def statuses(self) -> Iterator[tuple[datetime, dict]]:
         """(time, stats dict) of every ``/service/status`` message."""
         for _topic, t, _seq, msg in self._messages({STATUS_TOPIC}):

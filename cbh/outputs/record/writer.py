@@ -18,7 +18,7 @@ import numpy as np
 
 from cbh.errors import RecordingError
 from cbh.interfaces import ResultSink
-from cbh.result import Frame, PairResult, from_ns, to_ns
+from cbh.result import Frame, PairResult, from_ns, require_time, to_ns
 from cbh.outputs.record.schemas import cbh_types, foxglove_types
 
 __all__ = ["McapRecorder", "cbh_version", "METADATA_NAME", "FRAME_ID_WORLD"]
@@ -241,7 +241,7 @@ class McapRecorder(ResultSink):
         histogram, then the layers (the pair's last message). Flushed before returning."""
         if self._closed:
             raise RecordingError("write to a closed McapRecorder")
-        t_ns = to_ns(result.time_utc)
+        t_ns = to_ns(require_time(result, f"recording {self.path}"))
         messages = self._pair_messages(frames, result, t_ns)  # build all first: no half-written pair
         f = self._ensure_file(t_ns)
         seq = self._pair_index

@@ -1,0 +1,134 @@
+"""``cbh replay`` in library terms: a recording back into Rerun, or reprocessed by the service loop.
+
+- Plain replay: every recorded pair (images as received, recorded results) is logged to a
+  :class:`~cbh.outputs.rerun_view.RerunSink` on its original time line, then the recorded
+  service status.
+- Reprocess: the same :class:`cbh.live.service.Service` loop as ``cbh run``, over two
+  :class:`~cbh.outputs.record.RecordingSource` (one per camera, non-live: nothing dropped),
+  a pipeline for the new station, and the sinks asked for (MCAP recorder, Rerun). Recorded
+  frames are paired again by time with the station's ``[service] pair_tolerance_s``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from cbh.actions.run import RunSetup, check_writable, open_sink
+from cbh.errors import RecordingError
+from cbh.live.service import ServiceConfig
+
+__all__ = ["ReplayReport", "replay"]
+
+
+@dataclass
+class ReplayReport:
+    """What a replay did."""
+
+    pairs: int  # pairs logged (replay) or processed (reprocess)
+    reprocessed: bool
+    mode: str | None  # Rerun mode, None without a viewer
+    target: str | None  # Rerun target (PATH.rrd, URL)
+    url: str | None  # the serve URL, if serving
+    recorded: Path | None  # the new recording (reprocess)
+    seconds: float
+    failed: int = 0  # pairs the pipeline rejected (reprocess)
+
+
+def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), station=None, cameras=None,
+           record=None, on_viewer=None) -> ReplayReport:
+    """Replay (``station`` None) or reprocess (``station`` given) a recorded session.
+
+    Parameters
+    ----------
+    session : path-like
+        SESSION.mcap or a directory of rotated files.
+    rerun : (mode, target) or None
+        A validated Rerun spec (:func:`cbh.outputs.rerun_view.parse_rerun_spec`); None: no viewer.
+    station : path-like or Station, optional
+        Reprocess with this station (e.g. a new calibration).
+    cameras : str, optional
+        Camera pair for reprocessing, ``"cam1,cam2"`` (default: the recorded pair).
+    record : path-like, optional
+        Reprocess only: record the new results to this MCAP file.
+    on_viewer : callable (RerunSink) → None, optional
+        Called once the viewer is open (e.g. to print the serve URL).
+    """
+    from cbh.outputs.record import open_session
+
+    s = open_session(session)
+    t0 = time.perf_counter()
+    if station is None:
+        if record is not None or cameras is not None:
+            raise RecordingError("a new recording or camera pair needs reprocessing with a station")
+        n = _replay_recorded(s, rerun, Path(session).stem, on_viewer)
+        return ReplayReport(n, False, rerun[0] if rerun else None, rerun[1] if rerun else None,
+                            None, None, time.perf_counter() - t0)
+    setup = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem)
+    viewer = next((k for k in setup.sinks if k.kind == "viewer"), None)
+    if viewer is not None and on_viewer is not None:
+        on_viewer(viewer)
+    stats = setup.service().run()
+    return ReplayReport(stats.pairs_processed, True, rerun[0] if rerun else None, rerun[1] if rerun else None,
+                        getattr(viewer, "url", None), Path(record) if record is not None else None,
+                        time.perf_counter() - t0, failed=stats.pairs_failed)
+
+
+def _replay_recorded(s, rerun, name: str, on_viewer) -> int:
+    from cbh.outputs.rerun_view import RerunSink
+
+    if rerun is None:
+        return sum(1 for _ in s.pairs(layers_only=True))
+    first = next(s.pairs(layers_only=True), None)
+    cams = first.result.cameras if first else None
+    if rerun[0] == "save":
+        check_writable(rerun[1])
+    n = 0
+    with RerunSink(s.station, rerun[0], rerun[1], cameras=cams, recording_name=name) as sink:
+        if on_viewer is not None:
+            on_viewer(sink)
+        for pair in s.pairs():
+            sink.write_images({c: (im.data, im.format) for c, im in pair.images.items()}, pair.result)
+            n += 1
+        for t, stats in s.statuses():
+            sink.write_status(t, stats)
+    return n
+
+
+def _reprocess_setup(s, station, cameras, rerun, record, name: str) -> RunSetup:
+    from cbh.geometry.station import Station, load_station
+    from cbh.imageio import check_image_size
+    from cbh.outputs.record import McapRecorder, RecordingSource
+    from cbh.pipeline import Pipeline, PipelineConfig
+
+    st = station if isinstance(station, Station) else load_station(station)
+    cfg = None if "pipeline" in st.sections else PipelineConfig.from_dict(s.config, where="recorded pipeline config")
+    first = next(s.pairs(layers_only=True), None)
+    pair_names = cameras or (",".join(first.result.cameras) if first else None)
+    pipeline = Pipeline(st, pair_names, cfg)
+    probe = next(s.pairs(), None)
+    if probe is not None:  # a size mismatch fails before any output file is opened
+        for cam in pipeline.cameras:
+            if cam in probe.images:
+                check_image_size(probe.images[cam].decode(), st.camera(cam).model, f"recorded {cam}")
+    if record is not None and Path(record).resolve() in {p.resolve() for p in s.paths}:
+        raise RecordingError(f"{record}: is the recording being reprocessed; record to a new file")
+    sources = [RecordingSource(s, c) for c in pipeline.cameras]
+    service_cfg = {k: v for k, v in st.sections.get("service", {}).items() if k == "pair_tolerance_s"}
+    config = ServiceConfig.from_dict(service_cfg)
+    sinks, recorder = [], None
+    try:
+        if record is not None:
+            recorder = open_sink(record, lambda: McapRecorder(record, st, pipeline.config.to_dict()))
+            sinks.append(recorder)
+        if rerun is not None:
+            from cbh.outputs.rerun_view import RerunSink
+
+            if rerun[0] == "save":
+                check_writable(rerun[1])
+            sinks.append(RerunSink(st, rerun[0], rerun[1], cameras=pipeline.cameras, recording_name=name))
+    except BaseException:
+        for k in sinks:
+            k.close()
+        raise
+    return RunSetup(st, pipeline.cameras, sources, pipeline, sinks, config, recorder, [])

@@ -1,0 +1,116 @@
+"""Every usage error and bad input ends as ONE line ``cbh: error: …`` on stderr, exit code 2,
+printed once, never a traceback (issue 10, point 8)."""
+from __future__ import annotations
+
+import errno
+import os
+import subprocess
+import sys
+
+import pytest
+
+from cbh.cli.main import main
+
+from .conftest import REPO
+
+STATION = str(REPO / "configs" / "unb-lea.toml")
+
+
+def one_error_line(err: str) -> str:
+    """The single ``cbh: error:`` line of a stderr text (asserts there is exactly one, and nothing else)."""
+    lines = [l for l in err.splitlines() if l.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("cbh: error: ") and "Traceback" not in err, err
+    return lines[0]
+
+
+@pytest.mark.parametrize("args, says", [
+    (["run", "--frames", "abc"], "'--frames'"),
+    (["pair"], "Missing argument"),
+    (["nosuchcommand"], "No such command 'nosuchcommand'"),
+    (["run", "--bogus"], "No such option: --bogus"),
+    (["simulate", "--out", "x", "--frames", "1.5"], "'--frames'"),
+])
+def test_usage_errors_are_one_line_exit_2(args, says, capsys):
+    assert main(args) == 2
+    out, err = capsys.readouterr()
+    assert says in one_error_line(err) and out == ""
+
+
+def test_the_installed_console_script_prints_usage_errors_once(tmp_path):
+    """The real entry point (typer may bundle its own click: its exceptions are caught too)."""
+    exe = os.path.join(os.path.dirname(sys.executable), "cbh")
+    if not os.path.exists(exe):
+        pytest.skip("the cbh console script is not installed beside this Python")
+    r = subprocess.run([exe, "run", "--frames", "abc"], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    assert r.returncode == 2 and "'--frames'" in one_error_line(r.stderr)
+
+
+def test_non_utf8_csv_to_triangulate(tmp_path, capsys):
+    bad = tmp_path / "latin1.csv"
+    bad.write_bytes("x1,y1,x2,y2\n960,960,960,960 # höhe\n".encode("latin-1"))
+    assert main(["triangulate", "--station", STATION, "--pixels", str(bad)]) == 2
+    assert "not a UTF-8 text CSV" in one_error_line(capsys.readouterr().err)
+
+
+def test_triangulate_with_true_heights_but_no_valid_row(tmp_path, capsys):
+    """Identical pixels in both cameras: the rays meet below the station (invalid); the table is
+    printed, then one line says why there are no metrics."""
+    px = tmp_path / "p.csv"
+    px.write_text("x1,y1,x2,y2,true_height_m\n960,960,960,960,100\n960,960,960,960,150\n")
+    assert main(["triangulate", "--station", STATION, "--pixels", str(px)]) == 2
+    out, err = capsys.readouterr()
+    assert out.count("false") == 2 and "MAE" not in out
+    assert "no MAE/MAPE/RMSE" in one_error_line(err)
+
+
+def test_mask_out_pointing_at_a_directory(tmp_path, capsys):
+    (tmp_path / "frames").mkdir()
+    assert main(["mask", str(tmp_path / "frames"), "--camera", "cam1", "--out", str(tmp_path)]) == 2
+    assert "is a directory" in one_error_line(capsys.readouterr().err)
+
+
+def test_unwritable_rerun_save_path_fails_before_the_run(tmp_path, capsys):
+    # /sys is read-only even for root; elsewhere a missing directory is as unwritable
+    target = "/sys/cbh-test.rrd" if os.path.isdir("/sys") else str(tmp_path / "no" / "x.rrd")
+    assert main(["run", "--frames", "1", "--size", "96", "-q", "--rerun", f"save={target}"]) == 2
+    out, err = capsys.readouterr()
+    assert target in one_error_line(err) and "processed" not in out
+
+
+@pytest.mark.parametrize("cmd", [["simulate", "--out", "{tmp}/o"], ["run", "--frames", "1", "-q"]])
+def test_huge_image_size_is_refused_before_allocating(cmd, tmp_path, capsys):
+    args = [a.replace("{tmp}", str(tmp_path)) for a in cmd] + ["--size", "100000"]
+    assert main(args) == 2  # 100000² px would be a 149 GiB allocation: refused up front
+    assert "maximum of 8192 px" in one_error_line(capsys.readouterr().err)
+
+
+def test_log_file_on_a_full_disk_warns_once_and_the_run_goes_on(capsys):
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    assert main(["--log-file", "/dev/full", "run", "--frames", "2", "--size", "96", "-q"]) == 0
+    out, err = capsys.readouterr()
+    assert "processed 2 pairs" in out
+    lines = [l for l in err.splitlines() if l.strip()]
+    assert lines == ["cbh: warning: cannot write log file /dev/full (disk full); logging to it stopped"], err
+
+
+def test_log_file_that_cannot_be_opened_exits_2_at_start(tmp_path, capsys):
+    assert main(["--log-file", str(tmp_path / "no" / "run.jsonl"), "run", "--frames", "1", "-q"]) == 2
+    out, err = capsys.readouterr()
+    assert "cannot open log file" in one_error_line(err) and out == ""
+
+
+def test_a_failing_sink_is_reported_once(tmp_path, capsys, monkeypatch):
+    """A disk that fills during a run: the service stops, and the error is printed once (not also
+    logged to stderr by the service)."""
+    from cbh.outputs.export import LayerExporter
+
+    def full(self, frames, result):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(LayerExporter, "write", full)
+    out_csv = tmp_path / "layers.csv"
+    assert main(["run", "--frames", "2", "--size", "96", "-q", "--export", str(out_csv)]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "disk full" in line and str(out_csv) in line
