@@ -168,3 +168,12 @@ def test_pipeline_on_cuda_matches_cpu(scene):
     r_c = Pipeline(scene["sim"].station, device="cuda").process(
         shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     assert np.allclose([L.height_m for L in r_n.layers], [L.height_m for L in r_c.layers], rtol=2e-3)
+
+
+def test_cli_device_errors_are_one_line(repo, tmp_path, capsys):
+    from cbh.cli.main import main
+
+    rc = main(["pair", str(tmp_path / "a.jpg"), str(tmp_path / "b.jpg"), "--station",
+               str(repo / "configs" / "unb-lea.toml"), "--device", "tpu9"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("cbh: error:") and "tpu9" in err and len(err.splitlines()) == 1

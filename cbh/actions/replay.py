@@ -36,7 +36,7 @@ class ReplayReport:
 
 
 def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), station=None, cameras=None,
-           record=None, on_viewer=None) -> ReplayReport:
+           record=None, on_viewer=None, device: str = "cpu") -> ReplayReport:
     """Replay (``station`` None) or reprocess (``station`` given) a recorded session.
 
     Parameters
@@ -53,6 +53,8 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         Reprocess only: record the new results to this MCAP file.
     on_viewer : callable (RerunSink) → None, optional
         Called once the viewer is open (e.g. to print the serve URL).
+    device : str
+        Reprocess only: where the pipeline's dense work runs (``"cpu"``, ``"cuda"`` …).
     """
     from cbh.outputs.record import open_session
 
@@ -64,7 +66,7 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         n = _replay_recorded(s, rerun, Path(session).stem, on_viewer)
         return ReplayReport(n, False, rerun[0] if rerun else None, rerun[1] if rerun else None,
                             None, None, time.perf_counter() - t0)
-    setup = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem)
+    setup = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem, device)
     viewer = next((k for k in setup.sinks if k.kind == "viewer"), None)
     if viewer is not None and on_viewer is not None:
         on_viewer(viewer)
@@ -95,7 +97,7 @@ def _replay_recorded(s, rerun, name: str, on_viewer) -> int:
     return n
 
 
-def _reprocess_setup(s, station, cameras, rerun, record, name: str) -> RunSetup:
+def _reprocess_setup(s, station, cameras, rerun, record, name: str, device: str = "cpu") -> RunSetup:
     from cbh.geometry.station import Station, load_station
     from cbh.imageio import check_image_size
     from cbh.outputs.record import McapRecorder, RecordingSource
@@ -105,7 +107,7 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str) -> RunSetup:
     cfg = None if "pipeline" in st.sections else PipelineConfig.from_dict(s.config, where="recorded pipeline config")
     first = next(s.pairs(layers_only=True), None)
     pair_names = cameras or (",".join(first.result.cameras) if first else None)
-    pipeline = Pipeline(st, pair_names, cfg)
+    pipeline = Pipeline(st, pair_names, cfg, device=device)
     probe = next(s.pairs(), None)
     if probe is not None:  # a size mismatch fails before any output file is opened
         for cam in pipeline.cameras:
