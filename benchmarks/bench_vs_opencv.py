@@ -134,8 +134,13 @@ def main() -> None:
         im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
         truth = shot.views["cam1"].height_m, [l.height_m for l in shot.layers]
 
-    kw = {"device": a.device} if a.device != "cpu" else {}
-    pipe = Pipeline(st, **kw)
+    from cbh.errors import ConfigError
+
+    try:
+        pipe = Pipeline(st, device=a.device)
+    except ConfigError as e:  # e.g. --device cuda without CUDA: a benchmark skips, it does not fail
+        print(f"skipped: {e}")
+        return
     cam1, cam2 = pipe.cam1_full, pipe.cam2_full
     ocv = OpenCVStereo(cam1, cam2, a.rect_px, a.rect_fov)
     r = pipe.process(im1, im2, t_utc, channels="bgr")  # warm-up: per-camera tables
