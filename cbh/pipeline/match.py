@@ -181,13 +181,15 @@ class Matches:
     px2: np.ndarray  # (N, 2) float64
     dense: bool = False  # one correspondence per camera-1 pixel at integer coordinates
     ray2_world: np.ndarray | None = None  # (N, 3) float32: camera-2 ENU ray, where the method knows it exactly
+    ray1_world: np.ndarray | None = None  # (N, 3) float32: camera-1 ENU ray, where the method has it at hand
 
     def __len__(self) -> int:
         return int(self.px1.shape[0])
 
     def take(self, keep: np.ndarray) -> "Matches":
+        r1 = None if self.ray1_world is None else self.ray1_world[keep]
         r2 = None if self.ray2_world is None else self.ray2_world[keep]
-        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2)
+        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1)
 
 
 def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
@@ -297,14 +299,18 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
         from cbh.pipeline.sweep import sweep_matches
 
         px1, px2, info = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
-    keep = _in_cam2(inp, px2)
+    # inside camera 2's image and usable mask (px2 are finite here: the tables mark "no pixel" far outside)
+    h2, w2 = inp.usable2.shape
+    xi, yi = np.rint(px2[:, 0]).astype(np.int32), np.rint(px2[:, 1]).astype(np.int32)
+    keep = (xi >= 0) & (xi < w2) & (yi >= 0) & (yi < h2)
+    keep[keep] = inp.usable2[yi[keep], xi[keep]]
     px1, px2, s = px1[keep], px2[keep], info["s"][keep]
     # the camera-2 ray of a plane-sweep match is known exactly: the point o1 + d·(h − o1z)/d_z
     # seen from o2 is along d − s·d_z·B (s = 1/(h − o1z)); no fisheye back-projection of px2 needed
     d1 = g.rays1_world.reshape(-1, 3)[px1[:, 1].astype(np.int64) * g.rays1_world.shape[1] + px1[:, 0].astype(np.int64)]
     base = (g.cam2.position_m - g.cam1.position_m).astype(np.float32)
     d2 = d1 - (s * d1[:, 2])[:, None] * base[None, :]
-    return Matches("sweep", px1, px2, dense=True, ray2_world=d2)
+    return Matches("sweep", px1, px2, dense=True, ray2_world=d2, ray1_world=d1)
 
 
 MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis, "sweep": _sweep}
@@ -348,7 +354,9 @@ def _rays_world(cam: Camera, px: np.ndarray) -> np.ndarray:
 def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) -> TriangulatedMatches:
     """Triangulate and reject by ray miss / range, triangulation angle and height range."""
     n = len(m)
-    if m.dense:
+    if m.ray1_world is not None:
+        d1 = m.ray1_world
+    elif m.dense:
         idx = m.px1[:, 1].astype(np.int64) * geom.rays1_world.shape[1] + m.px1[:, 0].astype(np.int64)
         d1 = geom.rays1_world.reshape(-1, 3)[idx]
     else:
@@ -363,4 +371,6 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) ->
             & (tri.height_m >= cfg.min_height_m)
             & (tri.height_m <= cfg.max_height_m)
         )
+    if keep.all():  # (the dense sweep: usually every match passes; skip the copies)
+        return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n)
     return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64), n)
