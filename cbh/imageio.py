@@ -11,7 +11,7 @@ from cbh.errors import ImageError
 if TYPE_CHECKING:  # only for the annotation: shared helpers import no wing
     from cbh.geometry.camera import CameraModel
 
-__all__ = ["read_image", "decode_image", "encode_jpeg", "check_image_size", "as_bgr", "CHANNEL_ORDERS"]
+__all__ = ["read_image", "decode_image", "encode_jpeg", "check_image_size", "as_bgr", "is_greyscale", "CHANNEL_ORDERS"]
 
 #: Channel orders an array argument may declare: "rgb" (PIL, imageio, matplotlib), "bgr" (OpenCV).
 CHANNEL_ORDERS = ("rgb", "bgr")
@@ -23,6 +23,14 @@ def _is_grey(img: np.ndarray) -> bool:
     if not (np.array_equal(sub[..., 0], sub[..., 1]) and np.array_equal(sub[..., 1], sub[..., 2])):
         return False
     return bool(np.array_equal(img[..., 0], img[..., 1]) and np.array_equal(img[..., 1], img[..., 2]))
+
+
+def is_greyscale(image: np.ndarray) -> bool:
+    """True for a 2-D or one-channel image, or a three-channel one whose channels are all equal."""
+    a = np.asarray(image)
+    if a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1):
+        return True
+    return a.ndim == 3 and a.shape[2] == 3 and _is_grey(a)
 
 
 def as_bgr(image, channels: str | None = None, what: str = "image", model: CameraModel | None = None) -> np.ndarray:

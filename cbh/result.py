@@ -88,6 +88,8 @@ class Layer:
     altitude_m: float = math.nan  # cloud-base altitude above mean sea level [m] (height_m + station altitude)
     motion_east_ms: float = math.nan  # layer motion over the ground, east component [m/s], NaN = unknown
     motion_north_ms: float = math.nan  # layer motion over the ground, north component [m/s], NaN = unknown
+    motion_spread_ms: float = math.nan  # robust spread (1.4826 · MAD) of the layer's track velocities [m/s], NaN = unknown
+    motion_tracks: int = 0  # feature tracks (both cameras) behind the layer's motion [1]; 0 = no motion
 
     def to_dict(self) -> dict:
         """JSON-ready: floats, with None where a value is unknown (NaN)."""
@@ -101,6 +103,8 @@ class Layer:
             "confidence": _num(self.confidence),
             "motion_east_ms": _num(self.motion_east_ms),
             "motion_north_ms": _num(self.motion_north_ms),
+            "motion_spread_ms": _num(self.motion_spread_ms),
+            "motion_tracks": int(self.motion_tracks),
         }
 
 
@@ -167,6 +171,10 @@ class PairResult:
         Named scalar quality measures of the pair (e.g. the geometry self-check's residual,
         the sun residual, the clock offset, the photometric difference); each key carries its
         unit in its name (``_deg``, ``_px``, ``_s``) and is documented where it is computed.
+    state : object or None
+        Temporal state to hand to the next pair's processing (the pipeline's
+        :class:`cbh.pipeline.motion.PairState`: previous frames, running clock-offset estimate);
+        not recorded or exported. None when the producer keeps no state.
     """
 
     time_utc: datetime | None
@@ -181,6 +189,7 @@ class PairResult:
     flags: list[str] = field(default_factory=list)
     matches: dict[str, np.ndarray] = field(default_factory=dict)  # method → (M, 4) x1,y1,x2,y2 kept matches (for display)
     diagnostics: dict[str, float] = field(default_factory=dict)
+    state: object = field(default=None, repr=False, compare=False)
 
     def summary(self) -> dict:
         """The JSON object ``cbh pair --json`` prints."""

@@ -15,7 +15,8 @@ import typer
 
 from cbh.errors import CbhError
 
-COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask")
+COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "quicklook", "segment",
+            "calibrate")
 
 app = typer.Typer(
     name="cbh",

@@ -67,9 +67,10 @@ def test_paths_and_arrays_with_their_channel_order_give_the_same_result(pipe, pa
         assert r.cloud_fraction == from_paths.cloud_fraction
         assert [L.height_m for L in r.layers] == [L.height_m for L in from_paths.layers]
     # the reason a bare array is refused: RGB read as BGR swaps blue and red, and the blue/red
-    # cloud test then calls most of the clear sky cloud
+    # cloud test then calls much of the clear sky cloud (the hybrid default adapts to colour
+    # casts, but a swap turns the sky orange: +0.20 here, +0.3 with the old fixed thresholds)
     swapped = pipe.process(*rgb, T, channels="bgr")
-    assert swapped.cloud_fraction["cam1"] > from_paths.cloud_fraction["cam1"] + 0.2
+    assert swapped.cloud_fraction["cam1"] > from_paths.cloud_fraction["cam1"] + 0.1
 
 
 def test_bare_arrays_greyscale_and_zoneless_times_are_refused(pipe, pair_files):

@@ -48,15 +48,18 @@ def test_live_exporter_round_trip_is_exact(tmp_path, station, suffix):
     df = pd.read_parquet(out) if suffix == ".parquet" else pd.read_csv(out, keep_default_na=True)
     assert list(df.columns) == list(COLUMNS)
     want = [(r.time_utc, i, l) for r in made for i, l in enumerate(r.layers)]
-    got = df[df.layer >= 0]
+    got = df[df.layer >= 1]
     assert len(got) == len(want)
+    # CSV: rounded to 0.1 m and 3 decimals (half a unit of the last digit); Parquet: exact float64
+    tol_m, tol_frac = (0.05 + 1e-9, 5e-4 + 1e-12) if suffix == ".csv" else (0.0, 0.0)
     for (t, i, l), (_, row) in zip(want, got.iterrows()):
         assert pd.Timestamp(row.time_utc) == pd.Timestamp(t)
-        assert row.layer == i
-        assert row.cloud_base_height_m == l.height_m  # exact: repr() text / float64 column
-        assert row.cloud_base_altitude_m == l.height_m + station.altitude_m
-        assert row.cover == l.cover and row.points == l.points and row.confidence == l.confidence
-    clear = df[df.layer == -1]
+        assert row.layer == i + 1  # layers numbered from 1
+        assert abs(row.cloud_base_height_m - l.height_m) <= tol_m
+        assert abs(row.cloud_base_altitude_m - (l.height_m + station.altitude_m)) <= tol_m
+        assert abs(row.cover - l.cover) <= tol_frac and row.points == l.points
+        assert abs(row.confidence - l.confidence) <= tol_frac
+    clear = df[df.layer == 0]
     assert len(clear) == 1 and math.isnan(clear.cloud_base_height_m.iloc[0]) and clear.n_layers.iloc[0] == 0
     assert clear["flags"].iloc[0] == "few_points"
 
@@ -125,8 +128,10 @@ def test_export_of_sessions_gives_exactly_the_recorded_heights(tmp_path, two_ses
                 assert np.isnan(h[i, len(r.layers):]).all()
         return
     df = pd.read_csv(out) if fmt == "csv" else pd.read_parquet(out)
-    assert list(df.cloud_base_height_m) == [l.height_m for r in made for l in r.layers]
-    assert list(df.cloud_base_altitude_m) == [l.height_m + station.altitude_m for r in made for l in r.layers]
+    tol = 0.05 + 1e-9 if fmt == "csv" else 0.0  # CSV heights to 0.1 m; Parquet exact
+    np.testing.assert_allclose(df.cloud_base_height_m, [l.height_m for r in made for l in r.layers], rtol=0, atol=tol)
+    np.testing.assert_allclose(df.cloud_base_altitude_m, [l.height_m + station.altitude_m for r in made for l in r.layers],
+                               rtol=0, atol=tol)
 
 
 def test_netcdf_is_cf_with_expected_variables_units_and_fill_values(tmp_path, two_sessions, station):
@@ -144,27 +149,34 @@ def test_netcdf_is_cf_with_expected_variables_units_and_fill_values(tmp_path, tw
         v = nc.variables["cloud_base_height"]
         assert v.dimensions == ("time", "layer") and v.units == "m" and v._FillValue == FILL_VALUE
         raw = v[:].filled(np.nan) if np.ma.isMaskedArray(v[:]) else v[:]
-        assert nc.variables["cloud_base_altitude"].standard_name == "cloud_base_altitude"
-        assert nc.variables["time"].units.startswith("microseconds since 1970-01-01")  # CF time, UTC epoch
+        assert "standard_name" not in nc.variables["cloud_base_altitude"].ncattrs()  # CF: lowest cloud only
+        assert nc.variables["lowest_cloud_base_altitude"].standard_name == "cloud_base_altitude"
+        assert nc.variables["time"].units.startswith("seconds since 1970-01-01")  # CF time, UTC epoch
+        assert nc.variables["time"].dtype == np.float64
         assert nc.variables["time"].calendar == "standard"
         assert nc.variables["cloud_fraction"].standard_name == "cloud_area_fraction"
         qf = nc.variables["quality_flag"]
-        assert qf.flag_meanings.split()[0] == "few_points" and list(qf.flag_masks[:3]) == [1, 2, 4]
+        from cbh.flags import Flag
+
+        assert qf.flag_meanings.split() == [f.name for f in Flag]  # the whole enumeration, fixed bits
+        assert list(qf.flag_masks) == [int(f) for f in Flag]
         v.set_auto_mask(False)
         assert (v[:][:, 2] == FILL_VALUE).all()  # nobody has a third layer: stored as the fill value
     with xr.open_dataset(out) as ds:
         for name in ("cloud_base_height", "cloud_base_altitude", "cloud_layer_cover", "cloud_fraction", "quality_flag",
-                     "n_layers", "latitude", "longitude", "altitude"):
+                     "n_layers", "station_latitude", "station_longitude", "station_altitude",
+                     "cloud_motion_east", "cloud_motion_north", "cloud_layer_okta", "total_cloud_okta",
+                     "ceiling_height"):
             assert name in ds, name
-        assert ds.attrs["station_latitude"] == station.latitude_deg
-        assert float(ds.altitude) == station.altitude_m
+        assert float(ds.station_latitude) == station.latitude_deg
+        assert float(ds.station_altitude) == station.altitude_m and ds.station_altitude.attrs["positive"] == "up"
         assert ds.cloud_base_altitude.attrs["units"] == "m"
         assert ds.cloud_base_height.encoding["_FillValue"] == FILL_VALUE
         np.testing.assert_array_equal(ds.cloud_base_altitude.values - ds.cloud_base_height.values,
                                       np.where(np.isnan(raw), np.nan, station.altitude_m))
         assert list(ds.n_layers.values) == [len(r.layers) for r in made]
-        # pair 2 (k=2) carries the few_points flag → bit 0
-        assert list(ds.quality_flag.values) == [1 if r.flags else 0 for r in made]
+        # pair 2 (k=2) carries the few_points flag → its fixed bit
+        assert list(ds.quality_flag.values) == [int(Flag.few_points) if r.flags else 0 for r in made]
         assert ds.time.dt.year.values[0] == 2024
 
 

@@ -65,7 +65,7 @@ def test_rasterize_and_nearest_fill_never_blend_layers():
 
 
 # --- segmentation -------------------------------------------------------------------------
-@pytest.mark.parametrize("method", ["nbr", "nbr_adaptive", "otsu"])
+@pytest.mark.parametrize("method", ["hybrid", "nbr", "nbr_adaptive", "otsu"])
 def test_segmentation_blue_sky_vs_white_cloud(method):
     img = np.zeros((40, 40, 3), np.uint8)
     img[:] = (200, 130, 70)  # clear blue sky (BGR): NBR ≈ 0.48

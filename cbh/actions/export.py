@@ -1,28 +1,258 @@
-"""``cbh export`` in library terms: layer heights of recordings as CSV, Parquet or CF NetCDF."""
+"""`cbh export`: layer tables (CSV, Parquet, CF NetCDF, daily files) and ground maps of sessions.
+
+Products:
+
+* ``layers`` (default): :mod:`cbh.outputs.export` (one file, or one per UTC day with ``daily``).
+* ``cloudmap`` / ``shadow``: camera 1's cloud mask of every recorded pair projected onto the
+  station's ground grid (:mod:`cbh.geometry.ground`; grid from the ``[ground]`` table of the
+  recorded station, or of ``station`` when given), with the sun from the one sun function
+  (:func:`cbh.geometry.sun.sun_position`); written by :mod:`cbh.outputs.maps`.
+
+Usable sky for the maps is rebuilt from the recorded pipeline config: image circle, zenith
+limit and the masked sun disk (the obstacle mask is not recorded with the pairs, so horizon
+obstacles count as sky; they lie beyond the zenith limit in most stations). Pairs with an
+invalidating flag (:data:`cbh.flags.INVALIDATING`) get unknown (NaN) maps: their layer heights
+are not to be trusted. The sun-blocking answer "now" comes from the pair itself; when the sun's
+ray crosses the masked sun disk (usual: the disk is masked), it is taken from the previous pair
+advected by the layer motion over the time between the pairs (at most ``MAX_FALLBACK_S``).
+"""
 from __future__ import annotations
 
+import logging
+import math
+from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 
-from cbh.errors import ConfigError
+import numpy as np
 
-__all__ = ["export", "format_from_suffix"]
+from cbh.errors import ConfigError, RecordingError
+from cbh.flags import INVALIDATING
+from cbh.geometry import ground
+from cbh.outputs import export as layer_export
+from cbh.outputs.maps import (LEAD_TIMES_S, MAP_FORMATS, PRODUCTS, GroundMaps, to_byte, write_maps_netcdf,
+                              write_maps_npz)
 
-_SUFFIX = {".csv": "csv", ".parquet": "parquet", ".nc": "netcdf", ".nc4": "netcdf", ".netcdf": "netcdf"}
+__all__ = ["export", "format_from_suffix", "ground_maps", "PairGround", "pair_ground", "SUFFIX_FORMATS",
+           "MAX_FALLBACK_S"]
+
+log = logging.getLogger(__name__)
+
+SUFFIX_FORMATS = {".csv": "csv", ".parquet": "parquet", ".nc": "netcdf", ".nc4": "netcdf", ".netcdf": "netcdf",
+                  ".npz": "npz"}
+MAX_FALLBACK_S = 120.0  # oldest previous pair the "now" sun-blocking answer may come from [s]
 
 
 def format_from_suffix(out) -> str | None:
-    """csv | parquet | netcdf from the output file's suffix; None for an unknown suffix."""
-    return _SUFFIX.get(Path(out).suffix.lower())
+    """csv | parquet | netcdf | npz from the output's suffix; None for an unknown suffix."""
+    return SUFFIX_FORMATS.get(Path(out).suffix.lower())
 
 
-def export(sessions, out, fmt: str | None = None) -> tuple[int, int]:
-    """Write the layer heights of one or more sessions to ``out`` (replaced if it exists).
+@dataclass
+class PairGround:
+    """One pair on the ground (see :func:`pair_ground`)."""
 
-    Returns (rows, time steps). ``fmt``: csv | parquet | netcdf (default: from the suffix).
+    camera: object  # camera 1 (cbh.geometry.station.Camera) at the size of the recorded mask
+    labels: np.ndarray  # (H, W) int16: layer index / ground.CLEAR / ground.UNKNOWN
+    heights: list  # layer heights above the ENU origin [m]
+    covers: list  # layer covers, 0..1
+    motions: list  # (east, north) per layer [m/s], NaN = unknown
+    sun_dir: np.ndarray | None  # (3,) unit vector to the sun in ENU, None below the horizon
+    sun_zenith_deg: float
+    cloud_fraction: float  # camera 1's, 0..1
+    time_utc: object  # datetime
+    valid: bool  # False when the pair carries an invalidating flag
+
+
+def _sun(station, t):
+    """(unit vector to the sun in ENU, apparent zenith [deg]) from the one sun function."""
+    from cbh.geometry.sun import sun_position
+
+    sp = sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, t)
+    return sp.direction_enu, sp.zenith_deg
+
+
+def pair_ground(station, masks_cfg, result) -> PairGround:
+    """Labels of camera 1's pixels (cloud per layer / clear / unknown) for one recorded result."""
+    from cbh.pipeline.masks import angle_map_deg, static_sky_mask
+
+    name = result.cameras[0]
+    mask = result.cloud_masks.get(name)
+    if mask is None:
+        raise RecordingError(f"pair at {result.time_utc}: no cloud mask of {name!r} recorded")
+    H, W = mask.shape
+    cam = station.camera(name)
+    cam = cam.scaled(W / cam.model.width)
+    if (cam.model.height, cam.model.width) != (H, W):
+        raise RecordingError(f"{name}: recorded mask {W}x{H} does not match the station's image shape")
+    usable = static_sky_mask(cam, masks_cfg)
+    sun_dir, zen = _sun(station, result.time_utc)
+    if masks_cfg.sun and zen < 90.0:
+        usable = usable & (angle_map_deg(cam, sun_dir) > masks_cfg.sun_radius_deg)
+    hm = np.asarray(result.height_map, np.float32)
+    if hm.shape != (H, W):
+        hm = np.full((H, W), np.nan, np.float32)
+    L = result.layers
+    heights = [float(l.height_m) for l in L]
+    covers = [float(l.cover) for l in L]
+    motions = [(float(l.motion_east_ms), float(l.motion_north_ms)) for l in L]
+    labels = ground.layer_labels(mask, usable, hm, heights, covers)
+    valid = not (set(result.flags) & INVALIDATING)
+    return PairGround(cam, labels, heights, covers, motions, sun_dir if zen < 90.0 else None, zen,
+                      float(result.cloud_fraction.get(name, math.nan)), result.time_utc, valid)
+
+
+def _sun_blocked(station, pg: PairGround, prev: PairGround | None) -> list[float]:
+    out = []
+    for lead in LEAD_TIMES_S:
+        if not pg.valid:
+            out.append(math.nan)
+            continue
+        sd, zen = _sun(station, pg.time_utc + timedelta(seconds=lead))
+        sd = sd if zen < 90.0 else None
+        v = ground.sun_blocked(pg.camera, pg.labels, pg.heights, pg.motions, sd, lead,
+                               cloud_fraction=pg.cloud_fraction)
+        if lead == 0 and math.isnan(v) and prev is not None and prev.valid:
+            age = (pg.time_utc - prev.time_utc).total_seconds()
+            if 0 < age <= MAX_FALLBACK_S:  # the previous pair, advected to now
+                v = ground.sun_blocked(prev.camera, prev.labels, prev.heights, prev.motions, sd, age,
+                                       cloud_fraction=prev.cloud_fraction)
+        out.append(v)
+    return out
+
+
+def ground_maps(sessions, station=None, products=PRODUCTS) -> GroundMaps:
+    """Cloud and/or shadow maps of every pair of the sessions (time order).
+
+    Pairs are streamed (one pair's images and height map in memory at a time); the maps are
+    held as int8 (1 / 0 / −1 unknown): about T × (L + 1) × n² bytes per product, e.g. 175 MB
+    for a day at a 60 s cadence on the default 201 × 201 grid with two layers. Only the maps of
+    ``products`` are computed (the others stay empty, shape (T, 0, 0)).
     """
-    from cbh.outputs.export import export_sessions
+    from cbh.outputs.record import open_session
+    from cbh.pipeline.config import PipelineConfig
 
-    fmt = fmt or format_from_suffix(out)
+    opened = []
+    st0 = None
+    for path in sessions:
+        s = open_session(path)
+        st = station if station is not None else s.station
+        if st0 is None:
+            st0 = st
+        elif st.name != st0.name:
+            raise RecordingError(f"{path}: station {st.name!r} differs from {st0.name!r}; one station at a time")
+        cfg = PipelineConfig.from_dict(s.config, where="recorded pipeline config")
+        heads = [(p.time_utc, len(p.result.layers)) for p in s.pairs(layers_only=True)]  # cheap first pass
+        opened.append((s, st, cfg, heads))
+    times = sorted({t for *_, heads in opened for t, _ in heads})
+    if not times:
+        raise RecordingError("no complete pairs in the recording(s): nothing to export")
+    index = {t: i for i, t in enumerate(times)}
+    grid = st0.ground
+    T, n = len(times), grid.n
+    Lmax = max(1, max(k for *_, heads in opened for _, k in heads))
+    want_cloud, want_shadow = "cloudmap" in products, "shadow" in products
+    cn, sn = (n if want_cloud else 0), (n if want_shadow else 0)
+    layer_cloud = np.full((T, Lmax if want_cloud else 0, cn, cn), -1, np.int8)
+    cloud = np.full((T, cn, cn), -1, np.int8)
+    shadow = np.full((T, sn, sn), -1, np.int8)
+    shadow_layer = np.full((T, sn, sn), -1, np.int8)
+    heights = np.full((T, Lmax), np.nan)
+    covers = np.full((T, Lmax), np.nan)
+    motion = np.full((T, Lmax, 2), np.nan)
+    zen = np.full(T, np.nan)
+    az = np.full(T, np.nan)
+    blocked = np.full((T, len(LEAD_TIMES_S)), np.nan, np.float32)
+    done = np.zeros(T, bool)
+    prev = None
+    for s, st, cfg, heads in sorted(opened, key=lambda o: o[3][0][0] if o[3] else times[0]):
+        for pair in s.pairs():
+            res = pair.result
+            i = index[res.time_utc]
+            if done[i]:
+                log.warning("dropping a second pair at %s (same session given twice?)", res.time_utc.isoformat())
+                continue
+            done[i] = True
+            pg = pair_ground(st, cfg.masks, res)
+            k = len(pg.heights)
+            heights[i, :k], covers[i, :k] = pg.heights, pg.covers
+            motion[i, :k] = np.array(pg.motions).reshape(k, 2)
+            zen[i] = pg.sun_zenith_deg
+            if pg.sun_dir is not None:
+                az[i] = math.degrees(math.atan2(pg.sun_dir[0], pg.sun_dir[1])) % 360.0
+            if pg.valid and want_cloud:
+                lc = ground.cloud_maps(pg.camera, pg.labels, pg.heights, grid)
+                layer_cloud[i, :k] = to_byte(lc)
+                if k:
+                    cloud[i] = to_byte(ground.combine_layers(list(lc), (n, n)))
+                elif pg.cloud_fraction == 0:
+                    cloud[i] = 0
+            if pg.valid and want_shadow:
+                sm, owner = _shadow(pg, grid)
+                shadow[i], shadow_layer[i] = to_byte(sm), owner
+            blocked[i] = _sun_blocked(st, pg, prev if prev is not None and prev.time_utc < res.time_utc else None)
+            prev = pg
+    return GroundMaps(grid=grid, times=times, layer_cloud=layer_cloud, cloud=cloud, shadow=shadow,
+                      layer_height_m=heights, layer_cover=covers, motion_ms=motion, sun_zenith_deg=zen,
+                      sun_azimuth_deg=az, sun_blocked=blocked, shadow_layer=shadow_layer, station=st0.name,
+                      attrs=dict(st0.metadata))
+
+
+def _shadow(pg: PairGround, grid) -> tuple[np.ndarray, np.ndarray]:
+    """Shadow map and the lowest layer casting each shadow (−1 none)."""
+    by_layer = ground.layer_shadows(pg.camera, pg.labels, pg.heights, pg.sun_dir, grid)
+    sm = ground.shadow_map(pg.camera, pg.labels, pg.heights, pg.sun_dir, grid, cloud_fraction=pg.cloud_fraction,
+                           by_layer=by_layer)
+    owner = np.full(sm.shape, -1, np.int8)
+    for k in range(by_layer.shape[0] - 1, -1, -1):  # lowest layer last: it wins
+        owner[by_layer[k] == 1] = k
+    return sm, owner
+
+
+def export(sessions, out, fmt: str | None = None, *, product: str = "layers", daily: bool = False,
+           station=None) -> str:
+    """Export sessions; returns the one-line summary the CLI prints.
+
+    Parameters
+    ----------
+    sessions : list of path
+    out : path
+        Output file, or a directory with ``daily``.
+    fmt : str or None
+        csv | parquet | netcdf | npz (default: from the suffix of ``out``; netcdf for ``daily``
+        and a suffix-less directory).
+    product : {"layers", "cloudmap", "shadow"}
+    daily : bool
+        Layers only: one file per UTC day in directory ``out``.
+    station : Station or None
+        Ground grid and camera geometry for the maps (default: the recorded station).
+    """
+    out = Path(out)
     if fmt is None:
-        raise ConfigError(f"{Path(out).name!r}: no known table suffix (.csv, .parquet, .nc) and no format given")
-    return export_sessions(list(sessions), fmt, Path(out))
+        fmt = format_from_suffix(out)
+        if fmt is None and daily:
+            fmt = "netcdf"
+        if fmt is None:
+            raise ConfigError(f"--format: not given and {out.name!r} has no known suffix (.csv, .parquet, .nc, .npz)")
+    fmt = fmt.lower()
+    if product == "layers":
+        if fmt == "npz":
+            raise ConfigError("--format npz is for --product cloudmap|shadow (layers: csv, parquet, netcdf)")
+        if daily:
+            done = layer_export.export_daily(sessions, fmt, out)
+            return "\n".join(f"wrote {steps} time steps ({rows} rows) to {p}" for p, rows, steps in done)
+        rows, steps = layer_export.export_sessions(sessions, fmt, out)
+        return f"wrote {steps} time steps ({rows} rows) to {out}"
+    if product not in PRODUCTS:
+        raise ConfigError(f"--product: unknown {product!r} (valid: layers, {', '.join(PRODUCTS)})")
+    if daily:
+        raise ConfigError("--daily is for --product layers")
+    if fmt not in MAP_FORMATS:
+        raise ConfigError(f"--format: {fmt!r} is not a map format (valid: {', '.join(MAP_FORMATS)})")
+    if not out.parent.is_dir():
+        raise RecordingError(f"output directory does not exist: {out.parent}")
+    maps = ground_maps(sessions, station, products=(product,))
+    (write_maps_netcdf if fmt == "netcdf" else write_maps_npz)(maps, product, out)
+    g = maps.grid
+    return (f"wrote {product} of {len(maps.times)} time steps on a {g.n}x{g.n} grid "
+            f"({g.resolution_m:g} m cells) to {out}")

@@ -6,6 +6,7 @@ them and hands the service a processor and sinks.
 from __future__ import annotations
 
 import errno
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -13,7 +14,7 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.live.service import Service, ServiceConfig
 from cbh.result import Frame, PairResult
 
-__all__ = ["RunSetup", "build_run", "open_sink", "check_writable", "summary_lines"]
+__all__ = ["RunSetup", "MotionChain", "build_run", "open_sink", "check_writable", "summary_lines"]
 
 
 def open_sink(path, make):
@@ -47,6 +48,56 @@ def check_writable(path) -> None:
         p.unlink(missing_ok=True)
 
 
+class MotionChain:
+    """The temporal state a run hands from one processed pair to the next
+    (:class:`cbh.pipeline.motion.PairState`).
+
+    Motion is computed only between pairs that follow each other: after a failed pair
+    (:meth:`lost`) or a gap of more than ``gap_factor`` × the usual time between processed
+    pairs (the cadence, or the median of the recent gaps when that is longer: frames were
+    lost, dropped or corrupt), the next pair has no motion; the clock-offset history is kept
+    across (a camera's offset is near-constant).
+
+    Parameters
+    ----------
+    cadence_s : float
+        The run's cadence [s] (0 = every pair).
+    gap_factor : float
+        A gap is a hole above this many usual intervals [1].
+    """
+
+    def __init__(self, cadence_s: float = 0.0, gap_factor: float = 2.5):
+        self.cadence_s, self.gap_factor = float(cadence_s), float(gap_factor)
+        self.state = None
+        self._gaps: list[float] = []
+
+    def previous(self, time_utc):
+        """The state to pass as ``previous`` for a pair captured at ``time_utc``."""
+        s = self.state
+        if s is None or s.gray is None or time_utc is None or s.time_utc is None:
+            return s
+        gap = (time_utc - s.time_utc).total_seconds()
+        recent = sorted(self._gaps[-5:])
+        usual = max(self.cadence_s, recent[len(recent) // 2] if recent else 0.0)
+        if usual > 0 and gap > self.gap_factor * usual:
+            return s.without_frames()
+        return s
+
+    def keep(self, result: PairResult) -> None:
+        """Remember a processed pair's state (and the gap to the one before)."""
+        s = self.state
+        if s is not None and s.time_utc is not None and result.time_utc is not None:
+            gap = (result.time_utc - s.time_utc).total_seconds()
+            if gap > 0:
+                self._gaps = (self._gaps + [gap])[-5:]
+        self.state = result.state
+
+    def lost(self) -> None:
+        """A pair failed: no motion across it."""
+        if self.state is not None:
+            self.state = self.state.without_frames()
+
+
 class RunSetup:
     """A ready-to-run service with its station, sources, pipeline and sinks (see :func:`build_run`)."""
 
@@ -55,9 +106,18 @@ class RunSetup:
         self.pipeline, self.sinks, self.config = pipeline, sinks, config
         self.recorder = recorder  # McapRecorder or None
         self.notes = notes
+        self.motion = MotionChain(config.cadence_s)
 
     def process(self, f1: Frame, f2: Frame) -> PairResult:
-        return self.pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr")
+        """One pair through the pipeline, with the previous pair's state (motion, clock offset)."""
+        try:
+            result = self.pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr",
+                                           previous=self.motion.previous(f1.time_utc))
+        except Exception:
+            self.motion.lost()
+            raise
+        self.motion.keep(result)
+        return result
 
     def service(self, on_pair: Callable | None = None) -> Service:
         """The :class:`Service` for this run; ``on_pair(stats, result)`` is called after each pair."""
@@ -162,6 +222,8 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     from cbh.pipeline import Pipeline, PipelineConfig
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
+    # an offset above the pairing tolerance is what the clock_offset flag reports
+    pcfg = pcfg.replace(motion=replace(pcfg.motion, offset_tolerance_s=config.pair_tolerance_s))
     pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg, device=device)
     sinks = []
     recorder = None
@@ -208,6 +270,9 @@ def summary_lines(setup: RunSetup, stats) -> list[str]:
     lines = [f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
              f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
              f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}"]
+    if stats.pairs_invalid:
+        lines.append(f"{stats.pairs_invalid} pairs disagreed with the station geometry: their layers are flagged, "
+                     "not reported as valid" + (f" (last pair: {', '.join(stats.last_invalid)})" if stats.last_invalid else ""))
     if stats.last_layers_m:
         lines.append("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
                      + f" above the station ({setup.station.altitude_m:.0f} m a.s.l.)")

@@ -31,7 +31,8 @@ class SimulatedFrame:
 
 
 def simulate_to_folder(out, *, station=None, scene="two-layers", frames: int = 1, cadence_s: float = 10.0,
-                       start_utc: datetime | None = None, size_px: int | None = None) -> Iterator[SimulatedFrame]:
+                       start_utc: datetime | None = None, size_px: int | None = None,
+                       clock_offsets=()) -> Iterator[SimulatedFrame]:
     """Render ``frames`` time steps of every camera of a station looking at a scene into ``out``.
 
     Writes ``out/<camera>/<camera>_<YYYYmmddTHHMMSS.fffZ>.jpg``, ``out/truth/<time>.npz`` (per
@@ -51,6 +52,10 @@ def simulate_to_folder(out, *, station=None, scene="two-layers", frames: int = 1
         First step's time (default: the scene's ``time_utc``).
     size_px : int, optional
         Image width [px] (calibration scaled); at most :data:`cbh.sim.render.MAX_SIZE_PX`.
+    clock_offsets : sequence of str
+        ``CAMERA=SECONDS``: that camera captures this late, its files stamped on time
+        (overrides the scene's ``[[imperfections]]``; the truth JSON has every camera's real
+        capture time).
     """
     from cbh.geometry.station import load_station
     from cbh.presets import scene_path, station_path
@@ -67,6 +72,10 @@ def simulate_to_folder(out, *, station=None, scene="two-layers", frames: int = 1
     st = load_station(station_path(station) if station else station_path())
     scene_file = scene_path(scene)
     sc = load_scene(scene_file)
+    if clock_offsets:
+        from cbh.sim.scene import with_clock_offsets
+
+        sc = with_clock_offsets(sc, clock_offsets)
     sim = SkySimulator(st, sc, size_px=size_px)
     out.mkdir(parents=True, exist_ok=True)
     (out / "station.toml").write_text(sim.station.to_toml())

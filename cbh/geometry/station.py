@@ -8,6 +8,16 @@ See docs/conventions.md for the frames. The file format::
     longitude_deg = -47.8703
     altitude_m = 1050.0                      # ENU origin above mean sea level
 
+    [station.metadata]                       # optional; NetCDF global attributes (E-PROFILE style)
+    institution = "University of Brasília"   # all optional strings; other keys are an error
+    instrument = "two Mobotix Q25 fisheye cameras"
+    site = "Brasília, LEA rooftop"
+    # contact, comment, references, wigos_station_id
+
+    [ground]                                 # optional; cloud and shadow maps on the ground
+    resolution_m = 50.0                      # grid cell size [m]
+    extent_m = 6000.0                        # half width of the square grid around the station [m]
+
     [[cameras]]
     name = "cam1"
     calibration = "cam1_calib_results.txt"   # OCamCalib file, relative to this TOML
@@ -32,16 +42,19 @@ from typing import Any
 import numpy as np
 
 from cbh.geometry.camera import MODELS, CameraModel, OCamModel, read_ocamcalib
+from cbh.geometry.ground import GroundGrid, parse_ground
 from cbh.errors import CalibrationError, ConfigError
-from cbh.tomlio import dumps_toml, read_toml, check_keys, number, vector
+from cbh.tomlio import check_keys, dumps_toml, number, read_toml, string, table, vector
 
-__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
+__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "angles_from_rotation", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
 
 #: The level camera whose image top faces north: columns are camera x → west, y → south, z → up.
 B_LEVEL_NORTH_UP = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
 
 #: Top-level tables a station file may have besides [station] and [[cameras]].
-EXTRA_SECTIONS = ("pipeline", "service", "scene")
+EXTRA_SECTIONS = ("pipeline", "service", "scene", "ground")
+#: Keys of the optional [station.metadata] table (strings; NetCDF global attributes).
+METADATA_KEYS = ("institution", "instrument", "site", "contact", "comment", "references", "wigos_station_id")
 
 _CAMERA_KEYS = {
     "name", "calibration", "intrinsics", "position_m", "yaw_deg", "pitch_deg", "roll_deg",
@@ -75,6 +88,20 @@ def rotation_from_angles(yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll_deg:
     roll tilt the camera about its own x and y axes [deg].
     """
     return rot_z(-math.radians(yaw_deg)) @ B_LEVEL_NORTH_UP @ rot_x(math.radians(pitch_deg)) @ rot_y(math.radians(roll_deg))
+
+
+def angles_from_rotation(R_world_from_cam) -> tuple[float, float, float]:
+    """(yaw_deg, pitch_deg, roll_deg) with ``rotation_from_angles(*angles) == R`` (inverse).
+
+    Unique for |pitch| < 90°; every rotation has such angles.
+    """
+    R = np.asarray(R_world_from_cam, dtype=np.float64)
+    Q = B_LEVEL_NORTH_UP @ R  # = Rz(−yaw) · Rx(pitch) · Ry(roll)  (B is its own inverse and commutes with Rz)
+    yaw = math.atan2(Q[0, 1], Q[1, 1])  # Rz(yaw) · Q = Rx · Ry, whose [0, 1] element is 0
+    A = rot_z(yaw) @ Q
+    pitch = math.atan2(A[2, 1], A[1, 1])
+    roll = math.atan2(A[0, 2], A[0, 0])
+    return math.degrees(yaw), math.degrees(pitch), math.degrees(roll)
 
 
 @dataclass(frozen=True)
@@ -144,6 +171,12 @@ class Station:
     cameras: dict[str, Camera]
     path: Path | None = None
     sections: dict[str, dict] = field(default_factory=dict)
+    metadata: dict[str, str] = field(default_factory=dict)  # [station.metadata]: keys of METADATA_KEYS
+
+    @property
+    def ground(self) -> GroundGrid:
+        """The ground grid of the cloud and shadow maps (``[ground]``, defaults when absent)."""
+        return parse_ground(self.sections.get("ground", {}), self.latitude_deg, self.longitude_deg)
 
     def camera(self, name: str) -> Camera:
         try:
@@ -195,6 +228,7 @@ class Station:
                 "latitude_deg": self.latitude_deg,
                 "longitude_deg": self.longitude_deg,
                 "altitude_m": self.altitude_m,
+                **({"metadata": dict(self.metadata)} if self.metadata else {}),
             },
             "cameras": cams,
         }
@@ -279,7 +313,11 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
     st = data.get("station")
     if not isinstance(st, dict):
         raise ConfigError(f"{label}: [station] table missing")
-    _unknown("station", st, _STATION_KEYS)
+    _unknown("station", st, _STATION_KEYS | {"metadata"})
+    metadata = table("station.metadata", st.get("metadata", {}))
+    check_keys("station.metadata", metadata, METADATA_KEYS)
+    for key, value in metadata.items():
+        string(f"station.metadata.{key}", value)
     for key in _STATION_KEYS:
         if key not in st:
             raise ConfigError(f"station.{key}: missing")
@@ -347,10 +385,12 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
             if not isinstance(data[key], dict):
                 raise ConfigError(f"{key}: expected a table")
             sections[key] = data[key]
+    if "ground" in sections:
+        parse_ground(sections["ground"], lat, lon)  # strict keys, checked when the station is read
     return Station(
         name=st["name"], latitude_deg=lat, longitude_deg=lon,
         altitude_m=_num("station.altitude_m", st["altitude_m"]),
-        cameras=cameras, path=path, sections=sections,
+        cameras=cameras, path=path, sections=sections, metadata=dict(metadata),
     )
 
 

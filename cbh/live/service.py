@@ -26,6 +26,7 @@ one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultS
 from __future__ import annotations
 
 import errno
+import math
 import logging
 import queue
 import signal
@@ -36,6 +37,7 @@ from datetime import datetime
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
+from cbh.flags import INVALIDATING
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult
 from cbh.tomlio import dataclass_from_table
@@ -115,7 +117,10 @@ class ServiceStats:
     latency_s: float | None = None  # frame received → result written, last pair [s]
     process_s: float | None = None  # pipeline time of the last pair [s]
     last_time_utc: datetime | None = None
-    last_layers_m: list[float] = field(default_factory=list)  # latest layer heights above the ENU origin [m]
+    last_layers_m: list[float] = field(default_factory=list)  # latest VALID layer heights above the ENU origin [m]
+    pairs_invalid: int = 0  # pairs whose flags invalidate their layers (cbh.flags.INVALIDATING)
+    last_invalid: list[str] = field(default_factory=list)  # invalidating flags of the last pair ([] = valid)
+    sun_misaligned: bool = False  # the last pair that saw the sun saw it off (flag sun_misaligned)
     started_monotonic: float = field(default_factory=time.monotonic)
     stop_reason: str | None = None
     last_error: str | None = None
@@ -133,12 +138,16 @@ class ServiceStats:
             "latency_s": self.latency_s,
             "process_s": self.process_s,
             "layers_m": list(self.last_layers_m),
+            "pairs_invalid": self.pairs_invalid,
+            "invalid_flags": list(self.last_invalid),
             "elapsed_s": round(time.monotonic() - self.started_monotonic, 3),
         }
 
     def line(self) -> str:
         """One-line status text."""
         layers = ", ".join(f"{h:.0f} m" for h in self.last_layers_m) or "-"
+        if self.last_invalid:
+            layers = f"- (not valid: {', '.join(self.last_invalid)})"
         src = " ".join(f"{c}:{s.state}" for c, s in self.sources.items())
         lat = f"{self.latency_s:.2f} s" if self.latency_s is not None else "-"
         extra = ""
@@ -464,7 +473,27 @@ class Service:
                 raise err from None
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
-        st.last_layers_m = [float(l.height_m) for l in result.layers]
+        invalid = [f for f in result.flags if f in INVALIDATING]
+        if invalid and not st.last_invalid:  # one warning per change of state, not per pair
+            diag = ", ".join(f"{k} {v:.3g}" for k, v in result.diagnostics.items() if k.startswith(("geometry_", "sun_")))
+            log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(invalid)}: the cameras disagree with the "
+                        f"station geometry ({diag}); layers are not reported as valid until they agree again "
+                        "(check the sources and the orientation: `cbh calibrate`)",
+                        extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
+        elif not invalid and st.last_invalid:
+            log.warning(f"pair at {f1.time_utc.isoformat()}: the cameras agree with the station geometry again",
+                        extra={"cbh_event": "geometry_valid"})
+        st.pairs_invalid += bool(invalid)
+        st.last_invalid = invalid
+        if "sun_misaligned" in result.flags and not st.sun_misaligned:  # once per change, like the above
+            log.warning(f"pair at {f1.time_utc.isoformat()}: the sun is "
+                        f"{result.diagnostics.get('sun_residual_deg', float('nan')):.2f} deg from where the station's "
+                        "orientation puts it (sun_misaligned): a camera may have moved; `cbh calibrate` fits it again",
+                        extra={"cbh_event": "sun_misaligned"})
+            st.sun_misaligned = True
+        elif math.isfinite(result.diagnostics.get("sun_residual_deg", math.nan)) and "sun_misaligned" not in result.flags:
+            st.sun_misaligned = False  # the sun was seen where expected
+        st.last_layers_m = [] if invalid else [float(l.height_m) for l in result.layers]
         recv = max(f1.received_s if f1.received_s is not None else t0,
                    f2.received_s if f2.received_s is not None else t0)
         st.latency_s = time.monotonic() - recv

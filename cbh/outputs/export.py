@@ -1,36 +1,56 @@
 """Layer heights for solar forecasting: a live CSV/Parquet sink, session tables and CF NetCDF.
 
 Table columns (one row per layer per pair; a pair with no layer, e.g. a clear sky, gives one
-row with ``layer = -1`` and empty heights, so every processed time step appears):
+row with ``layer = 0`` and empty heights, so every processed time step appears). Layers are
+numbered from 1 (the lowest) in every output: table, NetCDF ``layer`` coordinate, quicklook.
 
 =========================  ======================================================================
 ``time_utc``               capture time (CSV: ISO 8601 ``…Z``; Parquet: timestamp[us, UTC])
-``layer``                  0 = lowest layer, -1 = none found
+``layer``                  1 = lowest layer, 2 = next …; 0 = no layer found in this pair
 ``cloud_base_height_m``    cloud-base height above ground (the ENU origin) [m]
 ``cloud_base_altitude_m``  the same above mean sea level (+ station altitude) [m]
 ``median_height_m``        median height of the layer's points [m]
 ``spread_m``               robust spread (1.4826 MAD) of the layer's heights [m]
 ``cover``                  fraction of the reference camera's sky covered by the layer, 0..1
+``cover_okta``             the layer's cover in okta, 0..8 (:func:`okta`)
+``motion_east_ms``         layer motion over the ground, east component [m/s]; empty = unknown
+``motion_north_ms``        layer motion over the ground, north component [m/s]; empty = unknown
+``motion_spread_ms``       robust spread of the layer's track velocities [m/s]; empty = unknown
+``motion_tracks``          feature tracks behind the layer's motion; 0 = no motion
 ``points``                 triangulated points supporting the layer
 ``confidence``             0..1
 ``cloud_fraction``         total cloud fraction of the reference camera, 0..1
+``total_okta``             the total cloud fraction in okta, 0..8
+``ceiling_m``              ceiling of the pair (:func:`ceiling_index`) above ground [m]; empty = none
 ``n_layers``               layers found in this pair
-``flags``                  quality flags of the pair, ``;``-separated
+``quality_flag``           quality flags of the pair as fixed bits (:class:`cbh.flags.Flag`)
+``flags``                  the same flags by name, ``;``-separated
+``<diagnostic>``           one column per ``PairResult.diagnostics`` key (e.g. ``clock_offset_s``),
+                           after the fixed columns, in sorted order; empty where a pair lacks it
 =========================  ======================================================================
+
+A pair with an invalidating flag (:data:`cbh.flags.INVALIDATING`, e.g. ``geometry_mismatch``)
+keeps its rows: the flag is in ``quality_flag`` / ``flags``, and the reader decides.
+
+CSV numbers are rounded to what the measurement supports (Parquet and NetCDF keep full
+float64): lengths (``*_m``) to 0.1 m, speeds (``*_ms``) to 0.01 m/s, fractions (cover,
+cloud fraction, confidence) to 3 decimals, diagnostics to 6 significant digits.
 
 Both live formats are readable at any moment, also while ``cbh run`` writes them and after a
 kill: CSV rows are flushed as they are written; the Parquet table is rewritten to a temporary
-file and atomically renamed over the export after every pair.
+file and atomically renamed over the export after every pair. A diagnostic key that appears
+only later in a live CSV rewrites the file once with the wider header (atomically).
 
-The NetCDF file follows CF-1.8 in the style of ceilometer products (E-PROFILE, Vaisala CL61):
-dimensions ``time`` and ``layer``; ``cloud_base_height`` [m above ground] and
-``cloud_base_altitude`` [m above sea level] with ``_FillValue`` where a layer is missing.
+The NetCDF file follows CF-1.8 (0 errors from the IOOS compliance checker) in the style of
+ceilometer products (E-PROFILE, Vaisala CL61): see :func:`netcdf_dataset`.
 """
 from __future__ import annotations
 
 import csv
 import logging
 import math
+import os
+import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -38,19 +58,65 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
+from cbh.flags import Flag, flag_bits
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult, require_time
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
-           "netcdf_dataset", "write_netcdf", "export_sessions", "FORMATS", "FILL_VALUE", "KNOWN_FLAGS"]
+           "netcdf_dataset", "write_netcdf", "export_sessions", "FORMATS", "FILL_VALUE", "okta",
+           "ceiling_index", "diagnostic_units", "daily_groups"]
 
 log = logging.getLogger(__name__)
 
 COLUMNS = ("time_utc", "layer", "cloud_base_height_m", "cloud_base_altitude_m", "median_height_m", "spread_m",
-           "cover", "points", "confidence", "cloud_fraction", "n_layers", "flags")
+           "cover", "cover_okta", "motion_east_ms", "motion_north_ms", "motion_spread_ms",
+           "motion_tracks", "points", "confidence", "cloud_fraction",
+           "total_okta", "ceiling_m", "n_layers", "quality_flag", "flags")
 FORMATS = ("csv", "parquet", "netcdf")
 FILL_VALUE = -9999.0  # NetCDF _FillValue of the float layer variables
-KNOWN_FLAGS = ("few_points", "sun_glare", "overcast_no_texture")  # fixed bits 0, 1, 2 of quality_flag
+CEILING_OKTA = 5  # a ceiling is the base of the lowest layer at which the sky is ≥ 5/8 covered (broken)
+
+
+def okta(cover: float) -> int:
+    """Cloud cover (0..1) in okta (WMO code 2700): 0 only for no cloud, 8 only for a full
+    cover, otherwise round(8 · cover) kept within 1..7; -1 for an unknown (NaN) cover."""
+    c = float(cover)
+    if not math.isfinite(c):
+        return -1
+    if c <= 0.0:
+        return 0
+    if c >= 1.0:
+        return 8
+    return int(min(max(round(8.0 * c), 1), 7))
+
+
+def ceiling_index(covers) -> int | None:
+    """Index of the ceiling layer in layers ascending by height, or None.
+
+    Summation principle (as in METAR and ceilometer sky-condition reports): the ceiling is the
+    lowest layer at which the cover of that layer and every layer below it adds up to at least
+    5 okta (``CEILING_OKTA``); a single layer of ≥ 5 okta is its own ceiling.
+    """
+    total = 0.0
+    for i, c in enumerate(covers):
+        total += float(c) if math.isfinite(float(c)) else 0.0
+        if okta(min(total, 1.0)) >= CEILING_OKTA:
+            return i
+    return None
+
+
+#: Unit suffix of a diagnostics key → (CF units, long-name note).
+_DIAG_UNITS = (("_deg", "degree"), ("_px", "1"), ("_ms", "m s-1"), ("_m", "m"), ("_s", "s"))
+
+
+def diagnostic_units(key: str) -> str:
+    """CF units of a ``PairResult.diagnostics`` key from its suffix (docs/conventions.md):
+    ``_deg`` degree, ``_px`` pixels (units ``1``), ``_ms`` m s-1 (as in ``motion_east_ms``),
+    ``_m`` m, ``_s`` s; any other key is dimensionless (``1``)."""
+    for suffix, units in _DIAG_UNITS:
+        if key.endswith(suffix):
+            return units
+    return "1"
 
 
 @dataclass
@@ -68,72 +134,129 @@ class PairRecord:
     cloud_fraction: float  # reference camera's, NaN if unknown
     flags: list[str] = field(default_factory=list)
     point_count: int = 0
+    motion_east_ms: list[float] = field(default_factory=list)
+    motion_north_ms: list[float] = field(default_factory=list)
+    motion_spread_ms: list[float] = field(default_factory=list)
+    motion_tracks: list[int] = field(default_factory=list)
+    diagnostics: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ceiling(self) -> int | None:
+        """Index of the ceiling layer (:func:`ceiling_index`)."""
+        return ceiling_index(self.cover)
 
 
 def pair_record(result: PairResult, station_altitude_m: float, altitude_m: list[float] | None = None) -> PairRecord:
-    """Pick the layer values of one result (``altitude_m`` defaults to height + station altitude)."""
+    """Pick the layer values of one result.
+
+    ``altitude_m`` per layer: given, else the layer's own ``altitude_m``, else height + station altitude.
+    """
     L = result.layers
-    alt = altitude_m if altitude_m is not None else [float(l.height_m) + float(station_altitude_m) for l in L]
+    if altitude_m is None:
+        altitude_m = [float(l.altitude_m) if math.isfinite(float(l.altitude_m))
+                      else float(l.height_m) + float(station_altitude_m) for l in L]
     cf = result.cloud_fraction.get(result.cameras[0], math.nan)
     return PairRecord(
         time_utc=result.time_utc,
-        height_m=[float(l.height_m) for l in L], altitude_m=[float(a) for a in alt],
+        height_m=[float(l.height_m) for l in L], altitude_m=[float(a) for a in altitude_m],
         median_height_m=[float(l.median_height_m) for l in L], spread_m=[float(l.spread_m) for l in L],
         cover=[float(l.cover) for l in L], points=[int(l.points) for l in L],
         confidence=[float(l.confidence) for l in L], cloud_fraction=float(cf), flags=list(result.flags),
         point_count=len(result.points),
+        motion_east_ms=[float(l.motion_east_ms) for l in L], motion_north_ms=[float(l.motion_north_ms) for l in L],
+        # the motion's quality (getattr: layers made before the motion estimator carry none)
+        motion_spread_ms=[float(getattr(l, "motion_spread_ms", math.nan)) for l in L],
+        motion_tracks=[int(getattr(l, "motion_tracks", 0)) for l in L],
+        diagnostics={str(k): float(v) for k, v in result.diagnostics.items()},
     )
 
 
-def record_rows(r: PairRecord) -> list[dict]:
-    """Table rows (dicts keyed by :data:`COLUMNS`) of one pair."""
-    common = {"time_utc": r.time_utc, "cloud_fraction": r.cloud_fraction, "n_layers": len(r.height_m),
-              "flags": ";".join(r.flags)}
+def record_rows(r: PairRecord, diagnostics: tuple[str, ...] = ()) -> list[dict]:
+    """Table rows (dicts keyed by :data:`COLUMNS` + ``diagnostics``) of one pair."""
+    nan = math.nan
+    ceil = r.ceiling
+    common = {"time_utc": r.time_utc, "cloud_fraction": r.cloud_fraction, "total_okta": okta(r.cloud_fraction),
+              "ceiling_m": r.height_m[ceil] if ceil is not None else nan, "n_layers": len(r.height_m),
+              "quality_flag": flag_bits(r.flags), "flags": ";".join(r.flags)}
+    common.update({k: float(r.diagnostics.get(k, nan)) for k in diagnostics})
     if not r.height_m:
-        nan = math.nan
-        return [dict(common, layer=-1, cloud_base_height_m=nan, cloud_base_altitude_m=nan, median_height_m=nan,
-                     spread_m=nan, cover=0.0, points=0, confidence=nan)]
-    return [dict(common, layer=i, cloud_base_height_m=r.height_m[i], cloud_base_altitude_m=r.altitude_m[i],
-                 median_height_m=r.median_height_m[i], spread_m=r.spread_m[i], cover=r.cover[i], points=r.points[i],
-                 confidence=r.confidence[i]) for i in range(len(r.height_m))]
+        return [dict(common, layer=0, cloud_base_height_m=nan, cloud_base_altitude_m=nan, median_height_m=nan,
+                     spread_m=nan, cover=0.0, cover_okta=0, motion_east_ms=nan, motion_north_ms=nan,
+                     motion_spread_ms=nan, motion_tracks=0, points=0,
+                     confidence=nan)]
+    n = len(r.height_m)
+    me = r.motion_east_ms or [nan] * n
+    mn = r.motion_north_ms or [nan] * n
+    ms = r.motion_spread_ms or [nan] * n
+    mt = r.motion_tracks or [0] * n
+    return [dict(common, layer=i + 1, cloud_base_height_m=r.height_m[i], cloud_base_altitude_m=r.altitude_m[i],
+                 median_height_m=r.median_height_m[i], spread_m=r.spread_m[i], cover=r.cover[i],
+                 cover_okta=okta(r.cover[i]), motion_east_ms=me[i], motion_north_ms=mn[i],
+                 motion_spread_ms=ms[i], motion_tracks=mt[i], points=r.points[i],
+                 confidence=r.confidence[i]) for i in range(n)]
 
 
 def _iso(t: datetime) -> str:
     return t.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
+_FRACTIONS = {"cover", "cloud_fraction", "confidence"}
+
+
 def _csv_value(k: str, v) -> str:
+    """One CSV cell, rounded by the rule of the module docstring."""
     if k == "time_utc":
         return _iso(v)
-    if isinstance(v, float):
-        return "" if math.isnan(v) else repr(v)  # repr: shortest text that reads back to the same double
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        if math.isnan(v):
+            return ""
+        if k in COLUMNS:
+            if k in _FRACTIONS:
+                return f"{v:.3f}"
+            if k.endswith("_ms"):
+                return f"{v:.2f}"
+            if k.endswith("_m"):
+                return f"{v:.1f}"
+        return f"{v:.6g}"
     return str(v)
 
 
-def _arrow_schema():
+def _arrow_schema(diagnostics: tuple[str, ...] = ()):
     import pyarrow as pa
 
+    f64 = pa.float64()
     return pa.schema([
         ("time_utc", pa.timestamp("us", tz="UTC")), ("layer", pa.int32()),
-        ("cloud_base_height_m", pa.float64()), ("cloud_base_altitude_m", pa.float64()),
-        ("median_height_m", pa.float64()), ("spread_m", pa.float64()), ("cover", pa.float64()),
-        ("points", pa.int64()), ("confidence", pa.float64()), ("cloud_fraction", pa.float64()),
-        ("n_layers", pa.int32()), ("flags", pa.string()),
+        ("cloud_base_height_m", f64), ("cloud_base_altitude_m", f64),
+        ("median_height_m", f64), ("spread_m", f64), ("cover", f64), ("cover_okta", pa.int8()),
+        ("motion_east_ms", f64), ("motion_north_ms", f64), ("motion_spread_ms", f64), ("motion_tracks", pa.int32()),
+        ("points", pa.int64()), ("confidence", f64), ("cloud_fraction", f64), ("total_okta", pa.int8()),
+        ("ceiling_m", f64), ("n_layers", pa.int32()), ("quality_flag", pa.int64()), ("flags", pa.string()),
+        *[(k, f64) for k in diagnostics],
     ])
 
 
-def _arrow_table(rows: list[dict]):
+def _arrow_table(rows: list[dict], diagnostics: tuple[str, ...] = ()):
     import pyarrow as pa
 
-    schema = _arrow_schema()
+    schema = _arrow_schema(diagnostics)
     cols = {}
     for name in schema.names:
-        vals = [r[name] for r in rows]
+        vals = [r.get(name, math.nan) for r in rows]
         if schema.field(name).type == pa.float64():
             cols[name] = pa.array(vals, pa.float64(), from_pandas=True)  # NaN → null
         else:
             cols[name] = pa.array(vals, schema.field(name).type)
     return pa.table(cols, schema=schema)
+
+
+def _diag_keys(names) -> tuple[str, ...]:
+    """Diagnostics columns of an existing table header (None if it is not a cbh layer table)."""
+    names = list(names)
+    if names[: len(COLUMNS)] != list(COLUMNS):
+        return None
+    return tuple(names[len(COLUMNS):])
 
 
 class LayerExporter(ResultSink):
@@ -142,12 +265,14 @@ class LayerExporter(ResultSink):
     Parameters
     ----------
     path : str or Path
-        ``.csv`` (appended to if it exists with the same header) or ``.parquet`` (appended to if
+        ``.csv`` (appended to if it exists with cbh's columns) or ``.parquet`` (appended to if
         it is a cbh layer table).
     station : cbh.geometry.station.Station
-        Gives the altitude for ``cloud_base_altitude_m``.
+        Gives the altitude for ``cloud_base_altitude_m`` where a layer carries none.
     max_rows : int
         Parquet only: after this many rows the export continues in ``<stem>-001.parquet``, … .
+    diagnostics : tuple of str
+        Diagnostics columns a new file starts with (keys seen later are added).
 
     Both formats are complete and readable after every pair, also while the service runs and
     after a kill: CSV rows are flushed as written; the Parquet file is rewritten to a temporary
@@ -160,12 +285,13 @@ class LayerExporter(ResultSink):
     def output_paths(self) -> list[Path]:
         return list(self.paths)
 
-
-    def __init__(self, path, station, *, max_rows: int = 200_000, fmt: str | None = None):
+    def __init__(self, path, station, *, max_rows: int = 200_000, fmt: str | None = None,
+                 diagnostics: tuple[str, ...] = ()):
         self.path = Path(path)
         self.paths = [self.path]
         self.altitude_m = float(station.altitude_m)
         self.rows_written = 0
+        self.diagnostics: tuple[str, ...] = tuple(diagnostics)  # columns of a new file (more join later)
         self._closed = False
         suffix = "." + fmt.lower() if fmt else self.path.suffix.lower()
         if suffix not in (".csv", ".parquet"):
@@ -174,30 +300,19 @@ class LayerExporter(ResultSink):
         if not self.path.parent.is_dir():
             raise RecordingError(f"export directory does not exist: {self.path.parent}")
         if self.format == "csv":
-            header = ",".join(COLUMNS)
             exists = self.path.is_file() and self.path.stat().st_size > 0
             if exists:
                 with open(self.path, newline="") as fh:
-                    first = fh.readline().rstrip("\r\n")
-                if first != header:
+                    first = next(csv.reader([fh.readline()]), [])
+                keys = _diag_keys(first)
+                if keys is None:
                     raise RecordingError(f"{self.path}: exists with other columns; cannot append layer rows to it")
-            try:
-                self._fh = open(self.path, "a", newline="")
-            except OSError as exc:
-                raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
-            self._csv = csv.writer(self._fh, lineterminator="\n")
-            if not exists:
-                try:
-                    self._csv.writerow(COLUMNS)
-                    self._fh.flush()
-                except OSError:
-                    self._fh.close()  # the caller reports the error (e.g. disk full)
-                    raise
+                self.diagnostics = keys
+            self._open_csv(write_header=not exists)
         else:
             if max_rows < 1:
                 raise ConfigError(f"export.max_rows: must be >= 1, got {max_rows}")
             self.max_rows = int(max_rows)
-            self.paths = [self.path]
             self._rows: list[dict] = []
             if self.path.exists():
                 import pyarrow.parquet as pq
@@ -206,9 +321,47 @@ class LayerExporter(ResultSink):
                     table = pq.read_table(self.path)
                 except Exception as exc:  # pyarrow raises several types for a foreign file
                     raise RecordingError(f"{self.path}: exists and is not a readable Parquet file ({exc})") from None
-                if table.schema.names != _arrow_schema().names:
+                keys = _diag_keys(table.schema.names)
+                if keys is None:
                     raise RecordingError(f"{self.path}: exists with other columns; cannot append layer rows to it")
+                self.diagnostics = keys
                 self._rows = table.to_pylist()
+
+    def _open_csv(self, write_header: bool) -> None:
+        try:
+            self._fh = open(self.path, "a", newline="")
+        except OSError as exc:
+            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
+        self._csv = csv.writer(self._fh, lineterminator="\n")
+        if write_header:
+            try:
+                self._csv.writerow(COLUMNS + self.diagnostics)
+                self._fh.flush()
+            except OSError:
+                self._fh.close()  # the caller reports the error (e.g. disk full)
+                raise
+
+    def _widen_csv(self, keys: tuple[str, ...]) -> None:
+        """Rewrite the CSV with ``keys`` as its diagnostics columns (atomic rename)."""
+        self._fh.close()
+        with open(self.path, newline="") as fh:
+            old = list(csv.reader(fh))
+        tmp = self.path.with_name(f".{self.path.name}.tmp")
+        width = len(COLUMNS) + len(keys)
+        try:
+            with open(tmp, "w", newline="") as fh:
+                w = csv.writer(fh, lineterminator="\n")
+                w.writerow(COLUMNS + keys)
+                index = {k: i for i, k in enumerate(old[0])} if old else {}
+                for row in old[1:]:
+                    w.writerow([row[index[k]] if k in index and index[k] < len(row) else ""
+                                for k in (COLUMNS + keys)][:width])
+            os.replace(tmp, self.path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        self.diagnostics = keys
+        self._open_csv(write_header=False)
 
     def write(self, frames: tuple[Frame, Frame] | None, result: PairResult) -> None:
         """Append the rows of one result (``frames`` are not used)."""
@@ -218,10 +371,18 @@ class LayerExporter(ResultSink):
     def write_record(self, rec: PairRecord) -> None:
         if self._closed:
             raise RecordingError(f"write to a closed LayerExporter ({self.path})")
-        rows = record_rows(rec)
+        new = sorted(set(rec.diagnostics) - set(self.diagnostics))
+        if new:
+            keys = self.diagnostics + tuple(new)
+            if self.format == "csv":
+                self._widen_csv(keys)
+            else:
+                self.diagnostics = keys
+        rows = record_rows(rec, self.diagnostics)
         if self.format == "csv":
+            cols = COLUMNS + self.diagnostics
             for r in rows:
-                self._csv.writerow([_csv_value(k, r[k]) for k in COLUMNS])
+                self._csv.writerow([_csv_value(k, r[k]) for k in cols])
             self._fh.flush()
         else:
             if len(self._rows) + len(rows) > self.max_rows:
@@ -234,13 +395,11 @@ class LayerExporter(ResultSink):
 
     def _write_parquet(self) -> None:
         """Write all rows to a temporary file and rename it over the export (atomic)."""
-        import os
-
         import pyarrow.parquet as pq
 
         tmp = self.path.with_name(f".{self.path.name}.tmp")
         try:
-            pq.write_table(_arrow_table(self._rows), str(tmp))
+            pq.write_table(_arrow_table(self._rows, self.diagnostics), str(tmp))
             os.replace(tmp, self.path)
         finally:
             if tmp.exists():
@@ -272,7 +431,8 @@ def session_records(paths) -> tuple[list[PairRecord], dict]:
     -------
     records : list of PairRecord
     info : dict
-        station name, latitude_deg, longitude_deg, altitude_m, cameras, cbh_version.
+        station name, latitude_deg, longitude_deg, altitude_m, metadata ([station.metadata]),
+        cameras, cbh_version.
     """
     from cbh.outputs.record import open_session
 
@@ -282,7 +442,7 @@ def session_records(paths) -> tuple[list[PairRecord], dict]:
         s = open_session(p)
         st = s.station
         this = {"station": st.name, "latitude_deg": st.latitude_deg, "longitude_deg": st.longitude_deg,
-                "altitude_m": st.altitude_m, "cbh_version": s.version}
+                "altitude_m": st.altitude_m, "cbh_version": s.version, "metadata": dict(st.metadata)}
         if info is None:
             info = this
         elif (this["station"], this["latitude_deg"], this["longitude_deg"], this["altitude_m"]) != (
@@ -294,33 +454,70 @@ def session_records(paths) -> tuple[list[PairRecord], dict]:
             info.setdefault("cameras", pair.result.cameras)
     if info is None:
         raise RecordingError("no recording given")
-    recs.sort(key=lambda r: r.time_utc)
+    return dedupe(recs), info
+
+
+def dedupe(recs: list[PairRecord]) -> list[PairRecord]:
+    """Time order; a second pair at the same time (a session given twice) is dropped with a warning."""
+    recs = sorted(recs, key=lambda r: r.time_utc)
     out: list[PairRecord] = []
     for r in recs:
         if out and r.time_utc == out[-1].time_utc:
             log.warning("dropping a second pair at %s (same session given twice?)", r.time_utc.isoformat())
             continue
         out.append(r)
-    return out, info
+    return out
+
+
+def _all_diagnostics(records) -> tuple[str, ...]:
+    return tuple(sorted({k for r in records for k in r.diagnostics}))
 
 
 def layer_table(records: list[PairRecord]):
-    """pandas DataFrame with :data:`COLUMNS` (time_utc as datetime64[ns, UTC])."""
+    """The export table of pair records as a pandas DataFrame: :data:`COLUMNS` + one column per
+    diagnostics key (time_utc as datetime64[ns, UTC]). For PairResults in a script, the simpler
+    :func:`cbh.layer_table` (cbh.result) is the API."""
     import pandas as pd
 
-    rows = [row for r in records for row in record_rows(r)]
-    df = pd.DataFrame(rows, columns=list(COLUMNS))
+    diags = _all_diagnostics(records)
+    rows = [row for r in records for row in record_rows(r, diags)]
+    df = pd.DataFrame(rows, columns=list(COLUMNS + diags))
     df["time_utc"] = pd.to_datetime(df["time_utc"], utc=True)
     return df
 
 
-def _flag_bits(records: list[PairRecord]) -> list[str]:
-    extra = sorted({f for r in records for f in r.flags} - set(KNOWN_FLAGS))
-    return list(KNOWN_FLAGS) + extra
+def daily_groups(records: list[PairRecord]) -> dict[str, list[PairRecord]]:
+    """Records grouped by UTC day (``YYYYMMDD`` → records, in time order)."""
+    out: dict[str, list[PairRecord]] = {}
+    for r in records:
+        out.setdefault(r.time_utc.astimezone(timezone.utc).strftime("%Y%m%d"), []).append(r)
+    return out
+
+
+_NC_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
 
 def netcdf_dataset(records: list[PairRecord], info: dict):
-    """CF-1.8 xarray Dataset (dims time, layer) of the pair records."""
+    """CF-1.8 xarray Dataset (dims ``time``, ``layer``) of the pair records.
+
+    Ceilometer conventions (E-PROFILE / Vaisala CL61):
+
+    * ``station_latitude``, ``station_longitude``, ``station_altitude`` scalar coordinate
+      variables; ``station_name`` (``cf_role = timeseries_id``), ``featureType = timeSeries``;
+      ``institution``, ``instrument``, ``site`` … global attributes from ``[station.metadata]``.
+    * ``time``: float64 seconds since 1970-01-01 UTC (µs resolution kept).
+    * ``layer``: 1 = lowest. ``cloud_base_height`` [m above ground] and ``cloud_base_altitude``
+      [m above sea level] per layer; the CF standard name ``cloud_base_altitude`` (the base of
+      the lowest cloud) only on ``lowest_cloud_base_altitude(time)``.
+    * ``cloud_layer_cover`` (0..1) and ``cloud_layer_okta``, ``cloud_fraction`` and
+      ``total_cloud_okta``; ``ceiling_height`` (:func:`ceiling_index`).
+    * ``cloud_motion_east`` / ``cloud_motion_north`` (time, layer) [m s-1], plus speed and the
+      direction the layer moves towards [degree clockwise from north].
+    * ``quality_flag``: bits of :class:`cbh.flags.Flag` (``flag_masks``/``flag_meanings`` list
+      the whole enumeration, so bits never depend on the file's content).
+    * every ``PairResult.diagnostics`` key as a (time) variable of that name, units from its
+      suffix (:func:`diagnostic_units`), fill where a pair lacks it.
+    """
     import pandas as pd
     import xarray as xr
 
@@ -335,66 +532,117 @@ def netcdf_dataset(records: list[PairRecord], info: dict):
             a[i, : len(v)] = v
         return a
 
-    bits = _flag_bits(records)
-    qf = np.array([sum(1 << bits.index(f) for f in set(r.flags)) for r in records], np.int32)
+    def per_time(fn, dtype=np.float64):
+        return np.array([fn(r) for r in records], dtype)
+
+    nan = math.nan
+    H = grid("height_m")
+    A = grid("altitude_m")
+    C = grid("cover")
+    ve, vn = grid("motion_east_ms"), grid("motion_north_ms")
+    okta_l = np.full(shape, -1, np.int32)
+    for i, r in enumerate(records):
+        okta_l[i, : len(r.cover)] = [okta(c) for c in r.cover]
+    ceil = [r.ceiling for r in records]
+    qf = per_time(lambda r: flag_bits(r.flags), np.int32)
+    all_bits = np.array([int(f) for f in Flag], np.int32)
     times = pd.DatetimeIndex([r.time_utc for r in records]).tz_convert("UTC").tz_localize(None).values.astype("datetime64[ns]")
-    ds = xr.Dataset(
-        data_vars={
-            "cloud_base_height": (("time", "layer"), grid("height_m"), {
-                "long_name": "cloud base height above ground", "units": "m",
-                "comment": "above the station reference point (ENU origin); layers ascending, missing layers are fill"}),
-            "cloud_base_altitude": (("time", "layer"), grid("altitude_m"), {
-                "standard_name": "cloud_base_altitude", "long_name": "cloud base altitude above mean sea level",
-                "units": "m"}),
-            "cloud_base_height_median": (("time", "layer"), grid("median_height_m"), {
-                "long_name": "median height of the layer's points above ground", "units": "m"}),
-            "cloud_base_height_spread": (("time", "layer"), grid("spread_m"), {
-                "long_name": "robust spread (1.4826 MAD) of the layer's point heights", "units": "m"}),
-            "cloud_layer_cover": (("time", "layer"), grid("cover"), {
-                "long_name": "fraction of the reference camera's sky covered by the layer", "units": "1",
-                "valid_range": np.array([0.0, 1.0])}),
-            "cloud_layer_points": (("time", "layer"), grid("points", np.int32, -1), {
-                "long_name": "triangulated points supporting the layer", "units": "1"}),
-            "cloud_layer_confidence": (("time", "layer"), grid("confidence"), {
-                "long_name": "layer confidence", "units": "1", "valid_range": np.array([0.0, 1.0])}),
-            "cloud_fraction": (("time",), np.array([r.cloud_fraction for r in records], np.float64), {
-                "standard_name": "cloud_area_fraction", "long_name": "total cloud fraction of the reference camera's sky",
-                "units": "1"}),
-            "n_layers": (("time",), np.array([len(r.height_m) for r in records], np.int32), {
-                "long_name": "number of cloud layers detected", "units": "1"}),
-            "point_count": (("time",), np.array([r.point_count for r in records], np.int32), {
-                "long_name": "triangulated points in the pair", "units": "1"}),
-            "quality_flag": (("time",), qf, {
-                "long_name": "quality flags of the frame pair", "flag_masks": np.array([1 << i for i in range(len(bits))], np.int32),
-                "flag_meanings": " ".join(bits), "valid_min": np.int32(0)}),
-            "latitude": ((), float(info["latitude_deg"]), {"standard_name": "latitude", "units": "degrees_north"}),
-            "longitude": ((), float(info["longitude_deg"]), {"standard_name": "longitude", "units": "degrees_east"}),
-            "altitude": ((), float(info["altitude_m"]), {
-                "standard_name": "altitude", "long_name": "station altitude above mean sea level", "units": "m"}),
-        },
-        coords={
-            "time": ("time", times, {"standard_name": "time", "long_name": "capture time (UTC)", "axis": "T"}),
-            "layer": ("layer", np.arange(1, n_l + 1, dtype=np.int32), {"long_name": "cloud layer, 1 = lowest", "units": "1"}),
-        },
-        attrs={
-            "Conventions": "CF-1.8",
-            "title": f"Cloud base height from fisheye stereo cameras, station {info['station']}",
-            "source": f"cbh {info.get('cbh_version', '?')}: two upward fisheye cameras, ray triangulation",
-            "history": f"{datetime.now(timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')} created by cbh export",
-            "references": "Scaramuzza OCamCalib fisheye model; closest-approach ray triangulation",
-            "station_name": info["station"],
-            "station_latitude": float(info["latitude_deg"]),
-            "station_longitude": float(info["longitude_deg"]),
-            "station_altitude": float(info["altitude_m"]),
-            "cameras": ",".join(info.get("cameras", ())),
-            "featureType": "timeSeries",
-        },
-    )
-    return ds
+    fvar = lambda dims, data, **attrs: (dims, data, attrs)  # noqa: E731
+    md = info.get("metadata", {}) or {}
+    data_vars = {
+        "cloud_base_height": fvar(("time", "layer"), H, long_name="cloud base height above ground", units="m",
+                                  comment="above the station reference point (ENU origin); layer 1 = lowest; "
+                                          "missing layers are fill"),
+        "cloud_base_altitude": fvar(("time", "layer"), A, long_name="cloud base altitude above mean sea level",
+                                    units="m"),
+        "lowest_cloud_base_height": fvar(("time",), H[:, 0].copy(), long_name="height of the lowest cloud base above ground",
+                                         units="m"),
+        "lowest_cloud_base_altitude": fvar(("time",), A[:, 0].copy(), standard_name="cloud_base_altitude",
+                                           long_name="altitude of the lowest cloud base above mean sea level", units="m"),
+        "cloud_base_height_median": fvar(("time", "layer"), grid("median_height_m"),
+                                         long_name="median height of the layer's points above ground", units="m"),
+        "cloud_base_height_spread": fvar(("time", "layer"), grid("spread_m"),
+                                         long_name="robust spread (1.4826 MAD) of the layer's point heights", units="m"),
+        "cloud_layer_cover": fvar(("time", "layer"), C,
+                                  long_name="fraction of the reference camera's sky covered by the layer", units="1",
+                                  valid_range=np.array([0.0, 1.0])),
+        "cloud_layer_okta": fvar(("time", "layer"), okta_l, long_name="cloud cover of the layer in okta (eighths)",
+                                 units="1", valid_range=np.array([0, 8], np.int32)),
+        "cloud_layer_points": fvar(("time", "layer"), grid("points", np.int32, -1),
+                                   long_name="triangulated points supporting the layer", units="1"),
+        "cloud_layer_confidence": fvar(("time", "layer"), grid("confidence"), long_name="layer confidence", units="1",
+                                       valid_range=np.array([0.0, 1.0])),
+        "cloud_motion_east": fvar(("time", "layer"), ve, long_name="eastward motion of the cloud layer over the ground",
+                                  units="m s-1"),
+        "cloud_motion_north": fvar(("time", "layer"), vn,
+                                   long_name="northward motion of the cloud layer over the ground", units="m s-1"),
+        "cloud_motion_spread": fvar(("time", "layer"), grid("motion_spread_ms"),
+                                    long_name="robust spread (1.4826 MAD) of the layer's track velocities",
+                                    units="m s-1"),
+        "cloud_motion_tracks": fvar(("time", "layer"), grid("motion_tracks", np.int32, -1),
+                                    long_name="feature tracks behind the layer's motion", units="1"),
+        "cloud_motion_speed": fvar(("time", "layer"), np.hypot(ve, vn), long_name="speed of the cloud layer over the ground",
+                                   units="m s-1"),
+        "cloud_motion_direction": fvar(("time", "layer"), np.degrees(np.arctan2(ve, vn)) % 360.0,
+                                       long_name="direction the cloud layer moves towards, clockwise from north",
+                                       units="degree"),
+        "cloud_fraction": fvar(("time",), per_time(lambda r: r.cloud_fraction), standard_name="cloud_area_fraction",
+                               long_name="total cloud fraction of the reference camera's sky", units="1"),
+        "total_cloud_okta": fvar(("time",), per_time(lambda r: okta(r.cloud_fraction), np.int32),
+                                 long_name="total cloud cover in okta (eighths)", units="1",
+                                 valid_range=np.array([0, 8], np.int32)),
+        "ceiling_height": fvar(("time",), np.array([H[i, c] if c is not None else nan for i, c in enumerate(ceil)]),
+                               long_name="ceiling above ground: base of the lowest layer at which the summed "
+                                         f"layer cover reaches {CEILING_OKTA} okta", units="m"),
+        "n_layers": fvar(("time",), per_time(lambda r: len(r.height_m), np.int32),
+                         long_name="number of cloud layers detected", units="1"),
+        "point_count": fvar(("time",), per_time(lambda r: r.point_count, np.int32),
+                            long_name="triangulated points in the pair", units="1"),
+        "quality_flag": fvar(("time",), qf, standard_name="status_flag", long_name="quality flags of the frame pair",
+                             flag_masks=all_bits, flag_meanings=" ".join(f.name for f in Flag),
+                             valid_range=np.array([0, int(all_bits.sum())], np.int32),
+                             comment="bits of cbh.flags.Flag; layers of a pair with geometry_mismatch or "
+                                     "identical_images are not valid"),
+    }
+    for key in _all_diagnostics(records):
+        taken = set(data_vars) | {"time", "layer", "station_latitude", "station_longitude", "station_altitude",
+                                  "station_name"}
+        name = key if _NC_NAME.match(key) and key not in taken else "diagnostic_" + re.sub(r"\W", "_", key)
+        data_vars[name] = fvar(("time",), per_time(lambda r: r.diagnostics.get(key, nan)),
+                               long_name=f"pair diagnostic {key}", units=diagnostic_units(key))
+    coords = {
+        "time": ("time", times, {"standard_name": "time", "long_name": "capture time (UTC)", "axis": "T"}),
+        "layer": ("layer", np.arange(1, n_l + 1, dtype=np.int32), {"long_name": "cloud layer, 1 = lowest", "units": "1"}),
+        "station_latitude": ((), float(info["latitude_deg"]), {
+            "standard_name": "latitude", "long_name": "station latitude", "units": "degrees_north"}),
+        "station_longitude": ((), float(info["longitude_deg"]), {
+            "standard_name": "longitude", "long_name": "station longitude", "units": "degrees_east"}),
+        "station_altitude": ((), float(info["altitude_m"]), {
+            "standard_name": "altitude", "long_name": "station altitude above mean sea level", "units": "m",
+            "positive": "up", "axis": "Z"}),
+        "station_name": ((), str(info["station"]), {"long_name": "station name", "cf_role": "timeseries_id"}),
+    }
+    attrs = {
+        "Conventions": "CF-1.8",
+        "title": f"Cloud base height from fisheye stereo cameras, station {info['station']}",
+        "institution": md.get("institution", "unknown"),
+        "source": f"cbh {info.get('cbh_version', '?')}: two upward fisheye cameras, ray triangulation",
+        "instrument": md.get("instrument", "two upward-looking fisheye sky cameras"),
+        "site": md.get("site", str(info["station"])),
+        "history": f"{datetime.now(timezone.utc).strftime('%Y-%m-%dT%H:%M:%SZ')} created by cbh export",
+        "references": md.get("references", "Scaramuzza OCamCalib fisheye model; closest-approach ray triangulation"),
+        "featureType": "timeSeries",
+        "station_name": str(info["station"]),
+        "cameras": ",".join(info.get("cameras", ())),
+    }
+    for k in ("contact", "comment", "wigos_station_id"):
+        if k in md:
+            attrs[k] = md[k]
+    return xr.Dataset(data_vars=data_vars, coords=coords, attrs=attrs)
 
 
 def write_netcdf(records: list[PairRecord], info: dict, out) -> None:
-    """Write :func:`netcdf_dataset` to ``out`` (netCDF4, compressed, CF time in µs since 1970)."""
+    """Write :func:`netcdf_dataset` to ``out`` (netCDF4, compressed, CF time in s since 1970)."""
     ds = netcdf_dataset(records, info)
     enc = {}
     for name, var in ds.data_vars.items():
@@ -408,24 +656,24 @@ def write_netcdf(records: list[PairRecord], info: dict, out) -> None:
         else:
             e["_FillValue"] = None
         enc[name] = e
-    enc["time"] = {"units": "microseconds since 1970-01-01 00:00:00", "calendar": "standard", "dtype": "int64",
+    enc["time"] = {"units": "seconds since 1970-01-01 00:00:00", "calendar": "standard", "dtype": "float64",
                    "_FillValue": None}
-    enc["layer"] = {"_FillValue": None}
+    for c in ("layer", "station_latitude", "station_longitude", "station_altitude"):
+        enc[c] = {"_FillValue": None}
     try:
         ds.to_netcdf(out, engine="netcdf4", encoding=enc)
     except OSError as exc:
         raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
 
 
-def export_sessions(paths, fmt: str, out) -> tuple[int, int]:
-    """Export sessions to ``out`` in ``fmt`` (csv, parquet, netcdf). Returns (rows, time steps)."""
+def _check_format(fmt: str) -> str:
     fmt = fmt.lower()
     if fmt not in FORMATS:
         raise ConfigError(f"--format: unknown {fmt!r} (valid: {', '.join(FORMATS)})")
-    out = Path(out)
-    if not out.parent.is_dir():
-        raise RecordingError(f"output directory does not exist: {out.parent}")
-    records, info = session_records(paths)
+    return fmt
+
+
+def _write_records(records: list[PairRecord], info: dict, fmt: str, out: Path) -> tuple[int, int]:
     if fmt == "netcdf":
         if not records:
             raise RecordingError("no complete pairs in the recording(s): nothing to export")
@@ -435,8 +683,47 @@ def export_sessions(paths, fmt: str, out) -> tuple[int, int]:
         out.unlink()  # an explicit --out is replaced
     from types import SimpleNamespace
 
-    with LayerExporter(out, SimpleNamespace(altitude_m=info["altitude_m"]), fmt=fmt) as exp:
+    with LayerExporter(out, SimpleNamespace(altitude_m=info["altitude_m"]), fmt=fmt,
+                       diagnostics=_all_diagnostics(records)) as exp:
         for r in records:
             exp.write_record(r)
         n = exp.rows_written
     return n, len(records)
+
+
+def export_sessions(paths, fmt: str, out) -> tuple[int, int]:
+    """Export sessions to ``out`` in ``fmt`` (csv, parquet, netcdf). Returns (rows, time steps)."""
+    fmt = _check_format(fmt)
+    out = Path(out)
+    if not out.parent.is_dir():
+        raise RecordingError(f"output directory does not exist: {out.parent}")
+    records, info = session_records(paths)
+    return _write_records(records, info, fmt, out)
+
+
+SUFFIXES = {"csv": ".csv", "parquet": ".parquet", "netcdf": ".nc"}
+
+
+def export_daily(paths, fmt: str, out_dir) -> list[tuple[Path, int, int]]:
+    """One file per UTC day, like E-PROFILE's daily files: ``OUT_DIR/cbh_<station>_<YYYYMMDD>.<ext>``.
+
+    Sessions may span midnight or several days; every pair goes to the file of its capture day
+    (existing files of those days are replaced). Returns (path, rows, time steps) per file.
+    """
+    fmt = _check_format(fmt)
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise RecordingError(f"--daily needs a directory for --out, got the file {out_dir}")
+    if not out_dir.parent.is_dir():
+        raise RecordingError(f"output directory does not exist: {out_dir.parent}")
+    out_dir.mkdir(exist_ok=True)
+    records, info = session_records(paths)
+    if not records:
+        raise RecordingError("no complete pairs in the recording(s): nothing to export")
+    station = re.sub(r"[^A-Za-z0-9_.-]", "_", str(info["station"]))
+    done = []
+    for day, recs in daily_groups(records).items():
+        path = out_dir / f"cbh_{station}_{day}{SUFFIXES[fmt]}"
+        rows, steps = _write_records(recs, info, fmt, path)
+        done.append((path, rows, steps))
+    return done

@@ -22,6 +22,7 @@ from cbh.tomlio import dataclass_from_table, dataclass_to_dict
 
 __all__ = [
     "MasksConfig",
+    "PhotometricConfig",
     "SegmentationConfig",
     "LKConfig",
     "ORBConfig",
@@ -31,10 +32,13 @@ __all__ = [
     "FilteringConfig",
     "HeightMapConfig",
     "LayersConfig",
+    "MotionConfig",
+    "GeometryCheckConfig",
+    "SunCheckConfig",
     "PipelineConfig",
 ]
 
-SEGMENTATION_METHODS = ("nbr", "nbr_adaptive", "otsu")
+SEGMENTATION_METHODS = ("hybrid", "nbr", "nbr_adaptive", "otsu")
 MATCHING_METHODS = ("lk", "orb", "dis", "sweep")
 LAYER_METHODS = ("histogram",)
 FILL_METHODS = ("none", "nearest")
@@ -52,13 +56,21 @@ class MasksConfig:
     saturation_level: int = 250  # a pixel is saturated when all channels reach this [0..255]
     saturation_min_area_px: int = 20  # smallest saturated blob kept, at working size [px]
     saturation_grow_px: int = 6  # dilation of saturated blobs, at working size [px]
+    glare_radius_deg: float = 30.0  # with a known sun, only saturation within this angle of it is glare; beyond: over-exposed cloud (180 = all glare) [deg]
 
 
 @dataclass(frozen=True)
 class SegmentationConfig:
     """Cloud / clear-sky classification on the normalized blue-red ratio NBR = (B−R)/(B+R)."""
 
-    method: str = "nbr_adaptive"  # one of: nbr, nbr_adaptive, otsu
+    method: str = "hybrid"  # one of: hybrid, nbr, nbr_adaptive, otsu
+    clear_percentile: float = 85.0  # hybrid: a region's clear-sky reference = this percentile of its NBR / chroma [%]
+    min_gap: float = 0.06  # hybrid: smallest blue deficit (reference − NBR) of cloud; below it one class only [1]
+    chroma_gap: float = 0.06  # hybrid: … or half of it when the cloud class is this much greyer (chroma) and half as saturated [1]
+    fixed_threshold: float = 0.15  # hybrid: one-class images are cloud when their median NBR is below this [1]
+    texture_cv: float = 0.03  # hybrid: a one-class sky whose median local contrast (std/mean, 7 px) exceeds this is cloud [1]
+    chroma_weight: float = 0.3  # hybrid: weight of the desaturation cue against the blue deficit, 0..1 [1]
+    score_threshold: float = 0.45  # hybrid: cloud where the combined cloudiness score exceeds this [1]
     threshold: float = 0.10  # NBR below this is cloud (nbr; base of nbr_adaptive) [1]
     sun_threshold: float = -0.05  # nbr_adaptive: threshold right at the sun [1]
     sun_scale_deg: float = 25.0  # nbr_adaptive: e-folding angle of the sun term [deg]
@@ -68,6 +80,17 @@ class SegmentationConfig:
     otsu_min: float = -0.05  # otsu: clamp of the Otsu threshold, lower end [1]
     otsu_max: float = 0.20  # otsu: clamp of the Otsu threshold, upper end [1]
     min_brightness: int = 8  # pixels darker than this (max channel) are not classified [0..255]
+    max_side_px: int = 1600  # larger images are classified area-averaged to this long side; 0 = never [px]
+
+
+@dataclass(frozen=True)
+class PhotometricConfig:
+    """Camera 2's colour response relative to camera 1 (see :mod:`cbh.pipeline.photometric`)."""
+
+    correct: bool = True  # estimate, report and remove camera 2's gain / gamma / white balance [-]
+    max_gain: float = 1.5  # flag exposure_mismatch beyond ×/÷ this gain (half a stop = 1.41) [1]
+    max_gamma: float = 1.25  # … or beyond ×/÷ this tone-curve exponent [1]
+    max_wb: float = 1.15  # … or beyond ×/÷ this red or blue white-balance gain [1]
 
 
 @dataclass(frozen=True)
@@ -165,9 +188,53 @@ class LayersConfig:
     min_separation_log: float = 0.18  # peaks closer than this in ln(height) are one layer [1]
     valley_ratio: float = 0.5  # two peaks are separate only if the valley is below this × the lower peak [1]
     base_percentile: float = 10.0  # a layer's cloud-base height = this percentile of its points [%]
+    noise_margin: float = 1.2  # the spread is "explained by noise" up to this × the predicted noise [1]
     min_points: int = 50  # a layer needs at least this many points [1]
     min_fraction: float = 0.04  # … and this fraction of all points [1]
     min_cover: float = 0.005  # … and this fraction of camera 1's usable sky [1]
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Cloud motion per layer and camera 2's clock offset, from the previous pair (see
+    :mod:`cbh.pipeline.motion`; the previous pair itself is state, not configuration)."""
+
+    enabled: bool = True  # track clouds between consecutive pairs (needs ``previous`` and capture times)
+    max_gap_s: float = 120.0  # no motion across a longer time between consecutive pairs [s]
+    max_points: int = 500  # features tracked per camera (of the LK stereo matches) [1]
+    window_px: int = 15  # LK window side, at working size [px]
+    levels: int = 5  # pyramid levels above the base (cloud displacements up to ~2^levels windows) [1]
+    fb_max_px: float = 0.3  # forward-backward disagreement allowed, at working size [px]
+    min_tracks: int = 10  # a layer needs this many tracks for a motion [1]
+    layer_tolerance_log: float = 0.1  # a track belongs to a layer within this |ln(h / h_layer)| (or 3 spreads) [1]
+    clock_offset: bool = True  # estimate camera 2's clock offset and compensate it in the matching
+    offset_history: int = 15  # pairs in the running (median) clock-offset estimate [1]
+    offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
+    compensate_min_s: float = 0.1  # compensate camera 2 only above this |offset| (the estimate is good to ≈ 0.05 s) [s]
+    rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
+    max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
+
+
+@dataclass(frozen=True)
+class GeometryCheckConfig:
+    """Per-pair check of the correspondences against the station geometry (:mod:`.geocheck`)."""
+
+    enabled: bool = True  # run the check (flag geometry_mismatch / identical_images)
+    max_residual_px: float = 1.0  # median epipolar distance allowed at least, camera 2 working size [px]
+    expected_miss_ratio: float = 0.0  # median epipolar angle the lens calibration is known to leave [rad]; 0 = none
+    min_inlier_fraction: float = 0.5  # share of 2-D matches consistent with the geometry, at least [1]
+    min_matches: int = 30  # fewer 2-D matches: no verdict [1]
+    max_matches: int = 3000  # at most this many matches are judged (even subsample) [1]
+    identical_max_dn: float = 0.5  # images closer than this mean grey difference are the same image [DN]
+
+
+@dataclass(frozen=True)
+class SunCheckConfig:
+    """Detected vs predicted sun in each camera (:mod:`.sundetect`), when the time is known."""
+
+    enabled: bool = True  # detect the sun and report sun_residual_deg
+    search_deg: float = 15.0  # look for the sun this far from its predicted direction [deg]
+    max_residual_deg: float = 1.0  # flag sun_misaligned beyond this [deg]
 
 
 @dataclass(frozen=True)
@@ -177,11 +244,15 @@ class PipelineConfig:
 
     working_radius_px: float = 480.0  # lens radius at 90 deg after downsampling [px]; 0 = no downsampling
     masks: MasksConfig = field(default_factory=MasksConfig)
+    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     filtering: FilteringConfig = field(default_factory=FilteringConfig)
     height_map: HeightMapConfig = field(default_factory=HeightMapConfig)
     layers: LayersConfig = field(default_factory=LayersConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    geometry_check: GeometryCheckConfig = field(default_factory=GeometryCheckConfig)
+    sun_check: SunCheckConfig = field(default_factory=SunCheckConfig)
 
     @classmethod
     def from_dict(cls, data: dict | None, where: str = "pipeline") -> "PipelineConfig":
@@ -217,9 +288,26 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if not 0 < m.max_zenith_deg <= 90:
         raise ConfigError(f"{where}.masks.max_zenith_deg: must be in (0, 90], got {m.max_zenith_deg}")
     _positive(f"{where}.masks.sun_radius_deg", m.sun_radius_deg, strict=False)
+    if not 0 < m.glare_radius_deg <= 180:
+        raise ConfigError(f"{where}.masks.glare_radius_deg: must be in (0, 180], got {m.glare_radius_deg}")
     if not 0 <= m.saturation_level <= 255:
         raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
     _choice(f"{where}.segmentation.method", cfg.segmentation.method, SEGMENTATION_METHODS)
+    ph = cfg.photometric
+    for k in ("max_gain", "max_gamma", "max_wb"):
+        if not getattr(ph, k) >= 1.0:
+            raise ConfigError(f"{where}.photometric.{k}: must be >= 1, got {getattr(ph, k)}")
+    sg = cfg.segmentation
+    if not 50.0 <= sg.clear_percentile < 100.0:
+        raise ConfigError(f"{where}.segmentation.clear_percentile: must be in [50, 100), got {sg.clear_percentile}")
+    _positive(f"{where}.segmentation.min_gap", sg.min_gap)
+    _positive(f"{where}.segmentation.chroma_gap", sg.chroma_gap)
+    _positive(f"{where}.segmentation.texture_cv", sg.texture_cv, strict=False)
+    if not 0 <= sg.chroma_weight <= 1:
+        raise ConfigError(f"{where}.segmentation.chroma_weight: must be in 0..1, got {sg.chroma_weight}")
+    if not 0 < sg.score_threshold < 1:
+        raise ConfigError(f"{where}.segmentation.score_threshold: must be in (0, 1), got {sg.score_threshold}")
+    _positive(f"{where}.segmentation.max_side_px", sg.max_side_px, strict=False)
     if not 0 <= cfg.segmentation.grey_chroma <= 1:
         raise ConfigError(f"{where}.segmentation.grey_chroma: must be in 0..1, got {cfg.segmentation.grey_chroma}")
     if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:
@@ -272,11 +360,32 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     hm = cfg.height_map
     _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
     _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
+    gc = cfg.geometry_check
+    _positive(f"{where}.geometry_check.max_residual_px", gc.max_residual_px)
+    if not 0 <= gc.min_inlier_fraction <= 1:
+        raise ConfigError(f"{where}.geometry_check.min_inlier_fraction: must be in 0..1, got {gc.min_inlier_fraction}")
+    _positive(f"{where}.geometry_check.expected_miss_ratio", gc.expected_miss_ratio, strict=False)
+    _positive(f"{where}.geometry_check.min_matches", gc.min_matches)
+    _positive(f"{where}.geometry_check.max_matches", gc.max_matches)
+    _positive(f"{where}.geometry_check.identical_max_dn", gc.identical_max_dn, strict=False)
+    _positive(f"{where}.sun_check.search_deg", cfg.sun_check.search_deg)
+    _positive(f"{where}.sun_check.max_residual_deg", cfg.sun_check.max_residual_deg)
     ly = cfg.layers
     _choice(f"{where}.layers.method", ly.method, LAYER_METHODS)
     for k in ("bin_log", "smooth_log", "min_separation_log"):
         _positive(f"{where}.layers.{k}", getattr(ly, k))
+    if not ly.noise_margin >= 1.0:
+        raise ConfigError(f"{where}.layers.noise_margin: must be >= 1, got {ly.noise_margin}")
     if not 0 <= ly.base_percentile <= 50:
         raise ConfigError(f"{where}.layers.base_percentile: must be in 0..50, got {ly.base_percentile}")
     if not 0 < ly.valley_ratio <= 1:
         raise ConfigError(f"{where}.layers.valley_ratio: must be in (0, 1], got {ly.valley_ratio}")
+    mo = cfg.motion
+    for k in ("max_gap_s", "max_points", "fb_max_px", "min_tracks", "layer_tolerance_log", "offset_history",
+              "offset_tolerance_s", "rematch_s", "max_offset_s"):
+        _positive(f"{where}.motion.{k}", getattr(mo, k))
+    _positive(f"{where}.motion.compensate_min_s", mo.compensate_min_s, strict=False)
+    if mo.window_px < 5 or mo.window_px % 2 == 0:
+        raise ConfigError(f"{where}.motion.window_px: must be an odd number >= 5, got {mo.window_px}")
+    if not 0 <= mo.levels <= 8:
+        raise ConfigError(f"{where}.motion.levels: must be in 0..8, got {mo.levels}")

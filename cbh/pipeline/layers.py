@@ -22,9 +22,18 @@ Each layer's statistics (:func:`layer_stats`):
   points' predicted height noise (:func:`height_noise`): δh = h·R·δθ / B⊥ (R the range from
   camera 1, B⊥ the baseline component perpendicular to the ray, δθ the angular matching
   noise), with δθ estimated by :func:`angular_noise` from the ray-miss distances of the
-  sparse 2-D correspondences (miss / range samples the same pixel noise across the epipolar
-  direction that the height sees along it). Without any (σ_noise = 0) it falls back to
-  median − z·σ_obs, the Gaussian-robust raw percentile;
+  2-D correspondences (miss / range samples the same pixel noise across the epipolar
+  direction that the height sees along it): the sparse ones, or, when no sparse match
+  survives (e.g. LK under a large exposure difference), the dense 2-D ones (DIS; never the
+  plane sweep, whose matches lie on the epipolar curve by construction). *Robust base*: the
+  spread is tested against ``noise_margin`` × σ_noise (1.2: the noise model is a prediction
+  from a different set of matches, good to about ±20 %), i.e.
+  σ_true = sqrt(max(σ_obs² − (1.2·σ_noise)², 0)): when the measured noise explains the
+  spread the base *is* the median, and it moves continuously away from it only as the spread
+  grows beyond the noise (before this, an exposure change that lost every sparse match set
+  σ_noise = 0 and dropped the WAHRSIS base from 827 m to 516–633 m on the same sky).
+  Without any noise estimate (σ_noise = 0) it falls back to median − z·σ_obs, the
+  Gaussian-robust raw percentile;
 - ``median_height_m``; ``spread_m`` = σ_obs = 1.4826 · MAD (σ for Gaussian heights);
 - ``cover``: fraction of camera 1's usable sky that is cloud of this layer
   (:func:`layer_covers`): every cloud pixel of camera 1's cloud mask belongs to the layer whose
@@ -155,7 +164,8 @@ def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndar
     med = float(np.median(h))
     spread = 1.4826 * float(np.median(np.abs(h - med)))
     sig_n = float(np.median(noise_m)) if noise_m is not None and len(noise_m) else 0.0
-    sig_t = math.sqrt(max(spread * spread - sig_n * sig_n, 0.0))
+    sig_e = cfg.noise_margin * sig_n  # the noise the spread is tested against (model uncertainty)
+    sig_t = math.sqrt(max(spread * spread - sig_e * sig_e, 0.0))
     z = -NormalDist().inv_cdf(min(max(cfg.base_percentile, 1e-6), 50.0) / 100.0)
     n = int(h.size)
     conf = (1 - math.exp(-n / (4.0 * max(cfg.min_points, 1)))) * math.exp(-(spread / med) / 0.15)

@@ -38,7 +38,12 @@ from cbh.geometry.station import Camera
 from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
-__all__ = ["PairGeometry", "MatchInput", "Matches", "MATCHERS", "MATCHER_BACKENDS", "get_matcher", "triangulate_matches", "sample_map"]
+__all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "MATCHERS", "MATCHER_BACKENDS", "get_matcher",
+           "triangulate_matches", "sample_map"]
+
+#: Methods whose matches lie on the epipolar curve by construction: their ray miss says
+#: nothing about the matching noise (the pipeline's angular-noise estimate skips them).
+EPIPOLAR_METHODS = frozenset({"sweep"})
 
 _OUTSIDE = -1.0e5  # map value for "no pixel": far outside any image
 

@@ -7,17 +7,33 @@ Stages (each a pure function in its own module; timed into ``PairResult.timing_m
    (chosen so that width and height scale identically), so the geometry stays exact.
 2. ``masks``: image circle ∩ zenith limit ∩ obstacle mask (cached per camera), minus the sun
    disk (pvlib) and saturated blobs.
-3. ``segmentation``: cloud mask and fraction per camera.
+   ``sun_check``: the sun detected in each image against the sun predicted from the time and
+   the calibrated rotation (:mod:`.sundetect`): diagnostics ``sun_residual_deg`` (worst camera),
+   ``sun_residual_cam1_deg``, ``sun_residual_cam2_deg``, flag ``sun_misaligned``.
+2b. ``photometric``: camera 2's gain, gamma and white balance relative to camera 1, estimated
+   in the common field of view, reported in ``diagnostics`` (flag ``exposure_mismatch`` when
+   large) and removed from camera 2's image before segmentation and matching.
+3. ``segmentation``: cloud mask and fraction per camera (colour images only).
 4. ``match_<method>``: correspondences per configured method (:mod:`.match`).
 5. ``triangulation``: all correspondences at once, geometric rejection.
+   ``geometry_check``: the 2-D correspondences against the calibrated rotations and the
+   baseline (:mod:`.geocheck`): diagnostics ``geometry_residual_px`` and
+   ``geometry_inlier_fraction``, flags ``geometry_mismatch`` and ``identical_images``.
 6. ``height_map``: dense map on camera 1's grid, returned at camera 1's full image size.
 7. ``layers``: log-height histogram → layers with support checks; each layer's ``cover`` is
    the share of camera 1's usable sky whose cloud pixels (own or nearest measured height) lie
    in its height interval, so the covers add up to the cloud fraction (flag
    ``cover_incomplete`` when over 10 % of the cloud is in no reported layer).
 
+8. ``motion`` (with ``previous``, :mod:`.motion`): each camera's features tracked back to the
+   previous pair, converted to each layer's motion over the ground [m/s]; camera 2's clock
+   offset estimated from the parallax across the baseline, and compensated (``compensation``:
+   camera 2's image moved back to camera 1's capture time) before the matching.
+
 Per-camera caches (scaled models, static masks, the infinity remap table) live in the
-:class:`Pipeline` object; ``process`` itself keeps no state between frames.
+:class:`Pipeline` object; ``process`` itself keeps no state between frames: what one pair leaves
+for the next is an explicit :class:`~cbh.pipeline.motion.PairState`, passed in as ``previous``
+and handed back as ``PairResult.state``.
 """
 from __future__ import annotations
 
@@ -37,11 +53,17 @@ from cbh.timeutil import parse_utc
 from cbh.result import PairResult, PointSet
 from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
+from cbh.pipeline.geocheck import check_geometry, images_identical
+from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
-from cbh.pipeline.match import MatchInput, PairGeometry, TriangulatedMatches, get_matcher, triangulate_matches
+from cbh.pipeline.match import (EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher,
+                                sample_map, triangulate_matches)
+from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
+                                 offset_per_match, plane_offsets, running_offset, track_back)
+from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import segment
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation", "Correspondences", "Points"]
@@ -49,6 +71,9 @@ __all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation",
 log = logging.getLogger(__name__)
 
 _MAX_DISPLAY_MATCHES = 5000
+_MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
+_RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
+_MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 
 
@@ -224,7 +249,7 @@ class Pipeline:
 
     # --- the pair -------------------------------------------------------------------------
     def process(self, image1, image2, time_utc: datetime | str | None = None, *,
-                channels: str | None = None) -> PairResult:
+                channels: str | None = None, previous: PairState | None = None) -> PairResult:
         """Run every stage on one synchronized pair.
 
         Parameters
@@ -240,11 +265,19 @@ class Pipeline:
         channels : {"rgb", "bgr"}, optional
             Channel order of array inputs: ``"rgb"`` for PIL/imageio/matplotlib arrays,
             ``"bgr"`` for OpenCV's. Required for arrays (a bare array is refused, never guessed).
+        previous : PairState or None
+            ``state`` of the previous pair's result (:mod:`.motion`): with it, each layer gets
+            its motion and camera 2's clock offset is estimated and compensated. None (the
+            first pair of a run): no motion (NaN).
 
         Returns
         -------
         PairResult
-            Heights above the ENU origin; ``height_map`` on camera 1's full pixel grid.
+            Heights above the ENU origin; ``height_map`` on camera 1's full pixel grid;
+            ``diagnostics``: ``clock_offset_s`` (running estimate of camera 2's clock minus
+            camera 1's, NaN = unknown), ``clock_offset_pair_s`` (this pair's own estimate),
+            ``motion_dt_s`` (time to the previous pair used for motion, NaN = none);
+            ``state`` for the next pair.
 
         Raises
         ------
@@ -269,19 +302,141 @@ class Pipeline:
             work = (self.to_working(0, image1), self.to_working(1, image2))
         with _timed(ctx, "masks"):
             masks = self.stage_masks(work, ctx)
+        with _timed(ctx, "sun_check"):
+            self.stage_sun_check(work, masks, ctx)
+        with _timed(ctx, "photometric"):
+            work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
             seg = self.stage_segment(work, masks)
-        corr = self.stage_match(work, masks, seg, ctx)
-        with _timed(ctx, "height_map"):
-            hmap = self.stage_height_map(seg, corr)
-        with _timed(ctx, "layers"):
-            pts = self.stage_points(corr)
-            lay = self.stage_layers(pts, seg, masks, hmap, ctx)
+            gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
+        mot = self._motion_input(previous, time_utc, gray)
+        mcfg = self.config.motion
+        used = running_offset(mot.offsets_s) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
+        rates = mot.rates
+        n_flags = len(ctx.flags)
+        for attempt in range(_MAX_PASSES):  # more passes only when this pair moved the offset estimate (.motion)
+            del ctx.flags[n_flags:]
+            comp = None
+            if math.isfinite(used) and abs(used) >= mcfg.compensate_min_s and rates:
+                with _timed(ctx, "compensation"):
+                    g2, comp = compensate_camera2(gray[1], mot.prev_gray[1], self.cam2, rates, used, mot.dt_s)
+                    c2 = cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
+                                   borderMode=cv2.BORDER_REPLICATE).astype(bool)
+                corr = self.stage_match(work, masks, seg, ctx, gray=(gray[0], g2), cloud2=c2)
+            else:
+                corr = self.stage_match(work, masks, seg, ctx, gray=gray)
+            with _timed(ctx, "height_map"):
+                hmap = self.stage_height_map(seg, corr)
+            with _timed(ctx, "layers"):
+                pts = self.stage_points(corr)
+                lay = self.stage_layers(pts, seg, masks, hmap, ctx)
+            est = MotionEstimate()
+            if mot.prev_gray is not None:
+                with _timed(ctx, "motion"):
+                    est = self._stereo_tracks(corr, gray, masks, seg, mot, comp, used if comp is not None else 0.0)
+                    lay = self.stage_motion(lay, hmap, est)
+            new = running_offset((mot.offsets_s + (est.pair_offset_s,))[-mcfg.offset_history:])
+            base = used if comp is not None else 0.0
+            new_rates = self._layer_rates(lay.layers)
+            moved = math.isfinite(new) and abs(new - base) > mcfg.rematch_s
+            if attempt and comp is not None:  # start-up passes: also until the layers' motion settles
+                moved = moved or self._rates_moved_px(rates, new_rates, new) > _RATES_SETTLED_PX
+            if attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not new_rates:
+                break
+            used, rates = new, new_rates
+        with _timed(ctx, "geometry_check"):
+            self.stage_geometry_check(work, corr, ctx)
         self._quality_flags(pts, seg, ctx)
+        offsets = mot.offsets_s + ((est.pair_offset_s,) if math.isfinite(est.pair_offset_s) else ())
+        offsets = offsets[-mcfg.offset_history:]
+        running = running_offset(offsets)
+        ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=est.pair_offset_s, motion_dt_s=mot.dt_s)
+        if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
+            ctx.flags.append("clock_offset")
         if first and not self._tables_loaded:
             self._save_tables()
         ctx.timing["total"] = _ms(t_all)
-        return self._assemble(ctx, seg, hmap, pts, lay)
+        result = self._assemble(ctx, seg, hmap, pts, lay)
+        result.state = PairState(time_utc=ctx.time_utc, cameras=self.cameras, gray=gray, offsets_s=offsets,
+                                 layer_rates=tuple(self._layer_rates(lay.layers)))
+        return result
+
+    # --- motion and clock offset (see cbh.pipeline.motion) ---------------------------------
+    def _motion_input(self, previous: PairState | None, time_utc: datetime | None, gray) -> "MotionInput":
+        """What the previous pair offers this one: frames (when usable) and the offset history."""
+        if previous is None or not isinstance(previous, PairState) or previous.cameras != self.cameras:
+            return MotionInput()
+        cfg = self.config.motion
+        offsets = previous.offsets_s if cfg.clock_offset else ()
+        if (not cfg.enabled or previous.gray is None or time_utc is None or previous.time_utc is None
+                or previous.gray[0].shape != gray[0].shape or previous.gray[1].shape != gray[1].shape):
+            return MotionInput(offsets_s=offsets)
+        dt = (time_utc - previous.time_utc).total_seconds()
+        if not 0.0 < dt <= cfg.max_gap_s:
+            return MotionInput(offsets_s=offsets)
+        return MotionInput(prev_gray=previous.gray, dt_s=dt, offsets_s=offsets,
+                           rates=[np.asarray(r, np.float64) for r in previous.layer_rates])
+
+    def _rates_moved_px(self, old: list[np.ndarray], new: list[np.ndarray], offset_s: float) -> float:
+        """How far (camera-2 pixels near the zenith) the compensation moves when the layer
+        rates change from ``old`` to ``new``; inf when the number of layers changed."""
+        if len(old) != len(new) or not math.isfinite(offset_s):
+            return math.inf
+        m = self.cam2.model
+        px_per_rad = float(np.atleast_1d(m.r_from_theta(np.array([0.05])))[0]) / 0.05
+        return max((float(np.linalg.norm(a - b)) * abs(offset_s) * px_per_rad for a, b in zip(old, new)), default=0.0)
+
+    def _layer_rates(self, layers) -> list[np.ndarray]:
+        """Each moving layer's plane-offset rate seen from camera 2, v / (h − z2) (2,) [1/s]."""
+        z2 = float(self.cam2.position_m[2])
+        return [np.array([L.motion_east_ms, L.motion_north_ms]) / (L.median_height_m - z2) for L in layers
+                if math.isfinite(L.motion_east_ms) and L.median_height_m > z2]
+
+    def _stereo_tracks(self, corr: "Correspondences", gray, masks: "Masks", seg: "Segmentation", mot: "MotionInput",
+                       comp, used_s: float) -> "MotionEstimate":
+        """Track the LK stereo features back in both cameras; this pair's clock offset."""
+        cfg = self.config.motion
+        raw = next((m for m in corr.raw if m.method == "lk"), None)
+        if raw is None:  # LK is not a configured matcher: its features are still the best to track
+            inp = MatchInput(geometry=self.geometry, gray1=gray[0], gray2=gray[1], cloud1=seg.clouds[0],
+                             usable1=masks.usable[0], usable2=masks.usable[1], cloud2=seg.clouds[1])
+            raw = get_matcher("lk")(inp, self.config.matching) if seg.clouds[0].any() else None
+        if raw is None or not len(raw):
+            return MotionEstimate(dt_s=mot.dt_s)
+        idx = np.unique(np.linspace(0, len(raw) - 1, min(len(raw), cfg.max_points)).round().astype(np.int64))
+        px1, px2 = raw.px1[idx], raw.px2[idx]
+        dt = mot.dt_s
+        t1 = track_back(gray[0], mot.prev_gray[0], px1, cfg)
+        a1 = plane_offsets(self.cam1, px1)
+        w1 = (a1 - plane_offsets(self.cam1, t1.px_prev)) / dt
+        w1[~t1.ok] = np.nan
+        pair = math.nan
+        if cfg.clock_offset:
+            c1, c2 = self.cam1.position_m, self.cam2.position_m
+            d, q, wt = offset_per_match(np.asarray(c2 - c1, np.float64)[:2], float(c2[2] - c1[2]), a1,
+                                        plane_offsets(self.cam2, px2), w1)
+            res = offset_estimate(d, q, wt, self.config.filtering.min_height_m, self.config.filtering.max_height_m,
+                                  cfg.max_offset_s, dt)
+            pair = used_s + res if math.isfinite(res) else math.nan
+        px2_raw = px2 if comp is None else sample_map(comp[..., 0], comp[..., 1], px2)
+        t2 = track_back(gray[1], mot.prev_gray[1], px2_raw, cfg)
+        w2 = (plane_offsets(self.cam2, px2_raw) - plane_offsets(self.cam2, t2.px_prev)) / dt
+        w2[~t2.ok] = np.nan
+        return MotionEstimate(dt_s=dt, px1=px1, w1=w1, w2=w2, pair_offset_s=pair)
+
+    def stage_motion(self, lay: LayerSet, hmap: HeightMap, est: "MotionEstimate") -> LayerSet:
+        """Each layer's motion over the ground from the tracks (NaN without a previous pair)."""
+        if est.px1 is None or not lay.layers:
+            return lay
+        h, w = hmap.nearest_m.shape
+        xi = np.clip(np.round(est.px1[:, 0]).astype(np.int64), 0, w - 1)
+        yi = np.clip(np.round(est.px1[:, 1]).astype(np.int64), 0, h - 1)
+        lab = assign_layers(hmap.nearest_m[yi, xi], lay.layers, self.config.motion.layer_tolerance_log)
+        samples = []
+        for wv, cam in ((est.w1, self.cam1), (est.w2, self.cam2)):
+            ok = np.isfinite(wv).all(axis=1)
+            samples.append((wv[ok], lab[ok], float(cam.position_m[2])))
+        return replace(lay, layers=layer_motion(lay.layers, samples, self.config.motion.min_tracks))
 
     def process_batch(self, pairs, *, channels: str | None = None) -> list[PairResult]:
         """:meth:`process` for several pairs ``[(image1, image2, time_utc), …]`` (paths or arrays
@@ -299,7 +454,7 @@ class Pipeline:
         """Usable sky per camera (static mask, sun disk, saturated glare) and the sun angle maps."""
         cfg = self.config
         sun_dir = None
-        if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method == "nbr_adaptive"):
+        if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method in ("nbr_adaptive", "hybrid")):
             st = self.station
             sun = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, ctx.time_utc)
             sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
@@ -313,6 +468,10 @@ class Pipeline:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
                 sat = saturation_mask(img, cfg.masks)
+                if ang is not None and cfg.masks.glare_radius_deg < 180.0:
+                    # saturated far from the sun: over-exposed cloud (clear sky never saturates
+                    # all three channels), which stays usable sky and segments as cloud
+                    sat &= ang <= cfg.masks.glare_radius_deg
                 if sat.any():
                     u = u & ~sat
                     if i == 0:
@@ -330,23 +489,54 @@ class Pipeline:
             return angle_map_deg_torch(self.rays_cam_device(i), d_cam).cpu().numpy()
         return angle_map_deg(cam, sun_dir, self.rays_cam(i))
 
+    def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
+                          ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
+        """Camera 2's colour response relative to camera 1, reported and removed (:mod:`.photometric`).
+
+        Returns the working images with the brighter camera mapped onto the darker one's
+        response (unchanged when ``photometric.correct`` is off or nothing could be estimated).
+        """
+        pc = self.config.photometric
+        if not pc.correct:
+            return work
+        resp = estimate_response(work[0], work[1], self.geometry, masks.usable[0], masks.usable[1])
+        if not resp.pixels:
+            return work
+        ctx.diagnostics.update(resp.diagnostics())
+        if resp.is_large(pc.max_gain, pc.max_gamma, pc.max_wb):
+            ctx.flags.append("exposure_mismatch")
+        if resp.is_identity:
+            return work
+        lut21, lut12 = resp.matching_luts()
+        if resp.brightens():  # camera 2 is the darker one: map camera 1 down onto it instead
+            return (cv2.LUT(work[0], lut12), work[1])
+        return (work[0], cv2.LUT(work[1], lut21))
+
     def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky."""
         clouds, fractions = [], {}
         for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
-            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation)
+            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
+                              what=cam.name)
             clouds.append(c)
             fractions[cam.name] = frac
         return Segmentation(clouds=(clouds[0], clouds[1]), fractions=fractions)
 
-    def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext") -> "Correspondences":
-        """Correspondences of every configured method, triangulated and geometrically checked."""
+    def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
+                    cloud2: np.ndarray | None = None) -> "Correspondences":
+        """Correspondences of every configured method, triangulated and geometrically checked.
+
+        ``gray``: the two working-size grey images (default: from ``work``); ``cloud2``: camera
+        2's cloud mask (default: the segmentation's), both given when camera 2 is compensated
+        for its clock offset."""
         cfg = self.config
         geom = self.geometry
+        if gray is None:
+            gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
         inp = MatchInput(
-            geometry=geom,
-            gray1=cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), gray2=cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY),
-            cloud1=seg.clouds[0], usable1=masks.usable[0], usable2=masks.usable[1], cloud2=seg.clouds[1],
+            geometry=geom, gray1=gray[0], gray2=gray[1],
+            cloud1=seg.clouds[0], usable1=masks.usable[0], usable2=masks.usable[1],
+            cloud2=seg.clouds[1] if cloud2 is None else cloud2,
             device=self.device if self.backend == "torch" else None,
         )
         raw = []
@@ -356,7 +546,37 @@ class Pipeline:
                     raw.append(get_matcher(name)(inp, cfg.matching))
         with _timed(ctx, "triangulation"):
             tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
-        return Correspondences(triangulated=tris)
+        return Correspondences(triangulated=tris, raw=raw)
+
+    def stage_sun_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
+        """Detected vs predicted sun per camera → ``sun_residual_*_deg``, flag ``sun_misaligned``."""
+        cfg = self.config.sun_check
+        if not cfg.enabled or masks.sun_dir_enu is None:
+            return
+        res = []
+        for i, (cam, img, role) in enumerate(((self.cam1, work[0], "cam1"), (self.cam2, work[1], "cam2"))):
+            expected = masks.sun_dir_enu @ cam.R_world_from_cam
+            det = detect_sun(img, cam, expected, cfg.search_deg, usable=self.static_mask(i))
+            r = math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
+            ctx.diagnostics[f"sun_residual_{role}_deg"] = r
+            res.append(r)
+        seen = [r for r in res if math.isfinite(r)]
+        ctx.diagnostics["sun_residual_deg"] = max(seen) if seen else math.nan
+        if seen and max(seen) > cfg.max_residual_deg:
+            ctx.flags.append("sun_misaligned")
+
+    def stage_geometry_check(self, work, corr: "Correspondences", ctx: "PairContext") -> None:
+        """Correspondences vs station geometry → ``geometry_*`` diagnostics and flags."""
+        cfg = self.config.geometry_check
+        if not cfg.enabled:
+            return
+        if images_identical(work[0], work[1], cfg.identical_max_dn):
+            ctx.flags.append("identical_images")
+        chk = check_geometry(self.geometry, corr.raw, self.config.filtering, cfg)
+        ctx.diagnostics["geometry_residual_px"] = chk.residual_px
+        ctx.diagnostics["geometry_inlier_fraction"] = chk.inlier_fraction
+        if chk.mismatch:
+            ctx.flags.append("geometry_mismatch")
 
     def stage_height_map(self, seg: "Segmentation", corr: "Correspondences") -> HeightMap:
         """Dense height map on camera 1's working grid (dense matches preferred), and at full size."""
@@ -391,6 +611,8 @@ class Pipeline:
         else:
             xyz, miss, p1, p2 = np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
         sparse = [tr for tr in corr.triangulated if not tr.matches.dense]
+        if sum(len(tr.miss_m) for tr in sparse) < _MIN_NOISE_MATCHES:  # none survived: dense 2-D matches
+            sparse = [tr for tr in corr.triangulated if tr.matches.method not in EPIPOLAR_METHODS]
         dtheta = angular_noise(
             np.concatenate([tr.miss_m for tr in sparse] or [np.zeros(0)]),
             np.concatenate([np.linalg.norm(tr.point_m - self.cam1.position_m, axis=1) for tr in sparse] or [np.zeros(0)]))
@@ -445,6 +667,7 @@ class Pipeline:
             cloud_fraction=seg.fractions,
             timing_ms=ctx.timing,
             flags=ctx.flags,
+            diagnostics=dict(ctx.diagnostics),
             matches=matches,
         )
 
@@ -458,6 +681,29 @@ class PairContext:
     time_utc: datetime | None
     flags: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)  # stage → wall time [ms]
+    diagnostics: dict[str, float] = field(default_factory=dict)  # PairResult.diagnostics
+
+
+@dataclass(frozen=True)
+class MotionInput:
+    """What the previous pair offers: its raw grey frames and the time since (None / NaN when
+    motion cannot be computed across), and camera 2's clock-offset history [s]."""
+
+    prev_gray: tuple[np.ndarray, np.ndarray] | None = None
+    dt_s: float = math.nan
+    offsets_s: tuple[float, ...] = ()
+    rates: list = field(default_factory=list)  # previous layers' rates seen from camera 2, (2,) [1/s] each
+
+
+@dataclass(frozen=True)
+class MotionEstimate:
+    """Stereo features tracked back in time (working size; NaN rows = lost tracks)."""
+
+    dt_s: float = math.nan
+    px1: np.ndarray | None = None  # (N, 2) camera-1 pixels of the tracked stereo features
+    w1: np.ndarray | None = None  # (N, 2) camera 1's plane-offset rate [1/s]
+    w2: np.ndarray | None = None  # (N, 2) camera 2's plane-offset rate of the partner [1/s]
+    pair_offset_s: float = math.nan  # this pair's clock-offset estimate [s]
 
 
 @dataclass(frozen=True)
@@ -482,6 +728,7 @@ class Correspondences:
     """Stages 4–5: every method's matches, triangulated and checked."""
 
     triangulated: list[TriangulatedMatches]
+    raw: list[Matches] = field(default_factory=list)  # every method's matches before rejection (the motion tracks LK's)
 
 
 @dataclass(frozen=True)

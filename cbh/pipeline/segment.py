@@ -1,15 +1,43 @@
-"""Stage 2: classical cloud segmentation on the normalized blue-red ratio.
+"""Stage 3: classical cloud segmentation of colour images (no learned weights).
 
 Contract of every method in :data:`SEGMENTERS`::
 
-    method(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=None) -> cloud (H, W) bool
+    method(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=None, image_bgr=None) -> cloud (H, W) bool
 
-``nbr`` = (B − R)/(B + R) (float32, (H, W)); clear sky is blue (NBR ≈ 0.2 … 0.6), clouds are
-white or grey (NBR ≈ 0). ``usable`` is the sky mask, ``zenith_deg`` the zenith angle of each
-pixel and ``sun_angle_deg`` its angle from the sun (None when unknown). ``chroma`` =
-(max − min)/max of the three channels (float32, (H, W); 0 = grey; None = unknown). Pixels
-outside ``usable`` are never cloud.
+``nbr`` = (B − R)/(B + R) (float32, (H, W)); clear sky is blue (NBR ≈ 0.2 … 0.6 on most
+cameras, 0.08–0.15 on a hazy tropical sky), clouds are white or grey (NBR ≈ 0, shifted by a
+camera's colour cast). ``usable`` is the sky mask, ``zenith_deg`` the zenith angle of each
+pixel and ``sun_angle_deg`` its angle from the sun (either None when unknown: no geometry).
+``chroma`` = (max − min)/max of the three channels (float32, (H, W); 0 = grey; None =
+unknown); ``image_bgr`` the image itself (texture, saturated sun; None = unknown). Pixels
+outside ``usable`` are never cloud. Greyscale images (2-D, or three identical channels) are
+refused by :func:`segment` (:class:`~cbh.errors.ImageError`): there is no blue-red ratio.
 
+- ``hybrid`` (default): adapts per image and per region, from the physics (clear sky is the
+  bluest, most saturated thing in the sky by Rayleigh scattering, and its colour varies
+  smoothly with the zenith angle and the angle to the sun; cloud is grey or white):
+
+  1. *clear-sky reference* (:func:`clear_sky_references`): per region (zenith × sun-angle
+     bins with geometry; without, the rings of an all-sky disk around its saturated sun, or
+     6 × 6 image blocks) the ``clear_percentile`` (85th) percentile of NBR and of chroma;
+     regions far below a smooth surface through the others (all cloud) are raised to it.
+     A colour cast or exposure of the camera is in the reference as much as in the pixel.
+  2. *blue deficit* r = reference − NBR. Its minimum-cross-entropy (Li) threshold splits the
+     sky in two classes; the sky is *bimodal* when the upper class's deficit exceeds the lower
+     one's (taken ≥ 0) by ``min_gap`` (0.06), or by half of it when the upper class is also
+     ``chroma_gap`` greyer and half as saturated (pale hazy or over-exposed skies; a textured
+     overcast has both classes equally grey).
+  3. bimodal: cloud where (1 − w)·r / (median deficit of the cloud class) + w·(relative
+     desaturation vs the reference) > ``score_threshold`` (w = ``chroma_weight`` = 0.3: the
+     desaturation cue catches thin cloud and bluish edges, which keep some blue). One class
+     only (the hybrid-thresholding idea: no threshold from a unimodal histogram): overcast when
+     the median NBR is below ``fixed_threshold`` (0.15) or the sky is textured (median local
+     contrast ≥ ``texture_cv``); else a clear sky, where only what stands out by ≈ 0.05 from
+     the reference is cloud.
+
+  Measured (``benchmarks/segmentation.py --simulate``, 24 simulated skies × camera colour
+  responses, with the station): 97.6 % accuracy, F1 97.4, against 84.2 % / 80.7 for
+  ``nbr_adaptive`` and 73.9 % / 72.8 for the fixed NBR < 0.15.
 - ``nbr``: fixed threshold.
 - ``nbr_adaptive``: the threshold falls towards the sun and the horizon, where clear sky is
   whiter (forward scattering, longer air path): t = t0 + (t_sun − t0)·exp(−ψ/ψ0) +
@@ -18,20 +46,27 @@ outside ``usable`` are never cloud.
   the sun is bright and colourless (chroma ≈ 0.02–0.05), while clear sky, even in the bright
   aureole just outside the masked sun disk, keeps a blue tint (chroma ≥ 0.1; ≥ 0.2 in the
   simulator). Lowering the threshold there called most sunlit cloud within 25° of the sun clear
-  (cloud NBR ≈ 0 ± 0.015 against a threshold of ≈ 0 at ψ = 10°).
+  (cloud NBR ≈ 0 ± 0.015 against a threshold of ≈ 0 at ψ = 10°). Without geometry: no ramp.
 - ``otsu``: Otsu's threshold on the usable NBR histogram, clamped to [otsu_min, otsu_max]
   (copes with a global colour shift of the camera).
 
-Everything per pixel runs through OpenCV (multi-threaded; ≈ 5 ms per 960² image).
+Per pixel everything runs through OpenCV; the hybrid's references are sampled (≈ 25 000
+pixels) and interpolated on a 4× coarser grid, so it costs a few times ``nbr_adaptive``'s ≈ 5 ms
+per 960² image. Images with a long side above ``max_side_px`` (1600) are classified
+area-averaged and the mask is brought back to full size.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from cbh.errors import ConfigError
+from cbh.errors import ConfigError, ImageError
+from cbh.imageio import is_greyscale
 from cbh.pipeline.config import SegmentationConfig
 
-__all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter"]
+__all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter", "check_colour",
+           "local_contrast", "clear_sky_reference", "clear_sky_references", "li_threshold"]
 
 
 def normalized_blue_red(image_bgr: np.ndarray) -> np.ndarray:
@@ -54,14 +89,16 @@ def chroma(image_bgr: np.ndarray) -> np.ndarray:
     return cv2.divide(cv2.subtract(mx, mn, dtype=cv2.CV_32F), cv2.max(mx, 1).astype(np.float32))
 
 
-def _nbr(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
+def _nbr(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
     return (nbr < cfg.threshold) & usable
 
 
-def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
+def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
     import cv2
 
     span = max(90.0 - cfg.horizon_start_deg, 1e-6)
+    if zenith_deg is None:  # no geometry: no horizon ramp
+        zenith_deg = np.zeros(nbr.shape, np.float32)
     ramp = cv2.min(cv2.max(cv2.subtract(np.asarray(zenith_deg, np.float32), cfg.horizon_start_deg), 0.0), span)
     t = cv2.add(cv2.multiply(ramp, (cfg.horizon_threshold - cfg.threshold) / span), cfg.threshold)
     cloud = cv2.compare(nbr, t, cv2.CMP_LT)
@@ -76,7 +113,7 @@ def _nbr_adaptive(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
     return (cloud > 0) & usable
 
 
-def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None):
+def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
     import cv2
 
     v = nbr[usable]
@@ -90,7 +127,295 @@ def _otsu(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chrom
     return (nbr < t) & usable
 
 
-SEGMENTERS = {"nbr": _nbr, "nbr_adaptive": _nbr_adaptive, "otsu": _otsu}
+# --- hybrid: per-image, per-region adaptive (the default) ---------------------------------------
+
+_Z_EDGES_DEG = (0.0, 20.0, 35.0, 48.0, 58.0, 66.0, 73.0, 90.0)  # zenith bins of the clear-sky reference
+_PSI_EDGES_DEG = (0.0, 12.0, 22.0, 35.0, 55.0, 80.0, 180.0)  # sun-angle bins
+_BLOCKS = 6  # without geometry: the image is cut into _BLOCKS × _BLOCKS regions
+_MIN_BIN = 100  # a bin needs this many sampled usable pixels for its own reference
+_SAMPLES = 25000  # pixels sampled for the reference (subsampled on a regular grid)
+_REF_STRIDE = 4  # the references are interpolated on a grid this much coarser, then resized
+
+
+def li_threshold(values: np.ndarray, tol: float = 1e-4, bins: int = 512) -> float:
+    """Minimum-cross-entropy threshold (Li & Lee 1993; Li & Tam 1998 iteration) of 1-D values.
+
+    Values at or below the threshold are the low class. Iterates on a ``bins``-bin histogram
+    (the threshold is good to a bin width, range / 512). Works on any real range (shifted to
+    positive internally); returns the value itself for a constant input.
+    """
+    v = np.asarray(values, np.float64).ravel()
+    if v.size == 0:
+        return 0.0
+    lo, hi = float(v.min()), float(v.max())
+    if hi - lo < 1e-9:
+        return lo
+    counts, edges = np.histogram(v, bins=bins, range=(lo, hi))
+    x = 0.5 * (edges[:-1] + edges[1:]) - lo + 1e-3  # positive: the cross entropy takes logs of the class means
+    cw, cm = np.cumsum(counts), np.cumsum(counts * x)
+    t = float(cm[-1] / cw[-1])
+    for _ in range(100):
+        k = min(max(int(np.searchsorted(x, t, side="right")) - 1, 0), bins - 2)  # bins 0..k: low class
+        n0, n1 = cw[k], cw[-1] - cw[k]
+        if n0 == 0 or n1 == 0:
+            break
+        m0, m1 = cm[k] / n0, (cm[-1] - cm[k]) / n1
+        t_new = (m1 - m0) / (math.log(m1) - math.log(m0)) if m1 > m0 else t
+        if abs(t_new - t) < tol:
+            t = t_new
+            break
+        t = t_new
+    return float(t + lo - 1e-3)
+
+
+def _fisheye_circle(usable: np.ndarray, box) -> tuple[float, float, float] | None:
+    """(cy, cx, radius) when the usable pixels form a disk inside a dark frame (an all-sky image), else None.
+
+    The usable pixels fill π/4 of their bounding box within 0.65–0.88 and the box's corner
+    squares (a tenth of its side) are nearly empty (< 10 % usable).
+    """
+    y0, y1, x0, x1 = box
+    h, w = y1 - y0, x1 - x0
+    if min(h, w) < 32 or not 0.8 < h / w < 1.25:
+        return None
+    sub = usable[y0:y1, x0:x1]
+    fill = float(np.count_nonzero(sub)) / (h * w)
+    k = max(2, min(h, w) // 10)
+    corners = [sub[:k, :k], sub[:k, -k:], sub[-k:, :k], sub[-k:, -k:]]
+    if not 0.65 <= fill <= 0.88 or max(float(c.mean()) for c in corners) > 0.1:
+        return None
+    return 0.5 * (y0 + y1 - 1), 0.5 * (x0 + x1 - 1), 0.5 * max(h, w)
+
+
+def _saturated_sun(image_bgr: np.ndarray, usable: np.ndarray, level: int = 250) -> tuple[float, float] | None:
+    """(row, col) of the largest saturated blob (the sun) of at least 0.02 % of the image, else None."""
+    import cv2
+
+    sat = cv2.inRange(image_bgr, (level, level, level), (255, 255, 255))
+    n, _, stats, cent = cv2.connectedComponentsWithStats(sat, connectivity=8)
+    if n < 2:
+        return None
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    if stats[k, cv2.CC_STAT_AREA] < 2e-4 * sat.size:
+        return None
+    return float(cent[k, 1]), float(cent[k, 0])
+
+
+def _region_coords(shape, usable, zenith_deg, sun_angle_deg, image_bgr=None):
+    """Per-pixel region coordinates (u, v) and their bin edges for the clear-sky reference.
+
+    With geometry: zenith angle × angle to the sun (or zenith only). Without: the radius of an
+    all-sky image's disk (:func:`_fisheye_circle`) as a stand-in for the zenith angle, else a
+    grid of image blocks (a crop or an ordinary photograph).
+    """
+    import cv2
+
+    H, W = shape
+    if zenith_deg is not None:
+        u, ue = np.asarray(zenith_deg, np.float32), np.asarray(_Z_EDGES_DEG, np.float32)
+        if sun_angle_deg is not None:
+            return u, ue, np.asarray(sun_angle_deg, np.float32), np.asarray(_PSI_EDGES_DEG, np.float32)
+        return u, ue, None, None
+    ys, xs = np.nonzero(usable) if usable.any() else (np.array([0, H - 1]), np.array([0, W - 1]))
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    circle = _fisheye_circle(usable, (y0, y1, x0, x1))
+    if circle is not None:  # an all-sky image without its calibration: radius as a stand-in for zenith
+        cy, cx, r = circle
+        yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+        rr = cv2.magnitude(xx - np.float32(cx), yy - np.float32(cy)) * np.float32(90.0 / r)
+        sun = _saturated_sun(image_bgr, usable) if image_bgr is not None else None
+        if sun is None:
+            return rr, np.asarray(_Z_EDGES_DEG, np.float32), None, None
+        psi = cv2.magnitude(xx - np.float32(sun[1]), yy - np.float32(sun[0])) * np.float32(90.0 / r)
+        return rr, np.asarray(_Z_EDGES_DEG, np.float32), psi, np.asarray(_PSI_EDGES_DEG, np.float32)
+    yy = np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W))
+    xx = np.broadcast_to(np.arange(W, dtype=np.float32)[None, :], (H, W))
+    return (yy, np.linspace(y0, y1, _BLOCKS + 1, dtype=np.float32),
+            xx, np.linspace(x0, x1, _BLOCKS + 1, dtype=np.float32))
+
+
+def _bin_reference(values, bu, bv, nu, nv, q):
+    """q-th percentile of ``values`` in each (u, v) bin: (nu, nv) float64, NaN where too few.
+
+    One sort by (bin, value); each bin's percentile is then read at its rank (nearest rank).
+    """
+    ref = np.full((nu, nv), np.nan)
+    key = bu * nv + bv
+    order = np.lexsort((values, key))
+    ks, vs = key[order], values[order]
+    bounds = np.searchsorted(ks, np.arange(nu * nv + 1))
+    a, b = bounds[:-1], bounds[1:]
+    ok = (b - a) >= _MIN_BIN
+    rank = a[ok] + np.round((b[ok] - a[ok] - 1) * (q / 100.0)).astype(np.int64)
+    ref.flat[np.flatnonzero(ok)] = vs[rank]
+    return ref
+
+
+def _raise_cloudy_bins(ref: np.ndarray, tolerance: float = 0.06) -> np.ndarray:
+    """Regions too cloudy for their own envelope take a smooth surface through the clear ones.
+
+    A region that is (almost) all cloud has an envelope at the *cloud's* value, far below its
+    neighbours'. A quadratic surface in the bin indices is fitted to the envelopes, iteratively
+    dropping bins more than 2 robust deviations (and ``tolerance``) below it (an upper fit: the
+    clear sky is the top of the distribution); bins that stay below the final surface by more
+    than ``tolerance`` take the surface's value.
+    """
+    ok = ~np.isnan(ref)
+    if ok.sum() < 8:
+        return ref
+    iu, iv = np.meshgrid(np.arange(ref.shape[0], dtype=np.float64), np.arange(ref.shape[1], dtype=np.float64), indexing="ij")
+    su, sv = max(ref.shape[0] - 1, 1), max(ref.shape[1] - 1, 1)
+    iu, iv = iu / su, iv / sv
+    cols = [np.ones_like(iu), iu, iu * iu] + ([iv, iv * iv, iu * iv] if ref.shape[1] > 1 else [])
+    A = np.stack([c[ok] for c in cols], axis=1)
+    y = ref[ok]
+    keep = np.ones(len(y), bool)
+    for _ in range(4):
+        if keep.sum() < A.shape[1] + 2:
+            return ref
+        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        e = y - A @ coef
+        s = 1.4826 * float(np.median(np.abs(e[keep] - np.median(e[keep])))) + 1e-6
+        new = e > -max(2.0 * s, tolerance)
+        if (new == keep).all():
+            break
+        keep = new
+    fit = np.full(ref.shape, np.nan)
+    fit[ok] = A @ coef
+    low = ok & (ref < fit - tolerance)
+    out = ref.copy()
+    out[low] = fit[low]
+    return out
+
+
+def _fill_bins(ref: np.ndarray, fallback: float) -> np.ndarray:
+    """Empty bins take the mean of filled neighbours (repeated), then ``fallback``."""
+    ref = ref.copy()
+    for _ in range(sum(ref.shape)):
+        nan = np.isnan(ref)
+        if not nan.any() or nan.all():
+            break
+        p = np.pad(ref, 1, constant_values=np.nan)
+        nb = np.stack([p[:-2, 1:-1], p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]])
+        cnt = np.sum(~np.isnan(nb), axis=0)
+        s = np.nansum(nb, axis=0)
+        fill = nan & (cnt > 0)
+        ref[fill] = s[fill] / cnt[fill]
+    ref[np.isnan(ref)] = fallback
+    return ref
+
+
+def _interp_bins(ref, u, ue, v, ve):
+    """Bilinear interpolation of a bin table between bin centres at every pixel, (H, W) float32."""
+    import cv2
+
+    def frac_index(x, e):
+        c = 0.5 * (e[:-1] + e[1:])
+        return np.interp(x.ravel(), c, np.arange(len(c), dtype=np.float32)).reshape(x.shape).astype(np.float32)
+
+    fu = frac_index(u, ue)
+    fv = frac_index(v, ve) if v is not None else np.zeros_like(fu)
+    table = np.ascontiguousarray(ref.T if v is not None else ref[:, :1].T, np.float32)  # rows = v, cols = u
+    return cv2.remap(table, fu, fv, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float, image_bgr=None):
+    """Upper envelope of a per-pixel feature over regions of the sky, interpolated per pixel.
+
+    Clear sky is the bluest and most saturated thing in the sky (Rayleigh scattering), and its
+    colour varies smoothly with the zenith angle and the angle to the sun. So, per region (bins
+    of zenith × sun angle when the geometry is known; else zenith-like rings of an all-sky
+    image, around a saturated sun if there is one, or a 6 × 6 grid of image blocks), the
+    ``q``-th percentile of the feature is the clear-sky value as long as at least 100 − q % of
+    the region is clear. Regions far below a smooth surface through the others (all cloud) are
+    raised to it; empty ones are filled from their neighbours.
+
+    Returns
+    -------
+    ref : ndarray, shape (H, W), float32
+        Reference value at every pixel (bilinear between region centres).
+    """
+    return clear_sky_references([feature], usable, zenith_deg, sun_angle_deg, q, image_bgr)[0]
+
+
+def clear_sky_references(features, usable, zenith_deg, sun_angle_deg, q: float, image_bgr=None) -> list[np.ndarray]:
+    """:func:`clear_sky_reference` of several (H, W) features sharing one set of regions."""
+    import cv2
+
+    H, W = usable.shape
+    u, ue, v, ve = _region_coords((H, W), usable, zenith_deg, sun_angle_deg, image_bgr)
+    step = max(1, int(math.sqrt(max(int(np.count_nonzero(usable)), 1) / _SAMPLES)))
+    sl = (slice(step // 2, None, step), slice(step // 2, None, step))
+    m = usable[sl]
+    nu, nv = len(ue) - 1, (len(ve) - 1 if ve is not None else 1)
+    bu = np.clip(np.searchsorted(ue, u[sl][m], side="right") - 1, 0, nu - 1)
+    bv = np.clip(np.searchsorted(ve, v[sl][m], side="right") - 1, 0, nv - 1) if ve is not None else np.zeros_like(bu)
+    # the references are smooth: interpolate them on a 4× coarser grid, then resize
+    c = (slice(0, None, _REF_STRIDE), slice(0, None, _REF_STRIDE))
+    us, vs = np.ascontiguousarray(u[c]), (np.ascontiguousarray(v[c]) if v is not None else None)
+    out = []
+    for feature in features:
+        fs = feature[sl][m]
+        if fs.size == 0:
+            out.append(np.zeros((H, W), np.float32))
+            continue
+        ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)), float(np.percentile(fs, q)))
+        if ve is None:
+            ref = np.repeat(ref, 2, axis=1)
+        small = _interp_bins(ref, us, ue, vs, ve)
+        out.append(cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR))
+    return out
+
+
+def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
+    """Per-image, per-region adaptive segmentation (see the module docstring, ``hybrid``)."""
+    import cv2
+
+    if not usable.any():
+        return np.zeros_like(usable)
+    refs = clear_sky_references([nbr] if chroma is None else [nbr, chroma], usable, zenith_deg, sun_angle_deg,
+                                cfg.clear_percentile, image_bgr)
+    ref_n = refs[0]
+    r_n = cv2.subtract(ref_n, nbr)  # blue deficit against the clear sky of the same region
+    if chroma is not None:
+        ref_s = refs[1]
+        r_s = cv2.divide(cv2.subtract(ref_s, chroma), cv2.max(ref_s, 0.02))  # relative desaturation
+    else:
+        r_s = None
+    rv = r_n[usable]
+    step = max(1, rv.size // _SAMPLES)
+    rs = rv[::step]
+    t = li_threshold(rs)
+    lo, hi = rs[rs <= t], rs[rs > t]
+    bimodal = False
+    if lo.size >= 0.02 * rs.size and hi.size >= 0.02 * rs.size:
+        # the cloud class's blue deficit against the clear sky (whose own deficit is ≈ 0: a lower
+        # class far below 0 is a tail of one broad class, not clear sky)
+        gap_n = float(np.median(hi) - max(float(np.median(lo)), 0.0))
+        bimodal = gap_n >= cfg.min_gap
+        if not bimodal and gap_n >= cfg.min_gap / 2 and chroma is not None:
+            # a pale (hazy, over-exposed) sky: a small blue deficit, but the high class is grey and
+            # the low class is not (textured overcast: both classes equally grey)
+            cs = chroma[usable][::step]
+            c_lo, c_hi = float(np.median(cs[rs <= t])), float(np.median(cs[rs > t]))
+            bimodal = c_lo - c_hi >= cfg.chroma_gap and c_hi <= 0.5 * c_lo
+    if not bimodal:  # one class only: the whole usable sky is clear or cloud (fixed threshold)
+        med = float(np.median(nbr[usable]))
+        smooth = image_bgr is None or float(np.median(local_contrast(image_bgr)[usable][::step])) < cfg.texture_cv
+        if med >= cfg.fixed_threshold and smooth:  # clear: only what stands out from the clear sky
+            score = cv2.divide(r_n, cfg.min_gap * 2.0)
+        else:
+            return usable.copy()
+    else:
+        gap = max(float(np.median(hi)), cfg.min_gap)  # blue deficit of typical cloud
+        score = cv2.divide(r_n, gap)
+    if r_s is not None:
+        score = cv2.addWeighted(score, 1.0 - cfg.chroma_weight, r_s, cfg.chroma_weight, 0.0)
+    cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
+    return cloud & usable
+
+
+SEGMENTERS = {"hybrid": _hybrid, "nbr": _nbr, "nbr_adaptive": _nbr_adaptive, "otsu": _otsu}
 
 
 def get_segmenter(name: str):
@@ -101,14 +426,72 @@ def get_segmenter(name: str):
         raise ConfigError(f"unknown segmentation method {name!r} (valid: {', '.join(SEGMENTERS)})") from None
 
 
-def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig) -> tuple[np.ndarray, float]:
-    """Cloud mask (H, W) bool and cloud fraction of the usable sky (0..1, 0 if none usable)."""
+def check_colour(image, what: str = "image") -> None:
+    """Raise :class:`~cbh.errors.ImageError` unless ``image`` is a colour (H, W, 3) uint8 image."""
+    a = image
+    if not isinstance(a, np.ndarray) or a.dtype != np.uint8 or a.ndim not in (2, 3):
+        raise ImageError(f"{what}: expected a BGR uint8 (H, W, 3) image, got {getattr(a, 'shape', type(a).__name__)}")
+    if is_greyscale(a):
+        raise ImageError(f"{what}: greyscale image; segmentation needs colour (clear sky and cloud differ by "
+                         "their blue-red ratio)")
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ImageError(f"{what}: expected 3 colour channels, got shape {a.shape}")
+
+
+def local_contrast(image_bgr: np.ndarray, window_px: int = 7) -> np.ndarray:
+    """Local standard deviation / local mean of the grey image in a box, (H, W) float32."""
     import cv2
 
+    g = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    k = (window_px, window_px)
+    m = cv2.blur(g, k)
+    var = cv2.subtract(cv2.blur(cv2.multiply(g, g), k), cv2.multiply(m, m))
+    return cv2.divide(cv2.sqrt(cv2.max(var, 0.0)), cv2.max(m, 1.0))
+
+
+def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig,
+            what: str = "image") -> tuple[np.ndarray, float]:
+    """Cloud mask (H, W) bool and cloud fraction of the usable sky (0..1, 0 if none usable).
+
+    Parameters
+    ----------
+    image_bgr : ndarray, shape (H, W, 3), uint8
+        Colour image (a greyscale one raises :class:`~cbh.errors.ImageError`).
+    usable : ndarray, shape (H, W), bool
+        Sky that may be classified.
+    zenith_deg, sun_angle_deg : ndarray, shape (H, W), float32, or None
+        Zenith angle and angle to the sun of each pixel [deg]; None = unknown (no geometry:
+        ``hybrid`` then uses image regions, ``nbr_adaptive`` no horizon ramp).
+    cfg : SegmentationConfig
+    what : str
+        Name of the image in error messages.
+
+    Images larger than ``cfg.max_side_px`` on their long side are classified area-averaged
+    to that size (less sensor and JPEG noise per pixel, and fast on 24-megapixel frames) and
+    the mask is brought back to full size.
+    """
+    import cv2
+
+    check_colour(image_bgr, what)
+    H, W = image_bgr.shape[:2]
+    if cfg.max_side_px and max(H, W) > cfg.max_side_px:  # classify area-averaged, bring the mask back
+        f = cfg.max_side_px / max(H, W)
+        size = (max(1, round(W * f)), max(1, round(H * f)))
+        small = cv2.resize(image_bgr, size, interpolation=cv2.INTER_AREA)
+        u = cv2.resize(usable.view(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        rs = lambda a: None if a is None else cv2.resize(np.asarray(a, np.float32), size, interpolation=cv2.INTER_LINEAR)  # noqa: E731
+        c, _ = segment(small, u, rs(zenith_deg), rs(sun_angle_deg), cfg, what)
+        cloud = cv2.resize(c.view(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
+        b, g, r = cv2.split(image_bgr)
+        usable = usable & (cv2.max(cv2.max(b, g), r) >= cfg.min_brightness)
+        cloud &= usable
+        n = int(np.count_nonzero(usable))
+        return cloud, (float(np.count_nonzero(cloud)) / n if n else 0.0)
     nbr = normalized_blue_red(image_bgr)
     b, g, r = cv2.split(image_bgr)
     bright = cv2.max(cv2.max(b, g), r) >= cfg.min_brightness
     usable = usable & bright
-    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chroma(image_bgr))
+    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chroma(image_bgr),
+                                      image_bgr=image_bgr)
     n = int(np.count_nonzero(usable))
     return cloud, (float(np.count_nonzero(cloud)) / n if n else 0.0)

@@ -147,6 +147,7 @@ class _CameraState:
         self.nominal = nominal
         self.true = replace(nominal, R_world_from_cam=R_true)
         self.clock_offset_s = imp.clock_offset_s
+        self.colour_lut = colour_response_lut(imp.gain, imp.gamma, imp.white_balance) if imp.has_colour_response else None
         model = nominal.model
         self.H, self.W = model.height, model.width
         R = R_true.astype(np.float64)
@@ -557,6 +558,8 @@ class SkySimulator:
             flat[cs.obstacle_idx] = np.clip(cs.obstacle_bgr * daylight, 0, 255).astype(np.uint8)
             height.reshape(-1)[cs.obstacle_idx] = np.nan
             mask.reshape(-1)[cs.obstacle_idx] = False
+        if cs.colour_lut is not None:  # the camera's own gain, tone curve and white balance
+            image = cv2.LUT(image, cs.colour_lut)
         if scene.image.jpeg_roundtrip:
             from cbh.imageio import decode_image, encode_jpeg
 
@@ -577,6 +580,19 @@ class SkySimulator:
         rng = np.random.default_rng(np.random.SeedSequence([self.scene.seed, cs.index, to_ns(t) & (2**63 - 1)]))
         offs = rng.integers(0, NOISE_PAD, size=(3, 2))
         return [bank[oy:oy + cs.H, ox:ox + cs.W] for oy, ox in offs]
+
+
+def colour_response_lut(gain: float, gamma: float, white_balance: tuple[float, float]) -> np.ndarray:
+    """Per-channel lookup table (256, 1, 3) uint8 of a camera colour response (BGR order).
+
+    out_c = 255 · clip(gain · wb_c · in_c / 255, 0, 1)^gamma with wb = (blue, 1, red) gains:
+    an exposure gain and white balance on the (display-referred) rendered values followed by a
+    tone curve, which is what independently exposing cameras differ by.
+    """
+    wb_r, wb_b = white_balance
+    x = np.arange(256, dtype=np.float64) / 255.0
+    chans = [np.clip(gain * w * x, 0.0, 1.0) ** gamma for w in (wb_b, 1.0, wb_r)]
+    return np.clip(np.round(255.0 * np.stack(chans, axis=-1)), 0, 255).astype(np.uint8).reshape(256, 1, 3)
 
 
 def _utc(t: datetime) -> datetime:

@@ -53,9 +53,13 @@ The file format::
     camera = "cam2"
     clock_offset_s = 2.0                   # the camera captures this late (its stamp is on time)
     rotation_error_deg = [0.5, 0.0, 0.0]   # true (yaw, pitch, roll) minus the station file's [deg]
+    gain = 1.0                             # colour response: exposure gain on linear values [1]
+    gamma = 1.0                            #   tone curve exponent: out = 255·(gain·wb·in/255)^gamma
+    white_balance = [1.0, 1.0]             #   (red, blue) channel gains relative to green [1]
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -67,7 +71,7 @@ from cbh.timeutil import parse_utc
 
 __all__ = [
     "Scene", "CloudLayer", "Sun", "Sky", "ImageSettings", "Obstacle", "Imperfection",
-    "load_scene", "parse_scene", "DEFAULT_TIME_UTC",
+    "load_scene", "parse_scene", "with_clock_offsets", "DEFAULT_TIME_UTC",
 ]
 
 #: Start time of a scene that gives none (a clear mid-morning in Brasília).
@@ -168,6 +172,14 @@ class Imperfection:
     camera: str
     clock_offset_s: float = 0.0  # the camera captures this many seconds late [s]
     rotation_error_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # true minus nominal (yaw, pitch, roll) [deg]
+    gain: float = 1.0  # colour response: exposure gain applied to the rendered values [1]
+    gamma: float = 1.0  # tone-curve exponent: out = 255 · clip(gain · wb · in / 255)^gamma [1]
+    white_balance: tuple[float, float] = (1.0, 1.0)  # (red, blue) gains relative to green [1]
+
+    @property
+    def has_colour_response(self) -> bool:
+        """True when the camera's colour response differs from the identity."""
+        return (self.gain, self.gamma, tuple(self.white_balance)) != (1.0, 1.0, (1.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -356,6 +368,9 @@ def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) ->
             clock_offset_s=_num(f"{w}.clock_offset_s", d.get("clock_offset_s", 0.0), lo=-3600.0, hi=3600.0),
             rotation_error_deg=_vec(f"{w}.rotation_error_deg", d.get("rotation_error_deg", [0.0, 0.0, 0.0]), 3,
                                     lo=-45.0, hi=45.0),
+            gain=_num(f"{w}.gain", d.get("gain", 1.0), lo=0.05, hi=20.0),
+            gamma=_num(f"{w}.gamma", d.get("gamma", 1.0), lo=0.2, hi=5.0),
+            white_balance=_vec(f"{w}.white_balance", d.get("white_balance", [1.0, 1.0]), 2, lo=0.2, hi=5.0),
         )
 
     return Scene(
@@ -392,3 +407,26 @@ def load_scene(path: str | Path) -> Scene:
     except ConfigError as exc:
         msg = str(exc)
         raise ConfigError(f"scene {p.name}: {msg.removeprefix('scene: ')}") from None
+
+
+def with_clock_offsets(scene: Scene, specs) -> Scene:
+    """The scene with per-camera clock offsets set from ``CAMERA=SECONDS`` strings (e.g. the
+    ``cbh simulate --clock-offset cam2=3`` option); other imperfections are kept.
+
+    Raises
+    ------
+    ConfigError
+        A spec that is not ``CAMERA=SECONDS`` with a finite number.
+    """
+    imps = dict(scene.imperfections)
+    for spec in specs:
+        cam, sep, val = str(spec).partition("=")
+        try:
+            sec = float(val)
+        except ValueError:
+            sec = math.nan
+        if not sep or not cam.strip() or not math.isfinite(sec):
+            raise ConfigError(f"--clock-offset {spec!r}: expected CAMERA=SECONDS, e.g. cam2=3")
+        cam = cam.strip()
+        imps[cam] = replace(imps.get(cam) or Imperfection(camera=cam), clock_offset_s=sec)
+    return replace(scene, imperfections=imps)

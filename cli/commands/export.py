@@ -1,12 +1,9 @@
-"""`cbh export`: layer heights of recordings as CSV, Parquet or CF NetCDF."""
+"""`cbh export`: layer heights of recordings as CSV, Parquet or CF NetCDF; cloud and shadow maps."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import typer
-
-from cbh.actions.export import export, format_from_suffix
-from cbh.errors import ConfigError
 
 
 def register(app: typer.Typer) -> None:
@@ -15,11 +12,15 @@ def register(app: typer.Typer) -> None:
 
 def export_cmd(
     sessions: list[Path] = typer.Argument(..., help="One or more SESSION.mcap files (or directories of rotated files)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output file (replaced if it exists)."),
-    fmt: str = typer.Option(None, "--format", "-f", help="csv | parquet | netcdf (default: from the --out suffix)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output file (replaced if it exists); a directory with --daily."),
+    fmt: str = typer.Option(None, "--format", "-f", help="csv | parquet | netcdf | npz (default: from the --out suffix)."),
+    product: str = typer.Option("layers", "--product", help="layers | cloudmap | shadow (maps: netcdf or npz)."),
+    daily: bool = typer.Option(False, "--daily", help="One file per UTC day in the --out directory (layers)."),
+    station: str = typer.Option(None, "--station", help="Station TOML whose [ground] grid the maps use (default: recorded)."),
 ) -> None:
-    """Layer heights per time step (cloud base above ground and sea level, cover, confidence)."""
-    if fmt is None and format_from_suffix(out) is None:
-        raise ConfigError(f"--format: not given and {out.name!r} has no known suffix (.csv, .parquet, .nc)")
-    rows, steps = export(sessions, out, fmt)
-    print(f"wrote {steps} time steps ({rows} rows) to {out}")
+    """Layer heights per time step (height, cover, okta, ceiling, motion, flags), or ground maps."""
+    from cbh.actions.export import export
+    from cbh.geometry.station import load_station
+
+    st = load_station(station) if station else None
+    print(export(sessions, out, fmt, product=product, daily=daily, station=st))

@@ -21,6 +21,8 @@ def simulate_cmd(
     cadence_s: float = typer.Option(10.0, "--cadence-s", help="Seconds between frames."),
     start: str = typer.Option(None, "--start", help="Start time, ISO 8601 with a zone (default: the scene's time_utc)."),
     size: int = typer.Option(None, "--size", help="Render this many pixels wide (calibration scaled; at most 8192)."),
+    clock_offset: list[str] = typer.Option([], "--clock-offset", help="CAMERA=SECONDS: the camera captures this late "
+                                                                      "(files stamped on time); overrides the scene's."),
 ) -> None:
     """Render N frames of every camera of a station looking at a scene; write images, truth, station.
 
@@ -30,5 +32,5 @@ def simulate_cmd(
     """
     t0 = parse_utc(start, "--start") if start is not None else None
     for step in simulate_to_folder(out, station=station, scene=scene, frames=frames, cadence_s=cadence_s,
-                                   start_utc=t0, size_px=size):
+                                   start_utc=t0, size_px=size, clock_offsets=clock_offset):
         print(step.line(), flush=True)

@@ -19,7 +19,11 @@ Topics
                                                          NaN = unknown (lossless)
 ``/pair/histogram``            cbh.Histogram             edges_m (B + 1), counts (B)
 ``/pair/layers``               cbh.PairLayers            layers (height_m, altitude_m, cover, points,
-                                                         confidence …), cloud fraction, flags, timing;
+                                                         confidence, motion_east_ms/motion_north_ms/
+                                                         motion_spread_ms [m/s, absent = unknown],
+                                                         motion_tracks …), cloud fraction,
+                                                         flags (names) and flag_bits (cbh.flags.Flag),
+                                                         diagnostics (name, value), timing;
                                                          written last: a pair is complete once it is there
 ``/service/status``            cbh.ServiceStatus         service counters, source states, full JSON
 =============================  ======================  ==============================================

@@ -144,7 +144,15 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
             images[parts[0]] = RecordedImage(parts[0], from_ns(_ts_ns(m.timestamp)), bytes(m.data), m.format)
         elif len(parts) == 2 and parts[1] == "cloud_mask":
             masks[parts[0]] = _decode_masks(m.data, f"{what} {topic}")
-    layers = [Layer(l.height_m, l.median_height_m, l.spread_m, l.cover, int(l.points), l.confidence) for l in pl.layers]
+    nan = float("nan")
+    has_quality = "motion_tracks" in Layer.__dataclass_fields__  # Layer carries the motion's quality
+    layers = [Layer(l.height_m, l.median_height_m, l.spread_m, l.cover, int(l.points), l.confidence,
+                    altitude_m=l.altitude_m,
+                    motion_east_ms=l.motion_east_ms if l.HasField("motion_east_ms") else nan,
+                    motion_north_ms=l.motion_north_ms if l.HasField("motion_north_ms") else nan,
+                    **({"motion_spread_ms": l.motion_spread_ms if l.HasField("motion_spread_ms") else nan,
+                        "motion_tracks": int(l.motion_tracks)} if has_quality else {}))
+              for l in pl.layers]
     hist_msg = msgs.get("/pair/histogram")
     hist = (Histogram(np.asarray(hist_msg.edges_m, np.float64), np.asarray(hist_msg.counts, np.float64))
             if hist_msg is not None else Histogram(np.zeros(1), np.zeros(0)))
@@ -159,6 +167,7 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
         time_utc=t, cameras=cams, layers=layers, histogram=hist, points=pts, height_map=hm,
         cloud_masks=masks, cloud_fraction={c.camera: c.fraction for c in pl.cloud_fraction},
         timing_ms={x.stage: x.ms for x in pl.timing}, flags=list(pl.flags), matches=matches,
+        diagnostics={d.name: d.value for d in pl.diagnostics},
     )
     return RecordedPair(index=index, time_utc=t, images=images, result=result,
                         altitude_m=[l.altitude_m for l in pl.layers])

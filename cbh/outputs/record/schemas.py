@@ -18,6 +18,7 @@ SCHEMA_PACKAGE = "cbh"
 
 # (message name, [(field name, number, type, label, type_name)])
 _D, _F, _U32, _U64, _S, _M = "double", "float", "uint32", "uint64", "string", "message"
+_OPT = "optional"  # label: proto3 optional (explicit presence)
 _MESSAGES: list[tuple[str, list[tuple]]] = [
     ("Layer", [
         ("height_m", 1, _D, False, None),  # cloud-base height above the ENU origin [m]
@@ -27,7 +28,14 @@ _MESSAGES: list[tuple[str, list[tuple]]] = [
         ("points", 5, _U32, False, None),
         ("confidence", 6, _D, False, None),  # 0..1
         ("altitude_m", 7, _D, False, None),  # height_m + station altitude [m above sea level]
+        # proto3 ``optional`` (field presence): absent in recordings made before motion existed,
+        # which read back as NaN (unknown), never as 0 m/s
+        ("motion_east_ms", 8, _D, _OPT, None),  # layer motion over the ground, east [m/s]
+        ("motion_north_ms", 9, _D, _OPT, None),  # layer motion over the ground, north [m/s]
+        ("motion_spread_ms", 10, _D, _OPT, None),  # robust spread of the track velocities [m/s]
+        ("motion_tracks", 11, _U32, False, None),  # feature tracks behind the motion (0 = none)
     ]),
+    ("Diagnostic", [("name", 1, _S, False, None), ("value", 2, _D, False, None)]),  # PairResult.diagnostics
     ("CloudFraction", [("camera", 1, _S, False, None), ("fraction", 2, _D, False, None)]),
     ("Timing", [("stage", 1, _S, False, None), ("ms", 2, _D, False, None)]),
     ("PairLayers", [
@@ -40,6 +48,8 @@ _MESSAGES: list[tuple[str, list[tuple]]] = [
         ("timing", 7, _M, True, ".cbh.Timing"),
         ("point_count", 8, _U32, False, None),
         ("pair_index", 9, _U64, False, None),
+        ("diagnostics", 10, _M, True, ".cbh.Diagnostic"),  # named scalar quality measures (units in names)
+        ("flag_bits", 11, _U64, False, None),  # cbh.flags.flag_bits(flags): fixed bits of cbh.flags.Flag
     ]),
     ("Histogram", [
         ("timestamp", 1, _M, False, ".google.protobuf.Timestamp"),
@@ -90,8 +100,12 @@ def cbh_types() -> dict:
         m = fdp.message_type.add(name=name)
         for fname, num, ftype, repeated, type_name in fields:
             f = m.field.add(name=fname, number=num, type=types[ftype])
-            f.label = (descriptor_pb2.FieldDescriptorProto.LABEL_REPEATED if repeated
+            f.label = (descriptor_pb2.FieldDescriptorProto.LABEL_REPEATED if repeated is True
                        else descriptor_pb2.FieldDescriptorProto.LABEL_OPTIONAL)
+            if repeated == _OPT:  # proto3 optional = a synthetic one-field oneof
+                f.proto3_optional = True
+                f.oneof_index = len(m.oneof_decl)
+                m.oneof_decl.add(name=f"_{fname}")
             if type_name:
                 f.type_name = type_name
     pool = descriptor_pool.DescriptorPool()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from datetime import datetime, timezone
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import RecordingError
+from cbh.flags import flag_bits
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult, from_ns, require_time, to_ns
 from cbh.outputs.record.schemas import cbh_types, foxglove_types
@@ -321,13 +323,23 @@ class McapRecorder(ResultSink):
         _stamp(h.timestamp, t_ns)
         out.append(("/pair/histogram", h, t_ns))
         pl = T["PairLayers"](camera1=cam1, camera2=cam2, flags=[str(s) for s in result.flags],
-                             point_count=len(result.points), pair_index=self._pair_index)
+                             point_count=len(result.points), pair_index=self._pair_index,
+                             flag_bits=flag_bits(result.flags))
         _stamp(pl.timestamp, t_ns)
         alt = float(self.station.altitude_m)
         for layer in result.layers:
-            pl.layers.add(height_m=float(layer.height_m), median_height_m=float(layer.median_height_m),
-                          spread_m=float(layer.spread_m), cover=float(layer.cover), points=int(layer.points),
-                          confidence=float(layer.confidence), altitude_m=float(layer.height_m) + alt)
+            a = float(layer.altitude_m)
+            m = pl.layers.add(height_m=float(layer.height_m), median_height_m=float(layer.median_height_m),
+                              spread_m=float(layer.spread_m), cover=float(layer.cover), points=int(layer.points),
+                              confidence=float(layer.confidence),
+                              altitude_m=a if math.isfinite(a) else float(layer.height_m) + alt)
+            m.motion_tracks = int(getattr(layer, "motion_tracks", 0))
+            for name in ("motion_east_ms", "motion_north_ms", "motion_spread_ms"):  # unknown (NaN): left absent
+                v = float(getattr(layer, name, math.nan))
+                if math.isfinite(v):
+                    setattr(m, name, v)
+        for name, value in result.diagnostics.items():
+            pl.diagnostics.add(name=str(name), value=float(value))
         for cam, frac in result.cloud_fraction.items():
             pl.cloud_fraction.add(camera=str(cam), fraction=float(frac))
         for stage, ms in result.timing_ms.items():

@@ -1,0 +1,677 @@
+"""``cbh calibrate`` in library terms: each camera's orientation from the sun track and the clouds.
+
+Steps (numerics in :mod:`cbh.geometry.calibrate` and :mod:`cbh.pipeline.sundetect`):
+
+1. Frames of every station camera are read from its source (image folder with UTC-stamped
+   names, video, stream for ``duration_s``, or a ``.mcap`` recording of ``cbh run --record``),
+   kept when inside ``[from_utc, to_utc]``, and resized to the pipeline's working size.
+2. **Sun**: in each frame, the sun is looked for within ``search_deg`` of where the station
+   file's orientation and pvlib put it; occluded, ambiguous and absent suns are rejected
+   (:func:`~cbh.pipeline.sundetect.detect_sun`). A camera's sun track is used when it has at
+   least ``min_sun_frames`` detections spanning at least ``min_sun_azimuth_span_deg`` of
+   azimuth (otherwise the report says what is missing).
+3. **Clouds**: frames are paired by time (:class:`~cbh.live.pairing.Pairer`) and matched with
+   the pipeline's ``orb`` matcher on the raw images (rotation-invariant, so a few degrees of
+   misorientation do not matter; its gate around the infinity prediction is widened to
+   ``max_misorientation_deg``). A RANSAC rotation fit over distant points (parallax below
+   ``baseline / 500 m``) rejects mismatches and gives the starting relative rotation.
+4. One robust joint fit of every camera's rotation to the sun tracks and the epipolar
+   constraints (:func:`~cbh.geometry.calibrate.fit_orientations`). Without a usable sun
+   track, ``relative_only`` keeps the reference camera (the first station camera) as the
+   station file has it and fits the others relative to it; otherwise that is an error.
+5. The station file is rewritten with the fitted angles (the rest of the text, comments
+   included, is kept) and a comment giving the date, data span and residuals.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from cbh.errors import CalibrationError, CbhError, ConfigError, ImageError, SourceError
+from cbh.result import Frame
+
+__all__ = ["CalibrateOptions", "calibrate", "rewrite_station_angles", "parse_sources"]
+
+_IMAGE_GAP_S = 0.5
+
+
+@dataclass
+class CalibrateOptions:
+    """Knobs of :func:`calibrate` (defaults are the CLI's)."""
+
+    from_utc: datetime | None = None
+    to_utc: datetime | None = None
+    duration_s: float | None = None  # live sources: stop after this long
+    relative_only: bool = False  # no sun: keep the reference camera, fit the others relative to it
+    search_deg: float = 20.0  # sun search radius around the station file's prediction [deg]
+    max_misorientation_deg: float = 15.0  # ORB gate around the infinity prediction [deg]
+    min_sun_frames: int = 5
+    min_sun_azimuth_span_deg: float = 20.0
+    max_matches_per_pair: int = 400  # RANSAC inliers kept per pair for the fit (even subsample)
+    sun_sigma_deg: float = 0.05  # expected sun detection noise [deg]
+    sun_outlier_deg: float = 1.0  # a detection this far off after the fit is an outlier (not in the RMS) [deg]
+    match_sigma_px: float = 0.7  # expected ORB keypoint noise, working size [px]
+    lk_sigma_px: float = 0.15  # expected LK (refinement) noise, working size [px]
+    refine_pairs: int = 40  # pairs re-matched with LK on the first fit's geometry (0 = no refinement)
+
+
+@dataclass
+class _CamData:
+    name: str
+    frames: int = 0
+    times: list = field(default_factory=list)
+    rays: list = field(default_factory=list)
+    sun_enu: list = field(default_factory=list)
+    reasons: dict = field(default_factory=dict)
+    t_first: datetime | None = None
+    t_last: datetime | None = None
+
+
+def parse_sources(specs: list[str]) -> dict[str, str]:
+    """``["cam1=SPEC", …]`` → {camera: spec} (ConfigError naming a malformed or repeated one)."""
+    out: dict[str, str] = {}
+    for s in specs:
+        cam, sep, spec = s.partition("=")
+        if not sep or not cam.strip() or not spec.strip():
+            raise ConfigError(f"--source {s!r}: expected CAM=SPEC (e.g. cam1=images/cam1)")
+        if cam.strip() in out:
+            raise ConfigError(f"--source: camera {cam.strip()!r} given twice")
+        out[cam.strip()] = spec.strip()
+    return out
+
+
+def _check_sources(station, sources: dict[str, str]) -> dict[str, str]:
+    unknown = [c for c in sources if c not in station.cameras]
+    if unknown:
+        raise ConfigError(f"--source {unknown[0]}=…: no camera {unknown[0]!r} in station {station.name!r} "
+                          f"(cameras: {', '.join(station.cameras)})")
+    missing = [c for c in station.cameras if c not in sources]
+    if missing:
+        raise ConfigError(f"station camera(s) {', '.join(missing)} have no --source (give --source {missing[0]}=SPEC)")
+    return sources
+
+
+def _recording_frames(camera: str, path: Path):
+    from cbh.outputs.record import open_session
+
+    for pair in open_session(path).pairs():
+        img = pair.images.get(camera)
+        if img is not None:
+            yield Frame(camera, img.time_utc, None, encoded=img.data, format=img.format)
+
+
+def _source_frames(cam, spec: str, base_dir: Path, duration_s: float | None):
+    """Frames of one camera (images not yet decoded), until the source ends or ``duration_s``."""
+    from cbh.interfaces import EndOfStream
+    from cbh.live.sources import open_source
+
+    if spec.lower().endswith(".mcap") or (Path(spec).is_dir() and any(Path(spec).glob("*.mcap"))):
+        p = Path(spec) if Path(spec).is_absolute() or Path(spec).exists() else base_dir / spec
+        yield from _recording_frames(cam.name, p)
+        return
+    src = open_source(cam, spec, decode=False, base_dir=base_dir)
+    if src.live and not duration_s:
+        raise ConfigError(f"{cam.name}: {spec} is a live stream: give --duration SECONDS to calibrate over it")
+    src.open()
+    t_end = time.monotonic() + duration_s if duration_s else None
+    try:
+        while True:
+            if t_end is not None and time.monotonic() >= t_end:
+                return
+            try:
+                f = src.read(timeout_s=1.0)
+            except EndOfStream:
+                return
+            if f is None:
+                if not src.live and t_end is None:  # a finite source with nothing more
+                    return
+                continue
+            yield f
+    finally:
+        src.close()
+
+
+def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path,
+              options: CalibrateOptions | None = None) -> dict:
+    """Fit the orientation of every station camera and write the calibrated station to ``out``.
+
+    Returns
+    -------
+    dict
+        The JSON report (``cbh calibrate --json``): per camera the angles before/after [deg],
+        their standard deviations, sun frames/detections and residuals (RMS in deg and px, per
+        frame), per pair the correspondences used and the epipolar residual; the data span.
+
+    Raises
+    ------
+    CalibrationError
+        No frames, no sun ever found (without ``relative_only``), no correspondences, an angle
+        the data cannot determine.
+    ConfigError, ImageError, SourceError
+        Bad station, missing/unknown cameras in ``sources``, unreadable images.
+    """
+    from cbh.geometry.calibrate import (PairObservations, SunObservations, SunPairObservations,
+                                        fit_orientations, rotation_from_far_matches)
+    from cbh.geometry.station import angles_from_rotation, load_station
+    from cbh.imageio import decode_image
+    from cbh.live.pairing import Pairer
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.config import PipelineConfig
+    from cbh.geometry.sun import sun_position
+    from cbh.pipeline.match import MatchInput, get_matcher
+    from cbh.pipeline.sundetect import detect_sun
+
+    opt = options or CalibrateOptions()
+    t_start = time.perf_counter()
+    station_path = Path(station_path)
+    out = Path(out)
+    station = load_station(station_path)
+    _check_sources(station, sources)
+    names = list(station.cameras)
+    ref = names[0]
+    base = station_path.parent
+    # one pipeline per (reference, other) pair: working-size models, masks, segmentation
+    pipes = {n: Pipeline(station, f"{ref},{n}") for n in names[1:]}
+    cfg0 = next(iter(pipes.values())).config
+    orb_cfg = cfg0.matching.__class__(methods=("orb",), orb=cfg0.matching.orb.__class__(
+        max_features=cfg0.matching.orb.max_features, max_hamming=cfg0.matching.orb.max_hamming,
+        max_parallax_deg=opt.max_misorientation_deg))
+    work_cam = {ref: next(iter(pipes.values())).cam1}
+    work_cam.update({n: p.cam2 for n, p in pipes.items()})
+    data = {n: _CamData(n) for n in names}
+    pair_obs: dict[str, list] = {n: [] for n in names[1:]}
+    pair_counts = {n: 0 for n in names[1:]}
+    stash: dict[str, list] = {n: [] for n in names[1:]}
+    stash_stride = {n: 1 for n in names[1:]}
+    sun_cache: dict[int, np.ndarray | None] = {}
+
+    def sun_at(t: datetime):
+        key = int(t.timestamp())  # one pvlib call per second of data (the sun moves 0.004 deg/s)
+        if key not in sun_cache:
+            sp = sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, t)
+            sun_cache[key] = sp.direction_enu if sp.zenith_deg < 90.0 else None
+        return sun_cache[key]
+
+    def to_working(name: str, img: np.ndarray) -> np.ndarray:
+        if name == ref:
+            return next(iter(pipes.values())).to_working(0, img)
+        return pipes[name].to_working(1, img)
+
+    def take(frame: Frame) -> Frame | None:
+        t = frame.time_utc
+        if (opt.from_utc and t < opt.from_utc) or (opt.to_utc and t > opt.to_utc):
+            return None
+        cam = station.cameras[frame.camera]
+        img = frame.image if frame.image is not None else decode_image(
+            frame.encoded or b"", what=f"{frame.camera} frame at {t.isoformat()}")
+        if img.ndim != 3 or img.shape[:2] != (cam.model.height, cam.model.width):
+            raise ImageError(f"{frame.camera}: image at {t.isoformat()} is {img.shape[1]}x{img.shape[0]} px, "
+                             f"its calibration is {cam.model.width}x{cam.model.height}")
+        w = to_working(frame.camera, img)
+        d = data[frame.camera]
+        d.frames += 1
+        d.t_first = t if d.t_first is None else min(d.t_first, t)
+        d.t_last = t if d.t_last is None else max(d.t_last, t)
+        s = sun_at(t)
+        if s is None:
+            d.reasons["night"] = d.reasons.get("night", 0) + 1
+        else:
+            wc = work_cam[frame.camera]
+            det = detect_sun(w, wc, s @ wc.R_world_from_cam, opt.search_deg)
+            d.reasons[det.reason] = d.reasons.get(det.reason, 0) + 1
+            if det.ok:
+                d.times.append(t)
+                d.rays.append(det.ray_cam)
+                d.sun_enu.append(s)
+        return Frame(frame.camera, t, w)
+
+    def match(other: str, fa: Frame, fb: Frame) -> None:
+        pipe = pipes[other]
+        from cbh.pipeline.run import PairContext
+
+        ctx = PairContext(time_utc=fa.time_utc)
+        work = (fa.image, fb.image)
+        masks = pipe.stage_masks(work, ctx)
+        seg = pipe.stage_segment(work, masks)
+        if not seg.clouds[0].any():
+            return
+        import cv2
+
+        inp = MatchInput(geometry=pipe.geometry, gray1=cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY),
+                         gray2=cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY), cloud1=seg.clouds[0],
+                         usable1=masks.usable[0], usable2=masks.usable[1], cloud2=seg.clouds[1])
+        m = get_matcher("orb")(inp, orb_cfg)
+        if len(m):
+            pair_obs[other].append((pipe.cam1.model.pixel_to_ray(m.px1), pipe.cam2.model.pixel_to_ray(m.px2)))
+            pair_counts[other] += 1
+            # keep grey images and masks of an even subset of the pairs for the LK refinement
+            kept = stash[other]
+            stride = stash_stride[other]
+            if pair_counts[other] % stride == 0:
+                kept.append((inp.gray1, inp.gray2, np.packbits(seg.clouds[0]), np.packbits(masks.usable[0]),
+                             np.packbits(masks.usable[1]), np.packbits(seg.clouds[1])))
+                if len(kept) > opt.refine_pairs:
+                    del kept[1::2]
+                    stash_stride[other] = stride * 2
+
+    pairers = {n: Pairer((ref, n), tolerance_s=_IMAGE_GAP_S) for n in names[1:]}
+    iters = {n: _source_frames(station.cameras[n], sources[n], base, opt.duration_s) for n in names}
+    live = dict(iters)
+    while live:
+        for n in list(live):
+            try:
+                f = next(live[n])
+            except StopIteration:
+                del live[n]
+                continue
+            except CbhError:
+                raise
+            except OSError as exc:
+                raise SourceError(f"{n}: {exc.strerror or exc}") from None
+            kept = take(f)
+            if kept is None:
+                continue
+            for k, p in pairers.items():
+                if n in (ref, k):
+                    p.push(kept)
+                    for fa, fb in p.pop_pairs():
+                        match(k, fa, fb)
+    for k, p in pairers.items():
+        for fa, fb in p.flush():
+            match(k, fa, fb)
+
+    empty = [n for n in names if data[n].frames == 0]
+    if empty:
+        span = ""
+        if opt.from_utc or opt.to_utc:
+            span = f" between {_iso(opt.from_utc) or '…'} and {_iso(opt.to_utc) or '…'}"
+        raise CalibrationError(f"no frames{span} from camera(s) {', '.join(empty)} ({sources[empty[0]]})")
+
+    # --- sun tracks ---------------------------------------------------------------------------
+    sun_obs, sun_notes = {}, {}
+    for n in names:
+        d = data[n]
+        k = len(d.rays)
+        if k == 0:
+            sun_notes[n] = f"no sun found in {d.frames} frames ({_reasons(d.reasons)})"
+            continue
+        az = np.degrees(np.arctan2([v[0] for v in d.sun_enu], [v[1] for v in d.sun_enu]))
+        span = _azimuth_span_deg(az)
+        if k < opt.min_sun_frames or span < opt.min_sun_azimuth_span_deg:
+            sun_notes[n] = (f"sun track too short: {k} detections over {span:.1f} deg of azimuth "
+                            f"(need {opt.min_sun_frames} over {opt.min_sun_azimuth_span_deg:g} deg; "
+                            f"give frames from more of the day)")
+            continue
+        sun_obs[n] = SunObservations(np.array(d.rays), np.array(d.sun_enu), opt.sun_sigma_deg)
+    if not sun_obs and not opt.relative_only:
+        raise CalibrationError("no usable sun track: " + "; ".join(f"{n}: {sun_notes[n]}" for n in names)
+                               + " (with no sun, --relative-only calibrates the other cameras relative to "
+                               f"{ref})")
+
+    # --- starting rotations -------------------------------------------------------------------
+    R0 = {n: station.cameras[n].R_world_from_cam.copy() for n in names}
+    start = dict(R0)
+    for n, o in sun_obs.items():  # each sun-tracked camera on its own first
+        start[n] = fit_orientations({n: R0[n]}, {n: o}, [], reference=n).cameras[n].R_world_from_cam
+    pairs = []
+    start_station = dict(start)  # the alternative start: the station file's relative rotations
+    start = dict(start)
+    for other in names[1:]:
+        obs = pair_obs[other]
+        if not obs:
+            if other in sun_obs:
+                continue
+            raise CalibrationError(f"no cloud correspondences between {ref} and {other} in {pair_counts[other]} "
+                                   f"pairs, and no sun track for {other}: its orientation cannot be determined")
+        ra = np.concatenate([o[0] for o in obs])
+        rb = np.concatenate([o[1] for o in obs])
+        ca, cb = station.cameras[ref], station.cameras[other]
+        t = cb.position_m - ca.position_m
+        thr = max(1.0, math.degrees(math.atan(float(np.linalg.norm(t)) / 500.0)))
+        R_rel, inl = rotation_from_far_matches(ra, rb, thr)
+        if inl.sum() < 20:
+            raise CalibrationError(f"only {int(inl.sum())} consistent cloud correspondences between {ref} and {other}")
+        if other not in sun_obs:
+            start[other] = start[ref] @ R_rel
+        # every correspondence (even subsample per pair, so no single pair dominates); the
+        # robust fit sorts out mismatches
+        cap = opt.max_matches_per_pair * max(len(obs), 1)
+        keep = np.arange(len(ra))
+        if len(keep) > cap:
+            keep = keep[:: len(keep) // cap + 1]
+        ppr = _px_per_rad(work_cam[other])
+        pairs.append(PairObservations(ref, other, ra[keep], rb[keep], t, opt.match_sigma_px / ppr, "orb"))
+    # the sun seen by both cameras of a pair at once: a relative constraint at infinity, used
+    # for cameras without a usable sun track of their own
+    sun_pairs = []
+    for other in names[1:]:
+        if ref in sun_obs and other in sun_obs:
+            continue
+        ta = {t: r for t, r in zip(data[ref].times, data[ref].rays)}
+        both = [(ta[t], r) for t, r in zip(data[other].times, data[other].rays) if t in ta]
+        if len(both) > 2:  # many: drop those that disagree with the rest by more than 1 deg
+            A0, B0 = start[ref], start[other]
+            dis = np.array([math.degrees(math.acos(min(1.0, float((A0 @ a) @ (B0 @ b))))) for a, b in both])
+            both = [x for x, d in zip(both, dis) if abs(d - np.median(dis)) <= 1.0]
+        if both:
+            sun_pairs.append(SunPairObservations(ref, other, np.array([b[0] for b in both]),
+                                                 np.array([b[1] for b in both]), opt.sun_sigma_deg * math.sqrt(2.0)))
+    fit = _best_fit([start, start_station], sun_obs, pairs, ref, loss="cauchy", scale=3.0, sun_pairs=sun_pairs)
+    # --- refinement: LK matches (sub-pixel) with the fitted geometry, then the fit again --------
+    if opt.refine_pairs > 0 and pairs:
+        from dataclasses import replace as _replace
+
+        fitted = _replace(station, cameras={n: _replace(c, R_world_from_cam=fit.cameras[n].R_world_from_cam)
+                                            for n, c in station.cameras.items()})
+        lk_cfg = cfg0.matching.__class__(methods=("lk",), lk=cfg0.matching.lk)
+        new_pairs = []
+        for p in pairs:
+            pipe = Pipeline(fitted, f"{ref},{p.cam_b}", config=pipes[p.cam_b].config)
+            shape1 = (pipe.cam1.model.height, pipe.cam1.model.width)
+            shape2 = (pipe.cam2.model.height, pipe.cam2.model.width)
+            ra_l, rb_l = [], []
+            for g1, g2, c1, u1, u2, c2 in stash[p.cam_b]:
+                unpack = lambda b, sh: np.unpackbits(b, count=sh[0] * sh[1]).reshape(sh).astype(bool)
+                inp = MatchInput(geometry=pipe.geometry, gray1=g1, gray2=g2, cloud1=unpack(c1, shape1),
+                                 usable1=unpack(u1, shape1), usable2=unpack(u2, shape2), cloud2=unpack(c2, shape2))
+                m = get_matcher("lk")(inp, lk_cfg)
+                if len(m):
+                    ra_l.append(pipe.cam1.model.pixel_to_ray(m.px1))
+                    rb_l.append(pipe.cam2.model.pixel_to_ray(m.px2))
+            new_pairs.append(p)  # the ORB correspondences stay (LK alone can be few on real skies)
+            if ra_l:
+                ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
+                ppr = _px_per_rad(work_cam[p.cam_b])
+                new_pairs.append(PairObservations(ref, p.cam_b, ra, rb, p.baseline_m, opt.lk_sigma_px / ppr, "lk"))
+        start2 = {n: fit.cameras[n].R_world_from_cam for n in names}
+        pairs = new_pairs
+        fit = _best_fit([start2], sun_obs, pairs, ref, sun_pairs=sun_pairs)
+
+    # --- report and station file ---------------------------------------------------------------
+    t_first = min(data[n].t_first for n in names)
+    t_last = max(data[n].t_last for n in names)
+    cams = {}
+    for n in names:
+        cf = fit.cameras[n]
+        before = angles_from_rotation(R0[n])
+        full_ppd = _px_per_rad(station.cameras[n]) * math.pi / 180.0
+        sres = []
+        good = cf.sun_residual_deg[cf.sun_residual_deg <= opt.sun_outlier_deg]
+        sun_rms = float(np.sqrt(np.mean(good ** 2))) if len(good) else math.nan
+        if n in sun_obs:
+            sres = [{"time_utc": _iso(t), "residual_deg": float(r)} for t, r in zip(data[n].times, cf.sun_residual_deg)]
+        cams[n] = {
+            "angles_before_deg": _angles(before),
+            "angles_deg": _angles(cf.angles_deg),
+            "change_deg": _angles([(a - b + 180.0) % 360.0 - 180.0 for a, b in zip(cf.angles_deg, before)]),
+            "sigma_deg": _angles(cf.sigma_deg),
+            "frames": data[n].frames,
+            "sun_detections": len(data[n].rays),
+            "sun_rejected": {k: v for k, v in data[n].reasons.items() if k != "ok"},
+            "sun_used": n in sun_obs,
+            "sun_note": sun_notes.get(n),
+            "sun_rms_deg": _num(sun_rms) if n in sun_obs else None,
+            "sun_rms_px": _num(sun_rms * full_ppd) if n in sun_obs else None,
+            "sun_outliers": int(np.sum(cf.sun_residual_deg > opt.sun_outlier_deg)) if n in sun_obs else 0,
+            "sun_residuals": sres,
+        }
+    pair_rep = []
+    for p, e in zip(pairs, fit.epipolar_rad):
+        ppr_full = _px_per_rad(station.cameras[p.cam_b])
+        inl = np.abs(e) <= 3.0 * p.sigma_rad * 2.0
+        pair_rep.append({
+            "cameras": [p.cam_a, p.cam_b],
+            "method": p.method,
+            "pairs_matched": pair_counts[p.cam_b],
+            "refined_pairs": len(stash[p.cam_b]) if p.method == "lk" else 0,
+            "matches_used": int(len(e)),
+            "matches_inlier": int(inl.sum()),
+            "epipolar_rms_deg": _num(math.degrees(float(np.sqrt(np.mean(e[inl] ** 2))))) if inl.any() else None,
+            "epipolar_median_px": _num(float(np.median(np.abs(e))) * ppr_full),
+        })
+    R_rel_report = {}
+    for n in names[1:]:
+        Rr = fit.cameras[ref].R_world_from_cam.T @ fit.cameras[n].R_world_from_cam
+        Rr0 = R0[ref].T @ R0[n]
+        d_ang = math.degrees(math.acos(min(1.0, (np.trace(Rr0.T @ Rr) - 1.0) / 2.0)))
+        R_rel_report[n] = {"relative_change_deg": d_ang}
+    warnings = []
+    for p, pr in zip(pairs, pair_rep):
+        expect_px = p.sigma_rad * _px_per_rad(station.cameras[p.cam_b])
+        if pr["epipolar_median_px"] is not None and pr["epipolar_median_px"] > 3.0 * expect_px:
+            warnings.append(
+                f"{p.cam_a}-{p.cam_b} {p.method}: the cloud matches stay {pr['epipolar_median_px']:.1f} px off their "
+                f"epipolar curves (expected ~{expect_px:.1f} px): the lens calibrations or the data do not support "
+                "one rotation; check the new station with `cbh pair` before using it")
+    for n in names:
+        c = cams[n]
+        if c["sun_used"] and c["sun_rms_deg"] is not None and c["sun_rms_deg"] > 5 * opt.sun_sigma_deg:
+            warnings.append(f"{n}: the sun detections scatter by {c['sun_rms_deg']:.2f} deg RMS around the fit")
+    report = {
+        "station": str(station_path),
+        "warnings": warnings,
+        "out": str(out),
+        "calibrated_utc": _iso(datetime.now(timezone.utc)),
+        "data_from_utc": _iso(t_first),
+        "data_to_utc": _iso(t_last),
+        "absolute": fit.absolute,
+        "reference": ref,
+        "cameras": cams,
+        "pairs": pair_rep,
+        "relative": R_rel_report,
+        "elapsed_s": round(time.perf_counter() - t_start, 3),
+    }
+    comment = _comment(report)
+    report["summary"] = _summary(report)
+    text = station_path.read_text(encoding="utf-8")
+    new_text = rewrite_station_angles(text, {n: fit.cameras[n].angles_deg for n in names}, comment)
+    # the new file must read back to the fitted rotations
+    from cbh.geometry.station import parse_station
+    import tomllib
+
+    try:
+        back = parse_station(tomllib.loads(new_text), base_dir=base, path=out)
+    except (tomllib.TOMLDecodeError, ConfigError) as exc:  # pragma: no cover - a bug here, said in one line
+        raise CalibrationError(f"internal: the rewritten station does not read back ({exc})") from None
+    for n in names:
+        err = np.abs(back.cameras[n].R_world_from_cam - fit.cameras[n].R_world_from_cam).max()
+        if err > 1e-6:  # pragma: no cover - a bug in rewrite_station_angles
+            raise CalibrationError(f"internal: rewritten station disagrees for {n} ({err:.2g})")
+    _write_atomic(out, new_text)
+    return report
+
+
+def _best_fit(starts: list[dict], sun_obs, pairs, ref, loss: str = "huber", scale: float = 2.0, sun_pairs=()):
+    """The fit with the lowest robust cost over several starting rotations.
+
+    Two starts: the RANSAC rotation of distant points (right when the station file is off by
+    degrees, biased by parallax when the clouds are close) and the station file's own
+    rotations (right when it is nearly calibrated). A start whose fit fails counts as worst.
+    """
+    from cbh.geometry.calibrate import fit_orientations
+
+    best, err, best_n = None, None, -1
+    for st in starts:
+        try:
+            f = fit_orientations(st, sun_obs, pairs, reference=ref, loss=loss, huber=scale, sun_pairs=sun_pairs)
+        except CalibrationError as exc:
+            err = err or exc
+            continue
+        n_in = sum(int(np.sum(np.abs(e) <= 3.0 * p.sigma_rad)) for e, p in zip(f.epipolar_rad, pairs))
+        if n_in > best_n:
+            best, best_n = f, n_in
+    if best is None:
+        raise err
+    return best
+
+
+def _summary(rep: dict) -> list[str]:
+    """Human-readable lines for the CLI."""
+    out = [f"data {rep['data_from_utc']} .. {rep['data_to_utc']}; "
+           f"{'absolute (sun) + relative (clouds)' if rep['absolute'] else 'relative only: ' + rep['reference'] + ' kept'}"]
+    for n, c in rep["cameras"].items():
+        a, b, s = c["angles_before_deg"], c["angles_deg"], c["sigma_deg"]
+        line = (f"{n}: yaw {a['yaw']:.3f} -> {b['yaw']:.3f}  pitch {a['pitch']:.3f} -> {b['pitch']:.3f}  "
+                f"roll {a['roll']:.3f} -> {b['roll']:.3f} deg (sigma {max(s.values()):.3f} deg); "
+                f"{c['frames']} frames, sun in {c['sun_detections']}")
+        if c["sun_used"]:
+            line += f", sun RMS {c['sun_rms_deg']:.3f} deg ({c['sun_rms_px']:.2f} px), {c['sun_outliers']} outliers"
+        elif c["sun_note"]:
+            line += f" ({c['sun_note']})"
+        out.append(line)
+    for p in rep["pairs"]:
+        out.append(f"{p['cameras'][0]}-{p['cameras'][1]} {p['method']}: {p['matches_used']} cloud matches from "
+                   f"{p['refined_pairs'] or p['pairs_matched']} "
+                   f"pairs, median epipolar residual {p['epipolar_median_px']:.2f} px")
+    out.extend(f"warning: {w}" for w in rep["warnings"])
+    out.append(f"wrote {rep['out']} ({rep['elapsed_s']:.1f} s)")
+    return out
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _px_per_rad(cam) -> float:
+    th = np.array([math.radians(44.5), math.radians(45.5)])
+    r = np.asarray(cam.model.r_from_theta(th), np.float64)
+    return float((r[1] - r[0]) / math.radians(1.0))
+
+
+def _azimuth_span_deg(az_deg: np.ndarray) -> float:
+    """Smallest arc of azimuth containing every value [deg]."""
+    a = np.sort(np.asarray(az_deg) % 360.0)
+    if len(a) < 2:
+        return 0.0
+    gaps = np.diff(np.concatenate([a, [a[0] + 360.0]]))
+    return float(360.0 - gaps.max())
+
+
+def _reasons(r: dict) -> str:
+    return ", ".join(f"{k}: {v}" for k, v in sorted(r.items())) or "no frames"
+
+
+def _angles(a) -> dict:
+    return {k: _num(v) for k, v in zip(("yaw", "pitch", "roll"), a)}
+
+
+def _num(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _iso(t: datetime | None) -> str | None:
+    """ISO 8601 UTC text (:func:`cbh.timeutil.format_utc`), None for None (JSON null)."""
+    from cbh.timeutil import format_utc
+
+    return None if t is None else format_utc(t)
+
+
+def _comment(rep: dict) -> list[str]:
+    lines = [f"Calibrated by `cbh calibrate` on {rep['calibrated_utc']} from frames "
+             f"{rep['data_from_utc']} .. {rep['data_to_utc']} "
+             f"({'sun track + clouds' if rep['absolute'] else 'clouds only, ' + rep['reference'] + ' kept'})."]
+    for n, c in rep["cameras"].items():
+        a, b = c["angles_before_deg"], c["angles_deg"]
+        s = f"  {n}: was yaw/pitch/roll {a['yaw']:.3f}/{a['pitch']:.3f}/{a['roll']:.3f} deg"
+        if c["sun_used"]:
+            s += f"; sun {c['sun_detections']} frames, RMS {c['sun_rms_deg']:.3f} deg ({c['sun_rms_px']:.2f} px)"
+        lines.append(s)
+        del b
+    for p in rep["pairs"]:
+        lines.append(f"  {p['cameras'][0]}-{p['cameras'][1]} {p['method']}: {p['matches_used']} cloud matches from "
+                     f"{p['refined_pairs'] or p['pairs_matched']} pairs, median epipolar residual {p['epipolar_median_px']:.2f} px")
+    return lines
+
+
+_CAMERA_HEADER = re.compile(r"^\s*\[\[\s*cameras\s*\]\]\s*(#.*)?$")
+_TABLE_HEADER = re.compile(r"""^\s*\[\[?\s*[A-Za-z_"']""")
+_ANGLE_KEY = re.compile(r"^\s*(yaw_deg|pitch_deg|roll_deg)\s*=")
+_ROTATION_KEY = re.compile(r"^\s*rotation\s*=")
+_NAME_KEY = re.compile(r"""^\s*name\s*=\s*["']([^"']*)["']""")
+
+
+def rewrite_station_angles(text: str, angles: dict[str, tuple[float, float, float]], comment: list[str]) -> str:
+    """The station TOML ``text`` with each named camera's orientation replaced by ``angles``
+    (yaw, pitch, roll [deg]); a ``rotation`` matrix is replaced too. Everything else (comments,
+    other keys, tables) is kept; ``comment`` lines go above the first ``[[cameras]]``, replacing
+    an earlier calibration comment."""
+    lines = text.splitlines()
+    # drop an earlier `cbh calibrate` comment block
+    out_lines, skip = [], False
+    for ln in lines:
+        if ln.startswith("# Calibrated by `cbh calibrate`"):
+            skip = True
+            continue
+        if skip and ln.startswith("#   "):
+            continue
+        skip = False
+        out_lines.append(ln)
+    lines = out_lines
+    result: list[str] = []
+    i = 0
+    inserted_comment = False
+    while i < len(lines):
+        ln = lines[i]
+        if _CAMERA_HEADER.match(ln):
+            if not inserted_comment:
+                result.extend("# " + c if not c.startswith("  ") else "#   " + c.strip() for c in comment)
+                inserted_comment = True
+            # the camera's own keys: up to the next table header
+            j, depth = i + 1, 0
+            while j < len(lines) and not (depth == 0 and _TABLE_HEADER.match(lines[j])):
+                code = lines[j].split("#", 1)[0]
+                depth += code.count("[") - code.count("]")
+                j += 1
+            block = lines[i + 1:j]
+            name = next((m.group(1) for m in map(_NAME_KEY.match, block) if m), None)
+            if name in angles:
+                kept, k, anchor = [], 0, None
+                while k < len(block):
+                    b = block[k]
+                    if _ANGLE_KEY.match(b):
+                        anchor = anchor if anchor is not None else len(kept)
+                        k += 1
+                        continue
+                    if _ROTATION_KEY.match(b):
+                        anchor = anchor if anchor is not None else len(kept)
+                        depth = b.count("[") - b.count("]")
+                        k += 1
+                        while depth > 0 and k < len(block):
+                            depth += block[k].count("[") - block[k].count("]")
+                            k += 1
+                        continue
+                    kept.append(b)
+                    k += 1
+                if anchor is None:  # after the last key line
+                    anchor = max((idx + 1 for idx, b in enumerate(kept) if b.strip() and not b.strip().startswith("#")),
+                                 default=len(kept))
+                y, p, r = angles[name]
+                new = [f"yaw_deg = {y:.5f}", f"pitch_deg = {p:.5f}", f"roll_deg = {r:.5f}"]
+                block = kept[:anchor] + new + kept[anchor:]
+            result.append(ln)
+            result.extend(block)
+            i = j
+            continue
+        result.append(ln)
+        i += 1
+    return "\n".join(result) + "\n"

@@ -1,0 +1,160 @@
+"""`cbh quicklook`: a ceilometer-style picture of recorded sessions (matplotlib, Agg backend).
+
+Panels, sharing the UTC time axis:
+
+1. **Cloud bases**: every layer's base height above ground against time, coloured by the
+   layer's cover in okta (0–8; the colour bar), marker per layer number (1 = lowest); the
+   ceiling (:func:`cbh.outputs.export.ceiling_index`) as a black line; layers of a pair with
+   an invalidating flag drawn as red crosses (exported, not trusted).
+2. **Cloud fraction** of the reference camera (0–1), with the total okta on the right axis.
+3. **Layer speed** over the ground [m/s] per layer.
+4. **Layer direction**: where each layer moves *towards*, degrees clockwise from north.
+
+Panels 3–4 say "motion unknown" when no pair carries motion (recordings made without motion
+estimation).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from cbh.errors import RecordingError
+from cbh.flags import INVALIDATING
+from cbh.outputs.export import ceiling_index, okta, session_records
+
+__all__ = ["quicklook", "draw_quicklook", "MARKERS"]
+
+MARKERS = ("o", "s", "^", "D", "v", "P")  # layer 1, 2, 3 …
+
+
+def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: int = 120) -> None:
+    """Draw the quicklook of pair records (:func:`cbh.outputs.export.session_records`) to ``out`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.dates as mdates
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    if not records:
+        raise RecordingError("no complete pairs in the recording(s): nothing to draw")
+    times = np.array([np.datetime64(r.time_utc.replace(tzinfo=None), "us") for r in records])
+    n_l = max([len(r.height_m) for r in records] + [1])
+    H = np.full((len(records), n_l), np.nan)
+    C = np.full((len(records), n_l), np.nan)
+    VE = np.full((len(records), n_l), np.nan)
+    VN = np.full((len(records), n_l), np.nan)
+    bad = np.zeros(len(records), bool)
+    ceil = np.full(len(records), np.nan)
+    for i, r in enumerate(records):
+        k = len(r.height_m)
+        H[i, :k], C[i, :k] = r.height_m, r.cover
+        VE[i, :k] = r.motion_east_ms or [math.nan] * k
+        VN[i, :k] = r.motion_north_ms or [math.nan] * k
+        bad[i] = bool(set(r.flags) & INVALIDATING)
+        c = ceiling_index(r.cover)
+        if c is not None:
+            ceil[i] = r.height_m[c]
+    cf = np.array([r.cloud_fraction for r in records])
+    times, (H, C, VE, VN, ceil, cf), bad = _break_gaps(times, (H, C, VE, VN, ceil, cf), bad)
+    okta_cmap = ListedColormap(plt.get_cmap("viridis_r")(np.linspace(0.05, 0.95, 9)))
+    norm = BoundaryNorm(np.arange(-0.5, 9.5, 1.0), 9)
+
+    fig, axes = plt.subplots(4, 1, figsize=(11, 9.5), sharex=True,
+                             gridspec_kw={"height_ratios": [3.2, 1.2, 1.2, 1.2], "hspace": 0.12})
+    fig.subplots_adjust(left=0.09, right=0.86, top=0.95, bottom=0.07)
+    ax = axes[0]
+    sc = None
+    for k in range(n_l):
+        good = np.isfinite(H[:, k]) & ~bad
+        okt = np.array([okta(c) for c in C[:, k]], float)
+        sc = ax.scatter(times[good], H[good, k] / 1000.0, c=okt[good], cmap=okta_cmap, norm=norm, s=26,
+                        marker=MARKERS[k % len(MARKERS)], edgecolors="k", linewidths=0.3, label=f"layer {k + 1}",
+                        zorder=3)
+        flagged = np.isfinite(H[:, k]) & bad
+        if flagged.any():
+            ax.scatter(times[flagged], H[flagged, k] / 1000.0, marker="x", c="tab:red", s=30, zorder=4,
+                       label="invalid (flagged)" if k == 0 else None)
+    if np.isfinite(ceil).any():
+        ax.plot(times, ceil / 1000.0, color="k", lw=1.0, label="ceiling (≥ 5 okta)", zorder=2)
+    top = np.nanmax(H) if np.isfinite(H).any() else 1000.0
+    ax.set_ylim(0, max(1.0, top * 1.2 / 1000.0))
+    ax.set_ylabel("cloud base above ground [km]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8, ncol=4, framealpha=0.8)
+    pos = axes[0].get_position()
+    cax = fig.add_axes([0.915, pos.y0, 0.015, pos.height])  # right of the okta axis of panel 2
+    cb = fig.colorbar(sc, cax=cax, ticks=range(9))
+    cb.set_label("layer cover [okta]")
+    ax.set_title(title or f"cbh quicklook — station {info['station']} "
+                 f"({info['latitude_deg']:.4f}°, {info['longitude_deg']:.4f}°, {info['altitude_m']:.0f} m)",
+                 fontsize=11)
+
+    ax = axes[1]
+    ax.fill_between(times, 0, cf, where=np.isfinite(cf), color="0.75")
+    ax.plot(times, cf, color="0.3", lw=1)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("cloud\nfraction")
+    ax.grid(alpha=0.3)
+    ax2 = ax.twinx()
+    ax2.set_ylim(0, 8)
+    ax2.set_yticks([0, 2, 4, 6, 8])
+    ax2.set_ylabel("okta")
+
+    speed = np.hypot(VE, VN)
+    direction = np.degrees(np.arctan2(VE, VN)) % 360.0
+    known = np.isfinite(speed).any()
+    for ax, data, label, lw in ((axes[2], speed, "speed\n[m/s]", 0.8),
+                                (axes[3], direction, "moves towards\n[deg from N]", 0.0)):  # no lines across 0/360
+        for k in range(n_l):
+            ax.plot(times, data[:, k], marker=MARKERS[k % len(MARKERS)], ms=3.5, lw=lw, label=f"layer {k + 1}")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        if not known:
+            ax.text(0.5, 0.5, "motion unknown (not estimated in these recordings)", transform=ax.transAxes,
+                    ha="center", va="center", color="0.4")
+    if known:
+        axes[2].set_ylim(0, max(1.0, np.nanmax(speed) * 1.25))
+        axes[2].legend(loc="upper left", fontsize=8, ncol=n_l)
+    else:
+        axes[2].set_ylim(0, 10)
+    axes[3].set_ylim(0, 360)
+    axes[3].set_yticks([0, 90, 180, 270, 360], ["N", "E", "S", "W", "N"])
+    loc = mdates.AutoDateLocator(minticks=4, maxticks=10)
+    axes[3].xaxis.set_major_locator(loc)
+    axes[3].xaxis.set_major_formatter(mdates.ConciseDateFormatter(loc))
+    axes[3].set_xlabel("time (UTC)")
+    try:
+        fig.savefig(out, dpi=dpi)
+    except OSError as exc:
+        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+    finally:
+        plt.close(fig)
+
+
+def _break_gaps(times: np.ndarray, arrays: tuple, bad: np.ndarray):
+    """Insert an all-NaN step in every gap longer than 3 median cadences (at least 60 s), so
+    that lines and fills do not bridge the time between sessions."""
+    if len(times) < 3:
+        return times, arrays, bad
+    dt = np.diff(times).astype("timedelta64[us]").astype(np.float64) / 1e6
+    limit = max(3.0 * float(np.median(dt)), 60.0)
+    gaps = np.flatnonzero(dt > limit)
+    if not gaps.size:
+        return times, arrays, bad
+    mids = times[gaps] + (times[gaps + 1] - times[gaps]) / 2
+    times = np.insert(times, gaps + 1, mids)
+    arrays = tuple(np.insert(a, gaps + 1, np.nan, axis=0) for a in arrays)
+    return times, arrays, np.insert(bad, gaps + 1, False)
+
+
+def quicklook(sessions, out, *, title: str | None = None) -> str:
+    """Draw the quicklook of recorded sessions to ``out`` (PNG); returns the CLI's summary line."""
+    out = Path(out)
+    if not out.parent.is_dir():
+        raise RecordingError(f"output directory does not exist: {out.parent}")
+    records, info = session_records(sessions)
+    draw_quicklook(records, info, out, title=title)
+    return f"drew {len(records)} time steps to {out}"

@@ -1,0 +1,169 @@
+"""``cbh segment`` in library terms: cloud masks of single images, with or without a station.
+
+Without a station every pixel of the image is sky (crops, any JPEG/PNG): the segmentation
+adapts over image regions. With a station and a camera, the image must be at the camera's
+calibration size and the pipeline's masks apply (image circle, zenith limit, obstacle mask,
+the sun disk when the time is known, saturated glare); the segmentation then works, like the
+pipeline's, at working size (``[pipeline] working_radius_px``) on zenith × sun-angle regions,
+and the mask is brought back to the image's size.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from cbh.errors import RecordingError
+
+__all__ = ["SegmentedImage", "segment_image", "segment_files", "write_mask"]
+
+
+@dataclass(frozen=True)
+class SegmentedImage:
+    """One image's cloud mask.
+
+    Attributes
+    ----------
+    cloud : ndarray, shape (H, W), bool
+        Cloud at the image's size (False: clear sky or not usable).
+    usable : ndarray, shape (H, W), bool
+        Pixels that were classified.
+    cloud_fraction : float
+        Cloud share of the usable pixels, 0..1 (0 when nothing is usable).
+    """
+
+    cloud: np.ndarray
+    usable: np.ndarray
+    cloud_fraction: float
+
+
+def segment_image(image: np.ndarray, station=None, camera: str | None = None, time_utc: datetime | None = None,
+                  config=None, what: str = "image") -> SegmentedImage:
+    """Cloud mask of one BGR uint8 (H, W, 3) colour image.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W, 3), uint8
+        A colour image (greyscale is refused: :class:`~cbh.errors.ImageError`).
+    station : Station or None
+        None: the whole image is sky.
+    camera : str or None
+        The station's camera that took the image (default: the station's first camera).
+    time_utc : datetime or None
+        Capture time (aware); with a station it places the sun (masked disk, sun-angle regions).
+    config : PipelineConfig or None
+        Default: the station's ``[pipeline]`` table, or all defaults without a station.
+    what : str
+        Name of the image in error messages.
+    """
+    import cv2
+
+    from cbh.pipeline.config import PipelineConfig
+    from cbh.pipeline.segment import check_colour, segment
+
+    check_colour(image, what)
+    if station is None:
+        cfg = config or PipelineConfig()
+        usable = np.ones(image.shape[:2], bool)
+        cloud, frac = segment(image, usable, None, None, cfg.segmentation, what=what)
+        return SegmentedImage(cloud=cloud, usable=usable & _bright(image, cfg), cloud_fraction=frac)
+
+    from cbh.imageio import check_image_size
+    from cbh.geometry.sun import sun_position
+    from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
+    from cbh.pipeline.run import working_factor
+
+    cfg = config or PipelineConfig.from_dict(station.sections.get("pipeline", {}))
+    cam_full = station.camera(camera) if camera else next(iter(station.cameras.values()))
+    check_image_size(image, cam_full.model, what)
+    f = working_factor(cam_full, cfg.working_radius_px)
+    cam = cam_full.scaled(f) if f != 1.0 else cam_full
+    H, W = cam.model.height, cam.model.width
+    work = image if f == 1.0 else cv2.resize(image, (W, H), interpolation=cv2.INTER_AREA)
+    obstacle = None
+    if cam.mask is not None and cfg.masks.static_mask:
+        obstacle = load_obstacle_mask(cam.mask, W, H)
+    usable = static_sky_mask(cam, cfg.masks, obstacle)
+    sun_angle = None
+    if time_utc is not None:
+        sun = sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, time_utc)
+        sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
+        if sun_zen < 90.0:
+            sun_angle = angle_map_deg(cam, sun_dir)
+            if cfg.masks.sun:
+                usable &= sun_angle > cfg.masks.sun_radius_deg
+    if cfg.masks.saturation:  # as the pipeline: with a known sun, only saturation near it is glare
+        sat = saturation_mask(work, cfg.masks)
+        if sun_angle is not None and cfg.masks.glare_radius_deg < 180.0:
+            sat &= sun_angle <= cfg.masks.glare_radius_deg
+        usable &= ~sat
+    zenith = np.asarray(cam.zenith_map(), np.float32)
+    cloud, frac = segment(work, usable, zenith, sun_angle, cfg.segmentation, what=what)
+    usable &= _bright(work, cfg)
+    if f != 1.0:
+        size = (cam_full.model.width, cam_full.model.height)
+        cloud = cv2.resize(cloud.view(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        usable = cv2.resize(usable.view(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    return SegmentedImage(cloud=cloud, usable=usable, cloud_fraction=frac)
+
+
+def _bright(image: np.ndarray, cfg) -> np.ndarray:
+    return image.max(axis=2) >= cfg.segmentation.min_brightness
+
+
+def write_mask(path: Path, cloud: np.ndarray) -> Path:
+    """Write a cloud mask as an 8-bit PNG: 255 cloud, 0 clear or unusable."""
+    import cv2
+
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        path = path.with_suffix(".png") if path.suffix else path
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ok = cv2.imwrite(str(path), np.where(cloud, 255, 0).astype(np.uint8))
+    except OSError as exc:
+        raise RecordingError(f"cannot write mask {path}: {exc.strerror or exc}") from None
+    if not ok:
+        raise RecordingError(f"cannot write mask {path}")
+    return path
+
+
+def segment_files(paths: list[Path], out: Path, station_file: Path | None = None, camera: str | None = None,
+                  time_utc: datetime | None = None) -> list[dict]:
+    """Segment image files and write their masks (the ``cbh segment`` command).
+
+    One image: ``out`` is the mask's PNG path. Several: ``out`` is a folder, and each mask is
+    ``out/<image stem>.png``. Returns one dict per image: ``image``, ``mask`` (paths as str),
+    ``cloud_fraction``, ``usable_fraction`` (share of the image's pixels that were classified).
+    """
+    from cbh.errors import InputError
+    from cbh.imageio import read_image
+
+    station = None
+    if station_file is not None:
+        from cbh.geometry.station import load_station
+        from cbh.presets import station_path
+
+        station = load_station(station_path(str(station_file)))
+    elif camera is not None or time_utc is not None:
+        raise InputError("--camera and --time need --station")
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise InputError("give at least one image")
+    if len(paths) > 1:
+        stems = [p.stem for p in paths]
+        dup = sorted({s for s in stems if stems.count(s) > 1})
+        if dup:
+            raise InputError(f"two images share the name {dup[0]!r}: their masks would overwrite each other")
+        if out.exists() and not out.is_dir():
+            raise InputError(f"--out {out}: several images need a folder, not a file")
+    rows = []
+    for p in paths:
+        img, _ = read_image(p)
+        seg = segment_image(img, station, camera, time_utc, what=str(p))
+        dest = write_mask(out if len(paths) == 1 else out / f"{p.stem}.png", seg.cloud)
+        rows.append({"image": str(p), "mask": str(dest), "cloud_fraction": round(seg.cloud_fraction, 4),
+                     "usable_fraction": round(float(seg.usable.mean()), 4)})
+    return rows

@@ -1,0 +1,126 @@
+"""Geometry self-check of a frame pair: do the images agree with the station's geometry?
+
+Every pair's sparse correspondences (methods that search in 2-D: ``lk``, ``orb``, ``dis``; not
+``sweep``, which only searches along the calibrated epipolar curves and so agrees by
+construction) are checked against the calibrated rotations and the known baseline:
+
+- ``geometry_residual_px``: median distance [px, camera 2 at working size] of camera 2's
+  matched pixel from the epipolar curve of camera 1's pixel (the pixels whose rays are
+  coplanar with the baseline and camera 1's ray). A correct geometry leaves the matching
+  noise (a few tenths of a pixel) plus the lens model's error; a rotation error of δ moves
+  the matches off the curves by ≈ δ · (pixels per radian) over most of the sky.
+- ``geometry_inlier_fraction``: share of those correspondences within the tolerance of the
+  curve **and** triangulating to a finite height in the filtering range. The same image given
+  twice, or one camera given as both, has no parallax: its rays meet "at infinity" and fail.
+
+The tolerance on the median is ``max(max_residual_px, 1.25 · expected_miss_ratio · px_per_rad)``.
+``max_residual_px`` (default 1 px at working size, ≈ 0.19° for a 480 px lens radius) is the
+matching noise floor: LK on simulated pairs leaves a median of 0.1 px, real JPEG pairs with a
+good OCamCalib calibration a few tenths. ``expected_miss_ratio`` is the station's own statement
+of how far its lens calibration leaves rays apart (median epipolar angle [rad] ≈ ray miss /
+range), 0 for a good calibration; the real WAHRSIS pair, calibrated by its authors with ideal
+equisolid lenses whose rays miss by 2–3 % of the range, states 0.03. The 1.25 is the spread of
+the median from pair to pair. With the default, a relative misorientation of about 0.3° or more
+is flagged. A match is an inlier within twice the tolerance.
+The flag ``geometry_mismatch`` is raised when the median exceeds the tolerance or the inlier
+fraction is below ``min_inlier_fraction``, judged on at least ``min_matches`` correspondences
+(fewer: no verdict, diagnostics NaN).
+
+``identical_images``: the two images at working size differ by less than
+``identical_max_dn`` grey levels on average (the same file twice, or one camera's stream twice
+within a frame period). Two cameras tens of metres apart never do: the sky, lens and sensor
+noise differ.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cbh.geometry.calibrate import epipolar_angle_rad
+from cbh.geometry.triangulate import TriangulationLimits, triangulate
+from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
+from cbh.pipeline.match import Matches, PairGeometry
+
+__all__ = ["GeometryCheck", "check_geometry", "images_identical", "CHECK_METHODS"]
+
+#: Matching methods whose correspondences can disagree with the geometry (2-D search).
+CHECK_METHODS = ("lk", "orb", "dis")
+
+
+@dataclass(frozen=True)
+class GeometryCheck:
+    """Result of :func:`check_geometry`; NaN values = not enough matches for a verdict."""
+
+    residual_px: float  # median epipolar distance, camera 2 working size [px]
+    inlier_fraction: float  # 0..1
+    tolerance_px: float  # the median's tolerance [px]
+    matches: int  # correspondences judged
+    mismatch: bool
+
+
+def _px_per_rad(geom: PairGeometry) -> float:
+    """Camera 2's radial scale at 45° off axis [px/rad] (working size)."""
+    m = geom.cam2.model
+    th = np.array([math.radians(44.5), math.radians(45.5)])
+    r = np.asarray(m.r_from_theta(th), np.float64)
+    return float((r[1] - r[0]) / math.radians(1.0))
+
+
+def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: FilteringConfig,
+                   cfg: GeometryCheckConfig) -> GeometryCheck:
+    """Judge the correspondences of the 2-D matching methods against the station geometry.
+
+    Parameters
+    ----------
+    geom : PairGeometry
+        The pair at working size (calibrated rotations, positions).
+    matches : list of Matches
+        Raw correspondences (before any geometric rejection), working-size pixels.
+    filtering : FilteringConfig
+        Height range and ray-miss gate of the pipeline.
+    cfg : GeometryCheckConfig
+
+    Returns
+    -------
+    GeometryCheck
+    """
+    use = [m for m in matches if m.method in CHECK_METHODS and len(m)]
+    px1 = np.concatenate([m.px1 for m in use]) if use else np.zeros((0, 2))
+    px2 = np.concatenate([m.px2 for m in use]) if use else np.zeros((0, 2))
+    if len(px1) > cfg.max_matches:  # dense methods: an even subsample is as good and cheaper
+        px1, px2 = px1[:: len(px1) // cfg.max_matches + 1], px2[:: len(px2) // cfg.max_matches + 1]
+    ppr = _px_per_rad(geom)
+    tol_px = max(cfg.max_residual_px, 1.25 * cfg.expected_miss_ratio * ppr)
+    n = len(px1)
+    if n < cfg.min_matches:
+        return GeometryCheck(math.nan, math.nan, tol_px, n, False)
+    d1 = geom.cam1.pixel_to_world(px1)
+    d2 = geom.cam2.pixel_to_world(px2)
+    t = geom.cam2.position_m - geom.cam1.position_m
+    e = epipolar_angle_rad(d1, d2, t)
+    # distance from the epipolar curve in camera 2's pixels: project the ray onto the plane
+    nrm = np.cross(t[None, :], d1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    on_plane = d2 - np.sin(e)[:, None] * nrm
+    p_on = geom.cam2.direction_to_pixel(on_plane)
+    dist = np.linalg.norm(p_on - px2, axis=1)
+    dist = np.where(np.isfinite(dist), dist, np.abs(e) * ppr)
+    tri = triangulate(geom.cam1.position_m, d1, geom.cam2.position_m, d2,
+                      TriangulationLimits(min_angle_deg=filtering.min_angle_deg, max_range_m=1e6))
+    with np.errstate(invalid="ignore"):
+        finite = tri.valid & (tri.height_m >= filtering.min_height_m) & (tri.height_m <= filtering.max_height_m)
+    inl = finite & (dist <= 2.0 * tol_px)
+    med = float(np.median(dist))
+    frac = float(inl.mean())
+    return GeometryCheck(med, frac, tol_px, n, med > tol_px or frac < cfg.min_inlier_fraction)
+
+
+def images_identical(gray1: np.ndarray, gray2: np.ndarray, max_dn: float) -> bool:
+    """True when two grey images of one size differ by at most ``max_dn`` on average."""
+    import cv2
+
+    if gray1.shape != gray2.shape:
+        return False
+    return float(cv2.norm(gray1, gray2, cv2.NORM_L1)) / gray1.size <= max_dn

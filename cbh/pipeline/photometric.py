@@ -1,0 +1,199 @@
+"""Photometric invariance between the two cameras of a pair.
+
+Two cameras of a station expose independently: their gain (exposure time × ISO × aperture),
+tone curve (gamma) and white balance differ, frame by frame. Left in, the difference makes
+the two cameras' cloud masks disagree (the same sky gives different cloud fractions) and the
+intensity-based matchers (LK and DIS compare grey levels) lose or bias their matches.
+
+Model. Camera 2's value ``I2`` in channel c maps onto camera 1's response as
+
+    I1 = 255 · (k_c · I2 / 255)^γ            (k_c = gain · white-balance gain of channel c)
+
+i.e. ln(I1/255) = γ · ln(I2/255) + β_c with β_c = γ · ln k_c: one shared tone-curve exponent
+γ and one offset per channel. It is estimated by *quantile matching* inside the common field
+of view: camera 1's usable pixels whose direction (at infinity, :class:`PairGeometry`'s remap)
+falls inside camera 2's usable sky, and camera 2's pixels at those same directions. The two
+cameras see the same sky there, displaced only by the parallax (a few degrees for clouds a
+kilometre up and a 100 m baseline), so the *distributions* of the values agree even where
+single pixels do not: the p-th percentile of camera 1 is camera 2's p-th percentile under the
+response. Percentiles 0.5 … 99.5 % are used, leaving out values at or near black (≤ 4) and
+saturation (≥ 250) in either camera; γ and the β_c are a linear least-squares fit. With too
+narrow a range of values (overcast, uniform sky: γ is not determined) γ is fixed to 1.
+
+Reported (``PairResult.diagnostics``): ``exposure_gain`` = k_G (camera 2 → camera 1; > 1:
+camera 2 is darker), ``exposure_gamma`` = γ, ``wb_red`` = k_R / k_G, ``wb_blue`` = k_B / k_G;
+:meth:`ColourResponse.is_large` decides the ``exposure_mismatch`` flag. The brighter camera's
+working image is then mapped through the lookup table, so that segmentation and matching
+see both cameras with one response. The mapping always goes *down*: when camera 2 is the
+darker one, camera 1 is mapped onto camera 2's response instead (the inverse), because
+brightening a camera pushes its bright cloud into saturation and stretches its noise, and
+neither can be undone.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["ColourResponse", "estimate_response"]
+
+_QUANTILES = np.linspace(0.5, 99.5, 100)  # percentiles matched [%]
+_DARK, _BRIGHT = 4.0, 250.0  # values outside (_DARK, _BRIGHT) are not fitted [DN]
+_MIN_PIXELS = 2000  # fewer common pixels: no estimate (identity)
+_MIN_LOG_RANGE = 0.25  # spread of ln(I2) over the fitted quantiles below which γ is fixed to 1
+_GAMMA_LIMITS = (0.4, 2.5)  # estimates outside this are not a camera response: clamp
+_SAMPLES = 30_000  # camera-1 pixels sampled (on a regular grid) for the quantiles
+
+
+@dataclass(frozen=True)
+class ColourResponse:
+    """Camera 2's colour response relative to camera 1 (see the module docstring).
+
+    Attributes
+    ----------
+    gain : float
+        k_G: multiplies camera 2's green values before the tone curve [1].
+    gamma : float
+        Tone-curve exponent γ [1].
+    wb_red, wb_blue : float
+        Red and blue gains relative to green, k_R / k_G and k_B / k_G [1].
+    pixels : int
+        Common-view pixels behind the estimate (0 = no estimate: identity).
+    """
+
+    gain: float = 1.0
+    gamma: float = 1.0
+    wb_red: float = 1.0
+    wb_blue: float = 1.0
+    pixels: int = 0
+    q1: np.ndarray | None = field(default=None, repr=False, compare=False)  # (Q, 3) camera 1 percentiles, BGR
+    q2: np.ndarray | None = field(default=None, repr=False, compare=False)  # (Q, 3) camera 2 percentiles, BGR
+
+    def matching_luts(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Histogram-matching lookup tables (camera 2 → 1, camera 1 → 2), each (256, 1, 3) uint8.
+
+        Monotone piecewise-linear maps through the matched percentiles of the common view
+        (the parametric model fitted to the same percentiles is what is *reported*; the
+        tables also follow a tone curve's knee and shoulder, which a power law does not).
+        None without percentiles.
+        """
+        if self.q1 is None or self.q2 is None:
+            return None
+        x = np.arange(256, dtype=np.float64)
+        out = []
+        for src, dst in ((self.q2, self.q1), (self.q1, self.q2)):
+            chans = []
+            for c in range(3):
+                s = np.concatenate([[0.0], np.maximum.accumulate(src[:, c]), [255.0]])
+                d = np.concatenate([[0.0], np.maximum.accumulate(dst[:, c]), [255.0]])
+                s, keep = np.unique(s, return_index=True)  # strictly increasing abscissae
+                chans.append(np.interp(x, s, d[keep]))
+            out.append(np.clip(np.round(np.stack(chans, axis=-1)), 0, 255).astype(np.uint8).reshape(256, 1, 3))
+        return out[0], out[1]
+
+    def lut(self) -> np.ndarray:
+        """Lookup table (256, 1, 3) uint8 mapping camera 2's BGR values onto camera 1's response."""
+        x = np.arange(256, dtype=np.float64) / 255.0
+        ks = (self.gain * self.wb_blue, self.gain, self.gain * self.wb_red)  # B, G, R
+        chans = [np.clip(k * x, 0.0, 1.0) ** self.gamma for k in ks]
+        return np.clip(np.round(255.0 * np.stack(chans, axis=-1)), 0, 255).astype(np.uint8).reshape(256, 1, 3)
+
+    def apply(self, image_bgr: np.ndarray) -> np.ndarray:
+        """Camera 2's image (H, W, 3) uint8 as camera 1 would have recorded it."""
+        import cv2
+
+        return cv2.LUT(image_bgr, self.lut())
+
+    def inverse(self) -> "ColourResponse":
+        """Camera 1's response relative to camera 2 (I2 = 255 · (k'_c · I1 / 255)^(1/γ), k'_c = k_c^−γ)."""
+        g = self.gamma
+        return ColourResponse(gain=self.gain ** -g, gamma=1.0 / g, wb_red=self.wb_red ** -g,
+                              wb_blue=self.wb_blue ** -g, pixels=self.pixels)
+
+    def brightens(self) -> bool:
+        """True when the mapping makes camera 2 brighter at mid-grey (it would push values into saturation)."""
+        return float(self.lut()[128, 0, 1]) > 128.0
+
+    @property
+    def is_identity(self) -> bool:
+        """True when applying the response changes no value by more than half a level."""
+        return bool(np.abs(self.lut().astype(np.int16) - np.arange(256, dtype=np.int16)[:, None, None]).max() == 0)
+
+    def is_large(self, max_gain: float = 1.5, max_gamma: float = 1.25, max_wb: float = 1.15) -> bool:
+        """Whether the difference deserves the ``exposure_mismatch`` flag.
+
+        Large = gain beyond ×/÷ ``max_gain`` (half a photographic stop is 1.41), γ beyond
+        ×/÷ ``max_gamma``, or a white-balance gain beyond ×/÷ ``max_wb``.
+        """
+        def off(v, lim):
+            return abs(math.log(max(v, 1e-9))) > math.log(lim)
+
+        return off(self.gain, max_gain) or off(self.gamma, max_gamma) or off(self.wb_red, max_wb) or off(self.wb_blue, max_wb)
+
+    def diagnostics(self) -> dict[str, float]:
+        """``PairResult.diagnostics`` entries (unit-less ratios)."""
+        return {"exposure_gain": float(self.gain), "exposure_gamma": float(self.gamma),
+                "wb_red": float(self.wb_red), "wb_blue": float(self.wb_blue)}
+
+
+
+
+def estimate_response(image1: np.ndarray, image2: np.ndarray, geometry, usable1: np.ndarray,
+                      usable2: np.ndarray) -> ColourResponse:
+    """Camera 2's colour response relative to camera 1 from the common field of view.
+
+    Parameters
+    ----------
+    image1, image2 : ndarray, shape (H1, W1, 3) and (H2, W2, 3), uint8
+        BGR working-size images of camera 1 and camera 2.
+    geometry : PairGeometry
+        The pair's infinity remap (camera 1's grid → camera 2's pixels).
+    usable1, usable2 : ndarray, bool
+        Each camera's usable sky (the sun and saturated glare already removed).
+
+    Returns
+    -------
+    ColourResponse
+        The identity (``pixels`` = 0) when fewer than 2000 common pixels exist.
+    """
+    import cv2
+
+    # a regular subsample of camera 1's grid (every s-th pixel), looked up in camera 2 through
+    # the infinity map: the quantiles need ~10⁵ values, not the whole image
+    H, W = usable1.shape
+    s = max(1, int(math.sqrt(H * W / _SAMPLES)))
+    mx = np.ascontiguousarray(geometry.map_x[::s, ::s])
+    my = np.ascontiguousarray(geometry.map_y[::s, ::s])
+    kw = dict(interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    u2 = cv2.remap(usable2.view(np.uint8), mx, my, **kw) > 0
+    common = usable1[::s, ::s] & u2
+    n = int(np.count_nonzero(common)) * s * s
+    if n < _MIN_PIXELS:
+        return ColourResponse()
+    v1 = image1[::s, ::s][common].astype(np.float64)
+    v2 = cv2.remap(image2, mx, my, **kw)[common].astype(np.float64)
+    q1 = np.percentile(v1, _QUANTILES, axis=0)  # (Q, 3) B, G, R
+    q2 = np.percentile(v2, _QUANTILES, axis=0)
+    ok = (q1 > _DARK) & (q1 < _BRIGHT) & (q2 > _DARK) & (q2 < _BRIGHT)
+    if ok.sum(axis=0).min() < 3:
+        return ColourResponse(pixels=n)
+    y = np.log(q1 / 255.0)
+    x = np.log(q2 / 255.0)
+    spread = min(float(np.ptp(x[ok[:, c], c])) for c in range(3))
+    rows, rhs = [], []
+    for c in range(3):
+        for xi, yi in zip(x[ok[:, c], c], y[ok[:, c], c]):
+            r = np.zeros(4)
+            r[0], r[1 + c] = xi, 1.0
+            rows.append(r)
+            rhs.append(yi)
+    A, b = np.asarray(rows), np.asarray(rhs)
+    if spread >= _MIN_LOG_RANGE:
+        sol = np.linalg.lstsq(A, b, rcond=None)[0]
+        gamma = float(np.clip(sol[0], *_GAMMA_LIMITS))
+    else:
+        gamma = 1.0
+    beta = [float(np.mean(b[A[:, 1 + c] > 0] - gamma * A[A[:, 1 + c] > 0, 0])) for c in range(3)]
+    k = [math.exp(bc / gamma) for bc in beta]  # B, G, R
+    return ColourResponse(gain=k[1], gamma=gamma, wb_red=k[2] / k[1], wb_blue=k[0] / k[1], pixels=n, q1=q1, q2=q2)

@@ -1,0 +1,361 @@
+"""Cloud motion per layer and camera 2's clock offset (cbh/pipeline/motion.py).
+
+Simulated sequences at 640 px (working size = full size, 204 px per radian near the zenith,
+50 m east-west baseline), two layers moving differently: 1200 m at (6, 2) m/s and 3500 m at
+(−3, 8) m/s, frames 10 s apart.
+
+Tolerances from the physics:
+- Over 10 s the low layer moves 63 m = 0.053 rad = 11 px, the high one 85 m = 0.024 rad = 5 px.
+  LK tracks are good to ≈ 0.1 px, i.e. 1–2 % per track; the layer's median over ≥ 100 tracks
+  is good to ≈ 0.2 %. A track's ground speed is height × angular rate, so the speed carries
+  the layer's height error: ≤ 1 % for 1200 m, ≤ 2 % for 3500 m (2.9 px of parallax, of which
+  2 % is 0.06 px). Bands: speed within 5 % (the issue's target), direction within 3° (a 0.1 px
+  bias across a 5 px displacement is 1.1°).
+- Clock offset: one match measures δ through the parallax across the baseline, cross(B, c),
+  divided by the motion across it, cross(B, w) ≈ 50 m × 0.0017–0.0023 /s ≈ 0.1 m/s. A
+  systematic 0.02 px of cross-baseline stereo error (1e-4 rad: LK's sub-pixel bias) is
+  0.005 m / 0.1 m/s = 0.05 s. Band for agreeing clocks: |offset| ≤ 0.15 s; for a 3 s offset,
+  the issue's 0.2 s.
+"""
+from __future__ import annotations
+
+import math
+from datetime import timedelta
+
+import numpy as np
+import pytest
+
+SIZE = 640
+CADENCE_S = 10.0
+WINDS = {1200.0: (6.0, 2.0), 3500.0: (-3.0, 8.0)}
+
+
+def _sim(offset_s: float = 0.0, size: int = SIZE):
+    from cbh.geometry.station import load_station
+    from cbh.presets import scene_path, station_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.scene import with_clock_offsets
+
+    sc = load_scene(scene_path("two-layers"))
+    assert {l.height_m: tuple(l.wind_ms) for l in sc.layers} == WINDS
+    if offset_s:
+        sc = with_clock_offsets(sc, [f"cam2={offset_s}"])
+    return SkySimulator(load_station(station_path()), sc, size_px=size), sc
+
+
+def _run(sim, sc, n: int):
+    from cbh.pipeline import Pipeline
+
+    pipe = Pipeline(sim.station)
+    state, out = None, []
+    for i in range(n):
+        shot = sim.render(sc.time_utc + timedelta(seconds=CADENCE_S * i))
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr", previous=state)
+        state = r.state
+        out.append(r)
+    return out
+
+
+@pytest.fixture(scope="module")
+def synced():
+    sim, sc = _sim()
+    return _run(sim, sc, 3)
+
+
+def _layer_for(result, height_m):
+    ls = [l for l in result.layers if abs(math.log(l.height_m / height_m)) < 0.1]
+    assert len(ls) == 1, [l.height_m for l in result.layers]
+    return ls[0]
+
+
+def _check_motion(layer, wind, speed_tol=0.05, dir_tol_deg=3.0):
+    e, n = layer.motion_east_ms, layer.motion_north_ms
+    speed, true_speed = math.hypot(e, n), math.hypot(*wind)
+    assert abs(speed / true_speed - 1) <= speed_tol, (e, n, wind)
+    ang = math.degrees(math.atan2(e, n) - math.atan2(wind[0], wind[1]))
+    assert abs((ang + 180) % 360 - 180) <= dir_tol_deg, (e, n, wind)
+    # the spread is the scatter of single tracks: positive, and well below the speed itself
+    assert 0 < layer.motion_spread_ms < 0.5 * true_speed
+    assert layer.motion_tracks >= 50
+
+
+def test_first_pair_has_no_motion_and_no_offset(synced):
+    first = synced[0]
+    assert len(first.layers) == 2
+    for l in first.layers:
+        assert math.isnan(l.motion_east_ms) and math.isnan(l.motion_north_ms) and l.motion_tracks == 0
+    assert math.isnan(first.diagnostics["clock_offset_s"]) and math.isnan(first.diagnostics["motion_dt_s"])
+    assert first.state is not None and first.state.gray is not None
+
+
+def test_two_layers_moving_differently_speed_direction_height(synced):
+    for r in synced[1:]:
+        assert r.diagnostics["motion_dt_s"] == CADENCE_S
+        for h, wind in WINDS.items():
+            L = _layer_for(r, h)
+            # heights: 1 % for the low layer; 2 % for 3500 m at 640 px (see the module docstring)
+            assert abs(L.height_m / h - 1) <= (0.01 if h < 2000 else 0.02), L.height_m
+            _check_motion(L, wind)
+        d = r.layers[0].to_dict()
+        assert d["motion_east_ms"] is not None and d["motion_tracks"] > 0
+
+
+def test_agreeing_clocks_give_zero_offset_and_no_flag(synced):
+    for r in synced[1:]:
+        assert abs(r.diagnostics["clock_offset_s"]) <= 0.15, r.diagnostics
+        assert "clock_offset" not in r.flags
+
+
+def test_identical_consecutive_frames_give_exactly_zero_motion():
+    """A frozen sky (the same frames again, 10 s later): every track has zero displacement, so
+    each layer's motion is exactly 0 m/s (not NaN: it was measured); the offset needs motion
+    across the baseline, so it stays unknown (NaN)."""
+    from cbh.pipeline import Pipeline
+
+    sim, sc = _sim(size=480)
+    shot = sim.render(sc.time_utc)
+    pipe = Pipeline(sim.station)
+    a = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    b = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc + timedelta(seconds=10),
+                     channels="bgr", previous=a.state)
+    assert len(b.layers) == 2
+    for L in b.layers:
+        assert L.motion_tracks >= 50
+        assert L.motion_east_ms == 0.0 and L.motion_north_ms == 0.0 and L.motion_spread_ms == 0.0
+    assert math.isnan(b.diagnostics["clock_offset_pair_s"]) and math.isnan(b.diagnostics["clock_offset_s"])
+
+
+def test_no_motion_across_a_gap_or_without_time():
+    from cbh.pipeline import Pipeline
+
+    sim, sc = _sim(size=320)
+    s0 = sim.render(sc.time_utc)
+    s1 = sim.render(sc.time_utc + timedelta(seconds=200))
+    pipe = Pipeline(sim.station)
+    a = pipe.process(s0.views["cam1"].image, s0.views["cam2"].image, s0.time_utc, channels="bgr")
+    b = pipe.process(s1.views["cam1"].image, s1.views["cam2"].image, s1.time_utc, channels="bgr", previous=a.state)
+    assert all(math.isnan(l.motion_east_ms) for l in b.layers)  # 200 s > max_gap_s (120 s)
+    c = pipe.process(s1.views["cam1"].image, s1.views["cam2"].image, None, channels="bgr", previous=a.state)
+    assert all(math.isnan(l.motion_east_ms) for l in c.layers) and "time_unknown" in c.flags
+
+
+def test_offset_per_match_recovers_the_offset_from_exact_geometry():
+    """Noise-free rays: a layer at 1500 m moving (5, 4) m/s, camera 2 at (50, 10, 2) m capturing
+    2.5 s late. Each match's 2 × 2 solve gives back δ and the height exactly."""
+    from cbh.pipeline.motion import offset_per_match
+
+    rng = np.random.default_rng(1)
+    c1, c2 = np.zeros(3), np.array([50.0, 10.0, 2.0])
+    z, v, delta = 1500.0, np.array([5.0, 4.0]), 2.5
+    x = np.column_stack([rng.uniform(-2000, 2000, 200), rng.uniform(-2000, 2000, 200)])
+    a1 = (x - c1[:2]) / (z - c1[2])
+    a2 = (x + v * delta - c2[:2]) / (z - c2[2])
+    w1 = np.broadcast_to(v / (z - c1[2]), a1.shape)
+    d, q, wt = offset_per_match(c2[:2] - c1[:2], c2[2] - c1[2], a1, a2, w1)
+    np.testing.assert_allclose(d, delta, rtol=1e-9)
+    np.testing.assert_allclose(1.0 / q, z - c1[2], rtol=1e-9)
+    assert (wt > 0).all()
+    # a wind along the baseline leaves δ unobservable: no weight
+    _, _, wt0 = offset_per_match(np.array([50.0, 0.0]), 0.0, a1, a1, np.broadcast_to([0.004, 0.0], a1.shape))
+    assert np.all(wt0 == 0)
+
+
+def test_motion_chain_drops_frames_after_a_gap_or_a_failure():
+    from datetime import datetime, timezone
+
+    from cbh.actions.run import MotionChain
+    from cbh.pipeline.motion import PairState
+    from cbh.result import PairResult
+
+    t0 = datetime(2024, 6, 21, 14, tzinfo=timezone.utc)
+    g = (np.zeros((4, 4), np.uint8),) * 2
+
+    def res(t, offsets=(3.0,)):
+        r = PairResult(t, ("cam1", "cam2"), [], None, None, None, {}, {})
+        r.state = PairState(t, ("cam1", "cam2"), g, offsets)
+        return r
+
+    chain = MotionChain(cadence_s=0.0)
+    assert chain.previous(t0) is None
+    for k in range(4):
+        chain.keep(res(t0 + timedelta(seconds=10 * k)))
+    t = t0 + timedelta(seconds=30)
+    assert chain.previous(t + timedelta(seconds=10)).gray is not None  # the next frame
+    hole = chain.previous(t + timedelta(seconds=40))  # three frames missing
+    assert hole.gray is None and hole.clock_offset_s == 3.0  # the offset history survives
+    chain.lost()
+    assert chain.state.gray is None and chain.state.offsets_s == (3.0,)
+
+
+@pytest.fixture(scope="module")
+def offset3():
+    sim, sc = _sim(3.0)
+    return _run(sim, sc, 4)
+
+
+def _check_offset_run(results, high_layer_tol):
+    assert math.isnan(results[0].diagnostics["clock_offset_s"])
+    for r in results[1:]:
+        assert abs(r.diagnostics["clock_offset_s"] - 3.0) <= 0.2, r.diagnostics
+        assert "clock_offset" in r.flags
+        for h, wind in WINDS.items():
+            L = _layer_for(r, h)
+            assert abs(L.height_m / h - 1) <= (0.02 if h < 2000 else high_layer_tol), [l.height_m for l in r.layers]
+            _check_motion(L, wind)
+
+
+def test_camera2_three_seconds_late_offset_found_and_compensated(offset3):
+    """Camera 2 captures 3 s late: its view is shifted by wind × 3 s (19–26 m against a 50 m
+    baseline), which without compensation merges both layers into one at ≈ 2000 m (checked on
+    the first pair, which has no motion yet). From the second pair on the offset is found
+    (within 0.2 s), flagged (> the 0.5 s pairing tolerance) and compensated.
+
+    Bands at 640 px: the low layer within 2 % (the issue's target). The high layer: the
+    compensation moves its camera-2 pixels by w·δ ≈ 0.0024/s × 3 s × 204 px = 1.5 px, against
+    a parallax of only 2.9 px; a 10 % error of that move (bilinear resampling, the band the low
+    layer uncovers in 3 s) is 0.15 px = 5 % of the parallax: band 5 % here, 2 % at 960 px
+    (``test_offset_target_at_960_px``)."""
+    first = offset3[0]
+    assert not any(abs(l.height_m / 3500 - 1) <= 0.05 for l in first.layers)  # the fault is real
+    _check_offset_run(offset3, 0.05)
+
+
+@pytest.mark.slow
+def test_offset_target_at_960_px():
+    """The issue's target at the working size of the 1920 px cameras: offset within 0.2 s, both
+    layers within 2 % from the second pair of the run on."""
+    sim, sc = _sim(3.0, size=960)
+    _check_offset_run(_run(sim, sc, 4), 0.02)
+
+
+@pytest.fixture(scope="module")
+def sequence_dir(tmp_path_factory):
+    """`cbh simulate` folder: 3 frames 10 s apart at 480 px (what a directory source reads)."""
+    from cbh.cli.main import main
+
+    out = tmp_path_factory.mktemp("seq")
+    rc = main(["simulate", "--scene", "two-layers", "--out", str(out), "--frames", "3", "--cadence-s", "10",
+               "--size", "480"])
+    assert rc == 0
+    return out
+
+
+def test_simulate_clock_offset_option_shifts_camera2_only(tmp_path):
+    from cbh.cli.main import main
+    from cbh.imageio import read_image
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out, extra in ((a, []), (b, ["--clock-offset", "cam2=3"])):
+        assert main(["simulate", "--out", str(out), "--size", "320", *extra]) == 0
+    n1 = sorted((a / "cam1").iterdir())[0].name
+    n2 = sorted((a / "cam2").iterdir())[0].name
+    assert (b / "cam2" / n2).exists()  # stamped with the nominal time
+
+    def im(p):
+        return read_image(p)[0].astype(np.int16)
+
+    assert np.abs(im(a / "cam1" / n1) - im(b / "cam1" / n1)).mean() < 2.0  # sensor noise only
+    assert np.abs(im(a / "cam2" / n2) - im(b / "cam2" / n2)).mean() > 4.0  # clouds moved by 3 s of wind
+    assert main(["simulate", "--out", str(tmp_path / "c"), "--clock-offset", "cam2"]) == 2
+
+
+def test_cbh_pair_with_previous_prints_motion(sequence_dir, capsys):
+    from cbh.cli.main import main
+
+    c1 = sorted((sequence_dir / "cam1").iterdir())
+    c2 = sorted((sequence_dir / "cam2").iterdir())
+    st = str(sequence_dir / "station.toml")
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--previous", str(c1[0]), str(c2[0]), "--json"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    import json
+
+    s = json.loads(out)
+    assert s["diagnostics"]["motion_dt_s"] == 10.0
+    low = min(s["layers"], key=lambda l: l["height_m"])
+    # 480 px: 153 px/rad, the low layer moves 8 px in 10 s; speed within 5 % (module docstring)
+    assert abs(math.hypot(low["motion_east_ms"], low["motion_north_ms"]) / math.hypot(6, 2) - 1) <= 0.05
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--previous", str(c1[0]), str(c2[0])])
+    out = capsys.readouterr().out
+    assert rc == 0 and "east_ms" in out and "motion over 10 s" in out
+    # without --previous the table has no motion columns (and no motion)
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--json"])
+    assert rc == 0 and json.loads(capsys.readouterr().out)["layers"][0]["motion_east_ms"] is None
+    rc = main(["pair", str(c1[1]), str(c2[1]), "--station", st, "--previous-time", "2024-06-21T14:00:00Z"])
+    assert rc == 2 and "--previous-time needs --previous" in capsys.readouterr().err
+    rc = main(["pair", str(c1[0]), str(c2[0]), "--station", st, "--previous", str(c1[1]), str(c2[1])])
+    assert rc == 2 and "must be captured before" in capsys.readouterr().err
+
+
+def test_run_on_directories_gives_motion_from_the_second_pair(sequence_dir):
+    """`cbh run --source cam1=DIR --source cam2=DIR --cadence-s 0`: the service's results carry
+    each layer's motion from the second pair on (the export writes what the results carry)."""
+    from cbh.actions.run import build_run
+    from cbh.live.service import MemorySink
+
+    setup = build_run(station=str(sequence_dir / "station.toml"), cadence_s=0,
+                      sources=[f"cam1={sequence_dir / 'cam1'}", f"cam2={sequence_dir / 'cam2'}"])
+    sink = MemorySink()
+    svc = setup.service()
+    svc.sinks.append(sink)
+    svc.run(handle_signals=False)
+    results = [r for _, r in sink.items]
+    assert len(results) == 3
+    assert all(math.isnan(l.motion_east_ms) for l in results[0].layers)
+    for r in results[1:]:
+        low = min(r.layers, key=lambda l: l.height_m)
+        assert abs(math.hypot(low.motion_east_ms, low.motion_north_ms) / math.hypot(6, 2) - 1) <= 0.05
+        assert abs(r.diagnostics["clock_offset_s"]) <= 0.3  # 480 px: 0.15 s band × 640/480, rounded up
+        assert "clock_offset" not in r.flags
+
+
+def test_run_flags_offsets_above_its_pairing_tolerance(sequence_dir):
+    from cbh.actions.run import build_run
+
+    srcs = [f"cam1={sequence_dir / 'cam1'}", f"cam2={sequence_dir / 'cam2'}"]
+    for tol in (0.5, 5.0):
+        setup = build_run(station=str(sequence_dir / "station.toml"), sources=srcs, pair_tolerance_s=tol)
+        try:
+            assert setup.pipeline.config.motion.offset_tolerance_s == tol
+        finally:
+            for s in setup.sources:
+                s.close()
+
+
+def test_wind_along_the_baseline_leaves_the_offset_unknown():
+    """Both layers drifting east, along the 50 m east-west baseline: a clock offset would only
+    scale the parallax along the baseline (indistinguishable from a height change), so the
+    offset is reported unknown (NaN), never a confident number; the motion is still measured."""
+    from dataclasses import replace as dc_replace
+
+    from cbh.pipeline import Pipeline
+
+    sim, sc = _sim(size=480)
+    c1, c2 = sim.station.pair(None)
+    assert abs(c2.position_m[1] - c1.position_m[1]) < 1e-6  # the baseline is east-west
+    sc = dc_replace(sc, layers=tuple(dc_replace(l, wind_ms=(w, 0.0)) for l, w in zip(sc.layers, (6.0, -8.0))))
+    from cbh.sim import SkySimulator
+
+    sim = SkySimulator(sim.station, sc)
+    pipe = Pipeline(sim.station)
+    state = None
+    for i in range(2):
+        shot = sim.render(sc.time_utc + timedelta(seconds=CADENCE_S * i))
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr",
+                         previous=state)
+        state = r.state
+    assert math.isnan(r.diagnostics["clock_offset_s"]) and "clock_offset" not in r.flags
+    low = min(r.layers, key=lambda l: l.height_m)
+    assert abs(low.motion_east_ms / 6.0 - 1) <= 0.05 and abs(low.motion_north_ms) <= 0.05 * 6.0
+
+
+@pytest.mark.parametrize("table, key", [({"window_px": 4}, "window_px"), ({"max_gap_s": -1}, "max_gap_s"),
+                                        ({"nope": 1}, "nope"), ({"clock_offset": "yes"}, "clock_offset")])
+def test_motion_config_errors_name_the_key(table, key):
+    from cbh.errors import ConfigError
+    from cbh.pipeline import PipelineConfig
+
+    with pytest.raises(ConfigError, match=f"pipeline.motion.{key}"):
+        PipelineConfig.from_dict({"motion": table})
+    cfg = PipelineConfig.from_dict({"motion": {"max_gap_s": 60, "clock_offset": False}})
+    assert PipelineConfig.from_dict(cfg.to_dict()) == cfg and cfg.motion.max_gap_s == 60.0
