@@ -39,10 +39,14 @@ class FrameSource(ABC):
         True: frames arrive in real time whether or not they are consumed (a camera; the
         service may drop frames to keep up). False: a finite source read as fast as it is
         consumed (files, recordings, the simulator at full speed): nothing is dropped.
+    clock : bool
+        True: frame times come from a clock (a camera's, a file's), which the service checks
+        against the wall clock for jumps. False: simulated time (no wall-clock checks).
     """
 
     camera: str
     live: bool = True
+    clock: bool = True
 
     def open(self) -> None:
         """Connect or open; idempotent after :meth:`close`."""

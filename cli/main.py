@@ -16,7 +16,7 @@ import typer
 from cbh.errors import CbhError
 
 COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "quicklook", "segment",
-            "calibrate")
+            "calibrate", "reprocess")
 
 app = typer.Typer(
     name="cbh",

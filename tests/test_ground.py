@@ -71,32 +71,38 @@ def test_shadow_map_agrees_with_simulated_shadows_and_is_not_displaced(probe_wor
     from cbh.geometry import ground
 
     sim, scene, probes = probe_world
-    t = scene.time_utc
-    cam, labels, heights, sun = _labels(sim, scene, t, sun_disk=True)
     grid = ground.GroundGrid(25.0, 2500.0, unb_station.latitude_deg, unb_station.longitude_deg)
-    shadow = ground.shadow_map(cam, labels, heights, sun, grid)
-    truth = _truth_shaded(sim, probes, sun, t)
-    assert 0.2 < truth.mean() < 0.8  # both shaded and sunlit probes: the comparison can fail
+    agree, known, shifted, flat_agree = [], [], [], []
+    for dt in (0.0, 90.0):  # two skies: the clouds moved 0.6-0.8 km in between
+        t = scene.time_utc + timedelta(seconds=dt)
+        cam, labels, heights, sun = _labels(sim, scene, t, sun_disk=True)
+        shadow = ground.shadow_map(cam, labels, heights, sun, grid)
+        truth = _truth_shaded(sim, probes, sun, t)
+        assert 0.2 < truth.mean() < 0.8  # both shaded and sunlit probes: the comparison can fail
 
-    def agreement(dx=0.0, dy=0.0):
-        v = np.array([shadow[grid.index(x + dx, y + dy)] for _, x, y in probes])
-        known = np.isfinite(v)
-        return float(np.mean(v[known] == truth[known])), float(known.mean())
+        def agreement(m, dx=0.0, dy=0.0):
+            v = np.array([m[grid.index(x + dx, y + dy)] for _, x, y in probes])
+            ok = np.isfinite(v)
+            return float(np.mean(v[ok] == truth[ok])), float(ok.mean())
 
-    agree, known = agreement()
-    # Mismatches come only from probes within about one camera-1 pixel footprint of a cloud
-    # edge: at 256 px (0.7 deg/px) the footprint at the 3500 m layer seen 50-60 deg off the
-    # zenith is ~100-150 m, against cloud features of ~1 km: a few percent of the probes.
-    # Measured: 0.97 of the 71 % of probes the map knows (the rest: behind the lower layer).
-    assert known >= 0.6 and agree >= 0.9, (agree, known)
-    # Position: the same map shifted by 250 m in any direction agrees far worse (measured
-    # 0.30-0.63), so the shadows sit within ~one cloud-edge footprint of the physics.
-    for dx, dy in ((250, 0), (-250, 0), (0, 250), (0, -250)):
-        assert agreement(dx, dy)[0] <= agree - 0.25, (dx, dy)
-    # Leaving out the sun displacement (vertical projection = the cloud map) is wrong too
-    flat = ground.combine_layers(list(ground.cloud_maps(cam, labels, heights, grid)), (grid.n, grid.n))
-    v = np.array([flat[grid.index(x, y)] for _, x, y in probes])
-    assert np.mean(v[np.isfinite(v)] == truth[np.isfinite(v)]) <= agree - 0.25
+        a, k = agreement(shadow)
+        agree.append(a)
+        known.append(k)
+        shifted.append(max(agreement(shadow, dx, dy)[0] for dx, dy in ((250, 0), (-250, 0), (0, 250), (0, -250))))
+        flat = ground.combine_layers(list(ground.cloud_maps(cam, labels, heights, grid)), (grid.n, grid.n))
+        flat_agree.append(agreement(flat)[0])  # vertical projection: the sun displacement left out
+    agree, shifted, flat_agree = np.mean(agree), np.mean(shifted), np.mean(flat_agree)
+    # Mismatches come from probes within about one camera-1 pixel footprint of a cloud edge
+    # (at 256 px, 0.7 deg/px: 100-150 m at the 3500 m layer seen 50-60 deg off the zenith),
+    # against cloud features of ~1 km; and from the simulator drawing less detail where camera
+    # 1 sees the layer at a grazing angle. Measured 0.97 and 0.78 (mean 0.87) of the 65-75 %
+    # of probes the map knows (the rest: behind the lower layer); over five skies 0.78-0.97
+    # with no consistent best shift (within ±100 m, in varying directions).
+    print(f"shadow agreement {agree:.3f} known {known} shifted 250 m {shifted:.3f} vertical {flat_agree:.3f}")
+    assert min(known) >= 0.6 and agree >= 0.8, (agree, known)
+    # Position: shifted by 250 m (the best of four directions) the map agrees far worse, and so
+    # does the vertical projection: the shadows sit where the physics puts them.
+    assert shifted <= agree - 0.15 and flat_agree <= agree - 0.15, (agree, shifted, flat_agree)
 
 
 @pytest.mark.parametrize("lead, min_agree", [(60.0, 0.9), pytest.param(300.0, 0.75, marks=pytest.mark.slow)])
@@ -212,3 +218,39 @@ def test_shadow_map_through_the_whole_pipeline(unb_station):
     # mismatch of the test above (0.97); measured 0.92 of the 76 % of probes known (640 px).
     print(f"end-to-end shadow agreement {agree:.3f} over {known.mean():.2f} of the probes")
     assert known.mean() >= 0.5 and agree >= 0.85, (agree, known.mean())
+
+
+def test_sun_blocked_now_comes_from_the_previous_pair_when_the_sun_disk_is_masked(probe_world):
+    """The sun disk is masked (8°), so the pair itself cannot tell whether the sun is behind
+    cloud right at the station; earlier pairs advected by the layers' motion can, once the
+    cloud has moved a disk radius (~230 m at 1200 m, ~670 m at 3500 m: 40-80 s with this
+    wind). Pairs every 30 s; checked at every probe point against the simulator's truth."""
+    from cbh.actions.export import PairGround, _sun_blocked
+    from cbh.geometry import ground
+    from cbh.geometry.sun import sun_position
+
+    sim, scene, probes = probe_world
+    st = sim.station
+    t = scene.time_utc + timedelta(seconds=90)
+    winds = [tuple(l.wind_ms) for l in scene.layers]
+
+    def pair(tt):
+        cam, labels, heights, sun = _labels(sim, scene, tt, sun_disk=True)
+        zen = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, tt).zenith_deg
+        return PairGround(cam, labels, heights, [0.3, 0.1], winds, sun, zen, 0.4, tt, True)
+
+    now = pair(t)
+    history = [pair(t - timedelta(seconds=s)) for s in (30, 60, 90)]  # most recent first
+    truth = _truth_shaded(sim, probes, now.sun_dir, t)
+    alone = np.array([ground.sun_blocked(now.camera, now.labels, now.heights, now.motions, now.sun_dir, 0.0,
+                                         at_m=(x, y)) for _, x, y in probes])
+    both = np.array([_sun_blocked(st, now, history, at_m=(x, y))[0] for _, x, y in probes])
+    station = [k for k, (_, x, y) in enumerate(probes) if x == 0 and y == 0][0]
+    assert np.isnan(alone[station]) and np.isfinite(both[station])  # the sun disk hides it; the past tells
+    filled = np.isnan(alone) & np.isfinite(both)
+    known = np.isfinite(both)
+    agree = float(np.mean(both[known] == truth[known]))
+    # Measured: 12 probes filled from the past, 0.92 of them right; all known probes 0.81 (the
+    # pair's own answers agree 0.78 in this sky, see the shadow-map test).
+    assert filled.sum() >= 3 and agree >= 0.75, (filled.sum(), agree)
+    assert np.mean(both[filled] == truth[filled]) >= 0.75

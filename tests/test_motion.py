@@ -359,3 +359,35 @@ def test_motion_config_errors_name_the_key(table, key):
         PipelineConfig.from_dict({"motion": table})
     cfg = PipelineConfig.from_dict({"motion": {"max_gap_s": 60, "clock_offset": False}})
     assert PipelineConfig.from_dict(cfg.to_dict()) == cfg and cfg.motion.max_gap_s == 60.0
+
+
+def test_run_export_csv_carries_height_and_motion(sequence_dir, tmp_path):
+    """The issue's command: `cbh run --source cam1=DIR --source cam2=DIR --cadence-s 0 --export
+    layers.csv`; the CSV has `cloud_base_height_m`, `motion_east_ms`, `motion_north_ms`, empty
+    motion on the first pair and the layers' motion from the second pair on."""
+    import pandas as pd
+
+    from cbh.cli.main import main
+
+    csv = tmp_path / "layers.csv"
+    rc = main(["run", "--station", str(sequence_dir / "station.toml"), "--source", f"cam1={sequence_dir / 'cam1'}",
+               "--source", f"cam2={sequence_dir / 'cam2'}", "--cadence-s", "0", "--export", str(csv)])
+    assert rc == 0
+    df = pd.read_csv(csv)
+    for col in ("cloud_base_height_m", "motion_east_ms", "motion_north_ms"):
+        assert col in df.columns, col
+    times = sorted(df["time_utc"].unique())
+    assert len(times) == 3
+    first = df[df["time_utc"] == times[0]]
+    assert first["motion_east_ms"].isna().all()
+    for t in times[1:]:
+        rows = df[(df["time_utc"] == t) & (df["layer"] >= 1)]
+        low = rows.loc[rows["cloud_base_height_m"].idxmin()]
+        high = rows.loc[rows["cloud_base_height_m"].idxmax()]
+        # truth (two-layers scene): 1200 m at (6, 2) m/s, 3500 m at (-3, 8) m/s. 480 px: heights
+        # within 2 % (parallax ≈ 306 px·B/h/2 at this size), speeds within 5 % (module docstring)
+        assert abs(low["cloud_base_height_m"] / 1200 - 1) <= 0.02
+        assert abs(high["cloud_base_height_m"] / 3500 - 1) <= 0.02
+        assert abs(math.hypot(low["motion_east_ms"], low["motion_north_ms"]) / math.hypot(6, 2) - 1) <= 0.05
+        bearing = math.degrees(math.atan2(low["motion_east_ms"], low["motion_north_ms"]))
+        assert abs(bearing - math.degrees(math.atan2(6, 2))) <= 3.0

@@ -94,6 +94,22 @@ def test_hybrid_without_geometry_on_a_crop():
     assert abs(frac - truth.mean()) <= 0.05
 
 
+@pytest.mark.parametrize("table, key", [
+    ({"segmentation": {"method": "hybrd"}}, "segmentation.method"),
+    ({"segmentation": {"clear_percentile": 30.0}}, "segmentation.clear_percentile"),
+    ({"segmentation": {"chroma_weight": 1.5}}, "segmentation.chroma_weight"),
+    ({"photometric": {"max_gain": 0.5}}, "photometric.max_gain"),
+    ({"masks": {"glare_radius_deg": 0.0}}, "masks.glare_radius_deg"),
+])
+def test_new_settings_are_validated(table, key):
+    from cbh.errors import ConfigError
+    from cbh.pipeline.config import PipelineConfig
+
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        PipelineConfig.from_dict(table)
+    assert PipelineConfig().segmentation.method == "hybrid" and PipelineConfig().photometric.correct
+
+
 def test_li_threshold_splits_two_modes():
     rng = np.random.default_rng(0)
     v = np.concatenate([0.02 + 0.01 * rng.standard_normal(3000), 0.35 + 0.03 * rng.standard_normal(7000)])

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from cbh.errors import ConfigError, RecordingError, SourceError
+from cbh.interfaces import FrameSource
 from cbh.result import Frame, Histogram, Layer, PairResult, PointSet
 from cbh.live.service import MemorySink, Service, ServiceConfig
 from cbh.live.sources import DirectorySource, MemorySource
@@ -57,7 +58,9 @@ def test_finite_sources_process_every_pair_in_order_and_close_sinks():
     assert st.pairs_processed == 8 and st.pairs_dropped == 0 and st.stop_reason == "sources ended"
     assert sink.closed
     # per-pair status for the recorder: counters after each pair
-    assert [s["pairs_processed"] for _, s in sink.status] == list(range(1, 9))
+    assert [s["pairs_processed"] for _, s in sink.status if "event" not in s] == list(range(1, 9))
+    # and one status message per source event (both files ended)
+    assert sorted(s["event"]["camera"] for _, s in sink.status if "event" in s) == ["cam1", "cam2"]
     assert sink.status[-1][1]["sources"] == {"cam1": "ended", "cam2": "ended"}
     assert st.last_layers_m == [1007.0]
 
@@ -143,7 +146,7 @@ def test_full_disk_stops_with_one_error_and_keeps_what_was_recorded(tmp_path):
     assert s.pair_count == 3 and [p.time_utc for p in s.pairs()] == [T0 + timedelta(seconds=k) for k in range(3)]
 
 
-class Flaky:
+class Flaky(FrameSource):
     """A live source whose first opens fail (a camera still booting), then streams."""
 
     live = True
@@ -192,10 +195,13 @@ def test_duration_ends_a_run_with_silent_cameras():
     sink = MemorySink()
     src = [MemorySource("cam1", [], live=True), Flaky("cam2", 10**6, [])]
     t0 = time.monotonic()
-    st = Service(src, process_fn(), [sink], ServiceConfig(duration_s=0.5, backoff_initial_s=0.05)).run()
+    svc = Service(src, process_fn(), [sink], ServiceConfig(duration_s=0.5, backoff_initial_s=0.05))
+    # no pair in the whole run: the run could not do its job and says why (exit 2 in the CLI)
+    with pytest.raises(SourceError, match=r"no pair processed within --duration 0.5 s: cam2: connection refused"):
+        svc.run()
     assert 0.5 <= time.monotonic() - t0 < 5.0
-    assert st.stop_reason == "duration" and sink.closed
-    assert st.sources["cam2"].state == "backoff"
+    assert svc.stats.stop_reason == "duration" and sink.closed
+    assert svc.stats.sources["cam2"].state == "backoff"
 
 
 def test_service_config_from_table():

@@ -13,13 +13,14 @@ limit and the masked sun disk (the obstacle mask is not recorded with the pairs,
 obstacles count as sky; they lie beyond the zenith limit in most stations). Pairs with an
 invalidating flag (:data:`cbh.flags.INVALIDATING`) get unknown (NaN) maps: their layer heights
 are not to be trusted. The sun-blocking answer "now" comes from the pair itself; when the sun's
-ray crosses the masked sun disk (usual: the disk is masked), it is taken from the previous pair
-advected by the layer motion over the time between the pairs (at most ``MAX_FALLBACK_S``).
+ray crosses the masked sun disk (usual: the disk is masked), it is taken from the most recent
+earlier pair that can tell, advected by the layer motion to now (at most ``MAX_FALLBACK_S``).
 """
 from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -40,7 +41,7 @@ log = logging.getLogger(__name__)
 
 SUFFIX_FORMATS = {".csv": "csv", ".parquet": "parquet", ".nc": "netcdf", ".nc4": "netcdf", ".netcdf": "netcdf",
                   ".npz": "npz"}
-MAX_FALLBACK_S = 120.0  # oldest previous pair the "now" sun-blocking answer may come from [s]
+MAX_FALLBACK_S = 300.0  # oldest earlier pair the "now" sun-blocking answer may come from [s]
 
 
 def format_from_suffix(out) -> str | None:
@@ -102,7 +103,14 @@ def pair_ground(station, masks_cfg, result) -> PairGround:
                       float(result.cloud_fraction.get(name, math.nan)), result.time_utc, valid)
 
 
-def _sun_blocked(station, pg: PairGround, prev: PairGround | None) -> list[float]:
+def _sun_blocked(station, pg: PairGround, history=(), at_m=(0.0, 0.0)) -> list[float]:
+    """Sun blocked at ground point ``at_m`` (default: the station) now and at LEAD_TIMES_S.
+
+    "Now" falls back on the earlier pairs in ``history`` (most recent first, at most
+    ``MAX_FALLBACK_S`` old) advected to now, when the pair itself cannot tell: the cloud on the
+    sun ray is inside the masked sun disk until it has moved a disk radius (8° at the slant
+    range: about 230 m at 1.2 km with the sun 43° off the zenith, i.e. ~40 s at 6 m/s).
+    """
     out = []
     for lead in LEAD_TIMES_S:
         if not pg.valid:
@@ -110,13 +118,16 @@ def _sun_blocked(station, pg: PairGround, prev: PairGround | None) -> list[float
             continue
         sd, zen = _sun(station, pg.time_utc + timedelta(seconds=lead))
         sd = sd if zen < 90.0 else None
-        v = ground.sun_blocked(pg.camera, pg.labels, pg.heights, pg.motions, sd, lead,
+        v = ground.sun_blocked(pg.camera, pg.labels, pg.heights, pg.motions, sd, lead, at_m=at_m,
                                cloud_fraction=pg.cloud_fraction)
-        if lead == 0 and math.isnan(v) and prev is not None and prev.valid:
-            age = (pg.time_utc - prev.time_utc).total_seconds()
-            if 0 < age <= MAX_FALLBACK_S:  # the previous pair, advected to now
-                v = ground.sun_blocked(prev.camera, prev.labels, prev.heights, prev.motions, sd, age,
-                                       cloud_fraction=prev.cloud_fraction)
+        if lead == 0:
+            for prev in history:
+                age = (pg.time_utc - prev.time_utc).total_seconds()
+                if not math.isnan(v) or not 0 < age <= MAX_FALLBACK_S:
+                    break
+                if prev.valid:  # an earlier pair, advected to now
+                    v = ground.sun_blocked(prev.camera, prev.labels, prev.heights, prev.motions, sd, age, at_m=at_m,
+                                           cloud_fraction=prev.cloud_fraction)
         out.append(v)
     return out
 
@@ -164,7 +175,7 @@ def ground_maps(sessions, station=None, products=PRODUCTS) -> GroundMaps:
     az = np.full(T, np.nan)
     blocked = np.full((T, len(LEAD_TIMES_S)), np.nan, np.float32)
     done = np.zeros(T, bool)
-    prev = None
+    history: deque = deque()  # earlier pairs, most recent first, within MAX_FALLBACK_S
     for s, st, cfg, heads in sorted(opened, key=lambda o: o[3][0][0] if o[3] else times[0]):
         for pair in s.pairs():
             res = pair.result
@@ -190,8 +201,11 @@ def ground_maps(sessions, station=None, products=PRODUCTS) -> GroundMaps:
             if pg.valid and want_shadow:
                 sm, owner = _shadow(pg, grid)
                 shadow[i], shadow_layer[i] = to_byte(sm), owner
-            blocked[i] = _sun_blocked(st, pg, prev if prev is not None and prev.time_utc < res.time_utc else None)
-            prev = pg
+            while history and (history[0].time_utc >= res.time_utc
+                               or (res.time_utc - history[-1].time_utc).total_seconds() > MAX_FALLBACK_S):
+                history.popleft() if history[0].time_utc >= res.time_utc else history.pop()
+            blocked[i] = _sun_blocked(st, pg, history)
+            history.appendleft(pg)
     return GroundMaps(grid=grid, times=times, layer_cloud=layer_cloud, cloud=cloud, shadow=shadow,
                       layer_height_m=heights, layer_cover=covers, motion_ms=motion, sun_zenith_deg=zen,
                       sun_azimuth_deg=az, sun_blocked=blocked, shadow_layer=shadow_layer, station=st0.name,

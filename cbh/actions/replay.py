@@ -36,7 +36,8 @@ class ReplayReport:
 
 
 def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), station=None, cameras=None,
-           record=None, on_viewer=None, device: str = "cpu") -> ReplayReport:
+           record=None, on_viewer=None, overwrite: bool = False, bind: str | None = None,
+           device: str = "cpu") -> ReplayReport:
     """Replay (``station`` None) or reprocess (``station`` given) a recorded session.
 
     Parameters
@@ -53,6 +54,10 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         Reprocess only: record the new results to this MCAP file.
     on_viewer : callable (RerunSink) → None, optional
         Called once the viewer is open (e.g. to print the serve URL).
+    overwrite : bool
+        Replace an existing ``record`` file (never one of the session's own files).
+    bind : str, optional
+        Address of ``serve`` (default 127.0.0.1).
     device : str
         Reprocess only: where the pipeline's dense work runs (``"cpu"``, ``"cuda"`` …).
     """
@@ -63,10 +68,10 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
     if station is None:
         if record is not None or cameras is not None:
             raise RecordingError("a new recording or camera pair needs reprocessing with a station")
-        n = _replay_recorded(s, rerun, Path(session).stem, on_viewer)
+        n = _replay_recorded(s, rerun, Path(session).stem, on_viewer, bind)
         return ReplayReport(n, False, rerun[0] if rerun else None, rerun[1] if rerun else None,
                             None, None, time.perf_counter() - t0)
-    setup = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem, device)
+    setup = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem, overwrite, bind, device)
     viewer = next((k for k in setup.sinks if k.kind == "viewer"), None)
     if viewer is not None and on_viewer is not None:
         on_viewer(viewer)
@@ -76,7 +81,7 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
                         time.perf_counter() - t0, failed=stats.pairs_failed)
 
 
-def _replay_recorded(s, rerun, name: str, on_viewer) -> int:
+def _replay_recorded(s, rerun, name: str, on_viewer, bind=None) -> int:
     from cbh.outputs.rerun_view import RerunSink
 
     if rerun is None:
@@ -86,7 +91,7 @@ def _replay_recorded(s, rerun, name: str, on_viewer) -> int:
     if rerun[0] == "save":
         check_writable(rerun[1])
     n = 0
-    with RerunSink(s.station, rerun[0], rerun[1], cameras=cams, recording_name=name) as sink:
+    with RerunSink(s.station, rerun[0], rerun[1], cameras=cams, recording_name=name, bind=bind) as sink:
         if on_viewer is not None:
             on_viewer(sink)
         for pair in s.pairs():
@@ -97,7 +102,8 @@ def _replay_recorded(s, rerun, name: str, on_viewer) -> int:
     return n
 
 
-def _reprocess_setup(s, station, cameras, rerun, record, name: str, device: str = "cpu") -> RunSetup:
+def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: bool = False,
+                     bind: str | None = None, device: str = "cpu") -> RunSetup:
     from cbh.geometry.station import Station, load_station
     from cbh.imageio import check_image_size
     from cbh.outputs.record import McapRecorder, RecordingSource
@@ -121,14 +127,15 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str, device: str 
     sinks, recorder = [], None
     try:
         if record is not None:
-            recorder = open_sink(record, lambda: McapRecorder(record, st, pipeline.config.to_dict()))
+            recorder = open_sink(record, lambda: McapRecorder(record, st, pipeline.config.to_dict(),
+                                                              overwrite=overwrite, protect=s.paths))
             sinks.append(recorder)
         if rerun is not None:
             from cbh.outputs.rerun_view import RerunSink
 
             if rerun[0] == "save":
                 check_writable(rerun[1])
-            sinks.append(RerunSink(st, rerun[0], rerun[1], cameras=pipeline.cameras, recording_name=name))
+            sinks.append(RerunSink(st, rerun[0], rerun[1], cameras=pipeline.cameras, recording_name=name, bind=bind))
     except BaseException:
         for k in sinks:
             k.close()

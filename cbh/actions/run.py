@@ -14,7 +14,11 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.live.service import Service, ServiceConfig
 from cbh.result import Frame, PairResult
 
-__all__ = ["RunSetup", "MotionChain", "build_run", "open_sink", "check_writable", "summary_lines"]
+__all__ = ["RunSetup", "MotionChain", "build_run", "open_sink", "check_writable", "summary_lines", "DEFAULT_ROTATE_S"]
+
+#: A recording starts a new file after this much capture time unless --rotate-s/--rotate-mb
+#: say otherwise (bounds the writer's in-memory index; one file per hour) [s].
+DEFAULT_ROTATE_S = 3600.0
 
 
 def open_sink(path, make):
@@ -142,14 +146,18 @@ def _rerun_args(spec: str) -> tuple[str, str | None]:
 
 def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None, rerun=None, export=None,
               cadence_s=None, frames=None, duration_s=None, size_px=None, pair_tolerance_s=None, watch=False,
-              realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6, device: str = "cpu") -> RunSetup:
+              realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6, overwrite: bool = False,
+              bind: str | None = None, device: str = "cpu") -> RunSetup:
     """Assemble ``cbh run``: station, sources, pipeline, sinks, service config (no thread started).
 
     Cameras without a ``--source`` use their station ``source`` key; cameras with neither are
     simulated (``--scene``, default ``two-layers``). A run whose sources are all simulated and
     that has neither ``frames`` nor ``duration_s`` processes ``demo_frames`` pairs.
-    ``record``: None (off), True (``recordings/<station>-<UTC>.mcap``) or a path (a ``.mcap``
-    file, or a directory). ``device``: where the pipeline's dense work runs (``cpu``, ``cuda`` …).
+    ``record``: None (off), True (``recordings/<station>-<UTC>.mcap``; if that exists, the
+    first free ``…_2.mcap``, ``…_3.mcap``, noted in :attr:`RunSetup.notes`) or a path (a
+    ``.mcap`` file, refused if it exists unless ``overwrite``; or a directory, in which every
+    file is created exclusively). ``bind``: address of ``--rerun serve`` (default 127.0.0.1).
+    ``device``: where the pipeline's dense work runs (``cpu``, ``cuda`` …).
     """
     from datetime import timezone
 
@@ -186,6 +194,10 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         raise ConfigError(f"--export {export}: the file must end in .csv or .parquet")
     if record is None and (rotate_mb is not None or rotate_s is not None):
         raise ConfigError("--rotate-mb/--rotate-s need --record")
+    if record is not None and rotate_mb is None and rotate_s is None:
+        # an MCAP writer keeps an index entry per message until the file is finished (~3 KB
+        # per pair): an unrotated recording grows the process without bound
+        rotate_s = DEFAULT_ROTATE_S
     notes = []
     sim = None
     if simulated:
@@ -243,7 +255,10 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
             else:
                 out = Path(record)
             recorder = open_sink(out, lambda: McapRecorder(out, st, pcfg.to_dict(), rotate_mb=rotate_mb,
-                                                             rotate_s=rotate_s))
+                                                             rotate_s=rotate_s, overwrite=overwrite,
+                                                             unique=record is True))
+            if recorder.path != out:
+                notes.append(f"{out} exists: recording to {recorder.path}")
             sinks.append(recorder)
         if export is not None:
             from cbh.outputs.export import LayerExporter
@@ -254,7 +269,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
 
             if rerun_args[0] == "save":
                 check_writable(rerun_args[1])
-            sinks.append(RerunSink(st, mode=rerun_args[0], target=rerun_args[1]))
+            sinks.append(RerunSink(st, mode=rerun_args[0], target=rerun_args[1], bind=bind))
     except BaseException:
         for s in sinks:
             try:

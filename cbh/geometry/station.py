@@ -61,6 +61,11 @@ _CAMERA_KEYS = {
     "rotation", "mask", "source",
 }
 _STATION_KEYS = {"name", "latitude_deg", "longitude_deg", "altitude_m"}
+_STATION_OPTIONAL = {"allow_baseline"}
+#: Plausible camera separation [m]: below, a pair cannot triangulate clouds km away (the
+#: parallax of a 5 m baseline at 5 km is 0.06°, about the fisheye's pixel size); above, the
+#: two cameras no longer see the same cloud base. ``[station] allow_baseline = true`` lifts it.
+BASELINE_RANGE_M = (5.0, 5000.0)
 
 
 def rot_x(a: float) -> np.ndarray:
@@ -171,6 +176,7 @@ class Station:
     cameras: dict[str, Camera]
     path: Path | None = None
     sections: dict[str, dict] = field(default_factory=dict)
+    allow_baseline: bool = False  # accept camera separations outside BASELINE_RANGE_M
     metadata: dict[str, str] = field(default_factory=dict)  # [station.metadata]: keys of METADATA_KEYS
 
     @property
@@ -228,6 +234,7 @@ class Station:
                 "latitude_deg": self.latitude_deg,
                 "longitude_deg": self.longitude_deg,
                 "altitude_m": self.altitude_m,
+                **({"allow_baseline": True} if self.allow_baseline else {}),
                 **({"metadata": dict(self.metadata)} if self.metadata else {}),
             },
             "cameras": cams,
@@ -306,18 +313,55 @@ def _rotation(where: str, value) -> np.ndarray:
     return u @ vt
 
 
-def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = None) -> Station:
-    """Validate a station dict (as read from TOML) into a :class:`Station`."""
+def _mask_size(where: str, mask: Path) -> tuple[int, int]:
+    """(width, height) of a mask image [px]."""
+    import cv2
+
+    img = cv2.imread(str(mask), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ConfigError(f"{where}.mask: not a readable image: {mask}")
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def _check_baselines(cameras: dict[str, Camera], allow: bool) -> None:
+    names = list(cameras)
+    lo, hi = BASELINE_RANGE_M
+    for j, b in enumerate(names):
+        for a in names[:j]:
+            d = float(np.linalg.norm(cameras[b].position_m - cameras[a].position_m))
+            if allow or lo <= d <= hi:
+                continue
+            what = ("zero (both cameras at one place)" if d < 1e-6 else
+                    f"{d:.2f} m" if d < 1000 else f"{d / 1000:.1f} km")
+            raise ConfigError(
+                f"cameras[{b}].position_m: baseline to {a} is {what}, outside the plausible "
+                f"{lo:g} m – {hi / 1000:g} km (positions are metres east, north, up); "
+                "set [station] allow_baseline = true if this is really meant")
+
+
+def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = None,
+                  check_masks: bool = True) -> Station:
+    """Validate a station dict (as read from TOML) into a :class:`Station`.
+
+    Besides types and ranges: every two cameras must be 5 m – 5 km apart
+    (:data:`BASELINE_RANGE_M`) unless ``[station] allow_baseline = true``, and a camera's
+    ``mask`` image must have its calibration's size (``check_masks``; off for stations read
+    back from a recording, whose cameras may be scaled).
+    """
     label = path.name if path is not None else "station"
     _unknown(label, data, {"station", "cameras", *EXTRA_SECTIONS})
     st = data.get("station")
     if not isinstance(st, dict):
         raise ConfigError(f"{label}: [station] table missing")
-    _unknown("station", st, _STATION_KEYS | {"metadata"})
+    _unknown("station", st, _STATION_KEYS | _STATION_OPTIONAL | {"metadata"})
+    allow_baseline = st.get("allow_baseline", False)
+    if not isinstance(allow_baseline, bool):
+        raise ConfigError(f"station.allow_baseline: expected true or false, got {allow_baseline!r}")
     metadata = table("station.metadata", st.get("metadata", {}))
     check_keys("station.metadata", metadata, METADATA_KEYS)
     for key, value in metadata.items():
         string(f"station.metadata.{key}", value)
+
     for key in _STATION_KEYS:
         if key not in st:
             raise ConfigError(f"station.{key}: missing")
@@ -375,6 +419,11 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
             mask = Path(c["mask"]) if Path(c["mask"]).is_absolute() else base_dir / c["mask"]
             if not mask.is_file():
                 raise ConfigError(f"{where}.mask: file not found: {mask}")
+            if check_masks:
+                mw, mh = _mask_size(where, mask)
+                if (mw, mh) != (model.width, model.height):
+                    raise ConfigError(f"{where}.mask: image is {mw}x{mh} px but the camera's calibration is for "
+                                      f"{model.width}x{model.height} px: {mask}")
         source = c.get("source")
         if source is not None and not isinstance(source, str):
             raise ConfigError(f"{where}.source: expected a string (URL, file, directory or 'sim')")
@@ -387,10 +436,11 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
             sections[key] = data[key]
     if "ground" in sections:
         parse_ground(sections["ground"], lat, lon)  # strict keys, checked when the station is read
+    _check_baselines(cameras, allow_baseline)
     return Station(
         name=st["name"], latitude_deg=lat, longitude_deg=lon,
         altitude_m=_num("station.altitude_m", st["altitude_m"]),
-        cameras=cameras, path=path, sections=sections, metadata=dict(metadata),
+        cameras=cameras, path=path, sections=sections, metadata=dict(metadata), allow_baseline=allow_baseline,
     )
 
 

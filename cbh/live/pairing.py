@@ -19,6 +19,12 @@ The rule (frames of each camera arrive in time order):
 
 Memory is bounded: each camera keeps at most ``max_waiting`` frames; the oldest overflow is
 dropped and counted.
+
+Clock jumps (``jump_s``): a frame slightly older than its camera's newest waiting frame is
+dropped (out of order), but one older by more than ``jump_s`` means the camera's clock stepped
+back: the waiting frames stamped after it are dropped and pairing resynchronizes on the new
+time (a single frame stamped years ahead cannot block its camera). Frames dropped because the other
+camera's waiting frame is more than ``jump_s`` away are reported by :meth:`Pairer.pop_disagreements`.
 """
 from __future__ import annotations
 
@@ -57,6 +63,9 @@ class Pairer:
         see whether a closer frame follows [s].
     max_waiting : int
         Frames kept per camera while waiting for a partner.
+    jump_s : float or None
+        Backward step of one camera's time taken as a clock jump (resynchronize) [s];
+        None: never (out-of-order frames are always dropped).
 
     Examples
     --------
@@ -69,7 +78,7 @@ class Pairer:
     """
 
     def __init__(self, cameras: tuple[str, str], tolerance_s: float = 0.5, sync_s: float = 0.02,
-                 max_waiting: int = 16, patience: int = 1):
+                 max_waiting: int = 16, patience: int = 1, jump_s: float | None = None):
         if not tolerance_s > 0:
             raise ConfigError(f"pair tolerance must be > 0 s, got {tolerance_s}")
         if cameras[0] == cameras[1]:
@@ -79,6 +88,10 @@ class Pairer:
         self.cameras = (cameras[0], cameras[1])
         self.tolerance_s, self.sync_s = float(tolerance_s), float(sync_s)
         self.max_waiting, self.patience = int(max_waiting), int(patience)
+        if jump_s is not None and not jump_s > tolerance_s:
+            raise ConfigError(f"jump_s ({jump_s}) must exceed the pair tolerance ({tolerance_s})")
+        self.jump_s = None if jump_s is None else float(jump_s)
+        self._disagree: deque[tuple[str, str, float]] = deque(maxlen=64)
         self._q: dict[str, deque[Frame]] = {c: deque() for c in self.cameras}
         self._ready: list[tuple[Frame, Frame]] = []
         self.stats = PairingStats(unpaired={c: 0 for c in self.cameras})
@@ -92,8 +105,12 @@ class Pairer:
         if q is None:
             raise ConfigError(f"frame of camera {frame.camera!r}, but pairing {self.cameras[0]},{self.cameras[1]}")
         if q and frame.time_utc < q[-1].time_utc:
-            self._drop(frame)
-            return
+            back_s = (q[-1].time_utc - frame.time_utc).total_seconds()
+            if self.jump_s is None or back_s <= self.jump_s:
+                self._drop(frame)
+                return
+            while q and q[-1].time_utc > frame.time_utc:  # the clock stepped back: drop the
+                self._drop(q.pop())  # frames stamped after the new one (the bad time line)
         q.append(frame)
         while len(q) > self.max_waiting:
             self._drop(q.popleft())
@@ -102,16 +119,28 @@ class Pairer:
     def _drop(self, f: Frame) -> None:
         self.stats.unpaired[f.camera] += 1
 
+    def _disagreement(self, dropped: Frame, other: Frame, dt: float) -> None:
+        self._drop(dropped)
+        if self.jump_s is not None and dt > self.jump_s:
+            self._disagree.append((dropped.camera, other.camera, dt))
+
+    def pop_disagreements(self) -> list[tuple[str, str, float]]:
+        """(dropped camera, other camera, other's time − dropped's [s]) for frames dropped because
+        the other camera's waiting frame was more than ``jump_s`` away; cleared on return."""
+        out = list(self._disagree)
+        self._disagree.clear()
+        return out
+
     def _match(self, final: bool = False) -> None:
         qa, qb = self._q[self.cameras[0]], self._q[self.cameras[1]]
         while qa and qb:
             a, b = qa[0], qb[0]
             dt = (b.time_utc - a.time_utc).total_seconds()
             if dt > self.tolerance_s:
-                self._drop(qa.popleft())
+                self._disagreement(qa.popleft(), b, dt)
                 continue
             if dt < -self.tolerance_s:
-                self._drop(qb.popleft())
+                self._disagreement(qb.popleft(), a, -dt)
                 continue
             # e = the earlier frame's queue, l = the later one's
             qe, ql = (qa, qb) if dt >= 0 else (qb, qa)

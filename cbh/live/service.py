@@ -9,18 +9,26 @@ one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultS
   subsampled the same way as a live camera); the pairs in between are *skipped*. 0 = every pair.
 - **Falling behind** (any live source): when several pairs are waiting, the newest is processed
   and the older ones are *dropped* (counted); reader queues drop their oldest frame when full.
-  Memory stays bounded by ``queue_frames`` and the pairer's ``max_waiting`` per camera.
   With only finite sources (files, directories, lists, the simulator as fast as possible)
   nothing is dropped: readers wait for the processing.
+- **Bounded**: frames are taken from the reader queues only when no accepted pair waits, so
+  memory is bounded by ``queue_frames`` per camera and the pairer's ``max_waiting``, also at
+  full speed; ``duration_s`` is checked on every pass of the loop.
 - **Faults**: a source that raises :class:`SourceError` (or an OS error/timeout) is closed and
   reopened with exponential backoff (``backoff_initial_s`` doubling up to ``backoff_max_s``);
-  a corrupt frame (:class:`ImageError`) is counted and skipped. A pair the pipeline rejects is
-  counted as failed. None of these stop the service. Per-source state: ``connecting``,
-  ``streaming``, ``backoff``, ``ended`` (finite source done), ``failed`` (a finite source that
-  cannot be read).
+  a corrupt frame (:class:`ImageError`) is counted and skipped, and ``corrupt_limit`` of them in
+  a row from a live source count as a source error. A pair the pipeline rejects is counted as
+  failed. None of these stop the service. Per-source state: ``connecting``, ``streaming``,
+  ``backoff``, ``ended`` (finite source done), ``failed`` (a finite source that cannot be read).
+  An outage is warned about once when it begins (or its cause changes) and once when the source
+  recovers; repeated warnings are rate-limited (``log_repeat_s``). Outages, recoveries, ends,
+  failures and time jumps are written to every sink as status messages (``event`` in the stats).
+- **Time**: see :class:`Service` (``time_jump_s``): a jump is flagged ``time_jump``, warned and
+  resynchronized; it never silences the station.
 - **Stopping**: ``frames`` processed pairs, ``duration_s`` wall seconds, every source ended,
-  :meth:`Service.stop`, or SIGINT/SIGTERM (the pair in flight is finished, every sink closed).
-  A sink that fails to write (disk full, unwritable) stops the service with
+  :meth:`Service.stop`, or SIGINT/SIGTERM/SIGHUP (the pair in flight is finished, every sink
+  closed). A run that ends with no processed pair for any other reason raises a one-line
+  error saying why. A sink that fails to write (disk full, unwritable) stops the service with
   :class:`RecordingError` after closing every sink, so what was written is kept.
 """
 from __future__ import annotations
@@ -32,8 +40,9 @@ import queue
 import signal
 import threading
 import time
+from collections import OrderedDict, deque
 from dataclasses import asdict, dataclass, field
-from datetime import datetime
+from datetime import datetime, timezone
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
@@ -64,16 +73,24 @@ class ServiceConfig:
     snapshot_interval_s: float = 1.0  # HTTP snapshot polling period [s]
     frames: int | None = None  # stop after this many processed pairs
     duration_s: float | None = None  # stop after this many wall seconds [s]
+    time_jump_s: float = 60.0  # a frame time this far off its camera's previous frame / the wall clock is a jump [s]
+    corrupt_limit: int = 5  # this many corrupt frames in a row from a live source: reconnect with backoff
+    log_repeat_s: float = 300.0  # an identical warning is repeated at most this often (with a count) [s]
 
     def __post_init__(self):
         for f in ("pair_tolerance_s", "read_timeout_s", "stall_timeout_s", "backoff_initial_s",
-                  "backoff_max_s", "snapshot_interval_s"):
+                  "backoff_max_s", "snapshot_interval_s", "time_jump_s", "log_repeat_s"):
             if not getattr(self, f) > 0:
                 raise ConfigError(f"service.{f}: must be > 0, got {getattr(self, f)!r}")
         if self.cadence_s < 0:
             raise ConfigError(f"service.cadence_s: must be >= 0, got {self.cadence_s!r}")
         if self.queue_frames < 1:
             raise ConfigError(f"service.queue_frames: must be >= 1, got {self.queue_frames!r}")
+        if self.corrupt_limit < 1:
+            raise ConfigError(f"service.corrupt_limit: must be >= 1, got {self.corrupt_limit!r}")
+        if self.time_jump_s <= self.pair_tolerance_s:
+            raise ConfigError(f"service.time_jump_s: must exceed pair_tolerance_s ({self.pair_tolerance_s:g} s), "
+                              f"got {self.time_jump_s!r}")
         if self.frames is not None and self.frames < 1:
             raise ConfigError(f"service.frames: must be >= 1, got {self.frames!r}")
         if self.duration_s is not None and not self.duration_s > 0:
@@ -180,74 +197,160 @@ class MemorySink(ResultSink):
         self.closed = True
 
 
+class _Throttle:
+    """Rate limit for repeated warnings: the first of a kind is logged, repeats at most every
+    ``interval_s`` with the count of the ones held back (a broken camera at 30 fps would
+    otherwise write tens of gigabytes of log a day)."""
+
+    def __init__(self, interval_s: float):
+        self.interval_s = float(interval_s)
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, key: str, level: int, msg: str, **extra) -> bool:
+        now = time.monotonic()
+        with self._lock:
+            last = self._last.get(key)
+            if last is not None and now - last < self.interval_s:
+                self._held[key] = self._held.get(key, 0) + 1
+                log.debug(msg, extra=extra)
+                return False
+            held = self._held.pop(key, 0)
+            self._last[key] = now
+        if held:
+            msg += f" ({held} more like this in the last {now - last:.0f} s)"
+        log.log(level, msg, extra=extra)
+        return True
+
+    def reset(self, key: str) -> None:
+        with self._lock:
+            self._last.pop(key, None)
+            self._held.pop(key, None)
+
+
 class _Reader(threading.Thread):
-    """Pulls one source into a bounded queue; reconnects with backoff; never raises."""
+    """Pulls one source into a bounded queue; reconnects with backoff; never raises.
+
+    State changes that matter to an operator (an outage begins or changes cause, the source
+    recovers, ends or fails) are logged once at WARNING and queued on ``events`` for the
+    service to record as status messages; repeats of the same warning are rate-limited.
+    """
 
     def __init__(self, source, cfg: ServiceConfig, status: SourceStatus, stop: threading.Event,
-                 wake: threading.Event, opened: bool):
+                 wake: threading.Event, opened: bool, events: queue.SimpleQueue, throttle: _Throttle):
         super().__init__(name=f"cbh-reader-{source.camera}", daemon=True)
         self.src, self.cfg, self.status = source, cfg, status
         self.live = bool(source.live)
         self.q: queue.Queue = queue.Queue(maxsize=cfg.queue_frames)
         self._stop_ev, self._wake = stop, wake
         self._opened = opened
+        self._events, self._throttle = events, throttle
+        self._outage_since: float | None = None  # monotonic start of the current outage
         self.done = False
 
     def _set(self, state: str, error: str | None = None) -> None:
         if state != self.status.state:
-            log.info(f"{self.src.camera}: {state}" + (f" ({error})" if error else ""),
-                     extra={"cbh_camera": self.src.camera, "cbh_state": state, "cbh_error": error})
+            log.debug(f"{self.src.camera}: {state}" + (f" ({error})" if error else ""),
+                      extra={"cbh_camera": self.src.camera, "cbh_state": state, "cbh_error": error})
         self.status.state = state
         if error is not None:
             self.status.error = error
 
+    def _event(self, event: str, error: str | None = None, **more) -> None:
+        self._events.put({"event": event, "camera": self.src.camera, "state": self.status.state,
+                          "error": error, "time_utc": datetime.now(timezone.utc), **more})
+        self._wake.set()
+
+    def _outage(self, msg: str, backoff_s: float) -> None:
+        """One warning when an outage begins (or its cause changes); repeats are rate-limited."""
+        cam = self.src.camera
+        text = msg if msg.startswith(cam) else f"{cam}: {msg}"
+        key = f"outage:{cam}:{msg}"
+        if self._outage_since is None:
+            self._outage_since = time.monotonic()
+            self._throttle.reset(key)
+            self._event("outage", msg)
+        self._throttle(key, logging.WARNING, f"{text}; reconnecting with backoff (now {backoff_s:.2g} s)",
+                       cbh_camera=cam, cbh_event="reconnect", cbh_backoff_s=backoff_s)
+
+    def _recovered(self) -> None:
+        if self._outage_since is not None:
+            down = time.monotonic() - self._outage_since
+            self._outage_since = None
+            log.warning(f"{self.src.camera}: streaming again after {down:.0f} s outage",
+                        extra={"cbh_camera": self.src.camera, "cbh_event": "recovered", "cbh_outage_s": down})
+            self._event("recovered", None, outage_s=round(down, 3))
+
     def run(self) -> None:
         backoff = self.cfg.backoff_initial_s
         cam = self.src.camera
+        corrupt_run = 0  # corrupt frames in a row
         try:
             while not self._stop_ev.is_set():
                 try:
                     if not self._opened:
                         self._set("connecting")
-                        self.src.open()
+                        try:
+                            self.src.open()
+                        except ImageError as exc:  # e.g. a snapshot URL that serves no image
+                            raise SourceError(str(exc)) from None
                         self._opened = True
                         self._set("streaming")
                     frame = self.src.read(self.cfg.read_timeout_s)
                     if frame is None:
                         continue
+                    corrupt_run = 0
                     backoff = self.cfg.backoff_initial_s
+                    self._recovered()
                     self.status.frames += 1
                     frame.received_s = time.monotonic()  # for the latency figure
                     self._put(frame)
                 except ImageError as exc:
                     self.status.corrupt += 1
                     self.status.error = str(exc)
-                    log.warning(f"{cam}: corrupt frame skipped: {exc}", extra={"cbh_camera": cam, "cbh_event": "corrupt"})
+                    corrupt_run += 1
+                    if self.live and corrupt_run >= self.cfg.corrupt_limit:
+                        # a source that delivers only junk is broken, not unlucky: back off
+                        corrupt_run = 0
+                        self._fail_live(f"{cam}: {self.cfg.corrupt_limit} corrupt frames in a row ({exc})", backoff)
+                        backoff = min(backoff * 2.0, self.cfg.backoff_max_s)
+                        continue
+                    self._throttle(f"corrupt:{cam}", logging.WARNING, f"{cam}: corrupt frame skipped: {exc}",
+                                   cbh_camera=cam, cbh_event="corrupt")
                 except EndOfStream:
                     self._set("ended")
+                    self._event("ended")
                     return
                 except (SourceError, OSError, TimeoutError) as exc:
                     msg = str(exc) if isinstance(exc, CbhError) else f"{type(exc).__name__}: {exc}"
-                    self._close_src()
-                    self._opened = False
                     if not self.live:
+                        self._close_src()
+                        self._opened = False
                         self._set("failed", msg)
+                        self._event("failed", msg)
                         return
-                    self.status.reconnects += 1
-                    self._set("backoff", msg)
-                    log.warning(f"{msg if msg.startswith(cam) else cam + ': ' + msg}; reconnecting in {backoff:.2g} s",
-                                extra={"cbh_camera": cam, "cbh_event": "reconnect", "cbh_backoff_s": backoff})
-                    self._stop_ev.wait(backoff)
+                    self._fail_live(msg, backoff)
                     backoff = min(backoff * 2.0, self.cfg.backoff_max_s)
                 except Exception as exc:  # a bug in a source must not take the service down silently
                     log.error(f"{cam}: source error: {exc!r}", exc_info=True, extra={"cbh_camera": cam})
                     self._close_src()
                     self._opened = False
                     self._set("failed", f"{type(exc).__name__}: {exc}")
+                    self._event("failed", f"{type(exc).__name__}: {exc}")
                     return
         finally:
             self.done = True
             self._wake.set()
+
+    def _fail_live(self, msg: str, backoff: float) -> None:
+        """Close a live source, log/record the outage, wait ``backoff`` seconds (or until stopped)."""
+        self._close_src()
+        self._opened = False
+        self.status.reconnects += 1
+        self._set("backoff", msg)
+        self._outage(msg, backoff)
+        self._stop_ev.wait(backoff)
 
     def _put(self, frame: Frame) -> None:
         if self.live:
@@ -277,6 +380,10 @@ class _Reader(threading.Thread):
             pass
 
 
+#: Stop reasons that mean the operator ended the run (no error when no pair was processed).
+_OPERATOR_STOPS = ("SIGINT", "SIGTERM", "SIGHUP", "stopped")
+
+
 class Service:
     """Run the sources → pairing → processing → sinks loop.
 
@@ -288,11 +395,22 @@ class Service:
         Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr")``.
         Frames arrive decoded (``image`` set).
     sinks : sequence of ResultSink
-        Each gets ``write((f1, f2), result)`` per pair, ``write_status(time_utc, stats)`` if it
-        has that method, and ``close()`` at the end.
+        Each gets ``write((f1, f2), result)`` per pair, ``write_status(time_utc, stats)`` after
+        each pair and on every source event (outage, recovery, end, failure, time jump; the
+        stats then carry ``event``), and ``close()`` at the end.
     config : ServiceConfig
     on_pair : callable (ServiceStats, PairResult | None) → None, optional
         Called after every processed (or failed) pair and now and then while idle (status line).
+
+    Time checks (``time_jump_s`` = J): a frame is a *time jump* when it is stamped more than J
+    ahead of the wall clock, more than J before its camera's previous frame, or (live cameras)
+    J further ahead of its previous frame than the wall clock advanced. The jump is warned
+    about at WARNING (rate-limited), the pair that contains it carries the flag ``time_jump``
+    (and ``time_jump_s`` in its diagnostics), the pairer forgets the frames queued before a
+    backward jump and the cadence restarts at the new time: a single bad time stamp never
+    silences the station. Simulated sources are exempt from the wall-clock checks (their time
+    is the scene's). Frames of one camera that cannot be paired because the other camera's
+    clock is more than J away are warned about too (``clock disagreement``).
     """
 
     def __init__(self, sources, process: Callable[[Frame, Frame], PairResult], sinks=(),
@@ -308,6 +426,10 @@ class Service:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._signals = 0
+        self._events: queue.SimpleQueue = queue.SimpleQueue()
+        self._throttle = _Throttle(self.cfg.log_repeat_s)
+        self._last_frame: dict[str, tuple[datetime, float | None]] = {}
+        self._jumps: OrderedDict[tuple, float] = OrderedDict()  # (camera, seq, time) → jump [s]
 
     # -- control ------------------------------------------------------------------------------
     def stop(self, reason: str = "stopped") -> None:
@@ -325,12 +447,18 @@ class Service:
 
     # -- main loop ----------------------------------------------------------------------------
     def run(self, handle_signals: bool = True) -> ServiceStats:
-        """Run until a stop condition; returns the counters. Every sink is closed on return."""
+        """Run until a stop condition; returns the counters. Every sink is closed on return.
+
+        SIGINT, SIGTERM and SIGHUP (a closed SSH session) finish the pair in flight and close
+        every file. A run that ends without one processed pair for any other reason (every
+        source failed, ``duration_s`` passed with no pair, the files held no pair) raises
+        :class:`SourceError` / :class:`InputError` saying why (after closing the sinks).
+        """
         from cbh.live.pairing import Pairer
 
         old = {}
         if handle_signals and threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 old[sig] = signal.signal(sig, self._on_signal)
         readers: list[_Reader] = []
         try:
@@ -342,10 +470,11 @@ class Service:
                     self.stats.sources[s.camera].state = "streaming"
                 opened.append(not s.live)
             pairer = Pairer(self.cameras, self.cfg.pair_tolerance_s,
-                            max_waiting=max(2 * self.cfg.queue_frames, 8))
+                            max_waiting=max(2 * self.cfg.queue_frames, 8), jump_s=self.cfg.time_jump_s)
             self.stats.unpaired = pairer.stats.unpaired
             self.stats.started_monotonic = time.monotonic()
-            readers = [_Reader(s, self.cfg, self.stats.sources[s.camera], self._stop, self._wake, o)
+            readers = [_Reader(s, self.cfg, self.stats.sources[s.camera], self._stop, self._wake, o,
+                               self._events, self._throttle)
                        for s, o in zip(self.sources, opened)]
             for r in readers:
                 r.start()
@@ -359,18 +488,41 @@ class Service:
                     s.close()
                 except Exception as exc:
                     log.warning(f"{s.camera}: close failed: {exc}")
+            try:
+                self._record_events()
+            except RecordingError:
+                pass  # the sink error is raised below (or was already)
             close_err = self._close_sinks()
             for sig, h in old.items():
                 signal.signal(sig, h)
         if close_err is not None:
             raise close_err
-        if self.stats.pairs_processed == 0:
-            failed = [f"{c}: {st.error}" for c, st in self.stats.sources.items() if st.state == "failed"]
-            if failed:
-                raise SourceError("; ".join(failed))
-            if self.stats.pairs_failed and self.stats.last_error:
-                raise ImageError(f"no pair could be processed: {self.stats.last_error}")
+        if self.stats.pairs_processed == 0 and self.stats.stop_reason not in _OPERATOR_STOPS:
+            raise self._nothing_done()
         return self.stats
+
+    def _nothing_done(self) -> CbhError:
+        """The one-line error of a run that processed no pair."""
+        from cbh.errors import InputError
+
+        st = self.stats
+        if st.stop_reason == "duration":
+            why = f"within --duration {self.cfg.duration_s:g} s"
+        elif st.stop_reason == "sources ended":
+            why = "before the sources ended"
+        else:
+            why = f"(stopped: {st.stop_reason})"
+        failed = [s.error if s.error.startswith(c) else f"{c}: {s.error}"
+                  for c, s in st.sources.items() if s.error and s.state in ("failed", "backoff")]
+        if failed:
+            return SourceError(f"no pair processed {why}: " + "; ".join(failed))
+        if st.pairs_failed and st.last_error:
+            return ImageError(f"no pair processed {why}: {st.pairs_failed} failed, last: {st.last_error}")
+        got = ", ".join(f"{c} {s.frames} frames" + (f" ({s.corrupt} corrupt)" if s.corrupt else "")
+                        for c, s in st.sources.items())
+        unpaired = sum(st.unpaired.values())
+        return InputError(f"no pair processed {why}: received {got}; {unpaired} frames without a partner "
+                          f"within {self.cfg.pair_tolerance_s:g} s")
 
     def _close_sinks(self) -> Exception | None:
         err = None
@@ -384,52 +536,127 @@ class Service:
                     err = _sink_error(sink, exc, "closing")
         return err
 
+    def _record_events(self) -> None:
+        """Source events (outage, recovery, end, failure, time jump) → status messages of every sink."""
+        while True:
+            try:
+                ev = self._events.get_nowait()
+            except queue.Empty:
+                return
+            t = ev.pop("time_utc")
+            status = self.stats.to_dict()
+            status["event"] = {k: v for k, v in ev.items() if v is not None}
+            self._write_status(t, status)
+
+    def _write_status(self, t: datetime, status: dict) -> None:
+        for sink in self.sinks:
+            try:
+                sink.write_status(t, status)
+            except Exception as exc:
+                err = _sink_error(sink, exc, "writing status to")
+                self.stop("sink failed")
+                raise err from None
+
+    def _check_time(self, r: _Reader, f: Frame) -> None:
+        """Flag a frame whose time jumped (see the class docstring)."""
+        cam, tol = f.camera, self.cfg.time_jump_s
+        prev = self._last_frame.get(cam)
+        self._last_frame[cam] = (f.time_utc, f.received_s)
+        clocked = r.src.clock  # simulated time is the scene's, not a clock
+        why, jump, kind = None, 0.0, ""
+        if clocked:
+            ahead = (f.time_utc - datetime.now(timezone.utc)).total_seconds()
+            if ahead > tol:
+                why, jump, kind = f"stamped {_iso(f.time_utc)}, {ahead:.0f} s ahead of the wall clock", ahead, "future"
+        if why is None and prev is not None:
+            dt = (f.time_utc - prev[0]).total_seconds()
+            if dt < -tol:
+                why, jump, kind = f"time stepped back {-dt:.0f} s ({_iso(prev[0])} → {_iso(f.time_utc)})", dt, "back"
+            elif clocked and r.live and prev[1] is not None and f.received_s is not None:
+                drift = dt - (f.received_s - prev[1])
+                if drift > tol:
+                    why, jump, kind = (f"time jumped {drift:.0f} s ahead of the wall clock's advance "
+                                       f"({_iso(prev[0])} → {_iso(f.time_utc)})", drift, "ahead")
+        if why is None:
+            return
+        self._jumps[(cam, f.sequence, f.time_utc)] = jump
+        while len(self._jumps) > 256:
+            self._jumps.popitem(last=False)
+        self._throttle(f"jump:{cam}:{kind}", logging.WARNING, f"{cam}: time jump: {why}; pairs resynchronized",
+                       cbh_camera=cam, cbh_event="time_jump", cbh_jump_s=jump)
+        self._events.put({"event": "time_jump", "camera": cam, "jump_s": round(jump, 3),
+                          "frame_time_utc": _iso(f.time_utc), "time_utc": datetime.now(timezone.utc)})
+
+    def _pull(self, readers: list[_Reader], pairer, live: bool) -> None:
+        """Move frames from the reader queues into the pairer (time-checked), one camera's
+        frame after the other's, so both time lines advance together (also across a jump)."""
+        moved = True
+        while moved:
+            moved = False
+            for r in readers:
+                other = readers[1] if r is readers[0] else readers[0]
+                # lossless: leave frames with a reader that is ahead of the other camera
+                # (it waits) instead of overflowing the pairer, unless the other has ended
+                if (not live and pairer.waiting()[r.src.camera] >= pairer.max_waiting - 1
+                        and not (other.done and other.q.empty())):
+                    continue
+                try:
+                    f = r.q.get_nowait()
+                except queue.Empty:
+                    continue
+                self._check_time(r, f)
+                pairer.push(f)
+                moved = True
+        for a, b, dt in pairer.pop_disagreements():
+            self._throttle(f"disagree:{a}", logging.WARNING,
+                           f"{a} frame dropped: {b}'s clock is {abs(dt):.0f} s {'ahead' if dt > 0 else 'behind'} "
+                           f"(no partner within {self.cfg.pair_tolerance_s:g} s); check both cameras' clocks",
+                           cbh_camera=a, cbh_event="clock_disagreement", cbh_dt_s=dt)
+
     def _loop(self, readers: list[_Reader], pairer) -> None:
         cfg, st = self.cfg, self.stats
         live = any(r.live for r in readers)
         t_end = None if cfg.duration_s is None else st.started_monotonic + cfg.duration_s
-        pending: list[tuple[Frame, Frame]] = []
+        # pairs accepted for processing; frames are pulled from the readers only when it is
+        # empty, so memory is bounded by the reader queues and the pairer (also at full speed)
+        pending: deque[tuple[Frame, Frame]] = deque()
         last_t: datetime | None = None  # time of the last pair accepted for processing
         last_status = 0.0
         while not self._stop.is_set():
             self._wake.clear()
-            for r in readers:
-                other = readers[1] if r is readers[0] else readers[0]
-                while True:
-                    # lossless: leave frames with a reader that is ahead of the other camera
-                    # (it waits) instead of overflowing the pairer, unless the other has ended
-                    if (not live and pairer.waiting()[r.src.camera] >= pairer.max_waiting - 1
-                            and not (other.done and other.q.empty())):
-                        break
-                    try:
-                        pairer.push(r.q.get_nowait())
-                    except queue.Empty:
-                        break
-            finished = all(r.done and r.q.empty() for r in readers)
-            new = pairer.flush() if finished else pairer.pop_pairs()
-            for p in new:
-                t = p[0].time_utc
-                if last_t is not None and cfg.cadence_s > 0 and (t - last_t).total_seconds() < cfg.cadence_s - 1e-6:
-                    st.pairs_skipped += 1
-                    continue
-                if last_t is not None and cfg.cadence_s > 0:
-                    missed = int((t - last_t).total_seconds() / cfg.cadence_s + 1e-6) - 1
-                    if live and missed > 0:
-                        st.pairs_dropped += missed
-                pending.append(p)
-                last_t = t
-            if live and len(pending) > 1:
-                if cfg.cadence_s == 0:
-                    st.pairs_dropped += len(pending) - 1
-                pending = pending[-1:]
-            if pending:
-                self._handle(pending.pop(0))
-                if cfg.frames is not None and st.pairs_processed >= cfg.frames:
-                    self.stop("frames")
-                continue
+            self._record_events()
             if t_end is not None and time.monotonic() >= t_end:
                 self.stop("duration")
                 break
+            finished = False
+            if not pending:
+                self._pull(readers, pairer, live)
+                finished = all(r.done and r.q.empty() for r in readers)
+                new = pairer.flush() if finished else pairer.pop_pairs()
+                for p in new:
+                    t = p[0].time_utc
+                    if last_t is not None and (t - last_t).total_seconds() < -cfg.time_jump_s:
+                        last_t = None  # a clock stepped back: the cadence restarts here
+                    if last_t is not None and cfg.cadence_s > 0 and (t - last_t).total_seconds() < cfg.cadence_s - 1e-6:
+                        st.pairs_skipped += 1
+                        continue
+                    if last_t is not None and cfg.cadence_s > 0:
+                        gap = (t - last_t).total_seconds()
+                        missed = int(gap / cfg.cadence_s + 1e-6) - 1
+                        if live and missed > 0 and gap <= cfg.time_jump_s:
+                            st.pairs_dropped += missed
+                    pending.append(p)
+                    last_t = t
+                if live and len(pending) > 1:
+                    if cfg.cadence_s == 0:
+                        st.pairs_dropped += len(pending) - 1
+                    while len(pending) > 1:
+                        pending.popleft()
+            if pending:
+                self._handle(pending.popleft())
+                if cfg.frames is not None and st.pairs_processed >= cfg.frames:
+                    self.stop("frames")
+                continue
             if finished:
                 self.stop("sources ended")
                 break
@@ -457,12 +684,20 @@ class Service:
         except Exception as exc:  # a bad pair never stops the service
             st.pairs_failed += 1
             st.last_error = str(exc) if isinstance(exc, CbhError) else f"{type(exc).__name__}: {exc}"
-            log.warning(f"pair at {f1.time_utc.isoformat()} failed: {st.last_error}",
-                        exc_info=not isinstance(exc, CbhError), extra={"cbh_event": "pair_failed"})
+            self._throttle("pair_failed", logging.WARNING, f"pair at {f1.time_utc.isoformat()} failed: {st.last_error}",
+                           cbh_event="pair_failed")
+            if not isinstance(exc, CbhError):
+                log.debug("pair failure traceback", exc_info=True)
             if self.on_pair is not None:
                 self.on_pair(st, None)
             return
         st.process_s = time.monotonic() - t0
+        jumps = [self._jumps.pop((f.camera, f.sequence, f.time_utc), None) for f in pair]
+        jumps = [j for j in jumps if j is not None]
+        if jumps:
+            if "time_jump" not in result.flags:
+                result.flags.append("time_jump")
+            result.diagnostics["time_jump_s"] = float(max(jumps, key=abs))
         for sink in self.sinks:
             try:
                 sink.write(pair, result)
@@ -497,14 +732,7 @@ class Service:
         recv = max(f1.received_s if f1.received_s is not None else t0,
                    f2.received_s if f2.received_s is not None else t0)
         st.latency_s = time.monotonic() - recv
-        status = st.to_dict()
-        for sink in self.sinks:
-            try:
-                sink.write_status(result.time_utc, status)
-            except Exception as exc:
-                err = _sink_error(sink, exc, "writing status to")
-                self.stop("sink failed")
-                raise err from None
+        self._write_status(result.time_utc, st.to_dict())
         log.info("pair processed", extra={
             "cbh_time_utc": result.time_utc.isoformat(), "cbh_layers_m": st.last_layers_m,
             "cbh_process_s": round(st.process_s, 3), "cbh_latency_s": round(st.latency_s, 3),
@@ -517,7 +745,12 @@ class Service:
         s = self.stats.sources[frame.camera]
         s.corrupt += 1
         s.error = str(exc)
-        log.warning(f"{frame.camera}: corrupt frame skipped: {exc}", extra={"cbh_camera": frame.camera, "cbh_event": "corrupt"})
+        self._throttle(f"corrupt:{frame.camera}", logging.WARNING, f"{frame.camera}: corrupt frame skipped: {exc}",
+                       cbh_camera=frame.camera, cbh_event="corrupt")
+
+
+def _iso(t: datetime) -> str:
+    return t.isoformat().replace("+00:00", "Z")
 
 
 def _sink_error(sink, exc: Exception, doing: str) -> RecordingError:

@@ -57,7 +57,7 @@ from cbh.timeutil import parse_time_header, time_from_name, wait_until as _wait_
 __all__ = [
     "EndOfStream", "HttpSource", "MjpegSource", "SnapshotSource", "VideoSource", "DirectorySource",
     "MemorySource", "open_source", "is_sim_spec", "parse_time_header", "time_from_name", "SOURCE_KINDS",
-    "IMAGE_SUFFIXES", "VIDEO_SUFFIXES",
+    "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "camera_prefixed",
 ]
 
 log = logging.getLogger(__name__)
@@ -221,6 +221,23 @@ def _redact(url: str) -> str:
     return urllib.parse.urlunsplit((u.scheme, netloc, u.path, u.query, u.fragment))
 
 
+#: Bytes allowed before the first part boundary of an MJPEG stream (RFC 2046 preamble).
+_MJPEG_PREAMBLE = 4096
+
+#: Content types a camera may label an image with (besides image/*); an empty header is
+#: accepted too (the bytes are checked).
+_IMAGE_TYPES = ("application/octet-stream", "binary/octet-stream")
+
+
+def _check_image_type(url: str, content_type: str) -> None:
+    """:class:`SourceError` when a reply is labelled as something other than an image
+    (an HTML login or error page served with status 200 is a failed source, not a corrupt frame)."""
+    ct = content_type.split(";", 1)[0].strip().lower()
+    if ct and not ct.startswith("image/") and ct not in _IMAGE_TYPES:
+        hint = " (a login or error page? check the URL and credentials)" if ct in ("text/html", "text/plain") else ""
+        raise SourceError(f"{_redact(url)}: the camera replied with Content-Type {ct!r}, not an image{hint}")
+
+
 def _boundary(content_type: str) -> bytes | None:
     m = re.search(r'boundary="?([^";]+)"?', content_type, re.I)
     if not m:
@@ -265,6 +282,7 @@ class HttpSource(FrameSource):
         self._last_data = 0.0
         self._next_poll = 0.0
         self._seq = 0
+        self._parts = 0  # parts parsed since the stream was opened
         self._last_stamp: datetime | None = None
 
     def __repr__(self) -> str:
@@ -278,6 +296,12 @@ class HttpSource(FrameSource):
             return
         conn = _HttpConn(self.url, self.stall_timeout_s)
         ctype = conn.headers.get("content-type", "")
+        if "multipart" not in ctype.lower():
+            try:
+                _check_image_type(self.url, ctype)
+            except SourceError:
+                conn.close()
+                raise
         if "multipart" in ctype.lower():
             b = _boundary(ctype)
             if b is None:
@@ -285,6 +309,7 @@ class HttpSource(FrameSource):
                 raise SourceError(f"{_redact(self.url)}: multipart reply without a boundary")
             self._conn, self._boundary, self.kind = conn, b, "mjpeg"
             self._last_data = time.monotonic()
+            self._parts = 0
             return
         if self.mode == "mjpeg":
             conn.close()
@@ -298,6 +323,7 @@ class HttpSource(FrameSource):
             conn.close()
 
     def _snapshot_frame(self, conn: _HttpConn) -> Frame | None:
+        _check_image_type(self.url, conn.headers.get("content-type", ""))
         body = conn.read_body(self.stall_timeout_s, self.max_frame_bytes)
         t = parse_time_header(conn.headers.get("x-timestamp"))
         if t is not None and t == self._last_stamp:
@@ -351,8 +377,14 @@ class HttpSource(FrameSource):
 
     def _parse_part(self) -> Frame | None:
         buf, b = self._conn.buf, self._boundary
-        i = buf.find(b)
+        # a part starts right at its boundary (after the previous part's CRLF; the first may
+        # follow a short preamble): anything else is not an MJPEG stream, however long it runs
+        lead = _MJPEG_PREAMBLE if self._parts == 0 else 64
+        i = buf.find(b, 0, lead + len(b))
         if i < 0:
+            if len(buf) >= lead + len(b):
+                raise SourceError(f"{_redact(self.url)}: junk in the MJPEG stream (no part boundary "
+                                  f"{b.decode('latin-1')!r} where a part should start)")
             return None
         h_end = buf.find(b"\r\n\r\n", i)
         if h_end < 0:
@@ -376,6 +408,7 @@ class HttpSource(FrameSource):
             del buf[:j]
         t = parse_time_header(headers.get("x-timestamp")) or _now()
         self._seq += 1
+        self._parts += 1
         return _finish(body, self.camera, t, self._seq, self.decode, f"{self.camera} frame {self._seq}")
 
     def close(self) -> None:
@@ -501,6 +534,12 @@ class VideoSource(FrameSource):
 
 # --- directory of timestamped images ---------------------------------------------------------
 
+def camera_prefixed(name: str, camera: str) -> bool:
+    """Whether a file name belongs to ``camera`` by the ``<camera>_…`` / ``<camera>-…`` /
+    ``<camera>.…`` naming rule of shared image directories."""
+    return name.startswith(camera) and name[len(camera):len(camera) + 1] in ("_", "-", ".")
+
+
 class DirectorySource(FrameSource):
     """Images in a directory, in time order; with ``watch`` new files are picked up as they arrive.
 
@@ -528,7 +567,7 @@ class DirectorySource(FrameSource):
 
     @staticmethod
     def _mine(name: str, prefix: str) -> bool:
-        return name.startswith(prefix) and name[len(prefix):len(prefix) + 1] in ("_", "-", ".")
+        return camera_prefixed(name, prefix)
 
     def open(self) -> None:
         if not self.path.is_dir():
@@ -561,9 +600,9 @@ class DirectorySource(FrameSource):
         for t, p in sorted(new):
             self._seen.add(p.name)
             self._sizes.pop(p.name, None)
-            if self._last_t is not None and t <= self._last_t and self.watch:
-                log.debug("late file skipped", extra={"cbh_camera": self.camera, "cbh_file": p.name})
-                continue
+            # a file older than the last one delivered is delivered too: a slightly late file
+            # is dropped by the pairer (counted as unpaired), a clock that stepped back is
+            # flagged by the service and pairing resynchronizes; never skipped in silence
             self._queue.append((t, p))
 
     def read(self, timeout_s: float) -> Frame | None:

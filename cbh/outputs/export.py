@@ -47,6 +47,7 @@ ceilometer products (E-PROFILE, Vaisala CL61): see :func:`netcdf_dataset`.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 import os
@@ -275,7 +276,9 @@ class LayerExporter(ResultSink):
         Diagnostics columns a new file starts with (keys seen later are added).
 
     Both formats are complete and readable after every pair, also while the service runs and
-    after a kill: CSV rows are flushed as written; the Parquet file is rewritten to a temporary
+    after a kill: a pair's CSV rows are appended with one unbuffered write, a write that fails
+    part-way (disk full) is cut back to the last complete row, and a torn last row left by an
+    earlier crash is removed (with a warning) when the file is opened again; the Parquet file is rewritten to a temporary
     file and atomically renamed over the old one after each pair (layer rows are small: a day
     at a 10 s cadence is about 26 000 rows).
     """
@@ -300,6 +303,7 @@ class LayerExporter(ResultSink):
         if not self.path.parent.is_dir():
             raise RecordingError(f"export directory does not exist: {self.path.parent}")
         if self.format == "csv":
+            self._repair_csv_tail()
             exists = self.path.is_file() and self.path.stat().st_size > 0
             if exists:
                 with open(self.path, newline="") as fh:
@@ -326,20 +330,6 @@ class LayerExporter(ResultSink):
                     raise RecordingError(f"{self.path}: exists with other columns; cannot append layer rows to it")
                 self.diagnostics = keys
                 self._rows = table.to_pylist()
-
-    def _open_csv(self, write_header: bool) -> None:
-        try:
-            self._fh = open(self.path, "a", newline="")
-        except OSError as exc:
-            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
-        self._csv = csv.writer(self._fh, lineterminator="\n")
-        if write_header:
-            try:
-                self._csv.writerow(COLUMNS + self.diagnostics)
-                self._fh.flush()
-            except OSError:
-                self._fh.close()  # the caller reports the error (e.g. disk full)
-                raise
 
     def _widen_csv(self, keys: tuple[str, ...]) -> None:
         """Rewrite the CSV with ``keys`` as its diagnostics columns (atomic rename)."""
@@ -381,9 +371,11 @@ class LayerExporter(ResultSink):
         rows = record_rows(rec, self.diagnostics)
         if self.format == "csv":
             cols = COLUMNS + self.diagnostics
+            buf = io.StringIO()
+            w = csv.writer(buf, lineterminator="\n")
             for r in rows:
-                self._csv.writerow([_csv_value(k, r[k]) for k in cols])
-            self._fh.flush()
+                w.writerow([_csv_value(k, r[k]) for k in cols])
+            self._append_whole(buf.getvalue().encode("utf-8"))
         else:
             if len(self._rows) + len(rows) > self.max_rows:
                 self.path = self.paths[0].with_name(f"{self.paths[0].stem}-{len(self.paths):03d}.parquet")
@@ -392,6 +384,61 @@ class LayerExporter(ResultSink):
             self._rows.extend(rows)
             self._write_parquet()
         self.rows_written += len(rows)
+
+    # --- CSV: whole rows or nothing ------------------------------------------------------
+
+    def _repair_csv_tail(self) -> None:
+        """Cut a torn last row (no final newline) left by a crash or a full disk of an earlier
+        run, with a warning. Only a file that starts like a cbh layer table is touched."""
+        try:
+            fd = os.open(self.path, os.O_RDWR)
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
+        try:
+            size = os.fstat(fd).st_size
+            head = os.pread(fd, 4096, 0).split(b"\n", 1)[0]
+            ours = ",".join(COLUMNS).encode()
+            if not size or not (head.startswith(ours) or ours.startswith(head)):
+                return  # empty, or not ours: the header check reports it
+            keep = _complete_length(fd, size)
+            if keep != size:
+                os.ftruncate(fd, keep)
+                log.warning(f"{self.path}: removed a torn last row ({size - keep} bytes) left by an "
+                            "interrupted earlier run", extra={"cbh_event": "csv_repaired"})
+        finally:
+            os.close(fd)
+
+    def _open_csv(self, write_header: bool) -> None:
+        """Open for appending, unbuffered (rows go out whole, see :meth:`_append_whole`)."""
+        try:
+            self._fh = open(self.path, "ab", buffering=0)
+        except OSError as exc:
+            raise RecordingError(f"cannot write {self.path}: {exc.strerror}") from None
+        if write_header:
+            try:
+                self._append_whole((",".join(COLUMNS + self.diagnostics) + "\n").encode())
+            except OSError:
+                self._fh.close()  # the caller reports the error (e.g. disk full)
+                raise
+
+    def _append_whole(self, data: bytes) -> None:
+        """Append ``data`` (whole rows) with one write; if it fails part-way (disk full), cut the
+        file back to the last complete row and re-raise: a reader never sees a torn row."""
+        fd = self._fh.fileno()
+        start = os.lseek(fd, 0, os.SEEK_END)
+        view = memoryview(data)
+        try:
+            while view:
+                n = os.write(fd, view)  # O_APPEND: at the end; short only when the disk fills
+                view = view[n:]
+        except OSError:
+            try:
+                os.ftruncate(fd, start)
+            except OSError:  # pragma: no cover - truncating never needs space
+                pass
+            raise
 
     def _write_parquet(self) -> None:
         """Write all rows to a temporary file and rename it over the export (atomic)."""
@@ -420,6 +467,20 @@ class LayerExporter(ResultSink):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _complete_length(fd: int, size: int) -> int:
+    """Bytes of the file up to and including its last newline (0 if none)."""
+    pos = size
+    while pos > 0:
+        n = min(65536, pos)
+        os.lseek(fd, pos - n, os.SEEK_SET)
+        chunk = os.read(fd, n)
+        i = chunk.rfind(b"\n")
+        if i >= 0:
+            return pos - n + i + 1
+        pos -= n
+    return 0
 
 
 # --- from recordings ----------------------------------------------------------------------
@@ -704,6 +765,16 @@ def export_sessions(paths, fmt: str, out) -> tuple[int, int]:
 SUFFIXES = {"csv": ".csv", "parquet": ".parquet", "netcdf": ".nc"}
 
 
+def daily_file_name(station: str, day: str, fmt: str) -> str:
+    """E-PROFILE-style daily file name ``cbh_<station>_<YYYYMMDD>.<ext>`` (station name made file-safe).
+
+    ``day`` is ``YYYYMMDD`` (the keys of :func:`daily_groups`); ``fmt`` a key of :data:`SUFFIXES`
+    (``"json"`` gives the sidecar name ``cbh reprocess`` writes next to the data files).
+    """
+    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", str(station))
+    return f"cbh_{safe}_{day}{SUFFIXES.get(fmt, '.' + fmt)}"
+
+
 def export_daily(paths, fmt: str, out_dir) -> list[tuple[Path, int, int]]:
     """One file per UTC day, like E-PROFILE's daily files: ``OUT_DIR/cbh_<station>_<YYYYMMDD>.<ext>``.
 
@@ -720,10 +791,50 @@ def export_daily(paths, fmt: str, out_dir) -> list[tuple[Path, int, int]]:
     records, info = session_records(paths)
     if not records:
         raise RecordingError("no complete pairs in the recording(s): nothing to export")
-    station = re.sub(r"[^A-Za-z0-9_.-]", "_", str(info["station"]))
     done = []
     for day, recs in daily_groups(records).items():
-        path = out_dir / f"cbh_{station}_{day}{SUFFIXES[fmt]}"
+        path = out_dir / daily_file_name(info["station"], day, fmt)
         rows, steps = _write_records(recs, info, fmt, path)
         done.append((path, rows, steps))
     return done
+
+
+# --- one batch of records, atomically (cbh reprocess: one file per station and day) -------
+
+def write_records(records: list[PairRecord], info: dict, out, fmt: str) -> Path:
+    """Write pair records (e.g. one station-day) to ``out`` as ``parquet`` or ``netcdf``, atomically.
+
+    The file is written under a temporary name in the same folder and renamed over ``out``
+    (``os.replace``), so ``out`` is either absent, the previous file, or complete: a crash or
+    Ctrl-C never leaves a half-written export. The contents are those of ``cbh export``
+    (:func:`layer_table` columns with the records' diagnostics; :func:`netcdf_dataset`), written
+    in one go. NetCDF needs at least one record (:class:`RecordingError` otherwise); an empty
+    Parquet table has the columns and no rows.
+
+    Returns
+    -------
+    Path
+        ``out``.
+    """
+    fmt = _check_format(fmt)
+    if fmt not in ("parquet", "netcdf"):
+        raise ConfigError(f"write_records: format {fmt!r} (parquet or netcdf)")
+    if fmt == "netcdf" and not records:
+        raise RecordingError("write_records: no pair records: nothing to write to NetCDF")
+    out = Path(out)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        if fmt == "netcdf":
+            write_netcdf(records, info, tmp)
+        else:
+            import pyarrow.parquet as pq
+
+            diag = _all_diagnostics(records)
+            pq.write_table(_arrow_table([row for r in records for row in record_rows(r, diag)], diag), str(tmp))
+        os.replace(tmp, out)
+    except OSError as exc:
+        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out

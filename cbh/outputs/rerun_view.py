@@ -311,13 +311,16 @@ class RerunSink(ResultSink):
         The pair shown (default: the station's first two cameras).
     grpc_port : int, optional
         Port of the ``serve`` mode (default: Rerun's, 9876). The URL is in :attr:`url`.
+    bind : str, optional
+        Address the ``serve`` mode listens on (default ``127.0.0.1``: this machine only; give
+        ``0.0.0.0`` to let other machines connect). A port in use is a :class:`ConfigError`.
     """
 
     kind = "viewer"
 
     def __init__(self, station, mode: str = "spawn", target: str | None = None, *,
                  cameras: tuple[str, str] | None = None, recording_name: str | None = None,
-                 height_range_m=HEIGHT_RANGE_M, grpc_port: int | None = None):
+                 height_range_m=HEIGHT_RANGE_M, grpc_port: int | None = None, bind: str | None = None):
         import rerun as rr
 
         self.mode, self.target = parse_rerun_spec(mode, target)
@@ -340,7 +343,9 @@ class RerunSink(ResultSink):
         elif self.mode == "spawn":
             self.rec.spawn(default_blueprint=bp)
         elif self.mode == "serve":
-            self.url = self.rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
+            from cbh.outputs.rerun_serve import serve_grpc
+
+            self.url = serve_grpc(self.rec, bp, bind or "127.0.0.1", 9876 if grpc_port is None else grpc_port)
             log.info("Rerun server: connect a viewer with `rerun --connect %s`", self.url)
         else:
             self.rec.connect_grpc(self.target, default_blueprint=bp)

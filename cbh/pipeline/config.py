@@ -70,6 +70,7 @@ class SegmentationConfig:
     fixed_threshold: float = 0.15  # hybrid: one-class images are cloud when their median NBR is below this [1]
     texture_cv: float = 0.03  # hybrid: a one-class sky whose median local contrast (std/mean, 7 px) exceeds this is cloud [1]
     chroma_weight: float = 0.3  # hybrid: weight of the desaturation cue against the blue deficit, 0..1 [1]
+    brightness_weight: float = 0.25  # hybrid: score added per ln(1.5) of brightness difference from the clear sky nearby [1]
     score_threshold: float = 0.45  # hybrid: cloud where the combined cloudiness score exceeds this [1]
     threshold: float = 0.10  # NBR below this is cloud (nbr; base of nbr_adaptive) [1]
     sun_threshold: float = -0.05  # nbr_adaptive: threshold right at the sun [1]
@@ -210,7 +211,7 @@ class MotionConfig:
     clock_offset: bool = True  # estimate camera 2's clock offset and compensate it in the matching
     offset_history: int = 15  # pairs in the running (median) clock-offset estimate [1]
     offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
-    compensate_min_s: float = 0.1  # compensate camera 2 only above this |offset| (the estimate is good to ≈ 0.05 s) [s]
+    compensate_min_s: float = 0.2  # compensate camera 2 only above this |offset|: the estimate's systematic error reaches ≈ 0.15 s [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
     max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
 
@@ -305,6 +306,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.segmentation.texture_cv", sg.texture_cv, strict=False)
     if not 0 <= sg.chroma_weight <= 1:
         raise ConfigError(f"{where}.segmentation.chroma_weight: must be in 0..1, got {sg.chroma_weight}")
+    _positive(f"{where}.segmentation.brightness_weight", sg.brightness_weight, strict=False)
     if not 0 < sg.score_threshold < 1:
         raise ConfigError(f"{where}.segmentation.score_threshold: must be in (0, 1), got {sg.score_threshold}")
     _positive(f"{where}.segmentation.max_side_px", sg.max_side_px, strict=False)

@@ -62,12 +62,15 @@ the one used). A pair whose estimate moves the running value by more than ``rema
 first pairs of a run with an offset) is matched again with the new value and this pass's layer
 motions, up to three more times while the compensation still moves by more than 0.1 px, so
 the second pair of a run is already compensated; in steady state a pair is matched once.
+Offsets below ``compensate_min_s`` (0.2 s) are reported but not compensated: with agreeing
+clocks the estimate comes out within ±0.15 s (LK's sub-pixel bias across the baseline divided
+by the motion across it), and compensating such a spurious offset costs more than it saves.
 
 Limits (measured, README): what a moving low layer uncovers in δ (a band of about
 |w_low − w_high|·δ along its edges) is only approximated from the previous frame, and
 resampling blurs camera 2 a little; at
-960 px working size both layers of the two-layer scene come out within 1.5 % at a 3 s offset,
-at 640 px the high layer (2.9 px of parallax) is 3–4 % low. An offset with all motion along
+960 px working size both layers of the two-layer scene come out within 0.8 % at a 3 s offset,
+at 640 px the high layer (2.9 px of parallax) is 2.6–3.2 % low. An offset with all motion along
 the baseline is unobservable (``clock_offset_s`` stays NaN; heights then absorb it).
 """
 from __future__ import annotations

@@ -304,6 +304,7 @@ class Pipeline:
             masks = self.stage_masks(work, ctx)
         with _timed(ctx, "sun_check"):
             self.stage_sun_check(work, masks, ctx)
+        received = work  # as the cameras delivered them (the identical-image check needs these)
         with _timed(ctx, "photometric"):
             work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
@@ -345,7 +346,7 @@ class Pipeline:
                 break
             used, rates = new, new_rates
         with _timed(ctx, "geometry_check"):
-            self.stage_geometry_check(work, corr, ctx)
+            self.stage_geometry_check(received, corr, ctx)
         self._quality_flags(pts, seg, ctx)
         offsets = mot.offsets_s + ((est.pair_offset_s,) if math.isfinite(est.pair_offset_s) else ())
         offsets = offsets[-mcfg.offset_history:]

@@ -21,6 +21,7 @@ command line to use it)::
 """
 from __future__ import annotations
 
+import sys
 import logging
 import threading
 import time
@@ -50,6 +51,20 @@ def sim_frames(sim) -> Callable[[str, datetime], bytes]:
         return encode_jpeg(f.image)
 
     return get
+
+
+def _listen(server_cls, host: str, port: int, handler, what: str):
+    """``server_cls((host, port), handler)``; a port in use is one-line :class:`ConfigError`."""
+    import errno
+
+    from cbh.errors import ConfigError
+
+    try:
+        return server_cls((host, port), handler)
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise ConfigError(f"{what}: port {port} on {host} is already in use") from None
+        raise ConfigError(f"{what}: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
 
 
 class CameraServer:
@@ -99,7 +114,7 @@ class CameraServer:
             def do_GET(self):
                 server._serve(self)
 
-        self._httpd = ThreadingHTTPServer((host, port), Handler)
+        self._httpd = _listen(ThreadingHTTPServer, host, port, Handler, "camera server")
         self._httpd.daemon_threads = True
         self._thread: threading.Thread | None = None
 
@@ -246,13 +261,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=1.0, help="frames per second")
     ap.add_argument("--step-s", type=float, default=None, help="simulated seconds per frame (default 1/fps)")
     ap.add_argument("--port", type=int, default=8080)
-    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--bind", "--host", dest="host", default="127.0.0.1",
+                    help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0: every interface)")
     ap.add_argument("--write-station", default="camera-server-station.toml",
                     help="write the station scaled to --size here (for cbh run --station)")
     a = ap.parse_args(argv)
     st = load_station(station_path(a.station) if a.station else station_path())
     sim = SkySimulator(st, load_scene(scene_path(a.scene)), size_px=a.size)
-    srv = CameraServer(sim_frames(sim), list(sim.station.cameras), fps=a.fps, step_s=a.step_s, host=a.host, port=a.port)
+    from cbh.errors import CbhError
+
+    try:
+        srv = CameraServer(sim_frames(sim), list(sim.station.cameras), fps=a.fps, step_s=a.step_s, host=a.host, port=a.port)
+    except CbhError as exc:
+        print(f"cbh: error: {exc}", file=sys.stderr)
+        return 2
     with srv:
         for c in srv.cameras:
             print(f"{c}: {srv.url(c)}   snapshot: {srv.url(c, 'snapshot')}", flush=True)
@@ -342,7 +364,7 @@ class RtspCameraServer:
             daemon_threads = True
             allow_reuse_address = True
 
-        self._srv = TCP((host, port), Handler)
+        self._srv = _listen(TCP, host, port, Handler, "RTSP server")
         self._thread: threading.Thread | None = None
 
     @property

@@ -44,6 +44,7 @@ class SimSource(FrameSource):
 
     kind = "sim"
     live = False
+    clock = False  # simulated time: exempt from the service's wall-clock checks
 
     def __init__(self, camera: str, sim, step_s: float = 10.0, start_utc: datetime | None = None,
                  realtime: bool = False, pace_s: float | None = None, frames: int | None = None):

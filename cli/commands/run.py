@@ -39,8 +39,11 @@ def run_cmd(
     watch: bool = typer.Option(False, "--watch", help="Image directories: keep polling for new files."),
     realtime: bool = typer.Option(False, "--realtime", help="Simulator: deliver frames at the cadence in wall time, like cameras."),
     rotate_mb: float = typer.Option(None, "--rotate-mb", help="Start a new MCAP file after this many MB."),
-    rotate_s: float = typer.Option(None, "--rotate-s", help="Start a new MCAP file after this many seconds."),
+    rotate_s: float = typer.Option(None, "--rotate-s", help="Start a new MCAP file after this many seconds of capture time (default 3600)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No status line."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --record PATH (default: refuse)."),
+    bind: str = typer.Option(None, "--bind", metavar="ADDR",
+                             help="Address of the --rerun serve server (default 127.0.0.1; 0.0.0.0: every interface)."),
     device: str = typer.Option("cpu", "--device", help="Where the dense work runs: cpu (default) or a torch device, e.g. cuda."),
 ) -> None:
     """Run the service: pair the two cameras' frames, compute cloud-base heights, record/view/export.
@@ -57,6 +60,6 @@ def run_cmd(
         record=(record_path or True) if record else None, rerun=rerun, export=export,
         cadence_s=cadence_s, frames=frames, duration_s=duration, size_px=size,
         pair_tolerance_s=pair_tolerance_s, watch=watch, realtime=realtime,
-        rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES, device=device,
+        rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES, overwrite=overwrite, bind=bind, device=device,
     )
     print("\n".join(summary_lines(setup, run_with_status(setup, status=not quiet))))

@@ -235,6 +235,7 @@ class Session:
         self.start_ns = min(starts) if starts else None
         self.end_ns = max(ends) if ends else None
         self._station = None
+        self._tmp = None  # repaired copies of truncated files (open_session)
 
     # --- metadata ---------------------------------------------------------------------
     @property
@@ -254,7 +255,7 @@ class Session:
             for cam in data.get("cameras", []):
                 if isinstance(cam, dict) and "mask" in cam and not Path(str(cam["mask"])).is_file():
                     cam.pop("mask")
-            self._station = parse_station(data)
+            self._station = parse_station(data, check_masks=False)
         return self._station
 
     @property
@@ -324,10 +325,36 @@ class Session:
                 msgs = pending.pop(seq)
                 yield build_pair(seq, msgs, f"{self.paths[0].name} pair {seq}")
 
-    def images(self, camera: str) -> Iterator[tuple[int, RecordedImage]]:
-        """(pair index, image) of every recorded image of ``camera``, in file order (only that topic is read)."""
-        for _topic, _t, seq, m in self._messages({f"/{camera}/image/compressed"}):
-            yield seq, RecordedImage(camera, from_ns(_ts_ns(m.timestamp)), bytes(m.data), m.format)
+    def images(self, cameras, start_ns: int | None = None, end_ns: int | None = None
+               ) -> Iterator[tuple[int, RecordedImage]]:
+        """(pair index, image) of the recorded images of ``cameras``, in file order; with
+        ``start_ns``/``end_ns`` only those whose capture time (log time) lies in
+        [``start_ns``, ``end_ns``), read through the file's index (fast for a time slice).
+
+        Parameters
+        ----------
+        cameras : str or iterable of str
+            Camera name(s) (topics ``/<camera>/image/compressed``; only these are read).
+        start_ns, end_ns : int or None
+            Capture-time bounds [ns since the Unix epoch]; None = open.
+        """
+        from mcap.reader import make_reader
+
+        topics = [f"/{c}/image/compressed" for c in ([cameras] if isinstance(cameras, str) else cameras)]
+        T = foxglove_types()["CompressedImage"]
+        for p in self.paths:
+            try:
+                with open(p, "rb") as fh:
+                    reader = make_reader(fh)
+                    for _schema, channel, message in reader.iter_messages(
+                            topics=topics, start_time=start_ns, end_time=end_ns, log_time_order=False):
+                        m = T.FromString(message.data)
+                        cam = channel.topic.strip("/").split("/")[0]
+                        yield message.sequence, RecordedImage(cam, from_ns(_ts_ns(m.timestamp)), bytes(m.data), m.format)
+            except CbhError:
+                raise
+            except Exception as exc:
+                raise RecordingError(f"{p}: corrupt recording ({type(exc).__name__}: {exc})") from None
 
     def statuses(self) -> Iterator[tuple[datetime, dict]]:
         """(time, stats dict) of every ``/service/status`` message."""
@@ -338,27 +365,94 @@ class Session:
                 stats = {c.name: c.value for c in msg.counters}
             yield from_ns(t), stats
 
-
 def open_session(path) -> Session:
     """Open a recording: a ``.mcap`` file, a directory of rotated files, or a list of files.
 
-    Raises :class:`RecordingError` (one line) for a missing, foreign, truncated or corrupt file.
+    Raises :class:`RecordingError` (one line) for a missing, foreign, truncated or corrupt file
+    given on its own. In a directory (or a list of several files) a damaged file does not stop
+    the rest: a truncated one (its writer was killed) is read through a repaired temporary copy
+    (:func:`cbh.outputs.record.recover`; every complete pair is kept), an empty or foreign one
+    is skipped; each with one warning.
     """
     if isinstance(path, (list, tuple)):
         paths = [Path(p) for p in path]
+        several = len(paths) > 1
     else:
         p = Path(path)
         if p.is_dir():
             paths = sorted(p.glob("*.mcap"))
             if not paths:
                 raise RecordingError(f"no .mcap files in directory {p}")
+            several = True
         else:
-            paths = [p]
+            paths, several = [p], False
     if not paths:
         raise RecordingError("no recording given")
+    tmp = None
+    if several:
+        paths, tmp = _usable(paths)
     s = Session(paths)
     if len(paths) > 1:  # rotated files: order by their first message
         order = sorted(paths, key=lambda q: (Session([q]).start_ns or 0))
         if order != paths:
             s = Session(order)
+    if tmp is not None:  # the repaired copies live as long as the session
+        import shutil
+        import weakref
+
+        weakref.finalize(s, shutil.rmtree, tmp, True)
     return s
+
+
+def _mcap_state(path: Path) -> str:
+    """``complete`` (magic at both ends), ``truncated`` (magic at the start only) or ``foreign``."""
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(8) != MAGIC:
+                return "foreign"
+            size = fh.seek(0, 2)
+            if size < 16:
+                return "truncated"
+            fh.seek(size - 8)
+            return "complete" if fh.read(8) == MAGIC else "truncated"
+    except OSError:
+        return "foreign"
+
+
+def _usable(paths: list[Path]):
+    """(paths to read, temporary directory or None): truncated files replaced by repaired
+    copies, unreadable ones left out (warned)."""
+    import logging
+    import tempfile
+
+    from cbh.outputs.record.recover import recover
+
+    log = logging.getLogger(__name__)
+    out, tmp = [], None
+    for p in paths:
+        state = _mcap_state(p)
+        if state == "complete":
+            out.append(p)
+            continue
+        if state == "foreign":
+            log.warning(f"{p}: skipped (empty, unreadable or not an MCAP file)")
+            continue
+        if tmp is None:
+            tmp = tempfile.mkdtemp(prefix="cbh-recover-")
+        fixed = Path(tmp) / f"{len(out):04d}-{p.name}"
+        try:
+            rep = recover(p, fixed)
+            Session([fixed])  # readable as a cbh recording?
+        except RecordingError as exc:
+            log.warning(f"{p}: truncated and not recoverable, skipped ({exc})")
+            continue
+        log.warning(f"{p}: truncated (its writer was killed?); read its {rep.pairs} complete pairs "
+                    f"(repair it for good with `cbh inspect {p} --repair OUT.mcap`)")
+        out.append(fixed)
+    if not out:
+        if tmp is not None:
+            import shutil
+
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise RecordingError(f"no readable recording among {len(paths)} files ({paths[0].parent})")
+    return out, tmp

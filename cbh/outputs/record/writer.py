@@ -81,17 +81,27 @@ def pack_points(points) -> bytes:
     return rec.tobytes()
 
 
-class _File:
-    """One open MCAP file with its registered schemas and channels."""
+def create_exclusive(path: Path, overwrite: bool = False):
+    """Open ``path`` for writing, creating it; without ``overwrite`` only if it does not exist
+    (``O_EXCL``: of two writers racing for one name exactly one gets it; the other gets
+    :class:`FileExistsError`)."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+    return os.fdopen(os.open(path, flags, 0o644), "wb")
 
-    def __init__(self, path: Path, metadata: dict[str, str], compression: str):
+
+def _exists_error(path: Path) -> RecordingError:
+    return RecordingError(f"{path} exists: a recording is never replaced unless asked "
+                          f"(pass --overwrite to replace it, or give another path)")
+
+
+class _File:
+    """One open MCAP file with its registered schemas and channels (``fh``: opened by the caller)."""
+
+    def __init__(self, path: Path, fh, metadata: dict[str, str], compression: str):
         from mcap.writer import CompressionType, Writer
 
         self.path = path
-        try:
-            self.fh = open(path, "wb")
-        except OSError as exc:
-            raise RecordingError(f"cannot create recording {path}: {exc.strerror}") from None
+        self.fh = fh
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
         # chunk_size=1: every message is finalized into its own chunk as soon as it is added.
         self.writer = Writer(self.fh, chunk_size=1, compression=comp)
@@ -145,13 +155,26 @@ class McapRecorder(ResultSink):
         ``os.fsync`` after every pair (survives power loss, not only a killed process).
     compression : {"zstd", "lz4", "none"}
         Chunk compression.
+    overwrite : bool
+        Replace an existing ``.mcap`` path (and existing rotated files of it). Default: an
+        existing path is refused with :class:`RecordingError` naming ``--overwrite``.
+    unique : bool
+        Instead of refusing an existing ``.mcap`` path, record to the first free
+        ``<stem>_2.mcap``, ``<stem>_3.mcap`` … (the name cbh chose itself); see :attr:`path`.
+    protect : sequence of paths
+        Files this recorder must never write to, even with ``overwrite`` (the recording a
+        reprocessing run reads).
 
-    Files are created on the first ``write``/``write_status`` (a ``.mcap`` path with nothing
-    written still gets an empty, valid session on ``close``).
+    Every file is created exclusively (``O_EXCL``): two recorders writing into one directory
+    at the same second get different files, and nothing is ever replaced without
+    ``overwrite``. A ``.mcap`` path is created when the recorder is made (so a clash is an
+    error before any pair is processed); directory and rotated files on their first pair.
+    A ``.mcap`` path with nothing written still gets an empty, valid session on ``close``.
     """
 
     def __init__(self, path, station, config: dict, rotate_mb: float | None = None,
-                 rotate_s: float | None = None, *, fsync: bool = False, compression: str = "zstd"):
+                 rotate_s: float | None = None, *, fsync: bool = False, compression: str = "zstd",
+                 overwrite: bool = False, unique: bool = False, protect=()):
         from cbh.errors import ConfigError
 
         if compression not in ("zstd", "lz4", "none"):
@@ -173,6 +196,9 @@ class McapRecorder(ResultSink):
                 raise RecordingError(f"cannot create recording directory {self.path}: {exc.strerror}") from None
         elif not self.path.parent.is_dir():
             raise RecordingError(f"recording directory does not exist: {self.path.parent}")
+        self.overwrite = bool(overwrite)
+        self._protect = [Path(q) for q in protect]
+        self._reserved = None  # the .mcap path's open file until the first pair
         try:
             config_json = json.dumps(config, sort_keys=True, default=_json_default)
         except (TypeError, ValueError) as exc:
@@ -189,6 +215,9 @@ class McapRecorder(ResultSink):
         self._paths: list[Path] = []
         self._pair_index = 0
         self._closed = False
+        if not self.directory_mode:
+            self._check_protected(self.path)
+            self.path, self._reserved = self._create(self.path, unique=unique)
 
     # --- files --------------------------------------------------------------------------
 
@@ -206,16 +235,47 @@ class McapRecorder(ResultSink):
     def pairs_written(self) -> int:
         return self._pair_index
 
-    def _next_path(self, t_ns: int) -> Path:
+    def _check_protected(self, path: Path) -> None:
+        for q in self._protect:
+            if path.resolve() == q.resolve() or (path.exists() and q.exists() and os.path.samefile(path, q)):
+                raise RecordingError(f"{path} is the recording being read: choose another --record path")
+
+    def _create(self, path: Path, unique: bool = False):
+        """(path, open file): ``path`` created exclusively (or replaced with ``overwrite``)."""
+        k = 1
+        while True:
+            try:
+                return path, create_exclusive(path, self.overwrite)
+            except FileExistsError:
+                if not unique:
+                    raise _exists_error(path) from None
+                k += 1
+                path = path.with_name(f"{self.path.stem}_{k}.mcap")
+            except OSError as exc:
+                raise RecordingError(f"cannot create recording {path}: {exc.strerror}") from None
+
+    def _open_next(self, t_ns: int):
+        """(path, open file) of the next file: the reserved ``.mcap`` path first, then rotated
+        ``<stem>-NNN.mcap`` / directory files ``<station>-<UTC>[-NNN].mcap``, the first free one."""
+        if self._reserved is not None:
+            fh, self._reserved = self._reserved, None
+            return self.path, fh
         if self.directory_mode:
             base = f"{self.station.name}-{_utc_name(t_ns)}"
-            p, k = self.path / f"{base}.mcap", 1
-            while p.exists() or p in self._paths:
-                p, k = self.path / f"{base}-{k:03d}.mcap", k + 1
-            return p
-        if not self._paths:
-            return self.path
-        return self.path.with_name(f"{self.path.stem}-{len(self._paths):03d}.mcap")
+            names = (self.path / (f"{base}.mcap" if k == 0 else f"{base}-{k:03d}.mcap") for k in range(10**6))
+        else:
+            names = (self.path.with_name(f"{self.path.stem}-{k:03d}.mcap") for k in range(len(self._paths), 10**6))
+        for p in names:
+            if p in self._paths:
+                continue
+            self._check_protected(p)
+            try:
+                return p, create_exclusive(p, self.overwrite and not self.directory_mode)
+            except FileExistsError:
+                continue  # taken by an earlier session or a concurrent run: the next name
+            except OSError as exc:
+                raise RecordingError(f"cannot create recording {p}: {exc.strerror}") from None
+        raise RecordingError(f"no free file name for {self.path}")  # pragma: no cover
 
     def _ensure_file(self, t_ns: int) -> _File:
         f = self._file
@@ -227,10 +287,10 @@ class McapRecorder(ResultSink):
                 f.close(self.fsync)
                 self._file = f = None
         if f is None:
-            path = self._next_path(t_ns)
+            path, fh = self._open_next(t_ns)
             meta = dict(self._meta, file_index=str(len(self._paths)),
                         session_start_utc=from_ns(t_ns).isoformat().replace("+00:00", "Z"))
-            f = self._file = _File(path, meta, self.compression)
+            f = self._file = _File(path, fh, meta, self.compression)
             self._paths.append(path)
         if f.first_ns is None:
             f.first_ns = t_ns
@@ -352,9 +412,10 @@ class McapRecorder(ResultSink):
         if self._closed:
             return
         self._closed = True
-        if self._file is None and not self.directory_mode:
+        if self._file is None and self._reserved is not None:
             # Nothing written: still leave an empty, valid session at the requested path.
-            self._file = _File(self.path, dict(self._meta, file_index="0"), self.compression)
+            fh, self._reserved = self._reserved, None
+            self._file = _File(self.path, fh, dict(self._meta, file_index="0"), self.compression)
             self._paths.append(self.path)
         if self._file is not None:
             self._file.close(self.fsync)

@@ -1,0 +1,772 @@
+"""``cbh reprocess`` in library terms: archives of one station or a network, on Ray.
+
+What happens
+------------
+1. **Plan** (:func:`plan_reprocess`, on the driver): each station's inputs are scanned
+   (:mod:`cbh.actions.archive`: image folders, recordings, video files), frames are paired
+   by nearest time within the pairing tolerance, and the pairs are partitioned by station and
+   UTC day. A day whose output is already complete (its sidecar ``….json`` exists and names
+   the same station configuration, the same pairs and the requested formats) is skipped:
+   that is the resume; a crash or Ctrl-C loses at most the days in flight.
+2. **Run** (:func:`run_plan`): Ray actors (:class:`PairWorker`, one CPU each, and a share of
+   a GPU with ``device="cuda"``) each build a station's :class:`~cbh.pipeline.Pipeline`
+   once (heavy tables: remap, rays, masks) and keep it for every later chunk of that station.
+   Days are cut into chunks of ``chunk_pairs`` pairs so that a few long days still keep every
+   worker busy; an actor keeps to one station while that station has work. A worker process
+   that dies is restarted by Ray and its chunk retried (``max_restarts``/``max_task_retries``);
+   if Ray gives up, a fresh actor takes the chunk (``max_attempts`` in all).
+3. **Output** (on the driver, as each day completes): per station and UTC day
+   ``OUT/<station>/cbh_<station>_<YYYYMMDD>.nc`` (CF-1.8 NetCDF, the variables of
+   ``cbh export``) and ``….parquet`` (the ``cbh export`` table), each written atomically
+   (temporary file + rename), then the sidecar ``….json`` (pairs, failures, time span, hashes),
+   also atomically: the sidecar is the "day finished" mark. At the end (also after Ctrl-C)
+   ``OUT/index.json`` lists every day present, what was done in this run, failures and skipped
+   inputs.
+
+Faults: an unreadable image, a frame missing from a truncated video or recording, a wrong
+image size are counted per pair (``failures`` with the reason) and logged; never fatal. A day
+all of whose pairs failed gets a sidecar and no data files.
+
+Engine: with ``address=None`` a private Ray instance starts on demand with ``num_cpus=workers``
+on the loopback interface only, and stops at the end; ``address="auto"``, ``"HOST:PORT"`` or
+``"ray://HOST:PORT"`` joins an existing cluster, whose nodes must have cbh installed and see the
+input and output paths (a shared file system). Exactness: each pair is processed by exactly
+the code of ``cbh pair`` (``Pipeline.process`` on the decoded images and camera 1's time).
+
+Temporal state (cloud motion, camera 2's clock offset: :mod:`cbh.pipeline.motion`) is handed
+from pair to pair in time order as ``cbh run`` does (:class:`cbh.actions.run.MotionChain`).
+A chunk starts with a lead-in: the station's pair just before its first (possibly the previous
+day's last) is processed again for its state only, so every pair gets its motion exactly as in
+one sequential run, at one extra pair per chunk. The running clock-offset estimate (a median
+over the last pairs) restarts at each chunk; where a clock offset is compensated, the heights
+of a chunk's first pairs can differ from a sequential run's within the 0.5 % the issue allows.
+Where no temporal information is used the heights are identical to ``cbh pair``'s.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import time
+from collections import OrderedDict, defaultdict, deque
+from dataclasses import dataclass, field
+from datetime import date, datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+from cbh.actions.archive import Inventory, PairRef, by_day, load_images, scan_station
+from cbh.errors import CbhError, ConfigError, RecordingError
+
+__all__ = ["StationJob", "ReprocessOptions", "Plan", "DayWork", "Summary", "load_jobs", "plan_reprocess",
+           "run_plan", "reprocess", "PairWorker", "start_ray", "daily_paths", "FORMATS"]
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("netcdf", "parquet")
+_SUFFIX = {"netcdf": ".nc", "parquet": ".parquet"}
+_PIPELINES_PER_WORKER = 4  # stations whose pipeline one actor keeps (LRU)
+
+
+# --- what to process ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class StationJob:
+    """One station of the run: its station file, camera pair and per-camera input paths."""
+
+    name: str
+    station: object  # cbh.geometry.station.Station
+    cameras: tuple[str, str]
+    specs: dict[str, str]  # camera → absolute input path
+
+
+def _bind_source(text: str) -> tuple[str | None, str, str]:
+    left, sep, spec = text.partition("=")
+    if not sep or not left.strip() or not spec.strip():
+        raise ConfigError(f"--source {text!r}: expected CAMERA=PATH or STATION/CAMERA=PATH")
+    st, slash, cam = left.strip().rpartition("/")
+    return (st.strip() or None) if slash else None, cam.strip(), spec.strip()
+
+
+def _read_entries(path: Path) -> list[dict]:
+    """Station file → [{station, cameras, sources, base}] (one entry; a network file: one per station).
+
+    Network file (TOML; paths relative to it)::
+
+        [[stations]]
+        station = "site-a/station.toml"   # required
+        cameras = "cam1,cam2"             # optional (default: the station's first two)
+        [stations.sources]                # optional (default: the cameras' `source` keys)
+        cam1 = "/archive/site-a/cam1"
+        cam2 = "/archive/site-a/cam2"
+    """
+    from cbh.tomlio import read_toml
+
+    data = read_toml(path, "station")
+    if "stations" not in data or "station" in data:
+        return [{"station": path, "cameras": None, "sources": {}, "base": Path.cwd()}]
+    stations = data["stations"]
+    if set(data) - {"stations"}:
+        raise ConfigError(f"{path.name}: unknown key(s) {', '.join(sorted(set(data) - {'stations'}))} in a network file")
+    if not isinstance(stations, list) or not all(isinstance(s, dict) for s in stations) or not stations:
+        raise ConfigError(f"{path.name}: `stations` must be an array of tables ([[stations]])")
+    out = []
+    for i, s in enumerate(stations):
+        where = f"{path.name}: stations[{i}]"
+        bad = set(s) - {"station", "cameras", "sources"}
+        if bad:
+            raise ConfigError(f"{where}: unknown key(s) {', '.join(sorted(bad))} (station, cameras, sources)")
+        if not isinstance(s.get("station"), str):
+            raise ConfigError(f"{where}.station: the station file (a string) is required")
+        srcs = s.get("sources", {})
+        if not isinstance(srcs, dict) or not all(isinstance(v, str) for v in srcs.values()):
+            raise ConfigError(f"{where}.sources: a table camera = \"path\"")
+        cams = s.get("cameras")
+        if cams is not None and not isinstance(cams, str):
+            raise ConfigError(f"{where}.cameras: a string \"cam1,cam2\"")
+        out.append({"station": path.parent / s["station"], "cameras": cams, "sources": dict(srcs), "base": path.parent})
+    return out
+
+
+def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJob]:
+    """Stations of the run with their inputs.
+
+    Parameters
+    ----------
+    stations : list of str or Path
+        Station TOML files, preset names, or network TOML files (``[[stations]]``, see
+        :func:`_read_entries`).
+    sources : list of str
+        ``CAMERA=PATH`` (the station with that camera; ambiguous in a network whose stations
+        share camera names) or ``STATION/CAMERA=PATH``. Relative paths: from the current folder.
+    cameras : str or None
+        ``"cam1,cam2"`` for every station given directly (default: the first two cameras).
+    """
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+
+    if not stations:
+        raise ConfigError("--station: give at least one station (or network) file")
+    entries = []
+    for s in stations:
+        entries.extend(_read_entries(Path(station_path(str(s)))))
+    jobs: list[dict] = []
+    for e in entries:
+        st = load_station(e["station"])
+        c1, c2 = st.pair(e["cameras"] or cameras)
+        specs = {}
+        for c in (c1, c2):
+            if c.name in e["sources"]:
+                specs[c.name] = str((e["base"] / e["sources"][c.name]).resolve())
+            elif c.source:
+                base = st.path.parent if st.path is not None else Path.cwd()
+                specs[c.name] = str((base / c.source).resolve()) if "://" not in c.source else c.source
+        jobs.append({"station": st, "cameras": (c1.name, c2.name), "specs": specs})
+    names = [j["station"].name for j in jobs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"station name(s) {', '.join(dup)} given twice: outputs are per station name")
+    for text in sources:
+        st_name, cam, spec = _bind_source(text)
+        hits = [j for j in jobs if (st_name is None or j["station"].name == st_name) and cam in j["cameras"]]
+        if not hits:
+            raise ConfigError(f"--source {text!r}: no station " + (f"{st_name!r} " if st_name else "") +
+                              f"with camera {cam!r} in the pair being processed "
+                              f"({'; '.join(j['station'].name + ': ' + ','.join(j['cameras']) for j in jobs)})")
+        if len(hits) > 1:
+            raise ConfigError(f"--source {text!r}: camera {cam!r} is in stations "
+                              f"{', '.join(j['station'].name for j in hits)}; write STATION/{cam}=PATH")
+        hits[0]["specs"][cam] = str(Path(spec).expanduser().resolve())
+    return [StationJob(j["station"].name, j["station"], j["cameras"], j["specs"]) for j in jobs]
+
+
+# --- plan ------------------------------------------------------------------------------------
+
+@dataclass
+class ReprocessOptions:
+    """Settings of one reprocessing run (``cbh reprocess`` options)."""
+
+    out: Path
+    workers: int | None = None  # actors (None: the local CPU count, or the cluster's CPUs)
+    address: str | None = None  # None: private local Ray; "auto" | "HOST:PORT" | "ray://HOST:PORT"
+    t_from: datetime | None = None  # pairs at or after this UTC time
+    t_to: datetime | None = None  # pairs before this UTC time
+    device: str = "cpu"  # "cpu" | "cuda" (actors ask Ray for a GPU share)
+    formats: tuple[str, ...] = FORMATS
+    chunk_pairs: int = 32  # pairs per task
+    pair_tolerance_s: float | None = None  # None: the station's [service] pair_tolerance_s (default 0.5 s)
+    max_attempts: int = 3  # a chunk whose worker dies is given to a fresh actor at most this often
+    actor_restarts: int = 3  # Ray's max_restarts (and max_task_retries) of each actor
+
+    def __post_init__(self):
+        self.out = Path(self.out)
+        self.formats = tuple(dict.fromkeys(f.strip().lower() for f in self.formats if f.strip()))
+        bad = [f for f in self.formats if f not in FORMATS]
+        if bad or not self.formats:
+            raise ConfigError(f"--format: {', '.join(bad) or '(none)'}: choose from {', '.join(FORMATS)}")
+        if self.device not in ("cpu", "cuda"):
+            raise ConfigError(f"--device: {self.device!r}: cpu or cuda")
+        if self.workers is not None and self.workers < 1:
+            raise ConfigError(f"--workers: must be >= 1, got {self.workers}")
+        if self.chunk_pairs < 1:
+            raise ConfigError(f"chunk_pairs: must be >= 1, got {self.chunk_pairs}")
+        if self.t_from and self.t_to and self.t_to <= self.t_from:
+            raise ConfigError("--to must be later than --from")
+
+
+@dataclass
+class DayWork:
+    """The pairs of one station on one UTC day and whether its output is already complete."""
+
+    station: str
+    day: date
+    pairs: list[PairRef]
+    work_hash: str
+    done: dict | None = None  # the sidecar of a finished earlier run (resume), else None
+
+
+@dataclass
+class Plan:
+    jobs: list[StationJob]
+    inventories: dict[str, Inventory]
+    days: list[DayWork]
+    station_hash: dict[str, str]
+    options: ReprocessOptions
+
+    @property
+    def todo(self) -> list[DayWork]:
+        return [d for d in self.days if d.done is None]
+
+
+def daily_paths(out: Path, station: str, day: date) -> dict[str, Path]:
+    """Output files of one station-day: ``netcdf``, ``parquet`` and the ``sidecar`` JSON.
+
+    E-PROFILE style, the names of ``cbh export --daily``
+    (:func:`cbh.outputs.export.daily_file_name`), in a folder per station.
+    """
+    from cbh.outputs.export import daily_file_name
+
+    d = Path(out) / station
+    tag = f"{day:%Y%m%d}"
+    return {"netcdf": d / daily_file_name(station, tag, "netcdf"), "parquet": d / daily_file_name(station, tag, "parquet"),
+            "sidecar": d / daily_file_name(station, tag, "json")}
+
+
+def _station_hash(job: StationJob) -> str:
+    """Changes whenever the station's geometry, calibration or pipeline settings change."""
+    return hashlib.sha256((job.station.to_toml() + "\n" + ",".join(job.cameras)).encode()).hexdigest()[:16]
+
+
+def _work_hash(pairs: list[PairRef]) -> str:
+    h = hashlib.sha256()
+    for p in pairs:
+        for f in (p.frame1, p.frame2):
+            h.update(f"{f.time_utc.isoformat()}|{f.kind}|{f.path}|{f.index}\n".encode())
+    return h.hexdigest()[:16]
+
+
+def _finished(paths: dict[str, Path], station_hash: str, work_hash: str, formats) -> dict | None:
+    try:
+        side = json.loads(paths["sidecar"].read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if side.get("station_hash") != station_hash or side.get("work_hash") != work_hash:
+        return None
+    if not set(formats) <= set(side.get("formats", ())):
+        return None
+    if side.get("records", 0) and not all(paths[f].is_file() for f in formats):
+        return None
+    return side
+
+
+def plan_reprocess(jobs: list[StationJob], opts: ReprocessOptions) -> Plan:
+    """Scan every station's inputs, pair, partition by UTC day and find the days already done."""
+    from cbh.live.service import ServiceConfig
+
+    invs, days, hashes = {}, [], {}
+    for job in jobs:
+        tol = opts.pair_tolerance_s
+        if tol is None:
+            tol = ServiceConfig.from_dict(dict(job.station.sections.get("service", {}))).pair_tolerance_s
+        inv = scan_station(job.cameras, job.specs, float(tol), opts.out / ".work" / job.name,
+                           opts.t_from, opts.t_to)
+        invs[job.name] = inv
+        hashes[job.name] = sh = _station_hash(job)
+        for day, pairs in by_day(inv.pairs).items():
+            wh = _work_hash(pairs)
+            done = _finished(daily_paths(opts.out, job.name, day), sh, wh, opts.formats)
+            days.append(DayWork(job.name, day, pairs, wh, done))
+    return Plan(jobs, invs, days, hashes, opts)
+
+
+# --- the worker (a Ray actor) ----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Chunk:
+    station: str
+    day: date
+    index: int  # chunk number within the day
+    pairs: tuple[PairRef, ...]
+    lead: PairRef | None = None  # the station's pair just before ``pairs[0]``: processed for its motion state only
+
+
+@dataclass
+class ChunkResult:
+    station: str
+    day: date
+    index: int
+    records: list  # cbh.outputs.export.PairRecord, time order
+    failures: list[dict]  # {"time_utc", "frames", "reason"}
+    pid: int  # the actor process (a new pid in a slot: Ray restarted the actor)
+    elapsed_s: float
+
+
+class PairWorker:
+    """Processes chunks of pairs; run as a Ray actor (``ray.remote(PairWorker)``).
+
+    Each station's :class:`~cbh.pipeline.Pipeline` is built on the first chunk of that
+    station and kept (up to 4 stations, least recently used dropped), so its tables are built
+    once per actor.
+
+    Parameters
+    ----------
+    stations : dict of str → (str, (str, str))
+        Station name → (self-contained station TOML, :meth:`Station.to_toml`; camera pair).
+        Text, not objects: small constructor arguments travel inline with the actor (Ray
+        restarts an actor from them), and any node parses them the same way.
+    device : str
+        "cpu" or "cuda".
+    threads : int
+        OpenCV threads in this process (1: Ray gives each actor one CPU).
+    """
+
+    def __init__(self, stations: dict, device: str = "cpu", threads: int = 1):
+        import cv2
+
+        cv2.setNumThreads(int(threads))
+        import tomllib
+
+        from cbh.geometry.station import parse_station
+
+        self.stations = {k: (parse_station(tomllib.loads(text)), tuple(cams)) for k, (text, cams) in stations.items()}
+        self.device = device
+        self._pipes: OrderedDict = OrderedDict()
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def pipeline(self, station: str):
+        if station in self._pipes:
+            self._pipes.move_to_end(station)
+            return self._pipes[station]
+        from cbh.pipeline import Pipeline
+
+        st, cams = self.stations[station]
+        pipe = Pipeline(st, f"{cams[0]},{cams[1]}")
+        self._pipes[station] = pipe
+        while len(self._pipes) > _PIPELINES_PER_WORKER:
+            self._pipes.popitem(last=False)
+        return pipe
+
+    def process(self, chunk: Chunk) -> ChunkResult:
+        """Every pair of the chunk: records of those processed, failures (with reasons) of the rest."""
+        from cbh.outputs.export import pair_record
+
+        from cbh.actions.run import MotionChain
+
+        t0 = time.perf_counter()
+        pipe = self.pipeline(chunk.station)
+        st = self.stations[chunk.station][0]
+        lead = (chunk.lead,) if chunk.lead is not None else ()
+        images = load_images([f for p in lead + chunk.pairs for f in (p.frame1, p.frame2)])
+        motion = MotionChain()  # the temporal state handed from pair to pair, as in `cbh run`
+        records, failures = [], []
+        for k, p in enumerate(lead + chunk.pairs):
+            img1, img2 = images[p.frame1], images[p.frame2]
+            bad = img1 if isinstance(img1, Exception) else img2 if isinstance(img2, Exception) else None
+            if bad is None:
+                try:
+                    result = pipe.process(img1, img2, p.time_utc, channels="bgr",  # decoded by OpenCV
+                                          previous=motion.previous(p.time_utc))
+                    motion.keep(result)
+                    if k >= len(lead):
+                        records.append(pair_record(result, st.altitude_m))
+                    continue
+                except CbhError as exc:
+                    bad = exc
+                except Exception as exc:  # a bad input must not end a year-long run; counted and logged
+                    bad = exc
+            motion.lost()
+            if k < len(lead):
+                continue  # the lead-in pair is another chunk's: counted there
+            reason = str(bad) if isinstance(bad, CbhError) else f"{type(bad).__name__}: {bad}"
+            failures.append({"time_utc": _iso(p.time_utc), "frames": [p.frame1.describe(), p.frame2.describe()],
+                             "reason": reason})
+        return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(),
+                           time.perf_counter() - t0)
+
+
+# --- the engine -------------------------------------------------------------------------------------
+
+def start_ray(workers: int | None = None, address: str | None = None, device: str = "cpu") -> tuple[bool, int]:
+    """Connect to Ray: a private local instance (``address=None``) or a cluster.
+
+    A private instance listens on the loopback interface only (Ray's single-machine mode) and
+    gets ``num_cpus=workers``. If this process is already connected to Ray (a test session, a
+    notebook), that connection is used and left open.
+
+    Returns
+    -------
+    owned : bool
+        True if this call connected (the caller shuts down at the end).
+    cpus : int
+        CPUs Ray offers (the default worker count).
+    """
+    if address is None:
+        # must be set before ray is imported: Ray then binds 127.0.0.1 instead of the host's address
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+        # local workers import the very cbh this process runs (Ray's worker processes do not
+        # always see a virtual environment's site-packages, and another cbh may be installed
+        # system-wide): its folder goes first on the path of every process Ray starts from here
+        import cbh
+
+        root = str(Path(cbh.__file__).resolve().parent.parent)
+        paths = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        if root not in paths:
+            os.environ["PYTHONPATH"] = os.pathsep.join([root] + paths)
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("cbh reprocess needs Ray: python3.11 -m pip install ray") from None
+    owned = False
+    if not ray.is_initialized():
+        kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        try:
+            if address is None:
+                gpus = 0
+                if device == "cuda":
+                    import torch
+
+                    gpus = torch.cuda.device_count()
+                # "local": always a new private instance, never a `ray start` cluster found on this machine
+                ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, num_gpus=gpus, **kw)
+            else:
+                ray.init(address=address, **kw)
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            raise ConfigError(f"--address {address}: cannot connect to Ray: {exc}") from None
+        except ImportError as exc:  # ray:// needs the client extra
+            raise ConfigError(f"--address {address}: {exc} (for ray:// addresses: pip install 'ray[client]')") from None
+        owned = True
+    cpus = int(ray.cluster_resources().get("CPU", 1))
+    if device == "cuda" and not ray.cluster_resources().get("GPU", 0):
+        if owned:
+            ray.shutdown()
+        raise ConfigError("--device cuda: Ray sees no GPU (no CUDA device here or in the cluster)")
+    return owned, cpus
+
+
+@dataclass
+class Summary:
+    """What a run did."""
+
+    pairs_total: int = 0  # pairs in the planned days
+    pairs_processed: int = 0  # processed in this run (successfully or not)
+    pairs_resumed: int = 0  # in days finished by an earlier run
+    failures: int = 0  # pairs that failed in this run
+    days_written: int = 0
+    days_resumed: int = 0
+    days_failed: int = 0  # days not finished (worker kept dying, interrupted): a rerun retries them
+    retried_chunks: int = 0  # chunks given to a fresh actor after Ray's restarts were used up
+    worker_restarts: int = 0  # actor processes Ray restarted (their tasks retried by Ray)
+    workers: int = 0
+    elapsed_s: float = 0.0
+    interrupted: bool = False
+    index: Path | None = None
+    files: list[str] = field(default_factory=list)
+
+    @property
+    def pairs_per_s(self) -> float:
+        return self.pairs_processed / self.elapsed_s if self.elapsed_s > 0 else math.nan
+
+
+def _iso(t: datetime) -> str:
+    return t.astimezone(timezone.utc).isoformat().replace("+00:00", "Z")
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(obj, indent=1, default=str) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from None
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _write_day(plan: Plan, job: StationJob, work: DayWork, records: list, failures: list[dict]) -> dict:
+    """Data files (atomically), then the sidecar (atomically): the day is finished."""
+    import cbh
+    from cbh.outputs.export import write_records
+
+    opts = plan.options
+    paths = daily_paths(opts.out, job.name, work.day)
+    paths["sidecar"].parent.mkdir(parents=True, exist_ok=True)
+    records = sorted(records, key=lambda r: r.time_utc)
+    uniq = []
+    for r in records:
+        if uniq and r.time_utc == uniq[-1].time_utc:
+            log.warning("%s %s: a second pair at %s dropped (same input given twice?)", job.name, work.day,
+                        _iso(r.time_utc))
+            continue
+        uniq.append(r)
+    st = job.station
+    info = {"station": st.name, "latitude_deg": st.latitude_deg, "longitude_deg": st.longitude_deg,
+            "altitude_m": st.altitude_m, "cameras": job.cameras, "cbh_version": cbh.__version__,
+            "metadata": dict(st.metadata)}  # what cbh export's session_records gives write_netcdf
+    files = []
+    if uniq:
+        for fmt in opts.formats:
+            files.append(str(write_records(uniq, info, paths[fmt], fmt)))
+    side = {
+        "station": job.name, "day": work.day.isoformat(), "cameras": list(job.cameras),
+        "pairs": len(work.pairs), "records": len(uniq), "failures": failures,
+        "time_span_utc": [_iso(uniq[0].time_utc), _iso(uniq[-1].time_utc)] if uniq else None,
+        "files": files, "formats": list(opts.formats), "station_hash": plan.station_hash[job.name],
+        "work_hash": work.work_hash, "cbh_version": cbh.__version__,
+        "written_utc": _iso(datetime.now(timezone.utc)),
+    }
+    _write_json(paths["sidecar"], side)
+    return side
+
+
+def _write_index(plan: Plan, sides: dict[tuple[str, date], dict], failed: dict[tuple[str, date], str],
+                 summary: Summary) -> Path:
+    opts = plan.options
+    stations = {}
+    spans = []
+    for job in plan.jobs:
+        inv = plan.inventories[job.name]
+        days = []
+        for w in plan.days:
+            if w.station != job.name:
+                continue
+            key = (w.station, w.day)
+            side = sides.get(key) or w.done
+            if side is not None:
+                days.append({"day": w.day.isoformat(), "status": "resumed" if key not in sides else "written",
+                             "pairs": side["pairs"], "records": side["records"], "failures": side["failures"],
+                             "time_span_utc": side["time_span_utc"], "files": side["files"],
+                             "sidecar": str(daily_paths(opts.out, w.station, w.day)["sidecar"])})
+                if side["time_span_utc"]:
+                    spans.extend(side["time_span_utc"])
+            else:
+                days.append({"day": w.day.isoformat(), "status": "not finished", "pairs": len(w.pairs),
+                             "reason": failed.get(key, "interrupted")})
+        stations[job.name] = {
+            "cameras": list(job.cameras), "inputs": job.specs, "frames": inv.frames, "unpaired": inv.unpaired,
+            "pairs": len(inv.pairs), "skipped_inputs": inv.skipped, "repaired_recordings": inv.repaired,
+            "days": days,
+        }
+    index = {
+        "cbh_reprocess": 1, "written_utc": _iso(datetime.now(timezone.utc)), "out": str(opts.out),
+        "from_utc": _iso(opts.t_from) if opts.t_from else None, "to_utc": _iso(opts.t_to) if opts.t_to else None,
+        "formats": list(opts.formats), "device": opts.device, "workers": summary.workers,
+        "interrupted": summary.interrupted,
+        "time_span_utc": [min(spans), max(spans)] if spans else None,
+        "totals": {"pairs": summary.pairs_total, "processed": summary.pairs_processed,
+                   "resumed": summary.pairs_resumed, "failures": summary.failures,
+                   "days_written": summary.days_written, "days_resumed": summary.days_resumed,
+                   "days_not_finished": summary.days_failed, "retried_chunks": summary.retried_chunks,
+                   "worker_restarts": summary.worker_restarts,
+                   "elapsed_s": round(summary.elapsed_s, 3)},
+        "stations": stations,
+    }
+    path = opts.out / "index.json"
+    _write_json(path, index)
+    return path
+
+
+def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summary:
+    """Process every unfinished day of the plan on Ray; write the days as they finish and the index.
+
+    ``on_event(dict)`` is called on the driver with ``{"event": "start", "pairs", "days",
+    "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "chunk", "pairs", "failures",
+    "pid", "elapsed_s"}``, ``{"event": "dispatch", "slot", …}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
+    KeyboardInterrupt stops the run: finished days stay, the index is written, and the
+    summary says ``interrupted``.
+    """
+    opts = plan.options
+    emit = on_event or (lambda e: None)
+    t_start = time.perf_counter()
+    opts.out.mkdir(parents=True, exist_ok=True)
+    s = Summary(pairs_total=sum(len(d.pairs) for d in plan.days))
+    for d in plan.days:
+        if d.done is not None:
+            s.days_resumed += 1
+            s.pairs_resumed += len(d.pairs)
+    todo = plan.todo
+    sides: dict[tuple[str, date], dict] = {}
+    failed: dict[tuple[str, date], str] = {}
+    jobs = {j.name: j for j in plan.jobs}
+    if not todo:
+        s.elapsed_s = time.perf_counter() - t_start
+        emit({"event": "start", "pairs": 0, "days": 0, "workers": 0})
+        s.index = _write_index(plan, sides, failed, s)
+        return s
+
+    # chunks, per station queue (a worker stays with its station while it has work)
+    queues: dict[str, deque] = defaultdict(deque)
+    expected: dict[tuple[str, date], int] = {}
+    before: dict[tuple[str, date], PairRef | None] = {}  # the previous day's last pair: the day's lead-in
+    last: dict[str, PairRef] = {}
+    for w in sorted(plan.days, key=lambda d: (d.station, d.day)):
+        before[(w.station, w.day)] = last.get(w.station)
+        last[w.station] = w.pairs[-1]
+    for w in todo:
+        n = 0
+        for i in range(0, len(w.pairs), opts.chunk_pairs):
+            lead = w.pairs[i - 1] if i else before[(w.station, w.day)]
+            queues[w.station].append((Chunk(w.station, w.day, n, tuple(w.pairs[i:i + opts.chunk_pairs]), lead), 1))
+            n += 1
+        expected[(w.station, w.day)] = n
+    works = {(w.station, w.day): w for w in todo}
+    got: dict[tuple[str, date], list[ChunkResult]] = defaultdict(list)
+
+    owned, cpus = start_ray(opts.workers, opts.address, opts.device)
+    import ray
+
+    n_workers = opts.workers or cpus
+    if n_workers > cpus:
+        log.warning("%d workers asked, Ray offers %d CPUs: using %d", n_workers, cpus, cpus)
+        n_workers = cpus
+    n_workers = max(1, min(n_workers, sum(len(q) for q in queues.values())))
+    s.workers = n_workers
+    gpu_share = 0.0
+    if opts.device == "cuda":
+        gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / n_workers)
+    actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share, max_restarts=opts.actor_restarts,
+                                               max_task_retries=opts.actor_restarts)
+    stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs if j.name in queues}
+    actors: list = []
+    current: list[str | None] = []
+    inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt, actor handle)
+    load = [0] * n_workers
+
+    def new_actor():
+        return actor_cls.remote(stations, opts.device)
+
+    def next_chunk(slot: int):
+        st = current[slot]
+        if st is None or not queues.get(st):
+            left = [k for k, q in queues.items() if q]
+            if not left:
+                return None
+            # the station with the most work left per worker already on it
+            st = max(left, key=lambda k: len(queues[k]) / (1 + sum(1 for c in current if c == k)))
+            current[slot] = st
+        return queues[st].popleft()
+
+    try:
+        emit({"event": "start", "pairs": sum(len(w.pairs) for w in todo), "days": len(todo), "workers": n_workers})
+        for _ in range(n_workers):
+            actors.append(new_actor())
+            current.append(None)
+        pids = ray.get([a.pid.remote() for a in actors])
+        emit({"event": "workers", "pids": list(pids)})
+        while inflight or any(queues.values()):
+            # breadth first: every actor gets one chunk before any gets a second (queued behind it)
+            for depth, slot in [(d, k) for d in (1, 2) for k in range(n_workers)]:
+                if load[slot] < depth:
+                    item = next_chunk(slot)
+                    if item is None:
+                        break
+                    chunk, attempt = item
+                    inflight[actors[slot].process.remote(chunk)] = (slot, chunk, attempt, actors[slot])
+                    load[slot] += 1
+                    emit({"event": "dispatch", "slot": slot, "station": chunk.station, "day": chunk.day.isoformat(),
+                          "chunk": chunk.index, "pairs": len(chunk.pairs)})
+            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=1.0)
+            for ref in ready:
+                slot, chunk, attempt, actor = inflight.pop(ref)
+                load[slot] -= 1
+                key = (chunk.station, chunk.day)
+                try:
+                    res: ChunkResult = ray.get(ref)
+                except ray.exceptions.RayActorError as exc:  # Ray's restarts and retries used up
+                    s.retried_chunks += 1
+                    if actors[slot] is actor:  # not yet replaced (its other in-flight chunk may fail too)
+                        try:
+                            ray.kill(actor, no_restart=True)
+                        except Exception:
+                            pass
+                        actors[slot] = new_actor()
+                        pids[slot] = None
+                    if attempt < opts.max_attempts:
+                        queues[chunk.station].appendleft((chunk, attempt + 1))
+                        log.warning("worker died on %s %s chunk %d; retrying on a fresh worker (%s)",
+                                    chunk.station, chunk.day, chunk.index, type(exc).__name__)
+                        emit({"event": "retry", "station": chunk.station, "day": chunk.day.isoformat(),
+                              "chunk": chunk.index, "attempt": attempt + 1})
+                    else:
+                        failed[key] = f"worker died {attempt} times on chunk {chunk.index}"
+                        log.error("%s %s: %s; the day is left for a rerun", chunk.station, chunk.day, failed[key])
+                        got.pop(key, None)
+                        expected.pop(key, None)
+                    continue
+                except ray.exceptions.RayTaskError as exc:  # a bug, not an input problem: the day is not written
+                    failed[key] = f"error in worker: {str(exc).strip().splitlines()[-1]}"
+                    log.error("%s %s: %s", chunk.station, chunk.day, failed[key])
+                    got.pop(key, None)
+                    expected.pop(key, None)
+                    continue
+                if pids[slot] is not None and res.pid != pids[slot]:
+                    s.worker_restarts += 1  # Ray restarted this actor (its process died) and retried its tasks
+                pids[slot] = res.pid
+                if key not in expected:
+                    continue  # the day already failed
+                got[key].append(res)
+                s.pairs_processed += len(res.records) + len(res.failures)
+                s.failures += len(res.failures)
+                for f in res.failures:
+                    log.warning("pair failed: %s %s: %s", chunk.station, f["time_utc"], f["reason"],
+                                extra={"cbh_station": chunk.station, "cbh_time": f["time_utc"]})
+                emit({"event": "chunk", "station": chunk.station, "day": chunk.day.isoformat(),
+                      "pairs": len(res.records) + len(res.failures), "failures": len(res.failures),
+                      "pid": res.pid, "elapsed_s": res.elapsed_s})
+                if len(got[key]) == expected[key]:
+                    parts = sorted(got.pop(key), key=lambda r: r.index)
+                    recs = [r for p in parts for r in p.records]
+                    fails = [f for p in parts for f in p.failures]
+                    side = _write_day(plan, jobs[chunk.station], works[key], recs, fails)
+                    sides[key] = side
+                    s.days_written += 1
+                    s.files.extend(side["files"])
+                    log.info("day written", extra={"cbh_station": chunk.station, "cbh_day": side["day"],
+                                                   "cbh_pairs": side["pairs"], "cbh_failures": len(fails)})
+                    emit(dict(side, event="day"))
+    except KeyboardInterrupt:
+        s.interrupted = True
+        log.warning("interrupted: finished days are kept; a rerun resumes the rest")
+    finally:
+        if owned:
+            ray.shutdown()  # ends every actor with the private instance
+        else:
+            for a in actors:  # a shared cluster: free this run's CPUs/GPUs
+                try:
+                    ray.kill(a, no_restart=True)
+                except Exception:
+                    pass
+        s.days_failed = len(todo) - s.days_written
+        s.elapsed_s = time.perf_counter() - t_start
+        s.index = _write_index(plan, sides, failed, s)
+    return s
+
+
+def reprocess(stations, sources=(), *, cameras: str | None = None, on_event=None, **options) -> tuple[Plan, Summary]:
+    """Plan and run (see the module docstring); ``options`` are :class:`ReprocessOptions` fields."""
+    opts = ReprocessOptions(**options)
+    plan = plan_reprocess(load_jobs(stations, sources, cameras), opts)
+    return plan, run_plan(plan, on_event)

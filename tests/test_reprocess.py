@@ -1,0 +1,345 @@
+"""`cbh reprocess` on Ray, started locally with 2 workers, on small simulated archives (480 px).
+
+One Ray session serves the whole module (Ray takes seconds to start); each run makes and
+kills its own actors, as the command does.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+T0 = datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
+DAY2 = datetime(2024, 6, 22, 14, 0, tzinfo=timezone.utc)
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory) -> Path:
+    """Two UTC days of a simulated station in the folder-per-camera-per-day layout.
+
+    Day 1: three pairs with identical stamps and, in the middle (14:00:45), a pair whose
+    camera-1 JPEG is corrupt. Day 2: camera 2's stamps 0.2 s late (paired within the 0.5 s
+    tolerance) and one extra camera-2 frame with no partner.
+    """
+    from cbh.presets import scene_path, station_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.io import time_tag, write_shot
+    from cbh.geometry.station import load_station
+
+    root = tmp_path_factory.mktemp("archive")
+    sim = SkySimulator(load_station(station_path()), load_scene(scene_path("two-layers")), size_px=480)
+    (root / "station.toml").write_text(sim.station.to_toml())
+    flat = root / "flat"
+    for start in (T0, DAY2):
+        for k in range(3):
+            write_shot(sim.render(start + timedelta(seconds=30 * k)), flat)
+    for cam in ("cam1", "cam2"):
+        for f in sorted((flat / cam).glob("*.jpg")):
+            t = datetime.strptime(f.name.split("_")[1][:15], "%Y%m%dT%H%M%S").replace(tzinfo=timezone.utc)
+            if cam == "cam2" and t.date() == DAY2.date():
+                t += timedelta(seconds=0.2)
+            dest = root / cam / f"{t:%Y-%m-%d}" / f"{cam}_{time_tag(t)}.jpg"
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(f, dest)
+    extra = DAY2 + timedelta(seconds=75)  # 15 s from any camera-1 frame: never paired
+    shutil.copy(next((root / "cam2" / "2024-06-22").glob("*.jpg")), root / "cam2" / "2024-06-22" / f"cam2_{time_tag(extra)}.jpg")
+    shutil.rmtree(flat)
+    mid = T0 + timedelta(seconds=45)
+    for cam in ("cam1", "cam2"):
+        good = sorted((root / cam / "2024-06-21").glob("*.jpg"))[1].read_bytes()
+        (root / cam / "2024-06-21" / f"{cam}_{time_tag(mid)}.jpg").write_bytes(
+            good if cam == "cam2" else good[:200] + b"\x00" * 100)  # a JPEG cut short and overwritten
+    return root
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    from cbh.actions.reprocess import start_ray
+
+    owned, cpus = start_ray(workers=2)
+    assert cpus >= 2
+    yield
+    if owned:
+        import ray
+
+        ray.shutdown()
+
+
+def _run(archive: Path, out: Path, **kw):
+    from cbh.actions.reprocess import reprocess
+
+    return reprocess([archive / "station.toml"], [f"cam1={archive / 'cam1'}", f"cam2={archive / 'cam2'}"],
+                     out=out, workers=2, chunk_pairs=2, **kw)
+
+
+@pytest.fixture(scope="module")
+def baseline(archive, ray_session, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    plan, summary = _run(archive, out)
+    return plan, summary, out
+
+
+def _heights_by_time(parquet: Path) -> dict:
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(parquet).to_pylist()
+    out: dict = {}
+    for r in rows:
+        out.setdefault(r["time_utc"], [])
+        if r["layer"] >= 0:
+            out[r["time_utc"]].append(r["cloud_base_height_m"])
+    return out
+
+
+def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
+    """Every day's heights equal `cbh pair` on the same two files (the pipeline keeps no state
+    between pairs and uses no temporal information here: identical, not just close); a second
+    run finds every day finished and processes no pair."""
+    import xarray as xr
+
+    from cbh.actions.reprocess import daily_paths
+    from cbh.cli.main import main
+
+    plan, s, out = baseline
+    assert (s.pairs_total, s.pairs_processed, s.failures, s.days_written, s.workers) == (7, 7, 1, 2, 2)
+    inv = plan.inventories["unb-lea"]
+    assert inv.frames == {"cam1": 7, "cam2": 8} and inv.unpaired == {"cam1": 0, "cam2": 1}
+    capsys.readouterr()
+    for w in plan.days:
+        paths = daily_paths(out, "unb-lea", w.day)
+        got = _heights_by_time(paths["parquet"])
+        ds = xr.open_dataset(paths["netcdf"])
+        good = [p for p in w.pairs if p.time_utc != T0 + timedelta(seconds=45)]
+        assert ds.sizes["time"] == len(good) == 3
+        for i, p in enumerate(good):
+            assert abs((p.frame2.time_utc - p.frame1.time_utc).total_seconds()) <= 0.2 + 1e-6
+            assert main(["pair", p.frame1.path, p.frame2.path, "--station", str(archive / "station.toml"), "--json"]) == 0
+            ref = [l["height_m"] for l in json.loads(capsys.readouterr().out)["layers"]]
+            assert len(ref) >= 1
+            assert got[p.time_utc] == ref  # exact equality of float64 heights
+            nc = ds.cloud_base_height.values[i]
+            assert np.array_equal(nc[: len(ref)], np.array(ref)) and np.isnan(nc[len(ref):]).all()
+        ds.close()
+        side = json.loads(paths["sidecar"].read_text())
+        assert side["records"] == 3 and side["pairs"] == len(w.pairs)
+        if w.day == T0.date():  # the corrupt file in the middle: counted with its reason, not fatal
+            (f,) = side["failures"]
+            assert f["time_utc"] == "2024-06-21T14:00:45Z" and "corrupt" in f["reason"] and "cam1_" in f["frames"][0]
+        else:
+            assert side["failures"] == []
+    # motion: chunks start with a lead-in pair, so every pair's motion equals one sequential run's
+    import pyarrow.parquet as pq
+
+    from cbh.actions.run import MotionChain
+    from cbh.errors import ImageError
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+
+    pipe, chain, n_moving = Pipeline(load_station(archive / "station.toml")), MotionChain(), 0
+    rows = [r for w in plan.days for r in pq.read_table(daily_paths(out, "unb-lea", w.day)["parquet"]).to_pylist()]
+    for p in [p for w in plan.days for p in w.pairs]:
+        try:
+            r = pipe.process(p.frame1.path, p.frame2.path, p.time_utc, previous=chain.previous(p.time_utc))
+        except ImageError:
+            chain.lost()
+            continue
+        chain.keep(r)
+        got_m = [(x["motion_east_ms"], x["motion_north_ms"]) for x in rows if x["time_utc"] == p.time_utc]
+        want_m = [(l.motion_east_ms, l.motion_north_ms) for l in r.layers]
+        assert [tuple(np.isnan(v) for v in m) for m in want_m] == [tuple(v is None for v in m) for m in got_m]
+        # equal up to summation order (the actors run OpenCV on one thread, this process on all):
+        # 1e-9 relative is far below anything physical (a 10 m/s cloud known to 1e-8 m/s)
+        assert np.allclose(np.array(want_m, float), np.array([[np.nan if v is None else v for v in m] for m in got_m]),
+                           rtol=1e-9, atol=0, equal_nan=True)
+        n_moving += all(v is not None for m in got_m for v in m)
+    assert n_moving >= 3  # pairs 2 and 3 of each day (after the corrupt one, too) move
+
+    index = json.loads((out / "index.json").read_text())
+    assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["written", "written"]
+    assert index["time_span_utc"] == ["2024-06-21T14:00:00Z", "2024-06-22T14:01:00Z"]
+
+    mtimes = {p: p.stat().st_mtime_ns for p in (out / "unb-lea").iterdir()}
+    _, s2 = _run(archive, out)
+    assert (s2.pairs_processed, s2.days_written, s2.days_resumed, s2.pairs_resumed) == (0, 0, 2, 7)
+    assert {p: p.stat().st_mtime_ns for p in (out / "unb-lea").iterdir()} == mtimes
+    index = json.loads((out / "index.json").read_text())
+    assert [d["status"] for d in index["stations"]["unb-lea"]["days"]] == ["resumed", "resumed"]
+
+
+def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_path):
+    """SIGKILL of an actor process while its first chunk is in flight: Ray restarts the actor,
+    retries the chunk, and the output equals the undisturbed run."""
+    from cbh.actions.reprocess import daily_paths
+
+    _, _, base_out = baseline
+    pids: list[int] = []
+    killed: list[int] = []
+
+    def on_event(e):
+        if e["event"] == "workers":
+            pids.extend(e["pids"])
+        elif e["event"] == "dispatch" and not killed:
+            os.kill(pids[e["slot"]], signal.SIGKILL)
+            killed.append(pids[e["slot"]])
+
+    _, s = _run(archive, tmp_path / "out", on_event=on_event)
+    assert killed
+    assert s.worker_restarts >= 1
+    assert (s.pairs_processed, s.failures, s.days_written, s.days_failed) == (7, 1, 2, 0)
+    for day in (T0.date(), DAY2.date()):
+        assert _heights_by_time(daily_paths(tmp_path / "out", "unb-lea", day)["parquet"]) == \
+            _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
+
+
+@pytest.mark.slow
+def test_worker_that_ray_gives_up_on_is_replaced(archive, baseline, tmp_path):
+    """With Ray's restarts off, a killed actor's chunks fail in Ray; the run gives them to a
+    fresh actor and still writes every day, equal to the undisturbed run."""
+    from cbh.actions.reprocess import daily_paths
+
+    _, _, base_out = baseline
+    pids: list[int] = []
+    killed: list[int] = []
+
+    def on_event(e):
+        if e["event"] == "workers":
+            pids.extend(e["pids"])
+        elif e["event"] == "dispatch" and not killed:
+            os.kill(pids[e["slot"]], signal.SIGKILL)
+            killed.append(pids[e["slot"]])
+
+    _, s = _run(archive, tmp_path / "out", on_event=on_event, actor_restarts=0)
+    assert killed and s.retried_chunks >= 1
+    assert (s.pairs_processed, s.failures, s.days_written, s.days_failed) == (7, 1, 2, 0)
+    for day in (T0.date(), DAY2.date()):
+        assert _heights_by_time(daily_paths(tmp_path / "out", "unb-lea", day)["parquet"]) == \
+            _heights_by_time(daily_paths(base_out, "unb-lea", day)["parquet"])
+
+
+def test_network_file_and_source_binding_errors(archive, tmp_path):
+    """A network TOML lists stations; --source must name a camera of the pair; live URLs are refused."""
+    from cbh.actions.reprocess import load_jobs
+    from cbh.errors import ConfigError
+
+    net = tmp_path / "network.toml"
+    st = archive / "station.toml"
+    net.write_text(f'[[stations]]\nstation = "{st}"\n[stations.sources]\ncam1 = "{archive / "cam1"}"\n'
+                   f'cam2 = "{archive / "cam2"}"\n')
+    (job,) = load_jobs([net])
+    assert job.cameras == ("cam1", "cam2") and job.specs["cam2"] == str(archive / "cam2")
+    # two stations in one network: the work is partitioned by station and UTC day
+    st_b = tmp_path / "b.toml"
+    st_b.write_text(st.read_text().replace('name = "unb-lea"', 'name = "site-b"', 1))
+    net.write_text(net.read_text() + f'[[stations]]\nstation = "{st_b}"\n')
+    from cbh.actions.reprocess import ReprocessOptions, plan_reprocess
+
+    jobs = load_jobs([net], [f"site-b/cam1={archive / 'cam1'}", f"site-b/cam2={archive / 'cam2'}"])
+    plan = plan_reprocess(jobs, ReprocessOptions(out=tmp_path / "out", t_to=DAY2))
+    assert [(d.station, str(d.day), len(d.pairs)) for d in plan.days] == [
+        ("unb-lea", "2024-06-21", 4), ("site-b", "2024-06-21", 4)]  # --to: day 2 left out
+    with pytest.raises(ConfigError, match="STATION/cam1"):
+        load_jobs([net], [f"cam1={archive / 'cam1'}"])
+    with pytest.raises(ConfigError, match="no station"):
+        load_jobs([st], ["cam9=/tmp"])
+    with pytest.raises(ConfigError, match="given twice"):
+        load_jobs([st, net])
+    from cbh.actions.archive import source_kind
+
+    with pytest.raises(ConfigError, match="archives"):
+        source_kind("rtsp://127.0.0.1/x")
+
+
+def test_cli_bad_input_is_one_line(tmp_path, capsys):
+    from cbh.cli.main import main
+
+    assert main(["reprocess", "--station", "unb-lea", "--out", str(tmp_path / "o"), "--format", "csv"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cbh: error: --format") and err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_truncated_recording_and_video_inputs(archive, ray_session, repo, tmp_path):
+    """A recording cut mid-write is repaired and its complete pairs processed; video files
+    are read frame by frame. Heights equal `Pipeline.process` on the same decoded images."""
+    import cv2
+
+    from cbh.actions.reprocess import reprocess
+    from cbh.outputs.record import open_session
+    from cbh.pipeline import Pipeline
+
+    # recording: the sample session cut at 60 % of its bytes (a killed writer)
+    rec = tmp_path / "session.mcap"
+    data = (repo / "recordings" / "sample-two-layers.mcap").read_bytes()
+    rec.write_bytes(data[: int(0.6 * len(data))])
+    full = open_session(repo / "recordings" / "sample-two-layers.mcap")
+    st_file = tmp_path / "rec-station.toml"
+    st_file.write_text(full.station.to_toml())
+    plan, s = reprocess([st_file], [f"cam1={rec}"], out=tmp_path / "out-rec", workers=2, chunk_pairs=2,
+                        formats=("parquet",))
+    inv = plan.inventories["unb-lea"]
+    assert len(inv.repaired) == 1 and 0 < inv.repaired[0]["pairs"] < 8
+    assert s.pairs_processed == inv.repaired[0]["pairs"] and s.failures == 0
+    pipe = Pipeline(full.station)
+    got = _heights_by_time(next((tmp_path / "out-rec" / "unb-lea").glob("*.parquet")))
+    for rp in list(full.pairs())[: s.pairs_processed]:
+        f1, f2 = rp.frames()
+        want = [l.height_m for l in pipe.process(f1.image, f2.image, rp.time_utc, channels="bgr").layers]
+        assert got[rp.time_utc] == want
+
+    # video: day 1 of the archive as two MJPEG videos, 1 frame per second
+    vids = {}
+    for cam in ("cam1", "cam2"):
+        vids[cam] = tmp_path / f"{cam}_20240621T140000Z.avi"
+        w = cv2.VideoWriter(str(vids[cam]), cv2.VideoWriter_fourcc(*"MJPG"), 1.0, (480, 480))
+        for f in sorted((archive / cam / "2024-06-21").glob("*.jpg")):
+            w.write(cv2.imread(str(f)))
+        w.release()
+    plan, s = reprocess([archive / "station.toml"], [f"cam1={vids['cam1']}", f"cam2={vids['cam2']}"],
+                        out=tmp_path / "out-vid", workers=2, chunk_pairs=2, formats=("parquet",))
+    assert (s.pairs_processed, s.failures) == (3, 0)
+    (w,) = plan.days
+    assert [p.frame1.index for p in w.pairs] == [0, 1, 2]
+    steps = [(b.time_utc - a.time_utc).total_seconds() for a, b in zip(w.pairs, w.pairs[1:])]
+    assert np.allclose(steps, 1.0)
+    from cbh.geometry.station import load_station
+
+    pipe = Pipeline(load_station(archive / "station.toml"))
+    caps = {c: cv2.VideoCapture(str(v)) for c, v in vids.items()}
+    got = _heights_by_time(next((tmp_path / "out-vid" / "unb-lea").glob("*.parquet")))
+    for p in w.pairs:
+        im1, im2 = caps["cam1"].read()[1], caps["cam2"].read()[1]
+        assert got[p.time_utc] == [l.height_m for l in pipe.process(im1, im2, p.time_utc, channels="bgr").layers]
+
+
+@pytest.mark.slow
+def test_ctrl_c_keeps_finished_days_and_rerun_finishes(archive, baseline, tmp_path):
+    """A real Ctrl-C (SIGINT to the command's process group) once the first day is written:
+    exit code 130, that day kept, the index says interrupted; the same command run again
+    resumes (the finished day is not processed again) and finishes the rest."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-c", "import sys; from cbh.cli.main import main; sys.exit(main())", "reprocess", "--station", str(archive / "station.toml"),
+           "--source", f"cam1={archive / 'cam1'}", "--source", f"cam2={archive / 'cam2'}", "--out", str(out),
+           "--workers", "2", "--chunk-pairs", "1"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    first = json.loads(p.stdout.readline())  # the JSON line of the first finished day
+    os.killpg(p.pid, signal.SIGINT)
+    rest, err = p.communicate(timeout=120)
+    assert first["day"] == "2024-06-21" and first["records"] == 3
+    index = json.loads((out / "index.json").read_text())
+    statuses = [d["status"] for d in index["stations"]["unb-lea"]["days"]]
+    if p.returncode == 130:  # interrupted while day 2 was in flight (the usual case)
+        assert index["interrupted"] and statuses == ["written", "not finished"] and "interrupted" in err
+    else:  # day 2 finished before the signal arrived
+        assert p.returncode == 0 and statuses == ["written", "written"]
+    _, s2 = _run(archive, out)
+    assert s2.days_resumed + s2.days_written == 2 and s2.days_resumed >= 1
+    assert s2.pairs_processed == (3 if s2.days_written else 0)  # day 2 has 3 pairs
