@@ -1,6 +1,8 @@
 """Regenerate docs/ground-maps.png: cloud map per layer and shadow map of one simulated pair.
 
-The real chain: `cbh run` on the simulated two-layer scene (640 px) records two pairs, and
+The real chain: `cbh run` on the simulated two-layer scene (640 px) records twelve pairs 10 s apart (the
+last pair's "sun blocked now" needs earlier pairs whose view of the cloud on the sun ray was
+outside the masked sun disk), and
 `cbh.actions.export.ground_maps` projects camera 1's cloud mask onto the station's ground grid
 (the same code as `cbh export --product cloudmap|shadow`).
 Run from the repository root: python scripts/make_ground_figure.py
@@ -28,7 +30,7 @@ def main() -> None:
     out = REPO / "docs" / "ground-maps.png"
     with tempfile.TemporaryDirectory() as d:
         rec = Path(d) / "sim.mcap"
-        if cbh(["run", "--station", "unb-lea", "--scene", "two-layers", "--size", "640", "--frames", "2",
+        if cbh(["run", "--station", "unb-lea", "--scene", "two-layers", "--size", "640", "--frames", "12",
                 "--record", str(rec), "-q"]):
             raise SystemExit(1)
         m = ground_maps([rec])

@@ -126,7 +126,7 @@ def test_sun_blocked_forecast_follows_the_layer_motion(probe_world, lead, min_ag
     agree = float(np.mean(pred[known] == truth[known]))
     # Same edge argument as the shadow map, but the cloud that will cover the sun is looked up
     # upwind, farther out and lower in camera 1's view (larger footprint): measured 0.94 at
-    # +1 min (clouds moved 0.4-0.5 km) and 0.82 at +5 min (1.9-2.6 km). Ignoring the motion
+    # +1 min (clouds moved 0.4-0.5 km) and 0.80 at +5 min (1.9-2.6 km). Ignoring the motion
     # ("still") must do much worse: measured 0.61 and 0.36.
     assert known.mean() >= 0.5 and agree >= min_agree, (agree, known.mean())
     ks = np.isfinite(still)
@@ -215,7 +215,7 @@ def test_shadow_map_through_the_whole_pipeline(unb_station):
     known = np.isfinite(v)
     agree = float(np.mean(v[known] == truth[known]))
     # Segmentation errors at cloud edges and the working size add to the geometric edge
-    # mismatch of the test above (0.97); measured 0.92 of the 76 % of probes known (640 px).
+    # mismatch of the test above (0.97 in this sky); measured 0.89 of the 73 % of probes known (640 px).
     print(f"end-to-end shadow agreement {agree:.3f} over {known.mean():.2f} of the probes")
     assert known.mean() >= 0.5 and agree >= 0.85, (agree, known.mean())
 

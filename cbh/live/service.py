@@ -513,7 +513,8 @@ class Service:
         else:
             why = f"(stopped: {st.stop_reason})"
         failed = [s.error if s.error.startswith(c) else f"{c}: {s.error}"
-                  for c, s in st.sources.items() if s.error and s.state in ("failed", "backoff")]
+                  for c, s in st.sources.items() if s.error]  # the last error, also when the run
+        # ended while the source was reconnecting
         if failed:
             return SourceError(f"no pair processed {why}: " + "; ".join(failed))
         if st.pairs_failed and st.last_error:

@@ -423,7 +423,8 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     if bimodal and image_bgr is not None and cfg.brightness_weight > 0:
         # brightness cue: cloud is brighter (sunlit, thin) or darker (thick base) than the clear
         # sky of the same region, which the first pass found; exposure cancels in the ratio
-        value = cv2.max(cv2.max(*cv2.split(image_bgr)[:2]), cv2.split(image_bgr)[2]).astype(np.float32)
+        b, g, r = cv2.split(image_bgr)
+        value = cv2.max(cv2.max(b, g), r).astype(np.float32)
         clear = usable & ~cloud
         if np.count_nonzero(clear) >= 0.05 * np.count_nonzero(usable):
             v_ref = clear_sky_references([value / 255.0], clear, zenith_deg, sun_angle_deg, 50.0, image_bgr)[0]
@@ -505,11 +506,13 @@ def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
         cloud &= usable
         n = int(np.count_nonzero(usable))
         return cloud, (float(np.count_nonzero(cloud)) / n if n else 0.0)
-    nbr = normalized_blue_red(image_bgr)
-    b, g, r = cv2.split(image_bgr)
-    bright = cv2.max(cv2.max(b, g), r) >= cfg.min_brightness
-    usable = usable & bright
-    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chroma(image_bgr),
-                                      image_bgr=image_bgr)
+    b, g, r = cv2.split(image_bgr)  # once: NBR, chroma and brightness share the channels
+    s = cv2.add(b, r, dtype=cv2.CV_32F)
+    nbr = cv2.divide(cv2.subtract(b, r, dtype=cv2.CV_32F), cv2.max(s, 1.0))
+    mx = cv2.max(cv2.max(b, g), r)
+    mn = cv2.min(cv2.min(b, g), r)
+    chr_ = cv2.divide(cv2.subtract(mx, mn, dtype=cv2.CV_32F), cv2.max(mx, 1).astype(np.float32))
+    usable = usable & (mx >= cfg.min_brightness)
+    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chr_, image_bgr=image_bgr)
     n = int(np.count_nonzero(usable))
     return cloud, (float(np.count_nonzero(cloud)) / n if n else 0.0)

