@@ -158,7 +158,8 @@ def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJ
         specs = {}
         for c in (c1, c2):
             if c.name in e["sources"]:
-                specs[c.name] = str((e["base"] / e["sources"][c.name]).resolve())
+                src = e["sources"][c.name]
+                specs[c.name] = src if "://" in src else str((e["base"] / src).resolve())
             elif c.source:
                 base = st.path.parent if st.path is not None else Path.cwd()
                 specs[c.name] = str((base / c.source).resolve()) if "://" not in c.source else c.source
@@ -177,7 +178,7 @@ def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJ
         if len(hits) > 1:
             raise ConfigError(f"--source {text!r}: camera {cam!r} is in stations "
                               f"{', '.join(j['station'].name for j in hits)}; write STATION/{cam}=PATH")
-        hits[0]["specs"][cam] = str(Path(spec).expanduser().resolve())
+        hits[0]["specs"][cam] = spec if "://" in spec else str(Path(spec).expanduser().resolve())  # URLs: refused by the scan
     return [StationJob(j["station"].name, j["station"], j["cameras"], j["specs"]) for j in jobs]
 
 
@@ -442,19 +443,22 @@ def start_ray(workers: int | None = None, address: str | None = None, device: st
     owned = False
     if not ray.is_initialized():
         kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        gpus = 0
+        if address is None and device == "cuda":
+            import torch
+
+            gpus = torch.cuda.device_count()
+            if not gpus:  # say so before Ray's seconds of start-up
+                raise ConfigError("--device cuda: no CUDA device on this machine")
         try:
             if address is None:
-                gpus = 0
-                if device == "cuda":
-                    import torch
-
-                    gpus = torch.cuda.device_count()
                 # "local": always a new private instance, never a `ray start` cluster found on this machine
                 ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, num_gpus=gpus, **kw)
             else:
                 ray.init(address=address, **kw)
         except (ConnectionError, ValueError, RuntimeError) as exc:
-            raise ConfigError(f"--address {address}: cannot connect to Ray: {exc}") from None
+            where = f"--address {address}" if address else "local Ray"
+            raise ConfigError(f"{where}: cannot start or connect to Ray: {exc}") from None
         except ImportError as exc:  # ray:// needs the client extra
             raise ConfigError(f"--address {address}: {exc} (for ray:// addresses: pip install 'ray[client]')") from None
         owned = True
