@@ -1,6 +1,10 @@
 """Benchmark: the whole pair pipeline on a 1920 x 1920 pair (the paper's cameras).
 
-    python benchmarks/bench_pipeline.py [--size 1920] [--repeat 5] [--scene two-layers]
+    python benchmarks/bench_pipeline.py [--size 1920] [--repeat 5] [--scene two-layers] [--device cpu]
+    python benchmarks/bench_pipeline.py --device cuda --batch 8    # GPU: pairs/s of process_batch
+
+``--device`` other than cpu runs the dense work on torch (cbh/pipeline/torch_ops.py); without
+CUDA, ``--device cuda`` says so and exits (status 0: a benchmark, not a test).
 
 Renders one pair with the simulator (not timed), builds the Pipeline (per-camera caches), runs
 one warm-up pair (fills the caches: ray maps, zenith maps, infinity remap table), then times
@@ -23,6 +27,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=1920)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--scene", default="two-layers")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--batch", type=int, default=0, help="also time process_batch on this many copies of the pair")
     args = ap.parse_args()
 
     from cbh.pipeline import Pipeline
@@ -33,8 +39,14 @@ def main() -> None:
     sim = SkySimulator(load_station(station_path("unb-lea")), load_scene(args.scene), size_px=args.size)
     shot = sim.render()
     im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
+    from cbh.errors import ConfigError
+
     t = time.perf_counter()
-    pipe = Pipeline(sim.station)
+    try:
+        pipe = Pipeline(sim.station, device=args.device)
+    except ConfigError as e:
+        print(f"skipped: {e}")
+        return
     r = pipe.process(im1, im2, shot.time_utc, channels="bgr")
     print(f"pair {im1.shape[1]}x{im1.shape[0]}  first call (builds caches): {(time.perf_counter() - t) * 1000:.0f} ms")
     runs = [pipe.process(im1, im2, shot.time_utc, channels="bgr").timing_ms for _ in range(args.repeat)]
@@ -42,7 +54,12 @@ def main() -> None:
     print(f"median of {args.repeat} runs [ms]:")
     for s in stages:
         print(f"  {s:<14} {statistics.median(r[s] for r in runs):8.1f}")
-    if "sweep" in pipe.config.matching.methods:  # the plane sweep's own steps, on the same pair
+    if args.batch:
+        t = time.perf_counter()
+        pipe.process_batch([(im1, im2, shot.time_utc)] * args.batch, channels="bgr")
+        dt = time.perf_counter() - t
+        print(f"process_batch of {args.batch}: {args.batch / dt:.2f} pairs/s on {args.device}")
+    if "sweep" in pipe.config.matching.methods and pipe.backend == "opencv":  # the sweep's own steps
         import cv2
 
         from cbh.pipeline.sweep import sweep_matches

@@ -154,3 +154,16 @@ def small_sky():
                       "layers": [{"height_m": SKY_LAYER_M, "coverage": 0.4, "texture_scale_m": 800.0, "seed": 3}]})
     sim = SkySimulator(load_station(station_path("unb-lea")), sc, size_px=320)
     return sim, sim.render()
+@pytest.fixture(scope="session", autouse=True)
+def _table_cache(tmp_path_factory):
+    """The pipeline's on-disk table cache (cbh/pipeline/tables.py) in a per-session directory, so
+    the suite neither reads stale entries from nor fills the user's ~/.cache/cbh."""
+    import os
+
+    old = os.environ.get("CBH_CACHE_DIR")
+    os.environ["CBH_CACHE_DIR"] = str(tmp_path_factory.mktemp("cbh-cache"))
+    yield
+    if old is None:
+        os.environ.pop("CBH_CACHE_DIR", None)
+    else:
+        os.environ["CBH_CACHE_DIR"] = old

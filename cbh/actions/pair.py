@@ -34,7 +34,8 @@ class PairRun:
 
 
 def process_pair(image1, image2, station, cameras: str | None = None, time_utc: datetime | None = None,
-                 height_map_path=None, previous=None, previous_time: datetime | None = None) -> PairRun:
+                 height_map_path=None, previous=None, previous_time: datetime | None = None,
+                 device: str = "cpu") -> PairRun:
     """Process one pair of image files.
 
     Parameters
@@ -53,6 +54,8 @@ def process_pair(image1, image2, station, cameras: str | None = None, time_utc: 
         The pair captured before: with it, each layer's motion and camera 2's clock offset.
     previous_time : datetime, optional
         Its capture time (aware); default: the stamp in its camera-1 file name.
+    device : str
+        Where the dense work runs: ``"cpu"`` or a torch device (``"cuda"``); see :class:`~cbh.pipeline.Pipeline`.
 
     Raises
     ------
@@ -64,7 +67,7 @@ def process_pair(image1, image2, station, cameras: str | None = None, time_utc: 
     from cbh.geometry.station import load_station
     from cbh.pipeline import Pipeline
 
-    pipe = Pipeline(load_station(station), cameras)
+    pipe = Pipeline(load_station(station), cameras, device=device)
     t = time_utc if time_utc is not None else time_from_name(Path(image1).name)
     state = None
     if previous is not None:

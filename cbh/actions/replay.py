@@ -36,7 +36,8 @@ class ReplayReport:
 
 
 def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), station=None, cameras=None,
-           record=None, on_viewer=None, overwrite: bool = False, bind: str | None = None) -> ReplayReport:
+           record=None, on_viewer=None, overwrite: bool = False, bind: str | None = None,
+           device: str = "cpu") -> ReplayReport:
     """Replay (``station`` None) or reprocess (``station`` given) a recorded session.
 
     Parameters
@@ -57,6 +58,8 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         Replace an existing ``record`` file (never one of the session's own files).
     bind : str, optional
         Address of ``serve`` (default 127.0.0.1).
+    device : str
+        Reprocess only: where the pipeline's dense work runs (``"cpu"``, ``"cuda"`` …).
     """
     from cbh.outputs.record import open_session
 
@@ -68,7 +71,7 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         n = _replay_recorded(s, rerun, Path(session).stem, on_viewer, bind)
         return ReplayReport(n, False, rerun[0] if rerun else None, rerun[1] if rerun else None,
                             None, None, time.perf_counter() - t0)
-    setup, viewer = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem, overwrite, bind)
+    setup, viewer = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem, overwrite, bind, device)
     if viewer is not None and on_viewer is not None:
         on_viewer(viewer)
     stats = setup.service().run()
@@ -99,7 +102,7 @@ def _replay_recorded(s, rerun, name: str, on_viewer, bind=None) -> int:
 
 
 def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: bool = False,
-                     bind: str | None = None):
+                     bind: str | None = None, device: str = "cpu"):
     """(RunSetup over the recording's frames, the RerunSink or None)."""
     from cbh.geometry.station import Station, load_station
     from cbh.imageio import check_image_size
@@ -110,7 +113,7 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: b
     cfg = None if "pipeline" in st.sections else PipelineConfig.from_dict(s.config, where="recorded pipeline config")
     first = next(s.pairs(layers_only=True), None)
     pair_names = cameras or (",".join(first.result.cameras) if first else None)
-    pipeline = Pipeline(st, pair_names, cfg)
+    pipeline = Pipeline(st, pair_names, cfg, device=device)
     probe = next(s.pairs(), None)
     if probe is not None:  # a size mismatch fails before any output file is opened
         for cam in pipeline.cameras:

@@ -364,7 +364,7 @@ class PairWorker:
         from cbh.pipeline import Pipeline
 
         st, cams = self.stations[station]
-        pipe = Pipeline(st, f"{cams[0]},{cams[1]}")
+        pipe = Pipeline(st, f"{cams[0]},{cams[1]}", device=self.device)  # the dense work on the worker's device
         self._pipes[station] = pipe
         while len(self._pipes) > _PIPELINES_PER_WORKER:
             self._pipes.popitem(last=False)

@@ -147,7 +147,7 @@ def _rerun_args(spec: str) -> tuple[str, str | None]:
 def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None, rerun=None, export=None,
               cadence_s=None, frames=None, duration_s=None, size_px=None, pair_tolerance_s=None, watch=False,
               realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6, overwrite: bool = False,
-              bind: str | None = None) -> RunSetup:
+              bind: str | None = None, device: str = "cpu") -> RunSetup:
     """Assemble ``cbh run``: station, sources, pipeline, sinks, service config (no thread started).
 
     Cameras without a ``--source`` use their station ``source`` key; cameras with neither are
@@ -157,6 +157,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     first free ``…_2.mcap``, ``…_3.mcap``, noted in :attr:`RunSetup.notes`) or a path (a
     ``.mcap`` file, refused if it exists unless ``overwrite``; or a directory, in which every
     file is created exclusively). ``bind``: address of ``--rerun serve`` (default 127.0.0.1).
+    ``device``: where the pipeline's dense work runs (``cpu``, ``cuda`` …).
     """
     from datetime import timezone
 
@@ -234,7 +235,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
     # an offset above the pairing tolerance is what the clock_offset flag reports
     pcfg = pcfg.replace(motion=replace(pcfg.motion, offset_tolerance_s=config.pair_tolerance_s))
-    pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg)
+    pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg, device=device)
     sinks = []
     recorder = None
     try:

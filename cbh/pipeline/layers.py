@@ -65,6 +65,7 @@ import numpy as np
 from cbh.errors import ConfigError
 from cbh.result import Histogram, Layer
 from cbh.pipeline.config import FilteringConfig, LayersConfig
+from cbh.pipeline.peaks import find_peaks, smooth_gaussian, valley_cuts
 
 __all__ = ["LAYER_METHODS", "histogram_layers", "layer_stats", "layer_covers", "get_layer_method", "angular_noise", "height_noise"]
 
@@ -93,12 +94,6 @@ def height_noise(xyz_m: np.ndarray, o1: np.ndarray, o2: np.ndarray, dtheta_rad: 
     return np.abs(v[:, 2]) * r * dtheta_rad / np.maximum(b_perp, 1e-6)
 
 
-def _smooth(counts: np.ndarray, sigma_bins: float) -> np.ndarray:
-    from scipy.ndimage import gaussian_filter1d
-
-    return gaussian_filter1d(counts.astype(np.float64), sigma_bins, mode="constant") if sigma_bins > 0 else counts
-
-
 def histogram_layers(heights_m: np.ndarray, cfg: LayersConfig, limits: FilteringConfig = FilteringConfig()):
     """Candidate layer intervals from a smoothed log-height histogram (see module doc).
 
@@ -118,33 +113,9 @@ def histogram_layers(heights_m: np.ndarray, cfg: LayersConfig, limits: Filtering
     hist = Histogram(edges_m=np.exp(edges_log), counts=counts.astype(np.float64))
     if counts.sum() == 0:
         return hist, []
-    s = _smooth(counts, cfg.smooth_log / cfg.bin_log)
-    # local maxima (plateaus: first index)
-    left = np.concatenate([[-np.inf], s[:-1]])
-    right = np.concatenate([s[1:], [-np.inf]])
-    peaks = list(np.flatnonzero((s > left) & (s >= right) & (s > 0)))
-    sep_bins = cfg.min_separation_log / cfg.bin_log
-    changed = True
-    while changed and len(peaks) > 1:
-        changed = False
-        best = None
-        for i in range(len(peaks) - 1):
-            a, b = peaks[i], peaks[i + 1]
-            valley = s[a : b + 1].min()
-            low = min(s[a], s[b])
-            if (b - a) < sep_bins or valley > cfg.valley_ratio * low:
-                # merge the pair with the weakest lower peak first
-                if best is None or low < best[0]:
-                    best = (low, i)
-        if best is not None:
-            i = best[1]
-            a, b = peaks[i], peaks[i + 1]
-            peaks.pop(i + 1 if s[a] >= s[b] else i)
-            changed = True
-    cuts = [lo]
-    for a, b in zip(peaks[:-1], peaks[1:]):
-        v = a + int(np.argmin(s[a : b + 1]))
-        cuts.append(edges_log[v] + 0.5 * cfg.bin_log)
+    s = smooth_gaussian(counts, cfg.smooth_log / cfg.bin_log)
+    peaks = find_peaks(s, 0.0, cfg.valley_ratio, cfg.min_separation_log / cfg.bin_log)
+    cuts = [lo] + [edges_log[v] + 0.5 * cfg.bin_log for v in valley_cuts(s, peaks)]
     cuts.append(hi)
     intervals = [(math.exp(cuts[i]), math.exp(cuts[i + 1])) for i in range(len(peaks))]
     return hist, intervals

@@ -39,7 +39,8 @@ from cbh.geometry.station import Camera
 from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
-__all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "MATCHERS", "get_matcher", "triangulate_matches", "sample_map"]
+__all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "MATCHERS", "MATCHER_BACKENDS", "get_matcher",
+           "triangulate_matches", "sample_map"]
 
 #: Methods whose matches lie on the epipolar curve by construction: their ray miss says
 #: nothing about the matching noise (the pipeline's angular-noise estimate skips them).
@@ -89,13 +90,37 @@ class PairGeometry:
 
     def __post_init__(self):
         m = self.cam1.model
-        rays = (self.cam1.model.ray_map().reshape(-1, 3) @ self.cam1.R_world_from_cam.T)
-        self.rays1_world = rays.reshape(m.height, m.width, 3).astype(np.float32)
-        px2 = self.cam2.direction_to_pixel(rays)
+        rays = self._rays1()
+        px2 = self.cam2.direction_to_pixel(rays.reshape(-1, 3).astype(np.float64))
         ok = np.isfinite(px2).all(axis=1) & self.cam2.model.contains(np.nan_to_num(px2, nan=-1e6))
         px2[~ok] = _OUTSIDE
         self.map_x = px2[:, 0].reshape(m.height, m.width).astype(np.float32)
         self.map_y = px2[:, 1].reshape(m.height, m.width).astype(np.float32)
+
+    def _rays1(self) -> np.ndarray:
+        m = self.cam1.model
+        rays = (m.ray_map().reshape(-1, 3) @ self.cam1.R_world_from_cam.T)
+        self.rays1_world = rays.reshape(m.height, m.width, 3).astype(np.float32)
+        return rays
+
+    @classmethod
+    def from_tables(cls, cam1: Camera, cam2: Camera, map_x: np.ndarray, map_y: np.ndarray, planes=None) -> "PairGeometry":
+        """The geometry from cached tables (:mod:`.tables`): the remap table as stored, the rays
+        recomputed (cheap), the plane maps if given."""
+        g = cls.__new__(cls)
+        g.cam1, g.cam2 = cam1, cam2
+        g.map_x, g.map_y = map_x, map_y
+        g._rays1()
+        g._planes = planes
+        return g
+
+    def tables(self) -> dict[str, np.ndarray]:
+        """The expensive tables, for :func:`~cbh.pipeline.tables.save_tables`."""
+        out = {"map_x": self.map_x, "map_y": self.map_y}
+        if self._planes is not None:
+            p = self._planes
+            out.update(plane_m0=p.m0, plane_a=p.a, plane_b=p.b, plane_scalars=np.array([p.s_a, p.scale_px]))
+        return out
 
     @property
     def planes(self):
@@ -105,6 +130,18 @@ class PairGeometry:
 
             self._planes = plane_maps(self.cam1, self.cam2, self.rays1_world)
         return self._planes
+
+    def torch_planes(self, device):
+        """The plane tables on a torch ``device`` (:class:`~cbh.pipeline.torch_ops.TorchPlaneMaps`),
+        uploaded on first use and kept: one upload per camera pair and device."""
+        cache = self.__dict__.setdefault("_torch_planes", {})
+        key = str(device)
+        if key not in cache:
+            from cbh.pipeline.torch_ops import TorchPlaneMaps
+
+            m2 = self.cam2.model
+            cache[key] = TorchPlaneMaps(self.planes, (m2.width, m2.height), device)
+        return cache[key]
 
     def infinity(self, px1: np.ndarray) -> np.ndarray:
         """Camera-2 pixels (N, 2) of the points at infinity seen at camera-1 pixels ``px1`` (N, 2)."""
@@ -126,6 +163,7 @@ class MatchInput:
     usable1: np.ndarray  # (H1, W1) bool
     usable2: np.ndarray  # (H2, W2) bool
     cloud2: np.ndarray  # (H2, W2) bool
+    device: object = None  # torch.device for the methods with a torch backend; None = OpenCV/numpy
     _warped2: np.ndarray | None = None
 
     @property
@@ -144,12 +182,16 @@ class Matches:
     px1: np.ndarray  # (N, 2) float64
     px2: np.ndarray  # (N, 2) float64
     dense: bool = False  # one correspondence per camera-1 pixel at integer coordinates
+    ray2_world: np.ndarray | None = None  # (N, 3) float32: camera-2 ENU ray, where the method knows it exactly
+    ray1_world: np.ndarray | None = None  # (N, 3) float32: camera-1 ENU ray, where the method has it at hand
 
     def __len__(self) -> int:
         return int(self.px1.shape[0])
 
     def take(self, keep: np.ndarray) -> "Matches":
-        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense)
+        r1 = None if self.ray1_world is None else self.ray1_world[keep]
+        r2 = None if self.ray2_world is None else self.ray2_world[keep]
+        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1)
 
 
 def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
@@ -243,15 +285,36 @@ def _dis(inp: MatchInput, cfg: MatchingConfig) -> Matches:
 
 
 def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
-    from cbh.pipeline.sweep import sweep_matches
-
     g = inp.geometry
-    px1, px2, _ = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, float(g.cam1.position_m[2]), cfg.sweep)
-    keep = _in_cam2(inp, px2)
-    return Matches("sweep", px1[keep], px2[keep], dense=True)
+    o1z = float(g.cam1.position_m[2])
+    if inp.device is not None:
+        from cbh.pipeline.torch_ops import sweep_matches_torch
+
+        px1, px2, info = sweep_matches_torch(inp.gray1, inp.gray2, inp.cloud1, g.torch_planes(inp.device), o1z, cfg.sweep)
+    else:
+        from cbh.pipeline.sweep import sweep_matches
+
+        px1, px2, info = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
+    # inside camera 2's image and usable mask (px2 are finite here: the tables mark "no pixel" far outside)
+    h2, w2 = inp.usable2.shape
+    xi, yi = np.rint(px2[:, 0]).astype(np.int32), np.rint(px2[:, 1]).astype(np.int32)
+    keep = (xi >= 0) & (xi < w2) & (yi >= 0) & (yi < h2)
+    keep[keep] = inp.usable2[yi[keep], xi[keep]]
+    px1, px2, s = px1[keep], px2[keep], info["s"][keep]
+    # the camera-2 ray of a plane-sweep match is known exactly: the point o1 + d·(h − o1z)/d_z
+    # seen from o2 is along d − s·d_z·B (s = 1/(h − o1z)); no fisheye back-projection of px2 needed
+    d1 = g.rays1_world.reshape(-1, 3)[px1[:, 1].astype(np.int64) * g.rays1_world.shape[1] + px1[:, 0].astype(np.int64)]
+    base = (g.cam2.position_m - g.cam1.position_m).astype(np.float32)
+    d2 = d1 - (s * d1[:, 2])[:, None] * base[None, :]
+    return Matches("sweep", px1, px2, dense=True, ray2_world=d2, ray1_world=d1)
 
 
 MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis, "sweep": _sweep}
+
+# The backends each method runs on. "opencv": numpy/OpenCV on the CPU (always available; the
+# sparse matchers stay there: a few thousand features, nothing for a GPU to gain); "torch": any
+# torch device (CPU or CUDA), used when the pipeline runs on a device (Pipeline(device=...)).
+MATCHER_BACKENDS = {"lk": ("opencv",), "orb": ("opencv",), "dis": ("opencv",), "sweep": ("opencv", "torch")}
 
 
 def get_matcher(name: str):
@@ -287,12 +350,14 @@ def _rays_world(cam: Camera, px: np.ndarray) -> np.ndarray:
 def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) -> TriangulatedMatches:
     """Triangulate and reject by ray miss / range, triangulation angle and height range."""
     n = len(m)
-    if m.dense:
+    if m.ray1_world is not None:
+        d1 = m.ray1_world
+    elif m.dense:
         idx = m.px1[:, 1].astype(np.int64) * geom.rays1_world.shape[1] + m.px1[:, 0].astype(np.int64)
         d1 = geom.rays1_world.reshape(-1, 3)[idx]
     else:
         d1 = _rays_world(geom.cam1, m.px1)
-    d2 = _rays_world(geom.cam2, m.px2)
+    d2 = _rays_world(geom.cam2, m.px2) if m.ray2_world is None else m.ray2_world
     tri = triangulate(geom.cam1.position_m.astype(np.float32), d1, geom.cam2.position_m.astype(np.float32), d2,
                       TriangulationLimits(min_angle_deg=cfg.min_angle_deg, max_range_m=1e6))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -302,4 +367,6 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) ->
             & (tri.height_m >= cfg.min_height_m)
             & (tri.height_m <= cfg.max_height_m)
         )
+    if keep.all():  # (the dense sweep: usually every match passes; skip the copies)
+        return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n)
     return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64), n)

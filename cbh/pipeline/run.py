@@ -77,6 +77,19 @@ _MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from th
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 
 
+def _resolve_backend(device: str, backend: str):
+    """(torch device or "cpu", "opencv" | "torch") from the user's ``device`` and ``backend``."""
+    if backend not in ("auto", "opencv", "torch"):
+        raise ConfigError(f"backend must be auto, opencv or torch, got {backend!r}")
+    if str(device) == "cpu" and backend in ("auto", "opencv"):
+        return "cpu", "opencv"
+    if backend == "opencv":
+        raise ConfigError(f"backend opencv runs on device cpu only, not {device!r}")
+    from cbh.pipeline.torch_ops import resolve_device
+
+    return resolve_device(device), "torch"
+
+
 def working_factor(cam: Camera, working_radius_px: float) -> float:
     """Exact downsampling factor (≤ 1) for a camera: its 90° radius becomes ≤ ``working_radius_px``
     (up to 5 % more, so that an image is not resampled by a hair, e.g. 960 → 959 px, which
@@ -117,6 +130,15 @@ class Pipeline:
         ``"cam1,cam2"`` (default: the first two cameras of the station).
     config : PipelineConfig or None
         Default: the station's ``[pipeline]`` table (or all defaults).
+    device : str
+        ``"cpu"`` (default) or a torch device (``"cuda"``, ``"cuda:1"``): where the dense
+        per-pair work runs (the plane sweep, the sun angle maps). Its per-camera tables (plane
+        maps, ray maps) are uploaded once, on first use.
+    backend : str
+        ``"auto"`` (default): numpy/OpenCV on ``"cpu"`` (the faster there), torch elsewhere;
+        ``"torch"``: torch on any device (also the CPU: the parity tests use it);
+        ``"opencv"``: numpy/OpenCV (``device="cpu"`` only). The sparse matchers (lk, orb, dis)
+        always run on OpenCV (:data:`~cbh.pipeline.match.MATCHER_BACKENDS`).
 
     Examples
     --------
@@ -125,8 +147,10 @@ class Pipeline:
     >>> result.summary()["layers"]                      # doctest: +SKIP
     """
 
-    def __init__(self, station: Station, cameras: str | None = None, config: PipelineConfig | None = None):
+    def __init__(self, station: Station, cameras: str | None = None, config: PipelineConfig | None = None,
+                 device: str = "cpu", backend: str = "auto"):
         self.station = station
+        self.device, self.backend = _resolve_backend(device, backend)
         self.config = config if config is not None else PipelineConfig.from_dict(station.sections.get("pipeline", {}))
         if not isinstance(self.config, PipelineConfig):
             raise ConfigError(f"pipeline config: expected a PipelineConfig, got {type(self.config).__name__}")
@@ -138,11 +162,41 @@ class Pipeline:
         self._rays: dict[int, np.ndarray] = {}
         self._zenith: dict[int, np.ndarray] = {}
         self._geometry: PairGeometry | None = None
+        self._tables_key: str | None = None  # set once the disk cache was consulted (cbh.pipeline.tables)
+        self._tables_loaded = False
         self._layers = get_layer_method(self.config.layers.method)
         for name in self.config.matching.methods:
             get_matcher(name)
 
     # --- caches ---------------------------------------------------------------------------
+    def _load_tables(self) -> None:
+        """Fill the per-camera caches from the disk cache (:mod:`cbh.pipeline.tables`), if there."""
+        from cbh.pipeline.sweep import PlaneMaps
+        from cbh.pipeline.tables import load_tables, tables_key
+
+        self._tables_key = tables_key(self.cam1, self.cam2, self.config.masks)
+        t = load_tables(self._tables_key)
+        if t is None:
+            return
+        try:
+            planes = None
+            if "plane_m0" in t:
+                s_a, scale = (float(v) for v in t["plane_scalars"])
+                planes = PlaneMaps(t["plane_m0"], t["plane_a"], t["plane_b"], s_a, scale)
+            self._geometry = PairGeometry.from_tables(self.cam1, self.cam2, t["map_x"], t["map_y"], planes)
+            self._static = {0: t["static0"], 1: t["static1"]}
+            self._tables_loaded = True
+        except (KeyError, ValueError) as e:  # an entry of another layout: rebuild
+            log.warning("table cache entry unusable (%s); rebuilding", e)
+            self._geometry, self._static = None, {}
+
+    def _save_tables(self) -> None:
+        from cbh.pipeline.tables import save_tables
+
+        if self._geometry is None or len(self._static) < 2:
+            return
+        save_tables(self._tables_key, {**self._geometry.tables(), "static0": self._static[0], "static1": self._static[1]})
+
     @property
     def geometry(self) -> PairGeometry:
         """Infinity remap table and camera-1 rays at working size (built on first use)."""
@@ -159,6 +213,15 @@ class Pipeline:
                 obstacle = load_obstacle_mask(cam.mask, cam.model.width, cam.model.height)
             self._static[i] = static_sky_mask(cam, self.config.masks, obstacle)
         return self._static[i]
+
+    def rays_cam_device(self, i: int):
+        """:meth:`rays_cam` as a tensor on the pipeline's device (uploaded once)."""
+        key = ("dev", i)
+        if key not in self._rays:
+            import torch
+
+            self._rays[key] = torch.as_tensor(self.rays_cam(i), device=self.device)
+        return self._rays[key]
 
     def rays_cam(self, i: int) -> np.ndarray:
         """Ray map of camera ``i`` at working size in its own frame, (H, W, 3) float32 (cached)."""
@@ -232,6 +295,9 @@ class Pipeline:
         if time_utc is None:
             ctx.flags.append("time_unknown")
         t_all = time.perf_counter()
+        first = self._tables_key is None
+        if first:
+            self._load_tables()
         with _timed(ctx, "resize"):
             work = (self.to_working(0, image1), self.to_working(1, image2))
         with _timed(ctx, "masks"):
@@ -288,6 +354,8 @@ class Pipeline:
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=est.pair_offset_s, motion_dt_s=mot.dt_s)
         if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
             ctx.flags.append("clock_offset")
+        if first and not self._tables_loaded:
+            self._save_tables()
         ctx.timing["total"] = _ms(t_all)
         result = self._assemble(ctx, seg, hmap, pts, lay)
         result.state = PairState(time_utc=ctx.time_utc, cameras=self.cameras, gray=gray, offsets_s=offsets,
@@ -371,6 +439,17 @@ class Pipeline:
             samples.append((wv[ok], lab[ok], float(cam.position_m[2])))
         return replace(lay, layers=layer_motion(lay.layers, samples, self.config.motion.min_tracks))
 
+    def process_batch(self, pairs, *, channels: str | None = None) -> list[PairResult]:
+        """:meth:`process` for several pairs ``[(image1, image2, time_utc), …]`` (paths or arrays
+        of ``channels`` order, as :meth:`process`), results in order.
+
+        The per-camera tables are uploaded once and shared; on a torch device each pair's
+        plane sweep evaluates all its planes in one batched call. Pairs are not stacked into
+        one kernel across pairs: each pair's planes and cloud region differ, and the stages
+        between (segmentation, sparse matching) run on the CPU anyway.
+        """
+        return [self.process(im1, im2, t, channels=channels) for im1, im2, t in pairs]
+
     # --- stages ---------------------------------------------------------------------------
     def stage_masks(self, work: tuple[np.ndarray, np.ndarray], ctx: "PairContext") -> "Masks":
         """Usable sky per camera (static mask, sun disk, saturated glare) and the sun angle maps."""
@@ -385,7 +464,7 @@ class Pipeline:
         usable, sun_angle = [], []
         for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
             u = self.static_mask(i)
-            ang = angle_map_deg(cam, sun_dir, self.rays_cam(i)) if sun_dir is not None else None
+            ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
@@ -401,6 +480,15 @@ class Pipeline:
             usable.append(u)
             sun_angle.append(ang)
         return Masks(usable=(usable[0], usable[1]), sun_angle=(sun_angle[0], sun_angle[1]), sun_dir_enu=sun_dir)
+
+    def _angle_map(self, i: int, sun_dir: np.ndarray) -> np.ndarray:
+        cam = (self.cam1, self.cam2)[i]
+        if self.backend == "torch":
+            from cbh.pipeline.torch_ops import angle_map_deg_torch
+
+            d_cam = np.asarray(sun_dir, np.float64) @ cam.R_world_from_cam
+            return angle_map_deg_torch(self.rays_cam_device(i), d_cam).cpu().numpy()
+        return angle_map_deg(cam, sun_dir, self.rays_cam(i))
 
     def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
                           ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
@@ -450,6 +538,7 @@ class Pipeline:
             geometry=geom, gray1=gray[0], gray2=gray[1],
             cloud1=seg.clouds[0], usable1=masks.usable[0], usable2=masks.usable[1],
             cloud2=seg.clouds[1] if cloud2 is None else cloud2,
+            device=self.device if self.backend == "torch" else None,
         )
         raw = []
         if seg.clouds[0].any():

@@ -25,10 +25,12 @@ def pair_cmd(
     height_map: Path = typer.Option(None, "--height-map", help="Write camera 1's height map (float32 .npy, NaN unknown)."),
     previous: tuple[Path, Path] = typer.Option(None, "--previous", help="The pair before (P1 P2): adds each layer's motion and the clock offset."),
     previous_time: str = typer.Option(None, "--previous-time", help="Capture time of --previous, ISO 8601 with a zone (default: the stamp in P1's name)."),
+    device: str = typer.Option("cpu", "--device", help="Where the dense work runs: cpu (default) or a torch device, e.g. cuda."),
 ) -> None:
     """Cloud layers and point statistics from one image pair (heights above the ENU origin)."""
     t = parse_utc(time, "--time") if time else None
     tp = parse_utc(previous_time, "--previous-time") if previous_time else None
     prev = tuple(previous) if previous and previous[0] is not None else None
-    run = process_pair(image1, image2, station, cameras, t, height_map_path=height_map, previous=prev, previous_time=tp)
+    run = process_pair(image1, image2, station, cameras, t, height_map_path=height_map, previous=prev, previous_time=tp,
+                       device=device)
     print(json.dumps(run.result.summary()) if as_json else format_pair(run))

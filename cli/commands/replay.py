@@ -26,6 +26,7 @@ def replay_cmd(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --record file (never the input)."),
     bind: str = typer.Option(None, "--bind", metavar="ADDR",
                              help="Address of the --rerun serve server (default 127.0.0.1; 0.0.0.0: every interface)."),
+    device: str = typer.Option("cpu", "--device", help="With --reprocess: where the dense work runs (cpu, or a torch device, e.g. cuda)."),
 ) -> None:
     """Re-log a recorded session into Rerun with the default blueprint (images, cloud masks,
     matches, 3D points, histogram, layer heights over time)."""
@@ -35,6 +36,7 @@ def replay_cmd(
         raise ConfigError("--reprocess needs --station STATION.toml")
     spec = None if no_viewer else parse_rerun_spec(rerun, target)
     r = replay(session, rerun=spec, station=station, cameras=cameras, record=record, overwrite=overwrite, bind=bind,
+               device=device,
                on_viewer=lambda s: s.url and print(f"serving on {s.url}: connect a viewer with `rerun --connect {s.url}`"))
     dest = {"save": f" into {r.target}", "connect": f" to {r.target or 'the local viewer'}"}.get(r.mode, "")
     print(f"{'reprocessed' if r.reprocessed else 'replayed'} {r.pairs} pairs{dest} in {r.seconds:.1f} s"

@@ -44,6 +44,7 @@ def run_cmd(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --record PATH (default: refuse)."),
     bind: str = typer.Option(None, "--bind", metavar="ADDR",
                              help="Address of the --rerun serve server (default 127.0.0.1; 0.0.0.0: every interface)."),
+    device: str = typer.Option("cpu", "--device", help="Where the dense work runs: cpu (default) or a torch device, e.g. cuda."),
 ) -> None:
     """Run the service: pair the two cameras' frames, compute cloud-base heights, record/view/export.
 
@@ -59,6 +60,6 @@ def run_cmd(
         record=(record_path or True) if record else None, rerun=rerun, export=export,
         cadence_s=cadence_s, frames=frames, duration_s=duration, size_px=size,
         pair_tolerance_s=pair_tolerance_s, watch=watch, realtime=realtime,
-        rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES, overwrite=overwrite, bind=bind,
+        rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES, overwrite=overwrite, bind=bind, device=device,
     )
     print("\n".join(summary_lines(setup, run_with_status(setup, status=not quiet))))

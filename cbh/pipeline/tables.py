@@ -1,0 +1,104 @@
+"""On-disk cache of a camera pair's precomputed tables (cold start of ``cbh pair``).
+
+A pipeline's first pair builds per-camera tables: the point-at-infinity remap table, the plane
+maps of the sweep (three exact fisheye projections of every working pixel's ray) and the static
+sky masks. That is ≈ 1–3 s of a one-shot ``cbh pair`` (the pair itself is a few hundred ms).
+They depend only on the two cameras (lens models, poses, obstacle mask file), the working size
+and the mask settings, so they are stored once in ``$CBH_CACHE_DIR`` (default
+``$XDG_CACHE_HOME/cbh`` or ``~/.cache/cbh``; ``CBH_CACHE_DIR=off`` disables the cache) and read
+back (≈ 30 MB, tens of ms) by every later process with the same cameras.
+
+The key hashes everything the tables depend on, including the source text of the modules
+that compute them (camera, station, match, sweep, masks, this one): editing the geometry
+invalidates old entries instead of serving stale tables. At most ``_MAX_FILES`` entries are
+kept (least recently used go first). A cache that cannot be read or written is ignored: the
+tables are then built as without it.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["cache_dir", "tables_key", "load_tables", "save_tables"]
+
+log = logging.getLogger(__name__)
+
+_MAX_FILES = 8
+_SOURCES = ("geometry/camera.py", "geometry/station.py", "pipeline/match.py", "pipeline/sweep.py",
+            "pipeline/masks.py", "pipeline/tables.py")
+
+
+def cache_dir() -> Path | None:
+    """The cache directory, or None when disabled (``CBH_CACHE_DIR=off`` or empty)."""
+    env = os.environ.get("CBH_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("", "off", "0", "none") else Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "cbh"
+
+
+def _camera_text(cam) -> str:
+    mask = ""
+    if cam.mask is not None:
+        try:
+            mask = f"{Path(cam.mask).resolve()}:{Path(cam.mask).stat().st_mtime_ns}"
+        except OSError:
+            mask = str(cam.mask)
+    return (f"{cam.name}|{cam.model!r}|{np.asarray(cam.position_m, np.float64).tobytes().hex()}|"
+            f"{np.asarray(cam.R_world_from_cam, np.float64).tobytes().hex()}|{mask}")
+
+
+def tables_key(cam1, cam2, masks_cfg) -> str:
+    """Hash of what a pair's tables depend on (working-size cameras, mask settings, the code)."""
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parents[1]
+    for rel in _SOURCES:
+        try:
+            h.update((root / rel).read_bytes())
+        except OSError:
+            h.update(rel.encode())
+    h.update(_camera_text(cam1).encode())
+    h.update(_camera_text(cam2).encode())
+    h.update(repr(masks_cfg).encode())
+    return h.hexdigest()[:32]
+
+
+def load_tables(key: str) -> dict[str, np.ndarray] | None:
+    """The cached tables of ``key`` (name → array), or None."""
+    d = cache_dir()
+    if d is None:
+        return None
+    path = d / f"tables-{key}.npz"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = {k: z[k] for k in z.files}
+        os.utime(path)  # least recently used goes first
+        return out
+    except FileNotFoundError:
+        return None
+    except Exception as e:  # a damaged entry: rebuild (and overwrite it)
+        log.warning("table cache %s unreadable (%s); rebuilding", path, e)
+        return None
+
+
+def save_tables(key: str, tables: dict[str, np.ndarray]) -> None:
+    """Store ``tables`` under ``key`` (atomic rename) and prune the cache to ``_MAX_FILES``."""
+    d = cache_dir()
+    if d is None:
+        return
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=d, suffix=".npz.tmp")
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **tables)
+        os.replace(tmp, d / f"tables-{key}.npz")
+        entries = sorted(d.glob("tables-*.npz"), key=lambda p: p.stat().st_mtime, reverse=True)
+        for old in entries[_MAX_FILES:]:
+            old.unlink(missing_ok=True)
+    except OSError as e:
+        log.warning("table cache %s not writable (%s)", d, e)

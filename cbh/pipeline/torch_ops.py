@@ -1,0 +1,387 @@
+"""Torch backend (any device: ``"cpu"``, ``"cuda"``, ``"cuda:1"`` …) for the dense per-pair work.
+
+What runs here, on tensors that stay on the device until the per-pair result is read back:
+
+- the plane sweep (:func:`sweep_matches_torch`): the same four passes as :mod:`.sweep`
+  (coarse → fine → label → refine), with the ZNCC of *all* planes of a pass in one batched
+  call (chunked on CPU to bound memory) instead of a loop over planes; the 1-D steps (vote
+  histograms, peaks, plane selection, far-layer box) are shared with :mod:`.sweep` unchanged;
+- the sun angle map of the masks stage (:func:`angle_map_deg_torch`).
+
+kornia where it fits:
+
+- remapping: ``kornia.geometry.transform.remap`` with ``align_corners=True`` is cv2.remap's
+  pixel-centre convention (pixel x = 0 is the centre of the first column: kornia normalises
+  by 2/(W − 1), which only ``align_corners=True`` maps back to pixel centres; its default,
+  False, is off by up to half a pixel at the edges). :func:`remap` wraps it; the sweep itself
+  samples with ``torch.nn.functional.grid_sample`` on plane grids *pre-normalised* the same
+  way (the quadratic p2(s) = m0 + a·s + b·s² is linear in the tables, so normalising the three
+  tables once equals normalising every plane's map), which saves kornia's per-call stack and
+  normalisation of a (P, h, w, 2) grid;
+- box filters: not ``kornia.filters.box_blur``: for even sizes it anchors the box on the
+  other side of the pixel than cv2.boxFilter (the sweep's block-aligned windows need
+  OpenCV's anchor), so :func:`box` is a reflect pad (= BORDER_REFLECT_101, the border the
+  OpenCV path uses) and two 1-D average pools (separable);
+- 2 × 2 pooling and block means: ``avg_pool2d`` (OpenCV's exact INTER_AREA for integer factors).
+
+What stays on OpenCV, and why:
+
+- the sparse matchers (LK, ORB, DIS): feature detection and pyramidal tracking of a few
+  thousand points; no kornia equivalent with forward-backward checks, and little to gain;
+- the saturation mask: connected components *with areas* (``connectedComponentsWithStats``);
+  ``kornia.contrib.connected_components`` is an iterative label propagation without areas;
+- the height map's hole fill: a distance transform *with the nearest pixel's label*
+  (``distanceTransformWithLabels``); kornia's ``distance_transform`` gives distances only;
+- the working-size resize and grey conversion (uint8 in, uint8 out, as the sparse matchers
+  need them; 2 ms).
+
+Precision: float32 throughout, as the OpenCV path; ZNCC values agree with it to ≈ 1e-5
+(different summation order of the box filters), see tests/test_torch_parity.py.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from kornia.geometry.transform import remap as _kornia_remap
+
+from cbh.pipeline.sweep import (
+    CoarseLayers, FineCost, LayerLabels, PlaneMaps, _bbox, coarse_hypotheses, fine_planes, layer_box,
+    layer_planes, vote_layers,
+)
+
+__all__ = ["remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "angle_map_deg_torch",
+           "resolve_device"]
+
+_CPU_CHUNK_PX = 4_000_000  # CPU: planes per batched call × pixels per plane at most (bounds temporaries)
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """A torch device from a user string; a clear error for CUDA on a machine without it."""
+    from cbh.errors import ConfigError
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ConfigError(f"device: {device!r} is not a torch device ({e})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device {device!r}: CUDA is not available on this machine (use --device cpu)")
+    return dev
+
+
+def remap(image: torch.Tensor, map_x: torch.Tensor, map_y: torch.Tensor) -> torch.Tensor:
+    """cv2.remap (INTER_LINEAR, BORDER_CONSTANT 0) on tensors.
+
+    Parameters
+    ----------
+    image : tensor, shape (B, C, H, W), float
+    map_x, map_y : tensor, shape (B, h, w), float
+        Source pixel coordinates (pixel centres at integers, as OpenCV).
+
+    Returns
+    -------
+    tensor, shape (B, C, h, w)
+    """
+    return _kornia_remap(image, map_x, map_y, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
+def box(x: torch.Tensor, k: int) -> torch.Tensor:
+    """cv2.boxFilter (normalised, BORDER_REFLECT_101) of (B, C, H, W): the mean over pixels
+    x − k//2 … x + k − 1 − k//2 (OpenCV's anchor; for even k kornia's ``box_blur`` takes the
+    other side, so it serves odd k only: both are done here as a reflect pad and an average pool)."""
+    k = int(k)
+    if k <= 1:
+        return x
+    lo, hi = k // 2, k - 1 - k // 2
+    x = F.avg_pool2d(F.pad(x, (0, 0, lo, hi), mode="reflect"), (k, 1), stride=1)  # separable: 2k, not k², adds
+    return F.avg_pool2d(F.pad(x, (lo, hi, 0, 0), mode="reflect"), (1, k), stride=1)
+
+
+def pool2(x: torch.Tensor) -> torch.Tensor:
+    """Mean of each 2 × 2 block, (B, C, H, W) → (B, C, H // 2, W // 2)."""
+    return F.avg_pool2d(x, 2)
+
+
+def _t(a, device, dtype=torch.float32) -> torch.Tensor:
+    return torch.as_tensor(np.ascontiguousarray(a), device=device).to(dtype)
+
+
+class TorchPlaneMaps:
+    """:class:`~cbh.pipeline.sweep.PlaneMaps` on a device (uploaded once per camera pair).
+
+    ``grid(s, region)`` is the (P, h, w, 2) sampling grid of planes s (P,) in grid_sample's
+    normalised coordinates (align_corners=True); ``points`` evaluates camera-2 pixels.
+    """
+
+    def __init__(self, maps: PlaneMaps, size2: tuple[int, int], device: torch.device):
+        w2, h2 = size2
+        self.device, self.s_a, self.scale_px, self.size2 = device, maps.s_a, maps.scale_px, size2
+        self.maps = maps
+        scale = torch.tensor([2.0 / max(w2 - 1, 1), 2.0 / max(h2 - 1, 1)], device=device)
+        m0 = _t(maps.m0, device)
+        outside = m0[..., 0] < -1.0e3
+        self.m0n = m0 * scale - 1.0
+        self.m0n[outside] = -10.0  # far outside [-1, 1]: zeros padding
+        self.an = _t(maps.a, device) * scale
+        self.bn = _t(maps.b, device) * scale
+        self.m0, self.a, self.b = m0, _t(maps.a, device), _t(maps.b, device)
+        self._down: dict[int, TorchPlaneMaps] = {}
+
+    def downsampled(self, factor: int, size2: tuple[int, int]) -> "TorchPlaneMaps":
+        if factor not in self._down:
+            self._down[factor] = TorchPlaneMaps(self.maps.downsampled(factor), size2, self.device)
+        return self._down[factor]
+
+    def grid(self, s: torch.Tensor, region) -> torch.Tensor:
+        s = s.reshape(-1, 1, 1, 1)
+        return self.m0n[region] + s * (self.an[region] + s * self.bn[region])
+
+    def points(self, s: torch.Tensor, yi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+        """Camera-2 pixels (N, 2) at per-pixel s (N,) for camera-1 pixels (yi, xi) (float32)."""
+        s = s[:, None]
+        return self.m0[yi, xi] + (self.a[yi, xi] + self.b[yi, xi] * s) * s
+
+
+def zncc_half(i1: torch.Tensor, g2: torch.Tensor, tm: TorchPlaneMaps, s: np.ndarray, half_window: int,
+              region) -> tuple[torch.Tensor, torch.Tensor]:
+    """ZNCC at half resolution over 2·half_window block-aligned windows (see
+    :func:`cbh.pipeline.sweep._zncc_half_iter`), all planes batched.
+
+    Parameters
+    ----------
+    i1 : tensor, shape (h, w), float32 — image 1 on the region (h, w even)
+    g2 : tensor, shape (H2, W2), float32 — image 2
+    tm : TorchPlaneMaps
+    s : ndarray, shape (P,) [1/m]
+    half_window : int
+    region : (slice, slice) of camera 1's grid
+
+    Returns
+    -------
+    std1 : tensor (h/2, w/2); scores : tensor (P, h/2, w/2), float32
+    """
+    k = int(half_window)
+    dev = i1.device
+    off = 1 - k % 2  # even k: blocks one pixel in (see the OpenCV twin)
+    if off:
+        i1 = i1[1:-1, 1:-1]
+        region = (slice(region[0].start + 1, region[0].stop - 1), slice(region[1].start + 1, region[1].stop - 1))
+    x1 = i1[None, None]
+    p1 = pool2(torch.cat([x1, x1 * x1], 1))
+    b1 = box(p1, k)
+    mu1, var1 = b1[:, :1], (b1[:, 1:] - b1[:, :1] ** 2).clamp_min(0.0)
+    h, w = i1.shape
+    s_t = torch.as_tensor(np.asarray(s, np.float32), device=dev)
+    n = len(s_t)
+    chunk = n if dev.type != "cpu" else max(1, _CPU_CHUNK_PX // max(h * w, 1))
+    out = torch.empty((n, h // 2, w // 2), dtype=torch.float32, device=dev)  # (one less each way if off)
+    src = g2[None, None]
+    for c0 in range(0, n, chunk):
+        sc = s_t[c0: c0 + chunk]
+        grid = tm.grid(sc, region)
+        wv = F.grid_sample(src.expand(len(sc), 1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
+                           align_corners=True)
+        b = box(pool2(torch.cat([wv, wv * wv, x1 * wv], 1)), k)
+        mu2 = b[:, :1]
+        var2 = (b[:, 1:2] - mu2 * mu2).clamp_min(0.0)
+        cov = b[:, 2:3] - mu1 * mu2
+        out[c0: c0 + len(sc)] = (cov / torch.sqrt(var1 * var2 + 1e-3))[:, 0]
+    std1 = torch.sqrt(var1[0, 0])
+    if off:  # the last row and column repeat their neighbours
+        std1 = F.pad(std1[None, None], (0, 1, 0, 1), mode="replicate")[0, 0]
+        out = F.pad(out[:, None], (0, 1, 0, 1), mode="replicate")[:, 0]
+    return std1, out
+
+
+def _best3(stack: torch.Tensor):
+    """Index of the best plane (first of equal maxima), its score and its neighbours' scores."""
+    j = stack.argmax(0, keepdim=True)
+    n = stack.shape[0]
+    c = stack.gather(0, j)
+    left = stack.gather(0, (j - 1).clamp_min(0))
+    right = stack.gather(0, (j + 1).clamp_max(n - 1))
+    return j[0], c[0], left[0], right[0]
+
+
+def _refine(j, c0, cm1, cp1, s_values: np.ndarray, ds: float) -> torch.Tensor:
+    """Parabola peak through planes j−1, j, j+1 (where adjacent), as :func:`cbh.pipeline.sweep._refine`."""
+    dev = c0.device
+    n = len(s_values)
+    sv = torch.as_tensor(np.asarray(s_values, np.float32), device=dev)
+    gap = torch.as_tensor(np.diff(s_values, prepend=-np.inf, append=np.inf), device=dev)
+    adj = (j > 0) & (j < n - 1) & (gap[j] < 1.01 * ds) & (gap[(j + 1).clamp_max(n)] < 1.01 * ds)
+    den = cm1 - 2.0 * c0 + cp1
+    ok = adj & (den < 0)
+    delta = torch.where(ok, 0.5 * (cm1 - cp1) / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(den))
+    return sv[j] + delta.clamp(-0.5, 0.5) * float(ds)
+
+
+def _region_t(r):
+    return (slice(r[0].start, r[0].stop), slice(r[1].start, r[1].stop))
+
+
+def coarse_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s_min: float,
+                      s_max: float, o1z: float, cfg) -> CoarseLayers | None:
+    """Pass 1 on the device (see :func:`cbh.pipeline.sweep.coarse_pass`)."""
+    import cv2
+
+    f = int(cfg.coarse_factor)
+    h, w = cloud1.shape
+    if f > 1:
+        c1 = F.avg_pool2d(g1[None, None], f)[0, 0]
+        c2 = F.avg_pool2d(g2[None, None], f)[0, 0]
+        cm = tm.downsampled(f, (c2.shape[1], c2.shape[0]))
+        ccloud = cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
+    else:
+        c1, c2, cm, ccloud = g1, g2, tm, cloud1
+    if not ccloud.any():
+        return None
+    ds_c = cfg.coarse_step_px / cm.scale_px
+    s = np.arange(s_min, s_max + ds_c, ds_c)
+    slc = _bbox(ccloud, cfg.coarse_window_px, even=True)
+    _, sc = zncc_half(c1[slc].contiguous(), c2, cm, s, cfg.coarse_window_px // 2, slc)
+    cbest, best = sc.max(0)
+    cl = torch.as_tensor(ccloud[slc].astype(np.float32), device=g1.device)
+    cl = pool2(cl[None, None])[0, 0] >= 0.5
+    good = cl & (cbest >= cfg.min_zncc)
+    return coarse_hypotheses(best[good].cpu().numpy(), float(cl.sum().item()), s, ds_c, o1z, cfg)
+
+
+def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s: np.ndarray,
+                    ds: float, cfg) -> FineCost:
+    """Pass 2 on the device (see :func:`cbh.pipeline.sweep.fine_pass`); arrays of the result are tensors."""
+    sl = _bbox(cloud1, cfg.window_px, even=True)
+    i1 = g1[sl].contiguous()
+    h, w = i1.shape
+    k = int(cfg.window_px)
+    b = box(torch.stack([i1, i1 * i1])[None], k)[0]
+    var = (b[1] - b[0] ** 2).clamp_min(0.0)
+    cl = torch.as_tensor(np.ascontiguousarray(cloud1[sl]), device=g1.device)
+    m0 = cl & (var >= float(cfg.min_texture) ** 2)
+    textured = pool2(m0.float()[None, None])[0, 0]
+    _, sc = zncc_half(i1, g2, tm, s, k // 2, sl)
+    best = sc.max(0).values
+    up = best.repeat_interleave(2, 0).repeat_interleave(2, 1)
+    ok = m0 & (up >= cfg.min_zncc)
+    return FineCost(sl, s, ds, sc * textured, textured, ok, pool2(ok.float()[None, None])[0, 0])
+
+
+def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
+    """Pass 3 on the device (see :func:`cbh.pipeline.sweep.label_pass`)."""
+    s, ds, cost = fine.s, fine.ds, fine.cost
+    dev = cost.device
+    k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
+    kl = max(1, (int(cfg.label_px) // 2) | 1)
+    jw, cw, lw, rw = _best3(box(cost[None], k2)[0])
+    s_w = _refine(jw, cw, lw, rw, s, ds)
+    vote = fine.ok_frac > 0
+    if cfg.vote_percentile > 0 and bool(vote.any()):
+        mean_w = cw / box(fine.textured[None, None], k2)[0, 0].clamp_min(1e-6)
+        vote &= mean_w >= torch.quantile(mean_w[vote].double(), cfg.vote_percentile / 100.0).float()
+    votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote].cpu().numpy(), fine.ok_frac[vote].cpu().numpy(),
+                                                       s, ds, float(fine.ok_frac.sum().item()), cfg)
+    hh, wh = cost.shape[1:]
+    label = torch.zeros((hh, wh), dtype=torch.uint8, device=dev)
+    own = torch.zeros((hh, wh), dtype=torch.int64, device=dev)
+    if len(ranges) > 1:
+        b = box(cost[None], kl)[0] if kl > 1 else cost
+        per_layer = torch.full((len(ranges), hh, wh), -torch.inf, device=dev)
+        for L in range(len(ranges)):
+            q = np.flatnonzero(plane_layer == L)
+            if len(q):
+                per_layer[L] = b[torch.as_tensor(q, device=dev)].max(0).values
+        label = per_layer.argmax(0).to(torch.uint8)
+        own = cost.argmax(0)
+    return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
+
+
+def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> torch.Tensor:
+    """Pass 4 on the device (see :func:`cbh.pipeline.sweep.refine_pass`); (h, w) float32 tensor."""
+    s, ds, cost = fine.s, fine.ds, fine.cost
+    dev = cost.device
+    h, w = fine.ok.shape
+    n_layers = max(len(lab.vote_ranges), 1)
+    lab_full = lab.label.repeat_interleave(2, 0).repeat_interleave(2, 1)
+    plane_layer = torch.as_tensor(lab.plane_layer, device=dev)
+    s_px = torch.zeros((h, w), dtype=torch.float32, device=dev)
+    for L in range(n_layers):
+        here = fine.ok & (lab_full == L)
+        if not bool(here.any()):
+            continue
+        sel = layer_planes(lab, L, s, ds)
+        kL = layer_box(lab, L, scale_px, cfg)
+        k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
+        if len(sel) < 3 or (n_layers == 1 and kL == k2 and len(sel) == len(s)):
+            s_half = lab.s_wide  # as the OpenCV twin: the wide-box winner itself
+        else:
+            mL = lab.label == L
+            if n_layers > 1:
+                mL = mL & (plane_layer[lab.own_plane] == L)
+            agg = box((cost[torch.as_tensor(sel, device=dev)] * mL.float())[None], kL)[0]
+            ja, ca, la, ra = _best3(agg)
+            s_half = _refine(ja, ca, la, ra, s[sel], ds)
+        up = F.interpolate(s_half[None, None], size=(h, w), mode="bilinear", align_corners=False)[0, 0]
+        s_px = torch.where(here, up, s_px)
+    return s_px
+
+
+def sweep_matches_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, tm: TorchPlaneMaps, o1z: float,
+                        cfg):
+    """:func:`cbh.pipeline.sweep.sweep_matches` on ``tm.device`` (same parameters and results; the
+    per-pixel ``aggregate_px = 1`` variant is not ported: it raises ConfigError)."""
+    from cbh.errors import ConfigError
+
+    timing: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    def lap(name):
+        nonlocal t0
+        t1 = time.perf_counter()
+        timing[name] = (t1 - t0) * 1000.0
+        t0 = t1
+
+    if cfg.aggregate_px <= 1:
+        raise ConfigError("matching.sweep.aggregate_px = 1 runs on the OpenCV backend only (device cpu)")
+    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing, "s": np.zeros(0, np.float32)}
+    empty = np.zeros((0, 2)), np.zeros((0, 2)), info
+    if not cloud1.any() or tm.scale_px <= 0:
+        return empty
+    dev = tm.device
+    g1 = torch.as_tensor(np.ascontiguousarray(gray1), device=dev).float()
+    g2 = torch.as_tensor(np.ascontiguousarray(gray2), device=dev).float()
+    s_min = 1.0 / max(cfg.max_height_m - o1z, 1.0)
+    s_max = 1.0 / max(cfg.min_height_m - o1z, 1.0)
+    coarse = coarse_pass_torch(g1, g2, cloud1, tm, s_min, s_max, o1z, cfg)
+    if coarse is None:
+        return empty
+    s_fine, ds = fine_planes(coarse, tm.scale_px, s_min, s_max, cfg)
+    info.update(planes=s_fine, layers_m=coarse.layers_m)
+    lap("coarse")
+    fine = fine_pass_torch(g1, g2, cloud1, tm, s_fine, ds, cfg)
+    lap("fine")
+    if not bool(fine.ok.any()):
+        return empty
+    lab = label_pass_torch(fine, cfg)
+    info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
+    lap("layers")
+    s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
+    lap("refine")
+    ys, xs = torch.nonzero(fine.ok, as_tuple=True)
+    yi, xi = ys + fine.region[0].start, xs + fine.region[1].start
+    s_ok = s_px[ys, xs]
+    px2 = tm.points(s_ok, yi, xi)
+    px1 = torch.stack([xi, yi], -1)
+    info["s"] = s_ok.cpu().numpy()
+    out = px1.cpu().numpy().astype(np.float64), px2.cpu().numpy().astype(np.float64), info
+    lap("points")
+    return out
+
+
+def angle_map_deg_torch(rays_cam: torch.Tensor, d_cam: np.ndarray) -> torch.Tensor:
+    """Angle [deg] between each pixel's ray (H, W, 3) and a direction (3,) in the camera frame, (H, W)."""
+    d = torch.as_tensor(np.asarray(d_cam, np.float32), device=rays_cam.device)
+    c = (rays_cam @ d).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.atan2(torch.sqrt((1.0 - c * c).clamp_min(0.0)), c))
+

@@ -1,0 +1,179 @@
+"""The torch backend (cbh/pipeline/torch_ops.py) against the numpy/OpenCV path, stage by stage.
+
+Tolerances, and why:
+- remap: the same pixel-centre convention to 1e-3 px. cv2.remap quantises its bilinear weights
+  to 1/32 px (INTER_BITS = 5), so the convention is checked on positions of that grid, where
+  both are exact up to float32 rounding of the coordinates (≈ 6e-5 px at 300 px).
+- box filters and 2 × 2 pooling: float32 sums in a different order: ≤ 1e-3 grey levels.
+- ZNCC: off the 1/32 grid, cv2.remap's quantised weights move a warped grey level by up to
+  |∇I| / 64 (measured ≤ 0.01 grey levels), which moves the ZNCC of a textured 8 × 8 window
+  (σ ≥ 1 grey level) by ≲ 0.01: asserted ≤ 0.02 on textured cloud blocks.
+- passes: the decisions taken on those scores (coarse hypotheses, layer cuts, accepted pixels,
+  labels) agree except where a score sits within that noise of a threshold or a tie: ≥ 99.9 %
+  of pixels; refined s within 0.01 plane step (≈ 0.01 px of parallax) for 99 % of pixels.
+- whole pipeline: layer heights within 0.2 % of each other (the aggregated layers average
+  thousands of such pixels), 99 % of the height map within 0.1 %.
+
+Torch runs on one thread here: on this oversubscribed 2-core machine its OpenMP threads
+spin-wait (a 1 ms op took 1 s with 2 threads under load 16).
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from cbh.errors import ConfigError  # noqa: E402
+from cbh.geometry.station import load_station  # noqa: E402
+from cbh.pipeline import Pipeline  # noqa: E402
+from cbh.pipeline import sweep as S  # noqa: E402
+from cbh.pipeline import torch_ops as T  # noqa: E402
+from cbh.presets import station_path  # noqa: E402
+
+S_MIN, S_MAX = 1.0 / 15000.0, 1.0 / 300.0
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from cbh.sim import SkySimulator, load_scene
+
+    sim = SkySimulator(load_station(station_path("unb-lea")), load_scene("two-layers"), size_px=480)
+    shot = sim.render()
+    pipe = Pipeline(sim.station)
+    im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
+    r = pipe.process(im1, im2, shot.time_utc, channels="bgr")
+    g1, g2 = (cv2.cvtColor(pipe.to_working(i, im), cv2.COLOR_BGR2GRAY).astype(np.float32) for i, im in ((0, im1), (1, im2)))
+    cloud = cv2.resize(r.cloud_masks["cam1"].view(np.uint8), (g1.shape[1], g1.shape[0]),
+                       interpolation=cv2.INTER_NEAREST) > 0
+    tm = T.TorchPlaneMaps(pipe.geometry.planes, (g2.shape[1], g2.shape[0]), torch.device("cpu"))
+    return dict(sim=sim, shot=shot, pipe=pipe, result=r, g1=g1, g2=g2, cloud=cloud, tm=tm,
+                cfg=pipe.config.matching.sweep, maps=pipe.geometry.planes)
+
+
+def test_remap_uses_opencv_pixel_centres():
+    rng = np.random.default_rng(0)
+    mx = (np.round(rng.uniform(-2, 81, (40, 50)) * 32) / 32).astype(np.float32)  # also a little outside
+    my = (np.round(rng.uniform(-2, 65, (40, 50)) * 32) / 32).astype(np.float32)
+    ramp_x = np.tile(np.arange(80, dtype=np.float32), (64, 1))
+    ramp_y = np.tile(np.arange(64, dtype=np.float32)[:, None], (1, 80))
+    for ramp, m in ((ramp_x, mx), (ramp_y, my)):
+        ref = cv2.remap(ramp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        out = T.remap(torch.from_numpy(ramp)[None, None], torch.from_numpy(mx)[None], torch.from_numpy(my)[None])
+        out = out[0, 0].numpy()
+        assert np.abs(out - ref).max() <= 1e-3 * 80  # a value difference of 1e-3 px on a 1 px/px ramp … at most 80 px
+        inside = (mx >= 0) & (mx <= 79) & (my >= 0) & (my <= 63)
+        assert np.abs(out[inside] - m[inside]).max() <= 1e-3  # sampled where asked: the pixel-centre convention
+
+
+@pytest.mark.parametrize("k", [3, 4, 9, 15])
+def test_box_and_pool_match_opencv(k):
+    rng = np.random.default_rng(1)
+    x = (rng.random((60, 70)) * 255).astype(np.float32)
+    t = torch.from_numpy(x)[None, None]
+    assert np.abs(T.box(t, k)[0, 0].numpy() - S._box(x, k)).max() <= 1e-3
+    assert np.abs(T.pool2(t)[0, 0].numpy() - S._pool2(x)).max() <= 1e-3
+
+
+def test_zncc_matches_opencv_on_textured_blocks(scene):
+    sl = S._bbox(scene["cloud"], 9, even=True)
+    i1 = np.ascontiguousarray(scene["g1"][sl])
+    s = np.array([0.0, 2e-4, 6e-4, 1e-3])
+    it = S._zncc_half_iter(i1, scene["g2"], scene["maps"], s, 4, sl)
+    std_n, _ = next(it)
+    ref = np.stack([x for _, x in it])
+    std_t, out = T.zncc_half(torch.from_numpy(i1), torch.from_numpy(scene["g2"]), scene["tm"], s, 4, sl)
+    assert np.abs(std_t.numpy() - std_n).max() <= 1e-2
+    # textured in image 1, and a proper correlation: where the warped image 2 is flat (outside
+    # camera 2, the sun disk) var2 ≈ 0 and the score is float noise over the 1e-3 regulariser
+    both = (std_n >= 1.0)[None] & (np.abs(ref) <= 1.0)
+    assert both.sum() > 1000
+    d = np.abs(out.numpy() - ref)[both]
+    assert np.median(d) <= 1e-4  # float32 rounding where the interpolation agrees
+    # a handful of blocks (3 of 173 000 here) whose warped window is nearly flat: σ2 → 0 divides
+    # the 1/32 px weight difference up; no pass accepts such a block (it is not textured in both)
+    assert (d > 0.02).mean() <= 1e-4
+
+
+def test_every_sweep_pass_agrees(scene):
+    g1, g2, cloud, cfg, maps, tm = (scene[k] for k in ("g1", "g2", "cloud", "cfg", "maps", "tm"))
+    t1, t2 = torch.from_numpy(g1), torch.from_numpy(g2)
+    c_n = S.coarse_pass(g1, g2, cloud, maps, S_MIN, S_MAX, 0.0, cfg)
+    c_t = T.coarse_pass_torch(t1, t2, cloud, tm, S_MIN, S_MAX, 0.0, cfg)
+    assert c_n.ranges == c_t.ranges and len(c_n.ranges) >= 1
+    s, ds = S.fine_planes(c_n, maps.scale_px, S_MIN, S_MAX, cfg)
+    f_n = S.fine_pass(g1, g2, cloud, maps, s, ds, cfg)
+    f_t = T.fine_pass_torch(t1, t2, cloud, tm, s, ds, cfg)
+    assert (f_n.ok == f_t.ok.numpy()).mean() >= 0.999
+    assert np.abs(f_n.cost - f_t.cost.numpy()).max() <= 0.02
+    l_n, l_t = S.label_pass(f_n, cfg), T.label_pass_torch(f_t, cfg)
+    assert len(l_n.cuts_s) == len(l_t.cuts_s) == 1  # two layers
+    assert np.allclose(l_n.cuts_s, l_t.cuts_s)
+    assert (l_n.label == l_t.label.numpy()).mean() >= 0.999
+    r_n = S.refine_pass(f_n, l_n, maps.scale_px, cfg)
+    r_t = T.refine_pass_torch(f_t, l_t, maps.scale_px, cfg).numpy()
+    ok = f_n.ok & f_t.ok.numpy()
+    assert np.percentile(np.abs(r_n[ok] - r_t[ok]) / ds, 99) <= 0.01
+
+
+def test_pipeline_on_torch_matches_opencv(scene):
+    shot, r_n = scene["shot"], scene["result"]
+    r_t = Pipeline(scene["sim"].station, device="cpu", backend="torch").process(
+        shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    h_n, h_t = [L.height_m for L in r_n.layers], [L.height_m for L in r_t.layers]
+    assert len(h_n) == len(h_t) == 2
+    assert np.allclose(h_n, h_t, rtol=2e-3)
+    both = np.isfinite(r_n.height_map) & np.isfinite(r_t.height_map)
+    assert both.sum() >= 0.999 * np.isfinite(r_n.height_map).sum()
+    rel = np.abs(r_n.height_map[both] - r_t.height_map[both]) / r_n.height_map[both]
+    assert np.percentile(rel, 99) <= 1e-3
+
+
+def test_sun_angle_map_matches_opencv(scene):
+    pipe = scene["pipe"]
+    from cbh.pipeline.masks import angle_map_deg
+
+    d = np.array([0.3, -0.2, 0.93])
+    d /= np.linalg.norm(d)
+    ref = angle_map_deg(pipe.cam1, d, pipe.rays_cam(0))
+    out = T.angle_map_deg_torch(torch.from_numpy(pipe.rays_cam(0)), d @ pipe.cam1.R_world_from_cam).numpy()
+    assert np.abs(out - ref).max() <= 0.02  # cv2.phase is good to ≈ 0.01°
+
+
+def test_device_choices_are_checked(unb_station):
+    with pytest.raises(ConfigError):
+        Pipeline(unb_station, backend="gpu")
+    with pytest.raises(ConfigError):
+        Pipeline(unb_station, device="nonsense")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA is not available"):
+            Pipeline(unb_station, device="cuda")
+    assert Pipeline(unb_station).backend == "opencv"
+    assert Pipeline(unb_station, backend="torch").backend == "torch"
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_pipeline_on_cuda_matches_cpu(scene):
+    shot, r_n = scene["shot"], scene["result"]
+    r_c = Pipeline(scene["sim"].station, device="cuda").process(
+        shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    assert np.allclose([L.height_m for L in r_n.layers], [L.height_m for L in r_c.layers], rtol=2e-3)
+
+
+def test_cli_device_errors_are_one_line(repo, tmp_path, capsys):
+    from cbh.cli.main import main
+
+    rc = main(["pair", str(tmp_path / "a.jpg"), str(tmp_path / "b.jpg"), "--station",
+               str(repo / "configs" / "unb-lea.toml"), "--device", "tpu9"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("cbh: error:") and "tpu9" in err and len(err.splitlines()) == 1
