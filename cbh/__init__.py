@@ -31,7 +31,7 @@ _EXPORTS = {
     "PairResult": "cbh.result",
     "Layer": "cbh.result",
     "Frame": "cbh.result",
-    "layer_table": "cbh.result",
+    "layer_table": "cbh.outputs.export",
     "sun_position": "cbh.geometry.sun",
     "parse_utc": "cbh.timeutil",
     "CbhError": "cbh.errors",

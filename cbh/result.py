@@ -9,14 +9,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:  # pandas is imported when a table is made
-    import pandas as pd
-
-__all__ = ["Frame", "Layer", "Histogram", "PointSet", "PairResult", "to_ns", "from_ns", "require_time", "layer_table", "LAYER_TABLE_COLUMNS"]
+__all__ = ["Frame", "Layer", "Histogram", "PointSet", "PairResult", "to_ns", "from_ns", "require_time"]
 
 
 def require_time(result: "PairResult", what: str) -> datetime:
@@ -215,40 +211,3 @@ class PairResult:
             "diagnostics": {k: _num(v) for k, v in self.diagnostics.items()},
         }
 
-
-#: Columns of :func:`layer_table`, in order.
-LAYER_TABLE_COLUMNS = (
-    "time_utc", "camera1", "camera2", "layer", "height_m", "altitude_m", "median_height_m", "spread_m",
-    "cover", "points", "confidence", "motion_east_ms", "motion_north_ms", "cloud_fraction", "flags",
-)
-
-
-def layer_table(results) -> "pd.DataFrame":
-    """The layers of many pair results as a pandas DataFrame: one row per layer.
-
-    Parameters
-    ----------
-    results : iterable of PairResult
-
-    Returns
-    -------
-    pandas.DataFrame
-        Columns :data:`LAYER_TABLE_COLUMNS`: ``time_utc`` (pandas UTC timestamp, NaT when
-        unknown), the camera pair, ``layer`` (1 = lowest), heights above the ENU origin and
-        altitudes above mean sea level [m], ``cover`` (0..1 of camera 1's usable sky),
-        ``points``, ``confidence`` (0..1), layer motion [m/s] (NaN = unknown), camera 1's
-        ``cloud_fraction`` and the pair's quality ``flags`` (comma-separated names). A pair
-        without layers (clear sky) contributes no row.
-    """
-    import pandas as pd
-
-    rows = []
-    for r in results:
-        cf = r.cloud_fraction.get(r.cameras[0], math.nan)
-        for i, L in enumerate(r.layers):
-            rows.append((r.time_utc, r.cameras[0], r.cameras[1], i + 1, L.height_m, L.altitude_m, L.median_height_m,
-                         L.spread_m, L.cover, L.points, L.confidence, L.motion_east_ms, L.motion_north_ms, cf,
-                         ",".join(r.flags)))
-    df = pd.DataFrame(rows, columns=list(LAYER_TABLE_COLUMNS))
-    df["time_utc"] = pd.to_datetime(df["time_utc"], utc=True)
-    return df.astype({"layer": "int64", "points": "int64"})

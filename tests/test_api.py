@@ -99,14 +99,19 @@ def test_layer_table_has_one_row_per_layer(from_paths):
     clear = from_paths.__class__(**{**from_paths.__dict__, "layers": []})
     df = cbh.layer_table([from_paths, clear, from_paths])
     n = len(from_paths.layers)
-    assert len(df) == 2 * n  # the clear pair adds no row
-    assert list(df["layer"]) == list(range(1, n + 1)) * 2
+    assert len(df) == 2 * n + 1  # the clear pair: one row, layer 0 (the time step is kept, as in the CSV)
+    assert list(df["layer"]) == list(range(1, n + 1)) + [0] + list(range(1, n + 1))
+    assert math.isnan(df["cloud_base_height_m"].iloc[n])
     assert str(df["time_utc"].dt.tz) == "UTC" and df["time_utc"].iloc[0] == T
     L = from_paths.layers[0]
     row = df.iloc[0]
-    assert row["height_m"] == L.height_m and row["cover"] == L.cover and row["points"] == L.points
+    assert row["cloud_base_height_m"] == L.height_m and row["cover"] == L.cover and row["points"] == L.points
     # altitude above sea level = height above the ENU origin + station altitude (unb-lea: 1050 m)
-    assert math.isclose(row["altitude_m"], L.height_m + 1050.0, abs_tol=1e-6)
+    assert math.isclose(row["cloud_base_altitude_m"], L.height_m + 1050.0, abs_tol=1e-6)
+    # the same table the CSV export writes: one set of columns for every consumer
+    from cbh.outputs.export import COLUMNS
+
+    assert tuple(df.columns[: len(COLUMNS)]) == COLUMNS
 
 # The README's library example runs verbatim in tests/test_wahrsis.py (its result is the real pair's).
 

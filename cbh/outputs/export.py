@@ -534,12 +534,25 @@ def _all_diagnostics(records) -> tuple[str, ...]:
     return tuple(sorted({k for r in records for k in r.diagnostics}))
 
 
-def layer_table(records: list[PairRecord]):
-    """The export table of pair records as a pandas DataFrame: :data:`COLUMNS` + one column per
-    diagnostics key (time_utc as datetime64[ns, UTC]). For PairResults in a script, the simpler
-    :func:`cbh.layer_table` (cbh.result) is the API."""
+def layer_table(items, station_altitude_m: float = math.nan):
+    """One table for every consumer: pair results or export records as a pandas DataFrame.
+
+    The same rows and columns as the CSV/Parquet export (:data:`COLUMNS` + one column per
+    diagnostics key): one row per layer (``layer`` 1 = lowest; ``cloud_base_height_m`` above
+    the ENU origin, ``cloud_base_altitude_m`` above mean sea level, cover and okta, motion
+    [m/s], points, confidence, cloud fraction, ceiling, ``quality_flag`` bits and ``flags``
+    names); a pair without a layer gives one row with ``layer = 0``. ``time_utc`` is
+    datetime64[ns, UTC] (NaT where unknown). This is ``cbh.layer_table``.
+
+    Parameters
+    ----------
+    items : iterable of PairResult or PairRecord
+    station_altitude_m : float
+        Used for a result's layer altitude only where the layer does not carry one [m].
+    """
     import pandas as pd
 
+    records = [it if isinstance(it, PairRecord) else pair_record(it, station_altitude_m) for it in items]
     diags = _all_diagnostics(records)
     rows = [row for r in records for row in record_rows(r, diags)]
     df = pd.DataFrame(rows, columns=list(COLUMNS + diags))
