@@ -25,9 +25,7 @@ Steps (numerics in :mod:`cbh.geometry.calibrate` and :mod:`cbh.pipeline.sundetec
 from __future__ import annotations
 
 import math
-import os
 import re
-import tempfile
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -38,6 +36,7 @@ import numpy as np
 
 from cbh.errors import CalibrationError, CbhError, ConfigError, ImageError, SourceError
 from cbh.result import Frame
+from cbh.fileio import atomic_write
 
 __all__ = ["CalibrateOptions", "calibrate", "rewrite_station_angles", "parse_sources"]
 
@@ -165,7 +164,6 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     from cbh.imageio import decode_image
     from cbh.live.pairing import Pairer
     from cbh.pipeline import Pipeline
-    from cbh.pipeline.config import PipelineConfig
     from cbh.geometry.sun import sun_position
     from cbh.pipeline.match import MatchInput, get_matcher
     from cbh.pipeline.sundetect import detect_sun
@@ -537,17 +535,8 @@ def _summary(rep: dict) -> list[str]:
 
 def _write_atomic(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
 
 
 def _px_per_rad(cam) -> float:

@@ -60,6 +60,7 @@ import cv2
 
 from cbh.actions.archive import Inventory, PairRef, by_day, load_images, scan_station
 from cbh.errors import CbhError, ConfigError, RecordingError
+from cbh.fileio import atomic_write
 
 __all__ = ["StationJob", "ReprocessOptions", "Plan", "DayWork", "Summary", "load_jobs", "plan_reprocess",
            "run_plan", "reprocess", "PairWorker", "start_ray", "daily_paths", "FORMATS"]
@@ -499,15 +500,11 @@ def _iso(t: datetime) -> str:
 
 
 def _write_json(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(obj, indent=1, default=str) + "\n")
-        os.replace(tmp, path)
+        with atomic_write(path) as tmp:
+            tmp.write_text(json.dumps(obj, indent=1, default=str) + "\n")
     except OSError as exc:
         raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def _write_day(plan: Plan, job: StationJob, work: DayWork, records: list, failures: list[dict]) -> dict:

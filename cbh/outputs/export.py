@@ -62,6 +62,7 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.flags import Flag, flag_bits
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult, require_time
+from cbh.fileio import atomic_write
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
            "netcdf_dataset", "write_netcdf", "export_sessions", "FORMATS", "FILL_VALUE", "okta",
@@ -336,20 +337,14 @@ class LayerExporter(ResultSink):
         self._fh.close()
         with open(self.path, newline="") as fh:
             old = list(csv.reader(fh))
-        tmp = self.path.with_name(f".{self.path.name}.tmp")
         width = len(COLUMNS) + len(keys)
-        try:
-            with open(tmp, "w", newline="") as fh:
-                w = csv.writer(fh, lineterminator="\n")
-                w.writerow(COLUMNS + keys)
-                index = {k: i for i, k in enumerate(old[0])} if old else {}
-                for row in old[1:]:
-                    w.writerow([row[index[k]] if k in index and index[k] < len(row) else ""
-                                for k in (COLUMNS + keys)][:width])
-            os.replace(tmp, self.path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        with atomic_write(self.path) as tmp, open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(COLUMNS + keys)
+            index = {k: i for i, k in enumerate(old[0])} if old else {}
+            for row in old[1:]:
+                w.writerow([row[index[k]] if k in index and index[k] < len(row) else ""
+                            for k in (COLUMNS + keys)][:width])
         self.diagnostics = keys
         self._open_csv(write_header=False)
 
@@ -444,13 +439,8 @@ class LayerExporter(ResultSink):
         """Write all rows to a temporary file and rename it over the export (atomic)."""
         import pyarrow.parquet as pq
 
-        tmp = self.path.with_name(f".{self.path.name}.tmp")
-        try:
+        with atomic_write(self.path) as tmp:
             pq.write_table(_arrow_table(self._rows, self.diagnostics), str(tmp))
-            os.replace(tmp, self.path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
 
     def close(self) -> None:
         """Flush and close (writes the Parquet footer). Idempotent."""
@@ -835,19 +825,15 @@ def write_records(records: list[PairRecord], info: dict, out, fmt: str) -> Path:
     if fmt == "netcdf" and not records:
         raise RecordingError("write_records: no pair records: nothing to write to NetCDF")
     out = Path(out)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
     try:
-        if fmt == "netcdf":
-            write_netcdf(records, info, tmp)
-        else:
-            import pyarrow.parquet as pq
+        with atomic_write(out) as tmp:
+            if fmt == "netcdf":
+                write_netcdf(records, info, tmp)
+            else:
+                import pyarrow.parquet as pq
 
-            diag = _all_diagnostics(records)
-            pq.write_table(_arrow_table([row for r in records for row in record_rows(r, diag)], diag), str(tmp))
-        os.replace(tmp, out)
+                diag = _all_diagnostics(records)
+                pq.write_table(_arrow_table([row for r in records for row in record_rows(r, diag)], diag), str(tmp))
     except OSError as exc:
         raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return out

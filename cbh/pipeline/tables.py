@@ -19,10 +19,10 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+from cbh.fileio import atomic_write
 
 __all__ = ["cache_dir", "tables_key", "load_tables", "save_tables"]
 
@@ -93,10 +93,8 @@ def save_tables(key: str, tables: dict[str, np.ndarray]) -> None:
         return
     try:
         d.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=d, suffix=".npz.tmp")
-        with os.fdopen(fd, "wb") as fh:
+        with atomic_write(d / f"tables-{key}.npz") as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **tables)
-        os.replace(tmp, d / f"tables-{key}.npz")
         entries = sorted(d.glob("tables-*.npz"), key=lambda p: p.stat().st_mtime, reverse=True)
         for old in entries[_MAX_FILES:]:
             old.unlink(missing_ok=True)

@@ -11,10 +11,7 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
-
 from cbh.cli.main import main
-from cbh.errors import RecordingError
 from cbh.outputs.record import McapRecorder, open_session
 from cbh.outputs.record.reader import check_mcap_file
 
