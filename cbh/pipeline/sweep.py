@@ -626,6 +626,19 @@ def _per_pixel(g1, g2, cloud1, maps, s, ds, cfg):
     return sl, ok, _refine(j, c0, cm1, cp1, s, ds)
 
 
+class PassTimer:
+    """Wall time of consecutive passes: ``lap(name)`` stores the time since the previous lap [ms]."""
+
+    def __init__(self):
+        self.timing_ms: dict[str, float] = {}
+        self._t0 = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        t1 = time.perf_counter()
+        self.timing_ms[name] = (t1 - self._t0) * 1000.0
+        self._t0 = t1
+
+
 def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float, cfg):
     """Dense plane-sweep correspondences (see module doc): coarse → fine → label → refine.
 
@@ -649,14 +662,8 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
         (fine s values), ``layers_m`` (coarse layer hypotheses [m]), ``timing_ms`` (per pass),
         and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
     """
-    timing: dict[str, float] = {}
-    t0 = time.perf_counter()
-
-    def lap(name):
-        nonlocal t0
-        t1 = time.perf_counter()
-        timing[name] = (t1 - t0) * 1000.0
-        t0 = t1
+    lap = PassTimer()
+    timing = lap.timing_ms
 
     info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing, "s": np.zeros(0, np.float32)}
     empty = np.zeros((0, 2)), np.zeros((0, 2)), info

@@ -40,7 +40,6 @@ Precision: float32 throughout, as the OpenCV path; ZNCC values agree with it to 
 """
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import torch
@@ -48,7 +47,7 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    CoarseLayers, FineCost, LayerLabels, PlaneMaps, _bbox, coarse_hypotheses, fine_planes, layer_box,
+    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, coarse_hypotheses, fine_planes, layer_box,
     layer_planes, vote_layers,
 )
 
@@ -333,14 +332,8 @@ def sweep_matches_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray
     per-pixel ``aggregate_px = 1`` variant is not ported: it raises ConfigError)."""
     from cbh.errors import ConfigError
 
-    timing: dict[str, float] = {}
-    t0 = time.perf_counter()
-
-    def lap(name):
-        nonlocal t0
-        t1 = time.perf_counter()
-        timing[name] = (t1 - t0) * 1000.0
-        t0 = t1
+    lap = PassTimer()
+    timing = lap.timing_ms
 
     if cfg.aggregate_px <= 1:
         raise ConfigError("matching.sweep.aggregate_px = 1 runs on the OpenCV backend only (device cpu)")
