@@ -47,7 +47,7 @@ def test_readme_library_example_prints_what_it_promises(readme):
     promised = re.search(r"# (\[.*\])", code).group(1)  # the output the README shows in its comment
     assert printed == promised
     assert len(ns["df"]) == len(ns["r"].layers) >= 1
-    assert list(ns["df"]["altitude_m"]) == [L.altitude_m for L in ns["r"].layers]
+    assert list(ns["df"]["cloud_base_altitude_m"]) == [L.altitude_m for L in ns["r"].layers]
 
 
 def test_real_pair_matches_the_authors_statistics(result):
