@@ -65,9 +65,10 @@ def process_pair(image1, image2, station, cameras: str | None = None, time_utc: 
         ``previous_time`` without ``previous``.
     """
     from cbh.geometry.station import load_station
+    from cbh.presets import station_path
     from cbh.pipeline import Pipeline
 
-    pipe = Pipeline(load_station(station), cameras, device=device)
+    pipe = Pipeline(load_station(station_path(str(station))), cameras, device=device)
     t = time_utc if time_utc is not None else time_from_name(Path(image1).name)
     state = None
     if previous is not None:

@@ -105,11 +105,12 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: b
                      bind: str | None = None, device: str = "cpu"):
     """(RunSetup over the recording's frames, the RerunSink or None)."""
     from cbh.geometry.station import Station, load_station
+    from cbh.presets import station_path
     from cbh.imageio import check_image_size
     from cbh.outputs.record import McapRecorder, RecordingSource
     from cbh.pipeline import Pipeline, PipelineConfig
 
-    st = station if isinstance(station, Station) else load_station(station)
+    st = station if isinstance(station, Station) else load_station(station_path(str(station)))
     cfg = None if "pipeline" in st.sections else PipelineConfig.from_dict(s.config, where="recorded pipeline config")
     first = next(s.pairs(layers_only=True), None)
     pair_names = cameras or (",".join(first.result.cameras) if first else None)
