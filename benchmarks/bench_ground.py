@@ -25,7 +25,7 @@ def main() -> None:
     grid = st.ground
     pairs = [p.result for p in s.pairs()]
     t_lab, t_cloud, t_shadow, t_sun = [], [], [], []
-    prev = None
+    history = []  # earlier pairs, newest first (what the export keeps)
     for res in pairs:
         t0 = time.perf_counter()
         pg = pair_ground(st, cfg.masks, res)
@@ -34,9 +34,9 @@ def main() -> None:
         t2 = time.perf_counter()
         _shadow(pg, grid)
         t3 = time.perf_counter()
-        _sun_blocked(st, pg, prev)
+        _sun_blocked(st, pg, history)
         t4 = time.perf_counter()
-        prev = pg
+        history.insert(0, pg)
         t_lab.append(t1 - t0), t_cloud.append(t2 - t1), t_shadow.append(t3 - t2), t_sun.append(t4 - t3)
     ms = lambda v: 1000 * float(np.median(v))  # noqa: E731
     H, W = pairs[0].cloud_masks[pairs[0].cameras[0]].shape
