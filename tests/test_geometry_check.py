@@ -8,6 +8,7 @@ whose rays miss by 2–3 % of the range.
 from __future__ import annotations
 
 import logging
+import math
 from datetime import datetime, timedelta, timezone
 
 import numpy as np
@@ -106,8 +107,12 @@ def test_sun_check_reports_the_residual_and_flags_a_misaligned_camera(unb, repo)
     ok = SkySimulator(level, replace(scene, imperfections={}), size_px=480)
     shot = ok.render(t)
     r = Pipeline(ok.station).process(shot.views["cam1"].image, shot.views["cam2"].image, t, channels="bgr")
-    # the detector's bias towards the brighter sky is ≤ 0.3° at 480 px
-    assert r.diagnostics["sun_residual_deg"] < 0.3 and "sun_misaligned" not in r.flags
+    # the detector's bias towards the brighter sky is ≤ 0.3° at 480 px (in each camera that
+    # found the sun; the pair's residual needs both)
+    per_cam = [r.diagnostics[f"sun_residual_{c}_deg"] for c in ("cam1", "cam2")]
+    assert any(math.isfinite(v) for v in per_cam)
+    assert all(v < 0.3 for v in per_cam if math.isfinite(v)) and "sun_misaligned" not in r.flags
+    assert not r.diagnostics["sun_residual_deg"] >= 0.3
 
 
 def test_unknown_time_or_hidden_sun_leaves_the_sun_residual_out(pipe, shot):
@@ -180,3 +185,31 @@ def test_real_wahrsis_pair_is_not_flagged_but_its_sun_is(shared, repo):
     assert "geometry_mismatch" not in r.flags and "identical_images" not in r.flags
     assert "sun_misaligned" in r.flags
     assert 2.5 < r.diagnostics["sun_residual_cam2_deg"] < 4.5
+
+
+def test_sun_in_one_camera_only_raises_no_alarm():
+    """Broken cumulus around the sun (the default two-layers scene at 14:00-14:00:30 UTC): in
+    some pairs one camera takes a saturated cloud beside the hidden sun for the sun, 3-5 deg
+    off. A correct station must not be flagged: the pair's residual needs the sun in both
+    cameras (the per-camera residuals stay in the diagnostics)."""
+    from datetime import timedelta
+
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+    from cbh.presets import scene_path, station_path
+    from cbh.sim import SkySimulator, load_scene
+
+    sc = load_scene(scene_path("two-layers"))
+    sim = SkySimulator(load_station(station_path("unb-lea")), sc)
+    pipe = Pipeline(sim.station)
+    one_camera = 0
+    for k in (0, 2, 3):
+        t = sc.time_utc + timedelta(seconds=10 * k)
+        shot = sim.render(t)
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, t, channels="bgr")
+        assert "sun_misaligned" not in r.flags
+        per_cam = [r.diagnostics[f"sun_residual_{c}_deg"] for c in ("cam1", "cam2")]
+        if sum(map(math.isfinite, per_cam)) == 1:
+            one_camera += 1
+            assert math.isnan(r.diagnostics["sun_residual_deg"])
+    assert one_camera >= 1  # the case this test is about did occur

@@ -562,8 +562,12 @@ class Pipeline:
             ctx.diagnostics[f"sun_residual_{role}_deg"] = r
             res.append(r)
         seen = [r for r in res if math.isfinite(r)]
-        ctx.diagnostics["sun_residual_deg"] = max(seen) if seen else math.nan
-        if seen and max(seen) > cfg.max_residual_deg:
+        ctx.diagnostics["sun_residual_deg"] = max(seen) if len(seen) == 2 else math.nan
+        # The pair's residual and its flag need the sun found in BOTH cameras: a single detection can be a saturated
+        # cloud next to a hidden sun (seen on simulated broken cumulus: 3-5 deg "residuals" in
+        # one camera while the other found nothing). A knocked camera still shows as soon as
+        # the sun is clear in both, which at a 10-30 s cadence is within minutes.
+        if len(seen) == 2 and max(seen) > cfg.max_residual_deg:
             ctx.flags.append("sun_misaligned")
 
     def stage_geometry_check(self, work, corr: "Correspondences", ctx: "PairContext") -> None:
