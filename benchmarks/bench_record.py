@@ -7,6 +7,7 @@ Writes synthetic pairs of the given size (JPEG images as received, a dense float
 """
 from __future__ import annotations
 
+import os
 import argparse
 import sys
 import tempfile
@@ -59,7 +60,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         export_sessions([path], "netcdf", Path(d) / "b.nc")
         t_nc = time.perf_counter() - t0
-    print(f"size {a.size}px, {a.pairs} pairs (2 cores, other jobs running):")
+    print(f"size {a.size}px, {a.pairs} pairs ({os.cpu_count()} CPUs; load average {os.getloadavg()[0]:.1f}):")
     print(f"  McapRecorder.write   {t_write * 1e3:8.1f} ms/pair   {size:6.2f} MB/pair on disk")
     print(f"  Session.pairs()      {t_read * 1e3:8.1f} ms/pair (decode all topics)")
     print(f"  RerunSink.write      {t_rr * 1e3:8.1f} ms/pair (save mode)")
