@@ -213,3 +213,16 @@ def test_sun_in_one_camera_only_raises_no_alarm():
             one_camera += 1
             assert math.isnan(r.diagnostics["sun_residual_deg"])
     assert one_camera >= 1  # the case this test is about did occur
+
+
+def test_same_image_twice_is_flagged_when_working_sizes_differ(sim, shot):
+    """The cameras' lenses differ slightly, so at a working radius below the full size their
+    working images differ in size (at 155 px: 310 vs 303 px). The same image
+    delivered twice must still be flagged: the check compares what the cameras delivered."""
+    from cbh.pipeline.config import PipelineConfig
+
+    pipe = Pipeline(sim.station, config=PipelineConfig(working_radius_px=155.0))
+    assert pipe.cam1.model.width != pipe.cam2.model.width  # the case this test is about
+    img = shot.views["cam1"].image
+    r = pipe.process(img, img.copy(), T0, channels="bgr")
+    assert "identical_images" in r.flags

@@ -26,7 +26,8 @@ The flag ``geometry_mismatch`` is raised when the median exceeds the tolerance o
 fraction is below ``min_inlier_fraction``, judged on at least ``min_matches`` correspondences
 (fewer: no verdict, diagnostics NaN).
 
-``identical_images``: the two images at working size differ by less than
+``identical_images``: the two images as delivered (full size; the working sizes of two
+slightly different lenses differ) differ by less than
 ``identical_max_dn`` grey levels on average (the same file twice, or one camera's stream twice
 within a frame period). Two cameras tens of metres apart never do: the sky, lens and sensor
 noise differ.

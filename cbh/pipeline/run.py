@@ -304,7 +304,7 @@ class Pipeline:
             masks = self.stage_masks(work, ctx)
         with _timed(ctx, "sun_check"):
             self.stage_sun_check(work, masks, ctx)
-        received = work  # as the cameras delivered them (the identical-image check needs these)
+        received = (image1, image2)  # as the cameras delivered them, full size (the identical-image check)
         with _timed(ctx, "photometric"):
             work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
