@@ -43,3 +43,27 @@ def test_unknown_methods_list_valid_names():
     with pytest.raises(ConfigError) as exc:
         PipelineConfig.from_dict({"matching": {"methods": ["lk", "sift"]}})
     assert "pipeline.matching.methods[1]" in str(exc.value) and "dis" in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    "data, path",
+    [
+        # values OpenCV or the code reject only at the first pair (a cv2.error / ZeroDivisionError
+        # traceback), or that silently drop every layer: refused at load, naming the key
+        ({"matching": {"lk": {"quality": 0.0}}}, "pipeline.matching.lk.quality"),
+        ({"matching": {"lk": {"quality": 1.5}}}, "pipeline.matching.lk.quality"),
+        ({"matching": {"lk": {"min_distance_px": -1}}}, "pipeline.matching.lk.min_distance_px"),
+        ({"segmentation": {"sun_scale_deg": 0.0}}, "pipeline.segmentation.sun_scale_deg"),
+        ({"segmentation": {"horizon_start_deg": 95.0}}, "pipeline.segmentation.horizon_start_deg"),
+        ({"matching": {"orb": {"max_parallax_deg": -1.0}}}, "pipeline.matching.orb.max_parallax_deg"),
+        ({"matching": {"orb": {"max_hamming": -1}}}, "pipeline.matching.orb.max_hamming"),
+        ({"matching": {"sweep": {"label_px": 0}}}, "pipeline.matching.sweep.label_px"),
+        ({"layers": {"min_cover": 2.0}}, "pipeline.layers.min_cover"),
+        ({"layers": {"min_fraction": -0.1}}, "pipeline.layers.min_fraction"),
+        ({"masks": {"saturation_grow_px": -3}}, "pipeline.masks.saturation_grow_px"),
+        ({"masks": {"saturation_min_area_px": -1}}, "pipeline.masks.saturation_min_area_px"),
+    ],
+)
+def test_out_of_range_values_are_refused_at_load(data, path):
+    with pytest.raises(ConfigError, match=path.replace(".", r"\.")):
+        PipelineConfig.from_dict(data)

@@ -301,6 +301,8 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
         raise ConfigError(f"{where}.masks.glare_radius_deg: must be in (0, 180], got {m.glare_radius_deg}")
     if not 0 <= m.saturation_level <= 255:
         raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
+    _positive(f"{where}.masks.saturation_min_area_px", m.saturation_min_area_px, strict=False)
+    _positive(f"{where}.masks.saturation_grow_px", m.saturation_grow_px, strict=False)
     segmenters, matchers, layer_methods = _registries()
     _choice(f"{where}.segmentation.method", cfg.segmentation.method, tuple(segmenters))
     ph = cfg.photometric
@@ -321,6 +323,9 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.segmentation.max_side_px", sg.max_side_px, strict=False)
     if not 0 <= cfg.segmentation.grey_chroma <= 1:
         raise ConfigError(f"{where}.segmentation.grey_chroma: must be in 0..1, got {cfg.segmentation.grey_chroma}")
+    _positive(f"{where}.segmentation.sun_scale_deg", sg.sun_scale_deg)
+    if not 0 <= sg.horizon_start_deg < 90:
+        raise ConfigError(f"{where}.segmentation.horizon_start_deg: must be in [0, 90), got {sg.horizon_start_deg}")
     if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:
         raise ConfigError(f"{where}.segmentation.otsu_min: must be <= otsu_max")
     mt = cfg.matching
@@ -333,6 +338,12 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if mt.lk.window_px < 5 or mt.lk.window_px % 2 == 0:
         raise ConfigError(f"{where}.matching.lk.window_px: must be an odd number >= 5, got {mt.lk.window_px}")
     _positive(f"{where}.matching.lk.max_points", mt.lk.max_points)
+    if not 0 < mt.lk.quality <= 1:
+        raise ConfigError(f"{where}.matching.lk.quality: must be in (0, 1], got {mt.lk.quality}")
+    _positive(f"{where}.matching.lk.min_distance_px", mt.lk.min_distance_px, strict=False)
+    _positive(f"{where}.matching.orb.max_hamming", mt.orb.max_hamming, strict=False)
+    _positive(f"{where}.matching.orb.max_parallax_deg", mt.orb.max_parallax_deg)
+    _positive(f"{where}.matching.sweep.label_px", mt.sweep.label_px)
     _positive(f"{where}.matching.lk.fb_max_px", mt.lk.fb_max_px)
     if not 0 <= mt.lk.levels <= 8:
         raise ConfigError(f"{where}.matching.lk.levels: must be in 0..8, got {mt.lk.levels}")
@@ -385,6 +396,9 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _choice(f"{where}.layers.method", ly.method, tuple(layer_methods))
     for k in ("bin_log", "smooth_log", "min_separation_log"):
         _positive(f"{where}.layers.{k}", getattr(ly, k))
+    for k in ("min_fraction", "min_cover"):
+        if not 0 <= getattr(ly, k) < 1:
+            raise ConfigError(f"{where}.layers.{k}: must be in [0, 1), got {getattr(ly, k)}")
     if not ly.noise_margin >= 1.0:
         raise ConfigError(f"{where}.layers.noise_margin: must be >= 1, got {ly.noise_margin}")
     if not 0 <= ly.base_percentile <= 50:
