@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 import types
 import typing
@@ -178,10 +179,27 @@ def _toml_value(v) -> str:
     if isinstance(v, (float, np.floating)):
         return repr(float(v))
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return _toml_string(v)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def _toml_string(v: str) -> str:
+    """A TOML basic string: quotes, backslashes and control characters escaped (a raw newline
+    or control character is not valid in one)."""
+    return '"' + "".join(_ESCAPES.get(c) or (f"\\u{ord(c):04X}" if ord(c) < 0x20 or ord(c) == 0x7F else c)
+                         for c in v) + '"'
+
+
+def _toml_key(k) -> str:
+    """A bare key where TOML allows one, else a quoted key (``"a b"``, ``"x.y"``)."""
+    k = str(k)
+    return k if _BARE_KEY.fullmatch(k) else _toml_string(k)
 
 
 def _is_table_array(v) -> bool:
@@ -195,10 +213,10 @@ def dumps_toml(data: dict, _prefix: str = "") -> str:
         if isinstance(v, dict) or _is_table_array(v):
             tables.append((k, v))
         else:
-            lines.append(f"{k} = {_toml_value(v)}")
+            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
     out = "\n".join(lines) + ("\n" if lines else "")
     for k, v in tables:
-        name = f"{_prefix}{k}"
+        name = f"{_prefix}{_toml_key(k)}"
         if isinstance(v, dict):
             out += f"\n[{name}]\n" + dumps_toml(v, name + ".")
         else:

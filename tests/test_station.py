@@ -150,3 +150,22 @@ def test_malformed_toml(tmp_path):
 def test_unknown_camera_lists_names(unb_station):
     with pytest.raises(ConfigError, match="cam3.*cam1, cam2"):
         unb_station.pair("cam1,cam3")
+
+
+def test_station_with_multiline_metadata_and_odd_keys_round_trips(unb_station, tmp_path):
+    """``cbh simulate`` and ``cbh calibrate --out`` write the station back with to_toml: a
+    multi-line ``comment`` (legal TOML in the file read) and a section key that is not a bare
+    TOML key must come back unchanged, not as a file cbh cannot read."""
+    import dataclasses
+
+    import tomllib
+
+    from cbh.tomlio import dumps_toml
+
+    st = dataclasses.replace(unb_station, sections={**unb_station.sections, "scene": {"note": "tab\there\nline 2 \"q\" \\ end"}})
+    p = tmp_path / "st.toml"
+    p.write_text(st.to_toml())
+    back = load_station(p)
+    assert back.sections["scene"] == st.sections["scene"]
+    data = {"a b": 1, "t": {"x.y": "s\u0001", "plain-key_1": [1.5, 2]}, "arr": [{"n": 1, "sub": {"é": 2}}]}
+    assert tomllib.loads(dumps_toml(data)) == data
