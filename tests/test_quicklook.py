@@ -60,3 +60,17 @@ def test_gaps_between_sessions_are_not_bridged():
     assert list(cf2[~np.isnan(cf2)]) == list(cf) and not bad.any()
     t3, (cf3,), _ = _break_gaps(times[:4], (cf[:4],), np.zeros(4, bool))  # a regular cadence: unchanged
     assert len(t3) == 4 and np.array_equal(cf3, cf[:4])
+
+
+def test_quicklook_to_an_unknown_suffix_is_one_error_line_and_keeps_the_recording(tmp_path, capsys):
+    """``-o x.mcap`` (or .txt) was a matplotlib ValueError traceback; now one line, exit 2, and the
+    recording given as --out is untouched."""
+    from cbh.cli.main import main
+
+    _session(tmp_path / "m.mcap", small_station(), motion=False)
+    before = (tmp_path / "m.mcap").read_bytes()
+    for out in ("m.mcap", "q.txt"):
+        assert main(["quicklook", str(tmp_path / "m.mcap"), "--out", str(tmp_path / out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("cbh: error:") and "\n" not in err and "cannot draw" in err, err
+    assert (tmp_path / "m.mcap").read_bytes() == before and not (tmp_path / "q.txt").exists()

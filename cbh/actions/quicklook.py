@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cbh.errors import RecordingError
+from cbh.errors import ConfigError, RecordingError
 from cbh.flags import INVALIDATING
 from cbh.outputs.export import ceiling_index, okta, session_records
 
@@ -150,11 +150,24 @@ def _break_gaps(times: np.ndarray, arrays: tuple, bad: np.ndarray):
     return times, arrays, np.insert(bad, gaps + 1, False)
 
 
+def _check_image_suffix(out: Path) -> None:
+    """:class:`ConfigError` unless matplotlib can write ``out``'s suffix (none: PNG), checked
+    before the recordings are read (an unknown suffix, e.g. ``-o x.mcap``, was a traceback)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    kinds = FigureCanvasBase.get_supported_filetypes()
+    suffix = out.suffix[1:].lower()
+    if suffix and suffix not in kinds:
+        raise ConfigError(f"--out {out}: cannot draw a {suffix!r} file (use .png, or one of "
+                          f"{', '.join(sorted(kinds))})")
+
+
 def quicklook(sessions, out, *, title: str | None = None) -> str:
     """Draw the quicklook of recorded sessions to ``out`` (PNG); returns the CLI's summary line."""
     out = Path(out)
     if not out.parent.is_dir():
         raise RecordingError(f"output directory does not exist: {out.parent}")
+    _check_image_suffix(out)
     records, info = session_records(sessions)
     draw_quicklook(records, info, out, title=title)
     return f"drew {len(records)} time steps to {out}"
