@@ -87,6 +87,14 @@ def test_bare_arrays_greyscale_and_zoneless_times_are_refused(pipe, pair_files):
         pipe.process(*bgr, "2024-06-21 14:00", channels="bgr")
 
 
+def test_pipeline_given_a_path_instead_of_a_station_says_so(pair_files):
+    # a path is the natural first try; it was an AttributeError traceback from inside __init__
+    from cbh.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="load_station"):
+        cbh.Pipeline(str(pair_files / "station.toml"))
+
+
 def test_unknown_time_stays_unknown(pipe, pair_files):
     r = pipe.process(pair_files / "cam1.png", pair_files / "cam2.png", None)
     assert r.time_utc is None and "time_unknown" in r.flags

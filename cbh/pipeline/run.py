@@ -149,6 +149,9 @@ class Pipeline:
 
     def __init__(self, station: Station, cameras: str | None = None, config: PipelineConfig | None = None,
                  device: str = "cpu", backend: str = "auto"):
+        if not isinstance(station, Station):
+            raise ConfigError(f"Pipeline: expected a Station, got {type(station).__name__} "
+                              f"(read a station file with cbh.load_station(path))")
         self.station = station
         self.device, self.backend = _resolve_backend(device, backend)
         self.config = config if config is not None else PipelineConfig.from_dict(station.sections.get("pipeline", {}))
