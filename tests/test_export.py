@@ -199,6 +199,23 @@ def test_export_cli_and_errors(tmp_path, two_sessions, capsys):
     assert err.startswith("cbh: error:") and "not an MCAP file" in err and "\n" not in err
 
 
+def test_export_never_replaces_a_recording(tmp_path, station, capsys):
+    """``-o SESSION.mcap -f csv`` (or -o another recording) overwrote the recording with its own
+    export: the recorded data were gone. Now one error line, exit 2, both files byte-identical."""
+    from cbh.cli.main import main
+
+    write_session(tmp_path / "a.mcap", station, n=2)
+    write_session(tmp_path / "b.mcap", station, n=1)
+    before = {n: (tmp_path / n).read_bytes() for n in ("a.mcap", "b.mcap")}
+    for out, fmt in (("a.mcap", "csv"), ("b.mcap", "parquet"), ("a.mcap", "netcdf")):
+        assert main(["export", str(tmp_path / "a.mcap"), "--format", fmt, "--out", str(tmp_path / out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("cbh: error:") and "is a recording" in err and "\n" not in err, err
+    assert main(["export", str(tmp_path / "a.mcap"), "--product", "cloudmap", "--format", "npz",
+                 "--out", str(tmp_path / "b.mcap")]) == 2
+    assert {n: (tmp_path / n).read_bytes() for n in ("a.mcap", "b.mcap")} == before
+
+
 def test_sessions_of_different_stations_are_refused(tmp_path, station):
     from dataclasses import replace
 

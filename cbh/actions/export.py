@@ -31,6 +31,7 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.flags import INVALIDATING
 from cbh.geometry import ground
 from cbh.outputs import export as layer_export
+from cbh.outputs.record.reader import _mcap_state
 from cbh.outputs.maps import (LEAD_TIMES_S, MAP_FORMATS, PRODUCTS, GroundMaps, to_byte, write_maps_netcdf,
                               write_maps_npz)
 
@@ -249,6 +250,9 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
         if fmt is None:
             raise ConfigError(f"--format: not given and {out.name!r} has no known suffix (.csv, .parquet, .nc, .npz)")
     fmt = fmt.lower()
+    if not daily and out.is_file() and _mcap_state(out) != "foreign":
+        # `-o SESSION.mcap -f csv` replaced the recording with its own export
+        raise RecordingError(f"{out} is a recording: an export never replaces one (give another --out)")
     if product == "layers":
         if fmt == "npz":
             raise ConfigError("--format npz is for --product cloudmap|shadow (layers: csv, parquet, netcdf)")
