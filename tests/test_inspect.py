@@ -57,6 +57,23 @@ def test_repair_of_truncated_file(tmp_path, capsys):
     assert d["repair"]["source_complete"] is False
 
 
+def test_repair_never_replaces_an_existing_file(tmp_path, capsys):
+    """``--repair OTHER.mcap`` rewrote another recording with the repaired copy: OTHER's data were
+    gone. Now one error line, exit 2, OTHER byte-identical."""
+    from cbh.cli.main import main
+
+    data = SAMPLE.read_bytes()
+    cut = tmp_path / "killed.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    other = tmp_path / "other.mcap"
+    _, _ = write_session(other, small_station(), n=2)
+    before = other.read_bytes()
+    assert main(["inspect", str(cut), "--repair", str(other)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cbh: error:") and "exists" in err and "\n" not in err, err
+    assert other.read_bytes() == before
+
+
 def test_foreign_files(tmp_path, capsys):
     from cbh.cli.main import main
 

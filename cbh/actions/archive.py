@@ -185,7 +185,7 @@ def _open_recording(path: Path, workdir: Path, inv: Inventory):
     tag = hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:8]
     copy = workdir / f"{path.stem}-{tag}-repaired.mcap"
     try:
-        rep = recover(path, copy)
+        rep = recover(path, copy, overwrite=True)  # our own work file (a rerun finds it)
         sess = open_session(copy)
     except RecordingError as exc:
         inv.skipped.append({"path": str(path), "reason": f"truncated and not repairable: {exc}"})

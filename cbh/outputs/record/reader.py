@@ -440,7 +440,7 @@ def _usable(paths: list[Path]):
             tmp = tempfile.mkdtemp(prefix="cbh-recover-")
         fixed = Path(tmp) / f"{len(out):04d}-{p.name}"
         try:
-            rep = recover(p, fixed)
+            rep = recover(p, fixed, overwrite=True)
             Session([fixed])  # readable as a cbh recording?
         except RecordingError as exc:
             log.warning(f"{p}: truncated and not recoverable, skipped ({exc})")

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from cbh.errors import RecordingError
 from cbh.outputs.record.reader import MAGIC, PAIR_TOPIC
+from cbh.outputs.record.writer import create_exclusive
 
 __all__ = ["recover", "RecoveryReport"]
 
@@ -23,13 +24,14 @@ class RecoveryReport:
     complete: bool  # the source already ended with a valid footer
 
 
-def recover(path, out) -> RecoveryReport:
+def recover(path, out, *, overwrite: bool = False) -> RecoveryReport:
     """Rewrite every complete record of a (truncated) MCAP file into a valid MCAP ``out``.
 
     The source is read with mcap's non-seeking stream reader; reading stops at the first
     broken or incomplete record (the frame in flight when the writer was killed). Schemas,
     channels, metadata and messages before it are written, in order, to ``out`` with a fresh
-    summary and footer.
+    summary and footer. An existing ``out`` is refused unless ``overwrite`` (callers' own
+    work files); ``cbh inspect --repair OTHER.mcap`` silently replaced another recording.
     """
     from mcap.records import Attachment, Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
@@ -50,7 +52,9 @@ def recover(path, out) -> RecoveryReport:
     n_msgs = n_pairs = 0
     complete = False
     try:
-        out_fh = open(dst, "wb")
+        out_fh = create_exclusive(dst, overwrite)  # an existing file (another recording) is never replaced
+    except FileExistsError:
+        raise RecordingError(f"{dst} exists: --repair never replaces a file (give another path)") from None
     except OSError as exc:
         raise RecordingError(f"cannot create {dst}: {exc.strerror}") from None
     with open(src, "rb") as fh, out_fh:
