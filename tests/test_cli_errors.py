@@ -133,3 +133,16 @@ def test_greyscale_images_to_pair_are_refused(tmp_path, capsys):
     assert main(["pair", str(tmp_path / "g1.png"), str(tmp_path / "g2.png"), "--station", str(tmp_path / "station.toml"),
                  "--time", "2024-06-21T14:00:00Z"]) == 2
     assert "greyscale" in one_error_line(capsys.readouterr().err)
+
+
+def test_corrupt_video_source_is_one_line_without_ffmpeg_noise(tmp_path):
+    """A video file FFmpeg cannot open printed FFmpeg's ``moov atom not found`` and OpenCV's
+    ``[ WARN:0@…] cap.cpp`` lines around our error; now only the one ``cbh: error:`` line
+    (a subprocess: FFmpeg writes to file descriptor 2 directly)."""
+    bad = tmp_path / "cam.mp4"
+    bad.write_bytes(b"not a video at all")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_")}
+    r = subprocess.run([sys.executable, "-m", "cbh.cli.main", "run", "--source", f"cam1={bad}",
+                        "--source", f"cam2={bad}", "-q"], capture_output=True, text=True, cwd=tmp_path,
+                       timeout=120, env=env)
+    assert r.returncode == 2 and "cannot open" in one_error_line(r.stderr)

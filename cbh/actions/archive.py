@@ -40,7 +40,7 @@ import numpy as np
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError
 from cbh.live.pairing import Pairer
-from cbh.live.sources import IMAGE_SUFFIXES, VIDEO_SUFFIXES, camera_prefixed, is_sim_spec
+from cbh.live.sources import IMAGE_SUFFIXES, VIDEO_SUFFIXES, camera_prefixed, is_sim_spec, quiet_video_logs
 from cbh.result import Frame, to_ns
 from cbh.timeutil import time_from_name
 
@@ -352,6 +352,7 @@ def load_images(refs: list[FrameRef]) -> dict[FrameRef, np.ndarray | CbhError]:
 def _video_frames(path: str, refs: list[FrameRef]) -> dict[FrameRef, np.ndarray | CbhError]:
     want = {r.index: r for r in refs}
     first, last = min(want), max(want)
+    quiet_video_logs()  # a Ray worker's process: its own FFmpeg log level
     cap = cv2.VideoCapture(path, cv2.CAP_FFMPEG)
     out: dict[FrameRef, np.ndarray | CbhError] = {}
     try:

@@ -58,7 +58,7 @@ from cbh.timeutil import parse_time_header, time_from_name, wait_until as _wait_
 __all__ = [
     "EndOfStream", "HttpSource", "MjpegSource", "SnapshotSource", "VideoSource", "DirectorySource",
     "MemorySource", "open_source", "is_sim_spec", "parse_time_header", "time_from_name", "SOURCE_KINDS",
-    "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "camera_prefixed",
+    "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "camera_prefixed", "quiet_video_logs",
 ]
 
 log = logging.getLogger(__name__)
@@ -430,6 +430,15 @@ def SnapshotSource(camera: str, url: str, interval_s: float = 1.0, **kw) -> Http
 
 # --- OpenCV: RTSP and video files -------------------------------------------------------------
 
+def quiet_video_logs() -> None:
+    """Silence FFmpeg's and OpenCV's own stderr lines (``moov atom not found``, ``[ WARN:0@…]
+    cap.cpp``): a video or RTSP failure is reported once, as our :class:`SourceError` (one
+    ``cbh: error:`` line), not as library noise around it. ``OPENCV_FFMPEG_LOGLEVEL`` set by the
+    user wins."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET; read when FFmpeg opens
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
 class VideoSource(FrameSource):
     """RTSP stream or video file through OpenCV's FFmpeg backend.
 
@@ -464,6 +473,7 @@ class VideoSource(FrameSource):
             raise SourceError(f"{self.camera}: video file not found: {self.uri}")
         if self.live and "OPENCV_FFMPEG_CAPTURE_OPTIONS" not in os.environ:
             os.environ["OPENCV_FFMPEG_CAPTURE_OPTIONS"] = "rtsp_transport;tcp"
+        quiet_video_logs()
         ms = int(self.stall_timeout_s * 1000)
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms]
         cap = cv2.VideoCapture(self.uri, cv2.CAP_FFMPEG, params)
