@@ -285,3 +285,22 @@ def test_layer_covers_add_up_to_the_cloud_fraction_and_match_the_truth():
     for layer, truth in zip(r.layers, sorted(shot.layers, key=lambda l: l.height_m)):
         true_cover = float(np.mean(np.abs(v1.height_m[sky] - truth.height_m) < 1.0))
         assert layer.cover == pytest.approx(true_cover, abs=0.03), (layer.cover, true_cover)
+
+
+def test_low_stratus_below_300_m_is_measured_not_pinned_to_the_sweep_range():
+    """A single layer at 200 m (low stratus, fog lifting; inside filtering's 100 m floor) on the
+    unb-lea station (50 m baseline). The plane sweep used to start at 300 m: its cloud pixels
+    pinned to the lowest plane (302 m, spread 0, confidence 1) and ZNCC aliases made a second
+    layer near 1.5 km, outvoting LK's correct 200 m, with no flag. At 200 m and 50 m the
+    parallax is ~14 deg, so a 1-px match error at 480 px (~0.35 deg/px) is ~3 % of the height:
+    10 % is a generous bound; exactly one layer."""
+    from cbh.sim import SkySimulator, parse_scene
+
+    sc = parse_scene({"name": "low-stratus", "time_utc": "2024-06-21T14:00:00Z",
+                      "layers": [{"height_m": 200.0, "coverage": 0.5, "texture_scale_m": 300.0, "seed": 5}]})
+    sim = SkySimulator(load_station(station_path("unb-lea")), sc, size_px=480)
+    shot = sim.render()
+    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc,
+                                      channels="bgr")
+    assert len(r.layers) == 1, [(l.height_m, l.points) for l in r.layers]
+    assert r.layers[0].height_m == pytest.approx(200.0, rel=0.10)

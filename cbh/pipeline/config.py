@@ -143,7 +143,8 @@ class SweepConfig:
     coarse_step_px: float = 1.0  # largest image shift between coarse planes, at coarse size [px]
     step_px: float = 1.0  # largest image shift between fine planes, at working size [px]
     far_px: float = 6.0  # the fine pass sweeps every plane up to this parallax from infinity [px]
-    min_height_m: float = 300.0  # lowest plane, above the ENU origin [m]
+    min_height_m: float = 100.0  # lowest plane, above the ENU origin [m]; filtering's floor: lower clouds pinned to the
+    #                             lowest plane were reported there with confidence 1 (a 200 m layer as 302 m)
     max_height_m: float = 15000.0  # highest plane, above the ENU origin [m]
     min_zncc: float = 0.6  # a pixel's best plane must correlate at least this well [1]
     min_texture: float = 1.0  # grey-level standard deviation in the window, at least [0..255]
