@@ -164,6 +164,8 @@ def test_directories_of_timestamped_images(sim320, station320, tmp_path, capsys)
     (["--source", "cam1"], "expected CAMERA=SPEC"),
     (["--source", "cam1=/nonexistent/dir", "--source", "cam2=/nonexistent/dir"], "no such file or directory"),
     (["--source", "cam1=sim", "--source", "cam2=ftp://x"], "would be simulated"),
+    # the same camera twice: the second silently won, and the error then blamed cam2
+    (["--source", "cam1=/a", "--source", "cam1=/b"], "cam1 has two --source"),
     (["out.mcap"], "goes after --record"),
     (["--rerun", "bogus"], "--rerun"),
     (["--frames", "0"], "service.frames"),

@@ -174,6 +174,9 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         if cam.strip() not in st.cameras:
             raise ConfigError(f"camera source {s!r}: no camera {cam.strip()!r} in station {st.name!r} "
                               f"(cameras: {', '.join(st.cameras)})")
+        if cam.strip() in overrides:  # the second one silently won
+            raise ConfigError(f"camera {cam.strip()} has two --source: {overrides[cam.strip()]!r} and "
+                              f"{spec.strip()!r} (give each camera one)")
         overrides[cam.strip()] = spec.strip()
     c1, c2 = st.pair(cameras)
     names = (c1.name, c2.name)
