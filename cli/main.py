@@ -52,12 +52,6 @@ for _name in COMMANDS:
     importlib.import_module(f"cbh.cli.commands.{_name}").register(app)
 
 
-def fail(message: str, code: int = 2) -> "typer.Exit":
-    """Print ``cbh: error: message`` on stderr and return the Exit to raise."""
-    print(f"cbh: error: {message}", file=sys.stderr)
-    return typer.Exit(code)
-
-
 def _exceptions(name: str) -> tuple[type, ...]:
     """Exception class ``name`` from every click that can raise it here: the installed typer may
     bundle its own click (``typer._click``, with Exit/Abort in ``typer.exceptions``) besides,
