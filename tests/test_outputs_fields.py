@@ -284,10 +284,6 @@ def test_motion_quality_goes_through_mcap_and_tables(tmp_path, station):
 
     from cbh.outputs.export import export_sessions
     from cbh.outputs.record import open_session
-    from cbh.result import Layer
-
-    if "motion_tracks" not in Layer.__dataclass_fields__:
-        pytest.skip("Layer has no motion_spread_ms/motion_tracks (the motion estimator is not merged)")
     frames, res = synthetic_pair(station, 1)
     res = replace(res, layers=[replace(l, motion_east_ms=4.0, motion_north_ms=1.0, motion_spread_ms=0.25 * (i + 1),
                                        motion_tracks=40 + i) for i, l in enumerate(res.layers)])
