@@ -2,7 +2,9 @@
 
 A scene says *what is in the sky*; the station (:mod:`cbh.geometry.station`) says *who looks at it*.
 :class:`cbh.sim.SkySimulator` renders one through the other. Every table and key is optional
-except ``[[layers]]`` entries' ``height_m``; unknown keys are a :class:`~cbh.errors.ConfigError`
+except ``[[layers]]`` entries' ``height_m`` and ``coverage``, ``[[obstacles]]`` entries'
+``kind``, ``azimuth_deg`` and ``max_elevation_deg``, and ``[[imperfections]]`` entries'
+``camera``; unknown keys are a :class:`~cbh.errors.ConfigError`
 naming the key path (e.g. ``layers[1].coverage``). Heights are above the station's ENU origin.
 
 The file format::
