@@ -486,3 +486,26 @@ def test_cli_bad_scene_exits_2(tmp_path, capsys):
     assert rc == 2 and err.startswith("cbh: error:") and "layers[0].coverage" in err
     rc = main(["simulate", "--out", str(tmp_path / "o"), "--start", "yesterday"])
     assert rc == 2 and "--start" in capsys.readouterr().err
+
+
+def test_camera_servers_print_a_url_a_client_can_open(tmp_path):
+    """--bind to one address: the URLs name that address (RTSP said 127.0.0.1 whatever it was
+    bound to); --bind 0.0.0.0 (every interface): the URLs name the loopback, which a client on
+    this machine can open (0.0.0.0 is not an address to connect to)."""
+    import socket
+    import urllib.request
+
+    import cv2
+
+    from cbh.sim.camera_server import CameraServer, RtspCameraServer
+
+    jpeg = cv2.imencode(".jpg", np.full((16, 16, 3), (200, 120, 60), np.uint8))[1].tobytes()
+    with RtspCameraServer(lambda cam, t: jpeg, ["cam1"], fps=5, host="127.0.0.2") as srv:
+        url = srv.url("cam1")
+        assert url.startswith("rtsp://127.0.0.2:")
+        socket.create_connection(("127.0.0.2", srv.port), timeout=2).close()
+    with CameraServer(lambda cam, t: jpeg, ["cam1"], fps=5, host="0.0.0.0") as srv:
+        url = srv.url("cam1", "snapshot")
+        assert url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(url, timeout=5) as resp:
+            assert resp.read()[:2] == b"\xff\xd8"

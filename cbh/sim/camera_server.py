@@ -67,6 +67,13 @@ def _listen(server_cls, host: str, port: int, handler, what: str):
         raise ConfigError(f"{what}: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
 
 
+def _client_host(bound: str) -> str:
+    """The address a client on this machine connects to for a server bound to ``bound``: the
+    address itself, or the loopback for a wildcard (0.0.0.0 / :: listen on every interface but
+    are not an address to connect to)."""
+    return "127.0.0.1" if bound in ("", "0.0.0.0", "::") else bound
+
+
 class CameraServer:
     """HTTP server on 127.0.0.1 serving each camera's frames; use as a context manager.
 
@@ -124,8 +131,9 @@ class CameraServer:
         return self._httpd.server_address[1]
 
     def url(self, camera: str, kind: str = "mjpeg") -> str:
-        """``http://127.0.0.1:PORT/mjpeg/<camera>`` or ``…/snapshot/<camera>.jpg``."""
-        host = self._httpd.server_address[0]
+        """``http://HOST:PORT/mjpeg/<camera>`` or ``…/snapshot/<camera>.jpg`` (HOST: the bound
+        address; the loopback when bound to every interface)."""
+        host = _client_host(self._httpd.server_address[0])
         if kind == "mjpeg":
             return f"http://{host}:{self.port}/mjpeg/{camera}"
         if kind == "snapshot":
@@ -372,7 +380,8 @@ class RtspCameraServer:
         return self._srv.server_address[1]
 
     def url(self, camera: str) -> str:
-        return f"rtsp://127.0.0.1:{self.port}/{camera}"
+        """``rtsp://HOST:PORT/<camera>`` (HOST as for :meth:`CameraServer.url`)."""
+        return f"rtsp://{_client_host(self._srv.server_address[0])}:{self.port}/{camera}"
 
     def start(self) -> "RtspCameraServer":
         self._t0 = time.monotonic()
