@@ -166,6 +166,8 @@ def test_directories_of_timestamped_images(sim320, station320, tmp_path, capsys)
     (["--source", "cam1=sim", "--source", "cam2=ftp://x"], "would be simulated"),
     # the same camera twice: the second silently won, and the error then blamed cam2
     (["--source", "cam1=/a", "--source", "cam1=/b"], "cam1 has two --source"),
+    # --overwrite is for --record: with only --export the file was silently appended to
+    (["--export", "/proc/cbh-no-such-dir/x.csv", "--overwrite", "--frames", "1", "--size", "64"], "needs --record"),
     (["out.mcap"], "goes after --record"),
     (["--rerun", "bogus"], "--rerun"),
     (["--frames", "0"], "service.frames"),

@@ -197,6 +197,9 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
         raise ConfigError(f"export file {export}: the name must end in .csv or .parquet")
     if record is None and (rotate_mb is not None or rotate_s is not None):
         raise ConfigError("file rotation (rotate_mb, rotate_s) needs a recording")
+    if record is None and overwrite:  # `--export x.csv --overwrite` appended, silently
+        raise ConfigError("--overwrite replaces an existing --record PATH and needs --record "
+                          "(an --export file is always appended to)")
     if record is not None and rotate_mb is None and rotate_s is None:
         # an MCAP writer keeps an index entry per message until the file is finished (~3 KB
         # per pair): an unrotated recording grows the process without bound
