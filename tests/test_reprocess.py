@@ -356,3 +356,26 @@ def test_ctrl_c_keeps_finished_days_and_rerun_finishes(archive, baseline, tmp_pa
     _, s2 = _run(archive, out)
     assert s2.days_resumed + s2.days_written == 2 and s2.days_resumed >= 1
     assert s2.pairs_processed == (3 if s2.days_written else 0)  # day 2 has 3 pairs
+
+
+def test_a_replaced_image_redoes_its_day_a_repaired_copy_does_not(tmp_path):
+    """A corrupt image replaced under the same name kept its day "already done" (with the failure)
+    forever: the day's work hash named only times and paths. Now the files' size (images and
+    videos: and modification time) is in it; a recording's repaired copy, rewritten by every run
+    with the same bytes, keeps the hash."""
+    from cbh.actions.archive import FrameRef, PairRef
+    from cbh.actions.reprocess import _work_hash
+
+    t = datetime(2024, 6, 21, 14, tzinfo=timezone.utc)
+    a, b, rec = tmp_path / "a.jpg", tmp_path / "b.jpg", tmp_path / "r.mcap"
+    a.write_bytes(b"\xff\xd8 good image")
+    b.write_bytes(b"junk")  # the corrupt one
+    rec.write_bytes(b"recorded bytes")
+    img = [PairRef(t, FrameRef("cam1", t, "image", str(a)), FrameRef("cam2", t, "image", str(b)))]
+    recd = [PairRef(t, FrameRef("cam1", t, "recording", str(rec), 0), FrameRef("cam2", t, "recording", str(rec), 0))]
+    h_img, h_rec = _work_hash(img), _work_hash(recd)
+    assert _work_hash(img) == h_img  # nothing changed: the day stays done
+    b.write_bytes(b"\xff\xd8 the real image, copied again")
+    assert _work_hash(img) != h_img
+    os.utime(rec, ns=(1, 1))  # rewritten with the same bytes (a repaired copy): same hash
+    assert _work_hash(recd) == h_rec

@@ -263,10 +263,25 @@ def _station_hash(job: StationJob) -> str:
 
 
 def _work_hash(pairs: list[PairRef]) -> str:
+    """Changes when a day's pairs change: their times and places, and each input file's size (and,
+    for images and videos, its modification time), so a corrupt image replaced under the same name
+    redoes its day instead of keeping the failure (recordings: size only, since a truncated one is
+    read through a repaired copy that each run writes anew)."""
+    stats: dict[str, str] = {}
+
+    def stamp(f) -> str:
+        if f.path not in stats:
+            try:
+                st = os.stat(f.path)
+                stats[f.path] = f"{st.st_size}" + ("" if f.kind == "recording" else f":{st.st_mtime_ns}")
+            except OSError:
+                stats[f.path] = "missing"
+        return stats[f.path]
+
     h = hashlib.sha256()
     for p in pairs:
         for f in (p.frame1, p.frame2):
-            h.update(f"{f.time_utc.isoformat()}|{f.kind}|{f.path}|{f.index}\n".encode())
+            h.update(f"{f.time_utc.isoformat()}|{f.kind}|{f.path}|{f.index}|{stamp(f)}\n".encode())
     return h.hexdigest()[:16]
 
 
