@@ -75,3 +75,18 @@ def test_errors_are_one_line_exit_2(sim_pair, tmp_path, capsys, case):
     assert rc == 2
     assert err.startswith("cbh: error:") and err.count("\n") == 1
     assert "Traceback" not in err
+
+
+def test_height_map_never_writes_over_a_non_npy_file(sim_pair, tmp_path, capsys):
+    """``--height-map SESSION.mcap`` (or an input image's name) replaced that file with the array:
+    the recording was lost. Now a .npy name is required: one error line, exit 2, file untouched."""
+    d = sim_pair
+    rec = tmp_path / "session.mcap"
+    rec.write_bytes(b"\x89MCAP0\r\n recorded data")
+    a, b = str(d / "cam1_20240621T140000Z.png"), str(d / "cam2_20240621T140000Z.png")
+    for target in (rec, d / "cam2_20240621T140000Z.png"):
+        before = target.read_bytes()
+        rc = main(["pair", a, b, "--station", str(d / "station.toml"), "--height-map", str(target)])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith("cbh: error:") and err.count("\n") == 1 and ".npy" in err, err
+        assert target.read_bytes() == before

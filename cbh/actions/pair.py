@@ -68,6 +68,11 @@ def process_pair(image1, image2, station, cameras: str | None = None, time_utc: 
     from cbh.presets import station_path
     from cbh.pipeline import Pipeline
 
+    if height_map_path is not None and Path(height_map_path).suffix.lower() != ".npy":
+        from cbh.errors import ConfigError
+
+        # any name was written over: `--height-map SESSION.mcap` (or an input image) was lost
+        raise ConfigError(f"--height-map {height_map_path}: the map is a NumPy array; use a .npy file name")
     pipe = Pipeline(load_station(station_path(str(station))), cameras, device=device)
     t = time_utc if time_utc is not None else time_from_name(Path(image1).name)
     state = None
