@@ -306,3 +306,16 @@ def test_calibrate_reads_a_recording_of_cbh_run(tmp_path, repo, capsys):
     assert rep["cameras"]["cam1"]["frames"] == 3 and rep["cameras"]["cam2"]["frames"] == 3
     cal = load_station(out)
     assert angle_between_deg(cal.cameras["cam2"].R_world_from_cam, sim.station.cameras["cam2"].R_world_from_cam) < 0.05
+
+
+def test_out_must_be_a_toml_name(tmp_path, capsys):
+    """``--out SESSION.mcap`` wrote the station TOML over the recording (after minutes of work);
+    now it is refused up front: one error line, exit 2, the file untouched."""
+    from .conftest import REPO
+
+    rec = tmp_path / "session.mcap"
+    rec.write_bytes(b"\x89MCAP0\r\n recorded data")
+    code, _, err = _run(["calibrate", "--station", str(REPO / "configs" / "unb-lea.toml"), "--source",
+                         f"cam1={tmp_path}", "--source", f"cam2={tmp_path}", "--out", str(rec)], capsys)
+    assert code == 2 and err.startswith("cbh: error:") and err.count("\n") == 1 and ".toml" in err, err
+    assert rec.read_bytes() == b"\x89MCAP0\r\n recorded data"

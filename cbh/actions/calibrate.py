@@ -172,6 +172,8 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     t_start = time.perf_counter()
     station_path = Path(station_path)
     out = Path(out)
+    if out.suffix.lower() != ".toml":  # a calibration written over `--out SESSION.mcap` lost the recording
+        raise ConfigError(f"--out {out}: the calibrated station is TOML; use a .toml file name")
     station = load_station(station_path)
     _check_sources(station, sources)
     names = list(station.cameras)
