@@ -14,6 +14,25 @@ SIZE = 256  # camera 1's render width [px]
 PROBES = np.linspace(-2000.0, 2000.0, 7)  # probe cameras on a 7 x 7 grid of ground points [m]
 
 
+def _probe_sim(unb_station, cameras: tuple[str, ...], size: int):
+    """(simulator, scene, probes): the two-layer scene seen by the station's ``cameras`` and by
+    49 probe cameras (camera 1's model) standing on the ground at PROBES × PROBES."""
+    from cbh.presets import scene_path
+    from cbh.sim import SkySimulator
+    from cbh.sim.scene import load_scene
+
+    c1 = unb_station.cameras["cam1"]
+    cams = {k: unb_station.cameras[k] for k in cameras}
+    probes = []
+    for i, x in enumerate(PROBES):
+        for j, y in enumerate(PROBES):
+            name = f"p{i}_{j}"
+            cams[name] = replace(c1, name=name, position_m=np.array([x, y, 0.0]))
+            probes.append((name, float(x), float(y)))
+    scene = load_scene(scene_path("two-layers"))
+    return SkySimulator(replace(unb_station, cameras=cams).scaled(size), scene), scene, probes
+
+
 @pytest.fixture(scope="module")
 def probe_world(unb_station):
     """The two-layer scene seen by camera 1 and by 49 probe cameras standing on the ground.
@@ -22,21 +41,7 @@ def probe_world(unb_station):
     exactly when g lies in a cloud's shadow (the renderer traces that ray through the layers),
     with nothing of cbh's ground-projection code involved.
     """
-    from cbh.presets import scene_path
-    from cbh.sim import SkySimulator
-    from cbh.sim.scene import load_scene
-
-    c1 = unb_station.cameras["cam1"]
-    cams = {"cam1": c1}
-    probes = []
-    for i, x in enumerate(PROBES):
-        for j, y in enumerate(PROBES):
-            name = f"p{i}_{j}"
-            cams[name] = replace(c1, name=name, position_m=np.array([x, y, 0.0]))
-            probes.append((name, float(x), float(y)))
-    scene = load_scene(scene_path("two-layers"))
-    sim = SkySimulator(replace(unb_station, cameras=cams).scaled(SIZE), scene)
-    return sim, scene, probes
+    return _probe_sim(unb_station, ("cam1",), SIZE)
 
 
 def _labels(sim, scene, t, *, sun_disk: bool):
@@ -187,20 +192,8 @@ def test_shadow_map_through_the_whole_pipeline(unb_station):
     from cbh.geometry import ground
     from cbh.pipeline import Pipeline
     from cbh.pipeline.config import PipelineConfig
-    from cbh.presets import scene_path
-    from cbh.sim import SkySimulator
-    from cbh.sim.scene import load_scene
 
-    c1 = unb_station.cameras["cam1"]
-    cams = dict(unb_station.cameras)
-    probes = []
-    for i, x in enumerate(PROBES):
-        for j, y in enumerate(PROBES):
-            name = f"p{i}_{j}"
-            cams[name] = replace(c1, name=name, position_m=np.array([x, y, 0.0]))
-            probes.append((name, float(x), float(y)))
-    scene = load_scene(scene_path("two-layers"))
-    sim = SkySimulator(replace(unb_station, cameras=cams).scaled(640), scene)
+    sim, scene, probes = _probe_sim(unb_station, tuple(unb_station.cameras), 640)
     t = scene.time_utc
     st = replace(sim.station, cameras={k: sim.station.cameras[k] for k in ("cam1", "cam2")})
     f1, f2 = sim.frame("cam1", t), sim.frame("cam2", t)

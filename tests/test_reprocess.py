@@ -173,12 +173,8 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
 
 
 @pytest.mark.slow  # a Ray worker killed and restarted: ~10 s; the default tier runs Ray in the test above
-def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_path):
-    """SIGKILL of an actor process while its first chunk is in flight: Ray restarts the actor,
-    retries the chunk, and the output equals the undisturbed run."""
-    from cbh.actions.reprocess import daily_paths
-
-    _, _, base_out = baseline
+def _kill_first_dispatched_worker():
+    """(killed pids, an ``on_event`` callback that SIGKILLs the actor of the first dispatched chunk)."""
     pids: list[int] = []
     killed: list[int] = []
 
@@ -188,6 +184,17 @@ def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_
         elif e["event"] == "dispatch" and not killed:
             os.kill(pids[e["slot"]], signal.SIGKILL)
             killed.append(pids[e["slot"]])
+
+    return killed, on_event
+
+
+def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_path):
+    """SIGKILL of an actor process while its first chunk is in flight: Ray restarts the actor,
+    retries the chunk, and the output equals the undisturbed run."""
+    from cbh.actions.reprocess import daily_paths
+
+    _, _, base_out = baseline
+    killed, on_event = _kill_first_dispatched_worker()
 
     _, s = _run(archive, tmp_path / "out", on_event=on_event)
     assert killed
@@ -205,15 +212,7 @@ def test_worker_that_ray_gives_up_on_is_replaced(archive, baseline, tmp_path):
     from cbh.actions.reprocess import daily_paths
 
     _, _, base_out = baseline
-    pids: list[int] = []
-    killed: list[int] = []
-
-    def on_event(e):
-        if e["event"] == "workers":
-            pids.extend(e["pids"])
-        elif e["event"] == "dispatch" and not killed:
-            os.kill(pids[e["slot"]], signal.SIGKILL)
-            killed.append(pids[e["slot"]])
+    killed, on_event = _kill_first_dispatched_worker()
 
     _, s = _run(archive, tmp_path / "out", on_event=on_event, actor_restarts=0)
     assert killed and s.retried_chunks >= 1

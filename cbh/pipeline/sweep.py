@@ -626,6 +626,12 @@ def _per_pixel(g1, g2, cloud1, maps, s, ds, cfg):
     return sl, ok, _refine(j, c0, cm1, cp1, s, ds)
 
 
+def plane_range(o1z: float, cfg) -> tuple[float, float]:
+    """The sweep's plane parameter range (s_min, s_max), s = 1/(h − o1z) [1/m], from the
+    configured height range (``cfg.max_height_m`` → s_min, ``cfg.min_height_m`` → s_max)."""
+    return 1.0 / max(cfg.max_height_m - o1z, 1.0), 1.0 / max(cfg.min_height_m - o1z, 1.0)
+
+
 class PassTimer:
     """Wall time of consecutive passes: ``lap(name)`` stores the time since the previous lap [ms]."""
 
@@ -671,8 +677,7 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
         return empty
     g1 = gray1.astype(np.float32)
     g2 = gray2.astype(np.float32)
-    s_min = 1.0 / max(cfg.max_height_m - o1z, 1.0)
-    s_max = 1.0 / max(cfg.min_height_m - o1z, 1.0)
+    s_min, s_max = plane_range(o1z, cfg)
     coarse = coarse_pass(g1, g2, cloud1, maps, s_min, s_max, o1z, cfg)
     if coarse is None:
         return empty

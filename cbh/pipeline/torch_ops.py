@@ -47,7 +47,7 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, coarse_hypotheses, fine_planes, layer_box,
+    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_hypotheses, fine_planes, layer_box,
     layer_planes, vote_layers,
 )
 
@@ -344,8 +344,7 @@ def sweep_matches_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray
     dev = tm.device
     g1 = torch.as_tensor(np.ascontiguousarray(gray1), device=dev).float()
     g2 = torch.as_tensor(np.ascontiguousarray(gray2), device=dev).float()
-    s_min = 1.0 / max(cfg.max_height_m - o1z, 1.0)
-    s_max = 1.0 / max(cfg.min_height_m - o1z, 1.0)
+    s_min, s_max = plane_range(o1z, cfg)
     coarse = coarse_pass_torch(g1, g2, cloud1, tm, s_min, s_max, o1z, cfg)
     if coarse is None:
         return empty
