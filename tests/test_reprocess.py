@@ -378,3 +378,20 @@ def test_a_replaced_image_redoes_its_day_a_repaired_copy_does_not(tmp_path):
     assert _work_hash(img) != h_img
     os.utime(rec, ns=(1, 1))  # rewritten with the same bytes (a repaired copy): same hash
     assert _work_hash(recd) == h_rec
+
+
+def test_every_pair_failing_is_an_error(archive, ray_session, tmp_path, capsys):
+    """An archive none of whose pairs can be processed (every camera-1 image unreadable) is a
+    run that could not do its job: one line, exit 2, not 'days: 1 written'."""
+    from cbh.cli.main import main
+
+    bad = tmp_path / "bad"
+    for cam in ("cam1", "cam2"):
+        shutil.copytree(archive / cam / "2024-06-21", bad / cam / "2024-06-21")
+    for f in (bad / "cam1" / "2024-06-21").glob("*.jpg"):
+        f.write_bytes(b"\xff\xd8 not a jpeg")
+    rc = main(["reprocess", "--station", str(archive / "station.toml"), "--source", f"cam1={bad / 'cam1'}",
+               "--source", f"cam2={bad / 'cam2'}", "--out", str(tmp_path / "out"), "--workers", "2"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "cbh: error: every pair failed (4 of 4" in err

@@ -52,3 +52,7 @@ def reprocess_cmd(
     if s.interrupted:
         print("cbh: interrupted: finished days kept; run the same command again to resume", file=sys.stderr)
         raise typer.Exit(130)
+    if s.pairs_processed and s.failures == s.pairs_processed:
+        print(f"cbh: error: every pair failed ({s.failures} of {s.pairs_processed}: unreadable images, or images "
+              "that do not match the station's calibration?); see the log lines above", file=sys.stderr)
+        raise typer.Exit(2)
