@@ -304,3 +304,29 @@ def test_low_stratus_below_300_m_is_measured_not_pinned_to_the_sweep_range():
                                       channels="bgr")
     assert len(r.layers) == 1, [(l.height_m, l.points) for l in r.layers]
     assert r.layers[0].height_m == pytest.approx(200.0, rel=0.10)
+
+
+def test_low_stratus_under_cumulus_both_layers_meet_the_bar():
+    """250 m stratus under 1500 m cumulus (B = 50 m). The coarse pass sweeps the planes with more
+    than ``coarse_near_px`` of parallax at half its size; at 480 px the 250 m layer has ≈ 30 px,
+    so the split is set to 12 px here to put it among the near planes (at the default 32 px and
+    960 px working size, that is everything below ≈ 480 m). Both layers must meet the scene bar:
+    the near layer must still become a hypothesis and be refined, and the 1500 m layer beside it
+    must not lose its votes to the near planes."""
+    from cbh.sim import SkySimulator, parse_scene
+    from cbh.pipeline import sweep as S
+
+    sc = parse_scene({"name": "low-two", "time_utc": "2024-06-21T14:00:00Z", "layers": [
+        {"height_m": 250.0, "coverage": 0.3, "texture_scale_m": 300.0, "seed": 51},
+        {"height_m": 1500.0, "coverage": 0.35, "texture_scale_m": 900.0, "seed": 52}]})
+    sim = SkySimulator(load_station(station_path("unb-lea")), sc, size_px=480)
+    sim.station.sections["pipeline"] = {"matching": {"sweep": {"coarse_near_px": 12.0}}}
+    shot = sim.render()
+    pipe = Pipeline(sim.station)
+    cfg = pipe.config.matching.sweep
+    o1z = float(pipe.geometry.cam1.position_m[2])
+    plan = S.coarse_planes(*S.plane_range(o1z, cfg), pipe.geometry.planes.scale_px, cfg)
+    s_low, s_high = 1.0 / (250.0 - o1z), 1.0 / (1500.0 - o1z)
+    assert plan.s[plan.near[0]] < s_low < plan.s[plan.near[-1]]  # the low layer: near planes
+    assert plan.s[plan.far[0]] < s_high < plan.s[plan.far[-1]]  # the cumulus: far planes
+    _check(sim, shot)

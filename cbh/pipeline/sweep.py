@@ -108,7 +108,9 @@ import numpy as np
 
 from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
 
-__all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_pass", "fine_planes", "fine_pass",
+__all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
+           "coarse_pass",
+           "fine_planes", "fine_pass",
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
@@ -256,13 +258,18 @@ def zncc_planes(gray1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values:
     return out, std1
 
 
-def _bbox(mask: np.ndarray, pad: int, even: bool = False):
-    """Bounding box of ``mask`` grown by ``pad``; ``even``: start and size even (for 2× pooling)."""
+def _bbox(mask: np.ndarray, pad: int, even: bool = False, align: int = 1):
+    """Bounding box of ``mask`` grown by ``pad``; ``even``: start and size even (for 2× pooling);
+    ``align``: start and size multiples of ``align`` (within the image's last whole multiple)."""
     ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
     h, w = mask.shape
     y0, y1 = max(ys[0] - pad, 0), min(ys[-1] + pad + 1, h)
     x0, x1 = max(xs[0] - pad, 0), min(xs[-1] + pad + 1, w)
-    if even:
+    if align > 1:
+        y0, x0 = y0 - y0 % align, x0 - x0 % align
+        y1 = min(y0 + -(-(y1 - y0) // align) * align, h - h % align)
+        x1 = min(x0 + -(-(x1 - x0) // align) * align, w - w % align)
+    elif even:
         y0, x0 = y0 - y0 % 2, x0 - x0 % 2
         y1 = min(y1 + (y1 - y0) % 2, h - (h - y0) % 2)
         x1 = min(x1 + (x1 - x0) % 2, w - (w - x0) % 2)
@@ -407,42 +414,127 @@ class LayerLabels:
     s_wide: np.ndarray  # (h/2, w/2) float32: s of the wide-box winner, refined [1/m]
 
 
-def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s_min: float, s_max: float,
-                o1z: float, cfg) -> CoarseLayers | None:
-    """Pass 1: at 1/``coarse_factor`` size, every plane from ``s_min`` to ``s_max`` one coarse pixel apart;
-    each cloud pixel votes for its best plane (ZNCC ≥ ``min_zncc``); the vote peaks are the
-    layer hypotheses. None: no cloud at coarse size."""
-    f = int(cfg.coarse_factor)
-    if f > 1:
-        cm = maps.downsampled(f)
-        h, w = g1.shape
-        h2, w2 = g2.shape
-        c1 = cv2.resize(g1, (w // f, h // f), interpolation=cv2.INTER_AREA)
-        c2 = cv2.resize(g2, (w2 // f, h2 // f), interpolation=cv2.INTER_AREA)
-        ccloud = cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
+@dataclass
+class CoarsePlanes:
+    """The coarse pass's planes: a uniform vote grid ``s`` (``ds`` apart: one pixel of shift at
+    1/``coarse_factor`` size) of which the ``far`` ones (parallax up to ``coarse_near_px`` at
+    working size) are swept at 1/``coarse_factor`` size and the ``near`` ones (every second grid
+    plane beyond) at 1/(2·``coarse_factor``) size."""
+
+    s: np.ndarray  # (G,) float64 [1/m], ascending
+    ds: float  # [1/m]
+    far: np.ndarray  # (Pf,) int: indices into s
+    near: np.ndarray  # (Pn,) int: indices into s; each stands for grid planes q − 1 … q + 1
+
+
+def coarse_planes(s_min: float, s_max: float, scale_px: float, cfg) -> CoarsePlanes:
+    """The coarse planes from ``s_min`` to ``s_max`` for a working-size parallax scale ``scale_px``
+    [px·m] (see :class:`CoarsePlanes`).
+
+    Why two sizes: the planes are uniform in s, so the floor of the sweep (100 m) makes most of
+    them near planes: at B = 50 m, 96 % of the parallax range lies below 480 m. A near layer's
+    parallax is large (32 … 150 px at working size), so one pixel of shift at half the coarse
+    size is still a few per cent of its height, which is all a hypothesis needs (the fine pass
+    refines it at working size); each such plane costs a quarter, and half as many are needed.
+    """
+    f = max(int(cfg.coarse_factor), 1)
+    ds = float(cfg.coarse_step_px) * f / scale_px
+    s = np.arange(s_min, s_max + ds, ds)
+    idx = np.arange(len(s))
+    if cfg.coarse_near_px <= 0:
+        return CoarsePlanes(s, ds, idx, idx[:0])
+    k = int(np.searchsorted(s, cfg.coarse_near_px / scale_px, side="right"))
+    return CoarsePlanes(s, ds, idx[:k], idx[k + 1::2])
+
+
+def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_near, min_zncc: float) -> np.ndarray:
+    """Votes of the coarse cloud cells on the grid ``plan.s``: each cell of ``cloud`` (h, w) bool
+    votes for its best plane, far (``j_far``, ``c_far``: index into ``plan.far`` and ZNCC, (h, w))
+    or near (``j_near``, ``c_near``: into ``plan.near``, (h/2, w/2), one cell per 2 × 2 far
+    cells), whichever correlates better, when that ZNCC is ≥ ``min_zncc``. A near plane's vote is
+    spread 1/4, 1/2, 1/4 over grid planes q − 1, q, q + 1 (it stands for two grid steps), so the
+    histogram stays uniform in s. Either tier may be None (no planes there). Returns (G,) float64."""
+    n = len(plan.s)
+    votes = np.zeros(n)
+    h, w = cloud.shape
+    if j_near is not None:
+        up = lambda a: np.repeat(np.repeat(a, 2, axis=0), 2, axis=1)[:h, :w]  # noqa: E731
+        jn, cn = up(j_near), up(c_near)
+        near_wins = cn > c_far if c_far is not None else np.ones((h, w), bool)
+        best = np.where(near_wins, cn, c_far) if c_far is not None else cn
     else:
-        cm, c1, c2, ccloud = maps, g1, g2, cloud1
+        near_wins, best = np.zeros((h, w), bool), c_far
+    good = cloud & (best >= min_zncc)
+    if j_far is not None:
+        votes += np.bincount(plan.far[j_far[good & ~near_wins]], minlength=n)
+    if j_near is not None:
+        q = plan.near[jn[good & near_wins]]
+        for d, wt in ((-1, 0.25), (0, 0.5), (1, 0.25)):
+            votes += wt * np.bincount(np.clip(q + d, 0, n - 1), minlength=n)
+    return votes
+
+
+def coarse_regions(cloud1: np.ndarray, plan: CoarsePlanes, cfg):
+    """The swept regions and their cloud: (cloud cells (h/2, w/2) bool: 2 × 2 blocks of the region
+    at 1/``coarse_factor`` size that are mostly cloud, the region at that size, the region at half
+    that size or None). With near planes the region is aligned to 4 pixels, so that each near
+    cell covers exactly 2 × 2 far cells. None: no cloud at coarse size."""
+    f = max(int(cfg.coarse_factor), 1)
+    h, w = cloud1.shape
+    ccloud = (cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
+              if f > 1 else cloud1)
     if not ccloud.any():
         return None
-    ds_c = cfg.coarse_step_px / cm.scale_px
-    s = np.arange(s_min, s_max + ds_c, ds_c)
-    slc = _bbox(ccloud, cfg.coarse_window_px, even=True)
-    it = _zncc_half_iter(np.ascontiguousarray(c1[slc]), c2, cm, s, cfg.coarse_window_px // 2, slc)
+    two = len(plan.near) > 0
+    slc = _bbox(ccloud, cfg.coarse_window_px, even=True, align=4 if two else 1)
+    if slc[0].stop <= slc[0].start or slc[1].stop <= slc[1].start:
+        return None
+    half = np.s_[slc[0].start // 2: slc[0].stop // 2, slc[1].start // 2: slc[1].stop // 2] if two else None
+    return _pool2(ccloud[slc].astype(np.float32)) >= 0.5, slc, half
+
+
+def _best_plane(c1: np.ndarray, c2: np.ndarray, maps: PlaneMaps, s: np.ndarray, half_window: int, sl):
+    """Best plane (index into ``s``) and its ZNCC per half-resolution cell of region ``sl``."""
+    it = _zncc_half_iter(np.ascontiguousarray(c1[sl]), c2, maps, s, half_window, sl)
     next(it)
     run = _Best3(neighbours=False)
     for q, sc in it:
         run.add(q, sc)
     best, cbest, _, _ = run.result()
-    cl = _pool2(ccloud[slc].astype(np.float32)) >= 0.5
-    good = cl & (cbest >= cfg.min_zncc)
-    return coarse_hypotheses(best[good], float(cl.sum()), s, ds_c, o1z, cfg)
+    return best, cbest
 
 
-def coarse_hypotheses(best_plane: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: float, o1z: float,
+def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s_min: float, s_max: float,
+                o1z: float, cfg) -> CoarseLayers | None:
+    """Pass 1: the planes from ``s_min`` to ``s_max`` one coarse pixel apart (:func:`coarse_planes`:
+    near ones at half the coarse size); each cloud cell votes for its best plane (ZNCC ≥
+    ``min_zncc``, :func:`coarse_votes`); the vote peaks are the layer hypotheses. None: no cloud
+    at coarse size."""
+    f = max(int(cfg.coarse_factor), 1)
+    plan = coarse_planes(s_min, s_max, maps.scale_px, cfg)
+    reg = coarse_regions(cloud1, plan, cfg)
+    if reg is None:
+        return None
+    cl, slc, half = reg
+    h, w = g1.shape
+    h2, w2 = g2.shape
+    c1 = cv2.resize(g1, (w // f, h // f), interpolation=cv2.INTER_AREA) if f > 1 else g1
+    c2 = cv2.resize(g2, (w2 // f, h2 // f), interpolation=cv2.INTER_AREA) if f > 1 else g2
+    k = cfg.coarse_window_px // 2
+    j_far = c_far = j_near = c_near = None
+    if len(plan.far):
+        j_far, c_far = _best_plane(c1, c2, maps.downsampled(f) if f > 1 else maps, plan.s[plan.far], k, slc)
+    if half is not None:
+        j_near, c_near = _best_plane(_pool2(c1), _pool2(c2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
+    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
+
+
+def coarse_hypotheses(votes: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: float, o1z: float,
                       cfg) -> CoarseLayers:
-    """Layer hypotheses from the coarse votes: ``best_plane`` (N,) int, the best plane of each voting
-    cloud pixel (ZNCC ≥ ``min_zncc``) of ``n_cloud``; peaks need ``min_vote_fraction`` of them."""
-    votes = np.bincount(np.asarray(best_plane, np.int64), minlength=len(s)).astype(np.float64)
+    """Layer hypotheses from the coarse votes (G,) on the planes ``s`` (:func:`coarse_votes`) of
+    ``n_cloud`` cloud cells; peaks need ``min_vote_fraction`` of them."""
+    votes = np.asarray(votes, np.float64)
     peaks = find_peaks(votes, cfg.min_vote_fraction * n_cloud, cfg.valley_ratio)
     ranges = [peak_extent(votes, p, cfg.extent_ratio) for p in peaks]
     return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges])

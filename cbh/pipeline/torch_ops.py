@@ -47,8 +47,8 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_hypotheses, fine_planes, layer_box,
-    layer_planes, vote_layers,
+    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_hypotheses, coarse_planes,
+    coarse_regions, coarse_votes, fine_planes, layer_box, layer_planes, vote_layers,
 )
 
 __all__ = ["remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "angle_map_deg_torch",
@@ -223,29 +223,32 @@ def _region_t(r):
 
 def coarse_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s_min: float,
                       s_max: float, o1z: float, cfg) -> CoarseLayers | None:
-    """Pass 1 on the device (see :func:`cbh.pipeline.sweep.coarse_pass`)."""
-    import cv2
-
-    f = int(cfg.coarse_factor)
-    h, w = cloud1.shape
-    if f > 1:
-        c1 = F.avg_pool2d(g1[None, None], f)[0, 0]
-        c2 = F.avg_pool2d(g2[None, None], f)[0, 0]
-        cm = tm.downsampled(f, (c2.shape[1], c2.shape[0]))
-        ccloud = cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
-    else:
-        c1, c2, cm, ccloud = g1, g2, tm, cloud1
-    if not ccloud.any():
+    """Pass 1 on the device (see :func:`cbh.pipeline.sweep.coarse_pass`; the same planes,
+    regions and votes: :func:`~cbh.pipeline.sweep.coarse_planes`, ``coarse_regions``,
+    :func:`~cbh.pipeline.sweep.coarse_votes`)."""
+    f = max(int(cfg.coarse_factor), 1)
+    plan = coarse_planes(s_min, s_max, tm.scale_px, cfg)
+    reg = coarse_regions(cloud1, plan, cfg)
+    if reg is None:
         return None
-    ds_c = cfg.coarse_step_px / cm.scale_px
-    s = np.arange(s_min, s_max + ds_c, ds_c)
-    slc = _bbox(ccloud, cfg.coarse_window_px, even=True)
-    _, sc = zncc_half(c1[slc].contiguous(), c2, cm, s, cfg.coarse_window_px // 2, slc)
-    cbest, best = sc.max(0)
-    cl = torch.as_tensor(ccloud[slc].astype(np.float32), device=g1.device)
-    cl = pool2(cl[None, None])[0, 0] >= 0.5
-    good = cl & (cbest >= cfg.min_zncc)
-    return coarse_hypotheses(best[good].cpu().numpy(), float(cl.sum().item()), s, ds_c, o1z, cfg)
+    cl, slc, half = reg
+    c1 = F.avg_pool2d(g1[None, None], f)[0, 0] if f > 1 else g1
+    c2 = F.avg_pool2d(g2[None, None], f)[0, 0] if f > 1 else g2
+    k = cfg.coarse_window_px // 2
+
+    def best(a1, a2, factor, s, region):
+        cm = tm.downsampled(factor, (a2.shape[1], a2.shape[0])) if factor > 1 else tm
+        _, sc = zncc_half(a1[region].contiguous(), a2, cm, s, k, region)
+        c, j = sc.max(0)
+        return j.cpu().numpy(), c.cpu().numpy()
+
+    j_far = c_far = j_near = c_near = None
+    if len(plan.far):
+        j_far, c_far = best(c1, c2, f, plan.s[plan.far], slc)
+    if half is not None:
+        j_near, c_near = best(pool2(c1[None, None])[0, 0], pool2(c2[None, None])[0, 0], 2 * f, plan.s[plan.near], half)
+    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
 
 
 def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s: np.ndarray,
