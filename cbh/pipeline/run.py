@@ -65,6 +65,7 @@ from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, l
                                  offset_per_match, plane_offsets, running_offset, track_back)
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import segment
+from cbh.pipeline.threads import pmap
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation", "Correspondences", "Points"]
 
@@ -464,25 +465,27 @@ class Pipeline:
             sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
             if sun_zen >= 90.0:
                 sun_dir = None
-        usable, sun_angle = [], []
-        for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
+
+        def one(i):
             u = self.static_mask(i)
             ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
+            glare = False
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
-                sat = saturation_mask(img, cfg.masks)
+                sat = saturation_mask(work[i], cfg.masks)
                 if ang is not None and cfg.masks.glare_radius_deg < 180.0:
                     # saturated far from the sun: over-exposed cloud (clear sky never saturates
                     # all three channels), which stays usable sky and segments as cloud
                     sat &= ang <= cfg.masks.glare_radius_deg
                 if sat.any():
-                    u = u & ~sat
-                    if i == 0:
-                        ctx.flags.append("sun_glare")
-            usable.append(u)
-            sun_angle.append(ang)
-        return Masks(usable=(usable[0], usable[1]), sun_angle=(sun_angle[0], sun_angle[1]), sun_dir_enu=sun_dir)
+                    u, glare = u & ~sat, True
+            return u, ang, glare
+
+        (u1, a1, glare1), (u2, a2, _) = pmap(one, (0, 1), pool="stages")
+        if glare1:
+            ctx.flags.append("sun_glare")
+        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=sun_dir)
 
     def _angle_map(self, i: int, sun_dir: np.ndarray) -> np.ndarray:
         cam = (self.cam1, self.cam2)[i]
@@ -518,13 +521,14 @@ class Pipeline:
 
     def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky."""
-        clouds, fractions = [], {}
-        for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
-            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
-                              what=cam.name)
-            clouds.append(c)
-            fractions[cam.name] = frac
-        return Segmentation(clouds=(clouds[0], clouds[1]), fractions=fractions)
+        cams = (self.cam1, self.cam2)
+
+        def one(i):
+            return segment(work[i], masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
+                           what=cams[i].name)
+
+        (c1, f1), (c2, f2) = pmap(one, (0, 1), pool="stages")
+        return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
     def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
                     cloud2: np.ndarray | None = None) -> "Correspondences":
@@ -544,10 +548,12 @@ class Pipeline:
             device=self.device if self.backend == "torch" else None,
         )
         raw = []
-        if seg.clouds[0].any():
-            for name in cfg.matching.methods:
+        if seg.clouds[0].any():  # the matchers run side by side (their times overlap)
+            def one(name):
                 with _timed(ctx, f"match_{name}"):
-                    raw.append(get_matcher(name)(inp, cfg.matching))
+                    return get_matcher(name)(inp, cfg.matching)
+
+            raw = list(pmap(one, cfg.matching.methods, pool="stages"))
         with _timed(ctx, "triangulation"):
             tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
         return Correspondences(triangulated=tris, raw=raw)
@@ -557,13 +563,16 @@ class Pipeline:
         cfg = self.config.sun_check
         if not cfg.enabled or masks.sun_dir_enu is None:
             return
-        res = []
-        for i, (cam, img, role) in enumerate(((self.cam1, work[0], "cam1"), (self.cam2, work[1], "cam2"))):
-            expected = masks.sun_dir_enu @ cam.R_world_from_cam
-            det = detect_sun(img, cam, expected, cfg.search_deg, usable=self.static_mask(i))
-            r = math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
+        cams = (self.cam1, self.cam2)
+
+        def one(i):
+            expected = masks.sun_dir_enu @ cams[i].R_world_from_cam
+            det = detect_sun(work[i], cams[i], expected, cfg.search_deg, usable=self.static_mask(i))
+            return math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
+
+        res = list(pmap(one, (0, 1), pool="stages"))
+        for role, r in zip(("cam1", "cam2"), res):
             ctx.diagnostics[f"sun_residual_{role}_deg"] = r
-            res.append(r)
         seen = [r for r in res if math.isfinite(r)]
         ctx.diagnostics["sun_residual_deg"] = max(seen) if len(seen) == 2 else math.nan
         # The pair's residual and its flag need the sun found in BOTH cameras: a single detection can be a saturated

@@ -107,6 +107,7 @@ import cv2
 import numpy as np
 
 from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
+from cbh.pipeline.threads import pmap as _pmap
 
 __all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
            "coarse_pass",
@@ -282,9 +283,10 @@ def _pool2(img: np.ndarray) -> np.ndarray:
     return cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
 
 
-def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, half_window: int, sl):
-    """ZNCC at half the resolution of the region ``sl``: yield (std1 (h/2, w/2), None) once, then
-    (j, score (h/2, w/2) float32) for every plane ``s_values[j]``.
+class _HalfZncc:
+    """ZNCC at half the resolution of the region ``sl``: ``std1`` (h/2, w/2) of image 1, and
+    ``self(s)`` → score (h/2, w/2) float32 of the plane s. Thread-safe: the region's plane tables
+    are built here, and each call only reads shared arrays.
 
     Half-resolution pixel i stands for the 2 × 2 block of working pixels (2i, 2i + 1) of the
     region (h, w even), and its window is the 2k × 2k square (k = ``half_window``) centred on
@@ -297,27 +299,40 @@ def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values
     blocks are taken one pixel in (rows and columns 1 … h − 2), which centres the window on
     block i again; the last row and column (no full window) repeat their neighbours.
     """
-    k = int(half_window)
-    off = 1 - k % 2
-    h, w = i1.shape
-    if off:
-        i1 = np.ascontiguousarray(i1[1: h - 1, 1: w - 1])
-        sl = np.s_[sl[0].start + 1: sl[0].stop - 1, sl[1].start + 1: sl[1].stop - 1]
 
-    def grow(a):  # (h/2 − 1, w/2 − 1) → (h/2, w/2)
-        return cv2.copyMakeBorder(a, 0, 1, 0, 1, cv2.BORDER_REPLICATE) if off else a
+    def __init__(self, i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, half_window: int, sl):
+        k = self.k = int(half_window)
+        self.off = 1 - k % 2
+        h, w = i1.shape
+        if self.off:
+            i1 = np.ascontiguousarray(i1[1: h - 1, 1: w - 1])
+            sl = np.s_[sl[0].start + 1: sl[0].stop - 1, sl[1].start + 1: sl[1].stop - 1]
+        self.i1, self.gray2, self.maps, self.sl = i1, gray2, maps, sl
+        self.mu1 = _box(_pool2(i1), k)
+        self.var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(self.mu1, self.mu1)), 0.0)
+        self.std1 = self._grow(cv2.sqrt(self.var1))
+        maps.at(0.0, sl)  # the region's tables, before any thread asks for a plane
 
-    mu1 = _box(_pool2(i1), k)
-    var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(mu1, mu1)), 0.0)
-    yield grow(cv2.sqrt(var1)), None
-    for j, s in enumerate(s_values):
-        mx, my = maps.at(float(s), sl)
-        w2 = cv2.remap(gray2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    def _grow(self, a):  # (h/2 − 1, w/2 − 1) → (h/2, w/2)
+        return cv2.copyMakeBorder(a, 0, 1, 0, 1, cv2.BORDER_REPLICATE) if self.off else a
+
+    def __call__(self, s: float) -> np.ndarray:
+        k, i1 = self.k, self.i1
+        mx, my = self.maps.at(float(s), self.sl)
+        w2 = cv2.remap(self.gray2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         mu2 = _box(_pool2(w2), k)
         var2 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(w2, w2)), k), cv2.multiply(mu2, mu2)), 0.0)
-        cov = cv2.subtract(_box(_pool2(cv2.multiply(i1, w2)), k), cv2.multiply(mu1, mu2))
-        den = cv2.sqrt(cv2.add(cv2.multiply(var1, var2), 1e-3))
-        yield j, grow(cv2.divide(cov, den))
+        cov = cv2.subtract(_box(_pool2(cv2.multiply(i1, w2)), k), cv2.multiply(self.mu1, mu2))
+        den = cv2.sqrt(cv2.add(cv2.multiply(self.var1, var2), 1e-3))
+        return self._grow(cv2.divide(cov, den))
+
+
+def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, half_window: int, sl):
+    """:class:`_HalfZncc` as a generator: yield (std1 (h/2, w/2), None) once, then (j, score
+    (h/2, w/2) float32) for every plane ``s_values[j]``, computed on :func:`~cbh.pipeline.threads.pmap`'s threads."""
+    z = _HalfZncc(i1, gray2, maps, half_window, sl)
+    yield z.std1, None
+    yield from enumerate(_pmap(z, [float(s) for s in s_values]))
 
 
 class _Best3:
@@ -358,8 +373,8 @@ class _Best3:
 def _best3(scores, neighbours: bool = True):
     """Best plane index j, its score and the scores of planes j−1 and j+1 of a stack (P, h, w)."""
     b = _Best3(neighbours)
-    for q in range(len(scores)):
-        b.add(q, scores[q])
+    for q, sc in enumerate(scores):
+        b.add(q, sc)
     return b.result()
 
 
@@ -495,12 +510,8 @@ def coarse_regions(cloud1: np.ndarray, plan: CoarsePlanes, cfg):
 
 def _best_plane(c1: np.ndarray, c2: np.ndarray, maps: PlaneMaps, s: np.ndarray, half_window: int, sl):
     """Best plane (index into ``s``) and its ZNCC per half-resolution cell of region ``sl``."""
-    it = _zncc_half_iter(np.ascontiguousarray(c1[sl]), c2, maps, s, half_window, sl)
-    next(it)
-    run = _Best3(neighbours=False)
-    for q, sc in it:
-        run.add(q, sc)
-    best, cbest, _, _ = run.result()
+    z = _HalfZncc(np.ascontiguousarray(c1[sl]), c2, maps, half_window, sl)
+    best, cbest, _, _ = _best3(_pmap(z, [float(x) for x in s]), neighbours=False)
     return best, cbest
 
 
@@ -643,7 +654,7 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     s, ds, cost = fine.s, fine.ds, fine.cost
     k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
     kl = max(1, (int(cfg.label_px) // 2) | 1)
-    jw, cw, lw, rw = _best3([_box(c, k2) for c in cost])
+    jw, cw, lw, rw = _best3(_pmap(lambda c: _box(c, k2), list(cost)))
     s_w = _refine(jw, cw, lw, rw, s, ds)
     vote = fine.ok_frac > 0
     if cfg.vote_percentile > 0 and vote.any():
@@ -656,9 +667,9 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     own = np.zeros((hh, wh), np.int32)
     if len(ranges) > 1:
         best_l: list = [None] * len(ranges)
-        for q in range(len(s)):
+        boxed = _pmap(lambda c: _box(c, kl), list(cost)) if kl > 1 else cost
+        for q, b in enumerate(boxed):
             L = int(plane_layer[q])
-            b = _box(cost[q], kl) if kl > 1 else cost[q]
             best_l[L] = b.copy() if best_l[L] is None else cv2.max(best_l[L], b, dst=best_l[L])
         label = _best3([b if b is not None else np.full((hh, wh), -np.inf, np.float32) for b in best_l],
                        neighbours=False)[0].astype(np.uint8)
@@ -701,7 +712,7 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
             if n_layers > 1:  # only pixels whose own best plane is in this layer
                 mL &= lab.plane_layer[lab.own_plane] == L
             mL = mL.astype(np.float32)
-            ja, ca, la, ra = _best3([_box(cv2.multiply(cost[q], mL), kL) for q in sel])
+            ja, ca, la, ra = _best3(_pmap(lambda q: _box(cv2.multiply(cost[q], mL), kL), list(sel)))
             s_half = _refine(ja, ca, la, ra, s[sel], ds)
         up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
         cv2.copyTo(up, here.view(np.uint8), s_px)
