@@ -29,7 +29,8 @@ done afterwards by :func:`triangulate_matches`, the same for every method.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -39,8 +40,8 @@ from cbh.geometry.station import Camera
 from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
-__all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "MATCHERS", "MATCHER_BACKENDS", "get_matcher",
-           "triangulate_matches", "sample_map"]
+__all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "DenseField", "MATCHERS", "MATCHER_BACKENDS",
+           "get_matcher", "triangulate_matches", "field_heights", "sample_map"]
 
 #: Methods whose matches lie on the epipolar curve by construction: their ray miss says
 #: nothing about the matching noise (the pipeline's angular-noise estimate skips them).
@@ -131,6 +132,18 @@ class PairGeometry:
             self._planes = plane_maps(self.cam1, self.cam2, self.rays1_world)
         return self._planes
 
+    def baseline_terms(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Per camera-1 pixel (H1, W1) float32: |d × B| and d · B for its ENU ray d and the
+        baseline B = o2 − o1 [m], and |B|² [m²] (cached; :func:`field_heights`)."""
+        cache = self.__dict__.get("_baseline_terms")
+        if cache is None:
+            b = (self.cam2.position_m - self.cam1.position_m).astype(np.float32)
+            d = self.rays1_world
+            cross = np.linalg.norm(np.cross(d, b), axis=-1).astype(np.float32)
+            dot = (d @ b).astype(np.float32)
+            cache = self.__dict__["_baseline_terms"] = (cross, dot, float(b @ b))
+        return cache
+
     def torch_planes(self, device):
         """The plane tables on a torch ``device`` (:class:`~cbh.pipeline.torch_ops.TorchPlaneMaps`),
         uploaded on first use and kept: one upload per camera pair and device."""
@@ -184,6 +197,10 @@ class Matches:
     dense: bool = False  # one correspondence per camera-1 pixel at integer coordinates
     ray2_world: np.ndarray | None = None  # (N, 3) float32: camera-2 ENU ray, where the method knows it exactly
     ray1_world: np.ndarray | None = None  # (N, 3) float32: camera-1 ENU ray, where the method has it at hand
+    # a method that measures every pixel of a region (the sweep): s = 1/(h − o1z) per pixel (NaN = none), with
+    # px1/px2 then a subsample of it on the point lattice (``point_stride_px``): the point set; the height map is
+    # made from the field
+    field: "DenseField | None" = None
 
     def __len__(self) -> int:
         return int(self.px1.shape[0])
@@ -191,7 +208,15 @@ class Matches:
     def take(self, keep: np.ndarray) -> "Matches":
         r1 = None if self.ray1_world is None else self.ray1_world[keep]
         r2 = None if self.ray2_world is None else self.ray2_world[keep]
-        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1)
+        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1, self.field)
+
+
+@dataclass(frozen=True)
+class DenseField:
+    """Heights of a plane-sweep match at every pixel of a region of camera 1's working grid."""
+
+    region: tuple  # (slice y, slice x)
+    s: np.ndarray  # (h, w) float32: s = 1/(h − o1z) of the pixel's plane [1/m]; NaN = no match
 
 
 def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
@@ -288,25 +313,31 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     g = inp.geometry
     o1z = float(g.cam1.position_m[2])
     if inp.device is not None:
-        from cbh.pipeline.torch_ops import sweep_matches_torch
+        from cbh.pipeline.torch_ops import sweep_field_torch
 
-        px1, px2, info = sweep_matches_torch(inp.gray1, inp.gray2, inp.cloud1, g.torch_planes(inp.device), o1z, cfg.sweep)
+        f = sweep_field_torch(inp.gray1, inp.gray2, inp.cloud1, g.torch_planes(inp.device), o1z, cfg.sweep)
     else:
-        from cbh.pipeline.sweep import sweep_matches
+        from cbh.pipeline.sweep import sweep_field
 
-        px1, px2, info = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
-    # inside camera 2's image and usable mask (px2 are finite here: the tables mark "no pixel" far outside)
-    h2, w2 = inp.usable2.shape
-    xi, yi = np.rint(px2[:, 0]).astype(np.int32), np.rint(px2[:, 1]).astype(np.int32)
-    keep = (xi >= 0) & (xi < w2) & (yi >= 0) & (yi < h2)
-    keep[keep] = inp.usable2[yi[keep], xi[keep]]
-    px1, px2, s = px1[keep], px2[keep], info["s"][keep]
+        f = sweep_field(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
+    if f is None:
+        return Matches("sweep", np.zeros((0, 2)), np.zeros((0, 2)), dense=True)
+    from cbh.pipeline.sweep import field_points
+
+    # every accepted pixel whose camera-2 pixel lies inside camera 2's image and usable mask
+    s = np.where(f.ok, f.s, np.float32(np.nan)).astype(np.float32)
+    mx, my = g.planes.pixels(s, f.region)
+    s[~(cv2.remap(inp.usable2.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                   borderValue=0) > 0)] = np.nan
+    field = DenseField(f.region, s)
+    # the point set: the same matches on the point lattice
+    px1, px2, s_pt = field_points(replace(f, ok=np.isfinite(s)), g.planes, max(1, int(cfg.sweep.point_stride_px)))
     # the camera-2 ray of a plane-sweep match is known exactly: the point o1 + d·(h − o1z)/d_z
     # seen from o2 is along d − s·d_z·B (s = 1/(h − o1z)); no fisheye back-projection of px2 needed
     d1 = g.rays1_world.reshape(-1, 3)[px1[:, 1].astype(np.int64) * g.rays1_world.shape[1] + px1[:, 0].astype(np.int64)]
     base = (g.cam2.position_m - g.cam1.position_m).astype(np.float32)
-    d2 = d1 - (s * d1[:, 2])[:, None] * base[None, :]
-    return Matches("sweep", px1, px2, dense=True, ray2_world=d2, ray1_world=d1)
+    d2 = d1 - (s_pt * d1[:, 2])[:, None] * base[None, :]
+    return Matches("sweep", px1, px2, dense=True, ray2_world=d2, ray1_world=d1, field=field)
 
 
 MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis, "sweep": _sweep}
@@ -333,6 +364,7 @@ class TriangulatedMatches:
     point_m: np.ndarray  # (N, 3) float64 ENU [m]
     miss_m: np.ndarray  # (N,) float64 [m]
     n_in: int  # correspondences before filtering
+    grid_m: np.ndarray | None = None  # (H1, W1) float32: the method's dense field as heights [m], NaN = none
 
     @property
     def height_m(self) -> np.ndarray:
@@ -367,6 +399,32 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) ->
             & (tri.height_m >= cfg.min_height_m)
             & (tri.height_m <= cfg.max_height_m)
         )
+    grid = None if m.field is None else field_heights(geom, m.field, cfg)
     if keep.all():  # (the dense sweep: usually every match passes; skip the copies)
-        return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n)
-    return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64), n)
+        return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n, grid)
+    return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64),
+                               n, grid)
+
+
+def field_heights(geom: PairGeometry, field: DenseField, cfg: FilteringConfig) -> np.ndarray:
+    """A sweep's dense field as heights on camera 1's working grid (H1, W1) float32 [m], NaN =
+    none, with :func:`triangulate_matches`'s rejection applied per pixel, in closed form.
+
+    A plane-sweep pixel's two rays meet exactly on its plane (d2 = d1 − s·d1z·B passes through
+    o1 + d1/(s·d1z)), so the point's height is o1z + 1/s and the ray miss is 0. What is left to
+    check: the height range, and the triangulation angle, whose sine is
+    |d1 × d2| / |d2| = k·|d1 × B| / |d1 − k·B| with k = s·d1z (|d1| = 1).
+    """
+    ry, rx = field.region
+    s = field.s
+    o1z = float(geom.cam1.position_m[2])
+    cross, dot, b2 = geom.baseline_terms()
+    k = s * geom.rays1_world[ry, rx, 2]
+    d2n = np.sqrt(np.maximum(1.0 - 2.0 * k * dot[ry, rx] + k * k * np.float32(b2), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = np.float32(o1z) + 1.0 / s
+        ok = ((k * cross[ry, rx] >= np.float32(math.sin(math.radians(cfg.min_angle_deg))) * d2n)
+              & (1.0 - k * dot[ry, rx] > 0.0) & (h >= cfg.min_height_m) & (h <= cfg.max_height_m))
+    out = np.full(geom.rays1_world.shape[:2], np.nan, np.float32)
+    out[ry, rx] = np.where(ok, h, np.float32(np.nan))
+    return out

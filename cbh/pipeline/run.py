@@ -599,14 +599,16 @@ class Pipeline:
         """Dense height map on camera 1's working grid (dense matches preferred), and at full size."""
         dense = [tr for tr in corr.triangulated if tr.matches.dense]
         src = dense if dense else corr.triangulated
-        if src:
-            px = np.concatenate([tr.matches.px1 for tr in src])
-            hh = np.concatenate([tr.height_m for tr in src])
+        grids = [tr.grid_m for tr in src if tr.grid_m is not None]  # a sweep's field: every pixel it measured
+        pts = [tr for tr in src if tr.grid_m is None]
+        if pts:
+            px = np.concatenate([tr.matches.px1 for tr in pts])
+            hh = np.concatenate([tr.height_m for tr in pts])
         else:
             px, hh = np.zeros((0, 2)), np.zeros(0)
         shape1 = (self.cam1.model.height, self.cam1.model.width)
         return dense_height_map(shape1, px, hh, seg.clouds[0], self.config.height_map,
-                                (self.cam1_full.model.width, self.cam1_full.model.height))
+                                (self.cam1_full.model.width, self.cam1_full.model.height), grids=grids)
 
     def stage_points(self, corr: "Correspondences") -> "Points":
         """All kept correspondences as points (dense ones thinned to a grid), with predicted noise."""

@@ -111,7 +111,7 @@ from cbh.pipeline.threads import pmap as _pmap
 
 __all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
            "coarse_pass",
-           "fine_planes", "fine_pass",
+           "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
@@ -163,6 +163,22 @@ class PlaneMaps:
         b *= s
         b += m0
         return b.astype(np.float64)
+
+    def pixels(self, s: np.ndarray, sl) -> tuple[np.ndarray, np.ndarray]:
+        """Remap tables (map_x, map_y) (h, w) float32 on the region ``sl`` for a per-pixel s (h, w)
+        float32; where s is NaN (no plane) the pixel maps far outside (``_OUTSIDE``)."""
+        key = tuple((x.start, x.stop, x.step) for x in sl)
+        cache = self.__dict__.setdefault("_pixels", {})
+        if key not in cache:
+            cache.clear()
+            cache[key] = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
+        s = np.asarray(s, np.float32)
+        out = []
+        for m0, a, b in cache[key]:
+            v = cv2.add(cv2.multiply(cv2.add(cv2.multiply(b, s), a), s), m0)  # m0 + a·s + b·s²
+            cv2.patchNaNs(v, _OUTSIDE)  # in place
+            out.append(v)
+        return out[0], out[1]
 
     def downsampled(self, factor: int) -> "PlaneMaps":
         """The same mapping between images downsampled by an integer ``factor`` (INTER_AREA; cached)."""
@@ -748,8 +764,20 @@ class PassTimer:
         self._t0 = t1
 
 
-def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float, cfg):
-    """Dense plane-sweep correspondences (see module doc): coarse → fine → label → refine.
+@dataclass
+class SweepField:
+    """The sweep's result on camera 1's working grid: per pixel of ``region`` the plane s =
+    1/(h − o1z) [1/m] of its match (meaningful where ``ok``)."""
+
+    region: tuple  # (slice y, slice x) of the working-size image
+    ok: np.ndarray  # (h, w) bool: accepted pixels
+    s: np.ndarray  # (h, w) float32 [1/m]
+    info: dict  # planes, layers_m, timing_ms, and with aggregation votes, vote_bin_s, cuts_s
+
+
+def sweep_field(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float,
+                cfg) -> SweepField | None:
+    """Dense plane sweep (see module doc): coarse → fine → label → refine, on camera 1's grid.
 
     Parameters
     ----------
@@ -765,25 +793,23 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
 
     Returns
     -------
-    px1 : ndarray, shape (N, 2), float64 — camera-1 pixels (integer coordinates)
-    px2 : ndarray, shape (N, 2), float64 — camera-2 pixels
-    info : dict — ``s`` (N,) float32 (each match's plane, s = 1/(h − o1z) [1/m]), ``planes``
-        (fine s values), ``layers_m`` (coarse layer hypotheses [m]), ``timing_ms`` (per pass),
-        and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
+    SweepField, or None when nothing was accepted (``info`` then lost: use
+    :func:`sweep_matches` for the diagnostics of an empty sweep).
     """
-    lap = PassTimer()
-    timing = lap.timing_ms
+    return _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, {})
 
-    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing, "s": np.zeros(0, np.float32)}
-    empty = np.zeros((0, 2)), np.zeros((0, 2)), info
+
+def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepField | None:
+    lap = PassTimer()
+    info.update(planes=np.zeros(0), layers_m=[], timing_ms=lap.timing_ms)
     if not cloud1.any() or maps.scale_px <= 0:
-        return empty
+        return None
     g1 = gray1.astype(np.float32)
     g2 = gray2.astype(np.float32)
     s_min, s_max = plane_range(o1z, cfg)
     coarse = coarse_pass(g1, g2, cloud1, maps, s_min, s_max, o1z, cfg)
     if coarse is None:
-        return empty
+        return None
     s_fine, ds = fine_planes(coarse, maps.scale_px, s_min, s_max, cfg)
     info.update(planes=s_fine, layers_m=coarse.layers_m)
     lap("coarse")
@@ -791,7 +817,7 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
         fine = fine_pass(g1, g2, cloud1, maps, s_fine, ds, cfg)
         lap("fine")
         if not fine.ok.any():
-            return empty
+            return None
         lab = label_pass(fine, cfg)
         info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
@@ -800,11 +826,38 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
     else:
         region, ok, s_px = _per_pixel(g1, g2, cloud1, maps, s_fine, ds, cfg)
         lap("fine")
-    ys, xs = np.nonzero(ok)
-    yi, xi = ys + region[0].start, xs + region[1].start
+    return SweepField(region, ok, s_px, info)
+
+
+def field_points(f: SweepField, maps: PlaneMaps, stride: int = 1):
+    """Correspondences of the accepted pixels of a :class:`SweepField` on the lattice of working
+    pixels whose x and y are multiples of ``stride``: (px1 (N, 2), px2 (N, 2), s (N,) float32)."""
+    y0, x0 = f.region[0].start, f.region[1].start
+    oy, ox = (-y0) % stride, (-x0) % stride
+    ys, xs = np.nonzero(f.ok[oy::stride, ox::stride])
+    ys, xs = ys * stride + oy, xs * stride + ox
+    yi, xi = ys + y0, xs + x0
     px1 = np.stack([xi, yi], axis=-1).astype(np.float64)
-    s_ok = s_px[ys, xs]
-    px2 = maps.points(s_ok, yi, xi)
+    s_ok = f.s[ys, xs]
+    return px1, maps.points(s_ok, yi, xi), s_ok
+
+
+def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float, cfg):
+    """Dense plane-sweep correspondences: :func:`sweep_field`, one per accepted pixel.
+
+    Returns
+    -------
+    px1 : ndarray, shape (N, 2), float64 — camera-1 pixels (integer coordinates)
+    px2 : ndarray, shape (N, 2), float64 — camera-2 pixels
+    info : dict — ``s`` (N,) float32 (each match's plane, s = 1/(h − o1z) [1/m]), ``planes``
+        (fine s values), ``layers_m`` (coarse layer hypotheses [m]), ``timing_ms`` (per pass),
+        and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
+    """
+    info: dict = {}
+    f = _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info)
+    if f is None:
+        info["s"] = np.zeros(0, np.float32)
+        return np.zeros((0, 2)), np.zeros((0, 2)), info
+    px1, px2, s_ok = field_points(f, maps)
     info["s"] = s_ok
-    lap("points")
     return px1, px2, info
