@@ -330,3 +330,27 @@ def test_low_stratus_under_cumulus_both_layers_meet_the_bar():
     assert plan.s[plan.near[0]] < s_low < plan.s[plan.near[-1]]  # the low layer: near planes
     assert plan.s[plan.far[0]] < s_high < plan.s[plan.far[-1]]  # the cumulus: far planes
     _check(sim, shot)
+
+
+@pytest.mark.parametrize("height_m, flagged", [(70.0, True), (130.0, False)])
+def test_fog_below_the_sweep_floor_is_flagged_not_reported(height_m, flagged):
+    """Cloud below the sweep's lowest plane (100 m): its pixels sit on that plane (cost still
+    rising at the edge) and the rest alias onto false layers (70 m fog gave 107, 203, 1362,
+    3437 m with confidences up to 0.6, no flag). Those floor pixels are dropped and their share
+    (25 % here at 480 px; 14–53 % at 960 px for 60–100 m) flags ``below_range``, which
+    invalidates the pair's layers. A base at 130 m puts no pixel on the floor (share 0)."""
+    from cbh.flags import INVALIDATING
+    from cbh.sim import SkySimulator, parse_scene
+
+    sc = parse_scene({"name": "fog", "time_utc": "2024-06-21T14:00:00Z",
+                      "layers": [{"height_m": height_m, "coverage": 0.6, "texture_scale_m": 100.0, "seed": 5}]})
+    sim = SkySimulator(load_station(station_path("unb-lea")), sc, size_px=480)
+    shot = sim.render()
+    r = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc,
+                                      channels="bgr")
+    share = r.diagnostics["below_range_fraction"]
+    if flagged:
+        assert "below_range" in r.flags and "below_range" in INVALIDATING and share > 0.1, share
+    else:
+        assert "below_range" not in r.flags and share < 0.01, share
+        assert len(r.layers) == 1 and r.layers[0].height_m == pytest.approx(height_m, rel=0.03)

@@ -59,7 +59,7 @@ from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
-from cbh.pipeline.match import (EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher,
+from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher,
                                 sample_map, triangulate_matches)
 from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
                                  offset_per_match, plane_offsets, running_offset, track_back)
@@ -556,6 +556,11 @@ class Pipeline:
             raw = list(pmap(one, cfg.matching.methods, pool="stages"))
         with _timed(ctx, "triangulation"):
             tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
+        floor = max((m.field.floor_fraction for m in raw if m.field is not None), default=math.nan)
+        if math.isfinite(floor):
+            ctx.diagnostics["below_range_fraction"] = floor
+            if floor > BELOW_RANGE_FRACTION and "below_range" not in ctx.flags:
+                ctx.flags.append("below_range")
         return Correspondences(triangulated=tris, raw=raw)
 
     def stage_sun_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
