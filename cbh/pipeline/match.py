@@ -105,19 +105,23 @@ class PairGeometry:
         return rays
 
     @classmethod
-    def from_tables(cls, cam1: Camera, cam2: Camera, map_x: np.ndarray, map_y: np.ndarray, planes=None) -> "PairGeometry":
-        """The geometry from cached tables (:mod:`.tables`): the remap table as stored, the rays
-        recomputed (cheap), the plane maps if given."""
+    def from_tables(cls, cam1: Camera, cam2: Camera, map_x: np.ndarray, map_y: np.ndarray, planes=None,
+                    rays1_world: np.ndarray | None = None) -> "PairGeometry":
+        """The geometry from cached tables (:mod:`.tables`): the remap table and the rays as
+        stored (the rays recomputed if absent), the plane maps if given."""
         g = cls.__new__(cls)
         g.cam1, g.cam2 = cam1, cam2
         g.map_x, g.map_y = map_x, map_y
-        g._rays1()
+        if rays1_world is None:
+            g._rays1()
+        else:
+            g.rays1_world = rays1_world
         g._planes = planes
         return g
 
     def tables(self) -> dict[str, np.ndarray]:
         """The expensive tables, for :func:`~cbh.pipeline.tables.save_tables`."""
-        out = {"map_x": self.map_x, "map_y": self.map_y}
+        out = {"map_x": self.map_x, "map_y": self.map_y, "rays1_world": self.rays1_world}
         if self._planes is not None:
             p = self._planes
             out.update(plane_m0=p.m0, plane_a=p.a, plane_b=p.b, plane_scalars=np.array([p.s_a, p.scale_px]))

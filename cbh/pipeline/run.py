@@ -187,8 +187,14 @@ class Pipeline:
             if "plane_m0" in t:
                 s_a, scale = (float(v) for v in t["plane_scalars"])
                 planes = PlaneMaps(t["plane_m0"], t["plane_a"], t["plane_b"], s_a, scale)
-            self._geometry = PairGeometry.from_tables(self.cam1, self.cam2, t["map_x"], t["map_y"], planes)
+            self._geometry = PairGeometry.from_tables(self.cam1, self.cam2, t["map_x"], t["map_y"], planes,
+                                                      t.get("rays1_world"))
             self._static = {0: t["static0"], 1: t["static1"]}
+            for i in (0, 1):  # the per-camera ray and zenith maps (each a fisheye back-projection of every pixel)
+                if f"rays_cam{i}" in t:
+                    self._rays[i] = t[f"rays_cam{i}"]
+                if f"zenith{i}" in t:
+                    self._zenith[i] = t[f"zenith{i}"]
             self._tables_loaded = True
         except (KeyError, ValueError) as e:  # an entry of another layout: rebuild
             log.warning("table cache entry unusable (%s); rebuilding", e)
@@ -199,7 +205,9 @@ class Pipeline:
 
         if self._geometry is None or len(self._static) < 2:
             return
-        save_tables(self._tables_key, {**self._geometry.tables(), "static0": self._static[0], "static1": self._static[1]})
+        save_tables(self._tables_key, {**self._geometry.tables(), "static0": self._static[0], "static1": self._static[1],
+                                       **{f"rays_cam{i}": self.rays_cam(i) for i in (0, 1)},
+                                       **{f"zenith{i}": self.zenith(i) for i in (0, 1)}})
 
     @property
     def geometry(self) -> PairGeometry:
