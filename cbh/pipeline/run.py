@@ -452,15 +452,23 @@ class Pipeline:
         return replace(lay, layers=layer_motion(lay.layers, samples, self.config.motion.min_tracks))
 
     def process_batch(self, pairs, *, channels: str | None = None) -> list[PairResult]:
-        """:meth:`process` for several pairs ``[(image1, image2, time_utc), …]`` (paths or arrays
-        of ``channels`` order, as :meth:`process`), results in order.
+        """:meth:`process` for several independent pairs ``[(image1, image2, time_utc), …]`` (paths or
+        arrays of ``channels`` order, as :meth:`process`), results in order.
 
-        The per-camera tables are uploaded once and shared; on a torch device each pair's
-        plane sweep evaluates all its planes in one batched call. Pairs are not stacked into
-        one kernel across pairs: each pair's planes and cloud region differ, and the stages
-        between (segmentation, sparse matching) run on the CPU anyway.
+        The first pair runs alone (it builds or loads the per-camera tables and, on a device,
+        uploads them once); the others run side by side on :func:`~cbh.pipeline.threads.workers`
+        threads (``cv2.getNumThreads()``, at most 8), sharing the tables: each pair's CPU stages
+        (decoding, segmentation, sparse matching, layers) overlap the others' and, on a GPU, its
+        plane sweep. Pairs are not stacked into one kernel: each pair's planes and cloud region
+        differ. No motion is handed between them (use :meth:`process` with ``previous`` for a
+        sequence).
         """
-        return [self.process(im1, im2, t, channels=channels) for im1, im2, t in pairs]
+        pairs = list(pairs)
+        if not pairs:
+            return []
+        first = self.process(pairs[0][0], pairs[0][1], pairs[0][2], channels=channels)
+        rest = pmap(lambda p: self.process(p[0], p[1], p[2], channels=channels), pairs[1:], pool="pairs")
+        return [first, *rest]
 
     # --- stages ---------------------------------------------------------------------------
     def stage_masks(self, work: tuple[np.ndarray, np.ndarray], ctx: "PairContext") -> "Masks":

@@ -100,6 +100,7 @@ Such a correspondence lies on the epipolar geometry by construction, so its ray 
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 
@@ -115,6 +116,8 @@ __all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_pl
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
+_REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
+_REGION_LOCK = threading.Lock()
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
 
@@ -142,12 +145,25 @@ class PlaneMaps:
 
     def at(self, s: float, sl=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 for one plane, on the region ``sl``."""
-        if getattr(self, "_planes_key", None) != sl:  # (h, w, 3) tables (m0, a, b) per axis, cached
-            self._planes = [cv2.merge([np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)])
-                            for k in (0, 1)]
-            self._planes_key = sl
+        tx, ty = self._region_tables("merged", sl)  # (h, w, 3) tables (m0, a, b) per axis
         coef = np.array([[1.0, float(s), float(s) * float(s)]])  # one pass per axis: m0 + a·s + b·s²
-        return cv2.transform(self._planes[0], coef), cv2.transform(self._planes[1], coef)
+        return cv2.transform(tx, coef), cv2.transform(ty, coef)
+
+    def _region_tables(self, kind: str, sl):
+        """The tables cut to a region, cached (a few regions: pairs processed side by side each
+        have their own; thread-safe: an entry is built before it is published, never changed)."""
+        key = (kind,) + tuple((x.start, x.stop, x.step) for x in sl)
+        cache = self.__dict__.setdefault("_regions", {})
+        hit = cache.get(key)
+        if hit is not None:
+            return hit
+        cut = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
+        val = [cv2.merge(c) for c in cut] if kind == "merged" else cut
+        with _REGION_LOCK:
+            while len(cache) >= _REGION_CACHE:
+                cache.pop(next(iter(cache)))
+            cache[key] = val
+        return val
 
     def points(self, s: np.ndarray, yi: np.ndarray, xi: np.ndarray) -> np.ndarray:
         """Camera-2 pixels (N, 2) float64 at per-pixel s (N,) for camera-1 pixels (yi, xi).
@@ -167,14 +183,9 @@ class PlaneMaps:
     def pixels(self, s: np.ndarray, sl) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 on the region ``sl`` for a per-pixel s (h, w)
         float32; where s is NaN (no plane) the pixel maps far outside (``_OUTSIDE``)."""
-        key = tuple((x.start, x.stop, x.step) for x in sl)
-        cache = self.__dict__.setdefault("_pixels", {})
-        if key not in cache:
-            cache.clear()
-            cache[key] = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
         s = np.asarray(s, np.float32)
         out = []
-        for m0, a, b in cache[key]:
+        for m0, a, b in self._region_tables("split", sl):
             v = cv2.add(cv2.multiply(cv2.add(cv2.multiply(b, s), a), s), m0)  # m0 + a·s + b·s²
             cv2.patchNaNs(v, _OUTSIDE)  # in place
             out.append(v)
