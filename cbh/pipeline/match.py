@@ -136,16 +136,17 @@ class PairGeometry:
             self._planes = plane_maps(self.cam1, self.cam2, self.rays1_world)
         return self._planes
 
-    def baseline_terms(self) -> tuple[np.ndarray, np.ndarray, float]:
+    def baseline_terms(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         """Per camera-1 pixel (H1, W1) float32: |d × B| and d · B for its ENU ray d and the
-        baseline B = o2 − o1 [m], and |B|² [m²] (cached; :func:`field_heights`)."""
+        baseline B = o2 − o1 [m]; |B|² [m²]; and d's up component (cached; :func:`field_heights`)."""
         cache = self.__dict__.get("_baseline_terms")
         if cache is None:
             b = (self.cam2.position_m - self.cam1.position_m).astype(np.float32)
             d = self.rays1_world
             cross = np.linalg.norm(np.cross(d, b), axis=-1).astype(np.float32)
             dot = (d @ b).astype(np.float32)
-            cache = self.__dict__["_baseline_terms"] = (cross, dot, float(b @ b))
+            cache = (cross, dot, float(b @ b), np.ascontiguousarray(d[..., 2]))
+            self.__dict__["_baseline_terms"] = cache
         return cache
 
     def torch_planes(self, device):
@@ -453,15 +454,18 @@ def field_heights(geom: PairGeometry, field: DenseField, cfg: FilteringConfig) -
     |d1 × d2| / |d2| = k·|d1 × B| / |d1 − k·B| with k = s·d1z (|d1| = 1).
     """
     ry, rx = field.region
-    s = field.s
+    s = np.ascontiguousarray(field.s, np.float32)
     o1z = float(geom.cam1.position_m[2])
-    cross, dot, b2 = geom.baseline_terms()
-    k = s * geom.rays1_world[ry, rx, 2]
-    d2n = np.sqrt(np.maximum(1.0 - 2.0 * k * dot[ry, rx] + k * k * np.float32(b2), 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        h = np.float32(o1z) + 1.0 / s
-        ok = ((k * cross[ry, rx] >= np.float32(math.sin(math.radians(cfg.min_angle_deg))) * d2n)
-              & (1.0 - k * dot[ry, rx] > 0.0) & (h >= cfg.min_height_m) & (h <= cfg.max_height_m))
+    cross, dot, b2, d1z = geom.baseline_terms()
+    cross, dot = cross[ry, rx], dot[ry, rx]
+    k = cv2.multiply(s, d1z[ry, rx])  # OpenCV arithmetic: no numpy temporaries (NaN compares false below)
+    kd = cv2.multiply(k, dot)
+    d2n = cv2.sqrt(cv2.max(cv2.add(cv2.subtract(1.0, cv2.multiply(kd, 2.0)), cv2.multiply(cv2.multiply(k, k), b2)), 0.0))
+    h = cv2.add(cv2.divide(1.0, s), o1z)
+    ok = cv2.compare(cv2.multiply(k, cross), cv2.multiply(d2n, math.sin(math.radians(cfg.min_angle_deg))), cv2.CMP_GE)
+    ok &= cv2.compare(kd, 1.0, cv2.CMP_LT)  # the angle below 90°: the point in front of camera 2
+    ok &= cv2.compare(h, float(cfg.min_height_m), cv2.CMP_GE)
+    ok &= cv2.compare(h, float(cfg.max_height_m), cv2.CMP_LE)
     out = np.full(geom.rays1_world.shape[:2], np.nan, np.float32)
-    out[ry, rx] = np.where(ok, h, np.float32(np.nan))
+    out[ry, rx] = np.where(ok > 0, h, np.float32(np.nan))
     return out

@@ -338,10 +338,16 @@ class Pipeline:
                 corr = self.stage_match(work, masks, seg, ctx, gray=(gray[0], g2), cloud2=c2)
             else:
                 corr = self.stage_match(work, masks, seg, ctx, gray=gray)
-            with _timed(ctx, "height_map"):
-                hmap = self.stage_height_map(seg, corr)
+            def height_map():
+                with _timed(ctx, "height_map"):
+                    return self.stage_height_map(seg, corr)
+
+            def points():
+                with _timed(ctx, "points"):
+                    return self.stage_points(corr)
+
+            hmap, pts = pmap(lambda f: f(), (height_map, points), pool="stages")  # side by side
             with _timed(ctx, "layers"):
-                pts = self.stage_points(corr)
                 lay = self.stage_layers(pts, seg, masks, hmap, ctx)
             est = MotionEstimate()
             if mot.prev_gray is not None:
@@ -700,10 +706,9 @@ class Pipeline:
                 px1=pts.px1.astype(np.float32), px2=pts.px2.astype(np.float32), layer=lay.label,
             ),
             height_map=hmap.full_m.astype(np.float32, copy=False),
-            cloud_masks={
-                name: upsample_map(c.view(np.uint8), m.width, m.height).astype(bool)
-                for name, c, m in zip(self.cameras, seg.clouds, full)
-            },
+            cloud_masks=dict(zip(self.cameras, pmap(lambda cm: upsample_map(cm[0].view(np.uint8), cm[1].width,
+                                                                             cm[1].height).astype(bool),
+                                                     zip(seg.clouds, full), pool="stages"))),
             cloud_fraction=seg.fractions,
             timing_ms=ctx.timing,
             flags=ctx.flags,
