@@ -14,6 +14,7 @@ and matchers), so that a task of one pool that waits for tasks of the other neve
 """
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -24,6 +25,7 @@ __all__ = ["pmap", "workers", "MAX_THREADS"]
 MAX_THREADS = 8
 _lock = threading.Lock()
 _pools: dict[str, tuple[ThreadPoolExecutor, int]] = {}
+_owner = [os.getpid()]
 
 
 def workers() -> int:
@@ -42,6 +44,9 @@ def pmap(fn, items, pool: str = "planes"):
     if n <= 1:
         return map(fn, items)
     with _lock:
+        if _owner[0] != os.getpid():  # a forked child inherits the pools but not their threads
+            _pools.clear()
+            _owner[0] = os.getpid()
         ex, size = _pools.get(pool, (None, 0))
         if size < n:
             if ex is not None:
