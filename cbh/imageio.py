@@ -74,8 +74,15 @@ def as_bgr(image, channels: str | None = None, what: str = "image", model: Camer
     if model is not None:
         check_image_size(img, model, what)
     if _is_grey(img):
+        lo, hi = int(img.min()), int(img.max())
+        if hi - lo <= _BLANK_DN:  # not a greyscale camera: no picture at all
+            raise ImageError(f"{what}: blank frame (every pixel {lo}…{hi} of 255): nothing to measure "
+                             f"({'over-exposed or blinded' if lo >= 128 else 'dark: lens covered, night or no signal'})")
         raise ImageError(f"{what}: greyscale image (its three channels are equal): cloud segmentation needs colour")
     return np.ascontiguousarray(img)
+
+
+_BLANK_DN = 8  # a frame whose pixels all lie within this many grey levels is blank (JPEG noise is smaller)
 
 
 def decode_image(data: bytes, what: str = "image") -> np.ndarray:

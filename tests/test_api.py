@@ -81,6 +81,11 @@ def test_bare_arrays_greyscale_and_zoneless_times_are_refused(pipe, pair_files):
     cv2.imwrite(str(grey_file), grey2d)  # a greyscale JPEG decodes to three equal channels
     with pytest.raises(ImageError, match="greyscale"):
         pipe.process(grey_file, pair_files / "cam2.png", T)
+    # a camera that delivers no picture (saturated white, or dark) is said to be blank, not greyscale
+    for value, why in ((255, "over-exposed"), (3, "dark")):
+        blank = np.full_like(bgr[0], value)
+        with pytest.raises(ImageError, match=f"blank frame.*{why}"):
+            pipe.process(bgr[0], blank, T, channels="bgr")
     with pytest.raises(InputError, match="no zone"):
         pipe.process(*bgr, datetime(2024, 6, 21, 14, 0), channels="bgr")
     with pytest.raises(InputError, match="2024-06-21T14:00:00Z"):
