@@ -391,3 +391,55 @@ def test_run_export_csv_carries_height_and_motion(sequence_dir, tmp_path):
         assert abs(math.hypot(low["motion_east_ms"], low["motion_north_ms"]) / math.hypot(6, 2) - 1) <= 0.05
         bearing = math.degrees(math.atan2(low["motion_east_ms"], low["motion_north_ms"]))
         assert abs(bearing - math.degrees(math.atan2(6, 2))) <= 3.0
+
+
+def _wrong_motion(results, tol=0.05, dir_tol_deg=3.0):
+    """(time, layer height, motion) of every layer whose motion is reported but off the truth."""
+    bad = []
+    for r in results:
+        for layer in r.layers:
+            wind = WINDS[min(WINDS, key=lambda h: abs(math.log(layer.height_m / h)))]
+            e, n = layer.motion_east_ms, layer.motion_north_ms
+            if not math.isfinite(e):
+                continue
+            ang = math.degrees(math.atan2(e, n) - math.atan2(wind[0], wind[1]))
+            if abs(math.hypot(e, n) / math.hypot(*wind) - 1) > tol or abs((ang + 180) % 360 - 180) > dir_tol_deg:
+                bad.append((r.time_utc, round(layer.height_m), (round(e, 2), round(n, 2))))
+    return bad
+
+
+@pytest.mark.parametrize("start_s", [0, pytest.param(360, marks=pytest.mark.slow)])
+def test_a_60_s_cadence_gives_no_wrong_motion(start_s):
+    """At a 60 s cadence the 1200 m layer moves ≈ 95 px between frames at 960 px. Tracks of the
+    3500 m deck that jumped onto it (the deck hidden by the moving low cloud), or whose window
+    straddled its edge, gave the deck (+18, +5) m/s (the low layer's rate × 2.9) instead of
+    (−3, 8), in 4 of 7 pairs. Now a track must still form a stereo pair of its height in the
+    previous frames and see no lower cloud in its window: the deck's motion is right or NaN."""
+    from cbh.pipeline import Pipeline
+
+    sim, sc = _sim(size=960)
+    pipe = Pipeline(sim.station)
+    out = []
+    for t in (start_s, start_s + 60):
+        shot = sim.render(sc.time_utc + timedelta(seconds=t))
+        out.append(pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr",
+                                previous=out[-1].state if out else None))
+    assert not _wrong_motion(out), _wrong_motion(out)
+    low = _layer_for(out[1], 1200.0)  # the low layer is measured (right, by the line above)
+    assert math.isfinite(low.motion_east_ms) and low.motion_tracks >= 20
+
+
+@pytest.mark.slow
+def test_a_60_s_sequence_gives_no_wrong_motion():
+    from cbh.pipeline import Pipeline
+
+    sim, sc = _sim(size=960)
+    pipe = Pipeline(sim.station)
+    out, state = [], None
+    for k in range(8):
+        shot = sim.render(sc.time_utc + timedelta(seconds=60 * k))
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr", previous=state)
+        state = r.state
+        out.append(r)
+    assert not _wrong_motion(out), _wrong_motion(out)
+    assert all(math.isfinite(_layer_for(r, 1200.0).motion_east_ms) for r in out[1:])

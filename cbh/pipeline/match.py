@@ -41,7 +41,7 @@ from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
 __all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "DenseField", "MATCHERS", "MATCHER_BACKENDS",
-           "get_matcher", "triangulate_matches", "field_heights", "sample_map"]
+           "get_matcher", "triangulate_matches", "stereo_heights", "field_heights", "sample_map"]
 
 #: Methods whose matches lie on the epipolar curve by construction: their ray miss says
 #: nothing about the matching noise (the pipeline's angular-noise estimate skips them).
@@ -417,8 +417,9 @@ def _rays_world(cam: Camera, px: np.ndarray) -> np.ndarray:
     return (r[:, 0:1] * R[:, 0] + r[:, 1:2] * R[:, 1] + r[:, 2:3] * R[:, 2]).astype(np.float32)
 
 
-def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) -> TriangulatedMatches:
-    """Triangulate and reject by ray miss / range, triangulation angle and height range."""
+def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig, keep_all: bool = False) -> TriangulatedMatches:
+    """Triangulate and reject by ray miss / range, triangulation angle and height range
+    (``keep_all``: keep every match, the rejected ones as NaN points)."""
     n = len(m)
     if m.ray1_world is not None:
         d1 = m.ray1_world
@@ -438,10 +439,23 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) ->
             & (tri.height_m <= cfg.max_height_m)
         )
     grid = None if m.field is None else field_heights(geom, m.field, cfg)
+    if keep_all:
+        point = tri.point_m.astype(np.float64)
+        point[~keep] = np.nan
+        return TriangulatedMatches(m, point, np.where(keep, tri.miss_m, np.nan).astype(np.float64), n, grid)
     if keep.all():  # (the dense sweep: usually every match passes; skip the copies)
         return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n, grid)
     return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64),
                                n, grid)
+
+
+def stereo_heights(geom: PairGeometry, px1: np.ndarray, px2: np.ndarray, cfg: FilteringConfig) -> np.ndarray:
+    """Heights [m] (N,) of correspondences (N, 2) + (N, 2) at working size, NaN where
+    :func:`triangulate_matches` would reject them."""
+    if len(px1) == 0:
+        return np.zeros(0)
+    return triangulate_matches(geom, Matches("", np.asarray(px1, np.float64), np.asarray(px2, np.float64)), cfg,
+                               keep_all=True).height_m
 
 
 def field_heights(geom: PairGeometry, field: DenseField, cfg: FilteringConfig) -> np.ndarray:

@@ -60,7 +60,7 @@ from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, heigh
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry,
-                                TriangulatedMatches, get_matcher, sample_map, triangulate_matches)
+                                TriangulatedMatches, get_matcher, sample_map, stereo_heights, triangulate_matches)
 from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
                                  offset_per_match, plane_offsets, running_offset, track_back)
 from cbh.pipeline.photometric import estimate_response
@@ -429,6 +429,22 @@ class Pipeline:
         a1 = plane_offsets(self.cam1, px1)
         w1 = (a1 - plane_offsets(self.cam1, t1.px_prev)) / dt
         w1[~t1.ok] = np.nan
+        px2_raw = px2 if comp is None else sample_map(comp[..., 0], comp[..., 1], px2)
+        t2 = track_back(gray[1], mot.prev_gray[1], px2_raw, cfg)
+        w2 = (plane_offsets(self.cam2, px2_raw) - plane_offsets(self.cam2, t2.px_prev)) / dt
+        w2[~t2.ok] = np.nan
+        # a track follows one thing in both cameras only if the two tracks still form a stereo pair
+        # of that thing's height: layers move horizontally. A track that jumped (its feature hidden
+        # by a lower cloud that moved in front: at a 60 s cadence, 3500 m features latched onto the
+        # 1200 m layer, which gave the deck the low layer's motion × 2.9) triangulates elsewhere.
+        # Both pairs are as captured (camera 2 uncompensated), so a clock offset biases both alike.
+        filt = self.config.filtering
+        h_now = stereo_heights(self.geometry, px1, px2_raw, filt)
+        h_prev = stereo_heights(self.geometry, t1.px_prev, t2.px_prev, filt)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            jumped = ~(np.abs(np.log(h_prev / h_now)) <= cfg.layer_tolerance_log)
+        w1[jumped] = np.nan
+        w2[jumped] = np.nan
         pair = math.nan
         if cfg.clock_offset:
             c1, c2 = self.cam1.position_m, self.cam2.position_m
@@ -437,20 +453,38 @@ class Pipeline:
             res = offset_estimate(d, q, wt, self.config.filtering.min_height_m, self.config.filtering.max_height_m,
                                   cfg.max_offset_s, dt)
             pair = used_s + res if math.isfinite(res) else math.nan
-        px2_raw = px2 if comp is None else sample_map(comp[..., 0], comp[..., 1], px2)
-        t2 = track_back(gray[1], mot.prev_gray[1], px2_raw, cfg)
-        w2 = (plane_offsets(self.cam2, px2_raw) - plane_offsets(self.cam2, t2.px_prev)) / dt
-        w2[~t2.ok] = np.nan
-        return MotionEstimate(dt_s=dt, px1=px1, w1=w1, w2=w2, pair_offset_s=pair)
+        return MotionEstimate(dt_s=dt, px1=px1, w1=w1, w2=w2, pair_offset_s=pair,
+                              height_m=stereo_heights(self.geometry, px1, px2, self.config.filtering))
 
     def stage_motion(self, lay: LayerSet, hmap: HeightMap, est: "MotionEstimate") -> LayerSet:
         """Each layer's motion over the ground from the tracks (NaN without a previous pair)."""
         if est.px1 is None or not lay.layers:
             return lay
-        h, w = hmap.nearest_m.shape
+        if est.height_m is not None:
+            # a track belongs to the layer of what it tracks: the feature's own stereo height. The
+            # height map at its centre pixel is not that at a layer's edge: a corner on a low
+            # cloud's edge over a high deck moves with the low cloud, and read as the deck's it
+            # gave the 3500 m layer (6, 2) m/s × 2.9 at a 60 s cadence (two-layers scene)
+            h_track = est.height_m
+        else:
+            h, w = hmap.nearest_m.shape
+            xi = np.clip(np.round(est.px1[:, 0]).astype(np.int64), 0, w - 1)
+            yi = np.clip(np.round(est.px1[:, 1]).astype(np.int64), 0, h - 1)
+            h_track = hmap.nearest_m[yi, xi]
+        lab = assign_layers(h_track, lay.layers, self.config.motion.layer_tolerance_log)
+        # and only tracks whose LK window sees no lower cloud: a window across a lower layer's edge
+        # follows that edge (the lower cloud is in front), in both cameras alike, so even its stereo
+        # height stays put (60 s cadence, two-layers: 5 of 5 tracks of the 3500 m deck moved with
+        # the 1200 m layer's rate)
+        mcfg = self.config.motion
+        k = 2 * (mcfg.window_px // 2) + 1
+        lowest = cv2.erode(np.nan_to_num(hmap.nearest_m, nan=np.inf), np.ones((k, k), np.uint8))  # min filter
+        h, w = lowest.shape
         xi = np.clip(np.round(est.px1[:, 0]).astype(np.int64), 0, w - 1)
         yi = np.clip(np.round(est.px1[:, 1]).astype(np.int64), 0, h - 1)
-        lab = assign_layers(hmap.nearest_m[yi, xi], lay.layers, self.config.motion.layer_tolerance_log)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            edge = np.log(h_track / lowest[yi, xi]) > mcfg.layer_tolerance_log
+        lab[edge] = -1
         samples = []
         for wv, cam in ((est.w1, self.cam1), (est.w2, self.cam2)):
             ok = np.isfinite(wv).all(axis=1)
@@ -749,6 +783,7 @@ class MotionEstimate:
     w1: np.ndarray | None = None  # (N, 2) camera 1's plane-offset rate [1/s]
     w2: np.ndarray | None = None  # (N, 2) camera 2's plane-offset rate of the partner [1/s]
     pair_offset_s: float = math.nan  # this pair's clock-offset estimate [s]
+    height_m: np.ndarray | None = None  # (N,) each feature's own stereo height [m] (NaN: rejected)
 
 
 @dataclass(frozen=True)
