@@ -6,8 +6,6 @@ from pathlib import Path
 
 import typer
 
-from cbh.actions.inspect import inspect_session
-from cbh.outputs.record.describe import format_description
 
 
 def register(app: typer.Typer) -> None:
@@ -20,6 +18,8 @@ def inspect_cmd(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
 ) -> None:
     """Time span, frames, drops, topics and layer statistics of a recording."""
+    from cbh.actions.inspect import inspect_session
+    from cbh.outputs.record.describe import format_description  # on use (cold start of the other commands)
     d, notes = inspect_session(session, repair)
     if as_json:
         print(json.dumps(d))

@@ -5,9 +5,7 @@ from pathlib import Path
 
 import typer
 
-from cbh.actions.replay import replay
 from cbh.errors import ConfigError
-from cbh.outputs.rerun_view import parse_rerun_spec
 
 
 def register(app: typer.Typer) -> None:
@@ -34,6 +32,9 @@ def replay_cmd(
         raise ConfigError("--station, --cameras and --record need --reprocess")
     if reprocess and station is None:
         raise ConfigError("--reprocess needs --station STATION.toml")
+    from cbh.actions.replay import replay  # on use (cold start of the other commands)
+    from cbh.outputs.rerun_view import parse_rerun_spec
+
     spec = None if no_viewer else parse_rerun_spec(rerun, target)
     r = replay(session, rerun=spec, station=station, cameras=cameras, record=record, overwrite=overwrite, bind=bind,
                device=device,

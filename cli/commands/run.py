@@ -5,8 +5,6 @@ from pathlib import Path
 
 import typer
 
-from cbh.actions.run import build_run, summary_lines
-from cbh.cli.status import run_with_status
 from cbh.errors import ConfigError
 
 #: Pairs a simulated run processes when neither --frames nor --duration is given (the demo).
@@ -55,6 +53,9 @@ def run_cmd(
     """
     if record_path is not None and not record:
         raise ConfigError(f"unexpected argument {record_path!r} (a recording path goes after --record)")
+    from cbh.actions.run import build_run, summary_lines  # on use: the live service's imports (cold start)
+    from cbh.cli.status import run_with_status
+
     setup = build_run(
         station=station, scene=scene, sources=source or [], cameras=cameras,
         record=(record_path or True) if record else None, rerun=rerun, export=export,
