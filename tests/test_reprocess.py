@@ -81,8 +81,23 @@ def _run(archive: Path, out: Path, **kw):
 @pytest.fixture(scope="module")
 def baseline(archive, ray_session, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
-    plan, summary = _run(archive, out)
-    return plan, summary, out
+    events: list[dict] = []
+    plan, summary = _run(archive, out, on_event=events.append)
+    return plan, summary, out, events
+
+
+def test_days_are_cut_into_even_chunks():
+    """At most chunk_pairs per chunk, as few chunks as that allows, sizes within one of each other."""
+    from cbh.actions.reprocess import _chunk_bounds
+
+    assert _chunk_bounds(50, 16) == [0, 12, 25, 37, 50]  # not 16, 16, 16, 2
+    assert _chunk_bounds(32, 16) == [0, 16, 32] and _chunk_bounds(1, 32) == [0, 1]
+    for n in range(1, 70):
+        for c in (1, 2, 3, 7, 16, 32):
+            b = _chunk_bounds(n, c)
+            sizes = [j - i for i, j in zip(b, b[1:])]
+            assert b[0] == 0 and b[-1] == n and len(sizes) == -(-n // c)
+            assert max(sizes) <= c and max(sizes) - min(sizes) <= 1 and min(sizes) >= 1
 
 
 def _heights_by_time(parquet: Path) -> dict:
@@ -106,8 +121,14 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     from cbh.actions.reprocess import daily_paths
     from cbh.cli.main import main
 
-    plan, s, out = baseline
+    plan, s, out, events = baseline
     assert (s.pairs_total, s.pairs_processed, s.failures, s.days_written, s.workers) == (7, 7, 1, 2, 2)
+    # chunks of at most 2 (chunk_pairs), even within a day: day 1's 4 pairs as 2 + 2, day 2's 3 as 1 + 2;
+    # every chunk but the run's first re-processes its lead-in pair; each reports the actor's CPU time
+    chunks = sorted(((e["day"], e["pairs"], e["lead_in"]) for e in events if e["event"] == "chunk"))
+    assert [(d, n) for d, n, _ in chunks] == [("2024-06-21", 2), ("2024-06-21", 2), ("2024-06-22", 1), ("2024-06-22", 2)]
+    assert sum(lead for *_, lead in chunks) == 3
+    assert all(e["cpu_s"] > 0 and e["elapsed_s"] > 0 for e in events if e["event"] == "chunk")
     inv = plan.inventories["unb-lea"]
     assert inv.frames == {"cam1": 7, "cam2": 8} and inv.unpaired == {"cam1": 0, "cam2": 1}
     capsys.readouterr()
@@ -193,7 +214,7 @@ def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_
     retries the chunk, and the output equals the undisturbed run."""
     from cbh.actions.reprocess import daily_paths
 
-    _, _, base_out = baseline
+    _, _, base_out, _ = baseline
     killed, on_event = _kill_first_dispatched_worker()
 
     _, s = _run(archive, tmp_path / "out", on_event=on_event)
@@ -211,7 +232,7 @@ def test_worker_that_ray_gives_up_on_is_replaced(archive, baseline, tmp_path):
     fresh actor and still writes every day, equal to the undisturbed run."""
     from cbh.actions.reprocess import daily_paths
 
-    _, _, base_out = baseline
+    _, _, base_out, _ = baseline
     killed, on_event = _kill_first_dispatched_worker()
 
     _, s = _run(archive, tmp_path / "out", on_event=on_event, actor_restarts=0)

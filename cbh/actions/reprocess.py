@@ -11,8 +11,10 @@ What happens
 2. **Run** (:func:`run_plan`): Ray actors (:class:`PairWorker`, one CPU each, and a share of
    a GPU with ``device="cuda"``) each build a station's :class:`~cbh.pipeline.Pipeline`
    once (heavy tables: remap, rays, masks) and keep it for every later chunk of that station.
-   Days are cut into chunks of ``chunk_pairs`` pairs so that a few long days still keep every
-   worker busy; an actor keeps to one station while that station has work. A worker process
+   Days are cut into chunks of at most ``chunk_pairs`` pairs, of equal size within a day
+   (:func:`_chunk_bounds`), so that a few long days still keep every worker busy; an actor
+   keeps to one station while that station has work, and sends back only what the day files
+   need (a :class:`~cbh.outputs.export.PairRecord` per pair: no images, no height maps). A worker process
    that dies is restarted by Ray and its chunk retried (``max_restarts``/``max_task_retries``);
    if Ray gives up, a fresh actor takes the chunk (``max_attempts`` in all).
 3. **Output** (on the driver, as each day completes): per station and UTC day
@@ -338,7 +340,9 @@ class ChunkResult:
     records: list  # cbh.outputs.export.PairRecord, time order
     failures: list[dict]  # {"time_utc", "frames", "reason"}
     pid: int  # the actor process (a new pid in a slot: Ray restarted the actor)
-    elapsed_s: float
+    elapsed_s: float  # wall time of the chunk in the actor [s]
+    cpu_s: float = math.nan  # CPU time of the actor process over the chunk, all its threads [s]
+    lead_in: int = 0  # pairs processed for their motion state only (0 or 1)
 
 
 class PairWorker:
@@ -392,7 +396,7 @@ class PairWorker:
 
         from cbh.actions.run import MotionChain
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         pipe = self.pipeline(chunk.station)
         st = self.stations[chunk.station][0]
         lead = (chunk.lead,) if chunk.lead is not None else ()
@@ -421,7 +425,7 @@ class PairWorker:
             failures.append({"time_utc": _iso(p.time_utc), "frames": [p.frame1.describe(), p.frame2.describe()],
                              "reason": reason})
         return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(),
-                           time.perf_counter() - t0)
+                           time.perf_counter() - t0, time.process_time() - c0, len(lead))
 
 
 # --- the engine -------------------------------------------------------------------------------------
@@ -605,12 +609,27 @@ def _write_index(plan: Plan, sides: dict[tuple[str, date], dict], failed: dict[t
     return path
 
 
+def _chunk_bounds(n_pairs: int, chunk_pairs: int) -> list[int]:
+    """Cut points of a day into the fewest chunks of at most ``chunk_pairs`` pairs, their sizes
+    differing by at most one (50 pairs at 16: 12, 13, 12, 13, not 16, 16, 16, 2: no short
+    chunk paying a whole lead-in pair and a task for two pairs, and a shorter tail).
+
+    >>> _chunk_bounds(50, 16)
+    [0, 12, 25, 37, 50]
+    >>> _chunk_bounds(32, 16)
+    [0, 16, 32]
+    """
+    n = max(1, -(-n_pairs // chunk_pairs))
+    return [(k * n_pairs) // n for k in range(n + 1)]
+
+
 def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summary:
     """Process every unfinished day of the plan on Ray; write the days as they finish and the index.
 
     ``on_event(dict)`` is called on the driver with ``{"event": "start", "pairs", "days",
     "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "chunk", "pairs", "failures",
-    "pid", "elapsed_s"}``, ``{"event": "dispatch", "slot", …}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
+    "pid", "elapsed_s", "cpu_s", "lead_in"}`` (the actor's wall and CPU time for the chunk, and
+    whether it re-processed a lead-in pair), ``{"event": "dispatch", "slot", …}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
     KeyboardInterrupt stops the run: finished days stay, the index is written, and the
     summary says ``interrupted``.
     """
@@ -642,12 +661,11 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
         before[(w.station, w.day)] = last.get(w.station)
         last[w.station] = w.pairs[-1]
     for w in todo:
-        n = 0
-        for i in range(0, len(w.pairs), opts.chunk_pairs):
+        bounds = _chunk_bounds(len(w.pairs), opts.chunk_pairs)
+        for n, (i, j) in enumerate(zip(bounds, bounds[1:])):
             lead = w.pairs[i - 1] if i else before[(w.station, w.day)]
-            queues[w.station].append((Chunk(w.station, w.day, n, tuple(w.pairs[i:i + opts.chunk_pairs]), lead), 1))
-            n += 1
-        expected[(w.station, w.day)] = n
+            queues[w.station].append((Chunk(w.station, w.day, n, tuple(w.pairs[i:j]), lead), 1))
+        expected[(w.station, w.day)] = len(bounds) - 1
     works = {(w.station, w.day): w for w in todo}
     got: dict[tuple[str, date], list[ChunkResult]] = defaultdict(list)
 
@@ -751,7 +769,7 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
                                 extra={"cbh_station": chunk.station, "cbh_time": f["time_utc"]})
                 emit({"event": "chunk", "station": chunk.station, "day": chunk.day.isoformat(),
                       "pairs": len(res.records) + len(res.failures), "failures": len(res.failures),
-                      "pid": res.pid, "elapsed_s": res.elapsed_s})
+                      "pid": res.pid, "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "lead_in": res.lead_in})
                 if len(got[key]) == expected[key]:
                     parts = sorted(got.pop(key), key=lambda r: r.index)
                     recs = [r for p in parts for r in p.records]
