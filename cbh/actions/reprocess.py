@@ -39,8 +39,12 @@ Temporal state (cloud motion, camera 2's clock offset: :mod:`cbh.pipeline.motion
 from pair to pair in time order as ``cbh run`` does (:class:`cbh.actions.run.MotionChain`).
 A chunk starts with a lead-in: the station's pair just before its first (possibly the previous
 day's last) is processed again for its state only, so every pair gets its motion exactly as in
-one sequential run, at one extra pair per chunk. The running clock-offset estimate (a median
-over the last pairs) restarts at each chunk; where a clock offset is compensated, the heights
+one sequential run. An actor that itself processed that pair last (it works through a
+contiguous stretch of chunks, :class:`_ChunkQueue`) skips the re-processing and starts from
+the state the lead-in would leave (:func:`_as_lead_in`: the same frames, no offset history),
+so the results do not depend on which actor took which chunk, and the extra pairs are one per
+stretch (about one per actor and station), not one per chunk. The running clock-offset
+estimate (a median over the last pairs) restarts at each chunk; where a clock offset is compensated, the heights
 of a chunk's first pairs can differ from a sequential run's within the 0.5 % the issue allows.
 Where no temporal information is used the heights are identical to ``cbh pair``'s.
 """
@@ -373,6 +377,8 @@ class PairWorker:
         self.stations = {k: (parse_station(tomllib.loads(text)), tuple(cams)) for k, (text, cams) in stations.items()}
         self.device = device
         self._pipes: OrderedDict = OrderedDict()
+        # station → (the last pair this actor processed, the state a lead-in of that pair leaves)
+        self._last: dict[str, tuple[PairRef, object]] = {}
 
     def pid(self) -> int:
         return os.getpid()
@@ -399,9 +405,14 @@ class PairWorker:
         t0, c0 = time.perf_counter(), time.process_time()
         pipe = self.pipeline(chunk.station)
         st = self.stations[chunk.station][0]
-        lead = (chunk.lead,) if chunk.lead is not None else ()
-        images = load_images([f for p in lead + chunk.pairs for f in (p.frame1, p.frame2)])
         motion = MotionChain()  # the temporal state handed from pair to pair, as in `cbh run`
+        last = self._last.pop(chunk.station, None)
+        if chunk.lead is not None and last is not None and last[0] == chunk.lead:
+            lead = ()  # this actor's previous chunk ended with the lead pair: its state, no re-processing
+            motion.state = last[1]
+        else:
+            lead = (chunk.lead,) if chunk.lead is not None else ()
+        images = load_images([f for p in lead + chunk.pairs for f in (p.frame1, p.frame2)])
         records, failures = [], []
         for k, p in enumerate(lead + chunk.pairs):
             img1, img2 = images[p.frame1], images[p.frame2]
@@ -424,8 +435,22 @@ class PairWorker:
             reason = str(bad) if isinstance(bad, CbhError) else f"{type(bad).__name__}: {bad}"
             failures.append({"time_utc": _iso(p.time_utc), "frames": [p.frame1.describe(), p.frame2.describe()],
                              "reason": reason})
+        if chunk.pairs:
+            self._last[chunk.station] = (chunk.pairs[-1], _as_lead_in(motion.state))
         return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(),
                            time.perf_counter() - t0, time.process_time() - c0, len(lead))
+
+
+def _as_lead_in(state):
+    """The state a lead-in of the same pair leaves (processed with no previous state): its frames
+    and time, no clock-offset history, no layer motion; None where the pair failed (a lead-in of
+    it fails again). So a chunk that follows on the same actor gets exactly the state its lead-in
+    would give, and the heights do not depend on which actor took which chunk."""
+    from dataclasses import replace
+
+    if state is None or state.gray is None:
+        return None
+    return replace(state, offsets_s=(), layer_rates=())
 
 
 # --- the engine -------------------------------------------------------------------------------------
@@ -609,6 +634,73 @@ def _write_index(plan: Plan, sides: dict[tuple[str, date], dict], failed: dict[t
     return path
 
 
+class _ChunkQueue:
+    """Chunks waiting for an actor, handed out so that each actor works through a contiguous
+    stretch of one station's chunks: the lead-in pair of its next chunk is then its own last
+    pair, and :meth:`PairWorker.process` re-processes none (one lead-in per stretch, not per chunk).
+
+    An actor without a stretch takes one on the station it was on while that station has work
+    (else the station with the most chunks left per actor on it): an unclaimed stretch whole,
+    else the larger half, the later in time, of that station's largest stretch (its owner keeps
+    the earlier half). So every actor stays busy to the end, at the price of one lead-in per
+    split. Chunks to retry (their actor died) go first.
+
+    Parameters
+    ----------
+    chunks : dict of str → list of Chunk
+        Per station, the chunks in time order (each chunk's lead is the previous one's last pair).
+    """
+
+    def __init__(self, chunks: dict[str, list[Chunk]]):
+        self._chunks = {k: list(v) for k, v in chunks.items() if v}
+        self._stretches = [[k, 0, len(v)] for k, v in self._chunks.items()]  # [station, next, end)
+        self._mine: dict[int, list] = {}  # slot → its stretch
+        self._station: dict[int, str] = {}  # slot → the station it is on
+        self._retry: deque = deque()
+
+    def __len__(self) -> int:
+        return len(self._retry) + sum(hi - lo for _, lo, hi in self._stretches)
+
+    def retry(self, chunk: Chunk, attempt: int) -> None:
+        self._retry.appendleft((chunk, attempt))
+
+    def next(self, slot: int) -> tuple[Chunk, int] | None:
+        """(chunk, attempt) for actor ``slot``; None when nothing is left."""
+        if self._retry:
+            return self._retry.popleft()
+        s = self._mine.get(slot)
+        if s is None or s[1] >= s[2]:
+            s = self._claim(slot)
+            if s is None:
+                return None
+        s[1] += 1
+        return self._chunks[s[0]][s[1] - 1], 1
+
+    def _claim(self, slot: int) -> list | None:
+        self._stretches = [s for s in self._stretches if s[1] < s[2]]
+        if not self._stretches:
+            return None
+        left: dict[str, int] = {}
+        for k, lo, hi in self._stretches:
+            left[k] = left.get(k, 0) + hi - lo
+        st = self._station.get(slot)
+        if st not in left:
+            on = [v for k, v in self._station.items() if k != slot]
+            st = max(left, key=lambda k: left[k] / (1 + on.count(k)))
+        big = max((s for s in self._stretches if s[0] == st), key=lambda s: s[2] - s[1])
+        owners = [k for k, v in self._mine.items() if v is big]
+        if not owners:
+            mine = big
+        else:  # split: the owner keeps the earlier half, this actor takes the later (larger) half
+            cut = big[1] + (big[2] - big[1]) // 2
+            mine = [st, cut, big[2]]
+            big[2] = cut
+            self._stretches.append(mine)
+        self._mine[slot] = mine
+        self._station[slot] = st
+        return mine
+
+
 def _chunk_bounds(n_pairs: int, chunk_pairs: int) -> list[int]:
     """Cut points of a day into the fewest chunks of at most ``chunk_pairs`` pairs, their sizes
     differing by at most one (50 pairs at 16: 12, 13, 12, 13, not 16, 16, 16, 2: no short
@@ -652,8 +744,8 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
         s.index = _write_index(plan, sides, failed, s)
         return s
 
-    # chunks, per station queue (a worker stays with its station while it has work)
-    queues: dict[str, deque] = defaultdict(deque)
+    # chunks, per station in time order; handed out in contiguous stretches (see _ChunkQueue)
+    by_station: dict[str, list[Chunk]] = defaultdict(list)
     expected: dict[tuple[str, date], int] = {}
     before: dict[tuple[str, date], PairRef | None] = {}  # the previous day's last pair: the day's lead-in
     last: dict[str, PairRef] = {}
@@ -664,8 +756,9 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
         bounds = _chunk_bounds(len(w.pairs), opts.chunk_pairs)
         for n, (i, j) in enumerate(zip(bounds, bounds[1:])):
             lead = w.pairs[i - 1] if i else before[(w.station, w.day)]
-            queues[w.station].append((Chunk(w.station, w.day, n, tuple(w.pairs[i:j]), lead), 1))
+            by_station[w.station].append(Chunk(w.station, w.day, n, tuple(w.pairs[i:j]), lead))
         expected[(w.station, w.day)] = len(bounds) - 1
+    queue = _ChunkQueue(by_station)
     works = {(w.station, w.day): w for w in todo}
     got: dict[tuple[str, date], list[ChunkResult]] = defaultdict(list)
 
@@ -676,45 +769,32 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     if n_workers > cpus:
         log.warning("%d workers asked, Ray offers %d CPUs: using %d", n_workers, cpus, cpus)
         n_workers = cpus
-    n_workers = max(1, min(n_workers, sum(len(q) for q in queues.values())))
+    n_workers = max(1, min(n_workers, len(queue)))
     s.workers = n_workers
     gpu_share = 0.0
     if opts.device == "cuda":
         gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / n_workers)
     actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share, max_restarts=opts.actor_restarts,
                                                max_task_retries=opts.actor_restarts)
-    stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs if j.name in queues}
+    stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs if j.name in by_station}
     actors: list = []
-    current: list[str | None] = []
     inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt, actor handle)
     load = [0] * n_workers
 
     def new_actor():
         return actor_cls.remote(stations, opts.device)
 
-    def next_chunk(slot: int):
-        st = current[slot]
-        if st is None or not queues.get(st):
-            left = [k for k, q in queues.items() if q]
-            if not left:
-                return None
-            # the station with the most work left per worker already on it
-            st = max(left, key=lambda k: len(queues[k]) / (1 + sum(1 for c in current if c == k)))
-            current[slot] = st
-        return queues[st].popleft()
-
     try:
         emit({"event": "start", "pairs": sum(len(w.pairs) for w in todo), "days": len(todo), "workers": n_workers})
         for _ in range(n_workers):
             actors.append(new_actor())
-            current.append(None)
         pids = ray.get([a.pid.remote() for a in actors])
         emit({"event": "workers", "pids": list(pids)})
-        while inflight or any(queues.values()):
+        while inflight or len(queue):
             # breadth first: every actor gets one chunk before any gets a second (queued behind it)
             for depth, slot in [(d, k) for d in (1, 2) for k in range(n_workers)]:
                 if load[slot] < depth:
-                    item = next_chunk(slot)
+                    item = queue.next(slot)
                     if item is None:
                         break
                     chunk, attempt = item
@@ -739,7 +819,7 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
                         actors[slot] = new_actor()
                         pids[slot] = None
                     if attempt < opts.max_attempts:
-                        queues[chunk.station].appendleft((chunk, attempt + 1))
+                        queue.retry(chunk, attempt + 1)
                         log.warning("worker died on %s %s chunk %d; retrying on a fresh worker (%s)",
                                     chunk.station, chunk.day, chunk.index, type(exc).__name__)
                         emit({"event": "retry", "station": chunk.station, "day": chunk.day.isoformat(),
