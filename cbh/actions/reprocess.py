@@ -393,7 +393,7 @@ class PairWorker:
         pipe = Pipeline(st, f"{cams[0]},{cams[1]}", device=self.device)  # the dense work on the worker's device
         self._pipes[station] = pipe
         while len(self._pipes) > _PIPELINES_PER_WORKER:
-            self._pipes.popitem(last=False)
+            self._last.pop(self._pipes.popitem(last=False)[0], None)  # its handed-on state too
         return pipe
 
     def process(self, chunk: Chunk) -> ChunkResult:
