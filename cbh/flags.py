@@ -28,11 +28,12 @@ class Flag(enum.IntFlag):
     clock_offset = 1 << 9  # the cameras' clocks differ by more than the pairing tolerance
     exposure_mismatch = 1 << 10  # the cameras' photometric difference is large (corrected, reported)
     identical_images = 1 << 11  # both cameras delivered the same image
+    below_range = 1 << 12  # much of the measured cloud sits on the sweep's lowest plane: cloud at or below its floor
 
 
 #: Flags whose layers must not be reported as valid (exported with the flag, left out of
 #: "latest layers").
-INVALIDATING = frozenset({"geometry_mismatch", "identical_images"})
+INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range"})
 
 
 def check_flags(names: Iterable[str]) -> list[str]:

@@ -26,6 +26,8 @@ def test_cached_tables_equal_built_tables(unb_station, tmp_path, monkeypatch):
     files = list(tmp_path.glob("tables-*.npz"))
     assert len(files) == 1
     cached = Pipeline(sim.station)
+    cached._load_tables()
+    assert 0 in cached._rays and 1 in cached._zenith  # before any pair: the cache filled them
     r2 = cached.process(im1, im2, shot.time_utc, channels="bgr")
     assert cached._tables_loaded and not built._tables_loaded
     g1, g2 = built.geometry, cached.geometry
@@ -33,6 +35,8 @@ def test_cached_tables_equal_built_tables(unb_station, tmp_path, monkeypatch):
     assert np.array_equal(g1.planes.m0, g2.planes.m0) and g1.planes.scale_px == g2.planes.scale_px
     for i in (0, 1):
         assert np.array_equal(built.static_mask(i), cached.static_mask(i))
+        assert i in cached._rays and i in cached._zenith  # read from the cache, not rebuilt
+        assert np.array_equal(built.rays_cam(i), cached.rays_cam(i)) and np.array_equal(built.zenith(i), cached.zenith(i))
     assert [L.height_m for L in r1.layers] == [L.height_m for L in r2.layers]
     assert np.array_equal(r1.height_map, r2.height_map, equal_nan=True)
 

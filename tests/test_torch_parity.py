@@ -125,6 +125,18 @@ def test_every_sweep_pass_agrees(scene):
     assert np.percentile(np.abs(r_n[ok] - r_t[ok]) / ds, 99) <= 0.01
 
 
+def test_coarse_pass_with_near_planes_agrees(scene):
+    """Down to 100 m the coarse pass runs its near planes at half the coarse size (two tiers,
+    :func:`cbh.pipeline.sweep.coarse_planes`): the same votes on both backends."""
+    g1, g2, cloud, cfg, maps, tm = (scene[k] for k in ("g1", "g2", "cloud", "cfg", "maps", "tm"))
+    s_max = 1.0 / 100.0
+    plan = S.coarse_planes(S_MIN, s_max, maps.scale_px, cfg)
+    assert len(plan.near) > 0 and len(plan.far) > 0
+    c_n = S.coarse_pass(g1, g2, cloud, maps, S_MIN, s_max, 0.0, cfg)
+    c_t = T.coarse_pass_torch(torch.from_numpy(g1), torch.from_numpy(g2), cloud, tm, S_MIN, s_max, 0.0, cfg)
+    assert c_n.ranges == c_t.ranges and len(c_n.ranges) >= 1
+
+
 def test_pipeline_on_torch_matches_opencv(scene):
     shot, r_n = scene["shot"], scene["result"]
     r_t = Pipeline(scene["sim"].station, device="cpu", backend="torch").process(

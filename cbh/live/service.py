@@ -384,6 +384,63 @@ class _Reader(threading.Thread):
 _OPERATOR_STOPS = ("SIGINT", "SIGTERM", "SIGHUP", "stopped")
 
 
+class _SinkWriter(threading.Thread):
+    """Writes to the sinks on a thread of its own, in order: a pair's recording (PNG masks, zstd
+    height map, protobuf) overlaps the next pair's processing instead of following it. At most
+    ``depth`` items wait (the loop blocks beyond: memory stays bounded when the disk is slower
+    than the pipeline). The first sink failure is kept (``error``) and every later item is
+    dropped: the loop raises it at its next write, or at the end; nothing written before is lost.
+    """
+
+    def __init__(self, sinks, depth: int = 2):
+        super().__init__(name="cbh-sinks", daemon=True)
+        self.sinks = sinks
+        self.q: queue.Queue = queue.Queue(maxsize=max(1, depth))
+        self.error: RecordingError | None = None
+        self.start()
+
+    def put(self, kind: str, *args) -> None:
+        """Queue ``write`` (pair, result) or ``write_status`` (time, stats) for every sink, or
+        ``call`` (fn): run fn once everything queued before it is written."""
+        self.q.put((kind, args))
+
+    def run(self) -> None:
+        while True:
+            item = self.q.get()
+            try:
+                if item is None:
+                    return
+                if self.error is not None:
+                    continue
+                kind, args = item
+                if kind == "call":  # after the items before it are written (the status line: pair flushed)
+                    try:
+                        args[0]()
+                    except Exception as exc:  # a status line that cannot be shown never stops the recording
+                        log.debug(f"status callback failed: {exc}")
+                    continue
+                for sink in self.sinks:
+                    try:
+                        getattr(sink, kind)(*args)
+                    except Exception as exc:
+                        self.error = _sink_error(sink, exc, "writing" if kind == "write" else "writing status to")
+                        log.debug(str(self.error), extra={"cbh_event": "sink_failed"})
+                        break
+            finally:
+                self.q.task_done()
+
+    def drain(self) -> RecordingError | None:
+        """Wait until everything queued is written; the first failure, if any."""
+        self.q.join()
+        return self.error
+
+    def close(self) -> RecordingError | None:
+        """Write what is queued, end the thread; the first failure, if any."""
+        self.q.put(None)
+        self.join()
+        return self.error
+
+
 class Service:
     """Run the sources → pairing → processing → sinks loop.
 
@@ -430,6 +487,7 @@ class Service:
         self._throttle = _Throttle(self.cfg.log_repeat_s)
         self._last_frame: dict[str, tuple[datetime, float | None]] = {}
         self._jumps: OrderedDict[tuple, float] = OrderedDict()  # (camera, seq, time) → jump [s]
+        self._writer: _SinkWriter | None = None  # started by run()
 
     # -- control ------------------------------------------------------------------------------
     def stop(self, reason: str = "stopped") -> None:
@@ -478,6 +536,7 @@ class Service:
                        for s, o in zip(self.sources, opened)]
             for r in readers:
                 r.start()
+            self._writer = _SinkWriter(self.sinks) if self.sinks else None
             self._loop(readers, pairer)
         finally:
             self._stop.set()
@@ -526,7 +585,7 @@ class Service:
                           f"within {self.cfg.pair_tolerance_s:g} s")
 
     def _close_sinks(self) -> Exception | None:
-        err = None
+        err = self._writer.close() if self._writer is not None else None  # what is queued is written first
         for sink in self.sinks:
             try:
                 sink.close()
@@ -550,11 +609,25 @@ class Service:
             self._write_status(t, status)
 
     def _write_status(self, t: datetime, status: dict) -> None:
+        self._to_sinks("write_status", t, status)
+
+    def _to_sinks(self, kind: str, *args) -> None:
+        """Hand one item to the sink writer; an earlier sink failure stops the run here (raised:
+        printed once by the caller). Without a writer (before run() starts it, or after it
+        ended) the sinks are written directly."""
+        w = self._writer
+        if w is not None and w.error is not None:
+            self.stop("sink failed")
+            raise w.error
+        if w is not None and w.is_alive():
+            w.put(kind, *args)
+            return
         for sink in self.sinks:
             try:
-                sink.write_status(t, status)
+                getattr(sink, kind)(*args)
             except Exception as exc:
-                err = _sink_error(sink, exc, "writing status to")
+                err = _sink_error(sink, exc, "writing" if kind == "write" else "writing status to")
+                log.debug(str(err), extra={"cbh_event": "sink_failed"})
                 self.stop("sink failed")
                 raise err from None
 
@@ -699,14 +772,7 @@ class Service:
             if "time_jump" not in result.flags:
                 result.flags.append("time_jump")
             result.diagnostics["time_jump_s"] = float(max(jumps, key=abs))
-        for sink in self.sinks:
-            try:
-                sink.write(pair, result)
-            except Exception as exc:
-                err = _sink_error(sink, exc, "writing")
-                log.debug(str(err), extra={"cbh_event": "sink_failed"})  # raised: printed once by the caller
-                self.stop("sink failed")
-                raise err from None
+        self._to_sinks("write", pair, result)
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
         invalid = [f for f in result.flags if f in INVALIDATING]
@@ -739,8 +805,12 @@ class Service:
             "cbh_process_s": round(st.process_s, 3), "cbh_latency_s": round(st.latency_s, 3),
             "cbh_pairs": st.pairs_processed, "cbh_dropped": st.pairs_dropped,
         })
-        if self.on_pair is not None:
-            self.on_pair(st, result)
+        if self.on_pair is not None:  # once the pair is written: a printed pair is a recorded pair
+            w = self._writer
+            if w is not None and w.is_alive():
+                w.put("call", lambda: self.on_pair(st, result))
+            else:
+                self.on_pair(st, result)
 
     def _corrupt(self, frame: Frame, exc: ImageError) -> None:
         s = self.stats.sources[frame.camera]

@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
-from cbh.flags import Flag, flag_bits
+from cbh.flags import INVALIDATING, Flag, flag_bits
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult, require_time
 from cbh.fileio import atomic_write
@@ -665,8 +665,8 @@ def netcdf_dataset(records: list[PairRecord], info: dict):
         "quality_flag": fvar(("time",), qf, standard_name="status_flag", long_name="quality flags of the frame pair",
                              flag_masks=all_bits, flag_meanings=" ".join(f.name for f in Flag),
                              valid_range=np.array([0, int(all_bits.sum())], np.int32),
-                             comment="bits of cbh.flags.Flag; layers of a pair with geometry_mismatch or "
-                                     "identical_images are not valid"),
+                             comment="bits of cbh.flags.Flag; layers of a pair with "
+                                     f"{', '.join(sorted(INVALIDATING))} are not valid"),
     }
     for key in _all_diagnostics(records):
         taken = set(data_vars) | {"time", "layer", "station_latitude", "station_longitude", "station_altitude",

@@ -141,6 +141,7 @@ class SweepConfig:
     coarse_factor: int = 2  # the coarse pass runs at working size / this [1]
     coarse_window_px: int = 7  # ZNCC window side, coarse pass, at coarse size [px]
     coarse_step_px: float = 1.0  # largest image shift between coarse planes, at coarse size [px]
+    coarse_near_px: float = 32.0  # coarse planes with more parallax than this (working size) run at half the coarse size; 0 = off [px]
     step_px: float = 1.0  # largest image shift between fine planes, at working size [px]
     far_px: float = 6.0  # the fine pass sweeps every plane up to this parallax from infinity [px]
     min_height_m: float = 100.0  # lowest plane, above the ENU origin [m]; filtering's floor: lower clouds pinned to the
@@ -361,6 +362,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if not 1 <= sw.coarse_factor <= 8:
         raise ConfigError(f"{swp}.coarse_factor: must be in 1..8, got {sw.coarse_factor}")
     _positive(f"{swp}.far_px", sw.far_px, strict=False)
+    _positive(f"{swp}.coarse_near_px", sw.coarse_near_px, strict=False)
     for k in ("coarse_step_px", "step_px", "min_height_m", "max_planes", "point_stride_px"):
         _positive(f"{swp}.{k}", getattr(sw, k))
     if not sw.min_height_m < sw.max_height_m:

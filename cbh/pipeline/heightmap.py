@@ -34,7 +34,7 @@ class HeightMap:
 
 
 def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray, cloud: np.ndarray,
-                     cfg, full_size: tuple[int, int]) -> HeightMap:
+                     cfg, full_size: tuple[int, int], grids=()) -> HeightMap:
     """Splat heights onto camera 1's working grid, fill holes inside the cloud mask (see module doc).
 
     Parameters
@@ -49,8 +49,19 @@ def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarra
     cfg : HeightMapConfig
     full_size : (W, H)
         Camera 1's full image size.
+    grids : sequence of ndarray, shape (h, w), float32
+        Height maps measured per pixel (a plane sweep's field, NaN = none), merged with the
+        splatted points by the mean of what each pixel has (each grid counts as one height).
     """
     hmap = rasterize_heights(shape, px, height_m)
+    if grids:
+        if len(px) == 0 and len(grids) == 1:
+            hmap = grids[0]
+        else:
+            with np.errstate(invalid="ignore"):
+                stack = np.stack([hmap, *grids])
+                n = np.isfinite(stack).sum(axis=0)
+                hmap = np.where(n > 0, np.nansum(stack, axis=0) / np.maximum(n, 1), np.nan).astype(np.float32)
     known = np.isfinite(hmap)
     nearest, dist = nearest_fill(hmap)
     if cfg.fill == "nearest":

@@ -29,7 +29,8 @@ done afterwards by :func:`triangulate_matches`, the same for every method.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -39,8 +40,8 @@ from cbh.geometry.station import Camera
 from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
-__all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "MATCHERS", "MATCHER_BACKENDS", "get_matcher",
-           "triangulate_matches", "sample_map"]
+__all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "DenseField", "MATCHERS", "MATCHER_BACKENDS",
+           "get_matcher", "triangulate_matches", "field_heights", "sample_map"]
 
 #: Methods whose matches lie on the epipolar curve by construction: their ray miss says
 #: nothing about the matching noise (the pipeline's angular-noise estimate skips them).
@@ -104,19 +105,23 @@ class PairGeometry:
         return rays
 
     @classmethod
-    def from_tables(cls, cam1: Camera, cam2: Camera, map_x: np.ndarray, map_y: np.ndarray, planes=None) -> "PairGeometry":
-        """The geometry from cached tables (:mod:`.tables`): the remap table as stored, the rays
-        recomputed (cheap), the plane maps if given."""
+    def from_tables(cls, cam1: Camera, cam2: Camera, map_x: np.ndarray, map_y: np.ndarray, planes=None,
+                    rays1_world: np.ndarray | None = None) -> "PairGeometry":
+        """The geometry from cached tables (:mod:`.tables`): the remap table and the rays as
+        stored (the rays recomputed if absent), the plane maps if given."""
         g = cls.__new__(cls)
         g.cam1, g.cam2 = cam1, cam2
         g.map_x, g.map_y = map_x, map_y
-        g._rays1()
+        if rays1_world is None:
+            g._rays1()
+        else:
+            g.rays1_world = rays1_world
         g._planes = planes
         return g
 
     def tables(self) -> dict[str, np.ndarray]:
         """The expensive tables, for :func:`~cbh.pipeline.tables.save_tables`."""
-        out = {"map_x": self.map_x, "map_y": self.map_y}
+        out = {"map_x": self.map_x, "map_y": self.map_y, "rays1_world": self.rays1_world}
         if self._planes is not None:
             p = self._planes
             out.update(plane_m0=p.m0, plane_a=p.a, plane_b=p.b, plane_scalars=np.array([p.s_a, p.scale_px]))
@@ -130,6 +135,19 @@ class PairGeometry:
 
             self._planes = plane_maps(self.cam1, self.cam2, self.rays1_world)
         return self._planes
+
+    def baseline_terms(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        """Per camera-1 pixel (H1, W1) float32: |d × B| and d · B for its ENU ray d and the
+        baseline B = o2 − o1 [m]; |B|² [m²]; and d's up component (cached; :func:`field_heights`)."""
+        cache = self.__dict__.get("_baseline_terms")
+        if cache is None:
+            b = (self.cam2.position_m - self.cam1.position_m).astype(np.float32)
+            d = self.rays1_world
+            cross = np.linalg.norm(np.cross(d, b), axis=-1).astype(np.float32)
+            dot = (d @ b).astype(np.float32)
+            cache = (cross, dot, float(b @ b), np.ascontiguousarray(d[..., 2]))
+            self.__dict__["_baseline_terms"] = cache
+        return cache
 
     def torch_planes(self, device):
         """The plane tables on a torch ``device`` (:class:`~cbh.pipeline.torch_ops.TorchPlaneMaps`),
@@ -184,6 +202,10 @@ class Matches:
     dense: bool = False  # one correspondence per camera-1 pixel at integer coordinates
     ray2_world: np.ndarray | None = None  # (N, 3) float32: camera-2 ENU ray, where the method knows it exactly
     ray1_world: np.ndarray | None = None  # (N, 3) float32: camera-1 ENU ray, where the method has it at hand
+    # a method that measures every pixel of a region (the sweep): s = 1/(h − o1z) per pixel (NaN = none), with
+    # px1/px2 then a subsample of it on the point lattice (``point_stride_px``): the point set; the height map is
+    # made from the field
+    field: "DenseField | None" = None
 
     def __len__(self) -> int:
         return int(self.px1.shape[0])
@@ -191,7 +213,16 @@ class Matches:
     def take(self, keep: np.ndarray) -> "Matches":
         r1 = None if self.ray1_world is None else self.ray1_world[keep]
         r2 = None if self.ray2_world is None else self.ray2_world[keep]
-        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1)
+        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1, self.field)
+
+
+@dataclass(frozen=True)
+class DenseField:
+    """Heights of a plane-sweep match at every pixel of a region of camera 1's working grid."""
+
+    region: tuple  # (slice y, slice x)
+    s: np.ndarray  # (h, w) float32: s = 1/(h − o1z) of the pixel's plane [1/m]; NaN = no match
+    floor_fraction: float = 0.0  # share of the accepted pixels that sat on the lowest plane (dropped from s)
 
 
 def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
@@ -288,26 +319,64 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     g = inp.geometry
     o1z = float(g.cam1.position_m[2])
     if inp.device is not None:
-        from cbh.pipeline.torch_ops import sweep_matches_torch
+        from cbh.pipeline.torch_ops import sweep_field_torch
 
-        px1, px2, info = sweep_matches_torch(inp.gray1, inp.gray2, inp.cloud1, g.torch_planes(inp.device), o1z, cfg.sweep)
+        f = sweep_field_torch(inp.gray1, inp.gray2, inp.cloud1, g.torch_planes(inp.device), o1z, cfg.sweep)
     else:
-        from cbh.pipeline.sweep import sweep_matches
+        from cbh.pipeline.sweep import sweep_field
 
-        px1, px2, info = sweep_matches(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
-    # inside camera 2's image and usable mask (px2 are finite here: the tables mark "no pixel" far outside)
-    h2, w2 = inp.usable2.shape
-    xi, yi = np.rint(px2[:, 0]).astype(np.int32), np.rint(px2[:, 1]).astype(np.int32)
-    keep = (xi >= 0) & (xi < w2) & (yi >= 0) & (yi < h2)
-    keep[keep] = inp.usable2[yi[keep], xi[keep]]
-    px1, px2, s = px1[keep], px2[keep], info["s"][keep]
+        f = sweep_field(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
+    if f is None:
+        return Matches("sweep", np.zeros((0, 2)), np.zeros((0, 2)), dense=True)
+    from cbh.pipeline.sweep import field_points
+
+    # every accepted pixel whose camera-2 pixel lies inside camera 2's image and usable mask
+    s = np.where(f.ok, f.s, np.float32(np.nan)).astype(np.float32)
+    mx, my = g.planes.pixels(s, f.region)
+    s[~(cv2.remap(inp.usable2.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                   borderValue=0) > 0)] = np.nan
+    field = DenseField(f.region, s, floor_fraction=_drop_floor(s, f.info.get("planes"), g.planes.scale_px, o1z,
+                                                                cfg.sweep))
+    # the point set: the same matches on the point lattice
+    px1, px2, s_pt = field_points(replace(f, ok=np.isfinite(s)), g.planes, max(1, int(cfg.sweep.point_stride_px)))
     # the camera-2 ray of a plane-sweep match is known exactly: the point o1 + d·(h − o1z)/d_z
     # seen from o2 is along d − s·d_z·B (s = 1/(h − o1z)); no fisheye back-projection of px2 needed
     d1 = g.rays1_world.reshape(-1, 3)[px1[:, 1].astype(np.int64) * g.rays1_world.shape[1] + px1[:, 0].astype(np.int64)]
     base = (g.cam2.position_m - g.cam1.position_m).astype(np.float32)
-    d2 = d1 - (s * d1[:, 2])[:, None] * base[None, :]
-    return Matches("sweep", px1, px2, dense=True, ray2_world=d2, ray1_world=d1)
+    d2 = d1 - (s_pt * d1[:, 2])[:, None] * base[None, :]
+    return Matches("sweep", px1, px2, dense=True, ray2_world=d2, ray1_world=d1, field=field)
 
+
+def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg) -> float:
+    """Drop (set NaN in ``s``) the pixels on the sweep's lowest plane; their share of the measured ones.
+
+    A pixel whose best plane is the lowest one (``min_height_m``, within one plane step) has its
+    cost still rising at the edge of the search: the cloud is there or lower, and its height is
+    not measured. Cloud below the floor (fog at 60–85 m with a 100 m floor, simulated) puts
+    20–55 % of the measured pixels there, and the rest alias onto false layers at 400 m–3.5 km
+    with full confidence; a cloud base above 120 m puts none there. The share is the pair's
+    ``below_range_fraction``; above ``BELOW_RANGE_FRACTION`` it flags ``below_range``.
+    """
+    from cbh.pipeline.sweep import plane_range
+
+    planes = np.asarray(planes if planes is not None else [], np.float64)
+    n = int(np.count_nonzero(np.isfinite(s)))
+    if not len(planes) or n == 0:
+        return 0.0
+    s_max = plane_range(o1z, cfg)[1]
+    ds = cfg.step_px / scale_px
+    if planes[-1] < s_max - ds:  # the fine planes stop short of the floor: nothing can sit on it
+        return 0.0
+    with np.errstate(invalid="ignore"):
+        on = s >= np.float32(planes[-1] - ds)
+    k = int(np.count_nonzero(on))
+    s[on] = np.nan
+    return k / n
+
+
+#: Share of the sweep's measured pixels on its lowest plane above which the pair is flagged
+#: ``below_range`` (see :func:`_drop_floor`).
+BELOW_RANGE_FRACTION = 0.05
 
 MATCHERS = {"lk": _lk, "orb": _orb, "dis": _dis, "sweep": _sweep}
 
@@ -333,6 +402,7 @@ class TriangulatedMatches:
     point_m: np.ndarray  # (N, 3) float64 ENU [m]
     miss_m: np.ndarray  # (N,) float64 [m]
     n_in: int  # correspondences before filtering
+    grid_m: np.ndarray | None = None  # (H1, W1) float32: the method's dense field as heights [m], NaN = none
 
     @property
     def height_m(self) -> np.ndarray:
@@ -367,6 +437,35 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig) ->
             & (tri.height_m >= cfg.min_height_m)
             & (tri.height_m <= cfg.max_height_m)
         )
+    grid = None if m.field is None else field_heights(geom, m.field, cfg)
     if keep.all():  # (the dense sweep: usually every match passes; skip the copies)
-        return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n)
-    return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64), n)
+        return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n, grid)
+    return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64),
+                               n, grid)
+
+
+def field_heights(geom: PairGeometry, field: DenseField, cfg: FilteringConfig) -> np.ndarray:
+    """A sweep's dense field as heights on camera 1's working grid (H1, W1) float32 [m], NaN =
+    none, with :func:`triangulate_matches`'s rejection applied per pixel, in closed form.
+
+    A plane-sweep pixel's two rays meet exactly on its plane (d2 = d1 − s·d1z·B passes through
+    o1 + d1/(s·d1z)), so the point's height is o1z + 1/s and the ray miss is 0. What is left to
+    check: the height range, and the triangulation angle, whose sine is
+    |d1 × d2| / |d2| = k·|d1 × B| / |d1 − k·B| with k = s·d1z (|d1| = 1).
+    """
+    ry, rx = field.region
+    s = np.ascontiguousarray(field.s, np.float32)
+    o1z = float(geom.cam1.position_m[2])
+    cross, dot, b2, d1z = geom.baseline_terms()
+    cross, dot = cross[ry, rx], dot[ry, rx]
+    k = cv2.multiply(s, d1z[ry, rx])  # OpenCV arithmetic: no numpy temporaries (NaN compares false below)
+    kd = cv2.multiply(k, dot)
+    d2n = cv2.sqrt(cv2.max(cv2.add(cv2.subtract(1.0, cv2.multiply(kd, 2.0)), cv2.multiply(cv2.multiply(k, k), b2)), 0.0))
+    h = cv2.add(cv2.divide(1.0, s), o1z)
+    ok = cv2.compare(cv2.multiply(k, cross), cv2.multiply(d2n, math.sin(math.radians(cfg.min_angle_deg))), cv2.CMP_GE)
+    ok &= cv2.compare(kd, 1.0, cv2.CMP_LT)  # the angle below 90°: the point in front of camera 2
+    ok &= cv2.compare(h, float(cfg.min_height_m), cv2.CMP_GE)
+    ok &= cv2.compare(h, float(cfg.max_height_m), cv2.CMP_LE)
+    out = np.full(geom.rays1_world.shape[:2], np.nan, np.float32)
+    out[ry, rx] = np.where(ok > 0, h, np.float32(np.nan))
+    return out

@@ -59,12 +59,13 @@ from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
-from cbh.pipeline.match import (EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher,
+from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher,
                                 sample_map, triangulate_matches)
 from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
                                  offset_per_match, plane_offsets, running_offset, track_back)
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import segment
+from cbh.pipeline.threads import pmap
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation", "Correspondences", "Points"]
 
@@ -186,8 +187,14 @@ class Pipeline:
             if "plane_m0" in t:
                 s_a, scale = (float(v) for v in t["plane_scalars"])
                 planes = PlaneMaps(t["plane_m0"], t["plane_a"], t["plane_b"], s_a, scale)
-            self._geometry = PairGeometry.from_tables(self.cam1, self.cam2, t["map_x"], t["map_y"], planes)
+            self._geometry = PairGeometry.from_tables(self.cam1, self.cam2, t["map_x"], t["map_y"], planes,
+                                                      t.get("rays1_world"))
             self._static = {0: t["static0"], 1: t["static1"]}
+            for i in (0, 1):  # the per-camera ray and zenith maps (each a fisheye back-projection of every pixel)
+                if f"rays_cam{i}" in t:
+                    self._rays[i] = t[f"rays_cam{i}"]
+                if f"zenith{i}" in t:
+                    self._zenith[i] = t[f"zenith{i}"]
             self._tables_loaded = True
         except (KeyError, ValueError) as e:  # an entry of another layout: rebuild
             log.warning("table cache entry unusable (%s); rebuilding", e)
@@ -198,7 +205,9 @@ class Pipeline:
 
         if self._geometry is None or len(self._static) < 2:
             return
-        save_tables(self._tables_key, {**self._geometry.tables(), "static0": self._static[0], "static1": self._static[1]})
+        save_tables(self._tables_key, {**self._geometry.tables(), "static0": self._static[0], "static1": self._static[1],
+                                       **{f"rays_cam{i}": self.rays_cam(i) for i in (0, 1)},
+                                       **{f"zenith{i}": self.zenith(i) for i in (0, 1)}})
 
     @property
     def geometry(self) -> PairGeometry:
@@ -329,10 +338,16 @@ class Pipeline:
                 corr = self.stage_match(work, masks, seg, ctx, gray=(gray[0], g2), cloud2=c2)
             else:
                 corr = self.stage_match(work, masks, seg, ctx, gray=gray)
-            with _timed(ctx, "height_map"):
-                hmap = self.stage_height_map(seg, corr)
+            def height_map():
+                with _timed(ctx, "height_map"):
+                    return self.stage_height_map(seg, corr)
+
+            def points():
+                with _timed(ctx, "points"):
+                    return self.stage_points(corr)
+
+            hmap, pts = pmap(lambda f: f(), (height_map, points), pool="stages")  # side by side
             with _timed(ctx, "layers"):
-                pts = self.stage_points(corr)
                 lay = self.stage_layers(pts, seg, masks, hmap, ctx)
             est = MotionEstimate()
             if mot.prev_gray is not None:
@@ -443,15 +458,23 @@ class Pipeline:
         return replace(lay, layers=layer_motion(lay.layers, samples, self.config.motion.min_tracks))
 
     def process_batch(self, pairs, *, channels: str | None = None) -> list[PairResult]:
-        """:meth:`process` for several pairs ``[(image1, image2, time_utc), …]`` (paths or arrays
-        of ``channels`` order, as :meth:`process`), results in order.
+        """:meth:`process` for several independent pairs ``[(image1, image2, time_utc), …]`` (paths or
+        arrays of ``channels`` order, as :meth:`process`), results in order.
 
-        The per-camera tables are uploaded once and shared; on a torch device each pair's
-        plane sweep evaluates all its planes in one batched call. Pairs are not stacked into
-        one kernel across pairs: each pair's planes and cloud region differ, and the stages
-        between (segmentation, sparse matching) run on the CPU anyway.
+        The first pair runs alone (it builds or loads the per-camera tables and, on a device,
+        uploads them once); the others run side by side on :func:`~cbh.pipeline.threads.workers`
+        threads (``cv2.getNumThreads()``, at most 8), sharing the tables: each pair's CPU stages
+        (decoding, segmentation, sparse matching, layers) overlap the others' and, on a GPU, its
+        plane sweep. Pairs are not stacked into one kernel: each pair's planes and cloud region
+        differ. No motion is handed between them (use :meth:`process` with ``previous`` for a
+        sequence).
         """
-        return [self.process(im1, im2, t, channels=channels) for im1, im2, t in pairs]
+        pairs = list(pairs)
+        if not pairs:
+            return []
+        first = self.process(pairs[0][0], pairs[0][1], pairs[0][2], channels=channels)
+        rest = pmap(lambda p: self.process(p[0], p[1], p[2], channels=channels), pairs[1:], pool="pairs")
+        return [first, *rest]
 
     # --- stages ---------------------------------------------------------------------------
     def stage_masks(self, work: tuple[np.ndarray, np.ndarray], ctx: "PairContext") -> "Masks":
@@ -464,25 +487,27 @@ class Pipeline:
             sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
             if sun_zen >= 90.0:
                 sun_dir = None
-        usable, sun_angle = [], []
-        for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
+
+        def one(i):
             u = self.static_mask(i)
             ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
+            glare = False
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:
-                sat = saturation_mask(img, cfg.masks)
+                sat = saturation_mask(work[i], cfg.masks)
                 if ang is not None and cfg.masks.glare_radius_deg < 180.0:
                     # saturated far from the sun: over-exposed cloud (clear sky never saturates
                     # all three channels), which stays usable sky and segments as cloud
                     sat &= ang <= cfg.masks.glare_radius_deg
                 if sat.any():
-                    u = u & ~sat
-                    if i == 0:
-                        ctx.flags.append("sun_glare")
-            usable.append(u)
-            sun_angle.append(ang)
-        return Masks(usable=(usable[0], usable[1]), sun_angle=(sun_angle[0], sun_angle[1]), sun_dir_enu=sun_dir)
+                    u, glare = u & ~sat, True
+            return u, ang, glare
+
+        (u1, a1, glare1), (u2, a2, _) = pmap(one, (0, 1), pool="stages")
+        if glare1:
+            ctx.flags.append("sun_glare")
+        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=sun_dir)
 
     def _angle_map(self, i: int, sun_dir: np.ndarray) -> np.ndarray:
         cam = (self.cam1, self.cam2)[i]
@@ -518,13 +543,14 @@ class Pipeline:
 
     def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky."""
-        clouds, fractions = [], {}
-        for i, (cam, img) in enumerate(((self.cam1, work[0]), (self.cam2, work[1]))):
-            c, frac = segment(img, masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
-                              what=cam.name)
-            clouds.append(c)
-            fractions[cam.name] = frac
-        return Segmentation(clouds=(clouds[0], clouds[1]), fractions=fractions)
+        cams = (self.cam1, self.cam2)
+
+        def one(i):
+            return segment(work[i], masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
+                           what=cams[i].name)
+
+        (c1, f1), (c2, f2) = pmap(one, (0, 1), pool="stages")
+        return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
     def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
                     cloud2: np.ndarray | None = None) -> "Correspondences":
@@ -544,12 +570,19 @@ class Pipeline:
             device=self.device if self.backend == "torch" else None,
         )
         raw = []
-        if seg.clouds[0].any():
-            for name in cfg.matching.methods:
+        if seg.clouds[0].any():  # the matchers run side by side (their times overlap)
+            def one(name):
                 with _timed(ctx, f"match_{name}"):
-                    raw.append(get_matcher(name)(inp, cfg.matching))
+                    return get_matcher(name)(inp, cfg.matching)
+
+            raw = list(pmap(one, cfg.matching.methods, pool="stages"))
         with _timed(ctx, "triangulation"):
             tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
+        floor = max((m.field.floor_fraction for m in raw if m.field is not None), default=math.nan)
+        if math.isfinite(floor):
+            ctx.diagnostics["below_range_fraction"] = floor
+            if floor > BELOW_RANGE_FRACTION and "below_range" not in ctx.flags:
+                ctx.flags.append("below_range")
         return Correspondences(triangulated=tris, raw=raw)
 
     def stage_sun_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
@@ -557,13 +590,16 @@ class Pipeline:
         cfg = self.config.sun_check
         if not cfg.enabled or masks.sun_dir_enu is None:
             return
-        res = []
-        for i, (cam, img, role) in enumerate(((self.cam1, work[0], "cam1"), (self.cam2, work[1], "cam2"))):
-            expected = masks.sun_dir_enu @ cam.R_world_from_cam
-            det = detect_sun(img, cam, expected, cfg.search_deg, usable=self.static_mask(i))
-            r = math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
+        cams = (self.cam1, self.cam2)
+
+        def one(i):
+            expected = masks.sun_dir_enu @ cams[i].R_world_from_cam
+            det = detect_sun(work[i], cams[i], expected, cfg.search_deg, usable=self.static_mask(i))
+            return math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
+
+        res = list(pmap(one, (0, 1), pool="stages"))
+        for role, r in zip(("cam1", "cam2"), res):
             ctx.diagnostics[f"sun_residual_{role}_deg"] = r
-            res.append(r)
         seen = [r for r in res if math.isfinite(r)]
         ctx.diagnostics["sun_residual_deg"] = max(seen) if len(seen) == 2 else math.nan
         # The pair's residual and its flag need the sun found in BOTH cameras: a single detection can be a saturated
@@ -590,14 +626,16 @@ class Pipeline:
         """Dense height map on camera 1's working grid (dense matches preferred), and at full size."""
         dense = [tr for tr in corr.triangulated if tr.matches.dense]
         src = dense if dense else corr.triangulated
-        if src:
-            px = np.concatenate([tr.matches.px1 for tr in src])
-            hh = np.concatenate([tr.height_m for tr in src])
+        grids = [tr.grid_m for tr in src if tr.grid_m is not None]  # a sweep's field: every pixel it measured
+        pts = [tr for tr in src if tr.grid_m is None]
+        if pts:
+            px = np.concatenate([tr.matches.px1 for tr in pts])
+            hh = np.concatenate([tr.height_m for tr in pts])
         else:
             px, hh = np.zeros((0, 2)), np.zeros(0)
         shape1 = (self.cam1.model.height, self.cam1.model.width)
         return dense_height_map(shape1, px, hh, seg.clouds[0], self.config.height_map,
-                                (self.cam1_full.model.width, self.cam1_full.model.height))
+                                (self.cam1_full.model.width, self.cam1_full.model.height), grids=grids)
 
     def stage_points(self, corr: "Correspondences") -> "Points":
         """All kept correspondences as points (dense ones thinned to a grid), with predicted noise."""
@@ -668,10 +706,9 @@ class Pipeline:
                 px1=pts.px1.astype(np.float32), px2=pts.px2.astype(np.float32), layer=lay.label,
             ),
             height_map=hmap.full_m.astype(np.float32, copy=False),
-            cloud_masks={
-                name: upsample_map(c.view(np.uint8), m.width, m.height).astype(bool)
-                for name, c, m in zip(self.cameras, seg.clouds, full)
-            },
+            cloud_masks=dict(zip(self.cameras, pmap(lambda cm: upsample_map(cm[0].view(np.uint8), cm[1].width,
+                                                                             cm[1].height).astype(bool),
+                                                     zip(seg.clouds, full), pool="stages"))),
             cloud_fraction=seg.fractions,
             timing_ms=ctx.timing,
             flags=ctx.flags,

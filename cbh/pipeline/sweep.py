@@ -100,6 +100,7 @@ Such a correspondence lies on the epipolar geometry by construction, so its ray 
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 
@@ -107,11 +108,16 @@ import cv2
 import numpy as np
 
 from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
+from cbh.pipeline.threads import pmap as _pmap
 
-__all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_pass", "fine_planes", "fine_pass",
+__all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
+           "coarse_pass",
+           "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
+_REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
+_REGION_LOCK = threading.Lock()
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
 
@@ -139,12 +145,25 @@ class PlaneMaps:
 
     def at(self, s: float, sl=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 for one plane, on the region ``sl``."""
-        if getattr(self, "_planes_key", None) != sl:  # (h, w, 3) tables (m0, a, b) per axis, cached
-            self._planes = [cv2.merge([np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)])
-                            for k in (0, 1)]
-            self._planes_key = sl
+        tx, ty = self._region_tables("merged", sl)  # (h, w, 3) tables (m0, a, b) per axis
         coef = np.array([[1.0, float(s), float(s) * float(s)]])  # one pass per axis: m0 + a·s + b·s²
-        return cv2.transform(self._planes[0], coef), cv2.transform(self._planes[1], coef)
+        return cv2.transform(tx, coef), cv2.transform(ty, coef)
+
+    def _region_tables(self, kind: str, sl):
+        """The tables cut to a region, cached (a few regions: pairs processed side by side each
+        have their own; thread-safe: an entry is built before it is published, never changed)."""
+        key = (kind,) + tuple((x.start, x.stop, x.step) for x in sl)
+        cache = self.__dict__.setdefault("_regions", {})
+        hit = cache.get(key)
+        if hit is not None:
+            return hit
+        cut = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
+        val = [cv2.merge(c) for c in cut] if kind == "merged" else cut
+        with _REGION_LOCK:
+            while len(cache) >= _REGION_CACHE:
+                cache.pop(next(iter(cache)))
+            cache[key] = val
+        return val
 
     def points(self, s: np.ndarray, yi: np.ndarray, xi: np.ndarray) -> np.ndarray:
         """Camera-2 pixels (N, 2) float64 at per-pixel s (N,) for camera-1 pixels (yi, xi).
@@ -160,6 +179,17 @@ class PlaneMaps:
         b *= s
         b += m0
         return b.astype(np.float64)
+
+    def pixels(self, s: np.ndarray, sl) -> tuple[np.ndarray, np.ndarray]:
+        """Remap tables (map_x, map_y) (h, w) float32 on the region ``sl`` for a per-pixel s (h, w)
+        float32; where s is NaN (no plane) the pixel maps far outside (``_OUTSIDE``)."""
+        s = np.asarray(s, np.float32)
+        out = []
+        for m0, a, b in self._region_tables("split", sl):
+            v = cv2.add(cv2.multiply(cv2.add(cv2.multiply(b, s), a), s), m0)  # m0 + a·s + b·s²
+            cv2.patchNaNs(v, _OUTSIDE)  # in place
+            out.append(v)
+        return out[0], out[1]
 
     def downsampled(self, factor: int) -> "PlaneMaps":
         """The same mapping between images downsampled by an integer ``factor`` (INTER_AREA; cached)."""
@@ -256,13 +286,18 @@ def zncc_planes(gray1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values:
     return out, std1
 
 
-def _bbox(mask: np.ndarray, pad: int, even: bool = False):
-    """Bounding box of ``mask`` grown by ``pad``; ``even``: start and size even (for 2× pooling)."""
+def _bbox(mask: np.ndarray, pad: int, even: bool = False, align: int = 1):
+    """Bounding box of ``mask`` grown by ``pad``; ``even``: start and size even (for 2× pooling);
+    ``align``: start and size multiples of ``align`` (within the image's last whole multiple)."""
     ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
     h, w = mask.shape
     y0, y1 = max(ys[0] - pad, 0), min(ys[-1] + pad + 1, h)
     x0, x1 = max(xs[0] - pad, 0), min(xs[-1] + pad + 1, w)
-    if even:
+    if align > 1:
+        y0, x0 = y0 - y0 % align, x0 - x0 % align
+        y1 = min(y0 + -(-(y1 - y0) // align) * align, h - h % align)
+        x1 = min(x0 + -(-(x1 - x0) // align) * align, w - w % align)
+    elif even:
         y0, x0 = y0 - y0 % 2, x0 - x0 % 2
         y1 = min(y1 + (y1 - y0) % 2, h - (h - y0) % 2)
         x1 = min(x1 + (x1 - x0) % 2, w - (w - x0) % 2)
@@ -275,9 +310,10 @@ def _pool2(img: np.ndarray) -> np.ndarray:
     return cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
 
 
-def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, half_window: int, sl):
-    """ZNCC at half the resolution of the region ``sl``: yield (std1 (h/2, w/2), None) once, then
-    (j, score (h/2, w/2) float32) for every plane ``s_values[j]``.
+class _HalfZncc:
+    """ZNCC at half the resolution of the region ``sl``: ``std1`` (h/2, w/2) of image 1, and
+    ``self(s)`` → score (h/2, w/2) float32 of the plane s. Thread-safe: the region's plane tables
+    are built here, and each call only reads shared arrays.
 
     Half-resolution pixel i stands for the 2 × 2 block of working pixels (2i, 2i + 1) of the
     region (h, w even), and its window is the 2k × 2k square (k = ``half_window``) centred on
@@ -290,27 +326,40 @@ def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values
     blocks are taken one pixel in (rows and columns 1 … h − 2), which centres the window on
     block i again; the last row and column (no full window) repeat their neighbours.
     """
-    k = int(half_window)
-    off = 1 - k % 2
-    h, w = i1.shape
-    if off:
-        i1 = np.ascontiguousarray(i1[1: h - 1, 1: w - 1])
-        sl = np.s_[sl[0].start + 1: sl[0].stop - 1, sl[1].start + 1: sl[1].stop - 1]
 
-    def grow(a):  # (h/2 − 1, w/2 − 1) → (h/2, w/2)
-        return cv2.copyMakeBorder(a, 0, 1, 0, 1, cv2.BORDER_REPLICATE) if off else a
+    def __init__(self, i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, half_window: int, sl):
+        k = self.k = int(half_window)
+        self.off = 1 - k % 2
+        h, w = i1.shape
+        if self.off:
+            i1 = np.ascontiguousarray(i1[1: h - 1, 1: w - 1])
+            sl = np.s_[sl[0].start + 1: sl[0].stop - 1, sl[1].start + 1: sl[1].stop - 1]
+        self.i1, self.gray2, self.maps, self.sl = i1, gray2, maps, sl
+        self.mu1 = _box(_pool2(i1), k)
+        self.var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(self.mu1, self.mu1)), 0.0)
+        self.std1 = self._grow(cv2.sqrt(self.var1))
+        maps.at(0.0, sl)  # the region's tables, before any thread asks for a plane
 
-    mu1 = _box(_pool2(i1), k)
-    var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(mu1, mu1)), 0.0)
-    yield grow(cv2.sqrt(var1)), None
-    for j, s in enumerate(s_values):
-        mx, my = maps.at(float(s), sl)
-        w2 = cv2.remap(gray2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    def _grow(self, a):  # (h/2 − 1, w/2 − 1) → (h/2, w/2)
+        return cv2.copyMakeBorder(a, 0, 1, 0, 1, cv2.BORDER_REPLICATE) if self.off else a
+
+    def __call__(self, s: float) -> np.ndarray:
+        k, i1 = self.k, self.i1
+        mx, my = self.maps.at(float(s), self.sl)
+        w2 = cv2.remap(self.gray2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         mu2 = _box(_pool2(w2), k)
         var2 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(w2, w2)), k), cv2.multiply(mu2, mu2)), 0.0)
-        cov = cv2.subtract(_box(_pool2(cv2.multiply(i1, w2)), k), cv2.multiply(mu1, mu2))
-        den = cv2.sqrt(cv2.add(cv2.multiply(var1, var2), 1e-3))
-        yield j, grow(cv2.divide(cov, den))
+        cov = cv2.subtract(_box(_pool2(cv2.multiply(i1, w2)), k), cv2.multiply(self.mu1, mu2))
+        den = cv2.sqrt(cv2.add(cv2.multiply(self.var1, var2), 1e-3))
+        return self._grow(cv2.divide(cov, den))
+
+
+def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, half_window: int, sl):
+    """:class:`_HalfZncc` as a generator: yield (std1 (h/2, w/2), None) once, then (j, score
+    (h/2, w/2) float32) for every plane ``s_values[j]``, computed on :func:`~cbh.pipeline.threads.pmap`'s threads."""
+    z = _HalfZncc(i1, gray2, maps, half_window, sl)
+    yield z.std1, None
+    yield from enumerate(_pmap(z, [float(s) for s in s_values]))
 
 
 class _Best3:
@@ -351,8 +400,8 @@ class _Best3:
 def _best3(scores, neighbours: bool = True):
     """Best plane index j, its score and the scores of planes j−1 and j+1 of a stack (P, h, w)."""
     b = _Best3(neighbours)
-    for q in range(len(scores)):
-        b.add(q, scores[q])
+    for q, sc in enumerate(scores):
+        b.add(q, sc)
     return b.result()
 
 
@@ -407,42 +456,123 @@ class LayerLabels:
     s_wide: np.ndarray  # (h/2, w/2) float32: s of the wide-box winner, refined [1/m]
 
 
-def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s_min: float, s_max: float,
-                o1z: float, cfg) -> CoarseLayers | None:
-    """Pass 1: at 1/``coarse_factor`` size, every plane from ``s_min`` to ``s_max`` one coarse pixel apart;
-    each cloud pixel votes for its best plane (ZNCC ≥ ``min_zncc``); the vote peaks are the
-    layer hypotheses. None: no cloud at coarse size."""
-    f = int(cfg.coarse_factor)
-    if f > 1:
-        cm = maps.downsampled(f)
-        h, w = g1.shape
-        h2, w2 = g2.shape
-        c1 = cv2.resize(g1, (w // f, h // f), interpolation=cv2.INTER_AREA)
-        c2 = cv2.resize(g2, (w2 // f, h2 // f), interpolation=cv2.INTER_AREA)
-        ccloud = cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
+@dataclass
+class CoarsePlanes:
+    """The coarse pass's planes: a uniform vote grid ``s`` (``ds`` apart: one pixel of shift at
+    1/``coarse_factor`` size) of which the ``far`` ones (parallax up to ``coarse_near_px`` at
+    working size) are swept at 1/``coarse_factor`` size and the ``near`` ones (every second grid
+    plane beyond) at 1/(2·``coarse_factor``) size."""
+
+    s: np.ndarray  # (G,) float64 [1/m], ascending
+    ds: float  # [1/m]
+    far: np.ndarray  # (Pf,) int: indices into s
+    near: np.ndarray  # (Pn,) int: indices into s; each stands for grid planes q − 1 … q + 1
+
+
+def coarse_planes(s_min: float, s_max: float, scale_px: float, cfg) -> CoarsePlanes:
+    """The coarse planes from ``s_min`` to ``s_max`` for a working-size parallax scale ``scale_px``
+    [px·m] (see :class:`CoarsePlanes`).
+
+    Why two sizes: the planes are uniform in s, so the floor of the sweep (100 m) makes most of
+    them near planes: at B = 50 m, 96 % of the parallax range lies below 480 m. A near layer's
+    parallax is large (32 … 150 px at working size), so one pixel of shift at half the coarse
+    size is still a few per cent of its height, which is all a hypothesis needs (the fine pass
+    refines it at working size); each such plane costs a quarter, and half as many are needed.
+    """
+    f = max(int(cfg.coarse_factor), 1)
+    ds = float(cfg.coarse_step_px) * f / scale_px
+    s = np.arange(s_min, s_max + ds, ds)
+    idx = np.arange(len(s))
+    if cfg.coarse_near_px <= 0:
+        return CoarsePlanes(s, ds, idx, idx[:0])
+    k = int(np.searchsorted(s, cfg.coarse_near_px / scale_px, side="right"))
+    return CoarsePlanes(s, ds, idx[:k], idx[k + 1::2])
+
+
+def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_near, min_zncc: float) -> np.ndarray:
+    """Votes of the coarse cloud cells on the grid ``plan.s``: each cell of ``cloud`` (h, w) bool
+    votes for its best plane, far (``j_far``, ``c_far``: index into ``plan.far`` and ZNCC, (h, w))
+    or near (``j_near``, ``c_near``: into ``plan.near``, (h/2, w/2), one cell per 2 × 2 far
+    cells), whichever correlates better, when that ZNCC is ≥ ``min_zncc``. A near plane's vote is
+    spread 1/4, 1/2, 1/4 over grid planes q − 1, q, q + 1 (it stands for two grid steps), so the
+    histogram stays uniform in s. Either tier may be None (no planes there). Returns (G,) float64."""
+    n = len(plan.s)
+    votes = np.zeros(n)
+    h, w = cloud.shape
+    if j_near is not None:
+        up = lambda a: np.repeat(np.repeat(a, 2, axis=0), 2, axis=1)[:h, :w]  # noqa: E731
+        jn, cn = up(j_near), up(c_near)
+        near_wins = cn > c_far if c_far is not None else np.ones((h, w), bool)
+        best = np.where(near_wins, cn, c_far) if c_far is not None else cn
     else:
-        cm, c1, c2, ccloud = maps, g1, g2, cloud1
+        near_wins, best = np.zeros((h, w), bool), c_far
+    good = cloud & (best >= min_zncc)
+    if j_far is not None:
+        votes += np.bincount(plan.far[j_far[good & ~near_wins]], minlength=n)
+    if j_near is not None:
+        q = plan.near[jn[good & near_wins]]
+        for d, wt in ((-1, 0.25), (0, 0.5), (1, 0.25)):
+            votes += wt * np.bincount(np.clip(q + d, 0, n - 1), minlength=n)
+    return votes
+
+
+def coarse_regions(cloud1: np.ndarray, plan: CoarsePlanes, cfg):
+    """The swept regions and their cloud: (cloud cells (h/2, w/2) bool: 2 × 2 blocks of the region
+    at 1/``coarse_factor`` size that are mostly cloud, the region at that size, the region at half
+    that size or None). With near planes the region is aligned to 4 pixels, so that each near
+    cell covers exactly 2 × 2 far cells. None: no cloud at coarse size."""
+    f = max(int(cfg.coarse_factor), 1)
+    h, w = cloud1.shape
+    ccloud = (cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
+              if f > 1 else cloud1)
     if not ccloud.any():
         return None
-    ds_c = cfg.coarse_step_px / cm.scale_px
-    s = np.arange(s_min, s_max + ds_c, ds_c)
-    slc = _bbox(ccloud, cfg.coarse_window_px, even=True)
-    it = _zncc_half_iter(np.ascontiguousarray(c1[slc]), c2, cm, s, cfg.coarse_window_px // 2, slc)
-    next(it)
-    run = _Best3(neighbours=False)
-    for q, sc in it:
-        run.add(q, sc)
-    best, cbest, _, _ = run.result()
-    cl = _pool2(ccloud[slc].astype(np.float32)) >= 0.5
-    good = cl & (cbest >= cfg.min_zncc)
-    return coarse_hypotheses(best[good], float(cl.sum()), s, ds_c, o1z, cfg)
+    two = len(plan.near) > 0
+    slc = _bbox(ccloud, cfg.coarse_window_px, even=True, align=4 if two else 1)
+    if slc[0].stop <= slc[0].start or slc[1].stop <= slc[1].start:
+        return None
+    half = np.s_[slc[0].start // 2: slc[0].stop // 2, slc[1].start // 2: slc[1].stop // 2] if two else None
+    return _pool2(ccloud[slc].astype(np.float32)) >= 0.5, slc, half
 
 
-def coarse_hypotheses(best_plane: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: float, o1z: float,
+def _best_plane(c1: np.ndarray, c2: np.ndarray, maps: PlaneMaps, s: np.ndarray, half_window: int, sl):
+    """Best plane (index into ``s``) and its ZNCC per half-resolution cell of region ``sl``."""
+    z = _HalfZncc(np.ascontiguousarray(c1[sl]), c2, maps, half_window, sl)
+    best, cbest, _, _ = _best3(_pmap(z, [float(x) for x in s]), neighbours=False)
+    return best, cbest
+
+
+def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s_min: float, s_max: float,
+                o1z: float, cfg) -> CoarseLayers | None:
+    """Pass 1: the planes from ``s_min`` to ``s_max`` one coarse pixel apart (:func:`coarse_planes`:
+    near ones at half the coarse size); each cloud cell votes for its best plane (ZNCC ≥
+    ``min_zncc``, :func:`coarse_votes`); the vote peaks are the layer hypotheses. None: no cloud
+    at coarse size."""
+    f = max(int(cfg.coarse_factor), 1)
+    plan = coarse_planes(s_min, s_max, maps.scale_px, cfg)
+    reg = coarse_regions(cloud1, plan, cfg)
+    if reg is None:
+        return None
+    cl, slc, half = reg
+    h, w = g1.shape
+    h2, w2 = g2.shape
+    c1 = cv2.resize(g1, (w // f, h // f), interpolation=cv2.INTER_AREA) if f > 1 else g1
+    c2 = cv2.resize(g2, (w2 // f, h2 // f), interpolation=cv2.INTER_AREA) if f > 1 else g2
+    k = cfg.coarse_window_px // 2
+    j_far = c_far = j_near = c_near = None
+    if len(plan.far):
+        j_far, c_far = _best_plane(c1, c2, maps.downsampled(f) if f > 1 else maps, plan.s[plan.far], k, slc)
+    if half is not None:
+        j_near, c_near = _best_plane(_pool2(c1), _pool2(c2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
+    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
+
+
+def coarse_hypotheses(votes: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: float, o1z: float,
                       cfg) -> CoarseLayers:
-    """Layer hypotheses from the coarse votes: ``best_plane`` (N,) int, the best plane of each voting
-    cloud pixel (ZNCC ≥ ``min_zncc``) of ``n_cloud``; peaks need ``min_vote_fraction`` of them."""
-    votes = np.bincount(np.asarray(best_plane, np.int64), minlength=len(s)).astype(np.float64)
+    """Layer hypotheses from the coarse votes (G,) on the planes ``s`` (:func:`coarse_votes`) of
+    ``n_cloud`` cloud cells; peaks need ``min_vote_fraction`` of them."""
+    votes = np.asarray(votes, np.float64)
     peaks = find_peaks(votes, cfg.min_vote_fraction * n_cloud, cfg.valley_ratio)
     ranges = [peak_extent(votes, p, cfg.extent_ratio) for p in peaks]
     return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges])
@@ -551,7 +681,7 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     s, ds, cost = fine.s, fine.ds, fine.cost
     k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
     kl = max(1, (int(cfg.label_px) // 2) | 1)
-    jw, cw, lw, rw = _best3([_box(c, k2) for c in cost])
+    jw, cw, lw, rw = _best3(_pmap(lambda c: _box(c, k2), list(cost)))
     s_w = _refine(jw, cw, lw, rw, s, ds)
     vote = fine.ok_frac > 0
     if cfg.vote_percentile > 0 and vote.any():
@@ -564,9 +694,9 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     own = np.zeros((hh, wh), np.int32)
     if len(ranges) > 1:
         best_l: list = [None] * len(ranges)
-        for q in range(len(s)):
+        boxed = _pmap(lambda c: _box(c, kl), list(cost)) if kl > 1 else cost
+        for q, b in enumerate(boxed):
             L = int(plane_layer[q])
-            b = _box(cost[q], kl) if kl > 1 else cost[q]
             best_l[L] = b.copy() if best_l[L] is None else cv2.max(best_l[L], b, dst=best_l[L])
         label = _best3([b if b is not None else np.full((hh, wh), -np.inf, np.float32) for b in best_l],
                        neighbours=False)[0].astype(np.uint8)
@@ -609,7 +739,7 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
             if n_layers > 1:  # only pixels whose own best plane is in this layer
                 mL &= lab.plane_layer[lab.own_plane] == L
             mL = mL.astype(np.float32)
-            ja, ca, la, ra = _best3([_box(cv2.multiply(cost[q], mL), kL) for q in sel])
+            ja, ca, la, ra = _best3(_pmap(lambda q: _box(cv2.multiply(cost[q], mL), kL), list(sel)))
             s_half = _refine(ja, ca, la, ra, s[sel], ds)
         up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
         cv2.copyTo(up, here.view(np.uint8), s_px)
@@ -645,8 +775,20 @@ class PassTimer:
         self._t0 = t1
 
 
-def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float, cfg):
-    """Dense plane-sweep correspondences (see module doc): coarse → fine → label → refine.
+@dataclass
+class SweepField:
+    """The sweep's result on camera 1's working grid: per pixel of ``region`` the plane s =
+    1/(h − o1z) [1/m] of its match (meaningful where ``ok``)."""
+
+    region: tuple  # (slice y, slice x) of the working-size image
+    ok: np.ndarray  # (h, w) bool: accepted pixels
+    s: np.ndarray  # (h, w) float32 [1/m]
+    info: dict  # planes, layers_m, timing_ms, and with aggregation votes, vote_bin_s, cuts_s
+
+
+def sweep_field(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float,
+                cfg) -> SweepField | None:
+    """Dense plane sweep (see module doc): coarse → fine → label → refine, on camera 1's grid.
 
     Parameters
     ----------
@@ -662,25 +804,23 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
 
     Returns
     -------
-    px1 : ndarray, shape (N, 2), float64 — camera-1 pixels (integer coordinates)
-    px2 : ndarray, shape (N, 2), float64 — camera-2 pixels
-    info : dict — ``s`` (N,) float32 (each match's plane, s = 1/(h − o1z) [1/m]), ``planes``
-        (fine s values), ``layers_m`` (coarse layer hypotheses [m]), ``timing_ms`` (per pass),
-        and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
+    SweepField, or None when nothing was accepted (``info`` then lost: use
+    :func:`sweep_matches` for the diagnostics of an empty sweep).
     """
-    lap = PassTimer()
-    timing = lap.timing_ms
+    return _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, {})
 
-    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing, "s": np.zeros(0, np.float32)}
-    empty = np.zeros((0, 2)), np.zeros((0, 2)), info
+
+def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepField | None:
+    lap = PassTimer()
+    info.update(planes=np.zeros(0), layers_m=[], timing_ms=lap.timing_ms)
     if not cloud1.any() or maps.scale_px <= 0:
-        return empty
+        return None
     g1 = gray1.astype(np.float32)
     g2 = gray2.astype(np.float32)
     s_min, s_max = plane_range(o1z, cfg)
     coarse = coarse_pass(g1, g2, cloud1, maps, s_min, s_max, o1z, cfg)
     if coarse is None:
-        return empty
+        return None
     s_fine, ds = fine_planes(coarse, maps.scale_px, s_min, s_max, cfg)
     info.update(planes=s_fine, layers_m=coarse.layers_m)
     lap("coarse")
@@ -688,7 +828,7 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
         fine = fine_pass(g1, g2, cloud1, maps, s_fine, ds, cfg)
         lap("fine")
         if not fine.ok.any():
-            return empty
+            return None
         lab = label_pass(fine, cfg)
         info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
@@ -697,11 +837,38 @@ def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps
     else:
         region, ok, s_px = _per_pixel(g1, g2, cloud1, maps, s_fine, ds, cfg)
         lap("fine")
-    ys, xs = np.nonzero(ok)
-    yi, xi = ys + region[0].start, xs + region[1].start
+    return SweepField(region, ok, s_px, info)
+
+
+def field_points(f: SweepField, maps: PlaneMaps, stride: int = 1):
+    """Correspondences of the accepted pixels of a :class:`SweepField` on the lattice of working
+    pixels whose x and y are multiples of ``stride``: (px1 (N, 2), px2 (N, 2), s (N,) float32)."""
+    y0, x0 = f.region[0].start, f.region[1].start
+    oy, ox = (-y0) % stride, (-x0) % stride
+    ys, xs = np.nonzero(f.ok[oy::stride, ox::stride])
+    ys, xs = ys * stride + oy, xs * stride + ox
+    yi, xi = ys + y0, xs + x0
     px1 = np.stack([xi, yi], axis=-1).astype(np.float64)
-    s_ok = s_px[ys, xs]
-    px2 = maps.points(s_ok, yi, xi)
+    s_ok = f.s[ys, xs]
+    return px1, maps.points(s_ok, yi, xi), s_ok
+
+
+def sweep_matches(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float, cfg):
+    """Dense plane-sweep correspondences: :func:`sweep_field`, one per accepted pixel.
+
+    Returns
+    -------
+    px1 : ndarray, shape (N, 2), float64 — camera-1 pixels (integer coordinates)
+    px2 : ndarray, shape (N, 2), float64 — camera-2 pixels
+    info : dict — ``s`` (N,) float32 (each match's plane, s = 1/(h − o1z) [1/m]), ``planes``
+        (fine s values), ``layers_m`` (coarse layer hypotheses [m]), ``timing_ms`` (per pass),
+        and with aggregation ``votes``, ``vote_bin_s``, ``cuts_s``
+    """
+    info: dict = {}
+    f = _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info)
+    if f is None:
+        info["s"] = np.zeros(0, np.float32)
+        return np.zeros((0, 2)), np.zeros((0, 2)), info
+    px1, px2, s_ok = field_points(f, maps)
     info["s"] = s_ok
-    lap("points")
     return px1, px2, info

@@ -47,11 +47,11 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_hypotheses, fine_planes, layer_box,
-    layer_planes, vote_layers,
+    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_hypotheses, coarse_planes,
+    coarse_regions, coarse_votes, fine_planes, layer_box, layer_planes, vote_layers, SweepField, field_points,
 )
 
-__all__ = ["remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "angle_map_deg_torch",
+__all__ = ["remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
            "resolve_device"]
 
 _CPU_CHUNK_PX = 4_000_000  # CPU: planes per batched call × pixels per plane at most (bounds temporaries)
@@ -223,29 +223,32 @@ def _region_t(r):
 
 def coarse_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s_min: float,
                       s_max: float, o1z: float, cfg) -> CoarseLayers | None:
-    """Pass 1 on the device (see :func:`cbh.pipeline.sweep.coarse_pass`)."""
-    import cv2
-
-    f = int(cfg.coarse_factor)
-    h, w = cloud1.shape
-    if f > 1:
-        c1 = F.avg_pool2d(g1[None, None], f)[0, 0]
-        c2 = F.avg_pool2d(g2[None, None], f)[0, 0]
-        cm = tm.downsampled(f, (c2.shape[1], c2.shape[0]))
-        ccloud = cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
-    else:
-        c1, c2, cm, ccloud = g1, g2, tm, cloud1
-    if not ccloud.any():
+    """Pass 1 on the device (see :func:`cbh.pipeline.sweep.coarse_pass`; the same planes,
+    regions and votes: :func:`~cbh.pipeline.sweep.coarse_planes`, ``coarse_regions``,
+    :func:`~cbh.pipeline.sweep.coarse_votes`)."""
+    f = max(int(cfg.coarse_factor), 1)
+    plan = coarse_planes(s_min, s_max, tm.scale_px, cfg)
+    reg = coarse_regions(cloud1, plan, cfg)
+    if reg is None:
         return None
-    ds_c = cfg.coarse_step_px / cm.scale_px
-    s = np.arange(s_min, s_max + ds_c, ds_c)
-    slc = _bbox(ccloud, cfg.coarse_window_px, even=True)
-    _, sc = zncc_half(c1[slc].contiguous(), c2, cm, s, cfg.coarse_window_px // 2, slc)
-    cbest, best = sc.max(0)
-    cl = torch.as_tensor(ccloud[slc].astype(np.float32), device=g1.device)
-    cl = pool2(cl[None, None])[0, 0] >= 0.5
-    good = cl & (cbest >= cfg.min_zncc)
-    return coarse_hypotheses(best[good].cpu().numpy(), float(cl.sum().item()), s, ds_c, o1z, cfg)
+    cl, slc, half = reg
+    c1 = F.avg_pool2d(g1[None, None], f)[0, 0] if f > 1 else g1
+    c2 = F.avg_pool2d(g2[None, None], f)[0, 0] if f > 1 else g2
+    k = cfg.coarse_window_px // 2
+
+    def best(a1, a2, factor, s, region):
+        cm = tm.downsampled(factor, (a2.shape[1], a2.shape[0])) if factor > 1 else tm
+        _, sc = zncc_half(a1[region].contiguous(), a2, cm, s, k, region)
+        c, j = sc.max(0)
+        return j.cpu().numpy(), c.cpu().numpy()
+
+    j_far = c_far = j_near = c_near = None
+    if len(plan.far):
+        j_far, c_far = best(c1, c2, f, plan.s[plan.far], slc)
+    if half is not None:
+        j_near, c_near = best(pool2(c1[None, None])[0, 0], pool2(c2[None, None])[0, 0], 2 * f, plan.s[plan.near], half)
+    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
 
 
 def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s: np.ndarray,
@@ -326,49 +329,50 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
     return s_px
 
 
-def sweep_matches_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, tm: TorchPlaneMaps, o1z: float,
-                        cfg):
-    """:func:`cbh.pipeline.sweep.sweep_matches` on ``tm.device`` (same parameters and results; the
-    per-pixel ``aggregate_px = 1`` variant is not ported: it raises ConfigError)."""
+def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, tm: TorchPlaneMaps, o1z: float,
+                      cfg) -> SweepField | None:
+    """:func:`cbh.pipeline.sweep.sweep_field` on ``tm.device`` (same parameters; the result's
+    arrays are brought back as numpy). The per-pixel ``aggregate_px = 1`` variant is not
+    ported: it raises ConfigError."""
     from cbh.errors import ConfigError
 
     lap = PassTimer()
-    timing = lap.timing_ms
-
     if cfg.aggregate_px <= 1:
         raise ConfigError("matching.sweep.aggregate_px = 1 runs on the OpenCV backend only (device cpu)")
-    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": timing, "s": np.zeros(0, np.float32)}
-    empty = np.zeros((0, 2)), np.zeros((0, 2)), info
+    info = {"planes": np.zeros(0), "layers_m": [], "timing_ms": lap.timing_ms}
     if not cloud1.any() or tm.scale_px <= 0:
-        return empty
+        return None
     dev = tm.device
     g1 = torch.as_tensor(np.ascontiguousarray(gray1), device=dev).float()
     g2 = torch.as_tensor(np.ascontiguousarray(gray2), device=dev).float()
     s_min, s_max = plane_range(o1z, cfg)
     coarse = coarse_pass_torch(g1, g2, cloud1, tm, s_min, s_max, o1z, cfg)
     if coarse is None:
-        return empty
+        return None
     s_fine, ds = fine_planes(coarse, tm.scale_px, s_min, s_max, cfg)
     info.update(planes=s_fine, layers_m=coarse.layers_m)
     lap("coarse")
     fine = fine_pass_torch(g1, g2, cloud1, tm, s_fine, ds, cfg)
     lap("fine")
     if not bool(fine.ok.any()):
-        return empty
+        return None
     lab = label_pass_torch(fine, cfg)
     info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
     lap("layers")
     s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
+    out = SweepField(fine.region, fine.ok.cpu().numpy(), s_px.cpu().numpy(), info)
     lap("refine")
-    ys, xs = torch.nonzero(fine.ok, as_tuple=True)
-    yi, xi = ys + fine.region[0].start, xs + fine.region[1].start
-    s_ok = s_px[ys, xs]
-    px2 = tm.points(s_ok, yi, xi)
-    px1 = torch.stack([xi, yi], -1)
-    info["s"] = s_ok.cpu().numpy()
-    out = px1.cpu().numpy().astype(np.float64), px2.cpu().numpy().astype(np.float64), info
-    lap("points")
     return out
+
+
+def sweep_matches_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, tm: TorchPlaneMaps, o1z: float,
+                        cfg):
+    """:func:`cbh.pipeline.sweep.sweep_matches` on ``tm.device`` (same parameters and results)."""
+    f = sweep_field_torch(gray1, gray2, cloud1, tm, o1z, cfg)
+    if f is None:
+        return np.zeros((0, 2)), np.zeros((0, 2)), {"planes": np.zeros(0), "layers_m": [], "s": np.zeros(0, np.float32)}
+    px1, px2, s = field_points(f, tm.maps)
+    return px1, px2, {**f.info, "s": s}
 
 
 def angle_map_deg_torch(rays_cam: torch.Tensor, d_cam: np.ndarray) -> torch.Tensor:

@@ -1,0 +1,56 @@
+"""Threads for the per-pair work: the planes of the sweep, the two cameras, the matchers.
+
+Why threads: the pipeline's work is many OpenCV calls on images of 0.1–1 MPixel, which OpenCV's
+own pool splits poorly (a fine sweep plane at 960 px: 3.3 ms wall with its 2 threads against
+4.0 ms with one, measured on 2 cores), and OpenCV releases the GIL. Two planes at once on two
+threads take 2.6 ms per plane; two cameras' segmentations likewise.
+
+How many: ``cv2.getNumThreads()`` (the machine's cores unless set), at most ``MAX_THREADS``.
+Where OpenCV is held to one thread (a one-CPU Ray actor: ``cv2.setNumThreads(1)``) everything
+runs inline in the caller: whoever runs the pipeline decides how many cores a pair gets.
+
+Separate pools per level (``pool="planes"`` inside a stage, ``pool="stages"`` across cameras
+and matchers), so that a task of one pool that waits for tasks of the other never starves it.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+
+__all__ = ["pmap", "workers", "MAX_THREADS"]
+
+MAX_THREADS = 8
+_lock = threading.Lock()
+_pools: dict[str, tuple[ThreadPoolExecutor, int]] = {}
+_owner = [os.getpid()]
+
+
+def workers() -> int:
+    """Threads a pair may use: ``cv2.getNumThreads()``, 1 … ``MAX_THREADS``."""
+    return min(max(cv2.getNumThreads(), 1), MAX_THREADS)
+
+
+def pmap(fn, items, pool: str = "planes"):
+    """``map(fn, items)`` in order, on up to :func:`workers` threads of the named pool.
+
+    Returns an iterator, so the caller reduces results while later items are still computed.
+    Inline (plain ``map``) where only one thread is allowed or there is one item.
+    """
+    items = list(items)
+    n = min(workers(), len(items))
+    if n <= 1:
+        return map(fn, items)
+    with _lock:
+        if _owner[0] != os.getpid():  # a forked child inherits the pools but not their threads
+            _pools.clear()
+            _owner[0] = os.getpid()
+        ex, size = _pools.get(pool, (None, 0))
+        if size < n:
+            if ex is not None:
+                ex.shutdown(wait=False)
+            ex = ThreadPoolExecutor(n, thread_name_prefix=f"cbh-{pool}")
+            _pools[pool] = (ex, n)
+    return ex.map(fn, items)

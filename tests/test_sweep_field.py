@@ -1,0 +1,80 @@
+"""The plane sweep's dense field (cbh/pipeline/match.py: DenseField, field_heights).
+
+The sweep measures every accepted cloud pixel; the height map is made from that field in
+closed form (a sweep pixel's two rays meet exactly on its plane: height o1z + 1/s, miss 0), and
+only the point lattice (``point_stride_px``) is triangulated as points. These tests hold the
+closed form to the triangulation it replaces: same heights (float32 rounding of 1/s and of the
+closest approach: ≤ 1e-5 relative), same rejections, and the point set is the field sampled.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cbh.geometry.triangulate import TriangulationLimits, triangulate
+from cbh.pipeline import Pipeline
+from cbh.pipeline.config import FilteringConfig
+from cbh.pipeline.match import DenseField, field_heights
+
+
+@pytest.fixture(scope="module")
+def run(small_sky):
+    sim, shot = small_sky
+    pipe = Pipeline(sim.station)
+    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    return pipe, r
+
+
+def _field_rays(geom, field):
+    ys, xs = np.nonzero(np.isfinite(field.s))
+    yi, xi = ys + field.region[0].start, xs + field.region[1].start
+    d1 = geom.rays1_world[yi, xi].astype(np.float64)
+    s = field.s[ys, xs].astype(np.float64)
+    base = geom.cam2.position_m - geom.cam1.position_m
+    return yi, xi, s, d1, d1 - (s * d1[:, 2])[:, None] * base[None, :]
+
+
+def test_field_heights_equal_the_triangulated_rays(run):
+    pipe, _ = run
+    geom = pipe.geometry
+    o1z = float(geom.cam1.position_m[2])
+    ys, xs = np.nonzero(pipe.static_mask(0))
+    rng = np.random.default_rng(0)
+    # every plane from 20 m to 20 km on the usable sky: inside and outside the height range
+    s = np.full(geom.rays1_world.shape[:2], np.nan, np.float32)
+    s[ys, xs] = (1.0 / rng.uniform(20.0, 20000.0, len(ys))).astype(np.float32)
+    field = DenseField(np.s_[0: s.shape[0], 0: s.shape[1]], s)
+    cfg = FilteringConfig(min_angle_deg=0.25)  # 0.25°: rejects the far planes of a 50 m baseline (≈ 11 km at zenith)
+    grid = field_heights(geom, field, cfg)
+    yi, xi, sv, d1, d2 = _field_rays(geom, field)
+    tri = triangulate(geom.cam1.position_m, d1, geom.cam2.position_m, d2, TriangulationLimits(min_angle_deg=0.25))
+    keep = tri.valid & (tri.height_m >= cfg.min_height_m) & (tri.height_m <= cfg.max_height_m)
+    got = np.isfinite(grid[yi, xi])
+    assert 0.2 < keep.mean() < 0.95  # both sides of every limit are exercised
+    # the same pixels kept, except where a limit is met to float32 rounding
+    h_true = o1z + 1.0 / sv
+    border = (np.abs(h_true - cfg.min_height_m) < 1e-3 * h_true) | (np.abs(h_true - cfg.max_height_m) < 1e-3 * h_true) \
+        | (np.abs(tri.angle_deg - 0.25) < 1e-3)
+    assert np.array_equal(got[~border], keep[~border])
+    both = got & keep
+    np.testing.assert_allclose(grid[yi, xi][both], tri.height_m[both], rtol=1e-5)
+    assert np.nanmax(np.abs(tri.miss_m[both])) < 1e-6 * np.nanmax(tri.range1_m[both])  # they do meet
+
+
+def test_height_map_is_the_field_and_points_sample_it(run):
+    """The point set's sweep points lie on the point lattice, and each one's triangulated height
+    is the height map's at its pixel (the field it was sampled from)."""
+    pipe, r = run
+    assert pipe.factors[0] == 1.0  # 320 px: working size = full size, pixels compare directly
+    stride = pipe.config.matching.sweep.point_stride_px
+    n_lk, n_sw = len(r.matches["lk"]), len(r.matches["sweep"])
+    assert n_lk + n_sw == len(r.points.px1) and n_sw > 200  # all shown (< 5000 each), in method order
+    px = r.points.px1[n_lk:].astype(np.float64)
+    assert (px == np.round(px)).all() and (np.round(px) % stride == 0).all()  # the point lattice
+    xi, yi = px[:, 0].astype(np.int64), px[:, 1].astype(np.int64)
+    h_map = r.height_map[yi, xi]
+    assert np.isfinite(h_map).all()
+    np.testing.assert_allclose(r.points.xyz_m[n_lk:, 2], h_map, rtol=1e-4)
+    # the map holds the field (about stride² times the lattice points), filled only within the cloud
+    known = np.isfinite(r.height_map).sum()
+    assert known >= 0.8 * stride * stride * n_sw
