@@ -1,7 +1,7 @@
 """`cbh reprocess` throughput on Ray: pairs/s for 1 and 2 workers (and 16 / GPU where available),
 against a plain loop over `Pipeline.process` on the same files, with where the CPU went.
 
-    python benchmarks/bench_reprocess.py [--pairs 64] [--size 960] [--chunk-pairs 16] [--repeat 1]
+    python benchmarks/bench_reprocess.py [--pairs 64] [--size 960] [--chunk-pairs 8] [--repeat 1]
 
 A simulated two-day archive (one folder per camera per day) is rendered into a temporary
 folder (960 px by default: nearer the real 1920 px cost per pair than 480 px, so the fixed
@@ -19,7 +19,9 @@ costs weigh as they would on real archives). Then, in turn:
   Parquet files and the index are written), Ray is stopped. The 1-worker baseline is one
   single-threaded actor (one CPU, OpenCV on one thread), like each of the 2 workers.
   "steady" is the rate once every actor has finished its first chunk (process start-up and
-  pipeline build excluded).
+  pipeline build excluded). Chunks of 8 pairs by default (the command's default is 32): four per
+  actor with 2 workers, so the steady window holds three; smaller chunks cost no lead-in pairs,
+  since an actor re-processes one only where it starts a new stretch of a station's chunks.
 
 Where the CPU went during each measured window (Linux ``/proc``): the actors, this driver
 process, Ray's own processes (raylet, GCS, dashboard/agents, log monitor, idle workers), and
@@ -297,7 +299,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=64)
     ap.add_argument("--size", type=int, default=960)
-    ap.add_argument("--chunk-pairs", type=int, default=16)
+    ap.add_argument("--chunk-pairs", type=int, default=8)
     ap.add_argument("--repeat", type=int, default=1,
                     help="run each measurement this often (Ray runs interleaved 1, 2, 1, 2 …) and keep the fastest, "
                          "the least disturbed by other load")
