@@ -204,7 +204,7 @@ class ReprocessOptions:
     t_to: datetime | None = None  # pairs before this UTC time
     device: str = "cpu"  # "cpu" | "cuda" (actors ask Ray for a GPU share)
     formats: tuple[str, ...] = FORMATS
-    chunk_pairs: int = 32  # pairs per task
+    chunk_pairs: int = 32  # at most this many pairs per task (a day is cut into equal chunks, _chunk_bounds)
     pair_tolerance_s: float | None = None  # None: the station's [service] pair_tolerance_s (default 0.5 s)
     max_attempts: int = 3  # a chunk whose worker dies is given to a fresh actor at most this often
     actor_restarts: int = 3  # Ray's max_restarts (and max_task_retries) of each actor
