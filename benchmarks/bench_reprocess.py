@@ -1,31 +1,163 @@
 """`cbh reprocess` throughput on Ray: pairs/s for 1 and 2 workers (and 16 / GPU where available),
-and the overhead against a plain loop over `Pipeline.process` on the same files.
+against a plain loop over `Pipeline.process` on the same files, with where the CPU went.
 
-    python benchmarks/bench_reprocess.py [--pairs 96] [--size 480] [--chunk-pairs 16]
+    python benchmarks/bench_reprocess.py [--pairs 64] [--size 960] [--chunk-pairs 8] [--repeat 1]
 
 A simulated two-day archive (one folder per camera per day) is rendered into a temporary
-folder. Each Ray run is end to end as a user sees it, minus Ray's own start (printed apart,
-paid once per command): actors start and build their pipelines, every pair is processed,
-the daily NetCDF + Parquet files and the index are written. "steady" is the rate once every
-actor has processed its first chunk (process start-up and the first pair's warm-up
-excluded). The plain loop runs in this process with OpenCV limited to one thread, as in an
-actor (one CPU each), and hands the motion state from pair to pair as reprocess does (which
-also re-processes one lead-in pair per chunk), so the comparison isolates the engine's overhead.
+folder (960 px by default: nearer the real 1920 px cost per pair than 480 px, so the fixed
+costs weigh as they would on real archives). Then, in turn:
+
+- **plain loop**: this process, OpenCV and BLAS on one thread (as in a one-CPU actor),
+  `Pipeline.process` over every pair in time order with the motion state handed on, as
+  reprocess does (reprocess also re-processes one lead-in pair per chunk; the loop does not).
+- **2 plain loops at once**: two processes, each the loop over half of the pairs (no Ray): the
+  most two workers can give on this machine (two cores that are really two, the memory
+  bandwidth and caches they share, other load).
+- **Ray, 1 and 2 workers**: each run as the command does it: a private Ray instance with
+  ``num_cpus`` = workers is started (its start printed apart), ``reprocess`` runs end to end
+  (actors start and build their pipelines, every pair is processed, the daily NetCDF +
+  Parquet files and the index are written), Ray is stopped. The 1-worker baseline is one
+  single-threaded actor (one CPU, OpenCV on one thread), like each of the 2 workers.
+  "steady" is the rate once every actor has finished its first chunk (process start-up and
+  pipeline build excluded). Chunks of 8 pairs by default (the command's default is 32): four per
+  actor with 2 workers, so the steady window holds three; smaller chunks cost no lead-in pairs,
+  since an actor re-processes one only where it starts a new stretch of a station's chunks.
+
+Where the CPU went during each measured window (Linux ``/proc``): the actors, this driver
+process, Ray's own processes (raylet, GCS, dashboard/agents, log monitor, idle workers), and
+the rest of the machine (other processes; and the hypervisor's steal time). When other load
+took more than 5 % of the machine, the rates are marked as not representative: measure again
+on a quiet machine.
 """
 from __future__ import annotations
 
 import argparse
 import os
 
-# one BLAS/OpenMP thread in the plain loop too, as Ray gives each one-CPU actor
+# one BLAS/OpenMP thread in the plain loops too, as Ray gives each one-CPU actor
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 import shutil
 import tempfile
+import threading
 import time
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
+OTHER_LOAD_LIMIT = 0.05  # share of the machine other processes may take before a warning
+
+
+# --- where the CPU went (Linux /proc) -------------------------------------------------------------
+
+_HZ = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def _procs() -> dict[int, tuple[int, float, str]]:
+    """pid → (ppid, CPU seconds so far, command name) of every process."""
+    out = {}
+    for p in os.listdir("/proc"):
+        if not p.isdigit():
+            continue
+        try:
+            with open(f"/proc/{p}/stat") as f:
+                st = f.read()
+        except OSError:
+            continue
+        name = st[st.find("(") + 1:st.rfind(")")]
+        rest = st[st.rfind(")") + 2:].split()
+        out[int(p)] = (int(rest[1]), (int(rest[11]) + int(rest[12])) / _HZ, name)
+    return out
+
+
+def _machine() -> tuple[float, float]:
+    """(busy, steal) CPU seconds of the whole machine so far (/proc/stat)."""
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    user, nice, system, idle, iowait, irq, softirq, steal = (v + [0] * 8)[:8]
+    return (user + nice + system + irq + softirq) / _HZ, steal / _HZ
+
+
+class CpuMeter:
+    """CPU seconds per process over a window, sampled every ``period_s`` (processes that end
+    inside the window keep their last sample). Not available off Linux (``ok`` False)."""
+
+    def __init__(self, period_s: float = 0.2):
+        self.ok = os.path.exists("/proc/stat")
+        self.period_s = period_s
+        self.first: dict = {}
+        self.last: dict = {}
+        self._stop = threading.Event()
+
+    def _sample(self):
+        for pid, v in _procs().items():
+            self.last[pid] = v
+
+    def _loop(self):
+        while not self._stop.wait(self.period_s):
+            self._sample()
+
+    def __enter__(self):
+        if self.ok:
+            self.t0 = time.perf_counter()
+            self.m0 = _machine()
+            self.first = _procs()
+            self.last = dict(self.first)
+            self._thread = threading.Thread(target=self._loop, daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.ok:
+            self._stop.set()
+            self._thread.join()
+            self._sample()
+            self.m1 = _machine()
+            self.wall_s = time.perf_counter() - self.t0
+
+    def split(self, worker_pids=()) -> dict | None:
+        """CPU seconds of: workers (``worker_pids``: the actors, or the loop processes), driver
+        (this process), ray (the other processes started from here: Ray's raylet, GCS,
+        dashboard/agents, log monitor, idle workers), other (the rest of the machine); steal
+        (the hypervisor's); capacity (wall × CPUs)."""
+        if not self.ok:
+            return None
+        me = os.getpid()
+
+        def ours(pid: int) -> bool:
+            seen = set()
+            while pid > 1 and pid not in seen:
+                if pid == me:
+                    return True
+                seen.add(pid)
+                pid = self.last.get(pid, (0,))[0]
+            return False
+
+        acc = {"workers": 0.0, "driver": 0.0, "ray": 0.0}
+        for pid, (_, cpu, _name) in self.last.items():
+            used = cpu - (self.first[pid][1] if pid in self.first else 0.0)
+            if pid == me:
+                acc["driver"] += used
+            elif pid in worker_pids:
+                acc["workers"] += used
+            elif ours(pid):
+                acc["ray"] += used
+        busy = self.m1[0] - self.m0[0]
+        acc["other"] = max(0.0, busy - sum(acc.values()))
+        acc["steal"] = self.m1[1] - self.m0[1]
+        acc["capacity"] = self.wall_s * (os.cpu_count() or 1)
+        return acc
+
+
+def _cpu_line(acc: dict | None) -> str:
+    if acc is None:
+        return "CPU split: not measured (no /proc)"
+    cap = acc["capacity"]
+    return (f"CPU s: workers {acc['workers']:.1f}, driver {acc['driver']:.1f}, Ray's processes {acc['ray']:.1f}, "
+            f"other load {acc['other']:.1f} ({100 * acc['other'] / cap:.0f} % of the machine), steal {acc['steal']:.1f}; "
+            f"capacity {cap:.1f}")
+
+
+# --- the archive and the plain loops ----------------------------------------------------------------
 
 def make_archive(root: Path, pairs: int, size: int) -> Path:
     from cbh.geometry.station import load_station
@@ -48,21 +180,38 @@ def make_archive(root: Path, pairs: int, size: int) -> Path:
     return root
 
 
-def plain_loop(root: Path) -> tuple[float, float, int]:
+def _pairs(root: Path) -> tuple:
+    from cbh.actions.reprocess import ReprocessOptions, load_jobs, plan_reprocess
+
+    jobs = load_jobs([root / "station.toml"], [f"cam1={root / 'cam1'}", f"cam2={root / 'cam2'}"])
+    plan = plan_reprocess(jobs, ReprocessOptions(out=root / "unused"))
+    return jobs[0].station, [p for d in plan.days for p in d.pairs]
+
+
+def plain_loop(root: Path, part: tuple[int, int] = (0, 1), start=None, ready=None) -> tuple[float, float, int, float]:
+    """(wall s, steady pairs/s, pairs, CPU s) of the loop over part k of n of the pairs.
+
+    With ``start`` (an Event), the pipeline is built and warmed on the part's first pair, then
+    the loop says so on ``ready`` (a Queue), waits for ``start`` and runs from a fresh motion state.
+    """
     import cv2
 
     from cbh.actions.archive import load_images
-    from cbh.actions.reprocess import ReprocessOptions, load_jobs, plan_reprocess
+    from cbh.actions.run import MotionChain
     from cbh.pipeline import Pipeline
 
     cv2.setNumThreads(1)
-    jobs = load_jobs([root / "station.toml"], [f"cam1={root / 'cam1'}", f"cam2={root / 'cam2'}"])
-    plan = plan_reprocess(jobs, ReprocessOptions(out=root / "unused"))
-    pairs = [p for d in plan.days for p in d.pairs]
-    t0 = time.perf_counter()
-    from cbh.actions.run import MotionChain
-
-    pipe, chain = Pipeline(jobs[0].station), MotionChain()  # the same work as reprocess: motion state too
+    station, pairs = _pairs(root)
+    k, n = part
+    pairs = pairs[k * len(pairs) // n:(k + 1) * len(pairs) // n]
+    pipe = Pipeline(station)
+    if start is not None:
+        imgs = load_images([pairs[0].frame1, pairs[0].frame2])
+        pipe.process(imgs[pairs[0].frame1], imgs[pairs[0].frame2], pairs[0].time_utc, channels="bgr")
+        ready.put(k)
+        start.wait()
+    t0, c0 = time.perf_counter(), time.process_time()
+    chain = MotionChain()  # the same work as reprocess: motion state too
     t1 = None
     for p in pairs:
         imgs = load_images([p.frame1, p.frame2])
@@ -70,40 +219,91 @@ def plain_loop(root: Path) -> tuple[float, float, int]:
         chain.keep(r)
         t1 = t1 or time.perf_counter()  # after the first pair (warm-up)
     t_end = time.perf_counter()
-    return t_end - t0, (len(pairs) - 1) / (t_end - t1), len(pairs)
+    return t_end - t0, (len(pairs) - 1) / (t_end - t1), len(pairs), time.process_time() - c0
 
 
-def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> tuple[float, float, int]:
-    from cbh.actions.reprocess import reprocess
+def _loop_part(root, k, n, start, ready, q):
+    q.put(plain_loop(root, (k, n), start, ready))
+
+
+def parallel_loops(root: Path, n: int) -> tuple[float, int, dict | None]:
+    """n plain loops at once in n processes, each over 1/n of the pairs: (wall s, pairs, CPU split)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    start, ready, q = ctx.Event(), ctx.Queue(), ctx.Queue()
+    procs = [ctx.Process(target=_loop_part, args=(root, k, n, start, ready, q)) for k in range(n)]
+    for p in procs:
+        p.start()
+    for _ in procs:  # each has built its pipeline and processed a first pair: start together
+        ready.get()
+    with CpuMeter() as m:
+        t0 = time.perf_counter()
+        start.set()
+        res = [q.get() for _ in procs]
+        wall = time.perf_counter() - t0
+    for p in procs:
+        p.join()
+    return wall, sum(r[2] for r in res), m.split({p.pid for p in procs})
+
+
+# --- Ray runs --------------------------------------------------------------------------------------
+
+def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> dict:
+    """One run as ``cbh reprocess`` does it: a private Ray with num_cpus=workers, run, stop."""
+    import ray
+
+    from cbh.actions.reprocess import reprocess, start_ray
 
     out = root / f"out-{workers}-{device}"
     shutil.rmtree(out, ignore_errors=True)
-    first_done: dict[int, float] = {}
-    n_after = [0]
     t0 = time.perf_counter()
+    start_ray(workers=workers, device=device)
+    t_ray = time.perf_counter() - t0
+    first_done: dict[int, float] = {}
+    actor_pids: set[int] = set()
+    n_after = [0]
+    cpu = {"s": 0.0, "pairs": 0, "lead": 0}  # after each actor's first chunk (imports, pipeline build)
 
     def ev(e):
-        if e["event"] == "chunk":
+        if e["event"] == "workers":
+            actor_pids.update(p for p in e["pids"] if p)
+        elif e["event"] == "chunk":
+            actor_pids.add(e["pid"])
+            if e["pid"] in first_done:
+                cpu["s"] += e["cpu_s"]
+                cpu["pairs"] += e["pairs"] + e["lead_in"]
+            cpu["lead"] += e["lead_in"]
             if e["pid"] not in first_done:
                 first_done[e["pid"]] = time.perf_counter()
             elif len(first_done) >= workers:
                 n_after[0] += e["pairs"]
 
-    _, s = reprocess([root / "station.toml"], [f"cam1={root / 'cam1'}", f"cam2={root / 'cam2'}"], out=out,
-                     workers=workers, chunk_pairs=chunk_pairs, device=device, on_event=ev)
-    t_end = time.perf_counter()
-    steady = n_after[0] / (t_end - max(first_done.values())) if len(first_done) >= workers and n_after[0] else float("nan")
+    try:
+        with CpuMeter() as m:
+            t0 = time.perf_counter()
+            _, s = reprocess([root / "station.toml"], [f"cam1={root / 'cam1'}", f"cam2={root / 'cam2'}"], out=out,
+                             workers=workers, chunk_pairs=chunk_pairs, device=device, on_event=ev)
+            t_end = time.perf_counter()
+    finally:
+        ray.shutdown()
+    steady = (n_after[0] / (t_end - max(first_done.values())) if len(first_done) >= workers and n_after[0]
+              else float("nan"))
     assert s.failures == 0 and s.pairs_processed > 0
-    return t_end - t0, steady, s.pairs_processed
+    return {"wall": t_end - t0, "steady": steady, "pairs": s.pairs_processed, "ray_start": t_ray,
+            "cpu_per_pair": cpu["s"] / cpu["pairs"] if cpu["pairs"] else float("nan"), "lead": cpu["lead"],
+            "split": m.split(actor_pids)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--pairs", type=int, default=96)
-    ap.add_argument("--size", type=int, default=480)
-    ap.add_argument("--chunk-pairs", type=int, default=16)
+    ap.add_argument("--pairs", type=int, default=64)
+    ap.add_argument("--size", type=int, default=960)
+    ap.add_argument("--chunk-pairs", type=int, default=8)
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="run each measurement this often (Ray runs interleaved 1, 2, 1, 2 …) and keep the fastest, "
+                         "the least disturbed by other load")
     a = ap.parse_args()
-    from cbh.actions.reprocess import start_ray
 
     ncpu = os.cpu_count() or 1
     try:
@@ -113,37 +313,75 @@ def main() -> None:
     except ImportError:
         gpu = False
     counts = [1, 2] + ([16] if ncpu >= 16 else [])
+    loaded: list[str] = []
+
+    def note_load(what: str, acc: dict | None) -> None:
+        if acc is not None and acc["other"] > OTHER_LOAD_LIMIT * acc["capacity"]:
+            loaded.append(f"{what} ({100 * acc['other'] / acc['capacity']:.0f} %)")
+
+    t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="cbh-bench-reprocess-") as tmp:
-        root = make_archive(Path(tmp), a.pairs, a.size)
-        t_loop, loop_steady, n = plain_loop(root)
-        print(f"archive: {n} pairs at {a.size} px over 2 days; {ncpu} CPUs; GPU: {'yes' if gpu else 'no'}")
-        print(f"plain loop over Pipeline.process (1 thread): {n / t_loop:.2f} pairs/s ({t_loop:.1f} s), "
-              f"steady {loop_steady:.2f} pairs/s")
         t0 = time.perf_counter()
-        start_ray(workers=max(counts), device="cuda" if gpu else "cpu")
-        print(f"Ray start (once per command): {time.perf_counter() - t0:.1f} s")
-        rates, steadies = {}, {}
+        root = make_archive(Path(tmp), a.pairs, a.size)
+        print(f"archive: {a.pairs} pairs at {a.size} px over 2 days (rendered in {time.perf_counter() - t0:.0f} s); "
+              f"{ncpu} CPUs; GPU: {'yes' if gpu else 'no'}; chunks of <= {a.chunk_pairs} pairs")
+
+        best = f" (fastest of {a.repeat})" if a.repeat > 1 else ""
+        loops = []
+        for _ in range(a.repeat):
+            with CpuMeter() as m:
+                res = plain_loop(root)
+            loops.append((res, m.split()))
+        (t_loop, loop_steady, n, loop_cpu), split = min(loops, key=lambda x: x[0][0])
+        note_load("plain loop", split)
+        print(f"plain loop over Pipeline.process (1 process, 1 thread){best}: {n / t_loop:.2f} pairs/s ({t_loop:.1f} s), "
+              f"steady {loop_steady:.2f} pairs/s, {1000 * loop_cpu / n:.0f} ms CPU/pair\n    {_cpu_line(split)}")
+
+        t_par, n_par, split = min((parallel_loops(root, 2) for _ in range(a.repeat)), key=lambda x: x[0])
+        note_load("2 plain loops", split)
+        print(f"2 plain loops at once (2 processes, half the pairs each, no Ray){best}: {n_par / t_par:.2f} pairs/s = "
+              f"{n_par / t_par / loop_steady:.2f}x the loop's steady rate (the most 2 workers can give here)"
+              f"\n    {_cpu_line(split)}")
+
+        runs: dict[int, dict] = {}
+        for _ in range(a.repeat):
+            for w in counts:
+                r = ray_run(root, w, a.chunk_pairs)
+                if w not in runs or r["wall"] < runs[w]["wall"]:
+                    runs[w] = r
         for w in counts:
-            t, steady, m = ray_run(root, w, a.chunk_pairs)
-            rates[w], steadies[w] = m / t, steady
-            print(f"ray {w:>2} worker(s): {m / t:.2f} pairs/s end to end ({t:.1f} s), steady {steady:.2f} pairs/s")
-        print(f"speed-up 2 vs 1 workers: {rates[2] / rates[1]:.2f}x end to end, {steadies[2] / steadies[1]:.2f}x steady "
-              "(goal >= 1.7x)")
-        if 16 in rates:
-            print(f"speed-up 16 vs 1 workers: {rates[16] / rates[1]:.2f}x end to end, {steadies[16] / steadies[1]:.2f}x "
-                  "steady (goal >= 12x)")
+            r = runs[w]
+            note_load(f"ray {w}", r["split"])
+            what = "worker: one single-threaded actor (1 CPU, OpenCV 1 thread)" if w == 1 else \
+                "workers (single-threaded actors)"
+            print(f"ray {w:>2} {what}{best}: {r['pairs'] / r['wall']:.2f} pairs/s end to end ({r['wall']:.1f} s), "
+                  f"steady {r['steady']:.2f} pairs/s; actors {1000 * r['cpu_per_pair']:.0f} ms CPU/pair steady "
+                  f"({r['lead']} lead-in pairs in all); Ray start {r['ray_start']:.1f} s (apart)\n    {_cpu_line(r['split'])}"
+                  + (f"; actors running {100 * r['split']['workers'] / (w * r['wall']):.0f} % of the run (low with little "
+                     "other load: actors waiting on the engine)" if r["split"] else ""))
+        e2e = {w: runs[w]["pairs"] / runs[w]["wall"] for w in runs}
+        print(f"speed-up 2 vs 1 workers: {e2e[2] / e2e[1]:.2f}x end to end, "
+              f"{runs[2]['steady'] / runs[1]['steady']:.2f}x steady (goal >= 1.7x); the actors' CPU per pair "
+              f"{runs[2]['cpu_per_pair'] / runs[1]['cpu_per_pair']:.2f}x that of 1 worker (above 1: the two slow each "
+              "other down through shared caches, memory or cores)")
+        if 16 in runs:
+            print(f"speed-up 16 vs 1 workers: {e2e[16] / e2e[1]:.2f}x end to end, "
+                  f"{runs[16]['steady'] / runs[1]['steady']:.2f}x steady (goal >= 12x)")
         else:
             print(f"16 workers: not run ({ncpu} CPUs here)")
-        print(f"overhead of 1 Ray worker vs the plain loop: {100 * (n / rates[1] - t_loop) / t_loop:+.0f} % end to end "
-              f"(actor start, pipeline build, output files), {100 * (loop_steady / steadies[1] - 1):+.0f} % steady")
+        print(f"overhead of 1 Ray worker vs the plain loop: {100 * (t_loop and (n / e2e[1] - t_loop) / t_loop):+.0f} % "
+              f"end to end (actor start, pipeline build, lead-in pairs, output files), "
+              f"{100 * (loop_steady / runs[1]['steady'] - 1):+.0f} % steady")
         if gpu:
-            t, steady, m = ray_run(root, min(ncpu, 16), a.chunk_pairs, device="cuda")
-            print(f"ray GPU actors ({min(ncpu, 16)} sharing the GPU): {m / t:.2f} pairs/s end to end, steady {steady:.2f}")
+            r = ray_run(root, min(ncpu, 16), a.chunk_pairs, device="cuda")
+            print(f"ray GPU actors ({min(ncpu, 16)} sharing the GPU): {r['pairs'] / r['wall']:.2f} pairs/s end to end, "
+                  f"steady {r['steady']:.2f}")
         else:
             print("GPU actors: not run (no CUDA device here)")
-        import ray
-
-        ray.shutdown()
+    print(f"total {time.perf_counter() - t_all:.0f} s")
+    if loaded:
+        print(f"WARNING: other processes took more than {100 * OTHER_LOAD_LIMIT:.0f} % of the machine during: "
+              f"{', '.join(loaded)}; these rates are not representative: measure again on a quiet machine")
 
 
 if __name__ == "__main__":

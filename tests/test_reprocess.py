@@ -81,8 +81,23 @@ def _run(archive: Path, out: Path, **kw):
 @pytest.fixture(scope="module")
 def baseline(archive, ray_session, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
-    plan, summary = _run(archive, out)
-    return plan, summary, out
+    events: list[dict] = []
+    plan, summary = _run(archive, out, on_event=events.append)
+    return plan, summary, out, events
+
+
+def test_days_are_cut_into_even_chunks():
+    """At most chunk_pairs per chunk, as few chunks as that allows, sizes within one of each other."""
+    from cbh.actions.reprocess import _chunk_bounds
+
+    assert _chunk_bounds(50, 16) == [0, 12, 25, 37, 50]  # not 16, 16, 16, 2
+    assert _chunk_bounds(32, 16) == [0, 16, 32] and _chunk_bounds(1, 32) == [0, 1]
+    for n in range(1, 70):
+        for c in (1, 2, 3, 7, 16, 32):
+            b = _chunk_bounds(n, c)
+            sizes = [j - i for i, j in zip(b, b[1:])]
+            assert b[0] == 0 and b[-1] == n and len(sizes) == -(-n // c)
+            assert max(sizes) <= c and max(sizes) - min(sizes) <= 1 and min(sizes) >= 1
 
 
 def _heights_by_time(parquet: Path) -> dict:
@@ -97,6 +112,36 @@ def _heights_by_time(parquet: Path) -> dict:
     return out
 
 
+def test_chunks_are_handed_out_in_contiguous_stretches():
+    """Each actor works through a contiguous stretch (no lead-in pair to re-process inside it);
+    an actor without work takes the later half of the largest stretch; retries go first; a second
+    station gets its own actor while both have work."""
+    from datetime import date
+
+    from cbh.actions.reprocess import Chunk, _ChunkQueue
+
+    def chunks(st, n):
+        return [Chunk(st, date(2024, 6, 21), k, ()) for k in range(n)]
+
+    q = _ChunkQueue({"a": chunks("a", 6)})
+    order = [(slot, q.next(slot)[0].index) for slot in (0, 1, 0, 1, 0, 1)]
+    assert order == [(0, 0), (1, 3), (0, 1), (1, 4), (0, 2), (1, 5)] and len(q) == 0 and q.next(0) is None
+
+    q = _ChunkQueue({"a": chunks("a", 5)})
+    assert [q.next(0)[0].index for _ in range(5)] == [0, 1, 2, 3, 4]  # one actor: one stretch
+
+    q = _ChunkQueue({"a": chunks("a", 8)})
+    assert [q.next(0)[0].index, q.next(1)[0].index, q.next(2)[0].index] == [0, 4, 2]  # left: 0 [1,2), 1 [5,8), 2 [3,4)
+    assert [q.next(1)[0].index for _ in range(4)] == [5, 6, 7, 1]  # slot 1 done with its own: it takes slot 0's last
+    first = chunks("a", 1)[0]
+    q.retry(first, 2)
+    assert q.next(2) == (first, 2)
+
+    q = _ChunkQueue({"a": chunks("a", 4), "b": chunks("b", 4)})
+    got = [q.next(slot)[0] for slot in (0, 1)]
+    assert [(c.station, c.index) for c in got] == [("a", 0), ("b", 0)]
+
+
 def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     """Every day's heights equal `cbh pair` on the same two files (the pipeline keeps no state
     between pairs and uses no temporal information here: identical, not just close); a second
@@ -106,8 +151,16 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     from cbh.actions.reprocess import daily_paths
     from cbh.cli.main import main
 
-    plan, s, out = baseline
+    plan, s, out, events = baseline
     assert (s.pairs_total, s.pairs_processed, s.failures, s.days_written, s.workers) == (7, 7, 1, 2, 2)
+    # chunks of at most 2 (chunk_pairs), even within a day: day 1's 4 pairs as 2 + 2, day 2's 3 as 1 + 2;
+    # one actor takes day 1, the other day 2 (contiguous stretches): only day 2's first chunk
+    # re-processes its lead-in pair (day 1's last), the others continue from their actor's own
+    # last pair (the motion check below holds either way); each chunk reports the actor's CPU time
+    chunks = sorted(((e["day"], e["pairs"], e["lead_in"]) for e in events if e["event"] == "chunk"))
+    assert [(d, n) for d, n, _ in chunks] == [("2024-06-21", 2), ("2024-06-21", 2), ("2024-06-22", 1), ("2024-06-22", 2)]
+    assert [lead for *_, lead in chunks] == [0, 0, 1, 0]
+    assert all(e["cpu_s"] > 0 and e["elapsed_s"] > 0 for e in events if e["event"] == "chunk")
     inv = plan.inventories["unb-lea"]
     assert inv.frames == {"cam1": 7, "cam2": 8} and inv.unpaired == {"cam1": 0, "cam2": 1}
     capsys.readouterr()
@@ -193,7 +246,7 @@ def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_
     retries the chunk, and the output equals the undisturbed run."""
     from cbh.actions.reprocess import daily_paths
 
-    _, _, base_out = baseline
+    _, _, base_out, _ = baseline
     killed, on_event = _kill_first_dispatched_worker()
 
     _, s = _run(archive, tmp_path / "out", on_event=on_event)
@@ -211,7 +264,7 @@ def test_worker_that_ray_gives_up_on_is_replaced(archive, baseline, tmp_path):
     fresh actor and still writes every day, equal to the undisturbed run."""
     from cbh.actions.reprocess import daily_paths
 
-    _, _, base_out = baseline
+    _, _, base_out, _ = baseline
     killed, on_event = _kill_first_dispatched_worker()
 
     _, s = _run(archive, tmp_path / "out", on_event=on_event, actor_restarts=0)
@@ -345,16 +398,20 @@ def test_ctrl_c_keeps_finished_days_and_rerun_finishes(archive, baseline, tmp_pa
     first = json.loads(p.stdout.readline())  # the JSON line of the first finished day
     os.killpg(p.pid, signal.SIGINT)
     rest, err = p.communicate(timeout=120)
-    assert first["day"] == "2024-06-21" and first["records"] == 3
+    # each actor works through one day (contiguous stretches): either may finish first
+    pairs = {"2024-06-21": 4, "2024-06-22": 3}
+    assert first["day"] in pairs and first["records"] == 3
+    (other,) = set(pairs) - {first["day"]}
     index = json.loads((out / "index.json").read_text())
-    statuses = [d["status"] for d in index["stations"]["unb-lea"]["days"]]
-    if p.returncode == 130:  # interrupted while day 2 was in flight (the usual case)
-        assert index["interrupted"] and statuses == ["written", "not finished"] and "interrupted" in err
-    else:  # day 2 finished before the signal arrived
-        assert p.returncode == 0 and statuses == ["written", "written"]
+    statuses = {d["day"]: d["status"] for d in index["stations"]["unb-lea"]["days"]}
+    if p.returncode == 130:  # interrupted while the other day was in flight (the usual case)
+        assert index["interrupted"] and statuses == {first["day"]: "written", other: "not finished"}
+        assert "interrupted" in err
+    else:  # the other day finished before the signal arrived
+        assert p.returncode == 0 and set(statuses.values()) == {"written"}
     _, s2 = _run(archive, out)
     assert s2.days_resumed + s2.days_written == 2 and s2.days_resumed >= 1
-    assert s2.pairs_processed == (3 if s2.days_written else 0)  # day 2 has 3 pairs
+    assert s2.pairs_processed == (pairs[other] if s2.days_written else 0)
 
 
 def test_a_replaced_image_redoes_its_day_a_repaired_copy_does_not(tmp_path):

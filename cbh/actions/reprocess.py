@@ -11,8 +11,10 @@ What happens
 2. **Run** (:func:`run_plan`): Ray actors (:class:`PairWorker`, one CPU each, and a share of
    a GPU with ``device="cuda"``) each build a station's :class:`~cbh.pipeline.Pipeline`
    once (heavy tables: remap, rays, masks) and keep it for every later chunk of that station.
-   Days are cut into chunks of ``chunk_pairs`` pairs so that a few long days still keep every
-   worker busy; an actor keeps to one station while that station has work. A worker process
+   Days are cut into chunks of at most ``chunk_pairs`` pairs, of equal size within a day
+   (:func:`_chunk_bounds`), so that a few long days still keep every worker busy; an actor
+   keeps to one station while that station has work, and sends back only what the day files
+   need (a :class:`~cbh.outputs.export.PairRecord` per pair: no images, no height maps). A worker process
    that dies is restarted by Ray and its chunk retried (``max_restarts``/``max_task_retries``);
    if Ray gives up, a fresh actor takes the chunk (``max_attempts`` in all).
 3. **Output** (on the driver, as each day completes): per station and UTC day
@@ -37,8 +39,12 @@ Temporal state (cloud motion, camera 2's clock offset: :mod:`cbh.pipeline.motion
 from pair to pair in time order as ``cbh run`` does (:class:`cbh.actions.run.MotionChain`).
 A chunk starts with a lead-in: the station's pair just before its first (possibly the previous
 day's last) is processed again for its state only, so every pair gets its motion exactly as in
-one sequential run, at one extra pair per chunk. The running clock-offset estimate (a median
-over the last pairs) restarts at each chunk; where a clock offset is compensated, the heights
+one sequential run. An actor that itself processed that pair last (it works through a
+contiguous stretch of chunks, :class:`_ChunkQueue`) skips the re-processing and starts from
+the state the lead-in would leave (:func:`_as_lead_in`: the same frames, no offset history),
+so the results do not depend on which actor took which chunk, and the extra pairs are one per
+stretch (about one per actor and station), not one per chunk. The running clock-offset
+estimate (a median over the last pairs) restarts at each chunk; where a clock offset is compensated, the heights
 of a chunk's first pairs can differ from a sequential run's within the 0.5 % the issue allows.
 Where no temporal information is used the heights are identical to ``cbh pair``'s.
 """
@@ -198,7 +204,7 @@ class ReprocessOptions:
     t_to: datetime | None = None  # pairs before this UTC time
     device: str = "cpu"  # "cpu" | "cuda" (actors ask Ray for a GPU share)
     formats: tuple[str, ...] = FORMATS
-    chunk_pairs: int = 32  # pairs per task
+    chunk_pairs: int = 32  # at most this many pairs per task (a day is cut into equal chunks, _chunk_bounds)
     pair_tolerance_s: float | None = None  # None: the station's [service] pair_tolerance_s (default 0.5 s)
     max_attempts: int = 3  # a chunk whose worker dies is given to a fresh actor at most this often
     actor_restarts: int = 3  # Ray's max_restarts (and max_task_retries) of each actor
@@ -338,7 +344,9 @@ class ChunkResult:
     records: list  # cbh.outputs.export.PairRecord, time order
     failures: list[dict]  # {"time_utc", "frames", "reason"}
     pid: int  # the actor process (a new pid in a slot: Ray restarted the actor)
-    elapsed_s: float
+    elapsed_s: float  # wall time of the chunk in the actor [s]
+    cpu_s: float = math.nan  # CPU time of the actor process over the chunk, all its threads [s]
+    lead_in: int = 0  # pairs processed for their motion state only (0 or 1)
 
 
 class PairWorker:
@@ -369,6 +377,8 @@ class PairWorker:
         self.stations = {k: (parse_station(tomllib.loads(text)), tuple(cams)) for k, (text, cams) in stations.items()}
         self.device = device
         self._pipes: OrderedDict = OrderedDict()
+        # station → (the last pair this actor processed, the state a lead-in of that pair leaves)
+        self._last: dict[str, tuple[PairRef, object]] = {}
 
     def pid(self) -> int:
         return os.getpid()
@@ -383,7 +393,7 @@ class PairWorker:
         pipe = Pipeline(st, f"{cams[0]},{cams[1]}", device=self.device)  # the dense work on the worker's device
         self._pipes[station] = pipe
         while len(self._pipes) > _PIPELINES_PER_WORKER:
-            self._pipes.popitem(last=False)
+            self._last.pop(self._pipes.popitem(last=False)[0], None)  # its handed-on state too
         return pipe
 
     def process(self, chunk: Chunk) -> ChunkResult:
@@ -392,12 +402,17 @@ class PairWorker:
 
         from cbh.actions.run import MotionChain
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         pipe = self.pipeline(chunk.station)
         st = self.stations[chunk.station][0]
-        lead = (chunk.lead,) if chunk.lead is not None else ()
-        images = load_images([f for p in lead + chunk.pairs for f in (p.frame1, p.frame2)])
         motion = MotionChain()  # the temporal state handed from pair to pair, as in `cbh run`
+        last = self._last.pop(chunk.station, None)
+        if chunk.lead is not None and last is not None and last[0] == chunk.lead:
+            lead = ()  # this actor's previous chunk ended with the lead pair: its state, no re-processing
+            motion.state = last[1]
+        else:
+            lead = (chunk.lead,) if chunk.lead is not None else ()
+        images = load_images([f for p in lead + chunk.pairs for f in (p.frame1, p.frame2)])
         records, failures = [], []
         for k, p in enumerate(lead + chunk.pairs):
             img1, img2 = images[p.frame1], images[p.frame2]
@@ -420,8 +435,22 @@ class PairWorker:
             reason = str(bad) if isinstance(bad, CbhError) else f"{type(bad).__name__}: {bad}"
             failures.append({"time_utc": _iso(p.time_utc), "frames": [p.frame1.describe(), p.frame2.describe()],
                              "reason": reason})
+        if chunk.pairs:
+            self._last[chunk.station] = (chunk.pairs[-1], _as_lead_in(motion.state))
         return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(),
-                           time.perf_counter() - t0)
+                           time.perf_counter() - t0, time.process_time() - c0, len(lead))
+
+
+def _as_lead_in(state):
+    """The state a lead-in of the same pair leaves (processed with no previous state): its frames
+    and time, no clock-offset history, no layer motion; None where the pair failed (a lead-in of
+    it fails again). So a chunk that follows on the same actor gets exactly the state its lead-in
+    would give, and the heights do not depend on which actor took which chunk."""
+    from dataclasses import replace
+
+    if state is None or state.gray is None:
+        return None
+    return replace(state, offsets_s=(), layer_rates=())
 
 
 # --- the engine -------------------------------------------------------------------------------------
@@ -605,12 +634,94 @@ def _write_index(plan: Plan, sides: dict[tuple[str, date], dict], failed: dict[t
     return path
 
 
+class _ChunkQueue:
+    """Chunks waiting for an actor, handed out so that each actor works through a contiguous
+    stretch of one station's chunks: the lead-in pair of its next chunk is then its own last
+    pair, and :meth:`PairWorker.process` re-processes none (one lead-in per stretch, not per chunk).
+
+    An actor without a stretch takes one on the station it was on while that station has work
+    (else the station with the most chunks left per actor on it): an unclaimed stretch whole,
+    else the larger half, the later in time, of that station's largest stretch (its owner keeps
+    the earlier half). So every actor stays busy to the end, at the price of one lead-in per
+    split. Chunks to retry (their actor died) go first.
+
+    Parameters
+    ----------
+    chunks : dict of str → list of Chunk
+        Per station, the chunks in time order (each chunk's lead is the previous one's last pair).
+    """
+
+    def __init__(self, chunks: dict[str, list[Chunk]]):
+        self._chunks = {k: list(v) for k, v in chunks.items() if v}
+        self._stretches = [[k, 0, len(v)] for k, v in self._chunks.items()]  # [station, next, end)
+        self._mine: dict[int, list] = {}  # slot → its stretch
+        self._station: dict[int, str] = {}  # slot → the station it is on
+        self._retry: deque = deque()
+
+    def __len__(self) -> int:
+        return len(self._retry) + sum(hi - lo for _, lo, hi in self._stretches)
+
+    def retry(self, chunk: Chunk, attempt: int) -> None:
+        self._retry.appendleft((chunk, attempt))
+
+    def next(self, slot: int) -> tuple[Chunk, int] | None:
+        """(chunk, attempt) for actor ``slot``; None when nothing is left."""
+        if self._retry:
+            return self._retry.popleft()
+        s = self._mine.get(slot)
+        if s is None or s[1] >= s[2]:
+            s = self._claim(slot)
+            if s is None:
+                return None
+        s[1] += 1
+        return self._chunks[s[0]][s[1] - 1], 1
+
+    def _claim(self, slot: int) -> list | None:
+        self._stretches = [s for s in self._stretches if s[1] < s[2]]
+        if not self._stretches:
+            return None
+        left: dict[str, int] = {}
+        for k, lo, hi in self._stretches:
+            left[k] = left.get(k, 0) + hi - lo
+        st = self._station.get(slot)
+        if st not in left:
+            on = [v for k, v in self._station.items() if k != slot]
+            st = max(left, key=lambda k: left[k] / (1 + on.count(k)))
+        big = max((s for s in self._stretches if s[0] == st), key=lambda s: s[2] - s[1])
+        owners = [k for k, v in self._mine.items() if v is big]
+        if not owners:
+            mine = big
+        else:  # split: the owner keeps the earlier half, this actor takes the later (larger) half
+            cut = big[1] + (big[2] - big[1]) // 2
+            mine = [st, cut, big[2]]
+            big[2] = cut
+            self._stretches.append(mine)
+        self._mine[slot] = mine
+        self._station[slot] = st
+        return mine
+
+
+def _chunk_bounds(n_pairs: int, chunk_pairs: int) -> list[int]:
+    """Cut points of a day into the fewest chunks of at most ``chunk_pairs`` pairs, their sizes
+    differing by at most one (50 pairs at 16: 12, 13, 12, 13, not 16, 16, 16, 2: no short
+    chunk paying a whole lead-in pair and a task for two pairs, and a shorter tail).
+
+    >>> _chunk_bounds(50, 16)
+    [0, 12, 25, 37, 50]
+    >>> _chunk_bounds(32, 16)
+    [0, 16, 32]
+    """
+    n = max(1, -(-n_pairs // chunk_pairs))
+    return [(k * n_pairs) // n for k in range(n + 1)]
+
+
 def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summary:
     """Process every unfinished day of the plan on Ray; write the days as they finish and the index.
 
     ``on_event(dict)`` is called on the driver with ``{"event": "start", "pairs", "days",
     "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "chunk", "pairs", "failures",
-    "pid", "elapsed_s"}``, ``{"event": "dispatch", "slot", …}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
+    "pid", "elapsed_s", "cpu_s", "lead_in"}`` (the actor's wall and CPU time for the chunk, and
+    whether it re-processed a lead-in pair), ``{"event": "dispatch", "slot", …}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
     KeyboardInterrupt stops the run: finished days stay, the index is written, and the
     summary says ``interrupted``.
     """
@@ -633,8 +744,8 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
         s.index = _write_index(plan, sides, failed, s)
         return s
 
-    # chunks, per station queue (a worker stays with its station while it has work)
-    queues: dict[str, deque] = defaultdict(deque)
+    # chunks, per station in time order; handed out in contiguous stretches (see _ChunkQueue)
+    by_station: dict[str, list[Chunk]] = defaultdict(list)
     expected: dict[tuple[str, date], int] = {}
     before: dict[tuple[str, date], PairRef | None] = {}  # the previous day's last pair: the day's lead-in
     last: dict[str, PairRef] = {}
@@ -642,12 +753,12 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
         before[(w.station, w.day)] = last.get(w.station)
         last[w.station] = w.pairs[-1]
     for w in todo:
-        n = 0
-        for i in range(0, len(w.pairs), opts.chunk_pairs):
+        bounds = _chunk_bounds(len(w.pairs), opts.chunk_pairs)
+        for n, (i, j) in enumerate(zip(bounds, bounds[1:])):
             lead = w.pairs[i - 1] if i else before[(w.station, w.day)]
-            queues[w.station].append((Chunk(w.station, w.day, n, tuple(w.pairs[i:i + opts.chunk_pairs]), lead), 1))
-            n += 1
-        expected[(w.station, w.day)] = n
+            by_station[w.station].append(Chunk(w.station, w.day, n, tuple(w.pairs[i:j]), lead))
+        expected[(w.station, w.day)] = len(bounds) - 1
+    queue = _ChunkQueue(by_station)
     works = {(w.station, w.day): w for w in todo}
     got: dict[tuple[str, date], list[ChunkResult]] = defaultdict(list)
 
@@ -658,45 +769,32 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     if n_workers > cpus:
         log.warning("%d workers asked, Ray offers %d CPUs: using %d", n_workers, cpus, cpus)
         n_workers = cpus
-    n_workers = max(1, min(n_workers, sum(len(q) for q in queues.values())))
+    n_workers = max(1, min(n_workers, len(queue)))
     s.workers = n_workers
     gpu_share = 0.0
     if opts.device == "cuda":
         gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / n_workers)
     actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share, max_restarts=opts.actor_restarts,
                                                max_task_retries=opts.actor_restarts)
-    stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs if j.name in queues}
+    stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs if j.name in by_station}
     actors: list = []
-    current: list[str | None] = []
     inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt, actor handle)
     load = [0] * n_workers
 
     def new_actor():
         return actor_cls.remote(stations, opts.device)
 
-    def next_chunk(slot: int):
-        st = current[slot]
-        if st is None or not queues.get(st):
-            left = [k for k, q in queues.items() if q]
-            if not left:
-                return None
-            # the station with the most work left per worker already on it
-            st = max(left, key=lambda k: len(queues[k]) / (1 + sum(1 for c in current if c == k)))
-            current[slot] = st
-        return queues[st].popleft()
-
     try:
         emit({"event": "start", "pairs": sum(len(w.pairs) for w in todo), "days": len(todo), "workers": n_workers})
         for _ in range(n_workers):
             actors.append(new_actor())
-            current.append(None)
         pids = ray.get([a.pid.remote() for a in actors])
         emit({"event": "workers", "pids": list(pids)})
-        while inflight or any(queues.values()):
+        while inflight or len(queue):
             # breadth first: every actor gets one chunk before any gets a second (queued behind it)
             for depth, slot in [(d, k) for d in (1, 2) for k in range(n_workers)]:
                 if load[slot] < depth:
-                    item = next_chunk(slot)
+                    item = queue.next(slot)
                     if item is None:
                         break
                     chunk, attempt = item
@@ -721,7 +819,7 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
                         actors[slot] = new_actor()
                         pids[slot] = None
                     if attempt < opts.max_attempts:
-                        queues[chunk.station].appendleft((chunk, attempt + 1))
+                        queue.retry(chunk, attempt + 1)
                         log.warning("worker died on %s %s chunk %d; retrying on a fresh worker (%s)",
                                     chunk.station, chunk.day, chunk.index, type(exc).__name__)
                         emit({"event": "retry", "station": chunk.station, "day": chunk.day.isoformat(),
@@ -751,7 +849,7 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
                                 extra={"cbh_station": chunk.station, "cbh_time": f["time_utc"]})
                 emit({"event": "chunk", "station": chunk.station, "day": chunk.day.isoformat(),
                       "pairs": len(res.records) + len(res.failures), "failures": len(res.failures),
-                      "pid": res.pid, "elapsed_s": res.elapsed_s})
+                      "pid": res.pid, "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "lead_in": res.lead_in})
                 if len(got[key]) == expected[key]:
                     parts = sorted(got.pop(key), key=lambda r: r.index)
                     recs = [r for p in parts for r in p.records]

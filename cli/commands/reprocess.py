@@ -30,7 +30,7 @@ def reprocess_cmd(
     fmt: str = typer.Option("netcdf,parquet", "--format", help="netcdf, parquet or both (comma-separated)."),
     cameras: str = typer.Option(None, "--cameras", help="Camera pair, e.g. cam1,cam2 (default: the first two)."),
     pair_tolerance_s: float = typer.Option(None, "--pair-tolerance-s", help="Largest |t1 - t2| of a pair [s] (default: the station's, 0.5)."),
-    chunk_pairs: int = typer.Option(32, "--chunk-pairs", help="Pairs per Ray task."),
+    chunk_pairs: int = typer.Option(32, "--chunk-pairs", help="At most this many pairs per Ray task (a day is cut into equal chunks)."),
 ) -> None:
     """Reprocess archives (image folders, recordings, videos): per station and UTC day, on Ray."""
     from cbh.actions.reprocess import reprocess
