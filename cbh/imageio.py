@@ -76,8 +76,9 @@ def as_bgr(image, channels: str | None = None, what: str = "image", model: Camer
     if _is_grey(img):
         lo, hi = int(img.min()), int(img.max())
         if hi - lo <= _BLANK_DN:  # not a greyscale camera: no picture at all
-            raise ImageError(f"{what}: blank frame (every pixel {lo}…{hi} of 255): nothing to measure "
-                             f"({'over-exposed or blinded' if lo >= 128 else 'dark: lens covered, night or no signal'})")
+            why = ("over-exposed or blinded" if lo >= 200 else "dark: lens covered, night or no signal" if hi <= 40
+                   else "uniform grey: no picture from the camera")
+            raise ImageError(f"{what}: blank frame (every pixel {lo}…{hi} of 255): nothing to measure ({why})")
         raise ImageError(f"{what}: greyscale image (its three channels are equal): cloud segmentation needs colour")
     return np.ascontiguousarray(img)
 

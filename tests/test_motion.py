@@ -443,3 +443,27 @@ def test_a_60_s_sequence_gives_no_wrong_motion():
         out.append(r)
     assert not _wrong_motion(out), _wrong_motion(out)
     assert all(math.isfinite(_layer_for(r, 1200.0).motion_east_ms) for r in out[1:])
+
+
+def test_tracks_at_a_lower_layers_rate_are_not_the_upper_layers_motion():
+    """layer_motion, synthetic: the 3500 m layer's tracks are 40 % its own (−3, 8) m/s and 60 %
+    dragged by the 1200 m layer (its angular rate: (6, 2) m/s at 1200 m). A median would give
+    the dragged rate × 2.9; the dragged tracks are dropped, the true motion stays. Still layers
+    (both rates 0, e.g. the same frame twice) drag nothing: every track counts."""
+    from cbh.pipeline.motion import layer_motion
+    from cbh.result import Layer
+
+    rng = np.random.default_rng(0)
+    layers = [Layer(3500.0, 3500.0, 30.0, 0.2, 500, 0.9), Layer(1200.0, 1200.0, 10.0, 0.3, 900, 0.9)]  # any order
+    r_low, r_up = np.array([6.0, 2.0]) / 1200.0, np.array([-3.0, 8.0]) / 3500.0
+    noise = lambda n: 1e-5 * rng.standard_normal((n, 2))  # noqa: E731 (≈ 1 % of the rates)
+    w = np.concatenate([r_low + noise(80), r_up + noise(40), r_low + noise(60)])
+    lab = np.array([1] * 80 + [0] * 100)  # the last 60 "3500 m" tracks move at the low rate
+    out = layer_motion(layers, [(w, lab, 0.0)], min_tracks=10)
+    assert [L.height_m for L in out] == [3500.0, 1200.0]  # order kept
+    up, low = out
+    assert (low.motion_east_ms, low.motion_north_ms) == pytest.approx((6.0, 2.0), abs=0.1)
+    assert (up.motion_east_ms, up.motion_north_ms) == pytest.approx((-3.0, 8.0), abs=0.2)
+    assert up.motion_tracks == 40
+    still = layer_motion(layers, [(np.zeros((180, 2)), lab, 0.0)], min_tracks=10)
+    assert [L.motion_tracks for L in still] == [100, 80] and still[0].motion_east_ms == 0.0

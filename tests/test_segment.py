@@ -132,11 +132,14 @@ def test_pipeline_refuses_greyscale():
     from cbh.pipeline import Pipeline
 
     st = load_station(station_path()).scaled(240)
-    grey = np.dstack([np.full((240, 240), 120, np.uint8)] * 3)
+    ramp = np.tile(np.linspace(60, 180, 240).astype(np.uint8), (240, 1))  # a greyscale picture, not a blank one
+    grey = np.dstack([ramp] * 3)
     colour = grey.copy()
     colour[..., 0] = 200
     with pytest.raises(ImageError, match="segmentation needs colour"):
         Pipeline(st).process(grey, colour, None, channels="bgr")
+    with pytest.raises(ImageError, match="blank frame.*uniform grey"):  # one grey level everywhere
+        Pipeline(st).process(np.full_like(grey, 120), colour, None, channels="bgr")
 
 
 # --- cbh segment -----------------------------------------------------------------------------

@@ -449,13 +449,17 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig, ke
                                n, grid)
 
 
-def stereo_heights(geom: PairGeometry, px1: np.ndarray, px2: np.ndarray, cfg: FilteringConfig) -> np.ndarray:
+def stereo_heights(geom: PairGeometry, px1: np.ndarray, px2: np.ndarray,
+                   cfg: FilteringConfig) -> tuple[np.ndarray, np.ndarray]:
     """Heights [m] (N,) of correspondences (N, 2) + (N, 2) at working size, NaN where
-    :func:`triangulate_matches` would reject them."""
+    :func:`triangulate_matches` would reject them, and their triangulation angles [rad] (N,)."""
     if len(px1) == 0:
-        return np.zeros(0)
-    return triangulate_matches(geom, Matches("", np.asarray(px1, np.float64), np.asarray(px2, np.float64)), cfg,
-                               keep_all=True).height_m
+        return np.zeros(0), np.zeros(0)
+    m = Matches("", np.asarray(px1, np.float64), np.asarray(px2, np.float64))
+    d1, d2 = _rays_world(geom.cam1, m.px1), _rays_world(geom.cam2, m.px2)
+    ang = np.arccos(np.clip(np.einsum("ij,ij->i", d1, d2) / (np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)),
+                            -1.0, 1.0))
+    return triangulate_matches(geom, m, cfg, keep_all=True).height_m, ang
 
 
 def field_heights(geom: PairGeometry, field: DenseField, cfg: FilteringConfig) -> np.ndarray:

@@ -357,6 +357,15 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
 def layer_motion(layers: list[Layer], samples: list[tuple[np.ndarray, np.ndarray, float]], min_tracks: int) -> list[Layer]:
     """Each layer with its motion over the ground (median of its tracks, both cameras pooled).
 
+    Layers are taken from the lowest up. A track of a layer that moves at a lower layer's
+    angular rate (plane-offset rate within ``_SAME_RATE_REL`` of it, or 3 of its spreads) is
+    taken to follow that layer and dropped: the lower cloud hid the feature in the previous
+    frame (and moved on since) or crosses its window, and as both cameras see the lower cloud's
+    shift alike, even the track's stereo height can stay put (60 s cadence, two-layers scene:
+    the 3500 m deck got (+18, +5) m/s, the 1200 m layer's rate × 2.9, instead of (−3, 8)). The
+    price: a layer whose wind is the lower one's scaled by the height ratio, in the same
+    direction, stays without motion (NaN), never a wrong one.
+
     Parameters
     ----------
     layers : list of Layer
@@ -369,21 +378,34 @@ def layer_motion(layers: list[Layer], samples: list[tuple[np.ndarray, np.ndarray
     -------
     list of Layer
         With ``motion_east_ms``, ``motion_north_ms``, ``motion_spread_ms``, ``motion_tracks``
-        (NaN and 0 where a layer has fewer than ``min_tracks`` tracks).
+        (NaN and 0 where a layer has fewer than ``min_tracks`` tracks), in the given order.
     """
-    out = []
-    for i, L in enumerate(layers):
-        v = [w[lab == i] * (L.median_height_m - cz) for w, lab, cz in samples]
-        v = np.concatenate(v) if v else np.zeros((0, 2))
+    out: dict[int, Layer] = {}
+    lower: list[tuple[np.ndarray, float]] = []  # (rate, tolerance) of each layer below with motion
+    for i in np.argsort([L.median_height_m for L in layers], kind="stable"):
+        L = layers[int(i)]
+        ws = [w[(lab == i) & np.isfinite(w).all(axis=1)] for w, lab, _ in samples]
+        for rate, tol in lower:
+            ws = [w[np.linalg.norm(w - rate, axis=1) > tol] for w in ws]
+        v = np.concatenate([w * (L.median_height_m - cz) for w, (_, _, cz) in zip(ws, samples)] or [np.zeros((0, 2))])
         if len(v) < min_tracks:
-            out.append(replace(L, motion_east_ms=math.nan, motion_north_ms=math.nan,
-                               motion_spread_ms=math.nan, motion_tracks=0))
+            out[int(i)] = replace(L, motion_east_ms=math.nan, motion_north_ms=math.nan, motion_spread_ms=math.nan,
+                                  motion_tracks=0)
             continue
         med = np.median(v, axis=0)
         spread = 1.4826 * float(np.median(np.linalg.norm(v - med, axis=1)))
-        out.append(replace(L, motion_east_ms=float(med[0]), motion_north_ms=float(med[1]),
-                           motion_spread_ms=spread, motion_tracks=int(len(v))))
-    return out
+        out[int(i)] = replace(L, motion_east_ms=float(med[0]), motion_north_ms=float(med[1]), motion_spread_ms=spread,
+                              motion_tracks=int(len(v)))
+        w_all = np.concatenate(ws)
+        w_med = np.median(w_all, axis=0)
+        w_mad = 1.4826 * float(np.median(np.linalg.norm(w_all - w_med, axis=1)))
+        if float(np.linalg.norm(w_med)) > 3.0 * w_mad:  # it moves (a still layer drags nothing)
+            lower.append((w_med, max(_SAME_RATE_REL * float(np.linalg.norm(w_med)), 3.0 * w_mad)))
+    return [out[k] for k in range(len(layers))]
+
+
+#: A track moves "at a lower layer's rate" within this fraction of that rate (see :func:`layer_motion`).
+_SAME_RATE_REL = 0.15
 
 
 def assign_layers(height_m: np.ndarray, layers: list[Layer], tolerance_log: float) -> np.ndarray:

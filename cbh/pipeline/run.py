@@ -76,6 +76,7 @@ _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock off
 _RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
 _MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
+_TRACK_NOISE_PX = 0.1  # LK stereo match noise for the motion tracks' height check [px at working size]
 
 
 def _resolve_backend(device: str, backend: str):
@@ -353,7 +354,7 @@ class Pipeline:
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
                     est = self._stereo_tracks(corr, gray, masks, seg, mot, comp, used if comp is not None else 0.0)
-                    lay = self.stage_motion(lay, hmap, est)
+                    lay = self.stage_motion(lay, hmap, est, seg.clouds[0])
             new = running_offset((mot.offsets_s + (est.pair_offset_s,))[-mcfg.offset_history:])
             base = used if comp is not None else 0.0
             new_rates = self._layer_rates(lay.layers)
@@ -438,11 +439,17 @@ class Pipeline:
         # by a lower cloud that moved in front: at a 60 s cadence, 3500 m features latched onto the
         # 1200 m layer, which gave the deck the low layer's motion × 2.9) triangulates elsewhere.
         # Both pairs are as captured (camera 2 uncompensated), so a clock offset biases both alike.
+        # Tolerance: the layer tolerance, or 3 σ of the difference of two stereo heights, each off
+        # by σ_h/h = σ_θ/angle (σ_θ: _TRACK_NOISE_PX of LK at the lens's scale): at 480 px a 3500 m
+        # track at B = 50 m has 2 px of parallax and is good to ≈ 15 %, not the 10 % of the layers
         filt = self.config.filtering
-        h_now = stereo_heights(self.geometry, px1, px2_raw, filt)
-        h_prev = stereo_heights(self.geometry, t1.px_prev, t2.px_prev, filt)
+        h_now, ang = stereo_heights(self.geometry, px1, px2_raw, filt)
+        h_prev, _ = stereo_heights(self.geometry, t1.px_prev, t2.px_prev, filt)
+        m1 = self.cam1.model
+        sigma_theta = _TRACK_NOISE_PX * 0.05 / float(np.atleast_1d(m1.r_from_theta(np.array([0.05])))[0])
         with np.errstate(invalid="ignore", divide="ignore"):
-            jumped = ~(np.abs(np.log(h_prev / h_now)) <= cfg.layer_tolerance_log)
+            tol = np.maximum(cfg.layer_tolerance_log, 3.0 * math.sqrt(2.0) * sigma_theta / ang)
+            jumped = ~(np.abs(np.log(h_prev / h_now)) <= tol)
         w1[jumped] = np.nan
         w2[jumped] = np.nan
         pair = math.nan
@@ -454,9 +461,9 @@ class Pipeline:
                                   cfg.max_offset_s, dt)
             pair = used_s + res if math.isfinite(res) else math.nan
         return MotionEstimate(dt_s=dt, px1=px1, w1=w1, w2=w2, pair_offset_s=pair,
-                              height_m=stereo_heights(self.geometry, px1, px2, self.config.filtering))
+                              height_m=stereo_heights(self.geometry, px1, px2, self.config.filtering)[0])
 
-    def stage_motion(self, lay: LayerSet, hmap: HeightMap, est: "MotionEstimate") -> LayerSet:
+    def stage_motion(self, lay: LayerSet, hmap: HeightMap, est: "MotionEstimate", cloud1: np.ndarray) -> LayerSet:
         """Each layer's motion over the ground from the tracks (NaN without a previous pair)."""
         if est.px1 is None or not lay.layers:
             return lay
@@ -478,7 +485,10 @@ class Pipeline:
         # the 1200 m layer's rate)
         mcfg = self.config.motion
         k = 2 * (mcfg.window_px // 2) + 1
-        lowest = cv2.erode(np.nan_to_num(hmap.nearest_m, nan=np.inf), np.ones((k, k), np.uint8))  # min filter
+        # min filter of the cloud's heights (each cloud pixel: its own or nearest measured height;
+        # clear sky hides nothing)
+        heights = np.where(cloud1, np.nan_to_num(hmap.nearest_m, nan=np.inf), np.inf).astype(np.float32)
+        lowest = cv2.erode(heights, np.ones((k, k), np.uint8))
         h, w = lowest.shape
         xi = np.clip(np.round(est.px1[:, 0]).astype(np.int64), 0, w - 1)
         yi = np.clip(np.round(est.px1[:, 1]).astype(np.int64), 0, h - 1)
