@@ -224,3 +224,59 @@ def test_lossless_run_waits_for_a_slow_camera_instead_of_dropping():
     st = Service(src, process_fn(), [sink], ServiceConfig(queue_frames=2)).run()
     assert times(sink) == [float(k) for k in range(n)]
     assert st.unpaired == {"cam1": 0, "cam2": 0}
+
+
+def _ahead_fns(fail_prepare_at: set | None = None):
+    """(prepare, process) as RunSetup gives them: the first half ahead, the second with the future."""
+    calls: list[tuple[str, float]] = []
+    base = process_fn()
+
+    def prepare(f1, f2):
+        k = (f1.time_utc - T0).total_seconds()
+        calls.append(("prepare", k))
+        if fail_prepare_at and round(k) in fail_prepare_at:
+            raise ValueError(f"synthetic prepare failure at {k}")
+        assert f1.image is not None and f2.image is not None, "decoded before the first half"
+        return k
+
+    def process(f1, f2, prepared=None):
+        k = prepared.result() if prepared is not None else prepare(f1, f2)
+        calls.append(("finish", k))
+        return base(f1, f2)
+    return prepare, process, calls
+
+
+def test_look_ahead_prepares_the_next_pair_and_keeps_the_order():
+    """Finite sources: the next pair's first half (decoding, prepare) runs beside this pair's
+    second half; results, status and the second halves stay in capture order."""
+    prepare, process, calls = _ahead_fns()
+    sink = MemorySink()
+    src = [MemorySource("cam1", frames("cam1", 6, lazy=True)), MemorySource("cam2", frames("cam2", 6, lazy=True))]
+    st = Service(src, process, [sink], prepare=prepare).run()
+    assert times(sink) == [float(k) for k in range(6)] and st.pairs_processed == 6
+    assert [k for what, k in calls if what == "finish"] == [float(k) for k in range(6)]
+    assert sorted(k for what, k in calls if what == "prepare") == [float(k) for k in range(6)]  # each once
+
+
+def test_look_ahead_corrupt_frame_and_failed_first_half():
+    """A frame that does not decode in a looked-ahead pair is a corrupt frame (as without
+    look-ahead); a first half that fails is that pair's failure, raised where it is processed."""
+    f1 = frames("cam1", 5, lazy=True)
+    f1[1] = Frame("cam1", f1[1].time_utc, None, b"\xff\xd8 truncated garbage", "jpeg", 1)
+    prepare, process, calls = _ahead_fns(fail_prepare_at={3})
+    sink = MemorySink()
+    st = Service([MemorySource("cam1", f1), MemorySource("cam2", frames("cam2", 5, lazy=True))], process, [sink],
+                 prepare=prepare).run()
+    assert times(sink) == [0.0, 2.0, 4.0]
+    assert st.sources["cam1"].corrupt == 1 and st.pairs_failed == 1 and "prepare failure at 3" in st.last_error
+
+
+def test_live_sources_get_no_look_ahead():
+    prepare, process, calls = _ahead_fns()
+    sink = MemorySink()
+    n = 6
+    src = [MemorySource("cam1", frames("cam1", n), live=True, pace_s=0.01),
+           MemorySource("cam2", frames("cam2", n), live=True, pace_s=0.01)]
+    Service(src, process, [sink], ServiceConfig(cadence_s=0), prepare=prepare).run()
+    # each pair prepared when its turn comes: prepare and finish alternate
+    assert [w for w, _ in calls] == ["prepare", "finish"] * len(sink.items)

@@ -112,11 +112,16 @@ class RunSetup:
         self.notes = notes
         self.motion = MotionChain(config.cadence_s)
 
-    def process(self, f1: Frame, f2: Frame) -> PairResult:
-        """One pair through the pipeline, with the previous pair's state (motion, clock offset)."""
+    def prepare(self, f1: Frame, f2: Frame):
+        """The part of a pair that does not need the pair before (:meth:`Pipeline.prepare`)."""
+        return self.pipeline.prepare(f1.image, f2.image, f1.time_utc, channels="bgr")
+
+    def process(self, f1: Frame, f2: Frame, prepared=None) -> PairResult:
+        """One pair through the pipeline, with the previous pair's state (motion, clock offset).
+        ``prepared``: a future of :meth:`prepare` for this pair (the service's look-ahead)."""
         try:
-            result = self.pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr",
-                                           previous=self.motion.previous(f1.time_utc))
+            prep = prepared.result() if prepared is not None else self.prepare(f1, f2)
+            result = self.pipeline.finish(prep, previous=self.motion.previous(f1.time_utc))
         except Exception:
             self.motion.lost()
             raise
@@ -125,7 +130,7 @@ class RunSetup:
 
     def service(self, on_pair: Callable | None = None) -> Service:
         """The :class:`Service` for this run; ``on_pair(stats, result)`` is called after each pair."""
-        return Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair)
+        return Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair, prepare=self.prepare)
 
     def outputs(self) -> list[tuple[str, str]]:
         """What this run writes: ("recorded" | "exported", path) pairs."""

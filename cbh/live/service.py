@@ -384,6 +384,14 @@ class _Reader(threading.Thread):
 _OPERATOR_STOPS = ("SIGINT", "SIGTERM", "SIGHUP", "stopped")
 
 
+class _Corrupt(Exception):
+    """A frame of a looked-ahead pair did not decode (handled as a corrupt frame, not a failed pair)."""
+
+    def __init__(self, frame: Frame, exc: ImageError):
+        super().__init__(str(exc))
+        self.frame, self.exc = frame, exc
+
+
 class _SinkWriter(threading.Thread):
     """Writes to the sinks on a thread of its own, in order: a pair's recording (PNG masks, zstd
     height map, protobuf) overlaps the next pair's processing instead of following it. At most
@@ -458,6 +466,12 @@ class Service:
     config : ServiceConfig
     on_pair : callable (ServiceStats, PairResult | None) → None, optional
         Called after every processed (or failed) pair and now and then while idle (status line).
+    prepare : callable (Frame, Frame) → object, optional
+        The part of a pair's processing that does not depend on the pair before. Given, and the
+        sources not live (files, recordings: frames as fast as they can be processed), the next
+        pair is decoded and prepared on a thread of its own while this one finishes; ``process``
+        is then called as ``process(f1, f2, prepared=future)``. Live sources are processed one
+        latest pair at a time (no look-ahead: the next pair has not been captured yet).
 
     Time checks (``time_jump_s`` = J): a frame is a *time jump* when it is stamped more than J
     ahead of the wall clock, more than J before its camera's previous frame, or (live cameras)
@@ -471,7 +485,8 @@ class Service:
     """
 
     def __init__(self, sources, process: Callable[[Frame, Frame], PairResult], sinks=(),
-                 config: ServiceConfig | None = None, on_pair: Callable | None = None):
+                 config: ServiceConfig | None = None, on_pair: Callable | None = None,
+                 prepare: Callable[[Frame, Frame], object] | None = None):
         sources = list(sources)
         if len(sources) != 2:
             raise ConfigError(f"the service needs exactly two sources, got {len(sources)}")
@@ -488,6 +503,9 @@ class Service:
         self._last_frame: dict[str, tuple[datetime, float | None]] = {}
         self._jumps: OrderedDict[tuple, float] = OrderedDict()  # (camera, seq, time) → jump [s]
         self._writer: _SinkWriter | None = None  # started by run()
+        self.prepare = prepare
+        self._ahead: tuple | None = None  # (pair, future of its decoding + prepare): the look-ahead
+        self._ahead_pool = None
 
     # -- control ------------------------------------------------------------------------------
     def stop(self, reason: str = "stopped") -> None:
@@ -540,6 +558,9 @@ class Service:
             self._loop(readers, pairer)
         finally:
             self._stop.set()
+            if self._ahead_pool is not None:  # a looked-ahead pair not processed is dropped
+                self._ahead_pool.shutdown(wait=True, cancel_futures=True)
+                self._ahead_pool, self._ahead = None, None
             for r in readers:
                 r.join(timeout=2.0 + self.cfg.read_timeout_s)
             for s in self.sources:
@@ -703,7 +724,8 @@ class Service:
                 self.stop("duration")
                 break
             finished = False
-            if not pending:
+            ahead = self.prepare is not None and not live
+            if not pending or (ahead and len(pending) < 2):  # look-ahead: a second pair to prepare
                 self._pull(readers, pairer, live)
                 finished = all(r.done and r.q.empty() for r in readers)
                 new = pairer.flush() if finished else pairer.pop_pairs()
@@ -727,7 +749,8 @@ class Service:
                     while len(pending) > 1:
                         pending.popleft()
             if pending:
-                self._handle(pending.popleft())
+                pair = pending.popleft()
+                self._handle(pair, nxt=pending[0] if (ahead and pending) else None)
                 if cfg.frames is not None and st.pairs_processed >= cfg.frames:
                     self.stop("frames")
                 continue
@@ -741,20 +764,42 @@ class Service:
             wait = 0.5 if t_end is None else max(0.0, min(0.5, t_end - now))
             self._wake.wait(wait)
 
-    def _handle(self, pair: tuple[Frame, Frame]) -> None:
+    def _prepare_job(self, pair: tuple[Frame, Frame]):
+        for f in pair:
+            try:
+                decode_frame(f)
+            except ImageError as exc:
+                raise _Corrupt(f, exc) from None
+        return self.prepare(*pair)
+
+    def _handle(self, pair: tuple[Frame, Frame], nxt: tuple[Frame, Frame] | None = None) -> None:
         st = self.stats
         f1, f2 = pair
-        try:
-            decode_frame(f1)
-        except ImageError as exc:
-            return self._corrupt(f1, exc)
-        try:
-            decode_frame(f2)
-        except ImageError as exc:
-            return self._corrupt(f2, exc)
+        fut = None
+        if self._ahead is not None and self._ahead[0] is pair:
+            fut = self._ahead[1]
+            self._ahead = None
+            exc = fut.exception()  # waits for it
+            if isinstance(exc, _Corrupt):
+                return self._corrupt(exc.frame, exc.exc)
+        else:
+            try:
+                decode_frame(f1)
+            except ImageError as exc:
+                return self._corrupt(f1, exc)
+            try:
+                decode_frame(f2)
+            except ImageError as exc:
+                return self._corrupt(f2, exc)
+        if nxt is not None and self._ahead is None:  # the next pair's first half beside this one's second
+            if self._ahead_pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._ahead_pool = ThreadPoolExecutor(1, thread_name_prefix="cbh-ahead")
+            self._ahead = (nxt, self._ahead_pool.submit(self._prepare_job, nxt))
         t0 = time.monotonic()
         try:
-            result = self.process(f1, f2)
+            result = self.process(f1, f2, prepared=fut) if fut is not None else self.process(f1, f2)
         except Exception as exc:  # a bad pair never stops the service
             st.pairs_failed += 1
             st.last_error = str(exc) if isinstance(exc, CbhError) else f"{type(exc).__name__}: {exc}"

@@ -67,7 +67,8 @@ from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import segment
 from cbh.pipeline.threads import pmap
 
-__all__ = ["Pipeline", "working_factor", "PairContext", "Masks", "Segmentation", "Correspondences", "Points"]
+__all__ = ["Pipeline", "working_factor", "PairContext", "Prepared", "Masks", "Segmentation", "Correspondences",
+           "Points"]
 
 log = logging.getLogger(__name__)
 
@@ -300,6 +301,14 @@ class Pipeline:
         InputError
             ``time_utc`` without a zone.
         """
+        return self.finish(self.prepare(image1, image2, time_utc, channels=channels), previous=previous)
+
+    def prepare(self, image1, image2, time_utc: datetime | str | None = None, *,
+                channels: str | None = None) -> "Prepared":
+        """The first half of :meth:`process`: everything that does not depend on the pair before
+        (reading, masks, sun check, photometric correction, segmentation). ``finish(prepare(…),
+        previous)`` is ``process(…, previous=previous)``; the service prepares the next pair
+        while this one finishes. Parameters and errors as :meth:`process`."""
         image1 = as_bgr(image1, channels, self.cam1_full.name, self.cam1_full.model)
         image2 = as_bgr(image2, channels, self.cam2_full.name, self.cam2_full.model)
         if time_utc is not None:
@@ -323,6 +332,14 @@ class Pipeline:
         with _timed(ctx, "segmentation"):
             seg = self.stage_segment(work, masks)
             gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
+        return Prepared(ctx=ctx, t_all=t_all, first=first, work=work, masks=masks, seg=seg, gray=gray, received=received)
+
+    def finish(self, prep: "Prepared", previous: PairState | None = None) -> PairResult:
+        """The second half of :meth:`process` (matching, heights, layers, motion) on a
+        prepared pair (:meth:`prepare`), with the previous pair's state."""
+        ctx, t_all, first, work, masks, seg, gray, received = (prep.ctx, prep.t_all, prep.first, prep.work, prep.masks,
+                                                                prep.seg, prep.gray, prep.received)
+        time_utc = ctx.time_utc
         mot = self._motion_input(previous, time_utc, gray)
         mcfg = self.config.motion
         used = running_offset(mot.offsets_s) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
@@ -771,6 +788,20 @@ class PairContext:
     flags: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)  # stage → wall time [ms]
     diagnostics: dict[str, float] = field(default_factory=dict)  # PairResult.diagnostics
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A pair after :meth:`Pipeline.prepare`: what :meth:`Pipeline.finish` needs."""
+
+    ctx: PairContext
+    t_all: float  # perf_counter at the start (the pair's total time)
+    first: bool  # the pipeline's first pair (it saves the table cache)
+    work: tuple[np.ndarray, np.ndarray]  # working-size BGR images (photometrically matched)
+    masks: "Masks"
+    seg: "Segmentation"
+    gray: tuple[np.ndarray, np.ndarray]  # working-size grey images
+    received: tuple[np.ndarray, np.ndarray]  # the images as delivered, full size
 
 
 @dataclass(frozen=True)
