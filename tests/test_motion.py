@@ -467,3 +467,32 @@ def test_tracks_at_a_lower_layers_rate_are_not_the_upper_layers_motion():
     assert up.motion_tracks == 40
     still = layer_motion(layers, [(np.zeros((180, 2)), lab, 0.0)], min_tracks=10)
     assert [L.motion_tracks for L in still] == [100, 80] and still[0].motion_east_ms == 0.0
+
+
+@pytest.mark.parametrize("noise", [0.02, 0.06])
+def test_a_noisy_single_layer_keeps_its_tracks(noise):
+    """stage_motion's window test drops a track only for a *lower layer* in its window: a single
+    layer whose height map is noisy (the minimum of 225 noisy pixels lies well below the layer)
+    keeps its tracks (at 6 % noise it kept none before: motion NaN)."""
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.heightmap import HeightMap
+    from cbh.pipeline.layers import LayerSet
+    from cbh.pipeline.run import MotionEstimate
+    from cbh.presets import station_path
+    from cbh.result import Histogram, Layer
+
+    pipe = Pipeline(load_station(station_path()).scaled(320))
+    h, w = pipe.cam1.model.height, pipe.cam1.model.width
+    rng = np.random.default_rng(1)
+    hm = (3000.0 * (1.0 + noise * rng.standard_normal((h, w)))).astype(np.float32)
+    n = 400
+    px1 = np.stack([rng.uniform(40, w - 40, n), rng.uniform(40, h - 40, n)], axis=1)
+    rate = np.tile(np.array([[-3.0, 8.0]]) / 3000.0, (n, 1))
+    est = MotionEstimate(dt_s=10.0, px1=px1, w1=rate.copy(), w2=rate.copy(),
+                         height_m=3000.0 * (1.0 + noise * rng.standard_normal(n)))
+    layer = Layer(3000.0, 3000.0, 3000.0 * noise, 0.5, 5000, 0.9)
+    lay = LayerSet([layer], Histogram(np.zeros(2), np.zeros(1)), np.zeros(0, np.int16), False)
+    out = pipe.stage_motion(lay, HeightMap(hm, hm, hm), est, np.ones((h, w), bool))
+    assert out.layers[0].motion_tracks >= 0.9 * 2 * n
+    assert (out.layers[0].motion_east_ms, out.layers[0].motion_north_ms) == pytest.approx((-3.0, 8.0), rel=1e-6)

@@ -44,3 +44,33 @@ def test_a_forked_child_gets_pools_of_its_own():
             os._exit(0 if ok else 1)
     _, status = os.waitpid(pid, 0)
     assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+
+
+def test_pools_grow_while_other_threads_map():
+    """A pool that grows (a caller asks for more threads than it has) is replaced; a caller that
+    got the old one must still be able to submit (it was: 'cannot schedule new futures after
+    shutdown', 10 in 8000 calls, when a third matcher grew the stages pool under the look-ahead)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from cbh.pipeline import threads as T
+
+    old = cv2.getNumThreads()
+    cv2.setNumThreads(8)
+    errors = []
+
+    def caller(k):
+        for i in range(300):
+            try:
+                assert list(pmap(abs, range(-(2 + (i + k) % 7), 0), pool=f"grow{i % 5}")) == list(range(2 + (i + k) % 7, 0, -1))
+            except Exception as e:  # noqa: BLE001 - counted
+                errors.append(repr(e))
+            if i % 50 == 0:
+                with T._lock:
+                    for name in [p for p in T._pools if p.startswith("grow")]:
+                        T._pools.pop(name)[0].shutdown(wait=False)  # force regrowth
+    try:
+        with ThreadPoolExecutor(4) as ex:
+            list(ex.map(caller, range(4)))
+    finally:
+        cv2.setNumThreads(old)
+    assert not errors, errors[:3]

@@ -33,6 +33,7 @@ one pair at a time and hands the result to every :class:`~cbh.interfaces.ResultS
 """
 from __future__ import annotations
 
+import copy
 import errno
 import math
 import logging
@@ -558,8 +559,9 @@ class Service:
             self._loop(readers, pairer)
         finally:
             self._stop.set()
-            if self._ahead_pool is not None:  # a looked-ahead pair not processed is dropped
-                self._ahead_pool.shutdown(wait=True, cancel_futures=True)
+            if self._ahead_pool is not None:  # a looked-ahead pair not processed is dropped (not waited
+                # for: the sinks close first, and a second Ctrl-C must not come between)
+                self._ahead_pool.shutdown(wait=False, cancel_futures=True)
                 self._ahead_pool, self._ahead = None, None
             for r in readers:
                 r.join(timeout=2.0 + self.cfg.read_timeout_s)
@@ -807,8 +809,7 @@ class Service:
                            cbh_event="pair_failed")
             if not isinstance(exc, CbhError):
                 log.debug("pair failure traceback", exc_info=True)
-            if self.on_pair is not None:
-                self.on_pair(st, None)
+            self._notify(None)
             return
         st.process_s = time.monotonic() - t0
         jumps = [self._jumps.pop((f.camera, f.sequence, f.time_utc), None) for f in pair]
@@ -821,14 +822,24 @@ class Service:
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
         invalid = [f for f in result.flags if f in INVALIDATING]
+        geometric = [f for f in invalid if f != "below_range"]
         if invalid and not st.last_invalid:  # one warning per change of state, not per pair
-            diag = ", ".join(f"{k} {v:.3g}" for k, v in result.diagnostics.items() if k.startswith(("geometry_", "sun_")))
-            log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(invalid)}: the cameras disagree with the "
-                        f"station geometry ({diag}); layers are not reported as valid until they agree again "
-                        "(check the sources and the orientation: `cbh calibrate`)",
-                        extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
+            if geometric:
+                diag = ", ".join(f"{k} {v:.3g}" for k, v in result.diagnostics.items()
+                                 if k.startswith(("geometry_", "sun_")))
+                log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(geometric)}: the cameras disagree with the "
+                            f"station geometry ({diag}); layers are not reported as valid until they agree again "
+                            "(check the sources and the orientation: `cbh calibrate`)",
+                            extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
+            else:
+                log.warning(f"pair at {f1.time_utc.isoformat()}: below_range: "
+                            f"{100 * result.diagnostics.get('below_range_fraction', float('nan')):.0f} % of the measured "
+                            "cloud is at or below the lowest height searched (fog, lifting stratus): layers are not "
+                            "reported as valid until the cloud base is above it (to search lower: `min_height_m` in "
+                            "[pipeline.matching.sweep] and [pipeline.filtering])",
+                            extra={"cbh_event": "below_range", "cbh_flags": invalid})
         elif not invalid and st.last_invalid:
-            log.warning(f"pair at {f1.time_utc.isoformat()}: the cameras agree with the station geometry again",
+            log.warning(f"pair at {f1.time_utc.isoformat()}: layers valid again ({', '.join(st.last_invalid)} cleared)",
                         extra={"cbh_event": "geometry_valid"})
         st.pairs_invalid += bool(invalid)
         st.last_invalid = invalid
@@ -850,12 +861,19 @@ class Service:
             "cbh_process_s": round(st.process_s, 3), "cbh_latency_s": round(st.latency_s, 3),
             "cbh_pairs": st.pairs_processed, "cbh_dropped": st.pairs_dropped,
         })
-        if self.on_pair is not None:  # once the pair is written: a printed pair is a recorded pair
-            w = self._writer
-            if w is not None and w.is_alive():
-                w.put("call", lambda: self.on_pair(st, result))
-            else:
-                self.on_pair(st, result)
+        self._notify(result)
+
+    def _notify(self, result: PairResult | None) -> None:
+        """``on_pair`` with a snapshot of the counters, once what was queued before is written
+        (a printed pair is a recorded pair; a failed pair's line keeps its place in the order)."""
+        if self.on_pair is None:
+            return
+        snap = copy.deepcopy(self.stats)
+        w = self._writer
+        if w is not None and w.is_alive():
+            w.put("call", lambda: self.on_pair(snap, result))
+        else:
+            self.on_pair(snap, result)
 
     def _corrupt(self, frame: Frame, exc: ImageError) -> None:
         s = self.stats.sources[frame.camera]

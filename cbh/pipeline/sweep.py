@@ -200,8 +200,7 @@ class PlaneMaps:
 
     def _downsampled(self, factor: int) -> "PlaneMaps":
         def rs(m):
-            h, w = m.shape[:2]
-            return cv2.resize(m, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+            return _area_down(m, factor)
 
         m0 = rs(self.m0)
         bad = m0[..., 0] < -1.0e3
@@ -304,10 +303,20 @@ def _bbox(mask: np.ndarray, pad: int, even: bool = False, align: int = 1):
     return np.s_[int(y0): int(y1), int(x0): int(x1)]
 
 
-def _pool2(img: np.ndarray) -> np.ndarray:
-    """Mean of each 2 × 2 block, (h, w) → (h // 2, w // 2) (OpenCV's exact INTER_AREA path)."""
+def _area_down(img: np.ndarray, f: int) -> np.ndarray:
+    """Mean of each f × f block, (h, w) → (h // f, w // f): a last partial row or column of blocks
+    is dropped (as torch's ``avg_pool2d``), so pixel (i, j) is exactly the block (f·i … f·i + f − 1):
+    resizing an odd size instead would stretch the image by up to a pixel (OpenCV's exact
+    INTER_AREA path for whole factors)."""
     h, w = img.shape[:2]
-    return cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    if h % f or w % f:
+        img = img[: h - h % f, : w - w % f]
+    return cv2.resize(img, (w // f, h // f), interpolation=cv2.INTER_AREA)
+
+
+def _pool2(img: np.ndarray) -> np.ndarray:
+    """Mean of each 2 × 2 block, (h, w) → (h // 2, w // 2) (:func:`_area_down` by 2)."""
+    return _area_down(img, 2)
 
 
 class _HalfZncc:
@@ -522,9 +531,7 @@ def coarse_regions(cloud1: np.ndarray, plan: CoarsePlanes, cfg):
     that size or None). With near planes the region is aligned to 4 pixels, so that each near
     cell covers exactly 2 × 2 far cells. None: no cloud at coarse size."""
     f = max(int(cfg.coarse_factor), 1)
-    h, w = cloud1.shape
-    ccloud = (cv2.resize(cloud1.astype(np.float32), (w // f, h // f), interpolation=cv2.INTER_AREA) >= 0.5
-              if f > 1 else cloud1)
+    ccloud = _area_down(cloud1.astype(np.float32), f) >= 0.5 if f > 1 else cloud1
     if not ccloud.any():
         return None
     two = len(plan.near) > 0
@@ -554,10 +561,8 @@ def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneM
     if reg is None:
         return None
     cl, slc, half = reg
-    h, w = g1.shape
-    h2, w2 = g2.shape
-    c1 = cv2.resize(g1, (w // f, h // f), interpolation=cv2.INTER_AREA) if f > 1 else g1
-    c2 = cv2.resize(g2, (w2 // f, h2 // f), interpolation=cv2.INTER_AREA) if f > 1 else g2
+    c1 = _area_down(g1, f) if f > 1 else g1
+    c2 = _area_down(g2, f) if f > 1 else g2
     k = cfg.coarse_window_px // 2
     j_far = c_far = j_near = c_near = None
     if len(plan.far):

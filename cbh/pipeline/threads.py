@@ -28,6 +28,15 @@ _pools: dict[str, tuple[ThreadPoolExecutor, int]] = {}
 _owner = [os.getpid()]
 
 
+def _after_fork_in_child() -> None:  # the lock may have been held by a thread that does not exist here
+    global _lock
+    _lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
 def workers() -> int:
     """Threads a pair may use: ``cv2.getNumThreads()``, 1 … ``MAX_THREADS``."""
     return min(max(cv2.getNumThreads(), 1), MAX_THREADS)
@@ -50,7 +59,7 @@ def pmap(fn, items, pool: str = "planes"):
         ex, size = _pools.get(pool, (None, 0))
         if size < n:
             if ex is not None:
-                ex.shutdown(wait=False)
+                ex.shutdown(wait=False)  # under the lock: no caller holds it between getting it and map()
             ex = ThreadPoolExecutor(n, thread_name_prefix=f"cbh-{pool}")
             _pools[pool] = (ex, n)
-    return ex.map(fn, items)
+        return ex.map(fn, items)  # submits every item now (map's iterator only waits for results)
