@@ -33,11 +33,13 @@ quarter of the pixels (:func:`_zncc_half_iter`). Everything downstream (layer vo
 refinement) already worked on 2 × 2 pooled scores; the per-pixel acceptance now uses the
 block's score.
 
-The passes (each a function with a typed result; :func:`sweep_matches` runs them in order):
+The passes (each a function with a typed result; :func:`sweep_field` runs them in order):
 
 1. :func:`coarse_pass` → :class:`CoarseLayers`. At 1/``coarse_factor`` size, all planes from
-   ``max_height_m`` down to ``min_height_m`` at one coarse pixel per step. Each cloud pixel
-   votes for its best plane (if ZNCC ≥ ``min_zncc``); peaks of the vote histogram over s
+   ``max_height_m`` down to ``min_height_m`` at one coarse pixel per step; the planes with more
+   than ``coarse_near_px`` of parallax at half that size, every second one
+   (:func:`coarse_planes`: the low planes, most of the range since the floor is 100 m). Each
+   cloud pixel votes for its best plane (if ZNCC ≥ ``min_zncc``; :func:`coarse_votes`); peaks of the vote histogram over s
    (:mod:`.peaks`, the finder the layer histogram uses too) are the layer hypotheses, each with
    the extent of s around it where its votes stay above ``extent_ratio`` × peak. High layers
    (a few pixels of parallax) are not resolved at coarse size, so :func:`fine_planes` takes
@@ -85,18 +87,20 @@ of a lower cloud (a third of them; many occluded in camera 2) take a lower layer
 dense-map median error 2.2 % over all three layers, coverage 69 %. Use a larger
 working size (``working_radius_px``: parallax scales with it) or a longer baseline there.
 
-Speed (1920 px pair, working size 960 px, single-thread CPU time, two-layers scene): coarse
-≈ 21 ms (25 planes at 480 px), fine ≈ 67 ms (17 planes, ≈ 4 ms each: remap 1.1, plane map 0.5
-(one ``cv2.transform`` per axis), the rest products, 2 × 2 pools, half-size boxes and
-arithmetic), label ≈ 20 ms, refine ≈ 14 ms, points ≈ 10 ms. Everything per pixel goes through
-OpenCV (multi-threaded, no numpy temporaries); numpy's masked ``copyto`` and ``argmax`` over a
-stack axis are avoided (20× and 10× slower).
+Speed (1920 px pair, working size 960 px, two-layers scene, 2 cores, 2026-12-01): coarse
+28 ms (16 far planes at 480 px, 30 near ones at 240 px), fine 77 ms (17 planes, ≈ 5 ms of one
+core each: remap ≈ 2, plane map 0.7 (one ``cv2.transform`` per axis), the rest products,
+2 × 2 pools, half-size boxes and arithmetic), labels 23 ms, refine 17 ms. The planes of every
+pass run on threads (:func:`~cbh.pipeline.threads.pmap`; the caller reduces them in order as
+they come); everything per pixel goes through OpenCV (no numpy temporaries); numpy's masked
+``copyto`` and ``argmax`` over a stack axis are avoided (20× and 10× slower).
 
-Output: one correspondence per accepted cloud pixel of camera 1 (``dense=True``), px2 = the
-plane mapping at the refined s, and ``info["s"]``, the refined s of each (the matcher turns
-it into the exact camera-2 ray, so triangulation needs no fisheye back-projection of px2).
-Such a correspondence lies on the epipolar geometry by construction, so its ray miss is ≈ 0
-(not a measurement of matching quality; the sparse ``lk`` matches carry that).
+Output: :class:`SweepField`, the refined s of every accepted pixel of camera 1's region (the
+matcher makes the height map from it in closed form, h = o1z + 1/s, and a lattice of
+correspondences, :func:`field_points`: px2 = the plane mapping at s; the exact camera-2 ray
+follows from s, so triangulation needs no fisheye back-projection of px2). Such a
+correspondence lies on the epipolar geometry by construction, so its ray miss is ≈ 0 (not a
+measurement of matching quality; the sparse ``lk`` matches carry that).
 """
 from __future__ import annotations
 
