@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from cbh.pipeline import Pipeline
 from cbh.pipeline.tables import tables_key
@@ -23,7 +24,7 @@ def test_cached_tables_equal_built_tables(unb_station, tmp_path, monkeypatch):
     im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
     built = Pipeline(sim.station)
     r1 = built.process(im1, im2, shot.time_utc, channels="bgr")
-    files = list(tmp_path.glob("tables-*.npz"))
+    files = list(tmp_path.glob("tables-*.bin"))
     assert len(files) == 1
     cached = Pipeline(sim.station)
     cached._load_tables()
@@ -50,3 +51,21 @@ def test_key_changes_with_the_camera_and_the_cache_can_be_off(unb_station, tmp_p
     sim, shot = _small(unb_station)
     Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated"])
+def test_a_damaged_cache_entry_is_rebuilt(unb_station, tmp_path, monkeypatch, damage):
+    """A cache file cut short (a full disk, a crash mid-copy) or overwritten is ignored with a
+    warning and written again; the pair's result is the one without a cache."""
+    monkeypatch.setenv("CBH_CACHE_DIR", str(tmp_path))
+    sim, shot = _small(unb_station)
+    im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
+    r1 = Pipeline(sim.station).process(im1, im2, shot.time_utc, channels="bgr")
+    (f,) = tmp_path.glob("tables-*.bin")
+    data = f.read_bytes()
+    f.write_bytes(b"not a table file" * 100 if damage == "garbage" else data[: len(data) // 2])
+    p = Pipeline(sim.station)
+    r2 = p.process(im1, im2, shot.time_utc, channels="bgr")
+    assert not p._tables_loaded
+    assert np.array_equal(r1.height_map, r2.height_map, equal_nan=True)
+    assert f.read_bytes() == data  # written again, whole
