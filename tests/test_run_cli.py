@@ -127,7 +127,8 @@ def test_two_rtsp_cameras_pair_on_their_stream_clocks(sim320, station320, tmp_pa
     from cbh.outputs.record import open_session
 
     out = tmp_path / "rtsp.mcap"
-    with RtspCameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0) as srv:
+    with RtspCameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0,
+                          start_utc=sim320.scene.time_utc) as srv:  # the scene's time, not tonight's dark sky
         rc = main(["run", "--station", str(station320), "--source", f"cam1={srv.url('cam1')}",
                    "--source", f"cam2={srv.url('cam2')}", "--frames", "3", "--record", str(out)])
     assert rc == 0, capsys.readouterr().err

@@ -175,8 +175,8 @@ def estimate_response(image1: np.ndarray, image2: np.ndarray, geometry, usable1:
     ok = (q1 > _DARK) & (q1 < _BRIGHT) & (q2 > _DARK) & (q2 < _BRIGHT)
     if ok.sum(axis=0).min() < 3:
         return ColourResponse(pixels=n)
-    y = np.log(q1 / 255.0)
-    x = np.log(q2 / 255.0)
+    y = np.log(np.maximum(q1, 0.5) / 255.0)  # (quantiles of black pixels are not used: ``ok``)
+    x = np.log(np.maximum(q2, 0.5) / 255.0)
     spread = min(float(np.ptp(x[ok[:, c], c])) for c in range(3))
     rows, rhs = [], []
     for c in range(3):
