@@ -241,6 +241,7 @@ def _ahead_fns(fail_prepare_at: set | None = None):
 
     def process(f1, f2, prepared=None):
         k = prepared.result() if prepared is not None else prepare(f1, f2)
+        time.sleep(0.05)  # a second half long enough for the next pair's first half to start beside it
         calls.append(("finish", k))
         return base(f1, f2)
     return prepare, process, calls
@@ -256,6 +257,8 @@ def test_look_ahead_prepares_the_next_pair_and_keeps_the_order():
     assert times(sink) == [float(k) for k in range(6)] and st.pairs_processed == 6
     assert [k for what, k in calls if what == "finish"] == [float(k) for k in range(6)]
     assert sorted(k for what, k in calls if what == "prepare") == [float(k) for k in range(6)]  # each once
+    # and ahead: pair k + 1's first half ran before pair k's second half ended
+    assert all(calls.index(("prepare", k + 1.0)) < calls.index(("finish", float(k))) for k in range(5)), calls
 
 
 def test_look_ahead_corrupt_frame_and_failed_first_half():

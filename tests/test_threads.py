@@ -38,6 +38,9 @@ def test_a_forked_child_gets_pools_of_its_own():
     list(pmap(abs, range(4)))  # the parent's pools exist
     pid = os.fork()
     if pid == 0:  # child: the inherited pools have no threads; pmap must not hang
+        import signal
+
+        signal.alarm(20)  # a hang ends the child by SIGALRM: the test fails instead of hanging
         try:
             ok = list(pmap(abs, range(-4, 0))) == [4, 3, 2, 1]
         finally:

@@ -403,6 +403,7 @@ class TriangulatedMatches:
     miss_m: np.ndarray  # (N,) float64 [m]
     n_in: int  # correspondences before filtering
     grid_m: np.ndarray | None = None  # (H1, W1) float32: the method's dense field as heights [m], NaN = none
+    angle_deg: np.ndarray | None = None  # (N,) triangulation angle of each match [deg] (``keep_all`` only)
 
     @property
     def height_m(self) -> np.ndarray:
@@ -442,7 +443,8 @@ def triangulate_matches(geom: PairGeometry, m: Matches, cfg: FilteringConfig, ke
     if keep_all:
         point = tri.point_m.astype(np.float64)
         point[~keep] = np.nan
-        return TriangulatedMatches(m, point, np.where(keep, tri.miss_m, np.nan).astype(np.float64), n, grid)
+        return TriangulatedMatches(m, point, np.where(keep, tri.miss_m, np.nan).astype(np.float64), n, grid,
+                                   np.asarray(tri.angle_deg, np.float64))
     if keep.all():  # (the dense sweep: usually every match passes; skip the copies)
         return TriangulatedMatches(m, tri.point_m.astype(np.float64), tri.miss_m.astype(np.float64), n, grid)
     return TriangulatedMatches(m.take(keep), tri.point_m[keep].astype(np.float64), tri.miss_m[keep].astype(np.float64),
@@ -455,11 +457,9 @@ def stereo_heights(geom: PairGeometry, px1: np.ndarray, px2: np.ndarray,
     :func:`triangulate_matches` would reject them, and their triangulation angles [rad] (N,)."""
     if len(px1) == 0:
         return np.zeros(0), np.zeros(0)
-    m = Matches("", np.asarray(px1, np.float64), np.asarray(px2, np.float64))
-    d1, d2 = _rays_world(geom.cam1, m.px1), _rays_world(geom.cam2, m.px2)
-    ang = np.arccos(np.clip(np.einsum("ij,ij->i", d1, d2) / (np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)),
-                            -1.0, 1.0))
-    return triangulate_matches(geom, m, cfg, keep_all=True).height_m, ang
+    tr = triangulate_matches(geom, Matches("", np.asarray(px1, np.float64), np.asarray(px2, np.float64)), cfg,
+                             keep_all=True)
+    return tr.height_m, np.radians(tr.angle_deg)
 
 
 def field_heights(geom: PairGeometry, field: DenseField, cfg: FilteringConfig) -> np.ndarray:
