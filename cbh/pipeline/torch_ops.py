@@ -193,7 +193,8 @@ def zncc_half(i1: torch.Tensor, g2: torch.Tensor, tm: TorchPlaneMaps, s: np.ndar
         mu2 = b[:, :1]
         var2 = (b[:, 1:2] - mu2 * mu2).clamp_min(0.0)
         cov = b[:, 2:3] - mu1 * mu2
-        out[c0: c0 + len(sc)] = (cov / torch.sqrt(var1 * var2 + 1e-3))[:, 0]
+        # clamped: beyond ±1 is the box sums' float32 rounding in a flat window (see the OpenCV twin)
+        out[c0: c0 + len(sc)] = (cov / torch.sqrt(var1 * var2 + 1e-3)).clamp(-1.0, 1.0)[:, 0]
     std1 = torch.sqrt(var1[0, 0])
     if off:  # the last row and column repeat their neighbours
         std1 = F.pad(std1[None, None], (0, 1, 0, 1), mode="replicate")[0, 0]
