@@ -77,3 +77,47 @@ def test_pools_grow_while_other_threads_map():
     finally:
         cv2.setNumThreads(old)
     assert not errors, errors[:3]
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_pfold_folds_contiguous_chunks_and_merges_them_in_order(monkeypatch, n):
+    import cbh.pipeline.threads as th
+
+    monkeypatch.setattr(th, "workers", lambda: n)
+    seen = []
+
+    def fold(chunk, start):
+        seen.append((start, len(chunk)))
+        return [f"{start + i}:{x}" for i, x in enumerate(chunk)]
+
+    assert th.pfold(fold, "abcdefg", lambda a, b: a + b) == [f"{i}:{c}" for i, c in enumerate("abcdefg")]
+    assert sorted(seen)[0][0] == 0 and sum(k for _, k in seen) == 7 and len(seen) == min(n, 7)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4])
+@pytest.mark.parametrize("neighbours", [True, False])
+def test_chunked_best_plane_equals_the_serial_one(monkeypatch, n, neighbours):
+    """The sweep's best-plane reduction in chunks side by side gives the serial result exactly:
+    ties keep the first plane, and a winner on a chunk's edge gets its neighbours from the next
+    and the previous chunk (the parabola refinement reads them)."""
+    import numpy as np
+
+    import cbh.pipeline.threads as th
+    from cbh.pipeline.sweep import _best3, _best3_map
+
+    monkeypatch.setattr(th, "workers", lambda: n)
+    rng = np.random.default_rng(n)
+    stack = rng.integers(0, 4, size=(9, 6, 7)).astype(np.float32)  # few levels: many ties
+    want = _best3(list(stack), neighbours)
+    got = _best3_map(lambda x: x, list(stack), neighbours)
+    P = len(stack)
+    inner = (want[0] > 0) & (want[0] < P - 1)  # the ends' neighbours are not defined (the refinement skips them)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    if neighbours:
+        np.testing.assert_array_equal(got[2][inner], want[2][inner])
+        np.testing.assert_array_equal(got[3][inner], want[3][inner])
+        j = want[0]
+        yy, xx = np.nonzero(inner)
+        np.testing.assert_array_equal(got[2][inner], stack[j[inner] - 1, yy, xx])
+        np.testing.assert_array_equal(got[3][inner], stack[j[inner] + 1, yy, xx])

@@ -112,7 +112,7 @@ import cv2
 import numpy as np
 
 from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
-from cbh.pipeline.threads import pmap as _pmap
+from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 
 __all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
            "coarse_pass",
@@ -427,6 +427,55 @@ def _best3(scores, neighbours: bool = True):
     return b.result()
 
 
+@dataclass
+class _Best3Part:
+    """:class:`_Best3`'s result over the consecutive planes lo … hi, with their first and last scores."""
+
+    j: np.ndarray
+    best: np.ndarray
+    left: np.ndarray | None
+    right: np.ndarray | None
+    first: np.ndarray
+    last: np.ndarray
+    lo: int
+    hi: int
+
+
+def _best3_fold(fn, neighbours: bool):
+    def fold(chunk, start):
+        b, first, sc = _Best3(neighbours), None, None
+        for i, item in enumerate(chunk):
+            sc = fn(item)
+            b.add(i, sc)
+            first = sc if first is None else first
+        j, best, left, right = b.result()
+        if start:
+            j += start
+        return _Best3Part(j, best, left, right, first, sc, start, start + len(chunk) - 1)
+    return fold
+
+
+def _best3_merge(a: _Best3Part, b: _Best3Part) -> _Best3Part:
+    """The two parts of neighbouring plane ranges (a before b) as one: a's winners on its last plane
+    get b's first plane as right neighbour, b's on its first get a's last as left; then b's winners
+    take the pixels where they score strictly higher (ties keep the first plane, as :class:`_Best3`)."""
+    if a.left is not None:
+        cv2.copyTo(b.first, cv2.compare(a.j, a.hi, cv2.CMP_EQ), a.right)
+        cv2.copyTo(a.last, cv2.compare(b.j, b.lo, cv2.CMP_EQ), b.left)
+    gt = cv2.compare(b.best, a.best, cv2.CMP_GT)
+    for x, y in ((b.best, a.best), (b.j, a.j)) + (((b.left, a.left), (b.right, a.right)) if a.left is not None else ()):
+        cv2.copyTo(x, gt, y)
+    return _Best3Part(a.j, a.best, a.left, a.right, a.first, b.last, a.lo, b.hi)
+
+
+def _best3_map(fn, items, neighbours: bool = True):
+    """:func:`_best3` of the scores ``fn(item)`` of consecutive planes ``items``, computed and
+    reduced in chunks side by side (:func:`~cbh.pipeline.threads.pfold`; the same result as the
+    serial reduction, ties included)."""
+    r = _pfold(_best3_fold(fn, neighbours), items, _best3_merge)
+    return r.j, r.best, r.left, r.right
+
+
 def _refine(j: np.ndarray, c0: np.ndarray, cm1: np.ndarray, cp1: np.ndarray, s_values: np.ndarray,
             ds: float) -> np.ndarray:
     """s of the peak of the parabola through the scores of planes j−1, j, j+1 (where adjacent), float32."""
@@ -558,7 +607,7 @@ def coarse_regions(cloud1: np.ndarray, plan: CoarsePlanes, cfg):
 def _best_plane(c1: np.ndarray, c2: np.ndarray, maps: PlaneMaps, s: np.ndarray, half_window: int, sl):
     """Best plane (index into ``s``) and its ZNCC per half-resolution cell of region ``sl``."""
     z = _HalfZncc(np.ascontiguousarray(c1[sl]), c2, maps, half_window, sl)
-    best, cbest, _, _ = _best3(_pmap(z, [float(x) for x in s]), neighbours=False)
+    best, cbest, _, _ = _best3_map(z, [float(x) for x in s], neighbours=False)
     return best, cbest
 
 
@@ -627,13 +676,18 @@ def fine_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMap
                                cv2.multiply(mu, mu)), 0.0)
     m0 = cloud1[sl] & (var >= float(cfg.min_texture) ** 2)  # textured cloud pixels: the candidates
     textured = _pool2(m0.astype(np.float32))
-    it = _zncc_half_iter(i1, g2, maps, s, k // 2, sl)
-    next(it)
+    z = _HalfZncc(i1, g2, maps, k // 2, sl)
     cost = np.empty((len(s), h // 2, w // 2), np.float32)
-    best = None
-    for q, score in it:
-        best = score.copy() if best is None else cv2.max(best, score, dst=best)
-        cv2.multiply(score, textured, dst=cost[q])
+
+    def fold(qs, _start):  # each plane's cost into the stack; the chunk's best ZNCC
+        best = None
+        for q in qs:
+            score = z(float(s[q]))
+            cv2.multiply(score, textured, dst=cost[q])
+            best = score if best is None else cv2.max(best, score, dst=best)
+        return best
+
+    best = _pfold(fold, range(len(s)), lambda a, b: cv2.max(a, b, dst=a))
     ok = m0 & (cv2.resize(best, (w, h), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
     return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)))
 
@@ -699,7 +753,7 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     s, ds, cost = fine.s, fine.ds, fine.cost
     k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
     kl = max(1, (int(cfg.label_px) // 2) | 1)
-    jw, cw, lw, rw = _best3(_pmap(lambda c: _box(c, k2), list(cost)))
+    jw, cw, lw, rw = _best3_map(lambda c: _box(c, k2), list(cost))
     s_w = _refine(jw, cw, lw, rw, s, ds)
     vote = fine.ok_frac > 0
     if cfg.vote_percentile > 0 and vote.any():
@@ -711,14 +765,20 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     label = np.zeros((hh, wh), np.uint8)
     own = np.zeros((hh, wh), np.int32)
     if len(ranges) > 1:
-        best_l: list = [None] * len(ranges)
-        boxed = _pmap(lambda c: _box(c, kl), list(cost)) if kl > 1 else cost
-        for q, b in enumerate(boxed):
-            L = int(plane_layer[q])
-            best_l[L] = b.copy() if best_l[L] is None else cv2.max(best_l[L], b, dst=best_l[L])
+        def fold(qs, _start):  # each layer's best ``label_px`` box cost over its planes among qs
+            best_l: list = [None] * len(ranges)
+            for q in qs:
+                b, L = (_box(cost[q], kl) if kl > 1 else cost[q]), int(plane_layer[q])
+                best_l[L] = b.copy() if best_l[L] is None else cv2.max(best_l[L], b, dst=best_l[L])
+            return best_l
+
+        def merge(a, b):
+            return [y if x is None else (x if y is None else cv2.max(x, y, dst=x)) for x, y in zip(a, b)]
+
+        best_l = _pfold(fold, range(len(cost)), merge)
         label = _best3([b if b is not None else np.full((hh, wh), -np.inf, np.float32) for b in best_l],
                        neighbours=False)[0].astype(np.uint8)
-        own = _best3(cost, neighbours=False)[0]
+        own = _best3_map(lambda c: c, list(cost), neighbours=False)[0]
     return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
 
 
@@ -757,7 +817,7 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
             if n_layers > 1:  # only pixels whose own best plane is in this layer
                 mL &= lab.plane_layer[lab.own_plane] == L
             mL = mL.astype(np.float32)
-            ja, ca, la, ra = _best3(_pmap(lambda q: _box(cv2.multiply(cost[q], mL), kL), list(sel)))
+            ja, ca, la, ra = _best3_map(lambda q: _box(cv2.multiply(cost[q], mL), kL), list(sel))
             s_half = _refine(ja, ca, la, ra, s[sel], ds)
         up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
         cv2.copyTo(up, here.view(np.uint8), s_px)
