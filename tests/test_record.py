@@ -122,6 +122,34 @@ def test_rotation_by_size_and_time(tmp_path, station):
     assert open_session(d).pair_count == 5
 
 
+def test_a_status_off_the_pairs_time_line_does_not_rotate_the_file(tmp_path, station):
+    """Pairs carry the cameras' time; a status stamped years away (the wall clock of a machine
+    whose cameras run on another clock) stays in the current file: it neither rotates it nor
+    starts a file's time span (rotation stays on the pairs' 25 s)."""
+    from datetime import timedelta
+
+    from cbh.outputs.record import McapRecorder, open_session
+
+    def session(path, status_first: bool):
+        with McapRecorder(path, station, {}, rotate_s=25) as rec:
+            off = synthetic_pair(station, 0)[1].time_utc + timedelta(days=900)
+            if status_first:
+                rec.write_status(off, {"event": {"event": "outage"}})
+            for k in range(4):  # 0, 10, 20 s | 30 s
+                frames, res = synthetic_pair(station, k)
+                rec.write(frames, res)
+                rec.write_status(off + timedelta(seconds=k), {"pairs_processed": k + 1})
+        return rec
+
+    for status_first in (False, True):
+        path = tmp_path / f"s{int(status_first)}.mcap"
+        rec = session(path, status_first)
+        assert [p.name for p in rec.paths] == [path.name, f"{path.stem}-001.mcap"], status_first
+        s = open_session(rec.paths)
+        assert s.pair_count == 4 and len(list(s.statuses())) == 4 + status_first
+        assert [len(list(open_session(p).pairs())) for p in rec.paths] == [3, 1]
+
+
 def test_frames_without_encoded_bytes_are_encoded_once(tmp_path, station):
     from cbh.outputs.record import McapRecorder, open_session
 

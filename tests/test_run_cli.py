@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import pytest
@@ -88,12 +89,16 @@ def test_record_without_path_goes_to_recordings(tmp_path, monkeypatch, capsys):
 
 
 def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_path, capsys):
-    """MJPEG camera 1 and snapshot camera 2 on loopback; cam2 goes offline, cam1 sends garbage."""
+    """MJPEG camera 1 and snapshot camera 2 on loopback; cam2 goes offline, cam1 sends garbage.
+    The cameras' clocks are the scene's (2024), far from this machine's: the outage's status
+    records go on the pairs' time line, and the recording stays one file (stamped with the wall
+    clock, they rotated it: 2 pairs in one file, 6 in the next)."""
     from cbh.sim.camera_server import CameraServer, sim_frames
     from cbh.outputs.record import open_session
 
     out = tmp_path / "live.mcap"
-    with CameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0) as srv:
+    with CameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0,
+                      start_utc=sim320.scene.time_utc) as srv:
         def faults():
             deadline = time.monotonic() + 30
             while srv.frames_sent["cam2"] < 3 and time.monotonic() < deadline:
@@ -108,9 +113,17 @@ def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_pat
         th.join()
     cap = capsys.readouterr()
     assert rc == 0, cap.err
+    assert sorted(p.name for p in tmp_path.glob("*.mcap")) == ["live.mcap"], cap.out
     s = open_session(out)
     assert s.pair_count == 8
     pairs = list(s.pairs())
+    statuses = list(s.statuses())
+    events = [(t, st["event"]) for t, st in statuses if "event" in st]
+    assert {e["event"] for _, e in events} >= {"outage", "recovered"}, events
+    t_first, t_last = pairs[0].time_utc, pairs[-1].time_utc
+    for t, e in events:  # on the cameras' time line (within a frame step of the pairs), wall clock kept
+        assert t_first - timedelta(seconds=20) <= t <= t_last + timedelta(seconds=20), (t, e)
+        assert abs((datetime.fromisoformat(e["wall_utc"].replace("Z", "+00:00")) - t).days) > 300
     # both cameras' frames of a pair carry the same camera time stamp (X-Timestamp)
     assert all(p.images["cam1"].time_utc == p.images["cam2"].time_utc for p in pairs)
     times = [p.time_utc for p in pairs]

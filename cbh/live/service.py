@@ -43,7 +43,7 @@ import threading
 import time
 from collections import OrderedDict, deque
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
@@ -260,7 +260,7 @@ class _Reader(threading.Thread):
 
     def _event(self, event: str, error: str | None = None, **more) -> None:
         self._events.put({"event": event, "camera": self.src.camera, "state": self.status.state,
-                          "error": error, "time_utc": datetime.now(timezone.utc), **more})
+                          "error": error, **_event_clock(), **more})
         self._wake.set()
 
     def _outage(self, msg: str, backoff_s: float) -> None:
@@ -626,10 +626,24 @@ class Service:
                 ev = self._events.get_nowait()
             except queue.Empty:
                 return
-            t = ev.pop("time_utc")
+            t = self._session_time(ev.pop("mono"), ev["wall_utc"])
+            ev["wall_utc"] = _iso(ev["wall_utc"])
             status = self.stats.to_dict()
             status["event"] = {k: v for k, v in ev.items() if v is not None}
             self._write_status(t, status)
+
+    def _session_time(self, mono: float, wall: datetime) -> datetime:
+        """An event's time on the cameras' time line (the pairs'): the newest camera frame's time
+        plus the wall time elapsed since it arrived; the wall clock before any frame.
+
+        Why: the pairs are stamped by the cameras' clocks, which may be far from this machine's
+        (a camera without NTP, a replayed or simulated stream). Events stamped with the wall
+        clock landed hours or years away from the pairs around them: out of order in the
+        recording, and a jump past the file's time span rotated it (8 pairs were split 2 + 6
+        over two files by one outage).
+        """
+        seen = [t + timedelta(seconds=max(mono - rs, 0.0)) for t, rs in self._last_frame.values() if rs is not None]
+        return max(seen) if seen else wall
 
     def _write_status(self, t: datetime, status: dict) -> None:
         self._to_sinks("write_status", t, status)
@@ -682,7 +696,7 @@ class Service:
         self._throttle(f"jump:{cam}:{kind}", logging.WARNING, f"{cam}: time jump: {why}; pairs resynchronized",
                        cbh_camera=cam, cbh_event="time_jump", cbh_jump_s=jump)
         self._events.put({"event": "time_jump", "camera": cam, "jump_s": round(jump, 3),
-                          "frame_time_utc": _iso(f.time_utc), "time_utc": datetime.now(timezone.utc)})
+                          "frame_time_utc": _iso(f.time_utc), **_event_clock()})
 
     def _pull(self, readers: list[_Reader], pairer, live: bool) -> None:
         """Move frames from the reader queues into the pairer (time-checked), one camera's
@@ -881,6 +895,12 @@ class Service:
         s.error = str(exc)
         self._throttle(f"corrupt:{frame.camera}", logging.WARNING, f"{frame.camera}: corrupt frame skipped: {exc}",
                        cbh_camera=frame.camera, cbh_event="corrupt")
+
+
+def _event_clock() -> dict:
+    """When a source event happened: wall clock (kept in the record) and monotonic (to place it
+    on the cameras' time line, :meth:`LiveService._session_time`)."""
+    return {"wall_utc": datetime.now(timezone.utc), "mono": time.monotonic()}
 
 
 def _iso(t: datetime) -> str:

@@ -276,7 +276,9 @@ class McapRecorder(ResultSink):
                 raise RecordingError(f"cannot create recording {p}: {exc.strerror}") from None
         raise RecordingError(f"no free file name for {self.path}")  # pragma: no cover
 
-    def _ensure_file(self, t_ns: int) -> _File:
+    def _ensure_file(self, t_ns: int, pair: bool = True) -> _File:
+        """The file to write to at ``t_ns``, rotated first if due; a file's time span is that of
+        its pairs (``pair=False``, a status record, does not start it)."""
         f = self._file
         if f is not None and f.first_ns is not None:
             too_big = self.rotate_bytes is not None and f.size() >= self.rotate_bytes
@@ -291,7 +293,7 @@ class McapRecorder(ResultSink):
                         session_start_utc=from_ns(t_ns).isoformat().replace("+00:00", "Z"))
             f = self._file = _File(path, fh, meta, self.compression)
             self._paths.append(path)
-        if f.first_ns is None:
+        if f.first_ns is None and pair:
             f.first_ns = t_ns
         return f
 
@@ -329,7 +331,9 @@ class McapRecorder(ResultSink):
                 state = st.get("state", "") if isinstance(st, dict) else st
                 msg.sources.add(name=str(name), state=str(state))
         msg.json = json.dumps(stats, sort_keys=True, default=_json_default)
-        f = self._ensure_file(t_ns)
+        # a status goes into the file being written: only pairs start a new one (a status stamped
+        # off the pairs' time line must not rotate, or a run's pairs end up split for nothing)
+        f = self._file if self._file is not None else self._ensure_file(t_ns, pair=False)
         f.writer.add_message(f.channel("/service/status", type(msg)), log_time=t_ns,
                              data=msg.SerializeToString(), publish_time=time.time_ns(), sequence=self._pair_index)
         self._flush(f)
