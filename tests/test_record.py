@@ -122,6 +122,39 @@ def test_rotation_by_size_and_time(tmp_path, station):
     assert open_session(d).pair_count == 5
 
 
+def test_an_upsampled_height_map_is_recorded_at_its_own_size_and_read_back_exactly(tmp_path, station):
+    """The pipeline's full-size height map is a 2× nearest upsample of its working-size map: it is
+    recorded at the working size (a quarter of the bytes, 62 → 44 ms per 1920 px pair to write)
+    and read back bit for bit; a map that is not an upsample is recorded as it is."""
+    from dataclasses import replace
+
+    from mcap.reader import make_reader
+
+    from cbh.outputs.record import McapRecorder, open_session
+    from cbh.outputs.record.writer import block_factor
+
+    frames, res = synthetic_pair(station, 0)
+    h, w = res.height_map.shape
+    small = np.full((h // 2, w // 2), np.nan, np.float32)
+    small[20:60, 25:75] = np.random.default_rng(1).normal(1500.0, 30.0, (40, 50))
+    up = np.repeat(np.repeat(small, 2, axis=0), 2, axis=1)
+    assert block_factor(up) == 2 and block_factor(res.height_map) == 1
+    bumped = up.copy()
+    bumped[41, 51] += 1.0  # one pixel off its block: not an upsample any more
+    assert block_factor(bumped) == 1
+    path = tmp_path / "hm.mcap"
+    with McapRecorder(path, station, {}) as rec:
+        for k, hm in enumerate((up, res.height_map, bumped)):
+            rec.write(frames, replace(res, time_utc=res.time_utc + timedelta(seconds=10 * k), height_map=hm))
+    with open(path, "rb") as fh:
+        sizes = [len(m.data) for _, ch, m in make_reader(fh).iter_messages() if ch.topic == "/pair/height_map"]
+    assert sizes[0] < 0.3 * sizes[1] and sizes[2] == sizes[1]
+    got = [p.result.height_map for p in open_session(path).pairs()]
+    for g, want in zip(got, (up, res.height_map, bumped)):
+        assert g.shape == want.shape and g.dtype == np.float32
+        np.testing.assert_array_equal(g.view(np.int32), want.view(np.int32))  # bit for bit, NaN included
+
+
 def test_a_status_off_the_pairs_time_line_does_not_rotate_the_file(tmp_path, station):
     """Pairs carry the cameras' time; a status stamped years away (the wall clock of a machine
     whose cameras run on another clock) stays in the current file: it neither rotates it nor

@@ -11,12 +11,16 @@ Topics
 ------
 =============================  ======================  ==============================================
 ``/<cam>/image/compressed``    foxglove.CompressedImage  the camera's image, bytes as received (JPEG)
-``/<cam>/cloud_mask``          foxglove.CompressedImage  cloud mask, PNG mono8 (255 = cloud), lossless
+``/<cam>/cloud_mask``          foxglove.CompressedImage  cloud mask, PNG 1-bit grey (decodes to 255 = cloud), lossless
 ``/pair/matches``              cbh.Matches               kept correspondences per method (x1, y1, x2, y2 px)
 ``/pair/points``               foxglove.PointCloud       frame ``enu``: x, y, z (= height) [m], miss [m],
                                                          x1, y1, x2, y2 [px] (float32), layer (int32)
 ``/pair/height_map``           foxglove.RawImage         32FC1 on camera 1's grid [m above the ENU origin],
-                                                         NaN = unknown (lossless)
+                                                         NaN = unknown (lossless); decimated by
+                                                         PairLayers.height_map_scale f > 1 when the map
+                                                         is made of f × f blocks (the pipeline's is its
+                                                         working-size map upsampled): 1/f² the bytes,
+                                                         read back exactly
 ``/pair/histogram``            cbh.Histogram             edges_m (B + 1), counts (B)
 ``/pair/layers``               cbh.PairLayers            layers (height_m, altitude_m, cover, points,
                                                          confidence, motion_east_ms/motion_north_ms/

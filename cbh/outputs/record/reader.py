@@ -157,6 +157,9 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
             if hist_msg is not None else Histogram(np.zeros(1), np.zeros(0)))
     pts = _points(msgs["/pair/points"], what) if "/pair/points" in msgs else PointSet.empty()
     hm = _height_map(msgs["/pair/height_map"], what) if "/pair/height_map" in msgs else np.zeros((0, 0), np.float32)
+    if pl.height_map_scale > 1 and hm.size:  # recorded decimated (lossless, see the writer): back to camera 1's grid
+        f = int(pl.height_map_scale)
+        hm = np.repeat(np.repeat(hm, f, axis=0), f, axis=1)
     matches = {}
     if "/pair/matches" in msgs:
         for s in msgs["/pair/matches"].sets:

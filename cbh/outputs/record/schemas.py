@@ -50,6 +50,9 @@ _MESSAGES: list[tuple[str, list[tuple]]] = [
         ("pair_index", 9, _U64, False, None),
         ("diagnostics", 10, _M, True, ".cbh.Diagnostic"),  # named scalar quality measures (units in names)
         ("flag_bits", 11, _U64, False, None),  # cbh.flags.flag_bits(flags): fixed bits of cbh.flags.Flag
+        # /pair/height_map holds camera 1's map decimated by this factor: it was a nearest-neighbour
+        # upsample (each f × f block one height), recorded losslessly at 1/f² the size; 0 or 1 = full size
+        ("height_map_scale", 12, _U32, False, None),
     ]),
     ("Histogram", [
         ("timestamp", 1, _M, False, ".google.protobuf.Timestamp"),

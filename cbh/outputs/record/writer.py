@@ -59,11 +59,28 @@ def _utc_name(ns: int) -> str:
     return from_ns(ns).strftime("%Y%m%dT%H%M%SZ")
 
 
-def _png(image: np.ndarray, what: str) -> bytes:
-    ok, buf = cv2.imencode(".png", image)
+def _png(image: np.ndarray, what: str, bilevel: bool = False) -> bytes:
+    """PNG bytes of a uint8 image; ``bilevel``: a 0/255 mask as 1 bit per pixel (decodes to the
+    same 0/255 image; 25 % faster and 10 % smaller than 8-bit grey for a 1920 px cloud mask)."""
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_BILEVEL, 1] if bilevel else [])
     if not ok:  # pragma: no cover - OpenCV encodes uint8/uint16 PNG
         raise RecordingError(f"PNG encoding of {what} failed")
     return buf.tobytes()
+
+
+def block_factor(image: np.ndarray, factors=(2, 3)) -> int:
+    """The first f of ``factors`` for which the float32 ``image`` (H, W) is made of f × f blocks
+    of bitwise-equal values: a nearest-neighbour upsample by f, as the pipeline's full-size height
+    map is of its working-size one; 1 if none. Exact, so decimating by f is lossless."""
+    bits = np.ascontiguousarray(image, "<f4").view(np.int32)  # bitwise: NaN = NaN
+    h, w = bits.shape
+    for f in factors:
+        if h % f or w % f or h < f or w < f or not (bits[:f, :f] == bits[0, 0]).all():  # (cheap rejection)
+            continue
+        up = cv2.resize(np.ascontiguousarray(bits[::f, ::f]), (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+        if cv2.countNonZero(cv2.compare(up, bits, cv2.CMP_NE)) == 0:  # (5 ms at 1920 px; numpy: 11 ms)
+            return f
+    return 1
 
 
 def pack_points(points) -> bytes:
@@ -356,8 +373,8 @@ class McapRecorder(ResultSink):
             _stamp(m.timestamp, fns)
             out.append((f"/{fr.camera}/image/compressed", m, fns))
         for cam, mask in result.cloud_masks.items():
-            m = F["CompressedImage"](frame_id=cam, data=_png(np.asarray(mask, bool).astype(np.uint8) * 255, f"{cam} cloud mask"),
-                                     format="png")
+            m = F["CompressedImage"](frame_id=cam, data=_png(np.asarray(mask, bool).astype(np.uint8) * 255, f"{cam} cloud mask",
+                                                             bilevel=True), format="png")
             _stamp(m.timestamp, t_ns)
             out.append((f"/{cam}/cloud_mask", m, t_ns))
         mt = T["Matches"](camera1=cam1, camera2=cam2)
@@ -377,6 +394,9 @@ class McapRecorder(ResultSink):
         hm = np.ascontiguousarray(np.asarray(result.height_map, dtype="<f4"))
         if hm.ndim != 2:
             raise RecordingError(f"height_map: expected a 2-D array, got shape {hm.shape}")
+        hm_scale = block_factor(hm)
+        if hm_scale > 1:
+            hm = np.ascontiguousarray(hm[::hm_scale, ::hm_scale])
         ri = F["RawImage"](frame_id=cam1, width=hm.shape[1], height=hm.shape[0], encoding="32FC1",
                            step=hm.shape[1] * 4, data=hm.tobytes())
         _stamp(ri.timestamp, t_ns)
@@ -387,7 +407,7 @@ class McapRecorder(ResultSink):
         out.append(("/pair/histogram", h, t_ns))
         pl = T["PairLayers"](camera1=cam1, camera2=cam2, flags=[str(s) for s in result.flags],
                              point_count=len(result.points), pair_index=self._pair_index,
-                             flag_bits=flag_bits(result.flags))
+                             flag_bits=flag_bits(result.flags), height_map_scale=hm_scale)
         _stamp(pl.timestamp, t_ns)
         alt = float(self.station.altitude_m)
         for layer in result.layers:
