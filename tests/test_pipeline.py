@@ -354,6 +354,44 @@ def test_fog_below_the_sweep_floor_is_flagged_not_reported(height_m, flagged):
     else:
         assert "below_range" not in r.flags and share < 0.01, share
         assert len(r.layers) == 1 and r.layers[0].height_m == pytest.approx(height_m, rel=0.03)
+        assert "cloud_unmatched" not in r.flags and r.diagnostics["measured_fraction"] > 0.7
+
+
+def _fog(height_m: float, coverage: float, texture_m: float, seed: int):
+    from cbh.sim import SkySimulator, parse_scene
+
+    sc = parse_scene({"name": "fog", "time_utc": "2024-06-21T14:00:00Z",
+                      "layers": [{"height_m": height_m, "coverage": coverage, "texture_scale_m": texture_m,
+                                  "seed": seed}]})
+    sim = SkySimulator(load_station(station_path("unb-lea")), sc, size_px=480)
+    shot = sim.render()
+    return Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc,
+                                         channels="bgr")
+
+
+def test_fog_far_below_the_floor_is_flagged_by_its_floor_layer():
+    """Fog at 20 m under a 100 m floor (B = 50 m: ≈ 70° of parallax) matches almost nowhere, so too
+    few pixels land on the lowest plane for ``BELOW_RANGE_FRACTION`` (3 %); its chance matches pile up
+    just above the floor (a layer at 101 m, with others at 400 m–2.5 km, no flag before). A lowest
+    layer within 15 % of the floor with under half the cloud measured flags ``below_range``; a real
+    base at 105–130 m is measured over 79–94 % of its pixels (the test above: > 70 %)."""
+    from cbh.pipeline.match import BELOW_RANGE_FRACTION, FLOOR_LAYER_RATIO
+
+    r = _fog(20.0, 0.6, 100.0, 5)
+    assert r.diagnostics["below_range_fraction"] < BELOW_RANGE_FRACTION  # not what flags it
+    assert min(L.height_m for L in r.layers) <= FLOOR_LAYER_RATIO * 100.0
+    assert r.diagnostics["measured_fraction"] < 0.5 and "below_range" in r.flags
+
+
+def test_cloud_that_matches_almost_nowhere_is_flagged_unmatched():
+    """Fog at 10 m with fine texture: 8 % of its pixels find a height, and those are chance matches
+    (layers at 158 m and up, none at the floor). ``cloud_unmatched`` (below 15 % measured) says the
+    layers describe only that part; the simulated presets are measured over 81–94 %, the real
+    WAHRSIS pair (thin cloud) over 23–33 %."""
+    from cbh.pipeline.match import UNMATCHED_FRACTION
+
+    r = _fog(10.0, 0.9, 50.0, 7)
+    assert r.diagnostics["measured_fraction"] < UNMATCHED_FRACTION and "cloud_unmatched" in r.flags
 
 
 def test_process_batch_equals_one_by_one(small_sky):

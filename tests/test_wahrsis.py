@@ -103,6 +103,10 @@ def _check_combo(result, med_med):
     assert len(result.layers) == 1
     assert abs(result.layers[0].height_m - med_med.layers[0].height_m) <= 0.05 * med_med.layers[0].height_m
     assert {"exposure_gain", "exposure_gamma", "wb_red", "wb_blue"} <= set(result.diagnostics)
+    # thin real cloud is measured over 23–33 % of camera 1's cloud (simulated skies 81–94 %, fog
+    # far below the sweep's floor ≤ 15 %): a valid real pair, not cloud_unmatched nor below_range
+    assert result.diagnostics["measured_fraction"] > 0.2
+    assert not {"cloud_unmatched", "below_range"} & set(result.flags)
 
 
 def test_mixed_exposure_pair_low_med(wahrsis, result):

@@ -846,9 +846,11 @@ class Service:
                             "(check the sources and the orientation: `cbh calibrate`)",
                             extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
             else:
+                d = result.diagnostics
                 log.warning(f"pair at {f1.time_utc.isoformat()}: below_range: "
-                            f"{100 * result.diagnostics.get('below_range_fraction', float('nan')):.0f} % of the measured "
-                            "cloud is at or below the lowest height searched (fog, lifting stratus): layers are not "
+                            f"{100 * d.get('below_range_fraction', float('nan')):.0f} % of the measured cloud on the "
+                            f"lowest height searched, {100 * d.get('measured_fraction', float('nan')):.0f} % of the cloud "
+                            "measured at all: cloud at or below that height (fog, lifting stratus); layers are not "
                             "reported as valid until the cloud base is above it (to search lower: `min_height_m` in "
                             "[pipeline.matching.sweep] and [pipeline.filtering])",
                             extra={"cbh_event": "below_range", "cbh_flags": invalid})

@@ -31,6 +31,7 @@ class HeightMap:
     working_m: np.ndarray  # (h, w) float32 at working size [m]
     nearest_m: np.ndarray  # (h, w) float32: height of each pixel's nearest measured pixel [m]
     full_m: np.ndarray  # (H, W) float32 at camera 1's full size [m]
+    measured_fraction: float = float("nan")  # share of the cloud mask's pixels measured (before the fill)
 
 
 def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray, cloud: np.ndarray,
@@ -63,12 +64,15 @@ def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarra
                 n = np.isfinite(stack).sum(axis=0)
                 hmap = np.where(n > 0, np.nansum(stack, axis=0) / np.maximum(n, 1), np.nan).astype(np.float32)
     known = np.isfinite(hmap)
+    n_cloud = int(np.count_nonzero(cloud))
+    measured = float(np.count_nonzero(known & cloud)) / n_cloud if n_cloud else float("nan")
     nearest, dist = nearest_fill(hmap)
     if cfg.fill == "nearest":
         fill = cloud & ~known & (dist <= cfg.fill_max_px)
         hmap = hmap.copy()
         hmap[fill] = nearest[fill]
-    return HeightMap(working_m=hmap, nearest_m=nearest, full_m=upsample_map(hmap, full_size[0], full_size[1]))
+    return HeightMap(working_m=hmap, nearest_m=nearest, full_m=upsample_map(hmap, full_size[0], full_size[1]),
+                     measured_fraction=measured)
 
 
 def rasterize_heights(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray) -> np.ndarray:

@@ -59,8 +59,8 @@ from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
-from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, Matches, MatchInput, PairGeometry,
-                                TriangulatedMatches, get_matcher, sample_map, stereo_heights, triangulate_matches)
+from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
+                                UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher, sample_map, stereo_heights, triangulate_matches)
 from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
                                  offset_per_match, plane_offsets, running_offset, track_back)
 from cbh.pipeline.photometric import estimate_response
@@ -385,7 +385,7 @@ class Pipeline:
             used, rates = new, new_rates
         with _timed(ctx, "geometry_check"):
             self.stage_geometry_check(received, corr, ctx)
-        self._quality_flags(pts, seg, ctx)
+        self._quality_flags(pts, seg, ctx, hmap, lay)
         offsets = mot.offsets_s + ((est.pair_offset_s,) if math.isfinite(est.pair_offset_s) else ())
         offsets = offsets[-mcfg.offset_history:]
         running = running_offset(offsets)
@@ -746,9 +746,20 @@ class Pipeline:
         alt = self.station.altitude_m
         return replace(lay, layers=[replace(L, altitude_m=L.height_m + alt) for L in lay.layers])
 
-    def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext") -> None:
+    def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext", hmap: HeightMap,
+                       lay: LayerSet) -> None:
         n = len(pts.xyz_m)
         frac1 = seg.fractions[self.cam1.name]
+        measured = hmap.measured_fraction
+        if math.isfinite(measured):
+            ctx.diagnostics["measured_fraction"] = measured
+            if measured < UNMATCHED_FRACTION and frac1 >= 0.01:
+                ctx.flags.append("cloud_unmatched")
+            floor_m = self.config.matching.sweep.min_height_m
+            lowest = min((L.height_m for L in lay.layers), default=math.inf)
+            if ("below_range_fraction" in ctx.diagnostics and "below_range" not in ctx.flags
+                    and lowest <= FLOOR_LAYER_RATIO * floor_m and measured < FLOOR_LAYER_MATCHED):
+                ctx.flags.append("below_range")  # see FLOOR_LAYER_RATIO
         if n < self.config.layers.min_points:
             ctx.flags.append("few_points")
         if frac1 < 0.01:
