@@ -5,6 +5,7 @@
 - :mod:`cbh.sim.render`: :class:`SkySimulator` renders a scene through a station's cameras.
 - :mod:`cbh.sim.source`: :class:`SimSource`, the simulator as a frame source for the service.
 - :mod:`cbh.sim.io`: writing shots (images + truth) to a folder, as ``cbh simulate`` does.
+- :mod:`cbh.sim.photo`: stereo pairs built from a real sky photograph (real texture, known height).
 
 Example::
 
