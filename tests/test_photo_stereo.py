@@ -53,6 +53,7 @@ def _check(r, height_m: float, layer_tol: float, dense_tol: float):
     hm = r.height_map[np.isfinite(r.height_map)]
     assert np.median(np.abs(hm - height_m) / height_m) < dense_tol
     assert r.diagnostics["measured_fraction"] > 0.5
+    assert r.diagnostics["geometry_rotation_deg"] < 0.02  # exact geometry: real-texture LK fits ≈ 0.003°
     assert not set(r.flags) & INVALIDATING, r.flags
 
 
@@ -84,3 +85,25 @@ def test_real_texture_at_1500_m_50_m_baseline(photo):
 def test_real_texture_heights_and_baselines(photo, height_m, baseline_m):
     """4000 m at 50 m: p ≈ 3.3 px, a pixel good to ≈ 3 %: dense bar 3 % (median), layer 2 %."""
     _check(_run(photo, height_m, baseline_m), height_m, 0.02, 0.03)
+
+
+def test_a_half_degree_yaw_on_real_texture_is_flagged_not_reported(photo):
+    """Camera 2 turned 0.5° about the vertical from what the station says: its matches sit only
+    0.6 px off their epipolar curves (under the 1 px floor), but the heights move by tens of per
+    cent (a 1500 m layer came out at 1091 and 2153 m, confidence 1.0, unflagged). The fitted
+    rotation finds the 0.5° (a shift of 2.3 px at 45° off axis here, against 0.25 px) and the pair
+    is flagged ``geometry_mismatch`` (invalidating); the correct pair fits ≈ 0.003°."""
+    import math
+
+    from cbh.geometry.station import Station, rot_z
+    from cbh.pipeline import Pipeline
+    from cbh.sim.photo import plane_view, virtual_camera
+
+    st, cam1, img = photo
+    nominal = virtual_camera(cam1, (50.0, 0.0, 0.0), 20.0, name="cam2")
+    actual = replace(nominal, R_world_from_cam=rot_z(-math.radians(0.5)) @ nominal.R_world_from_cam)
+    station = Station("photo-stereo", st.latitude_deg, st.longitude_deg, st.altitude_m, {"cam1": cam1, "cam2": nominal})
+    r = Pipeline(station).process(img, plane_view(img, cam1, actual, 1500.0), T, channels="bgr")
+    assert "geometry_mismatch" in r.flags and "geometry_mismatch" in INVALIDATING
+    assert r.diagnostics["geometry_rotation_deg"] == pytest.approx(0.5, abs=0.03)
+    assert r.diagnostics["geometry_residual_px"] < 1.0  # what the median alone would have let through

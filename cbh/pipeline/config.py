@@ -232,6 +232,7 @@ class GeometryCheckConfig:
 
     enabled: bool = True  # run the check (flag geometry_mismatch / identical_images)
     max_residual_px: float = 1.0  # median epipolar distance allowed at least, camera 2 working size [px]
+    max_rotation_px: float = 0.25  # camera 2's fitted rotation against camera 1, as a shift at 45° off axis, at most [px]
     expected_miss_ratio: float = 0.0  # median epipolar angle the lens calibration is known to leave [rad]; 0 = none
     min_inlier_fraction: float = 0.5  # share of 2-D matches consistent with the geometry, at least [1]
     min_matches: int = 30  # fewer 2-D matches: no verdict [1]
@@ -387,6 +388,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
     gc = cfg.geometry_check
     _positive(f"{where}.geometry_check.max_residual_px", gc.max_residual_px)
+    _positive(f"{where}.geometry_check.max_rotation_px", gc.max_rotation_px)
     if not 0 <= gc.min_inlier_fraction <= 1:
         raise ConfigError(f"{where}.geometry_check.min_inlier_fraction: must be in 0..1, got {gc.min_inlier_fraction}")
     _positive(f"{where}.geometry_check.expected_miss_ratio", gc.expected_miss_ratio, strict=False)

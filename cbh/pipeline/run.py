@@ -688,6 +688,7 @@ class Pipeline:
         chk = check_geometry(self.geometry, corr.raw, self.config.filtering, cfg)
         ctx.diagnostics["geometry_residual_px"] = chk.residual_px
         ctx.diagnostics["geometry_inlier_fraction"] = chk.inlier_fraction
+        ctx.diagnostics["geometry_rotation_deg"] = chk.rotation_deg
         if chk.mismatch:
             ctx.flags.append("geometry_mismatch")
 

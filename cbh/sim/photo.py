@@ -12,12 +12,13 @@ sun moved onto the plane rather than where the station's geometry puts it.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import cv2
 import numpy as np
 
-from cbh.geometry.station import Camera, rotation_from_angles
+from cbh.geometry.station import Camera, rot_z
 
 __all__ = ["virtual_camera", "plane_view"]
 
@@ -25,7 +26,7 @@ __all__ = ["virtual_camera", "plane_view"]
 def virtual_camera(cam1: Camera, position_m, yaw_deg: float = 0.0, name: str = "virtual") -> Camera:
     """Camera 1's lens at ``position_m`` (ENU [m]), turned ``yaw_deg`` about the vertical from it."""
     return replace(cam1, name=name, position_m=np.asarray(position_m, np.float64).reshape(3),
-                   R_world_from_cam=rotation_from_angles(yaw_deg) @ cam1.R_world_from_cam)
+                   R_world_from_cam=rot_z(-math.radians(yaw_deg)) @ cam1.R_world_from_cam)
 
 
 def plane_view(photo: np.ndarray, cam1: Camera, cam2: Camera, height_m: float) -> np.ndarray:
