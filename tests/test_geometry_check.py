@@ -258,3 +258,42 @@ def test_same_image_twice_is_flagged_when_working_sizes_differ(sim, shot):
     img = shot.views["cam1"].image
     r = pipe.process(img, img.copy(), T0, channels="bgr")
     assert "identical_images" in r.flags
+
+
+def test_matches_from_one_patch_of_sky_do_not_flag_a_correct_station(unb):
+    """A lone cloud gives matches in one patch only, where the fitted rotation is poorly
+    constrained: on a correct geometry its scatter reached 0.06–0.1° (above the 0.047° that
+    0.25 px is at this size) and flagged 6–11 of 40 such pairs. The rotation is judged beyond
+    3 σ of the fit, so noise-only patches pass, while a 0.5° turn over the whole sky is caught.
+    Synthetic matches: points of a 2 km plane projected into both working-size cameras, 0.1 px
+    Gaussian noise (LK's level on simulated pairs)."""
+    from cbh.geometry.calibrate import rotvec_to_matrix
+    from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
+    from cbh.pipeline.geocheck import check_geometry
+    from cbh.pipeline.match import Matches, PairGeometry
+
+    st = unb.scaled(960)
+    cam1, cam2 = st.pair()
+    geom = PairGeometry(cam1, cam2)
+    rng = np.random.default_rng(7)
+
+    def matches(centre_m, radius_m, n, turn_deg=0.0):
+        e = centre_m[0] + rng.uniform(-radius_m, radius_m, n)
+        nn = centre_m[1] + rng.uniform(-radius_m, radius_m, n)
+        p = np.stack([e, nn, np.full(n, 2000.0)], 1)
+        px1 = cam1.world_to_pixel(p)
+        d2 = (p - cam2.position_m) @ rotvec_to_matrix(np.radians([0.0, 0.0, turn_deg])).T
+        px2 = cam2.direction_to_pixel(d2)
+        ok = np.isfinite(px1).all(1) & np.isfinite(px2).all(1)
+        noise = lambda k: rng.normal(0.0, 0.1, (k, 2))  # noqa: E731
+        return Matches("lk", px1[ok] + noise(ok.sum()), px2[ok] + noise(ok.sum()))
+
+    flagged = 0
+    for _ in range(20):
+        c = rng.uniform(-2500, 2500, 2)
+        chk = check_geometry(geom, [matches(c, 300.0, 60)], FilteringConfig(), GeometryCheckConfig())
+        flagged += chk.mismatch
+    assert flagged == 0
+    whole = check_geometry(geom, [matches((0.0, 0.0), 4000.0, 600, turn_deg=0.5)], FilteringConfig(),
+                           GeometryCheckConfig())
+    assert whole.mismatch and whole.rotation_deg == pytest.approx(0.5, abs=0.03)

@@ -410,3 +410,25 @@ def test_process_batch_equals_one_by_one(small_sky):
         assert a.time_utc == b.time_utc
         assert [L.height_m for L in a.layers] == [L.height_m for L in b.layers]
         assert np.array_equal(a.height_map, b.height_map, equal_nan=True)
+
+
+def test_sparse_matchers_alone_leave_the_measured_share_unknown_and_unflagged():
+    """LK or ORB alone measure a few hundred pixels of any cloud (0.6 %): that is not a sign of
+    unmatched cloud, so measured_fraction is NaN and neither rule that reads it fires."""
+    import math
+
+    from cbh.pipeline import PipelineConfig
+
+    r = _fog(1500.0, 0.6, 800.0, 5)  # default methods (LK + the sweep): measured
+    assert r.diagnostics["measured_fraction"] > 0.6 and "cloud_unmatched" not in r.flags
+    from cbh.sim import SkySimulator, parse_scene
+
+    sc = parse_scene({"name": "c", "time_utc": "2024-06-21T14:00:00Z",
+                      "layers": [{"height_m": 1500.0, "coverage": 0.6, "texture_scale_m": 800.0, "seed": 5}]})
+    sim = SkySimulator(load_station(station_path("unb-lea")), sc, size_px=480)
+    shot = sim.render()
+    for methods in (["lk"], ["orb"]):
+        pipe = Pipeline(sim.station, "cam1,cam2", PipelineConfig.from_dict({"matching": {"methods": methods}}))
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+        assert math.isnan(r.diagnostics["measured_fraction"]), methods
+        assert not {"cloud_unmatched", "below_range"} & set(r.flags), (methods, r.flags)

@@ -181,6 +181,16 @@ def test_a_status_off_the_pairs_time_line_does_not_rotate_the_file(tmp_path, sta
         s = open_session(rec.paths)
         assert s.pair_count == 4 and len(list(s.statuses())) == 4 + status_first
         assert [len(list(open_session(p).pairs())) for p in rec.paths] == [3, 1]
+    # a directory: the file is named after its first pair, not after a status written before it
+    # (a camera down at start-up), and the status is kept
+    rec = session(tmp_path / "dir", True)
+    assert [p.name for p in rec.paths] == ["unb-lea-20240301T120000Z.mcap", "unb-lea-20240301T120030Z.mcap"]
+    assert open_session(rec.paths[0]).metadata["session_start_utc"] == "2024-03-01T12:00:00Z"
+    assert len(list(open_session(tmp_path / "dir").statuses())) == 5
+    # statuses and no pair at all (the cameras never came up): still recorded
+    with McapRecorder(tmp_path / "none", station, {}) as rec:
+        rec.write_status(synthetic_pair(station, 0)[1].time_utc, {"event": {"event": "outage"}})
+    assert len(rec.paths) == 1 and len(list(open_session(rec.paths[0]).statuses())) == 1
 
 
 def test_frames_without_encoded_bytes_are_encoded_once(tmp_path, station):

@@ -99,6 +99,8 @@ def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_pat
     out = tmp_path / "live.mcap"
     with CameraServer(sim_frames(sim320), ["cam1", "cam2"], fps=4, step_s=10.0,
                       start_utc=sim320.scene.time_utc) as srv:
+        srv.drop("cam2", 1.0)  # down at start-up: its outage comes before any frame
+
         def faults():
             deadline = time.monotonic() + 30
             while srv.frames_sent["cam2"] < 3 and time.monotonic() < deadline:
@@ -120,8 +122,9 @@ def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_pat
     statuses = list(s.statuses())
     events = [(t, st["event"]) for t, st in statuses if "event" in st]
     assert {e["event"] for _, e in events} >= {"outage", "recovered"}, events
-    t_first, t_last = pairs[0].time_utc, pairs[-1].time_utc
-    for t, e in events:  # on the cameras' time line (within a frame step of the pairs), wall clock kept
+    assert sum(e["event"] == "outage" for _, e in events) >= 2, events  # at start-up and after 3 frames
+    t_first, t_last = sim320.scene.time_utc, pairs[-1].time_utc  # the cameras' first frame … the last pair
+    for t, e in events:  # on the cameras' time line (within a frame step of it), wall clock kept
         assert t_first - timedelta(seconds=20) <= t <= t_last + timedelta(seconds=20), (t, e)
         assert abs((datetime.fromisoformat(e["wall_utc"].replace("Z", "+00:00")) - t).days) > 300
     # both cameras' frames of a pair carry the same camera time stamp (X-Timestamp)

@@ -571,7 +571,7 @@ class Service:
                 except Exception as exc:
                     log.warning(f"{s.camera}: close failed: {exc}")
             try:
-                self._record_events()
+                self._record_events(final=True)
             except RecordingError:
                 pass  # the sink error is raised below (or was already)
             close_err = self._close_sinks()
@@ -619,8 +619,14 @@ class Service:
                     err = _sink_error(sink, exc, "closing")
         return err
 
-    def _record_events(self) -> None:
-        """Source events (outage, recovery, end, failure, time jump) → status messages of every sink."""
+    def _record_events(self, final: bool = False) -> None:
+        """Source events (outage, recovery, end, failure, time jump) → status messages of every sink.
+
+        Before any camera frame has arrived the cameras' time line is unknown: events wait in
+        their queue until the first frame places them (``final``: the run ends without one;
+        they are written on the wall clock, the only time there is)."""
+        if not self._last_frame and not final:
+            return
         while True:
             try:
                 ev = self._events.get_nowait()
@@ -634,7 +640,8 @@ class Service:
 
     def _session_time(self, mono: float, wall: datetime) -> datetime:
         """An event's time on the cameras' time line (the pairs'): the newest camera frame's time
-        plus the wall time elapsed since it arrived; the wall clock before any frame.
+        plus the wall time between its arrival and the event (negative for an event before it:
+        an outage at start-up is placed before the first frame); the wall clock without frames.
 
         Why: the pairs are stamped by the cameras' clocks, which may be far from this machine's
         (a camera without NTP, a replayed or simulated stream). Events stamped with the wall
@@ -642,7 +649,7 @@ class Service:
         recording, and a jump past the file's time span rotated it (8 pairs were split 2 + 6
         over two files by one outage).
         """
-        seen = [t + timedelta(seconds=max(mono - rs, 0.0)) for t, rs in self._last_frame.values() if rs is not None]
+        seen = [t + timedelta(seconds=mono - rs) for t, rs in self._last_frame.values() if rs is not None]
         return max(seen) if seen else wall
 
     def _write_status(self, t: datetime, status: dict) -> None:

@@ -183,7 +183,12 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # rotation fitted against them absorbs their error (see relative_rotation): judged only
     # where the station states none
     tol_rot = math.degrees(cfg.max_rotation_px / ppr) if cfg.expected_miss_ratio <= 0 else math.inf
-    return GeometryCheck(med, frac, tol_px, n, med > tol_px or frac < cfg.min_inlier_fraction or rot > tol_rot,
+    # judged beyond 3 σ of the fit: matches from one patch of sky (a lone cloud) constrain the
+    # rotation poorly (σ 0.025–0.09° for a patch of 100 px radius), and a correct station must
+    # not be flagged for the fit's own scatter; a misoriented camera with matches over the sky
+    # fits to σ 0.002–0.007°
+    rotated = rot - 3.0 * math.degrees(sigma) > tol_rot
+    return GeometryCheck(med, frac, tol_px, n, med > tol_px or frac < cfg.min_inlier_fraction or rotated,
                          rot, tol_rot, math.degrees(sigma))
 
 

@@ -73,6 +73,7 @@ __all__ = ["Pipeline", "working_factor", "PairContext", "Prepared", "Masks", "Se
 log = logging.getLogger(__name__)
 
 _MAX_DISPLAY_MATCHES = 5000
+_FLOOR_LAYER_COVER = 0.05  # a layer at the sweep's floor counts for below_range from this cover up (see match.FLOOR_LAYER_RATIO)
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
 _RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
 _MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
@@ -689,6 +690,7 @@ class Pipeline:
         ctx.diagnostics["geometry_residual_px"] = chk.residual_px
         ctx.diagnostics["geometry_inlier_fraction"] = chk.inlier_fraction
         ctx.diagnostics["geometry_rotation_deg"] = chk.rotation_deg
+        ctx.diagnostics["geometry_rotation_sigma_deg"] = chk.rotation_sigma_deg
         if chk.mismatch:
             ctx.flags.append("geometry_mismatch")
 
@@ -704,8 +706,11 @@ class Pipeline:
         else:
             px, hh = np.zeros((0, 2)), np.zeros(0)
         shape1 = (self.cam1.model.height, self.cam1.model.width)
-        return dense_height_map(shape1, px, hh, seg.clouds[0], self.config.height_map,
-                                (self.cam1_full.model.width, self.cam1_full.model.height), grids=grids)
+        hm = dense_height_map(shape1, px, hh, seg.clouds[0], self.config.height_map,
+                              (self.cam1_full.model.width, self.cam1_full.model.height), grids=grids)
+        # the share of the cloud measured means something only for a dense method (sparse
+        # matches cover a few hundred pixels of any cloud): unknown otherwise, and no flag hangs on it
+        return hm if dense else replace(hm, measured_fraction=math.nan)
 
     def stage_points(self, corr: "Correspondences") -> "Points":
         """All kept correspondences as points (dense ones thinned to a grid), with predicted noise."""
@@ -752,12 +757,14 @@ class Pipeline:
         n = len(pts.xyz_m)
         frac1 = seg.fractions[self.cam1.name]
         measured = hmap.measured_fraction
+        ctx.diagnostics["measured_fraction"] = measured  # NaN: no dense method, or no cloud
         if math.isfinite(measured):
-            ctx.diagnostics["measured_fraction"] = measured
             if measured < UNMATCHED_FRACTION and frac1 >= 0.01:
                 ctx.flags.append("cloud_unmatched")
             floor_m = self.config.matching.sweep.min_height_m
-            lowest = min((L.height_m for L in lay.layers), default=math.inf)
+            # the lowest layer that covers a share of the sky (fog's floor layers: 13–24 %), not a
+            # small chance one
+            lowest = min((L.height_m for L in lay.layers if L.cover >= _FLOOR_LAYER_COVER), default=math.inf)
             if ("below_range_fraction" in ctx.diagnostics and "below_range" not in ctx.flags
                     and lowest <= FLOOR_LAYER_RATIO * floor_m and measured < FLOOR_LAYER_MATCHED):
                 ctx.flags.append("below_range")  # see FLOOR_LAYER_RATIO

@@ -230,6 +230,7 @@ class McapRecorder(ResultSink):
         self._file: _File | None = None
         self._paths: list[Path] = []
         self._pair_index = 0
+        self._pending_status: list = []  # (log ns, message, publish ns) waiting for the first pair's file
         self._closed = False
         if not self.directory_mode:
             self._check_protected(self.path)
@@ -324,6 +325,8 @@ class McapRecorder(ResultSink):
         t_ns = to_ns(require_time(result, f"recording {self.path}"))
         messages = self._pair_messages(frames, result, t_ns)  # build all first: no half-written pair
         f = self._ensure_file(t_ns)
+        if self._pending_status:  # statuses from before the first pair (a camera down at start-up)
+            self._write_pending(f)
         seq = self._pair_index
         pub = time.time_ns()
         for topic, msg, log_ns in messages:
@@ -348,11 +351,17 @@ class McapRecorder(ResultSink):
                 state = st.get("state", "") if isinstance(st, dict) else st
                 msg.sources.add(name=str(name), state=str(state))
         msg.json = json.dumps(stats, sort_keys=True, default=_json_default)
-        # a status goes into the file being written: only pairs start a new one (a status stamped
-        # off the pairs' time line must not rotate, or a run's pairs end up split for nothing)
-        f = self._file if self._file is not None else self._ensure_file(t_ns, pair=False)
-        f.writer.add_message(f.channel("/service/status", type(msg)), log_time=t_ns,
-                             data=msg.SerializeToString(), publish_time=time.time_ns(), sequence=self._pair_index)
+        # a status goes into the file being written: only pairs start one (its name and
+        # session_start_utc are the first pair's) or rotate it; before the first pair it waits
+        self._pending_status.append((t_ns, msg, time.time_ns()))
+        if self._file is not None:
+            self._write_pending(self._file)
+
+    def _write_pending(self, f: "_File") -> None:
+        for t_ns, msg, pub in self._pending_status:
+            f.writer.add_message(f.channel("/service/status", type(msg)), log_time=t_ns,
+                                 data=msg.SerializeToString(), publish_time=pub, sequence=self._pair_index)
+        self._pending_status.clear()
         self._flush(f)
 
     def _flush(self, f: _File) -> None:
@@ -440,7 +449,11 @@ class McapRecorder(ResultSink):
             fh, self._reserved = self._reserved, None
             self._file = _File(self.path, fh, dict(self._meta, file_index="0"), self.compression)
             self._paths.append(self.path)
+        if self._file is None and self._pending_status:  # statuses but no pair (a directory): one file for them
+            self._ensure_file(self._pending_status[0][0], pair=False)
         if self._file is not None:
+            if self._pending_status:
+                self._write_pending(self._file)
             self._file.close(self.fsync)
             self._file = None
 
