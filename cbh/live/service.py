@@ -850,7 +850,8 @@ class Service:
                                  if k.startswith(("geometry_", "sun_")))
                 log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(geometric)}: the cameras disagree with the "
                             f"station geometry ({diag}); layers are not reported as valid until they agree again "
-                            "(check the sources and the orientation: `cbh calibrate`)",
+                            "(check the sources and the orientation: `cbh calibrate`; on the first pairs of a run, "
+                            "cameras whose clocks differ look the same until the offset is estimated)",
                             extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
             else:
                 d = result.diagnostics
