@@ -283,3 +283,29 @@ def test_live_sources_get_no_look_ahead():
     Service(src, process, [sink], ServiceConfig(cadence_s=0), prepare=prepare).run()
     # each pair prepared when its turn comes: prepare and finish alternate
     assert [w for w, _ in calls] == ["prepare", "finish"] * len(sink.items)
+
+
+def test_events_before_any_frame_wait_for_one_but_not_for_ever(monkeypatch):
+    """A camera down at start-up: its outage waits to be placed on the cameras' time line by
+    their first frame, but a run whose cameras never deliver must not stay silent: after
+    ``_EVENT_WAIT_S`` (60 s; 0.3 s here) the events are written on the wall clock, during the run."""
+    import cbh.live.service as S
+
+    class Stamping(MemorySink):
+        def write_status(self, time_utc, stats):
+            super().write_status(time_utc, stats)
+            self.when = getattr(self, "when", []) + [time.monotonic()]
+
+    monkeypatch.setattr(S, "_EVENT_WAIT_S", 0.3)
+    sink = Stamping()
+    src = [MemorySource("cam1", [], live=True), Flaky("cam2", 10**6, [])]
+    svc = Service(src, process_fn(), [sink], ServiceConfig(duration_s=1.5, backoff_initial_s=0.05))
+    t0 = time.monotonic()
+    with pytest.raises(SourceError):
+        svc.run()
+    t_end = time.monotonic()
+    outages = [(t, st) for t, st in sink.status if st.get("event", {}).get("event") == "outage"]
+    assert outages, sink.status
+    first_written = sink.when[0]
+    assert t0 + 0.3 <= first_written < t_end - 0.5  # after the wait, well before the end of the run
+    assert abs((outages[0][0] - datetime.now(timezone.utc)).total_seconds()) < 30  # the wall clock

@@ -623,9 +623,11 @@ class Service:
         """Source events (outage, recovery, end, failure, time jump) → status messages of every sink.
 
         Before any camera frame has arrived the cameras' time line is unknown: events wait in
-        their queue until the first frame places them (``final``: the run ends without one;
-        they are written on the wall clock, the only time there is)."""
-        if not self._last_frame and not final:
+        their queue until the first frame places them, for at most ``_EVENT_WAIT_S`` (a camera
+        down for hours at start-up must not leave the recording silent), or until the run ends
+        (``final``); then they are written on the wall clock, the only time there is."""
+        waited = time.monotonic() - self.stats.started_monotonic
+        if not self._last_frame and not final and waited < _EVENT_WAIT_S:
             return
         while True:
             try:
@@ -905,6 +907,10 @@ class Service:
         s.error = str(exc)
         self._throttle(f"corrupt:{frame.camera}", logging.WARNING, f"{frame.camera}: corrupt frame skipped: {exc}",
                        cbh_camera=frame.camera, cbh_event="corrupt")
+
+
+#: Source events wait this long for a first camera frame to place them on the cameras' time line [s].
+_EVENT_WAIT_S = 60.0
 
 
 def _event_clock() -> dict:
