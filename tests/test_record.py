@@ -309,3 +309,37 @@ def test_bad_arguments(tmp_path, station):
     assert s.pair_count == 0 and s.time_span is None
     with pytest.raises(RecordingError, match="closed"):
         rec.write(*synthetic_pair(station, 0))
+
+
+def test_statuses_before_any_pair_reach_the_disk(tmp_path, station, monkeypatch):
+    """A .mcap path writes a status at once (a crash before the first pair keeps the start-up
+    outages); a directory holds them for its first pair's file name, at most 64; close()
+    finishes the file even when writing the last statuses fails."""
+    import cbh.outputs.record.writer as W
+    from cbh.outputs.record import McapRecorder, open_session
+
+    t = synthetic_pair(station, 0)[1].time_utc
+    rec = McapRecorder(tmp_path / "a.mcap", station, {})
+    size0 = (tmp_path / "a.mcap").stat().st_size
+    rec.write_status(t, {"event": {"event": "outage"}})
+    assert (tmp_path / "a.mcap").stat().st_size > size0  # flushed, not held
+    rec.close()
+    assert len(list(open_session(tmp_path / "a.mcap").statuses())) == 1
+
+    d = McapRecorder(tmp_path / "dir", station, {})
+    for k in range(63):
+        d.write_status(t, {"n": k})
+    assert not list((tmp_path / "dir").glob("*.mcap"))  # waiting for a pair to name the file
+    d.write_status(t, {"n": 63})
+    assert len(list((tmp_path / "dir").glob("*.mcap"))) == 1  # not without bound
+    d.close()
+    assert len(list(open_session(tmp_path / "dir").statuses())) == 64
+
+    e = McapRecorder(tmp_path / "dir2", station, {})
+    e.write_status(t, {"n": 0})
+    monkeypatch.setattr(W.McapRecorder, "_flush", lambda self, f: (_ for _ in ()).throw(OSError(28, "No space left")))
+    with pytest.raises(OSError):
+        e.close()
+    monkeypatch.undo()
+    (f,) = list((tmp_path / "dir2").glob("*.mcap"))
+    assert len(list(open_session(f).statuses())) == 1  # finished: summary and footer written

@@ -309,3 +309,26 @@ def test_events_before_any_frame_wait_for_one_but_not_for_ever(monkeypatch):
     first_written = sink.when[0]
     assert t0 + 0.3 <= first_written < t_end - 0.5  # after the wait, well before the end of the run
     assert abs((outages[0][0] - datetime.now(timezone.utc)).total_seconds()) < 30  # the wall clock
+
+
+def test_a_camera_clock_ahead_of_the_wall_clock_is_one_event_not_one_per_frame():
+    """Every frame of a camera stamped in the future is flagged time_jump (its pairs), but the
+    recording gets one status event when that starts: one per frame filled it (635 statuses in
+    a 500-frame run, held in memory until the first pair)."""
+    future = datetime.now(timezone.utc) + timedelta(days=365)
+    f1 = [Frame("cam1", future + timedelta(seconds=k), np.full((16, 16, 3), 90, np.uint8), JPEG, "jpeg", k)
+          for k in range(20)]
+    f2 = [Frame("cam2", future + timedelta(seconds=k), np.full((16, 16, 3), 90, np.uint8), JPEG, "jpeg", k)
+          for k in range(20)]
+    sink = MemorySink()
+    Service([MemorySource("cam1", f1), MemorySource("cam2", f2)], process_fn_at(future), [sink]).run()
+    assert len(sink.items) == 20 and all("time_jump" in r.flags for _, r in sink.items)
+    jumps = [st for _, st in sink.status if st.get("event", {}).get("event") == "time_jump"]
+    assert len(jumps) == 2, jumps  # one per camera
+
+
+def process_fn_at(t0):
+    def process(f1, f2):
+        return PairResult(f1.time_utc, (f1.camera, f2.camera), [], Histogram(np.zeros(2), np.zeros(1)),
+                          PointSet.empty(), np.zeros((2, 2), np.float32), {}, {})
+    return process

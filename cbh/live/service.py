@@ -502,6 +502,7 @@ class Service:
         self._events: queue.SimpleQueue = queue.SimpleQueue()
         self._throttle = _Throttle(self.cfg.log_repeat_s)
         self._last_frame: dict[str, tuple[datetime, float | None]] = {}
+        self._ahead_of_wall: dict[str, bool] = {}  # camera → its last frame was stamped in the future
         self._jumps: OrderedDict[tuple, float] = OrderedDict()  # (camera, seq, time) → jump [s]
         self._writer: _SinkWriter | None = None  # started by run()
         self.prepare = prepare
@@ -684,8 +685,10 @@ class Service:
         self._last_frame[cam] = (f.time_utc, f.received_s)
         clocked = r.src.clock  # simulated time is the scene's, not a clock
         why, jump, kind = None, 0.0, ""
+        was_ahead = self._ahead_of_wall.get(cam, False)
         if clocked:
             ahead = (f.time_utc - datetime.now(timezone.utc)).total_seconds()
+            self._ahead_of_wall[cam] = ahead > tol
             if ahead > tol:
                 why, jump, kind = f"stamped {_iso(f.time_utc)}, {ahead:.0f} s ahead of the wall clock", ahead, "future"
         if why is None and prev is not None:
@@ -704,8 +707,9 @@ class Service:
             self._jumps.popitem(last=False)
         self._throttle(f"jump:{cam}:{kind}", logging.WARNING, f"{cam}: time jump: {why}; pairs resynchronized",
                        cbh_camera=cam, cbh_event="time_jump", cbh_jump_s=jump)
-        self._events.put({"event": "time_jump", "camera": cam, "jump_s": round(jump, 3),
-                          "frame_time_utc": _iso(f.time_utc), **_event_clock()})
+        if kind != "future" or not was_ahead:  # a clock ahead is one event when it starts, not one per frame
+            self._events.put({"event": "time_jump", "camera": cam, "jump_s": round(jump, 3),
+                              "frame_time_utc": _iso(f.time_utc), **_event_clock()})
 
     def _pull(self, readers: list[_Reader], pairer, live: bool) -> None:
         """Move frames from the reader queues into the pairer (time-checked), one camera's

@@ -35,7 +35,8 @@ simulated error of 0.05–1° to 0.025° and stays at 0.001–0.028° on correct
 (0.003° on real texture). A rotation that shifts camera 2's pixels by more than
 ``max_rotation_px`` (0.25 px at 45° off axis: 0.047° at the default working size, under 5 % of
 the parallax of a layer up to 2.9 km at B = 50 m; in pixels, like the matching noise, so that it
-holds at any image size) flags the pair; not for a
+holds at any image size) and is more than 3 σ of the fit (matches from one patch of sky fit
+poorly) flags the pair; not for a
 station that states ``expected_miss_ratio`` (its lens models leave rays apart by that much, and
 the fitted rotation absorbs their error: 4.7° for the WAHRSIS pair). `cbh calibrate` fits the
 relative rotation to 0.001° over a day.
@@ -183,11 +184,12 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # rotation fitted against them absorbs their error (see relative_rotation): judged only
     # where the station states none
     tol_rot = math.degrees(cfg.max_rotation_px / ppr) if cfg.expected_miss_ratio <= 0 else math.inf
-    # judged beyond 3 σ of the fit: matches from one patch of sky (a lone cloud) constrain the
-    # rotation poorly (σ 0.025–0.09° for a patch of 100 px radius), and a correct station must
-    # not be flagged for the fit's own scatter; a misoriented camera with matches over the sky
-    # fits to σ 0.002–0.007°
-    rotated = rot - 3.0 * math.degrees(sigma) > tol_rot
+    # size and significance, separately: above the tolerance *and* beyond 3 σ of the fit. Matches
+    # from one patch of sky (a lone cloud) constrain the rotation poorly (σ 0.025–0.09° for a patch
+    # of 100 px radius): a correct station must not be flagged for the fit's own scatter. Over the
+    # whole sky σ is 0.002–0.007°, so the tolerance decides (subtracting 3 σ from the size instead
+    # let a −0.05° roll through that moved a 3500 m layer by −8 %)
+    rotated = rot > tol_rot and rot > 3.0 * math.degrees(sigma)
     return GeometryCheck(med, frac, tol_px, n, med > tol_px or frac < cfg.min_inlier_fraction or rotated,
                          rot, tol_rot, math.degrees(sigma))
 

@@ -59,6 +59,12 @@ def _utc_name(ns: int) -> str:
     return from_ns(ns).strftime("%Y%m%dT%H%M%SZ")
 
 
+#: A directory recorder holds statuses written before its first pair (its file is named after that
+#: pair) up to this many, or this long, then opens a file for them anyway.
+_MAX_PENDING_STATUS = 64
+_MAX_PENDING_NS = 600 * 10**9
+
+
 def _png(image: np.ndarray, what: str, bilevel: bool = False) -> bytes:
     """PNG bytes of a uint8 image; ``bilevel``: a 0/255 mask as 1 bit per pixel (decodes to the
     same 0/255 image; 25 % faster and 10 % smaller than 8-bit grey for a 1920 px cloud mask)."""
@@ -354,6 +360,12 @@ class McapRecorder(ResultSink):
         # a status goes into the file being written: only pairs start one (its name and
         # session_start_utc are the first pair's) or rotate it; before the first pair it waits
         self._pending_status.append((t_ns, msg, time.time_ns()))
+        if self._file is None and (not self.directory_mode or len(self._pending_status) >= _MAX_PENDING_STATUS
+                                   or time.time_ns() - self._pending_status[0][2] >= _MAX_PENDING_NS):
+            # a .mcap path has its name already: on disk at once (a crash before the first pair
+            # keeps the start-up outages); a directory's file is named after its first pair, so
+            # statuses wait for it, but not without bound
+            self._ensure_file(t_ns, pair=False)
         if self._file is not None:
             self._write_pending(self._file)
 
@@ -452,10 +464,12 @@ class McapRecorder(ResultSink):
         if self._file is None and self._pending_status:  # statuses but no pair (a directory): one file for them
             self._ensure_file(self._pending_status[0][0], pair=False)
         if self._file is not None:
-            if self._pending_status:
-                self._write_pending(self._file)
-            self._file.close(self.fsync)
-            self._file = None
+            try:
+                if self._pending_status:
+                    self._write_pending(self._file)
+            finally:  # the file is finished (summary, footer) even when the last write failed
+                self._file.close(self.fsync)
+                self._file = None
 
     def __enter__(self) -> "McapRecorder":
         return self
