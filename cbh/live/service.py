@@ -919,7 +919,7 @@ _EVENT_WAIT_S = 60.0
 
 def _event_clock() -> dict:
     """When a source event happened: wall clock (kept in the record) and monotonic (to place it
-    on the cameras' time line, :meth:`LiveService._session_time`)."""
+    on the cameras' time line, :meth:`Service._session_time`)."""
     return {"wall_utc": datetime.now(timezone.utc), "mono": time.monotonic()}
 
 

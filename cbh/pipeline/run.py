@@ -60,7 +60,8 @@ from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, heigh
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
-                                UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches, get_matcher, sample_map, stereo_heights, triangulate_matches)
+                                UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
+                                get_matcher, sample_map, stereo_heights, triangulate_matches)
 from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
                                  offset_per_match, plane_offsets, running_offset, track_back)
 from cbh.pipeline.photometric import estimate_response
