@@ -19,6 +19,8 @@ spin-wait (a 1 ms op took 1 s with 2 threads under load 16).
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -148,6 +150,60 @@ def test_pipeline_on_torch_matches_opencv(scene):
     assert both.sum() >= 0.999 * np.isfinite(r_n.height_map).sum()
     rel = np.abs(r_n.height_map[both] - r_t.height_map[both]) / r_n.height_map[both]
     assert np.percentile(rel, 99) <= 1e-3
+
+
+def _segment_both(pipe, image, usable, sun_angle):
+    from cbh.pipeline.segment import segment
+    from cbh.pipeline.torch_segment import segment_torch
+
+    cfg = pipe.config.segmentation
+    return (segment(image, usable, pipe.zenith(0), sun_angle, cfg),
+            segment_torch(image, usable, T.upload(pipe.zenith(0), "cpu"), sun_angle, cfg))
+
+
+@pytest.mark.parametrize("preset", ["two-layers", "clear-sky", "overcast", "sun-behind-clouds"])
+def test_segmentation_on_torch_matches_opencv(preset):
+    """Both backends take their decisions from the same samples (shared host code), so the masks
+    differ only where a pixel's score is within the references' float32/remap-weight noise
+    (≤ 1e-3 in NBR) of the threshold: ≥ 99.98 % of pixels (measured: all of them), the cloud
+    fraction within 0.05 %. (A chroma weight of 0.2 instead of 0.3 changes 0.05 % of pixels.)
+    Covers the bimodal sky with the brightness cue, a clear and an overcast one-class sky (the
+    local-contrast test), and the sun behind cloud."""
+    from cbh.sim import SkySimulator, load_scene
+
+    sim = SkySimulator(load_station(station_path("unb-lea")), load_scene(preset), size_px=480)
+    shot = sim.render()
+    pipe = Pipeline(sim.station)
+    prep = pipe.prepare(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    for sun in (prep.masks.sun_angle[0], None):  # with the sun's position, and without (time unknown)
+        (c_n, f_n), (c_t, f_t) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], sun)
+        assert c_t.dtype == bool and c_t.shape == c_n.shape
+        assert np.mean(c_n == c_t) >= 0.9998, preset
+        assert abs(f_n - f_t) <= 0.0005
+    # … and a segmentation: against the simulator's true cloud mask (the hybrid's 97.5 % on such skies)
+    (_, _), (c_t, _) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], prep.masks.sun_angle[0])
+    truth = cv2.resize(shot.views["cam1"].cloud_mask.view(np.uint8), c_t.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+    u = prep.masks.usable[0]
+    assert np.mean(truth[u] == c_t[u]) >= 0.93, preset
+
+
+def test_segmentation_on_torch_matches_opencv_on_the_real_pair(shared):
+    """The real WAHRSIS photographs (haze, JPEG noise, vignetting) at all three exposures."""
+    from datetime import datetime, timezone
+
+    from cbh.imageio import read_image
+
+    st = load_station(Path(__file__).resolve().parents[1] / "configs" / "wahrsis-2015-10-29.toml")
+    pipe = Pipeline(st)
+    t = datetime(2015, 10, 29, 4, 58, 1, tzinfo=timezone.utc)
+    d = shared / "data" / "wahrsis-2015-10-29"
+    for exp in ("low", "med", "high"):
+        im1, _ = read_image(d / f"2015-10-29-12-58-01-wahrsis3-{exp}.jpg")
+        im2, _ = read_image(d / f"2015-10-29-12-58-01-wahrsis4-{exp}.jpg")
+        prep = pipe.prepare(im1, im2, t, channels="bgr")
+        (c_n, f_n), (c_t, f_t) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], prep.masks.sun_angle[0])
+        assert np.mean(c_n == c_t) >= 0.9998, exp
+        assert abs(f_n - f_t) <= 0.0005 and 0.05 < f_t < 0.95, (exp, f_t)
 
 
 def test_sun_angle_map_matches_opencv(scene):

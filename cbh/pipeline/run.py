@@ -234,9 +234,9 @@ class Pipeline:
         """:meth:`rays_cam` as a tensor on the pipeline's device (uploaded once)."""
         key = ("dev", i)
         if key not in self._rays:
-            import torch
+            from cbh.pipeline.torch_ops import upload
 
-            self._rays[key] = torch.as_tensor(self.rays_cam(i), device=self.device)
+            self._rays[key] = upload(self.rays_cam(i), self.device)
         return self._rays[key]
 
     def rays_cam(self, i: int) -> np.ndarray:
@@ -244,6 +244,15 @@ class Pipeline:
         if i not in self._rays:
             self._rays[i] = (self.cam1, self.cam2)[i].model.ray_map().astype(np.float32)
         return self._rays[i]
+
+    def zenith_device(self, i: int):
+        """:meth:`zenith` as a tensor on the pipeline's device (uploaded once)."""
+        key = ("dev", i)
+        if key not in self._zenith:
+            from cbh.pipeline.torch_ops import upload
+
+            self._zenith[key] = upload(self.zenith(i), self.device)
+        return self._zenith[key]
 
     def zenith(self, i: int) -> np.ndarray:
         """Zenith angle of camera ``i``'s pixels at working size, (H, W) float32 [deg] (cached)."""
@@ -617,6 +626,11 @@ class Pipeline:
         cams = (self.cam1, self.cam2)
 
         def one(i):
+            if self.backend == "torch":
+                from cbh.pipeline.torch_segment import segment_torch
+
+                return segment_torch(work[i], masks.usable[i], self.zenith_device(i), masks.sun_angle[i],
+                                     self.config.segmentation, device=self.device, what=cams[i].name)
             return segment(work[i], masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
                            what=cams[i].name)
 

@@ -128,6 +128,7 @@ _BLOCKS = 6  # without geometry: the image is cut into _BLOCKS × _BLOCKS region
 _MIN_BIN = 100  # a bin needs this many sampled usable pixels for its own reference
 _SAMPLES = 25000  # pixels sampled for the reference (subsampled on a regular grid)
 _REF_STRIDE = 4  # the references are interpolated on a grid this much coarser, then resized
+BRIGHTNESS_MIN_CLEAR = 0.05  # the brightness cue needs this share of the usable sky found clear by the first pass
 
 
 def li_threshold(values: np.ndarray, tol: float = 1e-4, bins: int = 512) -> float:
@@ -329,31 +330,84 @@ def clear_sky_reference(feature, usable, zenith_deg, sun_angle_deg, q: float, im
     return clear_sky_references([feature], usable, zenith_deg, sun_angle_deg, q, image_bgr)[0]
 
 
+def sample_lattice(n_usable: int) -> tuple[slice, slice]:
+    """The regular subsample of an image on which the hybrid's statistics are taken: every
+    ``step``-th row and column, so that ``n_usable`` usable pixels give ≈ ``_SAMPLES``."""
+    step = max(1, int(math.sqrt(max(int(n_usable), 1) / _SAMPLES)))
+    return slice(step // 2, None, step), slice(step // 2, None, step)
+
+
+def reference_tables(samples, u_s, ue, v_s, ve, q: float) -> list[np.ndarray]:
+    """The clear-sky reference of each feature per region, from samples: one (nu, nv) table each
+    (nv = 2 repeated columns without a second coordinate), ready for :func:`_interp_bins`.
+
+    ``samples``: the features' values at the sampled usable pixels, ``u_s``/``v_s`` those pixels'
+    region coordinates (``v_s`` None: zenith only), ``ue``/``ve`` the bin edges; the host-side half
+    of :func:`clear_sky_references`, shared by the torch backend (:mod:`.torch_segment`).
+    """
+    nu, nv = len(ue) - 1, (len(ve) - 1 if ve is not None else 1)
+    bu = np.clip(np.searchsorted(ue, u_s, side="right") - 1, 0, nu - 1)
+    bv = np.clip(np.searchsorted(ve, v_s, side="right") - 1, 0, nv - 1) if ve is not None else np.zeros_like(bu)
+    out = []
+    for fs in samples:
+        if fs.size == 0:
+            out.append(None)
+            continue
+        ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)), float(np.percentile(fs, q)))
+        out.append(np.repeat(ref, 2, axis=1) if ve is None else ref)
+    return out
+
+
 def clear_sky_references(features, usable, zenith_deg, sun_angle_deg, q: float, image_bgr=None) -> list[np.ndarray]:
     """:func:`clear_sky_reference` of several (H, W) features sharing one set of regions."""
     H, W = usable.shape
     u, ue, v, ve = _region_coords((H, W), usable, zenith_deg, sun_angle_deg, image_bgr)
-    step = max(1, int(math.sqrt(max(int(np.count_nonzero(usable)), 1) / _SAMPLES)))
-    sl = (slice(step // 2, None, step), slice(step // 2, None, step))
+    sl = sample_lattice(np.count_nonzero(usable))
     m = usable[sl]
-    nu, nv = len(ue) - 1, (len(ve) - 1 if ve is not None else 1)
-    bu = np.clip(np.searchsorted(ue, u[sl][m], side="right") - 1, 0, nu - 1)
-    bv = np.clip(np.searchsorted(ve, v[sl][m], side="right") - 1, 0, nv - 1) if ve is not None else np.zeros_like(bu)
+    tables = reference_tables([f[sl][m] for f in features], u[sl][m], ue, v[sl][m] if v is not None else None, ve, q)
     # the references are smooth: interpolate them on a 4× coarser grid, then resize
     c = (slice(0, None, _REF_STRIDE), slice(0, None, _REF_STRIDE))
     us, vs = np.ascontiguousarray(u[c]), (np.ascontiguousarray(v[c]) if v is not None else None)
     out = []
-    for feature in features:
-        fs = feature[sl][m]
-        if fs.size == 0:
+    for ref in tables:
+        if ref is None:
             out.append(np.zeros((H, W), np.float32))
             continue
-        ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)), float(np.percentile(fs, q)))
-        if ve is None:
-            ref = np.repeat(ref, 2, axis=1)
         small = _interp_bins(ref, us, ue, vs, ve)
         out.append(cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR))
     return out
+
+
+def hybrid_classes(rs: np.ndarray, cs: np.ndarray | None, cfg: SegmentationConfig) -> float | None:
+    """The hybrid's class decision from samples: the cloud class's typical blue deficit (the
+    divisor of the score) when the sky is bimodal, None when it is one class only.
+
+    ``rs``: blue deficits (reference − NBR) of the sampled usable pixels; ``cs``: their chroma
+    (None = unknown). Shared by both backends (:mod:`.torch_segment`).
+    """
+    t = li_threshold(rs)
+    lo, hi = rs[rs <= t], rs[rs > t]
+    bimodal = False
+    if lo.size >= 0.02 * rs.size and hi.size >= 0.02 * rs.size:
+        # the cloud class's blue deficit against the clear sky (whose own deficit is ≈ 0: a lower
+        # class far below 0 is a tail of one broad class, not clear sky)
+        gap_n = float(np.median(hi) - max(float(np.median(lo)), 0.0))
+        bimodal = gap_n >= cfg.min_gap
+        if not bimodal and gap_n >= cfg.min_gap / 2 and cs is not None:
+            # a pale (hazy, over-exposed) sky: a small blue deficit, but the high class is grey and
+            # the low class is not (textured overcast: both classes equally grey)
+            c_lo, c_hi = float(np.median(cs[rs <= t])), float(np.median(cs[rs > t]))
+            bimodal = c_lo - c_hi >= cfg.chroma_gap and c_hi <= 0.5 * c_lo
+    return max(float(np.median(hi)), cfg.min_gap) if bimodal else None  # blue deficit of typical cloud
+
+
+def one_class_is_clear(nbr_s: np.ndarray, contrast_s, cfg: SegmentationConfig) -> bool:
+    """One class only (the hybrid-thresholding idea: no threshold from a unimodal histogram): a
+    clear sky when the sampled median NBR is at least ``fixed_threshold`` and the sky is smooth
+    (``contrast_s()``: the sampled local contrast, called only then; None = no image), else overcast."""
+    if float(np.median(nbr_s)) < cfg.fixed_threshold:
+        return False
+    return contrast_s is None or float(np.median(contrast_s())) < cfg.texture_cv
 
 
 def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
@@ -370,46 +424,29 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     else:
         r_s = None
     # class statistics on a regular subsample of the usable sky (≈ _SAMPLES pixels)
-    s = max(1, int(math.sqrt(max(int(np.count_nonzero(usable)), 1) / _SAMPLES)))
-    sub = (slice(s // 2, None, s), slice(s // 2, None, s))
+    sub = sample_lattice(np.count_nonzero(usable))
     us = usable[sub]
     rs = r_n[sub][us]
     if rs.size == 0:
         return np.zeros_like(usable)
-    t = li_threshold(rs)
-    lo, hi = rs[rs <= t], rs[rs > t]
-    bimodal = False
-    if lo.size >= 0.02 * rs.size and hi.size >= 0.02 * rs.size:
-        # the cloud class's blue deficit against the clear sky (whose own deficit is ≈ 0: a lower
-        # class far below 0 is a tail of one broad class, not clear sky)
-        gap_n = float(np.median(hi) - max(float(np.median(lo)), 0.0))
-        bimodal = gap_n >= cfg.min_gap
-        if not bimodal and gap_n >= cfg.min_gap / 2 and chroma is not None:
-            # a pale (hazy, over-exposed) sky: a small blue deficit, but the high class is grey and
-            # the low class is not (textured overcast: both classes equally grey)
-            cs = chroma[sub][us]
-            c_lo, c_hi = float(np.median(cs[rs <= t])), float(np.median(cs[rs > t]))
-            bimodal = c_lo - c_hi >= cfg.chroma_gap and c_hi <= 0.5 * c_lo
-    if not bimodal:  # one class only: the whole usable sky is clear or cloud (fixed threshold)
-        med = float(np.median(nbr[sub][us]))
-        smooth = image_bgr is None or float(np.median(local_contrast(image_bgr)[sub][us])) < cfg.texture_cv
-        if med >= cfg.fixed_threshold and smooth:  # clear: only what stands out from the clear sky
-            score = cv2.divide(r_n, cfg.min_gap * 2.0)
-        else:
+    gap = hybrid_classes(rs, chroma[sub][us] if chroma is not None else None, cfg)
+    if gap is None:  # one class only: the whole usable sky is clear or cloud
+        contrast = None if image_bgr is None else (lambda: local_contrast(image_bgr)[sub][us])
+        if not one_class_is_clear(nbr[sub][us], contrast, cfg):
             return usable.copy()
+        score = cv2.divide(r_n, cfg.min_gap * 2.0)  # clear: only what stands out from the clear sky
     else:
-        gap = max(float(np.median(hi)), cfg.min_gap)  # blue deficit of typical cloud
         score = cv2.divide(r_n, gap)
     if r_s is not None:
         score = cv2.addWeighted(score, 1.0 - cfg.chroma_weight, r_s, cfg.chroma_weight, 0.0)
     cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
-    if bimodal and image_bgr is not None and cfg.brightness_weight > 0:
+    if gap is not None and image_bgr is not None and cfg.brightness_weight > 0:
         # brightness cue: cloud is brighter (sunlit, thin) or darker (thick base) than the clear
         # sky of the same region, which the first pass found; exposure cancels in the ratio
         b, g, r = cv2.split(image_bgr)
         value = cv2.max(cv2.max(b, g), r).astype(np.float32)
         clear = usable & ~cloud
-        if np.count_nonzero(clear) >= 0.05 * np.count_nonzero(usable):
+        if np.count_nonzero(clear) >= BRIGHTNESS_MIN_CLEAR * np.count_nonzero(usable):
             v_ref = clear_sky_references([value / 255.0], clear, zenith_deg, sun_angle_deg, 50.0, image_bgr)[0]
             dv = cv2.absdiff(cv2.log(cv2.max(value, 1.0)), cv2.log(cv2.max(v_ref * 255.0, 1.0)))
             score = cv2.addWeighted(score, 1.0, dv, cfg.brightness_weight / math.log(1.5), 0.0)

@@ -58,7 +58,7 @@ from cbh.pipeline.sweep import (
     coarse_regions, coarse_votes, fine_planes, layer_box, layer_planes, vote_layers, SweepField, field_points,
 )
 
-__all__ = ["remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
+__all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
            "resolve_device"]
 
 _CPU_CHUNK_PX = 4_000_000  # CPU: planes per batched call × pixels per plane at most (bounds temporaries)
@@ -110,8 +110,20 @@ def pool2(x: torch.Tensor) -> torch.Tensor:
     return F.avg_pool2d(x, 2)
 
 
+def upload(a, device, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """A numpy array (or a tensor) as a tensor on ``device``. Read-only arrays (the table cache's,
+    memory-mapped) are copied first: torch cannot share memory it must treat as writable."""
+    if isinstance(a, torch.Tensor):
+        return a.to(device=device, dtype=dtype or a.dtype)
+    a = np.ascontiguousarray(a)
+    if not a.flags.writeable:
+        a = a.copy()
+    t = torch.as_tensor(a, device=device)
+    return t if dtype is None else t.to(dtype)
+
+
 def _t(a, device, dtype=torch.float32) -> torch.Tensor:
-    return torch.as_tensor(np.ascontiguousarray(a), device=device).to(dtype)
+    return upload(a, device, dtype)
 
 
 class TorchPlaneMaps:
