@@ -149,7 +149,12 @@ def test_pipeline_on_torch_matches_opencv(scene):
     both = np.isfinite(r_n.height_map) & np.isfinite(r_t.height_map)
     assert both.sum() >= 0.999 * np.isfinite(r_n.height_map).sum()
     rel = np.abs(r_n.height_map[both] - r_t.height_map[both]) / r_n.height_map[both]
-    assert np.percentile(rel, 99) <= 1e-3
+    # measured pixels agree as the sweep's passes do; a filled pixel (≤ 3 px from a measured one)
+    # copies its nearest measured height, and OpenCV's chamfer distances (≤ 2 % long) can rank
+    # another seed first than the exact jump flooding does: at layer edges that is the other
+    # layer's height (measured: 1.3 % of pixels off by more than 1e-3)
+    assert np.percentile(rel, 95) <= 1e-3
+    assert np.mean(rel > 1e-3) <= 0.03
 
 
 def _segment_both(pipe, image, usable, sun_angle):
@@ -204,6 +209,46 @@ def test_segmentation_on_torch_matches_opencv_on_the_real_pair(shared):
         (c_n, f_n), (c_t, f_t) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], prep.masks.sun_angle[0])
         assert np.mean(c_n == c_t) >= 0.9998, exp
         assert abs(f_n - f_t) <= 0.0005 and 0.05 < f_t < 0.95, (exp, f_t)
+
+
+def _exact_distance(known: np.ndarray) -> np.ndarray:
+    """Exact Euclidean distance to the nearest known pixel, by brute force over the seeds."""
+    ky, kx = np.nonzero(known)
+    yy, xx = np.mgrid[0: known.shape[0], 0: known.shape[1]]
+    d2 = np.full(known.shape, np.inf)
+    for y, x in zip(ky, kx):
+        np.minimum(d2, (yy - y) ** 2 + (xx - x) ** 2, out=d2)
+    return np.sqrt(d2)
+
+
+@pytest.mark.parametrize("density", [0.002, 0.05])
+def test_nearest_fill_on_torch_finds_the_nearest_measured_pixel(density):
+    """Jump flooding against brute force: the distance to the seed it found is the exact nearest
+    distance on ≥ 99.9 % of pixels (its rare misses are a pixel or so longer), and each pixel's
+    height is its seed's. OpenCV's 5 × 5 chamfer distances are ≤ 2 % long; the fill rule
+    (distance ≤ 3 px) then selects the same pixels."""
+    from cbh.pipeline.heightmap import nearest_fill
+    from cbh.pipeline.torch_heightmap import nearest_fill_torch
+
+    rng = np.random.default_rng(7)
+    known = rng.random((90, 120)) < density
+    hmap = np.where(known, rng.uniform(300, 9000, known.shape), np.nan).astype(np.float32)
+    exact = _exact_distance(known)
+    near_t, d_t = nearest_fill_torch(hmap)
+    near_n, d_n = nearest_fill(hmap)
+    assert np.mean(np.abs(d_t - exact) <= 1e-3) >= 0.999
+    assert np.all(d_t >= exact - 1e-3) and np.all(d_t <= exact + 1.5)
+    assert np.all(np.isin(near_t, hmap[known]))  # a measured height, not a blend
+    assert np.array_equal(near_t[known], hmap[known]) and np.all(d_t[known] == 0)
+    assert np.all(np.abs(d_n - exact) <= 0.02 * exact + 1e-3)
+    assert np.array_equal(d_t <= 3.0, d_n <= 3.0)
+
+
+def test_nearest_fill_on_torch_without_any_measurement():
+    from cbh.pipeline.torch_heightmap import nearest_fill_torch
+
+    near, d = nearest_fill_torch(np.full((5, 6), np.nan, np.float32))
+    assert np.isnan(near).all() and np.isinf(d).all()
 
 
 def test_sun_angle_map_matches_opencv(scene):

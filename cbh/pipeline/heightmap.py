@@ -35,7 +35,7 @@ class HeightMap:
 
 
 def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray, cloud: np.ndarray,
-                     cfg, full_size: tuple[int, int], grids=()) -> HeightMap:
+                     cfg, full_size: tuple[int, int], grids=(), nearest=None) -> HeightMap:
     """Splat heights onto camera 1's working grid, fill holes inside the cloud mask (see module doc).
 
     Parameters
@@ -53,6 +53,9 @@ def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarra
     grids : sequence of ndarray, shape (h, w), float32
         Height maps measured per pixel (a plane sweep's field, NaN = none), merged with the
         splatted points by the mean of what each pixel has (each grid counts as one height).
+    nearest : callable or None
+        The hole fill's ``hmap → (nearest, dist)``; None: :func:`nearest_fill` (OpenCV). The
+        torch backend hands in :func:`cbh.pipeline.torch_heightmap.nearest_fill_torch`.
     """
     hmap = rasterize_heights(shape, px, height_m)
     if grids:
@@ -66,7 +69,7 @@ def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarra
     known = np.isfinite(hmap)
     n_cloud = int(np.count_nonzero(cloud))
     measured = float(np.count_nonzero(known & cloud)) / n_cloud if n_cloud else float("nan")
-    nearest, dist = nearest_fill(hmap)
+    nearest, dist = (nearest or nearest_fill)(hmap)
     if cfg.fill == "nearest":
         fill = cloud & ~known & (dist <= cfg.fill_max_px)
         hmap = hmap.copy()

@@ -43,6 +43,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from datetime import datetime
+from functools import partial
 
 import cv2
 import numpy as np
@@ -721,8 +722,13 @@ class Pipeline:
         else:
             px, hh = np.zeros((0, 2)), np.zeros(0)
         shape1 = (self.cam1.model.height, self.cam1.model.width)
+        fill = None
+        if self.backend == "torch":
+            from cbh.pipeline.torch_heightmap import nearest_fill_torch
+
+            fill = partial(nearest_fill_torch, device=self.device)
         hm = dense_height_map(shape1, px, hh, seg.clouds[0], self.config.height_map,
-                              (self.cam1_full.model.width, self.cam1_full.model.height), grids=grids)
+                              (self.cam1_full.model.width, self.cam1_full.model.height), grids=grids, nearest=fill)
         # the share of the cloud measured means something only for a dense method (sparse
         # matches cover a few hundred pixels of any cloud): unknown otherwise, and no flag hangs on it
         return hm if dense else replace(hm, measured_fraction=math.nan)

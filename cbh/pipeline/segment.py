@@ -50,7 +50,7 @@ refused by :func:`segment` (:class:`~cbh.errors.ImageError`): there is no blue-r
 - ``otsu``: Otsu's threshold on the usable NBR histogram, clamped to [otsu_min, otsu_max]
   (copes with a global colour shift of the camera).
 
-Per pixel everything runs through OpenCV; the hybrid's references are sampled (≈ 25 000
+Per pixel everything runs through OpenCV (or torch on a device: :mod:`.torch_segment`); the hybrid's references are sampled (≈ 25 000
 pixels) and interpolated on a 4× coarser grid, so it costs a few times ``nbr_adaptive``'s ≈ 5 ms
 per 960² image. Images with a long side above ``max_side_px`` (1600) are classified
 area-averaged and the mask is brought back to full size.

@@ -7,7 +7,12 @@ What runs here, on tensors that stay on the device until the per-pair result is 
   (coarse → fine → label → refine), with the ZNCC of *all* planes of a pass in one batched
   call (chunked on CPU to bound memory) instead of a loop over planes; the 1-D steps (vote
   histograms, peaks, plane selection, far-layer box) are shared with :mod:`.sweep` unchanged;
-- the sun angle map of the masks stage (:func:`angle_map_deg_torch`).
+- the sun angle map of the masks stage (:func:`angle_map_deg_torch`);
+- segmentation's per-pixel work (:mod:`.torch_segment`; its statistics on a subsample stay on
+  the host, in code shared with the OpenCV path);
+- the height map's hole fill (:mod:`.torch_heightmap`): every pixel's nearest measured pixel,
+  by jump flooding, since kornia's ``distance_transform`` gives distances without the nearest
+  pixel's label (OpenCV's ``distanceTransformWithLabels``).
 
 kornia where it fits:
 
@@ -31,16 +36,15 @@ What stays on OpenCV, and why:
   thousand points; no kornia equivalent with forward-backward checks, and little to gain;
 - the saturation mask: connected components *with areas* (``connectedComponentsWithStats``);
   ``kornia.contrib.connected_components`` is an iterative label propagation without areas;
-- the height map's hole fill: a distance transform *with the nearest pixel's label*
-  (``distanceTransformWithLabels``); kornia's ``distance_transform`` gives distances only;
 - the working-size resize and grey conversion (uint8 in, uint8 out, as the sparse matchers
   need them; 2 ms);
-- segmentation (``hybrid``): its costly steps are per-region percentiles, Li's threshold and a
-  robust surface fit on ≈ 10⁴ sampled pixels (sorts and small least squares, nothing for a GPU
-  to gain), and its per-pixel steps are a handful of cheap OpenCV operations (≈ 30 ms per
-  camera at 960 px on one core, both cameras side by side on threads);
-- the height map from the sweep's field (closed form, a few OpenCV operations) and the layer
-  statistics (histograms of ≈ 10⁴ points).
+- segmentation's statistics (per-region percentiles, Li's threshold and a robust surface fit on
+  ≈ 25 000 sampled pixels: sorts and small least squares, nothing for a GPU to gain): the
+  samples are brought back once per reference (:mod:`.torch_segment`); on the OpenCV backend
+  the whole of segmentation stays there (≈ 30 ms per camera at 960 px on one core, against
+  40–100 ms for the torch code on one CPU thread);
+- the height map's assembly from the sweep's field (closed form, a few OpenCV operations on the
+  field as the sweep hands it back) and the layer statistics (histograms of ≈ 10⁴ points).
 
 Precision: float32 throughout, as the OpenCV path; ZNCC values agree with it to ≈ 1e-5
 (different summation order of the box filters), see tests/test_torch_parity.py.
