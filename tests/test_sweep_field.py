@@ -78,3 +78,37 @@ def test_height_map_is_the_field_and_points_sample_it(run):
     # the map holds the field (about stride² times the lattice points), filled only within the cloud
     known = np.isfinite(r.height_map).sum()
     assert known >= 0.8 * stride * stride * n_sw
+
+
+def test_kept_plane_tables_give_the_same_result_within_their_budget(small_sky):
+    """The sweep's plane tables kept between pairs (``map_cache_mb``) are the tables it would
+    compute: the second and third pair (filling, then reusing them) give bit-identical results
+    to a pipeline that keeps none; the budget holds; a single pair keeps nothing."""
+    from dataclasses import replace
+
+    sim, shot = small_sky
+    images = (shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+    base = Pipeline(sim.station).config
+
+    def pipe_with(mb):
+        sw = replace(base.matching.sweep, map_cache_mb=mb)
+        return Pipeline(sim.station, config=replace(base, matching=replace(base.matching, sweep=sw)))
+
+    off, on = pipe_with(0.0), pipe_with(400.0)
+    ref = off.process(*images, channels="bgr")
+    kept = None
+    for k in range(3):
+        r = on.process(*images, channels="bgr")
+        kept = on.geometry.planes.__dict__["_kept"]
+        assert (len(kept.items) > 0) == (k > 0)  # the first pair keeps nothing
+        assert np.array_equal(r.height_map, ref.height_map, equal_nan=True)
+        assert [L.height_m for L in r.layers] == [L.height_m for L in ref.layers]
+    assert {tag for tag, _ in kept.items} >= {1, 2}  # the fine planes and the coarse ones (half size)
+    n_all = kept.bytes
+    small = pipe_with(n_all / 3 / 1e6)  # room for a third of them: the least recently used go
+    for k in range(3):
+        r = small.process(*images, channels="bgr")
+        k2 = small.geometry.planes.__dict__["_kept"]
+        assert (0 < k2.bytes <= n_all / 3 and len(k2.items) < len(kept.items)) == (k > 0)
+        assert np.array_equal(r.height_map, ref.height_map, equal_nan=True)
+    assert not off.geometry.planes.__dict__["_kept"].items

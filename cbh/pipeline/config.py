@@ -157,6 +157,7 @@ class SweepConfig:
     far_aggregate_px: float = 8.0  # layers with less parallax than this get a box grown by this/parallax (≤ 4×); 0 = off [px]
     vote_percentile: float = 70.0  # fine layer votes: only pixels whose wide-box ZNCC is above this percentile [%]
     max_planes: int = 48  # fine planes at most (the step grows beyond) [1]
+    map_cache_mb: float = 400.0  # remap tables of the planes used, kept for the next pairs (≈ 7 MB per fine plane at 960 px); 0 = off [MB]
     point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
 
 
@@ -383,6 +384,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
     if not fl.min_height_m < fl.max_height_m:
         raise ConfigError(f"{where}.filtering.min_height_m: must be < max_height_m")
     _positive(f"{where}.filtering.min_height_m", fl.min_height_m)
+    _positive(f"{where}.matching.sweep.map_cache_mb", cfg.matching.sweep.map_cache_mb, strict=False)
     hm = cfg.height_map
     _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
     _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)

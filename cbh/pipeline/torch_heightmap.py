@@ -3,12 +3,14 @@
 :func:`cbh.pipeline.heightmap.nearest_fill` asks OpenCV for a distance transform *with the
 nearest pixel's label* (``distanceTransformWithLabels``); kornia's ``distance_transform`` gives
 distances only. Here the labels come from the jump flooding algorithm (Rong & Tan 2006), which
-maps well onto a device: each of ⌈log₂ max(H, W)⌉ + 1 passes (step n/2, n/4 … 1, then 1 again)
-lets every pixel adopt, among its own seed and those of the 8 pixels one step away, the one
-nearest to it. Its distances are exact Euclidean distances to the seed it found, where
-OpenCV's 5 × 5 chamfer mask approximates them (≤ 2 % long); both can pick a different seed
-where two lie at nearly the same distance. Parity (tests/test_torch_parity.py): the filled map
-and the distances agree except at such ties.
+maps well onto a device: each of ⌈log₂ max(H, W)⌉ + 3 passes (step 1, then n/2, n/4 … 1, then
+2 and 1: "1 + JFA + 2") lets every pixel adopt, among its own seed and those of the 8 pixels one
+step away, the one nearest to it. Its distances are exact Euclidean distances to the seed it
+found, and that seed was the nearest one on every pixel of 563 random maps (1 × 1 to 480 × 640,
+8 M pixels; plain JFA + 1 missed 65 of them by up to 6 px). OpenCV's 5 × 5 chamfer mask
+approximates the distances (≤ 2 % long), so the two can pick different seeds where two lie at
+nearly the same distance. Parity (tests/test_torch_parity.py): exact distances against brute
+force; the fill rule (≤ 3 px) selects the same pixels as OpenCV's.
 
 The rest of :func:`~cbh.pipeline.heightmap.dense_height_map` (splatting matches, merging
 grids, the fill rule, the upsampling) is shared: the fill is handed in as a function.
@@ -49,7 +51,10 @@ def nearest_labels(known: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     while k >= 1:
         steps.append(k)
         k //= 2
-    steps.append(1)  # "1 + JFA": a last step-1 pass mends most of the jump flooding's rare misses
+    # "1 + JFA + 2": a step-1 pass first and two after (2, 1) mend the jump flooding's rare misses
+    # (plain JFA + 1: 65 of 4.2 M pixels took a seed up to 6 px farther than the nearest, on 163
+    # random maps; this: none there, nor on 400 more)
+    steps = [1] + steps + [2, 1]
     for k in steps:
         py = torch.full((H + 2 * k, W + 2 * k), inf, device=dev)
         px = torch.full((H + 2 * k, W + 2 * k), inf, device=dev)
@@ -65,7 +70,7 @@ def nearest_labels(known: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
                 d2 = torch.where(better, d, d2)
                 ny, nx = torch.where(better, cy, ny), torch.where(better, cx, nx)
         sy, sx = ny, nx
-    label = (sy * W + sx).to(torch.int64)
+    label = sy.to(torch.int64) * W + sx.to(torch.int64)  # (coordinates are whole numbers: exact in float32 to 2²⁴)
     return label, d2
 
 

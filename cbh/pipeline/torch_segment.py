@@ -14,9 +14,10 @@ The split follows where the work is:
   backends take the same decisions from the same samples.
 
 What stays on the OpenCV path: the other methods (``nbr``, ``nbr_adaptive``, ``otsu``: one
-threshold, nothing for a device to gain) and images without geometry (``cbh segment`` on a
-bare photograph: its regions come from the image's disk and saturated sun, found by connected
-components), and images above ``max_side_px`` are area-averaged on the host first.
+threshold, nothing for a device to gain), images without geometry (``cbh segment`` on a bare
+photograph: its regions come from the image's disk and saturated sun, found by connected
+components), images above ``max_side_px`` (area-averaged on the host first) and thumbnails
+under 16 px a side.
 
 Parity with the OpenCV path (tests/test_torch_parity.py): the references differ by float32
 rounding and by cv2.remap's 1/32-pixel bilinear weights (≤ 1e-3 in NBR), so the masks agree
@@ -39,6 +40,8 @@ from cbh.pipeline.segment import (
 from cbh.pipeline.torch_ops import box, upload
 
 __all__ = ["segment_torch"]
+
+_MIN_SIDE_PX = 16  # smaller images go to the host (the box filters' reflect padding needs a few pixels)
 
 
 def _frac_index(x: torch.Tensor, edges: np.ndarray) -> torch.Tensor:
@@ -108,7 +111,7 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     """
     check_colour(image_bgr, what)
     H, W = image_bgr.shape[:2]
-    if (cfg.method.lower() != "hybrid" or zenith_deg is None
+    if (cfg.method.lower() != "hybrid" or zenith_deg is None or min(H, W) < _MIN_SIDE_PX
             or (cfg.max_side_px and max(H, W) > cfg.max_side_px)):
         host = lambda a: a.cpu().numpy() if isinstance(a, torch.Tensor) else a  # noqa: E731
         return segment(image_bgr, usable, host(zenith_deg), host(sun_angle_deg), cfg, what)
@@ -131,6 +134,8 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     sub = sample_lattice(n_use)
     us = use[sub]
     rs = r_n[sub][us].cpu().numpy()
+    if rs.size == 0:  # no usable pixel on the sampling lattice (as segment._hybrid: nothing classified)
+        return np.zeros((H, W), bool), 0.0
     gap = hybrid_classes(rs, chroma[sub][us].cpu().numpy(), cfg)
     if gap is None:  # one class only: the whole usable sky is clear or cloud
         # OpenCV's grey conversion, uploaded (its SIMD rounding differs from any one formula by a grey
