@@ -268,3 +268,31 @@ def test_parquet_is_complete_after_every_pair_appends_and_rolls_over(tmp_path, s
         again.write(*synthetic_pair(station, 0))
     df = pd.read_parquet(out)
     assert len(df) == 4 and df["cloud_base_height_m"].iloc[0] == df["cloud_base_height_m"].iloc[3]
+
+
+def test_parquet_export_widens_for_a_new_diagnostic_and_keeps_every_row(tmp_path, station, monkeypatch):
+    """The table is kept in Arrow between pairs (only new rows are converted): a diagnostic that
+    appears later becomes a column, empty for the earlier rows, and nothing is lost when the
+    per-pair chunks are combined."""
+    import dataclasses
+
+    import pandas as pd
+
+    import cbh.outputs.export as E
+
+    monkeypatch.setattr(E, "_COMBINE_EVERY", 2)
+    out = tmp_path / "d.parquet"
+    exp = E.LayerExporter(out, station)
+    frames, r0 = synthetic_pair(station, 0)
+    exp.write(frames, r0)
+    frames, r1 = synthetic_pair(station, 1)
+    exp.write(frames, dataclasses.replace(r1, diagnostics={**r1.diagnostics, "zz_new_px": 2.5}))
+    for k in range(2, 5):
+        exp.write(*synthetic_pair(station, k))
+    exp.close()
+    df = pd.read_parquet(out)
+    n0, n1 = len(E.record_rows(E.pair_record(r0, 0.0))), len(E.record_rows(E.pair_record(r1, 0.0)))
+    assert "zz_new_px" in df.columns and len(df) == exp.rows_written
+    assert df["zz_new_px"].iloc[:n0].isna().all() and (df["zz_new_px"].iloc[n0: n0 + n1] == 2.5).all()
+    assert df["zz_new_px"].iloc[n0 + n1:].isna().all()
+    assert list(df["time_utc"]) == sorted(df["time_utc"])
