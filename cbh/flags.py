@@ -30,6 +30,7 @@ class Flag(enum.IntFlag):
     identical_images = 1 << 11  # both cameras delivered the same image
     below_range = 1 << 12  # much of the measured cloud sits on the sweep's lowest plane: cloud at or below its floor
     cloud_unmatched = 1 << 13  # most of camera 1's cloud found no height: the layers describe only the matched part
+    underexposed = 1 << 14  # a camera's sky is too dark for its colours to be read: cloud masks and cover unreliable
 
 
 #: Flags whose layers must not be reported as valid (exported with the flag, left out of

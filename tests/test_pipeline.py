@@ -424,3 +424,26 @@ def test_sparse_matchers_alone_leave_the_measured_share_unknown_and_unflagged():
         r = _one_layer(1500.0, 0.6, 800.0, 5, PipelineConfig.from_dict({"matching": {"methods": methods}}))
         assert math.isnan(r.diagnostics["measured_fraction"]), methods
         assert not {"cloud_unmatched", "below_range"} & set(r.flags), (methods, r.flags)
+
+
+def test_a_dark_sky_is_flagged_underexposed():
+    """A simulated clear sky exposed at a median 24 DN with 2 DN of noise (JPEG 85): its noise
+    reads as texture and the segmentation calls it overcast: the pair says its camera is too
+    dark to be read. The same sky exposed normally is clear and unflagged."""
+    import dataclasses
+
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim import SkySimulator, load_scene
+
+    base = load_scene("clear-sky")
+    out = {}
+    for exposure in (1.0, 0.12):
+        im = dataclasses.replace(base.image, exposure=exposure, noise_dn=2.0, jpeg_roundtrip=True, jpeg_quality=85)
+        sim = SkySimulator(load_station(station_path("unb-lea")), dataclasses.replace(base, image=im), size_px=320)
+        shot = sim.render()
+        out[exposure] = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image,
+                                                      shot.time_utc, channels="bgr")
+    bright, dark = out[1.0], out[0.12]
+    assert "underexposed" not in bright.flags and bright.diagnostics["sky_dn_cam1"] > 150
+    assert "underexposed" in dark.flags and dark.diagnostics["sky_dn_cam1"] < 32

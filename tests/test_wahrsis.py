@@ -115,6 +115,11 @@ def test_mixed_exposure_pair_low_med(wahrsis, result):
     _check_combo(r, result)
     assert "exposure_mismatch" in r.flags  # about a stop apart: estimated, corrected, flagged
     assert r.diagnostics["exposure_gain"] < 0.8
+    # the low exposure's sky has a median brightest channel of 26 DN: its colours cannot be read
+    # (its mask agrees with the medium one's on 85 % of the sky): flagged, the heights still stand
+    assert "underexposed" in r.flags and r.diagnostics["sky_dn_cam1"] == pytest.approx(26, abs=2)
+    assert r.diagnostics["sky_dn_cam2"] == pytest.approx(101, abs=4)  # as received (brighter than WAHRSIS3 med: 82)
+    assert "underexposed" not in result.flags and result.diagnostics["sky_dn_cam1"] > 60
 
 
 @pytest.mark.slow

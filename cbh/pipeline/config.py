@@ -89,6 +89,7 @@ class SegmentationConfig:
     otsu_min: float = -0.05  # otsu: clamp of the Otsu threshold, lower end [1]
     otsu_max: float = 0.20  # otsu: clamp of the Otsu threshold, upper end [1]
     min_brightness: int = 8  # pixels darker than this (max channel) are not classified [0..255]
+    min_sky_dn: float = 32.0  # flag underexposed when a camera's usable sky has a median brightest channel below this [0..255]
     max_side_px: int = 1600  # larger images are classified area-averaged to this long side; 0 = never [px]
 
 
@@ -385,6 +386,7 @@ def _validate(cfg: PipelineConfig, where: str) -> None:
         raise ConfigError(f"{where}.filtering.min_height_m: must be < max_height_m")
     _positive(f"{where}.filtering.min_height_m", fl.min_height_m)
     _positive(f"{where}.matching.sweep.map_cache_mb", cfg.matching.sweep.map_cache_mb, strict=False)
+    _positive(f"{where}.segmentation.min_sky_dn", cfg.segmentation.min_sky_dn, strict=False)
     hm = cfg.height_map
     _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
     _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
