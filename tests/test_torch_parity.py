@@ -335,6 +335,25 @@ def test_pipeline_on_cuda_matches_cpu(scene):
     assert np.allclose([L.height_m for L in r_n.layers], [L.height_m for L in r_c.layers], rtol=2e-3)
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_segmentation_and_fill_on_cuda_match_the_host(scene):
+    from cbh.pipeline.segment import segment
+    from cbh.pipeline.torch_heightmap import nearest_fill_torch
+    from cbh.pipeline.torch_segment import segment_torch
+
+    pipe, shot = scene["pipe"], scene["shot"]
+    prep = pipe.prepare(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    args = (prep.work[0], prep.masks.usable[0], pipe.zenith(0), prep.masks.sun_angle[0], pipe.config.segmentation)
+    (c_n, f_n), (c_c, f_c) = segment(*args), segment_torch(*args, device="cuda")
+    assert np.mean(c_n == c_c) >= 0.9998 and abs(f_n - f_c) <= 0.0005
+    rng = np.random.default_rng(2)
+    known = rng.random((90, 120)) < 0.01
+    hmap = np.where(known, rng.uniform(300, 9000, known.shape), np.nan).astype(np.float32)
+    _, d_c = nearest_fill_torch(hmap, "cuda")
+    assert np.abs(d_c - _exact_distance(known)).max() <= 1e-3
+
+
 def test_cli_device_errors_are_one_line(repo, tmp_path, capsys):
     from cbh.cli.main import main
 
