@@ -158,7 +158,7 @@ class SweepConfig:
     far_aggregate_px: float = 8.0  # layers with less parallax than this get a box grown by this/parallax (≤ 4×); 0 = off [px]
     vote_percentile: float = 70.0  # fine layer votes: only pixels whose wide-box ZNCC is above this percentile [%]
     max_planes: int = 48  # fine planes at most (the step grows beyond) [1]
-    map_cache_mb: float = 400.0  # remap tables of the planes used, kept for the next pairs (≈ 7 MB per fine plane at 960 px); 0 = off [MB]
+    map_cache_mb: float = 256.0  # remap tables of the planes used, kept for the next pairs (≈ 7 MB per fine plane at 960 px; per process); 0 = off [MB]
     point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
 
 

@@ -161,6 +161,8 @@ class PlaneMaps:
         key = (self.__dict__.get("_kept_tag", 1), float(s))
         full = kept.get(key)
         if full is None:
+            if not kept.make_room(2 * self.m0.shape[0] * self.m0.shape[1] * 4):
+                return self._tables_at(s, sl)  # no room without evicting this sweep's own planes
             full = self._tables_at(s, np.s_[:, :])
             kept.put(key, full)
         return full[0][sl], full[1][sl]
@@ -184,7 +186,9 @@ class PlaneMaps:
         ``cbh pair`` neither builds whole-image tables nor holds them."""
         n = self.__dict__.get("_sweeps", 0)
         self.__dict__["_sweeps"] = n + 1
-        self._plane_cache().resize(int(max(float(max_mb), 0.0) * 1e6) if n else 0)
+        kept = self._plane_cache()
+        kept.resize(int(max(float(max_mb), 0.0) * 1e6) if n else 0)
+        kept.new_sweep()
 
     def _plane_cache(self) -> "_KeptPlanes":
         with _REGION_LOCK:
@@ -255,41 +259,61 @@ class PlaneMaps:
 
 
 class _KeptPlanes:
-    """Whole-image remap tables of recently used planes, within a byte budget (least recently
-    used out first), shared by a :class:`PlaneMaps` and its downsampled versions; thread-safe
-    (an entry is complete before it is published and never changed)."""
+    """Whole-image remap tables of recently used planes, within a byte budget, shared by a
+    :class:`PlaneMaps` and its downsampled versions; thread-safe (an entry is complete before it
+    is published and never changed).
+
+    Least recently used out first, but never a plane that this sweep or the one before used:
+    with a budget smaller than a sweep's planes, the kept ones stay and the rest are computed on
+    their region as without the cache (plain LRU, over planes used in turn, would evict every
+    plane before its next use); planes no sweep asked for since go when new ones need room."""
 
     def __init__(self):
         self.max_bytes = 0
         self.bytes = 0
-        self.items: OrderedDict = OrderedDict()
+        self.sweep = 0
+        self.items: OrderedDict = OrderedDict()  # key → (tables, sweep that last used it), oldest use first
         self.lock = threading.Lock()
+
+    def new_sweep(self) -> None:
+        with self.lock:
+            self.sweep += 1
 
     def get(self, key):
         with self.lock:
-            v = self.items.get(key)
-            if v is not None:
-                self.items.move_to_end(key)
-            return v
+            hit = self.items.get(key)
+            if hit is None:
+                return None
+            self.items[key] = (hit[0], self.sweep)
+            self.items.move_to_end(key)
+            return hit[0]
+
+    def make_room(self, n: int) -> bool:
+        """Evict planes unused by this sweep and the one before until ``n`` more bytes fit;
+        whether they do."""
+        with self.lock:
+            return self._evict(self.max_bytes - n, keep_recent=True)
 
     def put(self, key, v) -> None:
         n = sum(a.nbytes for a in v)
         with self.lock:
-            if key in self.items or n > self.max_bytes:
-                return
-            self._evict(self.max_bytes - n)
-            self.items[key] = v
-            self.bytes += n
+            if key not in self.items and self._evict(self.max_bytes - n, keep_recent=True):
+                self.items[key] = (v, self.sweep)
+                self.bytes += n
 
     def resize(self, max_bytes: int) -> None:
         with self.lock:
             self.max_bytes = int(max_bytes)
-            self._evict(self.max_bytes)
+            self._evict(self.max_bytes, keep_recent=False)
 
-    def _evict(self, limit: int) -> None:
+    def _evict(self, limit: int, keep_recent: bool) -> bool:
         while self.items and self.bytes > limit:
-            _, old = self.items.popitem(last=False)
+            key, (old, used) = next(iter(self.items.items()))
+            if keep_recent and used >= self.sweep - 1:
+                break  # entries are in order of last use: every later one is as recent
+            del self.items[key]
             self.bytes -= sum(a.nbytes for a in old)
+        return self.bytes <= limit
 
 
 def plane_maps(cam1, cam2, rays1_world: np.ndarray) -> PlaneMaps:
