@@ -264,10 +264,11 @@ def test_parquet_is_complete_after_every_pair_appends_and_rolls_over(tmp_path, s
     assert [p.name for p in exp.paths] == ["live.parquet", "live-001.parquet"]
     assert len(pd.read_parquet(tmp_path / "live-001.parquet")) == 2
     assert not list(tmp_path.glob(".*.tmp"))
-    with LayerExporter(out, station) as again:  # appends to an existing cbh table
+    with LayerExporter(out, station) as again:  # appends to the series' last cbh table
         again.write(*synthetic_pair(station, 0))
-    df = pd.read_parquet(out)
-    assert len(df) == 4 and df["cloud_base_height_m"].iloc[0] == df["cloud_base_height_m"].iloc[3]
+    df = pd.read_parquet(tmp_path / "live-001.parquet")
+    assert len(pd.read_parquet(out)) == 3
+    assert len(df) == 3 and df["cloud_base_height_m"].iloc[2] == pd.read_parquet(out)["cloud_base_height_m"].iloc[0]
 
 
 def test_parquet_export_widens_for_a_new_diagnostic_and_keeps_every_row(tmp_path, station, monkeypatch):
@@ -296,3 +297,24 @@ def test_parquet_export_widens_for_a_new_diagnostic_and_keeps_every_row(tmp_path
     assert df["zz_new_px"].iloc[:n0].isna().all() and (df["zz_new_px"].iloc[n0: n0 + n1] == 2.5).all()
     assert df["zz_new_px"].iloc[n0 + n1:].isna().all()
     assert list(df["time_utc"]) == sorted(df["time_utc"])
+
+
+def test_parquet_export_restarted_after_a_rollover_continues_its_series(tmp_path, station):
+    """A run that rolled over to live-001.parquet, stopped, and started again appends to
+    live-001 (then rolls to live-002), never over it: no recorded row is lost."""
+    import pandas as pd
+
+    from cbh.outputs.export import LayerExporter
+
+    out = tmp_path / "live.parquet"
+    with LayerExporter(out, station, max_rows=3) as exp:
+        for _ in range(2):
+            exp.write(*synthetic_pair(station, 1))  # 2 rows, then 2 more: live-001
+    before = {p.name: len(pd.read_parquet(p)) for p in sorted(tmp_path.glob("*.parquet"))}
+    assert before == {"live.parquet": 2, "live-001.parquet": 2}
+    with LayerExporter(out, station, max_rows=3) as again:
+        again.write(*synthetic_pair(station, 0))  # 2 + 1 rows: fits in live-001
+        again.write(*synthetic_pair(station, 1))  # 3 + 2 > 3: live-002
+    after = {p.name: len(pd.read_parquet(p)) for p in sorted(tmp_path.glob("*.parquet"))}
+    assert after == {"live.parquet": 2, "live-001.parquet": 3, "live-002.parquet": 2}
+    assert [p.name for p in again.paths] == ["live.parquet", "live-001.parquet", "live-002.parquet"]

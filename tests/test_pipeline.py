@@ -445,5 +445,5 @@ def test_a_dark_sky_is_flagged_underexposed():
         out[exposure] = Pipeline(sim.station).process(shot.views["cam1"].image, shot.views["cam2"].image,
                                                       shot.time_utc, channels="bgr")
     bright, dark = out[1.0], out[0.12]
-    assert "underexposed" not in bright.flags and bright.diagnostics["sky_dn_cam1"] > 150
-    assert "underexposed" in dark.flags and dark.diagnostics["sky_dn_cam1"] < 32
+    assert "underexposed" not in bright.flags and bright.diagnostics["sky_cam1_dn"] > 150
+    assert "underexposed" in dark.flags and dark.diagnostics["sky_cam1_dn"] < 32

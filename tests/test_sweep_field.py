@@ -80,12 +80,16 @@ def test_height_map_is_the_field_and_points_sample_it(run):
     assert known >= 0.8 * stride * stride * n_sw
 
 
-def test_kept_plane_tables_give_the_same_result_within_their_budget(small_sky):
+def test_kept_plane_tables_give_the_same_result_within_their_budget(small_sky, monkeypatch):
     """The sweep's plane tables kept between pairs (``map_cache_mb``) are the tables it would
     compute: the second and third pair (filling, then reusing them) give bit-identical results
-    to a pipeline that keeps none; the budget holds; a single pair keeps nothing."""
+    to a pipeline that keeps none; the budget holds for the whole process; a single pair keeps
+    nothing; a budget below a sweep's planes keeps a fixed share of them (no churn)."""
     from dataclasses import replace
 
+    from cbh.pipeline import sweep as S
+
+    monkeypatch.setattr(S, "_KEPT", S._KeptPlanes())  # this test's own store
     sim, shot = small_sky
     images = (shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
     base = Pipeline(sim.station).config
@@ -94,24 +98,27 @@ def test_kept_plane_tables_give_the_same_result_within_their_budget(small_sky):
         sw = replace(base.matching.sweep, map_cache_mb=mb)
         return Pipeline(sim.station, config=replace(base, matching=replace(base.matching, sweep=sw)))
 
+    def keys_of(pipe):
+        root = pipe.geometry.planes.__dict__["_kept_root"]["id"]
+        return {k for k in S._KEPT.items if k[0] == root}
+
     off, on = pipe_with(0.0), pipe_with(400.0)
     ref = off.process(*images, channels="bgr")
-    kept = None
     for k in range(3):
         r = on.process(*images, channels="bgr")
-        kept = on.geometry.planes.__dict__["_kept"]
-        assert (len(kept.items) > 0) == (k > 0)  # the first pair keeps nothing
+        assert bool(keys_of(on)) == (k > 0)  # the first pair keeps nothing
         assert np.array_equal(r.height_map, ref.height_map, equal_nan=True)
         assert [L.height_m for L in r.layers] == [L.height_m for L in ref.layers]
-    assert {tag for tag, _ in kept.items} >= {1, 2}  # the fine planes and the coarse ones (half size)
-    n_all = kept.bytes
-    small = pipe_with(n_all / 3 / 1e6)  # room for a third of them: those kept stay (no churn)
+    kept = keys_of(on)
+    assert {tag for _, tag, _ in kept} >= {(), (2,)}  # the fine planes and the coarse ones (half size)
+    assert not keys_of(off) and all(not a.flags.writeable for v, _ in S._KEPT.items.values() for a in v)
+    n_all = S._KEPT.bytes
+    small = pipe_with(n_all / 3 / 1e6)  # room for a third of them in the process: those kept stay
     held = []
     for k in range(4):
         r = small.process(*images, channels="bgr")
-        k2 = small.geometry.planes.__dict__["_kept"]
-        assert (0 < k2.bytes <= n_all / 3 and len(k2.items) < len(kept.items)) == (k > 0)
+        assert (S._KEPT.bytes <= n_all / 3) == (k > 0)  # its budget holds from its second sweep on
         assert np.array_equal(r.height_map, ref.height_map, equal_nan=True)
-        held.append(set(k2.items))
+        held.append(keys_of(small))
+    assert held[0] == set() and held[1] and len(held[1]) < len(kept)
     assert held[1] == held[2] == held[3]
-    assert not off.geometry.planes.__dict__["_kept"].items

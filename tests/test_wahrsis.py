@@ -117,9 +117,9 @@ def test_mixed_exposure_pair_low_med(wahrsis, result):
     assert r.diagnostics["exposure_gain"] < 0.8
     # the low exposure's sky has a median brightest channel of 26 DN: its colours cannot be read
     # (its mask agrees with the medium one's on 85 % of the sky): flagged, the heights still stand
-    assert "underexposed" in r.flags and r.diagnostics["sky_dn_cam1"] == pytest.approx(26, abs=2)
-    assert r.diagnostics["sky_dn_cam2"] == pytest.approx(101, abs=4)  # as received (brighter than WAHRSIS3 med: 82)
-    assert "underexposed" not in result.flags and result.diagnostics["sky_dn_cam1"] > 60
+    assert "underexposed" in r.flags and r.diagnostics["sky_cam1_dn"] == pytest.approx(26, abs=2)
+    assert r.diagnostics["sky_cam2_dn"] == pytest.approx(101, abs=4)  # as received (brighter than WAHRSIS3 med: 82)
+    assert "underexposed" not in result.flags and result.diagnostics["sky_cam1_dn"] > 60
 
 
 @pytest.mark.slow

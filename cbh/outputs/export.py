@@ -275,7 +275,8 @@ class LayerExporter(ResultSink):
     station : cbh.geometry.station.Station
         Gives the altitude for ``cloud_base_altitude_m`` where a layer carries none.
     max_rows : int
-        Parquet only: after this many rows the export continues in ``<stem>-001.parquet``, … .
+        Parquet only: after this many rows the export continues in ``<stem>-001.parquet``, … ;
+        a later run continues in the series' last file (never over one).
     diagnostics : tuple of str
         Diagnostics columns a new file starts with (keys seen later are added).
 
@@ -325,6 +326,11 @@ class LayerExporter(ResultSink):
             self.max_rows = int(max_rows)
             self._table = None  # the file's rows as an Arrow table (a chunk per pair, combined now and then)
             self._pairs_since_combine = 0
+            # an earlier run's series (<stem>-001.parquet …): continue in its last file, so that a
+            # rollover never starts over a file that exists
+            while self._series_name(len(self.paths)).exists():
+                self.paths.append(self._series_name(len(self.paths)))
+            self.path = self.paths[-1]
             if self.path.exists():
                 import pyarrow.parquet as pq
 
@@ -380,7 +386,10 @@ class LayerExporter(ResultSink):
         else:
             held = 0 if self._table is None else self._table.num_rows
             if held + len(rows) > self.max_rows:
-                self.path = self.paths[0].with_name(f"{self.paths[0].stem}-{len(self.paths):03d}.parquet")
+                k = len(self.paths)
+                while self._series_name(k).exists():  # (written meanwhile by someone else: never over it)
+                    k += 1
+                self.path = self._series_name(k)
                 self.paths.append(self.path)
                 self._table = None
             self._append_rows(rows)
@@ -442,10 +451,15 @@ class LayerExporter(ResultSink):
                 pass
             raise
 
+    def _series_name(self, k: int) -> Path:
+        """File ``k`` of the Parquet export series: the path itself, then ``<stem>-001.parquet`` …"""
+        first = self.paths[0]
+        return first if k == 0 else first.with_name(f"{first.stem}-{k:03d}.parquet")
+
     def _append_rows(self, rows: list[dict]) -> None:
         """Only the new rows are converted (Python → Arrow); the table so far is kept as Arrow,
         widened with empty columns when a diagnostics key appears. Rebuilding every row from
-        Python each pair took 154 ms at a day's 26 000 rows and 1.3 s at 200 000."""
+        Python each pair took 170 ms at a day's 26 000 rows and 1.5 s at 200 000, with the write."""
         import pyarrow as pa
 
         new = _arrow_table(rows, self.diagnostics)

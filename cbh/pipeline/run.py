@@ -592,7 +592,7 @@ class Pipeline:
         return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=sun_dir)
 
     def _exposure_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
-        """``sky_dn_cam1``/``_cam2``: median brightest channel of each camera's usable sky (as
+        """``sky_cam1_dn``, ``sky_cam2_dn``: median brightest channel of each camera's usable sky (as
         received, before the photometric correction); flag ``underexposed`` below
         ``segmentation.min_sky_dn``. Clear sky is told from cloud by a blue-red difference of a
         few DN there (≈ 4 DN at 26 DN on the real WAHRSIS low exposure), which 1–2 DN of sensor and
@@ -601,8 +601,8 @@ class Pipeline:
         for role, img, usable in zip(("cam1", "cam2"), work, masks.usable):
             sl = sample_lattice(np.count_nonzero(usable))
             u = usable[sl]
-            ctx.diagnostics[f"sky_dn_{role}"] = float(np.median(img[sl][u].max(axis=1))) if u.any() else math.nan
-        seen = [v for v in (ctx.diagnostics["sky_dn_cam1"], ctx.diagnostics["sky_dn_cam2"]) if math.isfinite(v)]
+            ctx.diagnostics[f"sky_{role}_dn"] = float(np.median(img[sl][u].max(axis=1))) if u.any() else math.nan
+        seen = [v for v in (ctx.diagnostics["sky_cam1_dn"], ctx.diagnostics["sky_cam2_dn"]) if math.isfinite(v)]
         if seen and min(seen) < self.config.segmentation.min_sky_dn:
             ctx.flags.append("underexposed")
 

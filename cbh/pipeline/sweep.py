@@ -104,6 +104,7 @@ measurement of matching quality; the sparse ``lk`` matches carry that).
 """
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections import OrderedDict
@@ -155,17 +156,27 @@ class PlaneMaps:
         With planes kept (:meth:`keep_planes`), views of the plane's whole-image tables, computed
         once and then reused by later pairs (the planes lie on a fixed lattice of s); else
         computed on the region."""
-        kept = self.__dict__.get("_kept")
-        if kept is None or kept.max_bytes <= 0:
+        root = self.__dict__.get("_kept_root")
+        kept = _KEPT
+        if root is None or not root["active"] or kept.max_bytes <= 0:
             return self._tables_at(s, sl)
-        key = (self.__dict__.get("_kept_tag", 1), float(s))
+        key = (root["id"], self.__dict__.get("_kept_tag", ()), float(s))
         full = kept.get(key)
         if full is None:
             if not kept.make_room(2 * self.m0.shape[0] * self.m0.shape[1] * 4):
-                return self._tables_at(s, sl)  # no room without evicting this sweep's own planes
+                return self._tables_at(s, sl)  # no room without evicting the last sweeps' own planes
             full = self._tables_at(s, np.s_[:, :])
+            for a in full:
+                a.flags.writeable = False  # shared by every later pair: nobody writes into them
             kept.put(key, full)
         return full[0][sl], full[1][sl]
+
+    def warm(self, sl) -> None:
+        """Build what :meth:`at` will read on the region ``sl``: its cut of the quadratic's
+        tables, unless this mapping keeps its planes (then only whole-image tables are read)."""
+        root = self.__dict__.get("_kept_root")
+        if root is None or not root["active"] or _KEPT.max_bytes <= 0:
+            self._region_tables("merged", sl)
 
     def _tables_at(self, s: float, sl) -> tuple[np.ndarray, np.ndarray]:
         tx, ty = self._region_tables("merged", sl)  # (h, w, 3) tables (m0, a, b) per axis
@@ -173,8 +184,9 @@ class PlaneMaps:
         return cv2.transform(tx, coef), cv2.transform(ty, coef)
 
     def keep_planes(self, max_mb: float) -> None:
-        """Keep the whole-image remap tables of the planes used, up to ``max_mb`` MB for this
-        mapping and its downsampled versions together (least recently used first out; 0 = off).
+        """Keep the whole-image remap tables of the planes used, within ``max_mb`` MB for the
+        whole process (every mapping and its downsampled versions share one store; the latest
+        sweep's budget holds; 0 = off for this mapping, the others unchanged).
 
         Building a plane's tables (one pass over the (h, w, 3) quadratic per axis) is a third of
         a fine plane's ZNCC (measured 7.7 → 5.4 ms per plane at 960 px, one thread), and the
@@ -184,15 +196,21 @@ class PlaneMaps:
 
         Called once per sweep; the budget applies from the second sweep on, so a one-shot
         ``cbh pair`` neither builds whole-image tables nor holds them."""
-        n = self.__dict__.get("_sweeps", 0)
-        self.__dict__["_sweeps"] = n + 1
-        kept = self._plane_cache()
-        kept.resize(int(max(float(max_mb), 0.0) * 1e6) if n else 0)
-        kept.new_sweep()
-
-    def _plane_cache(self) -> "_KeptPlanes":
+        root = self._kept_state()
         with _REGION_LOCK:
-            return self.__dict__.setdefault("_kept", _KeptPlanes())
+            first = root["sweeps"] == 0
+            root["sweeps"] += 1
+        budget = int(max(float(max_mb), 0.0) * 1e6)
+        root["active"] = not first and budget > 0
+        if root["active"]:
+            _KEPT.resize(budget)
+        _KEPT.new_sweep()
+
+    def _kept_state(self) -> dict:
+        """This mapping's entry in the store (shared with its downsampled versions): a process-wide
+        unique id (never reused, unlike ``id()``), its sweeps so far, whether it keeps planes."""
+        with _REGION_LOCK:
+            return self.__dict__.setdefault("_kept_root", {"id": next(_KEPT_IDS), "sweeps": 0, "active": False})
 
     def _region_tables(self, kind: str, sl):
         """The tables cut to a region, cached (a few regions: pairs processed side by side each
@@ -242,7 +260,7 @@ class PlaneMaps:
         cache = self.__dict__.setdefault("_down", {})
         if factor not in cache:
             d = self._downsampled(factor)
-            d.__dict__.update(_kept=self._plane_cache(), _kept_tag=self.__dict__.get("_kept_tag", 1) * factor)
+            d.__dict__.update(_kept_root=self._kept_state(), _kept_tag=self.__dict__.get("_kept_tag", ()) + (factor,))
             cache[factor] = d
         return cache[factor]
 
@@ -314,6 +332,10 @@ class _KeptPlanes:
             del self.items[key]
             self.bytes -= sum(a.nbytes for a in old)
         return self.bytes <= limit
+
+
+_KEPT = _KeptPlanes()  # the process's kept plane tables (PlaneMaps.keep_planes)
+_KEPT_IDS = itertools.count(1)
 
 
 def plane_maps(cam1, cam2, rays1_world: np.ndarray) -> PlaneMaps:
@@ -458,7 +480,7 @@ class _HalfZncc:
         self.mu1 = _box(_pool2(i1), k)
         self.var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(self.mu1, self.mu1)), 0.0)
         self.std1 = self._grow(cv2.sqrt(self.var1))
-        maps.at(0.0, sl)  # the region's tables, before any thread asks for a plane
+        maps.warm(sl)  # before any thread asks for a plane
 
     def _grow(self, a):  # (h/2 − 1, w/2 − 1) → (h/2, w/2)
         return cv2.copyMakeBorder(a, 0, 1, 0, 1, cv2.BORDER_REPLICATE) if self.off else a
