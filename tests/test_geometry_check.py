@@ -240,7 +240,7 @@ def test_sun_in_one_camera_only_raises_no_alarm():
     sim = SkySimulator(load_station(station_path("unb-lea")), sc)
     pipe = Pipeline(sim.station)
     one_camera = 0
-    for k in (0, 2, 3):
+    for k in (0, 3):  # cam1 takes the cloud for the sun at 14:00:00, cam2 at 14:00:30
         t = sc.time_utc + timedelta(seconds=10 * k)
         shot = sim.render(t)
         r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, t, channels="bgr")

@@ -176,7 +176,8 @@ def _segment_both(pipe, image, usable, sun_angle):
             segment_torch(image, usable, T.upload(pipe.zenith(0), "cpu"), sun_angle, cfg))
 
 
-@pytest.mark.parametrize("preset", ["two-layers", "clear-sky", "overcast", "sun-behind-clouds"])
+@pytest.mark.parametrize("preset", ["two-layers", "clear-sky", pytest.param("overcast", marks=pytest.mark.slow),
+                                    pytest.param("sun-behind-clouds", marks=pytest.mark.slow)])
 def test_segmentation_on_torch_matches_opencv(preset):
     """Both backends take their decisions from the same samples (shared host code), so the masks
     differ only where a pixel's score is within the references' float32/remap-weight noise

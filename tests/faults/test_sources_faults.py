@@ -32,7 +32,8 @@ def _run_against(cam_url: str, caplog, duration_s: float = 2.0, mode: str = "aut
     return svc.stats.sources["cam1"]
 
 
-@pytest.mark.parametrize("mode", ["html", "404", "500"])
+@pytest.mark.parametrize("mode", ["html", pytest.param("404", marks=pytest.mark.slow),
+                                  pytest.param("500", marks=pytest.mark.slow)])  # (one code path for all three)
 def test_login_page_and_http_errors_back_off_with_few_warnings(camera, caplog, mode):
     """An HTML login page with status 200 used to be ~3450 warnings/s (a corrupt frame per
     poll, reconnected at once); now it is a source error with the same backoff as 404/500."""
