@@ -282,8 +282,9 @@ def _raise_cloudy_bins(ref: np.ndarray, tolerance: float = 0.02) -> np.ndarray:
     return out
 
 
-def _fill_bins(ref: np.ndarray, fallback: float) -> np.ndarray:
-    """Empty bins take the mean of filled neighbours (repeated), then ``fallback``."""
+def _fill_bins(ref: np.ndarray, fallback) -> np.ndarray:
+    """Empty bins take the mean of filled neighbours (repeated), then ``fallback()`` (called only
+    when some bin is still empty: every bin was)."""
     ref = ref.copy()
     for _ in range(sum(ref.shape)):
         nan = np.isnan(ref)
@@ -295,7 +296,9 @@ def _fill_bins(ref: np.ndarray, fallback: float) -> np.ndarray:
         s = np.nansum(nb, axis=0)
         fill = nan & (cnt > 0)
         ref[fill] = s[fill] / cnt[fill]
-    ref[np.isnan(ref)] = fallback
+    empty = np.isnan(ref)
+    if empty.any():
+        ref[empty] = fallback()
     return ref
 
 
@@ -353,7 +356,8 @@ def reference_tables(samples, u_s, ue, v_s, ve, q: float) -> list[np.ndarray]:
         if fs.size == 0:
             out.append(None)
             continue
-        ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)), float(np.percentile(fs, q)))
+        ref = _fill_bins(_raise_cloudy_bins(_bin_reference(fs, bu, bv, nu, nv, q)),
+                         lambda fs=fs: float(np.percentile(fs, q)))
         out.append(np.repeat(ref, 2, axis=1) if ve is None else ref)
     return out
 
