@@ -277,9 +277,10 @@ class PlaneMaps:
 
 
 class _KeptPlanes:
-    """Whole-image remap tables of recently used planes, within a byte budget, shared by a
-    :class:`PlaneMaps` and its downsampled versions; thread-safe (an entry is complete before it
-    is published and never changed).
+    """Whole-image remap tables of recently used planes, within a byte budget: one store per
+    process (``_KEPT``), shared by every :class:`PlaneMaps` and its downsampled versions (keys:
+    the mapping's id, its downsampling factors, s); thread-safe (an entry is complete and
+    read-only before it is published, and never changed).
 
     Least recently used out first, but never a plane that this sweep or the one before used:
     with a budget smaller than a sweep's planes, the kept ones stay and the rest are computed on
