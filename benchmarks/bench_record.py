@@ -3,7 +3,8 @@
     python benchmarks/bench_record.py [--size 1920] [--pairs 10]
 
 Writes synthetic pairs of the given size (JPEG images as received, a dense float32 height map,
-~8000 points) with McapRecorder, then reads them back, replays into an .rrd and exports NetCDF.
+~8000 points) with McapRecorder, then reads them back, replays into an .rrd and exports NetCDF;
+then times one pair appended to a live Parquet export that already holds ``--parquet-rows``.
 """
 from __future__ import annotations
 
@@ -24,6 +25,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=1920)
     ap.add_argument("--pairs", type=int, default=10)
+    ap.add_argument("--parquet-rows", type=int, nargs="*", default=[26_000, 50_000],
+                    help="rows a live Parquet export already holds (a day at a 10 s cadence ≈ 26 000)")
     a = ap.parse_args(argv)
 
     from dataclasses import replace
@@ -65,7 +68,29 @@ def main(argv=None) -> int:
     print(f"  Session.pairs()      {t_read * 1e3:8.1f} ms/pair (decode all topics)")
     print(f"  RerunSink.write      {t_rr * 1e3:8.1f} ms/pair (save mode)")
     print(f"  export netcdf        {t_nc * 1e3:8.1f} ms total")
+    for held in a.parquet_rows:
+        print(f"  live Parquet export  {_parquet_pair_ms(st, pairs[0][1], held):8.1f} ms/pair with {held} rows held")
     return 0
+
+
+def _parquet_pair_ms(station, result, held: int) -> float:
+    """One pair's rows appended to a live Parquet export already holding ``held`` rows (the file
+    is rewritten whole after every pair: what a long run pays per pair); median of 5."""
+    from cbh.outputs.export import LayerExporter, _arrow_table, pair_record, record_rows
+
+    rec = pair_record(result, float(station.altitude_m))
+    with tempfile.TemporaryDirectory() as d:
+        exp = LayerExporter(Path(d) / "live.parquet", station)
+        exp.write_record(rec)
+        rows = record_rows(rec, exp.diagnostics)
+        exp._table = _arrow_table(rows * max(held // max(len(rows), 1), 1), exp.diagnostics)
+        ts = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            exp.write_record(rec)
+            ts.append(time.perf_counter() - t0)
+        exp.close()
+    return 1e3 * sorted(ts)[2]
 
 
 if __name__ == "__main__":

@@ -126,10 +126,6 @@ def upload(a, device, dtype: torch.dtype | None = None) -> torch.Tensor:
     return t if dtype is None else t.to(dtype)
 
 
-def _t(a, device, dtype=torch.float32) -> torch.Tensor:
-    return upload(a, device, dtype)
-
-
 class TorchPlaneMaps:
     """:class:`~cbh.pipeline.sweep.PlaneMaps` on a device (uploaded once per camera pair).
 
@@ -142,13 +138,13 @@ class TorchPlaneMaps:
         self.device, self.s_a, self.scale_px, self.size2 = device, maps.s_a, maps.scale_px, size2
         self.maps = maps
         scale = torch.tensor([2.0 / max(w2 - 1, 1), 2.0 / max(h2 - 1, 1)], device=device)
-        m0 = _t(maps.m0, device)
+        m0 = upload(maps.m0, device, torch.float32)
         outside = m0[..., 0] < -1.0e3
         self.m0n = m0 * scale - 1.0
         self.m0n[outside] = -10.0  # far outside [-1, 1]: zeros padding
-        self.an = _t(maps.a, device) * scale
-        self.bn = _t(maps.b, device) * scale
-        self.m0, self.a, self.b = m0, _t(maps.a, device), _t(maps.b, device)
+        self.an = upload(maps.a, device, torch.float32) * scale
+        self.bn = upload(maps.b, device, torch.float32) * scale
+        self.m0, self.a, self.b = m0, upload(maps.a, device, torch.float32), upload(maps.b, device, torch.float32)
         self._down: dict[int, TorchPlaneMaps] = {}
 
     def downsampled(self, factor: int, size2: tuple[int, int]) -> "TorchPlaneMaps":

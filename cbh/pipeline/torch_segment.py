@@ -58,7 +58,7 @@ def _frac_index(x: torch.Tensor, edges: np.ndarray) -> torch.Tensor:
 
 def _lookup(table: np.ndarray, fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
     """Bilinear value of ``table`` (nu, nv) at fractional indices (fu, fv) (inside the table)."""
-    t = torch.as_tensor(np.ascontiguousarray(table, np.float32), device=fu.device)
+    t = upload(table, fu.device, torch.float32)
     nu, nv = t.shape
     u0 = fu.floor().long().clamp(0, nu - 1)
     v0 = fv.floor().long().clamp(0, nv - 1)
