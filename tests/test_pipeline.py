@@ -64,6 +64,36 @@ def test_rasterize_and_nearest_fill_never_blend_layers():
     assert dist[2, 2] == 0
 
 
+
+@pytest.mark.parametrize("density", [0.001, 0.05, 0.5, 0.99])
+def test_nearest_fill_reads_opencv_labels_in_raster_order(density):
+    """nearest_fill maps OpenCV's pixel labels to heights by raster order (no index gather); if an
+    OpenCV release numbered them otherwise, this fails (and the runtime check falls back)."""
+    import cv2
+
+    from cbh.pipeline.heightmap import _raster_labels
+
+    rng = np.random.default_rng(int(density * 1000))
+    for h, w in [(1, 1), (1, 57), (63, 1), (97, 131), (480, 512)]:
+        known = rng.random((h, w)) < density
+        known.flat[rng.integers(known.size)] = True
+        _, lab = cv2.distanceTransformWithLabels((~known).astype(np.uint8), cv2.DIST_L2, 5,
+                                                 labelType=cv2.DIST_LABEL_PIXEL)
+        n = int(known.sum())
+        assert np.array_equal(lab[known], np.arange(1, n + 1)), (h, w)
+        assert _raster_labels(known, lab, n)
+        assert not _raster_labels(known, lab, n + 1)
+        if n > 1:  # a numbering that is not raster order is caught
+            swapped = lab.copy()
+            ky, kx = np.nonzero(known)
+            swapped[ky[0], kx[0]], swapped[ky[-1], kx[-1]] = lab[ky[-1], kx[-1]], lab[ky[0], kx[0]]
+            assert not _raster_labels(known, swapped, n)
+        hmap = np.where(known, rng.random((h, w)) * 1e4, np.nan).astype(np.float32)
+        near, dist = nearest_fill(hmap)
+        assert np.array_equal(near, np.where(known, hmap, near), equal_nan=True)
+        assert np.isin(near, hmap[known]).all() and (dist[known] == 0).all()  # each pixel copies a measured height
+
+
 # --- segmentation -------------------------------------------------------------------------
 @pytest.mark.parametrize("method", ["hybrid", "nbr", "nbr_adaptive", "otsu"])
 def test_segmentation_blue_sky_vs_white_cloud(method):
