@@ -2,6 +2,7 @@
 order, greyscale refused, unknown time kept unknown, ``cbh.layer_table``, and the README example."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -109,7 +110,7 @@ def test_unknown_time_stays_unknown(pipe, pair_files):
 
 
 def test_layer_table_has_one_row_per_layer(from_paths):
-    clear = from_paths.__class__(**{**from_paths.__dict__, "layers": []})
+    clear = dataclasses.replace(from_paths, layers=[])
     df = cbh.layer_table([from_paths, clear, from_paths])
     n = len(from_paths.layers)
     assert len(df) == 2 * n + 1  # the clear pair: one row, layer 0 (the time step is kept, as in the CSV)

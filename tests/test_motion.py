@@ -493,6 +493,6 @@ def test_a_noisy_single_layer_keeps_its_tracks(noise):
                          height_m=3000.0 * (1.0 + noise * rng.standard_normal(n)))
     layer = Layer(3000.0, 3000.0, 3000.0 * noise, 0.5, 5000, 0.9)
     lay = LayerSet([layer], Histogram(np.zeros(2), np.zeros(1)), np.zeros(0, np.int16), False)
-    out = pipe.stage_motion(lay, HeightMap(hm, hm, hm), est, np.ones((h, w), bool))
+    out = pipe.stage_motion(lay, HeightMap(hm, hm, (w, h)), est, np.ones((h, w), bool))
     assert out.layers[0].motion_tracks >= 0.9 * 2 * n
     assert (out.layers[0].motion_east_ms, out.layers[0].motion_north_ms) == pytest.approx((-3.0, 8.0), rel=1e-6)

@@ -132,6 +132,7 @@ def test_an_upsampled_height_map_is_recorded_at_its_own_size_and_read_back_exact
 
     from cbh.outputs.record import McapRecorder, open_session
     from cbh.outputs.record.writer import block_factor
+    from cbh.result import Enlarged
 
     frames, res = synthetic_pair(station, 0)
     h, w = res.height_map.shape
@@ -143,14 +144,20 @@ def test_an_upsampled_height_map_is_recorded_at_its_own_size_and_read_back_exact
     bumped[41, 51] += 1.0  # one pixel off its block: not an upsample any more
     assert block_factor(bumped) == 1
     path = tmp_path / "hm.mcap"
+    lazy = replace(res, height_map=Enlarged(small, w, h))  # as the pipeline hands it: enlarged only when read
     with McapRecorder(path, station, {}) as rec:
         for k, hm in enumerate((up, res.height_map, bumped)):
             rec.write(frames, replace(res, time_utc=res.time_utc + timedelta(seconds=10 * k), height_map=hm))
+        lazy.time_utc = res.time_utc + timedelta(seconds=30)
+        rec.write(frames, lazy)
+    assert "_height_map_full" not in lazy.__dict__  # recorded from the small map: never enlarged
     with open(path, "rb") as fh:
         sizes = [len(m.data) for _, ch, m in make_reader(fh).iter_messages() if ch.topic == "/pair/height_map"]
-    assert sizes[0] < 0.3 * sizes[1] and sizes[2] == sizes[1]
-    got = [p.result.height_map for p in open_session(path).pairs()]
-    for g, want in zip(got, (up, res.height_map, bumped)):
+    assert sizes[0] < 0.3 * sizes[1] and sizes[2] == sizes[1] and sizes[3] == sizes[0]
+    pairs = list(open_session(path).pairs())
+    assert pairs[0].result.enlarged("height_map").factor == 2  # read back small too, enlarged when read
+    for p, want in zip(pairs, (up, res.height_map, bumped, up)):
+        g = p.result.height_map
         assert g.shape == want.shape and g.dtype == np.float32
         np.testing.assert_array_equal(g.view(np.int32), want.view(np.int32))  # bit for bit, NaN included
 

@@ -20,8 +20,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from cbh.result import Enlarged
 
-__all__ = ["HeightMap", "dense_height_map", "rasterize_heights", "nearest_fill", "upsample_map"]
+
+__all__ = ["HeightMap", "dense_height_map", "rasterize_heights", "nearest_fill"]
 
 
 @dataclass(frozen=True)
@@ -30,8 +32,12 @@ class HeightMap:
 
     working_m: np.ndarray  # (h, w) float32 at working size [m]
     nearest_m: np.ndarray  # (h, w) float32: height of each pixel's nearest measured pixel [m]
-    full_m: np.ndarray  # (H, W) float32 at camera 1's full size [m]
+    full_size: tuple[int, int]  # camera 1's full (width, height) [px]: :meth:`full` is the map there
     measured_fraction: float = float("nan")  # share of the cloud mask's pixels measured (before the fill)
+
+    def full(self) -> Enlarged:
+        """The working map standing for camera 1's full-size one (enlarged only when read)."""
+        return Enlarged(self.working_m, *self.full_size)
 
 
 def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray, cloud: np.ndarray,
@@ -74,7 +80,7 @@ def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarra
         fill = cloud & ~known & (dist <= cfg.fill_max_px)
         hmap = hmap.copy()
         hmap[fill] = nearest[fill]
-    return HeightMap(working_m=hmap, nearest_m=nearest, full_m=upsample_map(hmap, full_size[0], full_size[1]),
+    return HeightMap(working_m=hmap, nearest_m=nearest, full_size=(int(full_size[0]), int(full_size[1])),
                      measured_fraction=measured)
 
 
@@ -157,10 +163,3 @@ def _raster_labels(known: np.ndarray, lab: np.ndarray, n: int) -> bool:
         if lab[y, xs[0]] != before[y] + 1 or lab[y, xs[-1]] != before[y + 1]:
             return False
     return True
-
-
-def upsample_map(hmap: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Nearest-neighbour resize of a (working-size) map to (height, width) (NaN preserved)."""
-    if hmap.shape == (height, width):
-        return hmap
-    return cv2.resize(hmap, (width, height), interpolation=cv2.INTER_NEAREST)

@@ -51,12 +51,12 @@ import numpy as np
 from cbh.errors import ConfigError
 from cbh.imageio import as_bgr
 from cbh.timeutil import parse_utc
-from cbh.result import PairResult, PointSet
+from cbh.result import Enlarged, PairResult, PointSet
 from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.geocheck import check_geometry, images_identical
 from cbh.pipeline.sundetect import detect_sun
-from cbh.pipeline.heightmap import HeightMap, dense_height_map, upsample_map
+from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.geometry.sun import sun_position
@@ -830,10 +830,8 @@ class Pipeline:
                 xyz_m=pts.xyz_m.astype(np.float32), miss_m=pts.miss_m.astype(np.float32),
                 px1=pts.px1.astype(np.float32), px2=pts.px2.astype(np.float32), layer=lay.label,
             ),
-            height_map=hmap.full_m.astype(np.float32, copy=False),
-            cloud_masks=dict(zip(self.cameras, pmap(lambda cm: upsample_map(cm[0].view(np.uint8), cm[1].width,
-                                                                             cm[1].height).astype(bool),
-                                                     zip(seg.clouds, full), pool="stages"))),
+            height_map=hmap.full(),  # full size when read (Enlarged)
+            cloud_masks={c: Enlarged(m, f.width, f.height) for c, m, f in zip(self.cameras, seg.clouds, full)},
             cloud_fraction=seg.fractions,
             timing_ms=ctx.timing,
             flags=ctx.flags,

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from cbh.errors import CbhError, RecordingError
-from cbh.result import Frame, Histogram, Layer, PairResult, PointSet, from_ns
+from cbh.result import Enlarged, Frame, Histogram, Layer, PairResult, PointSet, from_ns
 from cbh.outputs.record.schemas import cbh_types, foxglove_types
 from cbh.outputs.record.writer import METADATA_NAME, POINT_DTYPE
 
@@ -157,9 +157,9 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
             if hist_msg is not None else Histogram(np.zeros(1), np.zeros(0)))
     pts = _points(msgs["/pair/points"], what) if "/pair/points" in msgs else PointSet.empty()
     hm = _height_map(msgs["/pair/height_map"], what) if "/pair/height_map" in msgs else np.zeros((0, 0), np.float32)
-    if pl.height_map_scale > 1 and hm.size:  # recorded decimated (lossless, see the writer): back to camera 1's grid
+    if pl.height_map_scale > 1 and hm.size:  # recorded decimated (lossless, see the writer): camera 1's grid when read
         f = int(pl.height_map_scale)
-        hm = np.repeat(np.repeat(hm, f, axis=0), f, axis=1)
+        hm = Enlarged(hm, hm.shape[1] * f, hm.shape[0] * f)
     matches = {}
     if "/pair/matches" in msgs:
         for s in msgs["/pair/matches"].sets:

@@ -74,7 +74,10 @@ def _png(image: np.ndarray, what: str, bilevel: bool = False) -> bytes:
     return buf.tobytes()
 
 
-def block_factor(image: np.ndarray, factors=(2, 3)) -> int:
+_HM_FACTORS = (1, 2, 3)  # height-map decimations a recording may carry (1 = full size)
+
+
+def block_factor(image: np.ndarray, factors=_HM_FACTORS[1:]) -> int:
     """The first f of ``factors`` for which the float32 ``image`` (H, W) is made of f × f blocks
     of bitwise-equal values: a nearest-neighbour upsample by f, as the pipeline's full-size height
     map is of its working-size one; 1 if none. Exact, so decimating by f is lossless."""
@@ -412,12 +415,16 @@ class McapRecorder(ResultSink):
         for name, _dt, typ in POINT_FIELDS:
             pc.fields.add(name=name, offset=POINT_DTYPE.fields[name][1], type=PEF.NumericType.Value(typ))
         out.append(("/pair/points", pc, t_ns))
-        hm = np.ascontiguousarray(np.asarray(result.height_map, dtype="<f4"))
-        if hm.ndim != 2:
-            raise RecordingError(f"height_map: expected a 2-D array, got shape {hm.shape}")
-        hm_scale = block_factor(hm)
-        if hm_scale > 1:
-            hm = np.ascontiguousarray(hm[::hm_scale, ::hm_scale])
+        small = result.enlarged("height_map")
+        if small is not None and small.factor in _HM_FACTORS and small.small.ndim == 2:
+            hm, hm_scale = np.ascontiguousarray(small.small, dtype="<f4"), small.factor  # as made: no enlarging, no check
+        else:
+            hm = np.ascontiguousarray(np.asarray(result.height_map, dtype="<f4"))
+            if hm.ndim != 2:
+                raise RecordingError(f"height_map: expected a 2-D array, got shape {hm.shape}")
+            hm_scale = block_factor(hm)
+            if hm_scale > 1:
+                hm = np.ascontiguousarray(hm[::hm_scale, ::hm_scale])
         ri = F["RawImage"](frame_id=cam1, width=hm.shape[1], height=hm.shape[0], encoding="32FC1",
                            step=hm.shape[1] * 4, data=hm.tobytes())
         _stamp(ri.timestamp, t_ns)
