@@ -4,6 +4,7 @@
     python benchmarks/bench_vs_opencv.py --scene three-layers --repeat 7
     python benchmarks/bench_vs_opencv.py --real                  # the WAHRSIS pair (no truth)
     python benchmarks/bench_vs_opencv.py --cpu-time              # CPU time, one thread each: robust on a busy machine
+    python benchmarks/bench_vs_opencv.py --working-radius 320    # cbh at 640 px working size: faster, less precise
 
 The OpenCV route: rectify both raw fisheye images to a common ``--rect-px`` (1024) px,
 ``--rect-fov`` (120°) perspective pair looking up, x along the baseline (``cv2.remap``, maps
@@ -108,6 +109,8 @@ def main() -> None:
     ap.add_argument("--rect-px", type=int, default=1024)
     ap.add_argument("--rect-fov", type=float, default=120.0)
     ap.add_argument("--device", default="cpu", help="cbh's device (cpu or cuda)")
+    ap.add_argument("--working-radius", type=float, default=None, metavar="PX",
+                    help="cbh's pipeline.working_radius_px (default: the station's, 480): the speed/accuracy trade-off")
     ap.add_argument("--cpu-time", action="store_true",
                     help="time with process_time, OpenCV and torch on one thread (robust under load; minimum of the runs)")
     a = ap.parse_args()
@@ -147,7 +150,12 @@ def main() -> None:
     from cbh.errors import ConfigError
 
     try:
-        pipe = Pipeline(st, device=a.device)
+        from cbh.pipeline import PipelineConfig
+
+        cfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
+        if a.working_radius is not None:
+            cfg = cfg.replace(working_radius_px=a.working_radius)
+        pipe = Pipeline(st, config=cfg, device=a.device)
     except ConfigError as e:  # e.g. --device cuda without CUDA: a benchmark skips, it does not fail
         print(f"skipped: {e}")
         return

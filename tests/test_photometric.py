@@ -118,3 +118,18 @@ def test_base_is_the_median_when_noise_explains_the_spread():
     bases = [layer_stats(h, 0.5, LayersConfig(), np.full(h.size, s)).height_m for s in (165.0, 160.0, 150.0)]
     assert L.height_m > bases[0] > bases[1] > bases[2]
     assert bases[0] > L.median_height_m - 50.0
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 30_000])
+def test_channel_percentiles_of_uint8_pixels_equal_numpys_to_the_bit(n):
+    """The response's quantiles come from 256-bin histograms, not a sort: they must be NumPy's
+    linear percentiles exactly (any drift would move the fitted gain and gamma)."""
+    from cbh.pipeline.photometric import _QUANTILES, channel_percentiles
+
+    rng = np.random.default_rng(n)
+    for v in (rng.integers(0, 256, (n, 3)), np.clip(rng.normal(200, 60, (n, 3)), 0, 255), np.full((n, 3), 255)):
+        v8 = v.astype(np.uint8)
+        want = np.percentile(v8.astype(np.float64), _QUANTILES, axis=0)
+        np.testing.assert_array_equal(channel_percentiles(v8, _QUANTILES), want)
+    f = rng.random((n, 3)) * 255.0  # not uint8: numpy's own path
+    np.testing.assert_array_equal(channel_percentiles(f, _QUANTILES), np.percentile(f, _QUANTILES, axis=0))
