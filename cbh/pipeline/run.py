@@ -335,8 +335,7 @@ class Pipeline:
         with _timed(ctx, "resize"):
             work = (self.to_working(0, image1), self.to_working(1, image2))
         with _timed(ctx, "masks"):
-            masks = self.stage_masks(work, ctx)
-            self._exposure_check(work, masks, ctx)
+            masks = self.stage_masks(work, ctx)  # (and each camera's sky brightness: the exposure check)
         with _timed(ctx, "sun_check"):
             self.stage_sun_check(work, masks, ctx)
         received = (image1, image2)  # as the cameras delivered them, full size (the identical-image check)
@@ -379,7 +378,11 @@ class Pipeline:
                 with _timed(ctx, "points"):
                     return self.stage_points(corr)
 
-            hmap, pts = pmap(lambda f: f(), (height_map, points), pool="stages")  # side by side
+            def geometry():
+                with _timed(ctx, "geometry_check"):
+                    return self.geometry_findings(received, corr)
+
+            hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
                 lay = self.stage_layers(pts, seg, masks, hmap, ctx)
             est = MotionEstimate()
@@ -396,8 +399,7 @@ class Pipeline:
             if attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not new_rates:
                 break
             used, rates = new, new_rates
-        with _timed(ctx, "geometry_check"):
-            self.stage_geometry_check(received, corr, ctx)
+        self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
         self._quality_flags(pts, seg, ctx, hmap, lay)
         offsets = mot.offsets_s + ((est.pair_offset_s,) if math.isfinite(est.pair_offset_s) else ())
         offsets = offsets[-mcfg.offset_history:]
@@ -584,25 +586,24 @@ class Pipeline:
                     sat &= ang <= cfg.masks.glare_radius_deg
                 if sat.any():
                     u, glare = u & ~sat, True
-            return u, ang, glare
+            return u, ang, glare, _sky_dn(work[i], u)
 
-        (u1, a1, glare1), (u2, a2, _) = pmap(one, (0, 1), pool="stages")
+        (u1, a1, glare1, dn1), (u2, a2, _, dn2) = pmap(one, (0, 1), pool="stages")
         if glare1:
             ctx.flags.append("sun_glare")
+        self._exposure_check((dn1, dn2), ctx)
         return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=sun_dir)
 
-    def _exposure_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
+    def _exposure_check(self, sky_dn: tuple[float, float], ctx: "PairContext") -> None:
         """``sky_cam1_dn``, ``sky_cam2_dn``: median brightest channel of each camera's usable sky (as
-        received, before the photometric correction); flag ``underexposed`` below
+        received, before the photometric correction: :func:`_sky_dn`); flag ``underexposed`` below
         ``segmentation.min_sky_dn``. Clear sky is told from cloud by a blue-red difference of a
         few DN there (≈ 4 DN at 26 DN on the real WAHRSIS low exposure), which 1–2 DN of sensor and
         JPEG noise swamp: that exposure's mask agrees with the medium one's on 85 % of the sky
         (the high one's: 96 %), and a simulated clear sky at 24 DN reads as a textured overcast."""
-        for role, img, usable in zip(("cam1", "cam2"), work, masks.usable):
-            sl = sample_lattice(np.count_nonzero(usable))
-            u = usable[sl]
-            ctx.diagnostics[f"sky_{role}_dn"] = float(np.median(img[sl][u].max(axis=1))) if u.any() else math.nan
-        seen = [v for v in (ctx.diagnostics["sky_cam1_dn"], ctx.diagnostics["sky_cam2_dn"]) if math.isfinite(v)]
+        for role, dn in zip(("cam1", "cam2"), sky_dn):
+            ctx.diagnostics[f"sky_{role}_dn"] = dn
+        seen = [v for v in sky_dn if math.isfinite(v)]
         if seen and min(seen) < self.config.segmentation.min_sky_dn:
             ctx.flags.append("underexposed")
 
@@ -713,12 +714,25 @@ class Pipeline:
 
     def stage_geometry_check(self, work, corr: "Correspondences", ctx: "PairContext") -> None:
         """Correspondences vs station geometry → ``geometry_*`` diagnostics and flags."""
+        self._apply_geometry(self.geometry_findings(work, corr), ctx)
+
+    def geometry_findings(self, work, corr: "Correspondences") -> "tuple[bool, object] | None":
+        """The geometry check's findings (identical images, :func:`check_geometry`'s result);
+        None when the check is off. Reads only its arguments: runs beside the height map."""
         cfg = self.config.geometry_check
         if not cfg.enabled:
+            return None
+        return (images_identical(work[0], work[1], cfg.identical_max_dn),
+                check_geometry(self.geometry, corr.raw, self.config.filtering, cfg))
+
+    @staticmethod
+    def _apply_geometry(found, ctx: "PairContext") -> None:
+        """The geometry check's findings into the pair's ``geometry_*`` diagnostics and flags."""
+        if found is None:
             return
-        if images_identical(work[0], work[1], cfg.identical_max_dn):
+        identical, chk = found
+        if identical:
             ctx.flags.append("identical_images")
-        chk = check_geometry(self.geometry, corr.raw, self.config.filtering, cfg)
         ctx.diagnostics["geometry_residual_px"] = chk.residual_px
         ctx.diagnostics["geometry_inlier_fraction"] = chk.inlier_fraction
         ctx.diagnostics["geometry_rotation_deg"] = chk.rotation_deg
@@ -925,6 +939,13 @@ class Points:
     px2: np.ndarray  # (N, 2) camera 2 pixels (full size)
     noise_m: np.ndarray  # (N,) predicted height noise [m]
     per_method: list[tuple[str, int]]  # (method, count) in the order of the arrays
+
+
+def _sky_dn(image: np.ndarray, usable: np.ndarray) -> float:
+    """Median brightest channel [DN] of an image's usable sky, on the sampling lattice (NaN: none)."""
+    sl = sample_lattice(np.count_nonzero(usable))
+    u = usable[sl]
+    return float(np.median(image[sl][u].max(axis=1))) if u.any() else math.nan
 
 
 @contextmanager
