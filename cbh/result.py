@@ -162,6 +162,8 @@ class Enlarged:
     @property
     def factor(self) -> int:
         """f when the full map is the small one's f × f blocks exactly (width = f·w, height = f·h), else 0."""
+        if self.small.ndim < 2:
+            return 0
         h, w = self.small.shape[:2]
         f = self.width // w if w else 0
         return f if f >= 1 and (w * f, h * f) == (self.width, self.height) else 0
@@ -194,8 +196,9 @@ class PairResult:
     points : PointSet
     height_map : ndarray, shape (H, W), float32
         Cloud-base height above the ENU origin on camera 1's pixel grid [m], NaN where unknown.
-        May be given as an :class:`Enlarged` map: read back, it is the full-size array (made on
-        first access); :meth:`enlarged` hands the small one to a consumer that can use it.
+        May be given as an :class:`Enlarged` map: read, it is the full-size array (made on first
+        access, and from then on the value); :meth:`enlarged` hands the small one, until then,
+        to a consumer that can use it.
     cloud_masks : dict of str → ndarray (H, W) bool
         Each camera's cloud mask on its full pixel grid (values may be given as :class:`Enlarged`
         too).
@@ -231,15 +234,13 @@ class PairResult:
 
     def enlarged(self, name: str, camera: str | None = None) -> "Enlarged | None":
         """The :class:`Enlarged` map behind ``height_map`` (or camera ``camera``'s cloud mask,
-        ``name="cloud_masks"``) when it was given as one, else None."""
+        ``name="cloud_masks"``) while it has not been read at full size, else None (once read,
+        the full array is the value, so that edits to it are what the recorder writes)."""
         if name == "height_map":
             v = self.__dict__.get("_height_map")
         else:
             v = self.__dict__.get("_cloud_masks", {}).get(camera)
         return v if isinstance(v, Enlarged) else None
-
-    def __getstate__(self):  # pickled (Ray, process pools) small: the full-size arrays are remade on access
-        return {k: v for k, v in self.__dict__.items() if k not in ("_height_map_full", "_cloud_masks_full")}
 
     def summary(self) -> dict:
         """The JSON object ``cbh pair --json`` prints."""
@@ -263,32 +264,25 @@ class PairResult:
 
 
 def _full_height_map(self) -> np.ndarray:
-    full = self.__dict__.get("_height_map_full")
-    if full is None:
-        v = self.__dict__["_height_map"]
-        full = v.full() if isinstance(v, Enlarged) else v
-        self.__dict__["_height_map_full"] = full
-    return full
+    v = self.__dict__["_height_map"]
+    if isinstance(v, Enlarged):  # the full array becomes the value: edits to it are the result's
+        v = self.__dict__["_height_map"] = v.full()
+    return v
 
 
 def _set_height_map(self, value) -> None:
     self.__dict__["_height_map"] = value
-    self.__dict__.pop("_height_map_full", None)
 
 
 def _full_cloud_masks(self) -> dict:
-    full = self.__dict__.get("_cloud_masks_full")
-    if full is None:
-        full = self.__dict__["_cloud_masks"]
-        if any(isinstance(v, Enlarged) for v in full.values()):
-            full = {k: (v.full() if isinstance(v, Enlarged) else v) for k, v in full.items()}
-        self.__dict__["_cloud_masks_full"] = full
-    return full
+    v = self.__dict__["_cloud_masks"]
+    if any(isinstance(m, Enlarged) for m in v.values()):
+        v = self.__dict__["_cloud_masks"] = {k: (m.full() if isinstance(m, Enlarged) else m) for k, m in v.items()}
+    return v
 
 
 def _set_cloud_masks(self, value) -> None:
     self.__dict__["_cloud_masks"] = value
-    self.__dict__.pop("_cloud_masks_full", None)
 
 
 # full-size on first access (see Enlarged); set after the dataclass made its __init__, whose

@@ -150,7 +150,7 @@ def test_an_upsampled_height_map_is_recorded_at_its_own_size_and_read_back_exact
             rec.write(frames, replace(res, time_utc=res.time_utc + timedelta(seconds=10 * k), height_map=hm))
         lazy.time_utc = res.time_utc + timedelta(seconds=30)
         rec.write(frames, lazy)
-    assert "_height_map_full" not in lazy.__dict__  # recorded from the small map: never enlarged
+    assert lazy.enlarged("height_map") is not None  # recorded from the small map: never enlarged
     with open(path, "rb") as fh:
         sizes = [len(m.data) for _, ch, m in make_reader(fh).iter_messages() if ch.topic == "/pair/height_map"]
     assert sizes[0] < 0.3 * sizes[1] and sizes[2] == sizes[1] and sizes[3] == sizes[0]
@@ -350,3 +350,29 @@ def test_statuses_before_any_pair_reach_the_disk(tmp_path, station, monkeypatch)
     monkeypatch.undo()
     (f,) = list((tmp_path / "dir2").glob("*.mcap"))
     assert len(list(open_session(f).statuses())) == 1  # finished: summary and footer written
+
+
+def test_a_height_map_edited_after_reading_is_recorded_as_edited(tmp_path, station):
+    """Read once, the full-size map is the result's value: an edit to it (a user masking part of
+    the sky) is what the recorder writes and what a copy or a pickle carries."""
+    import copy
+    import pickle
+    from dataclasses import replace
+
+    from cbh.outputs.record import McapRecorder, open_session
+    from cbh.result import Enlarged
+
+    frames, res = synthetic_pair(station, 0)
+    h, w = res.height_map.shape
+    small = np.full((h // 2, w // 2), 1500.0, np.float32)
+    r = replace(res, height_map=Enlarged(small, w, h), cloud_masks={c: Enlarged(small > 0, w, h) for c in res.cameras})
+    r.height_map[:10] = np.nan  # read (enlarged) and edited in place
+    r.cloud_masks[res.cameras[0]][:4] = False
+    assert r.enlarged("height_map") is None and r.enlarged("cloud_masks", res.cameras[0]) is None
+    for other in (copy.copy(r), pickle.loads(pickle.dumps(r))):
+        assert np.isnan(other.height_map[:10]).all() and not other.cloud_masks[res.cameras[0]][:4].any()
+    with McapRecorder(tmp_path / "e.mcap", station, {}) as rec:
+        rec.write(frames, r)
+    got = next(open_session(tmp_path / "e.mcap").pairs()).result
+    assert np.isnan(got.height_map[:10]).all() and (got.height_map[10:] == 1500.0).all()
+    assert not got.cloud_masks[res.cameras[0]][:4].any() and got.cloud_masks[res.cameras[0]][4:].all()

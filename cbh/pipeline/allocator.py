@@ -18,9 +18,10 @@ per pair against 312 / 293 / 267 / 268 ms (−5 % on the mean), page faults 4 90
 the same every pair, so the resident size settles at its peak and stays there
 (``benchmarks/bench_soak.py``); a process that once held much more keeps up to 512 MB of it.
 
-Applied once per process by the first :class:`~cbh.pipeline.Pipeline`. Not applied when the
-environment already sets any ``MALLOC_*`` variable (the user's choice wins), or with
-``CBH_MALLOC_TUNE=0``.
+Applied once per process by the first :class:`~cbh.pipeline.Pipeline` (so an application
+embedding cbh gets it too; ``CBH_MALLOC_TUNE=0`` keeps glibc's defaults). Not applied when the
+environment already sets the allocator (``MALLOC_*`` variables, ``glibc.malloc.*`` tunables):
+the user's choice wins.
 """
 from __future__ import annotations
 
@@ -42,24 +43,44 @@ _state: dict[str, object] = {"done": False, "applied": {}}
 def tune_malloc() -> dict[str, int]:
     """Apply :data:`MALLOC_SETTINGS` with glibc's ``mallopt`` (first call per process; later
     calls return what the first applied). Returns the settings applied: empty when not glibc,
-    when a ``MALLOC_*`` environment variable is set, or with ``CBH_MALLOC_TUNE=0``."""
+    when the environment sets the allocator itself (a ``MALLOC_*`` variable, or
+    ``glibc.malloc.*`` in ``GLIBC_TUNABLES``), or with ``CBH_MALLOC_TUNE`` = 0/false/off/no.
+
+    The mmap threshold goes first: a glibc that refuses 64 MB (older ones allow at most
+    32 MB) gets 32 MB, and if that fails too nothing else is set (the other two settings also
+    switch glibc's adaptive mmap threshold off, which alone would leave it at 128 kB)."""
     with _lock:
         if _state["done"]:
             return dict(_state["applied"])
         _state["done"] = True
-        if os.environ.get("CBH_MALLOC_TUNE", "1").strip() == "0":
+        if os.environ.get("CBH_MALLOC_TUNE", "1").strip().lower() in ("0", "false", "off", "no"):
             return {}
-        if any(k.startswith("MALLOC_") for k in os.environ):
+        if any(k.startswith("MALLOC_") for k in os.environ) or "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", ""):
             return {}
         mallopt = _glibc_mallopt()
         if mallopt is None:
             return {}
         applied = {}
-        for name, value in MALLOC_SETTINGS.items():
-            if mallopt(_PARAM[name], int(value)) == 1:  # mallopt returns 1 on success
-                applied[name] = int(value)
+        for threshold in (MALLOC_SETTINGS["M_MMAP_THRESHOLD"], 32 << 20):
+            if mallopt(_M_MMAP_THRESHOLD, int(threshold)) == 1:  # mallopt returns 1 on success
+                applied["M_MMAP_THRESHOLD"] = int(threshold)
+                break
+        if not applied:
+            return {}
+        for name in ("M_TRIM_THRESHOLD", "M_TOP_PAD"):
+            if mallopt(_PARAM[name], int(MALLOC_SETTINGS[name])) == 1:
+                applied[name] = int(MALLOC_SETTINGS[name])
         _state["applied"] = applied
         return dict(applied)
+
+
+def _after_fork_in_child() -> None:  # the lock may have been held by a thread that does not exist here
+    global _lock
+    _lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def _glibc_mallopt():
