@@ -2,7 +2,6 @@
 
     python benchmarks/bench_pipeline.py [--size 1920] [--repeat 5] [--scene two-layers] [--device cpu]
     python benchmarks/bench_pipeline.py --device cuda --batch 8    # GPU: pairs/s of process_batch
-    CBH_MALLOC_TUNE=0 python benchmarks/bench_pipeline.py --repeat 10   # glibc's malloc defaults (cbh/pipeline/allocator.py)
 
 ``--device`` other than cpu runs the dense work on torch (cbh/pipeline/torch_ops.py); without
 CUDA, ``--device cuda`` says so and exits (status 0: a benchmark, not a test).
@@ -52,14 +51,12 @@ def main() -> None:
     print(f"pair {im1.shape[1]}x{im1.shape[0]}  first call (builds caches): {(time.perf_counter() - t) * 1000:.0f} ms")
     import resource
 
-    from cbh.pipeline.allocator import tune_malloc
-
     r0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
     runs = [pipe.process(im1, im2, shot.time_utc, channels="bgr").timing_ms for _ in range(args.repeat)]
     r1, n = resource.getrusage(resource.RUSAGE_SELF), args.repeat
     print(f"per pair: wall {(time.perf_counter() - w0) * 1000 / n:.0f} ms (mean), CPU user {(r1.ru_utime - r0.ru_utime) * 1000 / n:.0f}"
           f" + system {(r1.ru_stime - r0.ru_stime) * 1000 / n:.0f} ms, {(r1.ru_minflt - r0.ru_minflt) / n:.0f} page faults"
-          f", peak RSS {r1.ru_maxrss / 1024:.0f} MB (allocator: {tune_malloc() or 'defaults'}; CBH_MALLOC_TUNE=0 to compare)")
+          f", peak RSS {r1.ru_maxrss / 1024:.0f} MB")
     stages = list(runs[0])
     print(f"median of {args.repeat} runs [ms]:")
     for s in stages:

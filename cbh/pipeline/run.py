@@ -56,7 +56,6 @@ from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.geocheck import check_geometry, images_identical
 from cbh.pipeline.sundetect import detect_sun
-from cbh.pipeline.allocator import tune_malloc
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
@@ -160,7 +159,6 @@ class Pipeline:
             raise ConfigError(f"Pipeline: expected a Station, got {type(station).__name__} "
                               f"(read a station file with cbh.load_station(path))")
         self.station = station
-        tune_malloc()  # once per process: freed arrays stay in the process (see .allocator)
         self.device, self.backend = _resolve_backend(device, backend)
         self.config = config if config is not None else PipelineConfig.from_dict(station.sections.get("pipeline", {}))
         if not isinstance(self.config, PipelineConfig):
