@@ -477,3 +477,24 @@ def test_a_dark_sky_is_flagged_underexposed():
     bright, dark = out[1.0], out[0.12]
     assert "underexposed" not in bright.flags and bright.diagnostics["sky_cam1_dn"] > 150
     assert "underexposed" in dark.flags and dark.diagnostics["sky_cam1_dn"] < 32
+
+
+def test_full_size_maps_are_the_working_maps_enlarged_on_read(small_sky):
+    """The height map and cloud masks are made at working size and handed out on each camera's
+    full grid: until read they are Enlarged (what the recorder writes as is); read, they are the
+    nearest-neighbour enlargement, every f × f block one working pixel, and become the value."""
+    sim, shot = small_sky
+    pipe = Pipeline(sim.station, config=PipelineConfig().replace(working_radius_px=80.0))  # 320 → 160 px
+    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    small = r.enlarged("height_map")
+    masks = {c: r.enlarged("cloud_masks", c) for c in r.cameras}
+    assert small is not None and small.factor == 2 and small.small.shape == (160, 160)
+    assert all(m is not None and m.small.dtype == bool for m in masks.values())
+    assert np.isfinite(small.small).sum() > 100  # a measured cloud, not an empty map
+    hm = r.height_map
+    assert hm.shape == (320, 320) and hm.dtype == np.float32 and r.enlarged("height_map") is None
+    np.testing.assert_array_equal(hm, np.repeat(np.repeat(small.small, 2, axis=0), 2, axis=1))
+    for c, m in masks.items():
+        full = r.cloud_masks[c]
+        assert full.shape == (320, 320) and full.dtype == bool
+        np.testing.assert_array_equal(full, np.repeat(np.repeat(m.small, 2, axis=0), 2, axis=1))
