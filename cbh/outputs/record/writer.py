@@ -67,8 +67,11 @@ _MAX_PENDING_NS = 600 * 10**9
 
 def _png(image: np.ndarray, what: str, bilevel: bool = False) -> bytes:
     """PNG bytes of a uint8 image; ``bilevel``: a 0/255 mask as 1 bit per pixel (decodes to the
-    same 0/255 image; 25 % faster and 10 % smaller than 8-bit grey for a 1920 px cloud mask)."""
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_BILEVEL, 1] if bilevel else [])
+    same 0/255 image; 25 % faster and 10 % smaller than 8-bit grey for a 1920 px cloud mask),
+    with zlib's filtered strategy (OpenCV's default is run-length): 41 against 73 kB and 6.1
+    against 7.0 ms per mask, median over 8 masks of four simulated skies at 1920 px."""
+    params = [cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_FILTERED] if bilevel else []
+    ok, buf = cv2.imencode(".png", image, params)
     if not ok:  # pragma: no cover - OpenCV encodes uint8/uint16 PNG
         raise RecordingError(f"PNG encoding of {what} failed")
     return buf.tobytes()
