@@ -1,6 +1,6 @@
 """Recorder, reader, Rerun and export throughput (run on demand; prints numbers).
 
-    python benchmarks/bench_record.py [--size 1920] [--pairs 10]
+    python benchmarks/bench_record.py [--size 1920] [--pairs 10] [--full-size-maps]
 
 Writes synthetic pairs of the given size (JPEG images as received, a dense float32 height map,
 ~8000 points) with McapRecorder, then reads them back, replays into an .rrd and exports NetCDF;
@@ -27,6 +27,8 @@ def main(argv=None) -> int:
     ap.add_argument("--pairs", type=int, default=10)
     ap.add_argument("--parquet-rows", type=int, nargs="*", default=[26_000, 50_000],
                     help="rows a live Parquet export already holds (a day at a 10 s cadence ≈ 26 000)")
+    ap.add_argument("--full-size-maps", action="store_true",
+                    help="hand the recorder full-size maps (the pipeline hands working-size ones, enlarged on read)")
     a = ap.parse_args(argv)
 
     from dataclasses import replace
@@ -36,14 +38,22 @@ def main(argv=None) -> int:
     from cbh.outputs.rerun_view import RerunSink
     from tests.test_record import small_station, synthetic_pair
 
+    from cbh.result import Enlarged
+
     st = small_station(a.size)
     pairs = []
     for k in range(a.pairs):
         frames, res = synthetic_pair(st, k, n_points=8000)
         rng = np.random.default_rng(k)
-        hm = np.where(rng.random(res.height_map.shape) < 0.5, np.nan,
-                      1200 + 30 * rng.standard_normal(res.height_map.shape)).astype(np.float32)
-        pairs.append((frames, replace(res, height_map=hm)))
+        h, w = res.height_map.shape
+        hm = np.where(rng.random((h // 2, w // 2)) < 0.5, np.nan,
+                      1200 + 30 * rng.standard_normal((h // 2, w // 2))).astype(np.float32)
+        # as the pipeline hands them over: made at half size, enlarged when read (Enlarged)
+        maps = dict(height_map=Enlarged(hm, w, h),
+                    cloud_masks={c: Enlarged(np.ascontiguousarray(m[::2, ::2]), w, h) for c, m in res.cloud_masks.items()})
+        if a.full_size_maps:  # as before 2026-12-02: full-size arrays
+            maps = dict(height_map=maps["height_map"].full(), cloud_masks={c: m.full() for c, m in maps["cloud_masks"].items()})
+        pairs.append((frames, replace(res, **maps)))
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "bench.mcap"
         t0 = time.perf_counter()
