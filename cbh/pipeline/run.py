@@ -845,7 +845,8 @@ class Pipeline:
                 px1=pts.px1.astype(np.float32), px2=pts.px2.astype(np.float32), layer=lay.label,
             ),
             height_map=hmap.full(),  # full size when read (Enlarged)
-            cloud_masks={c: Enlarged(np.asarray(m, bool), f.width, f.height) for c, m, f in zip(self.cameras, seg.clouds, full)},
+            cloud_masks={c: Enlarged(np.asarray(m, bool), f.width, f.height)
+                         for c, m, f in zip(self.cameras, seg.clouds, full)},
             cloud_fraction=seg.fractions,
             timing_ms=ctx.timing,
             flags=ctx.flags,
