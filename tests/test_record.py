@@ -376,3 +376,26 @@ def test_a_height_map_edited_after_reading_is_recorded_as_edited(tmp_path, stati
     got = next(open_session(tmp_path / "e.mcap").pairs()).result
     assert np.isnan(got.height_map[:10]).all() and (got.height_map[10:] == 1500.0).all()
     assert not got.cloud_masks[res.cameras[0]][:4].any() and got.cloud_masks[res.cameras[0]][4:].all()
+
+
+def test_a_height_map_enlarged_by_four_is_recorded_small(tmp_path, station):
+    """Any whole factor the pipeline hands over (4: a 3840 px camera at 960 px working size) is
+    recorded at the working size and read back bit for bit; block_factor alone looks for 2 and 3."""
+    from dataclasses import replace
+
+    from mcap.reader import make_reader
+
+    from cbh.outputs.record import McapRecorder, open_session
+    from cbh.result import Enlarged
+
+    frames, res = synthetic_pair(station, 0)
+    h, w = res.height_map.shape
+    small = np.random.default_rng(4).normal(2000.0, 50.0, (h // 4, w // 4)).astype(np.float32)
+    small[:5] = np.nan
+    with McapRecorder(tmp_path / "f4.mcap", station, {}) as rec:
+        rec.write(frames, replace(res, height_map=Enlarged(small, w, h)))
+    with open(tmp_path / "f4.mcap", "rb") as fh:
+        size = [len(m.data) for _, ch, m in make_reader(fh).iter_messages() if ch.topic == "/pair/height_map"][0]
+    assert size < small.nbytes + 1024  # the small map, not the full one
+    got = next(open_session(tmp_path / "f4.mcap").pairs()).result.height_map
+    np.testing.assert_array_equal(got, np.repeat(np.repeat(small, 4, axis=0), 4, axis=1))

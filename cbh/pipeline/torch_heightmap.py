@@ -13,7 +13,7 @@ nearly the same distance. Parity (tests/test_torch_parity.py): exact distances a
 force; the fill rule (≤ 3 px) selects the same pixels as OpenCV's.
 
 The rest of :func:`~cbh.pipeline.heightmap.dense_height_map` (splatting matches, merging
-grids, the fill rule, the upsampling) is shared: the fill is handed in as a function.
+grids, the fill rule) is shared: the fill is handed in as a function.
 """
 from __future__ import annotations
 

@@ -77,10 +77,7 @@ def _png(image: np.ndarray, what: str, bilevel: bool = False) -> bytes:
     return buf.tobytes()
 
 
-_HM_FACTORS = (1, 2, 3)  # height-map decimations a recording may carry (1 = full size)
-
-
-def block_factor(image: np.ndarray, factors=_HM_FACTORS[1:]) -> int:
+def block_factor(image: np.ndarray, factors=(2, 3)) -> int:
     """The first f of ``factors`` for which the float32 ``image`` (H, W) is made of f × f blocks
     of bitwise-equal values: a nearest-neighbour upsample by f, as the pipeline's full-size height
     map is of its working-size one; 1 if none. Exact, so decimating by f is lossless."""
@@ -419,7 +416,7 @@ class McapRecorder(ResultSink):
             pc.fields.add(name=name, offset=POINT_DTYPE.fields[name][1], type=PEF.NumericType.Value(typ))
         out.append(("/pair/points", pc, t_ns))
         small = result.enlarged("height_map")
-        if small is not None and small.factor in _HM_FACTORS and small.small.ndim == 2:
+        if small is not None and small.factor >= 1 and small.small.ndim == 2:  # any whole factor: the reader repeats it
             hm, hm_scale = np.ascontiguousarray(small.small, dtype="<f4"), small.factor  # as made: no enlarging, no check
         else:
             hm = np.ascontiguousarray(np.asarray(result.height_map, dtype="<f4"))
