@@ -13,7 +13,7 @@ import numpy as np
 from cbh.result import PairResult
 from cbh.geometry.station import Station, rotation_from_angles
 
-__all__ = ["SceneScore", "score_pair", "station_variant"]
+__all__ = ["SceneScore", "score_pair", "station_variant", "LayerScore", "layer_tolerance", "score_layers"]
 
 
 @dataclass(frozen=True)
@@ -57,3 +57,56 @@ def score_pair(result: PairResult, truth_height_m: np.ndarray, truth_layers_m, f
         dense_mdape=float(np.median(ape)) if ape.size else float("nan"),
         dense_coverage=float(have.sum() / cloud.sum()) if cloud.any() else float("nan"),
     )
+
+
+@dataclass(frozen=True)
+class LayerScore:
+    """Reported layers against the visible true layers of one randomized sky.
+
+    A true layer is *expected* when it is the visible cloud on at least ``expect_share`` of
+    camera 1's analysed field, *optional* when on ``optional_share`` … ``expect_share`` (a
+    sliver: found or not, it is no error). A reported layer matches a true one when within
+    ``tolerance(h)`` of it; an unmatched reported layer is *spurious*.
+    """
+
+    expected_m: list[float]
+    found_m: list[float]
+    matched: dict[float, float]  # expected height → reported height
+    spurious_m: list[float]
+    tolerance: dict[float, float]  # expected height → relative tolerance
+
+    @property
+    def missed_m(self) -> list[float]:
+        return [h for h in self.expected_m if h not in self.matched]
+
+
+def layer_tolerance(height_m: float, baseline_m: float, pixel_rad: float, floor: float = 0.05,
+                    pixel_error: float = 0.5) -> float:
+    """Relative height tolerance max(floor, H·δθ/B) with δθ = ``pixel_error`` pixels of
+    ``pixel_rad`` [rad/px]: the parallax error a stereo pair cannot resolve (δH ≈ H² δθ / B)."""
+    return max(floor, height_m * pixel_error * pixel_rad / baseline_m)
+
+
+def score_layers(result: PairResult, truth_height_m: np.ndarray, fov: np.ndarray, baseline_m: float,
+                 pixel_rad: float, expect_share: float = 0.03, optional_share: float = 0.003) -> LayerScore:
+    """Score ``result``'s layers against camera 1's true height map inside ``fov`` (see :class:`LayerScore`)."""
+    vals, counts = np.unique(truth_height_m[fov & np.isfinite(truth_height_m)], return_counts=True)
+    n = max(int(fov.sum()), 1)
+    expected = [float(v) for v, c in zip(vals, counts) if c / n >= expect_share]
+    optional = [float(v) for v, c in zip(vals, counts) if optional_share <= c / n < expect_share]
+    tol = {h: layer_tolerance(h, baseline_m, pixel_rad) for h in expected + optional}
+    found = sorted(float(l.height_m) for l in result.layers)
+    matched: dict[float, float] = {}
+    spurious = []
+    for f in found:
+        near = [h for h in expected + optional if abs(f - h) / h <= tol[h]]
+        h = min(near, key=lambda h: abs(f - h) / h) if near else None
+        if h is None:
+            spurious.append(f)
+        elif h in matched:  # a second report of one layer (split): the farther one is spurious
+            spurious.append(max(f, matched[h], key=lambda x: abs(x - h)))
+            matched[h] = min(f, matched[h], key=lambda x: abs(x - h))
+        elif h in expected:
+            matched[h] = f
+    return LayerScore(expected_m=expected, found_m=found, matched=matched, spurious_m=spurious,
+                      tolerance={h: tol[h] for h in expected})

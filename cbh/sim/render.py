@@ -148,6 +148,7 @@ class _CameraState:
         self.nominal = nominal
         self.true = replace(nominal, R_world_from_cam=R_true)
         self.clock_offset_s = imp.clock_offset_s
+        self.aureole = (float(scene.sky.aureole), float(scene.sky.aureole_width_deg))
         self.colour_lut = colour_response_lut(imp.gain, imp.gamma, imp.white_balance) if imp.has_colour_response else None
         model = nominal.model
         self.H, self.W = model.height, model.width
@@ -265,7 +266,8 @@ class _CameraState:
             np.clip(cosg, -1.0, 1.0, out=cosg)
             gam = np.degrees(np.arccos(cosg))  # angle to the sun [deg]
             if show_disk and zenith_sun_deg < 90.0 + SUN_RADIUS_DEG:
-                glow = 1.3 * np.exp(-gam / 1.5) + 0.35 * np.exp(-gam / 8.0) + 0.10 * np.exp(-gam / 35.0)
+                a, w = self.aureole  # circumsolar aureole: strength and core width
+                glow = 1.3 * np.exp(-gam / 1.5) + a * (0.35 * np.exp(-gam / w) + 0.10 * np.exp(-gam / 35.0))
                 r_disk = max(SUN_RADIUS_DEG, 1.5 * math.degrees(self.zenith_px_rad))
                 glow[gam <= r_disk] += 4.0  # the disk saturates
                 forward = (1.2 * np.exp(-gam / 5.0)).astype(np.float32)
@@ -556,6 +558,7 @@ class SkySimulator:
             mask.reshape(-1)[cs.obstacle_idx] = False
         if cs.colour_lut is not None:  # the camera's own gain, tone curve and white balance
             image = cv2.LUT(image, cs.colour_lut)
+        image = output_levels(image, scene.image.white_level, scene.image.limited_range)
         if scene.image.jpeg_roundtrip:
             from cbh.imageio import decode_image, encode_jpeg
 
@@ -589,6 +592,17 @@ def colour_response_lut(gain: float, gamma: float, white_balance: tuple[float, f
     x = np.arange(256, dtype=np.float64) / 255.0
     chans = [np.clip(gain * w * x, 0.0, 1.0) ** gamma for w in (wb_b, 1.0, wb_r)]
     return np.clip(np.round(255.0 * np.stack(chans, axis=-1)), 0, 255).astype(np.uint8).reshape(256, 1, 3)
+
+
+def output_levels(image: np.ndarray, white_level: int = 255, limited_range: bool = False) -> np.ndarray:
+    """A camera's output levels: values clipped at its ``white_level`` [DN], then optionally
+    squeezed into video's limited range 16..235 (as IP cameras stream H.264 over RTSP)."""
+    if white_level >= 255 and not limited_range:
+        return image
+    lut = np.minimum(np.arange(256), white_level).astype(np.float64)
+    if limited_range:
+        lut = 16.0 + lut * (219.0 / 255.0)
+    return cv2.LUT(image, np.round(lut).astype(np.uint8))
 
 
 def _utc(t: datetime) -> datetime:

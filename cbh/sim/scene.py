@@ -26,6 +26,9 @@ The file format::
     zenith_bgr = [200, 125, 70]            # clear-sky colour at the zenith (B, G, R) [DN]
     horizon_bgr = [235, 215, 200]          # clear-sky colour at the horizon [DN]
     visibility_m = 40000.0                 # clouds fade into the haze over this range [m]
+    aureole = 1.0                          # strength of the circumsolar aureole (whitish glow
+                                           # around the sun, beyond the disk) relative to default
+    aureole_width_deg = 8.0                # e-folding angle of the aureole's core [deg]
 
     [image]
     exposure = 1.0                         # brightness factor of the whole image
@@ -33,6 +36,8 @@ The file format::
     noise_dn = 1.5                         # sensor noise standard deviation [DN]
     jpeg_quality = 92                      # JPEG quality of SkySimulator.frame() (1..100)
     jpeg_roundtrip = false                 # render() images also go through JPEG
+    white_level = 255                      # sensor clip level [DN]: values above it read as it
+    limited_range = false                  # video levels: 0..255 squeezed into 16..235 (RTSP/H.264)
 
     [[layers]]                             # any number; listed in any order
     height_m = 1500.0                      # cloud base above the ENU origin [m], > 0
@@ -150,6 +155,8 @@ class Sky:
     zenith_bgr: tuple[float, float, float] = (200.0, 125.0, 70.0)  # clear sky at the zenith [DN]
     horizon_bgr: tuple[float, float, float] = (235.0, 215.0, 200.0)  # clear sky at the horizon [DN]
     visibility_m: float = 40_000.0  # clouds fade into haze over this range [m]
+    aureole: float = 1.0  # circumsolar aureole strength relative to the default [1]
+    aureole_width_deg: float = 8.0  # e-folding angle of the aureole's core [deg]
 
 
 @dataclass(frozen=True)
@@ -159,6 +166,8 @@ class ImageSettings:
     noise_dn: float = 1.5  # sensor noise std [DN]
     jpeg_quality: int = 92  # quality of encoded frames, 1..100
     jpeg_roundtrip: bool = False  # render() images go through JPEG too
+    white_level: int = 255  # sensor clip level [DN]
+    limited_range: bool = False  # video levels 16..235 instead of 0..255
 
 
 @dataclass(frozen=True)
@@ -316,6 +325,9 @@ def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) ->
         zenith_bgr=_vec("sky.zenith_bgr", sky_d.get("zenith_bgr", list(Sky.zenith_bgr)), 3, lo=0.0, hi=255.0),
         horizon_bgr=_vec("sky.horizon_bgr", sky_d.get("horizon_bgr", list(Sky.horizon_bgr)), 3, lo=0.0, hi=255.0),
         visibility_m=_num("sky.visibility_m", sky_d.get("visibility_m", Sky.visibility_m), lo=0.0, lo_open=True),
+        aureole=_num("sky.aureole", sky_d.get("aureole", Sky.aureole), lo=0.0, hi=20.0),
+        aureole_width_deg=_num("sky.aureole_width_deg", sky_d.get("aureole_width_deg", Sky.aureole_width_deg),
+                               lo=0.5, hi=60.0),
     )
 
     im_d = _table("image", data.get("image", {}))
@@ -326,6 +338,8 @@ def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) ->
         noise_dn=_num("image.noise_dn", im_d.get("noise_dn", ImageSettings.noise_dn), lo=0.0, hi=100.0),
         jpeg_quality=_int("image.jpeg_quality", im_d.get("jpeg_quality", ImageSettings.jpeg_quality), lo=1, hi=100),
         jpeg_roundtrip=_bool("image.jpeg_roundtrip", im_d.get("jpeg_roundtrip", False)),
+        white_level=_int("image.white_level", im_d.get("white_level", 255), lo=128, hi=255),
+        limited_range=_bool("image.limited_range", im_d.get("limited_range", False)),
     )
 
     raw_layers = data.get("layers", [])

@@ -1,0 +1,100 @@
+"""Randomized-sky benchmark: layers found, spurious layers, clear skies with cloud, false alarms.
+
+Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--verbose]
+
+Each sky is :func:`cbh.sim.randomize.random_case` (seed S, S+1, …): clear, broken or overcast;
+1–3 layers 300 m – 10 km; baselines 20–200 m in any direction; winds 0–30 m/s; the sun 10–85°
+from the zenith; aureole strength; horizon obstacles with and without a mask; colour
+responses; white levels 235–255 and limited-range video; JPEG; noise. One pair per sky, the
+true orientation given. A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
+δθ = half a rendered pixel at the zenith (:func:`cbh.sim.evaluate.layer_tolerance`).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from cbh.flags import INVALIDATING
+from cbh.geometry.station import load_station
+from cbh.pipeline import Pipeline
+from cbh.presets import station_path
+from cbh.sim import SkySimulator
+from cbh.sim.evaluate import score_layers
+from cbh.sim.randomize import random_case, station_with_masks
+
+BANDS = ((0, 1000), (1000, 3000), (3000, 6000), (6000, 10_001))
+
+
+def run_case(seed: int, base, size: int, folder: str):
+    """(case, result, layer score, cloud fraction of camera 1, seconds) of one randomized sky."""
+    case = random_case(seed, base)
+    sim = SkySimulator(case.station, case.scene, size_px=size)
+    shot = sim.render()
+    pipe = Pipeline(station_with_masks(case, sim, folder))
+    cams = list(sim.station.cameras)[:2]
+    t0 = time.perf_counter()
+    r = pipe.process(shot.views[cams[0]].image, shot.views[cams[1]].image, shot.time_utc, channels="bgr")
+    dt = time.perf_counter() - t0
+    cam1 = sim.station.cameras[cams[0]]
+    fov = cam1.zenith_map() <= pipe.config.masks.max_zenith_deg
+    fov &= ~sim.obstacle_mask(cams[0])
+    score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.poly[0])
+    return case, r, score, dt
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=30)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--size", type=int, default=960)
+    ap.add_argument("--verbose", action="store_true", help="one line per sky")
+    args = ap.parse_args(argv)
+    base = load_station(station_path())
+    found = expected = spurious = clear_bad = clear_n = alarms = 0
+    errs = defaultdict(list)
+    bad_seeds = []
+    with tempfile.TemporaryDirectory() as folder:
+        for seed in range(args.seed, args.seed + args.n):
+            case, r, sc, dt = run_case(seed, base, args.size, folder)
+            cf = max(r.cloud_fraction.values(), default=0.0)
+            expected += len(sc.expected_m)
+            found += len(sc.matched)
+            spurious += len(sc.spurious_m)
+            inval = sorted(set(r.flags) & INVALIDATING)
+            alarms += bool(inval)
+            for h, f in sc.matched.items():
+                errs[next(b for b in BANDS if b[0] <= h < b[1])].append(abs(f - h) / h)
+            bad = bool(sc.missed_m or sc.spurious_m or inval)
+            if case.kind == "clear":
+                clear_n += 1
+                cbad = cf > 0.02 or bool(r.layers)
+                clear_bad += cbad
+                bad |= cbad
+            if bad:
+                bad_seeds.append(seed)
+            if args.verbose or bad:
+                fmt = lambda hs: "/".join(f"{h:.0f}" for h in hs) or "-"
+                print(f"{'BAD ' if bad else 'ok  '}{case.describe()}\n     expected {fmt(sc.expected_m)} found "
+                      f"{fmt(sc.found_m)} missed {fmt(sc.missed_m)} spurious {fmt(sc.spurious_m)} cf {cf:.3f} "
+                      f"flags {','.join(r.flags) or '-'} {dt:.2f} s", flush=True)
+    print(f"\nskies {args.n} (seeds {args.seed}..{args.seed + args.n - 1}, {args.size} px)")
+    print(f"layers found {found}/{expected} ({100 * found / max(expected, 1):.1f} %)")
+    print(f"spurious layers {spurious}")
+    print(f"clear skies with cloud > 0.02 or a layer: {clear_bad}/{clear_n}")
+    print(f"skies with an invalidating flag (false alarms on a correct station): {alarms}")
+    for b in BANDS:
+        e = errs.get(b, [])
+        med = f"{100 * float(np.median(e)):.2f} %" if e else "-"
+        print(f"  {b[0]:>5d}-{b[1]:<5d} m: {len(e):3d} layers, median error {med}")
+    print(f"failing seeds: {' '.join(map(str, bad_seeds)) or 'none'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
