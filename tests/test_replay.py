@@ -117,3 +117,72 @@ def test_reprocess_never_records_onto_its_own_input(short_session, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("cbh: error:") and "record to a new file" in err and "\n" not in err
     assert sess.read_bytes() == before
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_connect_with_no_viewer_listening_is_one_line_within_seconds(short_session, capsys):
+    """Rerun's connect retries in the background and its flush waited without end (issue 26)."""
+    import time
+
+    from cbh.cli.main import main
+
+    sess, _ = short_session
+    url = f"rerun+http://127.0.0.1:{_free_port()}/proxy"  # nothing listens there
+    t0 = time.monotonic()
+    assert main(["replay", str(sess), "--rerun", "connect", url]) == 2
+    assert time.monotonic() - t0 < 10.0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cbh: error: --rerun connect: no viewer at") and url in err and "\n" not in err, err
+
+
+def test_serve_keeps_serving_after_the_replay_until_ctrl_c(short_session):
+    """A viewer that connects after the replay ended still finds the server; Ctrl-C ends it cleanly."""
+    import signal
+    import sys
+    import threading
+
+    from cbh.outputs.rerun_serve import check_port
+    from cbh.errors import ConfigError
+
+    try:
+        check_port("127.0.0.1", 9876, "test")  # `cbh replay --rerun serve` serves on Rerun's port
+    except ConfigError:
+        pytest.skip("port 9876 is in use on this machine")
+    sess, _ = short_session
+    proc = subprocess.Popen([sys.executable, "-c", "from cbh.cli.main import main; main()", "replay", str(sess),
+                             "--rerun", "serve"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err_lines: list[str] = []
+    ended = threading.Event()
+
+    def read_err():
+        for line in proc.stderr:
+            err_lines.append(line)
+            if line.startswith("replay ended"):
+                ended.set()
+
+    reader = threading.Thread(target=read_err, daemon=True)
+    reader.start()
+    try:
+        assert ended.wait(120), "".join(err_lines)
+        assert proc.poll() is None  # still serving
+        import socket
+
+        with socket.create_connection(("127.0.0.1", 9876), timeout=5):
+            pass  # a late viewer finds the server
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    reader.join(5)
+    assert proc.returncode == 0, "".join(err_lines)
+    assert "replayed 2 pairs" in out
+    assert "Traceback" not in "".join(err_lines) and len(err_lines) == 1, err_lines

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from cbh.actions.run import RunSetup, check_writable, open_sink
 from cbh.errors import RecordingError
-from cbh.live.service import ServiceConfig
+from cbh.interfaces import ResultSink
+from cbh.live.service import OPERATOR_STOPS, ServiceConfig
 
 __all__ = ["ReplayReport", "replay"]
 
@@ -36,7 +37,7 @@ class ReplayReport:
 
 
 def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), station=None, cameras=None,
-           record=None, on_viewer=None, overwrite: bool = False, bind: str | None = None,
+           record=None, on_viewer=None, on_end=None, overwrite: bool = False, bind: str | None = None,
            device: str = "cpu") -> ReplayReport:
     """Replay (``station`` None) or reprocess (``station`` given) a recorded session.
 
@@ -54,6 +55,10 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         Reprocess only: record the new results to this MCAP file.
     on_viewer : callable (RerunSink) → None, optional
         Called once the viewer is open (e.g. to print the serve URL).
+    on_end : callable (RerunSink) → None, optional
+        Called once everything is logged, before the viewer's stream closes (not after a
+        reprocess stopped by a signal): e.g. to keep a ``serve`` server up for viewers that
+        connect later, until Ctrl-C.
     overwrite : bool
         Replace an existing ``record`` file (never one of the session's own files).
     bind : str, optional
@@ -68,19 +73,31 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
     if station is None:
         if record is not None or cameras is not None:
             raise RecordingError("a new recording or camera pair needs reprocessing with a station")
-        n = _replay_recorded(s, rerun, Path(session).stem, on_viewer, bind)
+        n = _replay_recorded(s, rerun, Path(session).stem, on_viewer, bind, on_end)
         return ReplayReport(n, False, rerun[0] if rerun else None, rerun[1] if rerun else None,
                             None, None, time.perf_counter() - t0)
     setup, viewer = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem, overwrite, bind, device)
     if viewer is not None and on_viewer is not None:
         on_viewer(viewer)
-    stats = setup.service().run()
+    try:
+        stats = setup.service().run()
+        if viewer is not None and on_end is not None and stats.stop_reason not in OPERATOR_STOPS:
+            on_end(viewer)
+    except BaseException:
+        if viewer is not None:
+            try:
+                viewer.close()
+            except Exception:
+                pass  # the first error is the one to report
+        raise
+    if viewer is not None:
+        viewer.close()
     return ReplayReport(stats.pairs_processed, True, rerun[0] if rerun else None, rerun[1] if rerun else None,
                         viewer.url if viewer is not None else None, Path(record) if record is not None else None,
                         time.perf_counter() - t0, failed=stats.pairs_failed)
 
 
-def _replay_recorded(s, rerun, name: str, on_viewer, bind=None) -> int:
+def _replay_recorded(s, rerun, name: str, on_viewer, bind=None, on_end=None) -> int:
     from cbh.outputs.rerun_view import RerunSink
 
     if rerun is None:
@@ -98,7 +115,28 @@ def _replay_recorded(s, rerun, name: str, on_viewer, bind=None) -> int:
             n += 1
         for t, stats in s.statuses():
             sink.write_status(t, stats)
+        if on_end is not None:
+            on_end(sink)
     return n
+
+
+class _Lent(ResultSink):
+    """The viewer as the service sees it: written to, flushed, but closed by :func:`replay`
+    (after ``on_end``), not by the service."""
+
+    kind = "viewer"
+
+    def __init__(self, sink):
+        self.sink = sink
+
+    def write(self, frames, result) -> None:
+        self.sink.write(frames, result)
+
+    def write_status(self, time_utc, stats: dict) -> None:
+        self.sink.write_status(time_utc, stats)
+
+    def close(self) -> None:
+        """Nothing: :func:`replay` closes the viewer."""
 
 
 def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: bool = False,
@@ -137,7 +175,7 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: b
             if rerun[0] == "save":
                 check_writable(rerun[1])
             viewer = RerunSink(st, rerun[0], rerun[1], cameras=pipeline.cameras, recording_name=name, bind=bind)
-            sinks.append(viewer)
+            sinks.append(_Lent(viewer))
     except BaseException:
         for k in sinks:
             k.close()

@@ -53,7 +53,7 @@ from cbh.result import Frame, PairResult
 from cbh.tomlio import dataclass_from_table
 from cbh.live.sources import EndOfStream, decode_frame
 
-__all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySink", "STATES"]
+__all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySink", "STATES", "OPERATOR_STOPS"]
 
 log = logging.getLogger(__name__)
 
@@ -382,7 +382,7 @@ class _Reader(threading.Thread):
 
 
 #: Stop reasons that mean the operator ended the run (no error when no pair was processed).
-_OPERATOR_STOPS = ("SIGINT", "SIGTERM", "SIGHUP", "stopped")
+OPERATOR_STOPS = ("SIGINT", "SIGTERM", "SIGHUP", "stopped")
 
 
 class _Corrupt(Exception):
@@ -580,7 +580,7 @@ class Service:
                 signal.signal(sig, h)
         if close_err is not None:
             raise close_err
-        if self.stats.pairs_processed == 0 and self.stats.stop_reason not in _OPERATOR_STOPS:
+        if self.stats.pairs_processed == 0 and self.stats.stop_reason not in OPERATOR_STOPS:
             raise self._nothing_done()
         return self.stats
 

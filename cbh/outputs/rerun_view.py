@@ -53,6 +53,7 @@ MAX_HEIGHT_MAP_PX = 960  # the height map is shown decimated to at most this siz
 MAX_OUTLINE_PX = 480  # the cloud outline is traced on the mask decimated to at most this size [px]
 HIST_BARS = 60  # about this many histogram bars, whatever the height range
 MOTION_ARROW_S = 300.0  # motion arrows show the displacement over this time [s]
+FLUSH_TIMEOUT_S = 15.0  # ``connect``: the viewer must have taken everything within this at the end [s]
 
 
 def parse_rerun_spec(mode: str, target: str | None = None) -> tuple[str, str | None]:
@@ -331,6 +332,10 @@ class RerunSink(ResultSink):
         self.url: str | None = None
         self._styled: list[int] = []
         self._closed = False
+        if self.mode == "connect":  # before any stream exists: nothing listening is one line, at once
+            from cbh.outputs.rerun_serve import check_viewer
+
+            self.target = check_viewer(self.target)
         self.rec = rr.RecordingStream("cbh", recording_id=uuid.uuid4())
         if recording_name:
             self.rec.send_recording_name(recording_name)
@@ -384,8 +389,13 @@ class RerunSink(ResultSink):
         if self._closed:
             return
         self._closed = True
-        self.rec.flush()
-        self.rec.disconnect()
+        try:  # a viewer that went away mid-run must not hold the exit for ever
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S if self.mode == "connect" else 1e38)
+        except RuntimeError as exc:
+            raise RecordingError(f"--rerun connect: the viewer at {self.target} did not take the data: "
+                                 f"{' '.join(str(exc).split())}") from None
+        finally:
+            self.rec.disconnect()
 
     def __enter__(self) -> "RerunSink":
         return self

@@ -1,6 +1,7 @@
 """`cbh replay`: a recording back into Rerun on its original time line, optionally reprocessed."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import typer
@@ -27,7 +28,10 @@ def replay_cmd(
     device: str = typer.Option("cpu", "--device", help="With --reprocess: where the dense work runs (cpu, or a torch device, e.g. cuda)."),
 ) -> None:
     """Re-log a recorded session into Rerun with the default blueprint (images, cloud masks,
-    matches, 3D points, histogram, layer heights over time)."""
+    matches, 3D points, histogram, layer heights over time).
+
+    With --rerun serve the server stays up after the replay ends, so a viewer that connects
+    later still gets everything: stop it with Ctrl-C."""
     if (station or record or cameras) and not reprocess:
         raise ConfigError("--station, --cameras and --record need --reprocess")
     if reprocess and station is None:
@@ -38,7 +42,30 @@ def replay_cmd(
     spec = None if no_viewer else parse_rerun_spec(rerun, target)
     r = replay(session, rerun=spec, station=station, cameras=cameras, record=record, overwrite=overwrite, bind=bind,
                device=device,
-               on_viewer=lambda s: s.url and print(f"serving on {s.url}: connect a viewer with `rerun --connect {s.url}`"))
+               on_viewer=lambda s: s.url and print(f"serving on {s.url}: connect a viewer with `rerun --connect {s.url}`"),
+               on_end=_serve_until_interrupted if spec is not None and spec[0] == "serve" else None)
     dest = {"save": f" into {r.target}", "connect": f" to {r.target or 'the local viewer'}"}.get(r.mode, "")
     print(f"{'reprocessed' if r.reprocessed else 'replayed'} {r.pairs} pairs{dest} in {r.seconds:.1f} s"
           + (f" ({r.failed} failed)" if r.failed else "") + (f"; recorded {r.recorded}" if r.recorded else ""))
+
+
+def _serve_until_interrupted(sink) -> None:
+    """Keep the ``serve`` server up for viewers that connect after the replay, until Ctrl-C
+    (or SIGTERM / SIGHUP); then return normally, so the replay ends cleanly."""
+    import signal
+    import time
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:  # the handlers first: a Ctrl-C right after the line below is a clean stop too
+        print(f"replay ended; still serving on {sink.url} for viewers that connect later: press Ctrl-C to stop",
+              file=sys.stderr, flush=True)
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
