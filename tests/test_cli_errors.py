@@ -146,3 +146,46 @@ def test_corrupt_video_source_is_one_line_without_ffmpeg_noise(tmp_path):
                         "--source", f"cam2={bad}", "-q"], capture_output=True, text=True, cwd=tmp_path,
                        timeout=120, env=env)
     assert r.returncode == 2 and "cannot open" in one_error_line(r.stderr)
+
+
+@pytest.fixture
+def two_images(tmp_path):
+    """Two small colour sky images a.png and b.png in tmp_path."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for name in ("a", "b"):
+        img = np.clip(rng.normal(150, 40, (48, 48, 3)), 0, 255).astype(np.uint8)
+        img[..., 0] = 220  # blue sky with grey-white patches
+        cv2.imwrite(str(tmp_path / f"{name}.png"), img)
+        paths.append(tmp_path / f"{name}.png")
+    return paths
+
+
+@pytest.mark.parametrize("case, says", [
+    ("out_is_the_input", "would overwrite the input image"),
+    ("jpg", "written as PNG"),
+    ("png_for_two", "2 images need a folder"),
+    ("folder_of_the_inputs", "would overwrite the input image"),
+])
+def test_segment_out_that_would_lose_data_or_mislead_is_one_line(case, says, two_images, tmp_path, capsys):
+    a, b = two_images
+    args = {"out_is_the_input": [str(a), "--out", str(a)],
+            "jpg": [str(a), "--out", str(tmp_path / "x.jpg")],
+            "png_for_two": [str(a), str(b), "--out", str(tmp_path / "x.png")],
+            "folder_of_the_inputs": [str(a), str(b), "--out", str(tmp_path)]}[case]
+    before = {p: p.read_bytes() for p in two_images}
+    assert main(["segment", *args]) == 2
+    assert says in one_error_line(capsys.readouterr().err)
+    assert {p: p.read_bytes() for p in two_images} == before  # the inputs are untouched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]  # and nothing else written
+
+
+def test_segment_one_image_into_an_existing_folder_writes_stem_png(two_images, tmp_path, capsys):
+    a, _ = two_images
+    (tmp_path / "masks").mkdir()
+    assert main(["segment", str(a), "--out", str(tmp_path / "masks")]) == 0
+    assert [p.name for p in (tmp_path / "masks").iterdir()] == ["a.png"]
+    assert str(tmp_path / "masks" / "a.png") in capsys.readouterr().out

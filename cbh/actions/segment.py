@@ -18,7 +18,7 @@ import numpy as np
 
 from cbh.errors import RecordingError
 
-__all__ = ["SegmentedImage", "segment_image", "segment_files", "write_mask"]
+__all__ = ["SegmentedImage", "segment_image", "segment_files", "write_mask", "mask_paths"]
 
 
 @dataclass(frozen=True)
@@ -113,27 +113,73 @@ def _bright(image: np.ndarray, cfg) -> np.ndarray:
 
 
 def write_mask(path: Path, cloud: np.ndarray) -> Path:
-    """Write a cloud mask as an 8-bit PNG: 255 cloud, 0 clear or unusable."""
+    """Write a cloud mask as an 8-bit PNG: 255 cloud, 0 clear or unusable.
+
+    ``path`` must end in ``.png``. The file appears whole or not at all (a temporary file
+    beside it is renamed); errors name ``path``.
+    """
+    from cbh.fileio import atomic_write
+
     path = Path(path)
     if path.suffix.lower() != ".png":
-        path = path.with_suffix(".png") if path.suffix else path
+        raise RecordingError(f"{path}: a mask is written as PNG; give a .png name")
+    ok, png = cv2.imencode(".png", np.where(cloud, 255, 0).astype(np.uint8))
+    if not ok:  # pragma: no cover - encoding a uint8 image does not fail
+        raise RecordingError(f"cannot encode mask {path}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        ok = cv2.imwrite(str(path), np.where(cloud, 255, 0).astype(np.uint8))
+        with atomic_write(path) as tmp:
+            tmp.write_bytes(png.tobytes())
     except OSError as exc:
         raise RecordingError(f"cannot write mask {path}: {exc.strerror or exc}") from None
-    if not ok:
-        raise RecordingError(f"cannot write mask {path}")
     return path
+
+
+#: Suffixes of image files: an ``--out`` ending in one names a file, not a folder.
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".gif")
+
+
+def mask_paths(images: list[Path], out: Path) -> list[Path]:
+    """Where the masks of ``images`` go (the ``--out`` rule of ``cbh segment``), checked before
+    any image is read.
+
+    - ``out`` ending in ``.png`` (and not an existing folder): the mask of the one image;
+    - otherwise ``out`` is a folder (created if missing) and each mask is ``out/<stem>.png``;
+    - refused, as one :class:`~cbh.errors.InputError`: several images and a ``.png`` file name,
+      another image suffix (``x.jpg``: masks are PNG), an existing file that is not a PNG,
+      two images with the same stem, and a mask that would overwrite one of the images.
+    """
+    from cbh.errors import InputError
+
+    out = Path(out)
+    if out.is_dir() or (not out.exists() and out.suffix.lower() not in _IMAGE_SUFFIXES):
+        stems = [p.stem for p in images]
+        dup = sorted({st for st in stems if stems.count(st) > 1})
+        if dup:
+            raise InputError(f"two images share the name {dup[0]!r}: their masks would overwrite each other")
+        dests = [out / f"{p.stem}.png" for p in images]
+    elif out.suffix.lower() != ".png":
+        raise InputError(f"--out {out}: a mask is written as PNG; give a .png name (or a folder)")
+    elif len(images) > 1:
+        raise InputError(f"--out {out}: {len(images)} images need a folder (each mask is <stem>.png in it), "
+                         "not a .png file name")
+    else:
+        dests = [out]
+    inputs = {p.resolve(): p for p in images}
+    for d in dests:
+        if d.resolve() in inputs:
+            raise InputError(f"--out {out}: the mask would overwrite the input image {inputs[d.resolve()]}")
+    return dests
 
 
 def segment_files(paths: list[Path], out: Path, station_file: Path | None = None, camera: str | None = None,
                   time_utc: datetime | None = None) -> list[dict]:
     """Segment image files and write their masks (the ``cbh segment`` command).
 
-    One image: ``out`` is the mask's PNG path. Several: ``out`` is a folder, and each mask is
-    ``out/<image stem>.png``. Returns one dict per image: ``image``, ``mask`` (paths as str),
-    ``cloud_fraction``, ``usable_fraction`` (share of the image's pixels that were classified).
+    ``out``: the mask's ``.png`` path (one image), or a folder that gets ``<image stem>.png``
+    per image (:func:`mask_paths`). Returns one dict per image: ``image``, ``mask`` (paths as
+    str), ``cloud_fraction``, ``usable_fraction`` (share of the image's pixels that were
+    classified).
     """
     from cbh.errors import InputError
     from cbh.imageio import read_image
@@ -149,18 +195,12 @@ def segment_files(paths: list[Path], out: Path, station_file: Path | None = None
     paths = [Path(p) for p in paths]
     if not paths:
         raise InputError("give at least one image")
-    if len(paths) > 1:
-        stems = [p.stem for p in paths]
-        dup = sorted({s for s in stems if stems.count(s) > 1})
-        if dup:
-            raise InputError(f"two images share the name {dup[0]!r}: their masks would overwrite each other")
-        if out.exists() and not out.is_dir():
-            raise InputError(f"--out {out}: several images need a folder, not a file")
+    dests = mask_paths(paths, Path(out))
     rows = []
-    for p in paths:
+    for p, dest in zip(paths, dests):
         img, _ = read_image(p)
         seg = segment_image(img, station, camera, time_utc, what=str(p))
-        dest = write_mask(out if len(paths) == 1 else out / f"{p.stem}.png", seg.cloud)
+        write_mask(dest, seg.cloud)
         rows.append({"image": str(p), "mask": str(dest), "cloud_fraction": round(seg.cloud_fraction, 4),
                      "usable_fraction": round(float(seg.usable.mean()), 4)})
     return rows
