@@ -318,6 +318,24 @@ def test_cli_bad_input_is_one_line(tmp_path, capsys):
     assert err.startswith("cbh: error: --format") and err.count("\n") == 1
 
 
+def test_empty_camera_folders_are_an_error_as_in_cbh_run(tmp_path, capsys):
+    """`cbh run` over empty folders says no pair was found and exits 2; so does reprocess, and
+    writes nothing (no Ray is started)."""
+    from cbh.cli.main import main
+
+    (tmp_path / "c1").mkdir()
+    (tmp_path / "c2").mkdir()
+    out = tmp_path / "o"
+    srcs = ["--source", f"cam1={tmp_path / 'c1'}", "--source", f"cam2={tmp_path / 'c2'}"]
+    assert main(["run", *srcs]) == 2
+    assert "no pair processed" in capsys.readouterr().err
+    assert main(["reprocess", "--station", "unb-lea", *srcs, "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0] == "cbh: error: no pair to process: found unb-lea: cam1 0 frames, cam2 0 frames"
+    assert captured.out == "" and not out.exists()
+
+
 @pytest.mark.slow
 def test_truncated_recording_and_video_inputs(archive, ray_session, repo, tmp_path):
     """A recording cut mid-write is repaired and its complete pairs processed; video files

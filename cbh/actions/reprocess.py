@@ -883,4 +883,24 @@ def reprocess(stations, sources=(), *, cameras: str | None = None, on_event=None
     """Plan and run (see the module docstring); ``options`` are :class:`ReprocessOptions` fields."""
     opts = ReprocessOptions(**options)
     plan = plan_reprocess(load_jobs(stations, sources, cameras), opts)
+    if not plan.days:  # as `cbh run` over the same folders: an error, and nothing written
+        raise _nothing_found(plan)
     return plan, run_plan(plan, on_event)
+
+
+def _nothing_found(plan: Plan) -> CbhError:
+    """The one-line error of inputs that hold no pair at all (per station: frames found, unpaired)."""
+    from cbh.errors import InputError
+
+    opts = plan.options
+    window = ""
+    if opts.t_from or opts.t_to:
+        window = f" between {_iso(opts.t_from) if opts.t_from else 'the start'} and {_iso(opts.t_to) if opts.t_to else 'the end'}"
+    parts = []
+    for job in plan.jobs:
+        inv = plan.inventories[job.name]
+        got = ", ".join(f"{c} {inv.frames.get(c, 0)} frames" for c in job.cameras)
+        extra = f", {sum(inv.unpaired.values())} without a partner" if sum(inv.unpaired.values()) else ""
+        extra += f", {len(inv.skipped)} inputs skipped" if inv.skipped else ""
+        parts.append(f"{job.name}: {got}{extra}")
+    return InputError(f"no pair to process{window}: found {'; '.join(parts)}")
