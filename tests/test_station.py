@@ -169,3 +169,30 @@ def test_station_with_multiline_metadata_and_odd_keys_round_trips(unb_station, t
     assert back.sections["scene"] == st.sections["scene"]
     data = {"a b": 1, "t": {"x.y": "s\u0001", "plain-key_1": [1.5, 2]}, "arr": [{"n": 1, "sub": {"é": 2}}]}
     assert tomllib.loads(dumps_toml(data)) == data
+
+
+@pytest.mark.parametrize("table, says", [
+    ("[service]\nbogus_key = 1\n", "service.bogus_key: unknown key"),
+    ("[service]\npair_tolerance_s = -1.0\n", "service.pair_tolerance_s: must be > 0"),
+    ("[pipeline]\nbogus_key = 1\n", "pipeline.bogus_key: unknown key"),
+])
+@pytest.mark.parametrize("command", [
+    ["pair", "a.jpg", "b.jpg"], ["run", "--frames", "1"], ["triangulate", "--pixels", "p.csv"],
+    ["segment", "x.png", "--out", "m.png"], ["simulate", "--out", "sim", "--frames", "1"],
+    ["reprocess", "--out", "o"], ["mask", "frames", "--camera", "cam1", "--out", "m.png"],
+])
+def test_every_command_reads_a_station_file_the_same_way(command, table, says, repo, tmp_path, capsys,
+                                                         monkeypatch):
+    """`cbh pair` took an unknown [service] key that `cbh run` refused (issue 26): every command
+    refuses the same station with the same line, before touching any other input."""
+    from cbh.cli.main import main
+
+    monkeypatch.chdir(tmp_path)
+    st = tmp_path / "station.toml"
+    st.write_text((repo / "configs" / "unb-lea.toml").read_text() + "\n" + table)
+    with pytest.raises(ConfigError, match=says):
+        load_station(st)
+    assert main([*command, "--station", str(st)]) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith(f"cbh: error: {says}") and err.count("\n") == 1 and out == "", err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["station.toml"]  # nothing written
