@@ -189,3 +189,64 @@ def test_segment_one_image_into_an_existing_folder_writes_stem_png(two_images, t
     assert main(["segment", str(a), "--out", str(tmp_path / "masks")]) == 0
     assert [p.name for p in (tmp_path / "masks").iterdir()] == ["a.png"]
     assert str(tmp_path / "masks" / "a.png") in capsys.readouterr().out
+
+
+SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
+UNWRITABLE = "/sys"  # read-only even for root
+
+
+def _cannot_create_in(folder: str) -> bool:
+    try:
+        with open(os.path.join(folder, ".cbh-probe"), "wb"):
+            pass
+    except OSError:
+        return os.path.isdir(folder)
+    os.unlink(os.path.join(folder, ".cbh-probe"))
+    return False
+
+
+needs_read_only_sys = pytest.mark.skipif(not _cannot_create_in(UNWRITABLE), reason="needs a read-only /sys")
+
+
+@pytest.mark.parametrize("fmt", ["netcdf", "parquet", "csv"])
+def test_export_out_that_is_a_directory_says_so(fmt, tmp_path, capsys):
+    """netCDF said "Permission denied" for a directory; the others "Is a directory"."""
+    assert main(["export", str(SAMPLE), "-o", str(tmp_path), "-f", fmt]) == 2
+    assert f"--out {tmp_path}: is a directory" in one_error_line(capsys.readouterr().err)
+    assert list(tmp_path.iterdir()) == []
+
+
+@needs_read_only_sys
+@pytest.mark.parametrize("args", [["-o", f"{UNWRITABLE}/x.parquet"], ["-o", f"{UNWRITABLE}/x.nc"],
+                                  ["-o", UNWRITABLE, "--daily", "-f", "parquet"],
+                                  ["-o", f"{UNWRITABLE}/kernel", "--daily", "-f", "netcdf"]])
+def test_export_write_errors_name_the_out_file_not_a_temporary_one(args, capsys):
+    assert main(["export", str(SAMPLE), *args]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert line.startswith(f"cbh: error: cannot write {args[1]}") and ".tmp" not in line, line
+    assert line.endswith(": Permission denied") or line.endswith(": Operation not permitted"), line
+
+
+@needs_read_only_sys
+def test_write_records_names_its_out_file(tmp_path):
+    """`cbh reprocess` writes its day files through write_records (temporary file + rename)."""
+    from cbh.errors import RecordingError
+    from cbh.outputs.export import session_records, write_records
+
+    records, info = session_records([SAMPLE])
+    for fmt, name in (("netcdf", "d.nc"), ("parquet", "d.parquet")):
+        with pytest.raises(RecordingError) as e:
+            write_records(records, info, f"{UNWRITABLE}/{name}", fmt)
+        assert str(e.value).startswith(f"cannot write {UNWRITABLE}/{name}: ") and ".tmp" not in str(e.value)
+    assert write_records(records, info, tmp_path / "d.nc", "netcdf").is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["d.nc"]  # no temporary file left beside it
+
+
+def test_quicklook_out_directory_or_without_suffix(tmp_path, capsys):
+    """`-o DIR` wrote DIR.png and said "to DIR"; a name without suffix gets .png, and says so."""
+    assert main(["quicklook", str(SAMPLE), "-o", str(tmp_path)]) == 2
+    assert "is a directory" in one_error_line(capsys.readouterr().err)
+    assert not tmp_path.with_suffix(".png").exists()
+    assert main(["quicklook", str(SAMPLE), "-o", str(tmp_path / "q")]) == 0
+    assert capsys.readouterr().out.strip().endswith(f"to {tmp_path / 'q.png'}")
+    assert [p.name for p in tmp_path.iterdir()] == ["q.png"]

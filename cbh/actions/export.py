@@ -267,6 +267,8 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
         raise ConfigError("--daily is for --product layers")
     if fmt not in MAP_FORMATS:
         raise ConfigError(f"--format: {fmt!r} is not a map format (valid: {', '.join(MAP_FORMATS)})")
+    if out.is_dir():
+        raise RecordingError(f"--out {out}: is a directory; give a file name")
     if not out.parent.is_dir():
         raise RecordingError(f"output directory does not exist: {out.parent}")
     maps = ground_maps(sessions, station, products=(product,))

@@ -22,7 +22,8 @@ import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
 from cbh.flags import INVALIDATING
-from cbh.outputs.export import ceiling_index, okta, session_records
+from cbh.fileio import atomic_write
+from cbh.outputs.export import ceiling_index, okta, session_records, write_error
 
 __all__ = ["quicklook", "draw_quicklook", "MARKERS"]
 
@@ -126,10 +127,12 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
     axes[3].xaxis.set_major_locator(loc)
     axes[3].xaxis.set_major_formatter(mdates.ConciseDateFormatter(loc))
     axes[3].set_xlabel("time (UTC)")
-    try:
-        fig.savefig(out, dpi=dpi)
+    fmt = Path(out).suffix[1:].lower() or "png"
+    try:  # whole or not at all: a temporary file beside ``out``, renamed over it
+        with atomic_write(out) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=fmt)
     except OSError as exc:
-        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise write_error(out, exc) from None
     finally:
         plt.close(fig)
 
@@ -165,9 +168,13 @@ def _check_image_suffix(out: Path) -> None:
 def quicklook(sessions, out, *, title: str | None = None) -> str:
     """Draw the quicklook of recorded sessions to ``out`` (PNG); returns the CLI's summary line."""
     out = Path(out)
+    if out.is_dir():
+        raise RecordingError(f"--out {out}: is a directory; give the image's file name (e.g. {out / 'quicklook.png'})")
     if not out.parent.is_dir():
         raise RecordingError(f"output directory does not exist: {out.parent}")
     _check_image_suffix(out)
+    if not out.suffix:
+        out = out.with_suffix(".png")  # what matplotlib would write; the summary names the real file
     records, info = session_records(sessions)
     draw_quicklook(records, info, out, title=title)
     return f"drew {len(records)} time steps to {out}"

@@ -47,6 +47,7 @@ ceilometer products (E-PROFILE, Vaisala CL61): see :func:`netcdf_dataset`.
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import logging
 import math
@@ -66,7 +67,7 @@ from cbh.fileio import atomic_write
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
            "netcdf_dataset", "write_netcdf", "export_sessions", "FORMATS", "FILL_VALUE", "okta",
-           "ceiling_index", "diagnostic_units", "daily_groups"]
+           "ceiling_index", "diagnostic_units", "daily_groups", "write_error"]
 
 log = logging.getLogger(__name__)
 
@@ -350,13 +351,17 @@ class LayerExporter(ResultSink):
         with open(self.path, newline="") as fh:
             old = list(csv.reader(fh))
         width = len(COLUMNS) + len(keys)
-        with atomic_write(self.path) as tmp, open(tmp, "w", newline="") as fh:
-            w = csv.writer(fh, lineterminator="\n")
-            w.writerow(COLUMNS + keys)
-            index = {k: i for i, k in enumerate(old[0])} if old else {}
-            for row in old[1:]:
-                w.writerow([row[index[k]] if k in index and index[k] < len(row) else ""
-                            for k in (COLUMNS + keys)][:width])
+        try:
+            with atomic_write(self.path) as tmp, open(tmp, "w", newline="") as fh:
+                w = csv.writer(fh, lineterminator="\n")
+                w.writerow(COLUMNS + keys)
+                index = {k: i for i, k in enumerate(old[0])} if old else {}
+                for row in old[1:]:
+                    w.writerow([row[index[k]] if k in index and index[k] < len(row) else ""
+                                for k in (COLUMNS + keys)][:width])
+        except OSError as exc:
+            self._open_csv(write_header=False)  # the old table is intact: keep appending to it
+            raise write_error(self.path, exc) from None
         self.diagnostics = keys
         self._open_csv(write_header=False)
 
@@ -478,8 +483,11 @@ class LayerExporter(ResultSink):
         import pyarrow.parquet as pq
 
         table = self._table if self._table is not None else _arrow_table([], self.diagnostics)
-        with atomic_write(self.path) as tmp:
-            pq.write_table(table, str(tmp))
+        try:
+            with atomic_write(self.path) as tmp:
+                pq.write_table(table, str(tmp))
+        except OSError as exc:
+            raise write_error(self.path, exc) from None
 
     def close(self) -> None:
         """Flush and close (writes the Parquet footer). Idempotent."""
@@ -764,9 +772,20 @@ def write_netcdf(records: list[PairRecord], info: dict, out) -> None:
     for c in ("layer", "station_latitude", "station_longitude", "station_altitude"):
         enc[c] = {"_FillValue": None}
     try:
-        ds.to_netcdf(out, engine="netcdf4", encoding=enc)
+        with atomic_write(out) as tmp:
+            ds.to_netcdf(tmp, engine="netcdf4", encoding=enc)
     except OSError as exc:
-        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise write_error(out, exc) from None
+
+
+def write_error(path, exc: OSError) -> RecordingError:
+    """The one-line error of a failed write of ``path``: disk full, or the OS's reason, and never
+    the temporary file beside ``path`` that the writer actually had open (:func:`atomic_write`;
+    pyarrow's own messages name it)."""
+    if exc.errno == errno.ENOSPC:
+        return RecordingError(f"disk full while writing {path}")
+    why = os.strerror(exc.errno) if exc.errno else " ".join(str(exc).split())
+    return RecordingError(f"cannot write {path}: {why}")
 
 
 def _check_format(fmt: str) -> str:
@@ -798,6 +817,9 @@ def export_sessions(paths, fmt: str, out) -> tuple[int, int]:
     """Export sessions to ``out`` in ``fmt`` (csv, parquet, netcdf). Returns (rows, time steps)."""
     fmt = _check_format(fmt)
     out = Path(out)
+    if out.is_dir():
+        raise RecordingError(f"--out {out}: is a directory; give a file name (or --daily for one file per "
+                             "UTC day in it)")
     if not out.parent.is_dir():
         raise RecordingError(f"output directory does not exist: {out.parent}")
     records, info = session_records(paths)
@@ -864,15 +886,15 @@ def write_records(records: list[PairRecord], info: dict, out, fmt: str) -> Path:
     if fmt == "netcdf" and not records:
         raise RecordingError("write_records: no pair records: nothing to write to NetCDF")
     out = Path(out)
+    if fmt == "netcdf":
+        write_netcdf(records, info, out)  # atomic itself
+        return out
+    import pyarrow.parquet as pq
+
+    diag = _all_diagnostics(records)
     try:
         with atomic_write(out) as tmp:
-            if fmt == "netcdf":
-                write_netcdf(records, info, tmp)
-            else:
-                import pyarrow.parquet as pq
-
-                diag = _all_diagnostics(records)
-                pq.write_table(_arrow_table([row for r in records for row in record_rows(r, diag)], diag), str(tmp))
+            pq.write_table(_arrow_table([row for r in records for row in record_rows(r, diag)], diag), str(tmp))
     except OSError as exc:
-        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise write_error(out, exc) from None
     return out

@@ -39,8 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cbh.errors import ConfigError, RecordingError
+from cbh.errors import ConfigError
+from cbh.fileio import atomic_write
 from cbh.geometry.ground import GroundGrid
+from cbh.outputs.export import write_error
 
 __all__ = ["GroundMaps", "to_byte", "to_float", "PRODUCTS", "MAP_FORMATS", "LEAD_TIMES_S", "write_maps_netcdf", "write_maps_npz",
            "pysteps_motion"]
@@ -178,9 +180,10 @@ def write_maps_netcdf(maps: GroundMaps, product: str, out) -> None:
     enc["time"] = {"units": "seconds since 1970-01-01 00:00:00", "calendar": "standard", "dtype": "float64",
                    "_FillValue": None}
     try:
-        ds.to_netcdf(out, engine="netcdf4", encoding=enc)
+        with atomic_write(out) as tmp:
+            ds.to_netcdf(tmp, engine="netcdf4", encoding=enc)
     except OSError as exc:
-        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise write_error(out, exc) from None
 
 
 def pysteps_motion(maps: GroundMaps, product: str, i: int, timestep_s: float) -> tuple[np.ndarray, bool]:
@@ -237,11 +240,11 @@ def write_maps_npz(maps: GroundMaps, product: str, out) -> None:
         "station": maps.station,
     }
     try:
-        with open(Path(out), "wb") as fh:
+        with atomic_write(out) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(
                 fh, field=field.astype(np.float32), motion=motion, timestep_s=np.float64(timestep_s),
                 x_m=g.x_m, y_m=g.y_m, lat=lat, lon=lon, time_unix_s=t,
                 sun_blocked=maps.sun_blocked.astype(np.float32), lead_s=np.array(LEAD_TIMES_S),
                 layer_height_m=maps.layer_height_m, motion_ms=maps.motion_ms, metadata=np.array(json.dumps(meta)))
     except OSError as exc:
-        raise RecordingError(f"cannot write {out}: {exc.strerror or exc}") from None
+        raise write_error(out, exc) from None
