@@ -10,6 +10,7 @@ import errno
 import importlib
 import logging
 import sys
+import warnings
 
 import typer
 
@@ -91,8 +92,47 @@ def _os_message(exc: OSError) -> str:
     return f"{exc.strerror or exc}" + (f": {exc.filename}" if exc.filename else "")
 
 
+class _HeldWarnings:
+    """Python warnings (numpy's ``RuntimeWarning: Mean of empty slice`` …) shown during a command
+    are held, not printed where they happen: after a command that succeeded each distinct one
+    is logged once as a one-line warning; after one that failed only the log file gets them
+    (debug), so the error stays the one line on stderr. Warnings that filters turn into errors
+    (``-W error``, pytest's ``filterwarnings = error``) are raised as before."""
+
+    def __enter__(self) -> "_HeldWarnings":
+        self.held: list[str] = []
+        self._old = warnings.showwarning
+        warnings.showwarning = self._hold
+        return self
+
+    def _hold(self, message, category, filename, lineno, file=None, line=None) -> None:
+        self.held.append(f"{category.__name__}: {_one_line(message)}")
+
+    def __exit__(self, *exc) -> None:
+        warnings.showwarning = self._old
+
+    def report(self, failed: bool) -> None:
+        log = logging.getLogger("cbh.warnings")
+        for text in dict.fromkeys(self.held):
+            if failed:
+                log.debug(text)
+            else:
+                log.warning(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; every error ends as ONE line ``cbh: error: …`` on stderr and exit code 2."""
+    with _HeldWarnings() as held:
+        code = _run(argv)
+    held.report(failed=code not in (0, 130))
+    logging.shutdown()
+    if argv is None:
+        sys.exit(code)
+    return code
+
+
+def _run(argv: list[str] | None) -> int:
+    """The command's exit code; errors printed as one line."""
     code = 0
     try:
         rv = app(args=argv, standalone_mode=False, prog_name="cbh")
@@ -116,9 +156,6 @@ def main(argv: list[str] | None = None) -> int:
         code = 2
     except KeyboardInterrupt:
         code = 130
-    logging.shutdown()
-    if argv is None:
-        sys.exit(code)
     return code
 
 

@@ -250,3 +250,43 @@ def test_quicklook_out_directory_or_without_suffix(tmp_path, capsys):
     assert main(["quicklook", str(SAMPLE), "-o", str(tmp_path / "q")]) == 0
     assert capsys.readouterr().out.strip().endswith(f"to {tmp_path / 'q.png'}")
     assert [p.name for p in tmp_path.iterdir()] == ["q.png"]
+
+
+_WARN_THEN = """
+import sys, warnings
+import numpy as np
+import cbh.actions.inspect as action
+from cbh.errors import RecordingError
+
+def inspect_session(session, repair):
+    np.mean(np.array([]))  # RuntimeWarning: Mean of empty slice
+    np.mean(np.array([]))  # the same warning twice: reported once
+    if sys.argv[-1] == "fail":
+        raise RecordingError("no pairs in the recording")
+    return {{}}, ["fine"]
+
+action.inspect_session = inspect_session
+import cbh.outputs.record.describe as describe
+describe.format_description = lambda d: "described"
+from cbh.cli.main import main
+sys.argv = ["cbh", "inspect", "x.mcap", "{how}"]
+main()
+"""
+
+
+@pytest.mark.parametrize("how", ["fail", "succeed"])
+def test_a_numpy_warning_never_stands_beside_the_one_line_error(how, tmp_path):
+    """Python warnings are held during a command: after an error only the log file gets them;
+    after success each distinct one is one line on stderr."""
+    log = tmp_path / "log.jsonl"
+    code = _WARN_THEN.format(how=how).replace('"cbh", "inspect"', f'"cbh", "--log-file", "{log}", "inspect"')
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    if how == "fail":
+        assert r.returncode == 2
+        assert one_error_line(r.stderr) == "cbh: error: no pairs in the recording"
+    else:
+        assert r.returncode == 0, r.stderr
+        lines = r.stderr.strip().splitlines()
+        assert all(ln.startswith("cbh: WARNING: RuntimeWarning: ") for ln in lines), r.stderr
+        assert r.stderr.count("Mean of empty slice") == 1, r.stderr
+    assert "Mean of empty slice" in log.read_text()  # kept for whoever reads the log
