@@ -318,6 +318,14 @@ def test_cli_bad_input_is_one_line(tmp_path, capsys):
     assert err.startswith("cbh: error: --format") and err.count("\n") == 1
 
 
+def test_the_private_ray_keeps_token_auth_without_its_notice(ray_session):
+    """Ray prints "Token authentication is enabled …" unless RAY_AUTH_MODE is set: cbh sets it
+    (token, Ray's own default for a local instance) for the private instance it starts."""
+    import ray
+
+    assert ray.is_initialized() and os.environ.get("RAY_AUTH_MODE") == "token"
+
+
 def test_empty_camera_folders_are_an_error_as_in_cbh_run(tmp_path, capsys):
     """`cbh run` over empty folders says no pair was found and exits 2; so does reprocess, and
     writes nothing (no Ray is started)."""
@@ -422,6 +430,7 @@ def test_ctrl_c_keeps_finished_days_and_rerun_finishes(archive, baseline, tmp_pa
     (other,) = set(pairs) - {first["day"]}
     index = json.loads((out / "index.json").read_text())
     statuses = {d["day"]: d["status"] for d in index["stations"]["unb-lea"]["days"]}
+    assert "Token authentication" not in err  # Ray's notice on every run (issue 26)
     if p.returncode == 130:  # interrupted while the other day was in flight (the usual case)
         assert index["interrupted"] and statuses == {first["day"]: "written", other: "not finished"}
         assert "interrupted" in err

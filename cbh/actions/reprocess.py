@@ -472,6 +472,10 @@ def start_ray(workers: int | None = None, address: str | None = None, device: st
     if address is None:
         # must be set before ray is imported: Ray then binds 127.0.0.1 instead of the host's address
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+        # token authentication on, as Ray >= 2.59 does by default for a local instance, but said
+        # explicitly: Ray's documented switch, which also keeps its notice ("Token authentication
+        # is enabled for this Ray cluster …") off every run (a user's own setting wins)
+        os.environ.setdefault("RAY_AUTH_MODE", "token")
         # local workers import the very cbh this process runs (Ray's worker processes do not
         # always see a virtual environment's site-packages, and another cbh may be installed
         # system-wide): its folder goes first on the path of every process Ray starts from here

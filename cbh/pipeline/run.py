@@ -28,7 +28,9 @@ Stages (each a pure function in its own module; timed into ``PairResult.timing_m
 8. ``motion`` (with ``previous``, :mod:`.motion`): each camera's features tracked back to the
    previous pair, converted to each layer's motion over the ground [m/s]; camera 2's clock
    offset estimated from the parallax across the baseline, and compensated (``compensation``:
-   camera 2's image moved back to camera 1's capture time) before the matching.
+   camera 2's image moved back to camera 1's capture time) before the matching: the sweep's
+   planes each with the motion of their own height (the tracks' motion profile), the sparse
+   matchers on one image compensated per pixel.
 
 Per-camera caches (scaled models, static masks, the infinity remap table) live in the
 :class:`Pipeline` object; ``process`` itself keeps no state between frames: what one pair leaves
@@ -62,9 +64,10 @@ from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mas
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
-                                get_matcher, sample_map, stereo_heights, triangulate_matches)
-from cbh.pipeline.motion import (PairState, assign_layers, compensate_camera2, layer_motion, offset_estimate,
-                                 offset_per_match, plane_offsets, running_offset, track_back)
+                                get_matcher, sample_map, triangulate_matches)
+from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, shifted_images,
+                                 layer_motion, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
+                                 running_offset, track_back, track_profile)
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import sample_lattice, segment
 from cbh.pipeline.threads import pmap
@@ -357,19 +360,12 @@ class Pipeline:
         mot = self._motion_input(previous, time_utc, gray)
         mcfg = self.config.motion
         used = running_offset(mot.offsets_s) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
-        rates = mot.rates
+        profile, pair_s = mot.profile, math.nan  # (pair_s: this pair's latest own offset estimate)
         n_flags = len(ctx.flags)
         for attempt in range(_MAX_PASSES):  # more passes only when this pair moved the offset estimate (.motion)
             del ctx.flags[n_flags:]
-            comp = None
-            if math.isfinite(used) and abs(used) >= mcfg.compensate_min_s and rates:
-                with _timed(ctx, "compensation"):
-                    g2, comp = compensate_camera2(gray[1], mot.prev_gray[1], self.cam2, rates, used, mot.dt_s)
-                    c2 = cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
-                                   borderMode=cv2.BORDER_REPLICATE).astype(bool)
-                corr = self.stage_match(work, masks, seg, ctx, gray=(gray[0], g2), cloud2=c2)
-            else:
-                corr = self.stage_match(work, masks, seg, ctx, gray=gray)
+            corr, comp = self._match_compensated(work, masks, seg, ctx, gray, mot, used, profile)
+
             def height_map():
                 with _timed(ctx, "height_map"):
                     return self.stage_height_map(seg, corr)
@@ -388,23 +384,23 @@ class Pipeline:
             est = MotionEstimate()
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
-                    est = self._stereo_tracks(corr, gray, masks, seg, mot, comp, used if comp is not None else 0.0)
+                    est = self._stereo_tracks(corr, gray, masks, seg, mot, comp)
                     lay = self.stage_motion(lay, hmap, est, seg.clouds[0])
-            new = running_offset((mot.offsets_s + (est.pair_offset_s,))[-mcfg.offset_history:])
-            base = used if comp is not None else 0.0
-            new_rates = self._layer_rates(lay.layers)
-            moved = math.isfinite(new) and abs(new - base) > mcfg.rematch_s
-            if attempt and comp is not None:  # start-up passes: also until the layers' motion settles
-                moved = moved or self._rates_moved_px(rates, new_rates, new) > _RATES_SETTLED_PX
-            if attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not new_rates:
+            pair_s = est.pair_offset_s if math.isfinite(est.pair_offset_s) else pair_s
+            new = running_offset((mot.offsets_s + (pair_s,))[-mcfg.offset_history:])
+            moved = math.isfinite(new) and abs(new - (used if comp is not None else 0.0)) > mcfg.rematch_s
+            if attempt and comp is not None:  # start-up passes: also until the motion profile settles
+                moved = moved or profile.moved_px(est.profile, new, self._px_per_rad2()) > _RATES_SETTLED_PX
+            if (attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not len(est.profile)
+                    or not math.isfinite(new)):
                 break
-            used, rates = new, new_rates
+            used, profile = new, est.profile
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
         self._quality_flags(pts, seg, ctx, hmap, lay)
-        offsets = mot.offsets_s + ((est.pair_offset_s,) if math.isfinite(est.pair_offset_s) else ())
+        offsets = mot.offsets_s + ((pair_s,) if math.isfinite(pair_s) else ())
         offsets = offsets[-mcfg.offset_history:]
         running = running_offset(offsets)
-        ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=est.pair_offset_s, motion_dt_s=mot.dt_s)
+        ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s)
         if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
             ctx.flags.append("clock_offset")
         if first and not self._tables_loaded:
@@ -412,7 +408,7 @@ class Pipeline:
         ctx.timing["total"] = _ms(t_all)
         result = self._assemble(ctx, seg, hmap, pts, lay)
         result.state = PairState(time_utc=ctx.time_utc, cameras=self.cameras, gray=gray, offsets_s=offsets,
-                                 layer_rates=tuple(self._layer_rates(lay.layers)))
+                                 layer_rates=tuple(est.profile.rates), rate_heights_m=tuple(est.profile.heights_m))
         return result
 
     # --- motion and clock offset (see cbh.pipeline.motion) ---------------------------------
@@ -428,27 +424,81 @@ class Pipeline:
         dt = (time_utc - previous.time_utc).total_seconds()
         if not 0.0 < dt <= cfg.max_gap_s:
             return MotionInput(offsets_s=offsets)
-        return MotionInput(prev_gray=previous.gray, dt_s=dt, offsets_s=offsets,
-                           rates=[np.asarray(r, np.float64) for r in previous.layer_rates])
+        return MotionInput(prev_gray=previous.gray, dt_s=dt, offsets_s=offsets, profile=previous.profile)
 
-    def _rates_moved_px(self, old: list[np.ndarray], new: list[np.ndarray], offset_s: float) -> float:
-        """How far (camera-2 pixels near the zenith) the compensation moves when the layer
-        rates change from ``old`` to ``new``; inf when the number of layers changed."""
-        if len(old) != len(new) or not math.isfinite(offset_s):
-            return math.inf
-        m = self.cam2.model
-        px_per_rad = float(np.atleast_1d(m.r_from_theta(np.array([0.05])))[0]) / 0.05
-        return max((float(np.linalg.norm(a - b)) * abs(offset_s) * px_per_rad for a, b in zip(old, new)), default=0.0)
+    def _px_per_rad2(self) -> float:
+        """Camera 2's lens scale near the zenith at working size [px/rad]."""
+        return float(np.atleast_1d(self.cam2.model.r_from_theta(np.array([0.05])))[0]) / 0.05
 
-    def _layer_rates(self, layers) -> list[np.ndarray]:
-        """Each moving layer's plane-offset rate seen from camera 2, v / (h − z2) (2,) [1/s]."""
-        z2 = float(self.cam2.position_m[2])
-        return [np.array([L.motion_east_ms, L.motion_north_ms]) / (L.median_height_m - z2) for L in layers
-                if math.isfinite(L.motion_east_ms) and L.median_height_m > z2]
+    def _match_compensated(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray,
+                           mot: "MotionInput", used_s: float, profile: MotionProfile):
+        """:meth:`stage_match` with camera 2 moved back to camera 1's capture time by the offset
+        ``used_s`` [s] (when known and at least ``compensate_min_s``, and ``profile`` has nodes):
+        the sparse matchers on one image compensated per pixel (:func:`compensate_camera2`), the
+        sweep's planes each on the image compensated with its own height's motion
+        (:func:`shifted_images`, ``motion.plane_compensation``). Returns (Correspondences,
+        the per-pixel remap table or None when uncompensated)."""
+        mcfg = self.config.motion
+        if not (math.isfinite(used_s) and abs(used_s) >= mcfg.compensate_min_s and len(profile)):
+            return self.stage_match(work, masks, seg, ctx, gray=gray), None
+        with _timed(ctx, "compensation"):
+            rates = list(profile.rates)  # lowest first
+            images, maps = shifted_images(gray[1], self.cam2, rates, used_s)
+            g2, comp = compensate_camera2(gray[1], mot.prev_gray[1], self.cam2, rates, used_s, mot.dt_s, maps=maps)
+            c2 = cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
+                           borderMode=cv2.BORDER_REPLICATE).astype(bool)
+            views = None
+            if mcfg.plane_compensation and len(images) > 1:
+                from cbh.pipeline.sweep import PlaneViews
+
+                z1, z2 = float(self.cam1.position_m[2]), float(self.cam2.position_m[2])
+                rates1 = [r * (h - z2) / (h - z1) for r, h in zip(rates, profile.heights_m)]  # as camera 1 sees them
+                moved1, _ = shifted_images(mot.prev_gray[0], self.cam1, rates1, -mot.dt_s)
+                views = PlaneViews.nearest(images, profile.heights_m, z1, moved1, self.config.matching.sweep.min_zncc)
+        return self.stage_match(work, masks, seg, ctx, gray=(gray[0], g2), cloud2=c2, views2=views), comp
+
+    def _jumped(self, a1: np.ndarray, a2: np.ndarray, a1_prev: np.ndarray, a2_prev: np.ndarray) -> np.ndarray:
+        """Tracks whose two cameras no longer follow one thing (N,) bool: their stereo parallax
+        ``c = a1 − a2`` changed between the frames.
+
+        Layers move horizontally, so a feature keeps its c (``q·B' − δ·w``, :mod:`.motion`)
+        whatever its motion and camera 2's clock offset. A track that jumped (its feature hidden by
+        a lower cloud that moved in front: at a 60 s cadence, 3500 m features latched onto the
+        1200 m layer, which gave the deck the low layer's motion × 2.9) has another c. The test
+        is on c itself, not on a triangulation of the raw pair: a layer that moves across the
+        baseline during the offset does not triangulate (its rays miss by v·δ), yet it is the
+        one that measures the offset. Tolerance: the layer tolerance of |c|, or 3 σ of the
+        difference of two parallaxes, each off by σ_θ·(1 + |a|²) (σ_θ: ``_TRACK_NOISE_PX`` of LK
+        at the lens's scale; 1 + |a|² = 1/cos²θ: plane offsets stretch away from the zenith): at
+        480 px a 3500 m track at B = 50 m has 2 px of parallax, good to ≈ 15 %, not 10 %."""
+        m1 = self.cam1.model
+        sigma_theta = _TRACK_NOISE_PX * 0.05 / float(np.atleast_1d(m1.r_from_theta(np.array([0.05])))[0])
+        c_now, c_prev = a1 - a2, a1_prev - a2_prev
+        stretch = 1.0 + (a1 ** 2).sum(axis=1)
+        with np.errstate(invalid="ignore"):
+            tol = np.maximum(self.config.motion.layer_tolerance_log * np.linalg.norm(c_now, axis=1),
+                             3.0 * math.sqrt(2.0) * sigma_theta * stretch)
+            return ~(np.linalg.norm(c_now - c_prev, axis=1) <= tol)
+
+    def _track_heights(self, a1: np.ndarray, a2: np.ndarray, w1: np.ndarray, delta_s: float) -> np.ndarray:
+        """Each stereo feature's height above the ENU origin (N,) [m] for camera 2's clock offset
+        ``delta_s`` [s] (:func:`parallax_heights`); NaN where :func:`triangulate_matches` would
+        reject it: outside the height range, or a miss across the baseline above
+        ``max_miss_ratio`` (as a ratio of the range: plane offsets × cos θ)."""
+        c1, c2 = self.cam1.position_m, self.cam2.position_m
+        q, miss = parallax_heights(np.asarray(c2 - c1, np.float64)[:2], float(c2[2] - c1[2]), a1, a2, w1, delta_s)
+        filt = self.config.filtering
+        with np.errstate(invalid="ignore", divide="ignore"):
+            h = float(c1[2]) + 1.0 / q
+            ok = ((q > 0) & (h >= filt.min_height_m) & (h <= filt.max_height_m)
+                  & (np.abs(miss) <= filt.max_miss_ratio * np.sqrt(1.0 + (a1 ** 2).sum(axis=1))))
+        return np.where(ok, h, np.nan)
 
     def _stereo_tracks(self, corr: "Correspondences", gray, masks: "Masks", seg: "Segmentation", mot: "MotionInput",
-                       comp, used_s: float) -> "MotionEstimate":
-        """Track the LK stereo features back in both cameras; this pair's clock offset."""
+                       comp) -> "MotionEstimate":
+        """Track the LK stereo features back in both cameras (camera 2's as captured: ``comp`` maps
+        the compensated image's pixels back, None = uncompensated); this pair's clock offset, each
+        feature's height for it and the motion profile of the tracks."""
         cfg = self.config.motion
         raw = next((m for m in corr.raw if m.method == "lk"), None)
         if raw is None:  # LK is not a configured matcher: its features are still the best to track
@@ -458,44 +508,33 @@ class Pipeline:
         if raw is None or not len(raw):
             return MotionEstimate(dt_s=mot.dt_s)
         idx = np.unique(np.linspace(0, len(raw) - 1, min(len(raw), cfg.max_points)).round().astype(np.int64))
-        px1, px2 = raw.px1[idx], raw.px2[idx]
-        dt = mot.dt_s
+        px1, dt = raw.px1[idx], mot.dt_s
+        px2 = raw.px2[idx] if comp is None else sample_map(comp[..., 0], comp[..., 1], raw.px2[idx])  # as captured
         t1 = track_back(gray[0], mot.prev_gray[0], px1, cfg)
-        a1 = plane_offsets(self.cam1, px1)
-        w1 = (a1 - plane_offsets(self.cam1, t1.px_prev)) / dt
+        t2 = track_back(gray[1], mot.prev_gray[1], px2, cfg)
+        a1, a2 = plane_offsets(self.cam1, px1), plane_offsets(self.cam2, px2)
+        a1_prev, a2_prev = plane_offsets(self.cam1, t1.px_prev), plane_offsets(self.cam2, t2.px_prev)
+        w1, w2 = (a1 - a1_prev) / dt, (a2 - a2_prev) / dt
         w1[~t1.ok] = np.nan
-        px2_raw = px2 if comp is None else sample_map(comp[..., 0], comp[..., 1], px2)
-        t2 = track_back(gray[1], mot.prev_gray[1], px2_raw, cfg)
-        w2 = (plane_offsets(self.cam2, px2_raw) - plane_offsets(self.cam2, t2.px_prev)) / dt
         w2[~t2.ok] = np.nan
-        # a track follows one thing in both cameras only if the two tracks still form a stereo pair
-        # of that thing's height: layers move horizontally. A track that jumped (its feature hidden
-        # by a lower cloud that moved in front: at a 60 s cadence, 3500 m features latched onto the
-        # 1200 m layer, which gave the deck the low layer's motion × 2.9) triangulates elsewhere.
-        # Both pairs are as captured (camera 2 uncompensated), so a clock offset biases both alike.
-        # Tolerance: the layer tolerance, or 3 σ of the difference of two stereo heights, each off
-        # by σ_h/h = σ_θ/angle (σ_θ: _TRACK_NOISE_PX of LK at the lens's scale): at 480 px a 3500 m
-        # track at B = 50 m has 2 px of parallax and is good to ≈ 15 %, not the 10 % of the layers
-        filt = self.config.filtering
-        h_now, ang = stereo_heights(self.geometry, px1, px2_raw, filt)
-        h_prev, _ = stereo_heights(self.geometry, t1.px_prev, t2.px_prev, filt)
-        m1 = self.cam1.model
-        sigma_theta = _TRACK_NOISE_PX * 0.05 / float(np.atleast_1d(m1.r_from_theta(np.array([0.05])))[0])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            tol = np.maximum(cfg.layer_tolerance_log, 3.0 * math.sqrt(2.0) * sigma_theta / ang)
-            jumped = ~(np.abs(np.log(h_prev / h_now)) <= tol)
+        jumped = self._jumped(a1, a2, a1_prev, a2_prev)
         w1[jumped] = np.nan
         w2[jumped] = np.nan
         pair = math.nan
-        if cfg.clock_offset:
+        if cfg.clock_offset:  # on the pair as captured: exact whatever the compensation did
             c1, c2 = self.cam1.position_m, self.cam2.position_m
-            d, q, wt = offset_per_match(np.asarray(c2 - c1, np.float64)[:2], float(c2[2] - c1[2]), a1,
-                                        plane_offsets(self.cam2, px2), w1)
-            res = offset_estimate(d, q, wt, self.config.filtering.min_height_m, self.config.filtering.max_height_m,
-                                  cfg.max_offset_s, dt)
-            pair = used_s + res if math.isfinite(res) else math.nan
-        return MotionEstimate(dt_s=dt, px1=px1, w1=w1, w2=w2, pair_offset_s=pair,
-                              height_m=stereo_heights(self.geometry, px1, px2, self.config.filtering)[0])
+            d, q, wt = offset_per_match(np.asarray(c2 - c1, np.float64)[:2], float(c2[2] - c1[2]), a1, a2, w1)
+            pair = offset_estimate(d, q, wt, self.config.filtering.min_height_m, self.config.filtering.max_height_m,
+                                   cfg.max_offset_s, dt)
+        delta = running_offset((mot.offsets_s + (pair,))[-cfg.offset_history:])
+        delta = delta if math.isfinite(delta) and abs(delta) >= cfg.compensate_min_s else 0.0
+        h = self._track_heights(a1, a2, w1, delta)
+        z1, z2 = float(self.cam1.position_m[2]), float(self.cam2.position_m[2])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w1_as2 = w1 * ((h - z1) / (h - z2))[:, None]  # camera 1's rate as camera 2 sees it
+        profile = track_profile(np.concatenate([h, h]), np.concatenate([w2, w1_as2]), cfg.min_tracks,
+                                cfg.layer_tolerance_log)
+        return MotionEstimate(dt_s=dt, px1=px1, w1=w1, w2=w2, pair_offset_s=pair, height_m=h, profile=profile)
 
     def stage_motion(self, lay: LayerSet, hmap: HeightMap, est: "MotionEstimate", cloud1: np.ndarray) -> LayerSet:
         """Each layer's motion over the ground from the tracks (NaN without a previous pair)."""
@@ -656,12 +695,13 @@ class Pipeline:
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
     def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
-                    cloud2: np.ndarray | None = None) -> "Correspondences":
+                    cloud2: np.ndarray | None = None, views2=None) -> "Correspondences":
         """Correspondences of every configured method, triangulated and geometrically checked.
 
         ``gray``: the two working-size grey images (default: from ``work``); ``cloud2``: camera
         2's cloud mask (default: the segmentation's), both given when camera 2 is compensated
-        for its clock offset."""
+        for its clock offset; ``views2``: camera 2 per plane of the sweep
+        (:class:`~cbh.pipeline.sweep.PlaneViews`; None: ``gray[1]`` for every plane)."""
         cfg = self.config
         geom = self.geometry
         if gray is None:
@@ -670,7 +710,7 @@ class Pipeline:
             geometry=geom, gray1=gray[0], gray2=gray[1],
             cloud1=seg.clouds[0], usable1=masks.usable[0], usable2=masks.usable[1],
             cloud2=seg.clouds[1] if cloud2 is None else cloud2,
-            device=self.device if self.backend == "torch" else None,
+            device=self.device if self.backend == "torch" else None, views2=views2,
         )
         raw = []
         if seg.clouds[0].any():  # the matchers run side by side (their times overlap)
@@ -890,7 +930,7 @@ class MotionInput:
     prev_gray: tuple[np.ndarray, np.ndarray] | None = None
     dt_s: float = math.nan
     offsets_s: tuple[float, ...] = ()
-    rates: list = field(default_factory=list)  # previous layers' rates seen from camera 2, (2,) [1/s] each
+    profile: MotionProfile = field(default_factory=MotionProfile.empty)  # the previous pair's motion profile
 
 
 @dataclass(frozen=True)
@@ -902,7 +942,8 @@ class MotionEstimate:
     w1: np.ndarray | None = None  # (N, 2) camera 1's plane-offset rate [1/s]
     w2: np.ndarray | None = None  # (N, 2) camera 2's plane-offset rate of the partner [1/s]
     pair_offset_s: float = math.nan  # this pair's clock-offset estimate [s]
-    height_m: np.ndarray | None = None  # (N,) each feature's own stereo height [m] (NaN: rejected)
+    height_m: np.ndarray | None = None  # (N,) each feature's own stereo height [m] for the offset (NaN: rejected)
+    profile: MotionProfile = field(default_factory=MotionProfile.empty)  # the tracks' motion over height
 
 
 @dataclass(frozen=True)
