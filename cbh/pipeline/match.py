@@ -182,6 +182,9 @@ class MatchInput:
     usable2: np.ndarray  # (H2, W2) bool
     cloud2: np.ndarray  # (H2, W2) bool
     device: object = None  # torch.device for the methods with a torch backend; None = OpenCV/numpy
+    # camera 2 per plane of the sweep (sweep.PlaneViews: with a clock offset, compensated with each height's own
+    # motion); None = gray2 for every plane. The sparse matchers, and the sweep on a torch device, use gray2
+    views2: object = None
     _warped2: np.ndarray | None = None
 
     @property
@@ -325,7 +328,8 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     else:
         from cbh.pipeline.sweep import sweep_field
 
-        f = sweep_field(inp.gray1, inp.gray2, inp.cloud1, g.planes, o1z, cfg.sweep)
+        f = sweep_field(inp.gray1, inp.gray2 if inp.views2 is None else inp.views2, inp.cloud1, g.planes, o1z,
+                        cfg.sweep)
     if f is None:
         return Matches("sweep", np.zeros((0, 2)), np.zeros((0, 2)), dense=True)
     from cbh.pipeline.sweep import field_points

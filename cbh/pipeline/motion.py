@@ -34,8 +34,8 @@ the component-wise median of its tracks' velocities (both cameras pooled), its s
 NaN.
 
 **Clock offset.** Camera 2 capturing δ seconds late sees each cloud point moved by ``v·δ``.
-For one stereo match (camera-1 offsets a1, camera-2 offsets a2, camera-1 motion w = da1/dt,
-baseline B, camera-2 height above camera 1 Δz), with q = 1/h::
+For one stereo match (camera-1 offsets a1, camera-2 offsets a2 as captured, camera-1 motion
+w = da1/dt, baseline B, camera-2 height above camera 1 Δz), with q = 1/h::
 
     q·B' − δ·w = a1 − a2,        B' = B_horizontal − Δz·a2
 
@@ -47,31 +47,53 @@ NaN unless a quarter of the matches see motion across the baseline and the estim
 standard error is ≤ 0.1 s (:func:`offset_estimate`: with the wind along the baseline only
 wrong tracks pass, and they would give a confident wrong number);
 ``clock_offset_s`` is the median of the last ``offset_history`` pair estimates (positive:
-camera 2 captures late).
+camera 2 captures late). The estimate is always made on camera 2's pixels as captured (a
+compensated match is mapped back), so it is exact whatever the compensation did. A track
+counts only while its parallax ``a1 − a2`` stays the same between the frames (layers move
+horizontally; a track that jumped to another cloud changes it), a test that, unlike a
+triangulation of the raw pair, keeps the layer that moved across the baseline during δ: the
+one that measures δ best (a 19 m/s layer at 4000 m moves 57 m in 3 s, its rays miss by
+1.4 % of the range and no longer triangulate). With δ known, each track's height is the
+least-squares q of the same equations (:func:`parallax_heights`).
 
-**Compensation.** With a known offset δ, camera 2's image is moved back to camera 1's capture
-time before matching (:func:`compensate_camera2`): a pixel showing layer L is taken from where
-that layer's motion carries it in δ, ``a = a2 + w_L·δ`` with ``w_L = v_L / (h_L − z2)`` (exact
-geometry on a coarse grid, interpolated); which layer a pixel shows is decided photometrically
-(the layer whose motion over the cadence maps it best onto camera 2's previous frame), with
-occlusion (a lower layer hides a higher one; what it uncovers within δ comes from the
-previous frame). Every
-matcher and the triangulation then see a synchronised pair. The layer motions are the
-previous pair's. Estimates are made on the compensated pair (the residual offset, added to
-the one used). A pair whose estimate moves the running value by more than ``rematch_s`` (the
-first pairs of a run with an offset) is matched again with the new value and this pass's layer
-motions, up to three more times while the compensation still moves by more than 0.1 px, so
-the second pair of a run is already compensated; in steady state a pair is matched once.
-Offsets below ``compensate_min_s`` (0.2 s) are reported but not compensated: with agreeing
-clocks the estimate comes out within ±0.15 s (LK's sub-pixel bias across the baseline divided
-by the motion across it), and compensating such a spurious offset costs more than it saves.
+**Motion profile.** The tracks, at those heights, give camera 2's plane-offset rate as a
+function of height (:class:`MotionProfile`, :func:`track_profile`: clusters in ln h, each
+node the median of its tracks). It comes from the tracks, not from the layers the pair found:
+a pair matched without (or with a wrong) compensation merges or loses layers (3 s, 1000 m at
+2 m/s under 4000 m at 19 m/s: one layer at 2860 m), its tracks still sit at their heights.
 
-Limits (measured, README): what a moving low layer uncovers in δ (a band of about
-|w_low − w_high|·δ along its edges) is only approximated from the previous frame, and
-resampling blurs camera 2 a little; at
-960 px working size both layers of the two-layer scene come out within 0.8 % at a 3 s offset,
-at 640 px the high layer (2.9 px of parallax) is 2.6–3.2 % low. An offset with all motion along
-the baseline is unobservable (``clock_offset_s`` stays NaN; heights then absorb it).
+**Compensation.** With a known offset δ, camera 2 is moved back to camera 1's capture time
+before matching, each layer with its own motion ``w_L = v_L / (h_L − z2)``: ``a = a2 + w_L·δ``
+(:func:`shift_map`: exact geometry on a coarse grid, interpolated).
+
+- The plane sweep compensates per height hypothesis: plane H is matched against camera 2
+  moved with the motion of the profile node nearest to H (:func:`shifted_images`,
+  :class:`~cbh.pipeline.sweep.PlaneViews`), so a layer is found however far it moves during
+  δ; no pixel of camera 2 needs a layer label. A layer seen through another layer's
+  compensation can still match on a wrong plane (where the motion difference runs along the
+  baseline); camera 1's own motion rules that out: each plane's score is weighted by how well
+  its node's motion carries camera 1's previous frame onto the current one, pixel by pixel.
+- The sparse matchers (LK: the points, the tracks) get one image compensated per pixel
+  (:func:`compensate_camera2`): which layer a pixel shows is decided photometrically (the
+  layer whose motion over the cadence maps it best onto camera 2's previous frame), with
+  occlusion (a lower layer hides a higher one; what it uncovers within δ comes from the
+  previous frame).
+
+Every matcher and the triangulation then see a synchronised pair. The profile is the
+previous pair's. A pair whose estimate moves the running value by more than ``rematch_s``
+(the first pairs of a run with an offset) is matched again with the new value and this
+pass's profile, up to three more times while the compensation still moves by more than
+0.1 px, so the second pair of a run is already compensated; in steady state a pair is
+matched once. Offsets below ``compensate_min_s`` (0.2 s) are reported but not compensated:
+with agreeing clocks the estimate comes out within ±0.15 s (LK's sub-pixel bias across the
+baseline divided by the motion across it), and compensating such a spurious offset costs
+more than it saves.
+
+Limits (measured, README): what a moving low layer uncovers in δ is only approximated for
+the sparse matchers, and resampling blurs camera 2 a little; the sweep on a torch device
+matches every plane against the per-pixel compensated image (no per-height views there). An
+offset with all motion along the baseline is unobservable (``clock_offset_s`` stays NaN;
+heights then absorb it).
 """
 from __future__ import annotations
 
@@ -82,9 +104,11 @@ from datetime import datetime
 import cv2
 import numpy as np
 
+from cbh.pipeline.peaks import find_peaks, smooth_gaussian, valley_cuts
 from cbh.result import Layer
 
-__all__ = ["PairState", "Tracks", "track_back", "plane_offsets", "offset_per_match", "offset_estimate",
+__all__ = ["PairState", "MotionProfile", "Tracks", "track_back", "plane_offsets", "offset_per_match",
+           "offset_estimate", "parallax_heights", "track_profile", "shift_map", "shifted_images",
            "compensate_camera2", "layer_motion", "running_offset"]
 
 
@@ -104,8 +128,11 @@ class PairState:
     offsets_s : tuple of float
         Camera 2's clock offset estimated on recent pairs, oldest first [s].
     layer_rates : tuple of ndarray (2,)
-        Each moving layer's plane-offset rate seen from camera 2, ``v / (h − z2)`` [1/s]:
-        the compensation of the next pair moves camera 2's pixels by ``rate · δ``.
+        Camera 2's plane-offset rate ``v / (h − z2)`` of each node of the pair's motion profile
+        (:class:`MotionProfile`, lowest first) [1/s]: the compensation of the next pair moves
+        camera 2's pixels by ``rate · δ``.
+    rate_heights_m : tuple of float
+        The height of each entry of ``layer_rates`` above the ENU origin [m].
     """
 
     time_utc: datetime | None
@@ -113,6 +140,16 @@ class PairState:
     gray: tuple[np.ndarray, np.ndarray] | None
     offsets_s: tuple[float, ...] = ()
     layer_rates: tuple[np.ndarray, ...] = ()
+    rate_heights_m: tuple[float, ...] = ()
+
+    @property
+    def profile(self) -> "MotionProfile":
+        """The motion profile the pair left (empty when ``layer_rates`` and ``rate_heights_m``
+        differ in length: a state whose rates were cleared carries no motion)."""
+        if not self.layer_rates or len(self.layer_rates) != len(self.rate_heights_m):
+            return MotionProfile.empty()
+        return MotionProfile(np.asarray(self.rate_heights_m, np.float64),
+                             np.asarray([np.asarray(r, np.float64) for r in self.layer_rates]).reshape(-1, 2))
 
     @property
     def clock_offset_s(self) -> float:
@@ -128,6 +165,59 @@ def running_offset(offsets_s) -> float:
     """Median of the recent per-pair offset estimates [s]; NaN when there are none."""
     v = np.asarray([o for o in offsets_s if math.isfinite(o)], np.float64)
     return float(np.median(v)) if v.size else math.nan
+
+
+@dataclass(frozen=True)
+class MotionProfile:
+    """Camera 2's view of the sky's motion as a function of height: nodes (height, rate).
+
+    A clock offset δ moves what camera 2 sees of a cloud at height h by ``w(h)·δ`` in plane
+    offsets, ``w(h) = v(h) / (h − z2)`` for the wind v(h) at that height; the compensation of a
+    plane-sweep plane at height H uses the rate of the node nearest to H in ln h
+    (:meth:`rate_at`), so that each layer is compensated with its own motion however far it
+    moves during δ. Nodes come from the tracks (:func:`track_profile`), not from the layers a
+    pair found: an uncompensated pair can merge or lose layers, its tracks still sit at their
+    layers' heights once the offset is known.
+
+    Attributes
+    ----------
+    heights_m : ndarray, shape (K,), float64
+        Node heights above the ENU origin, ascending [m].
+    rates : ndarray, shape (K, 2), float64
+        Camera 2's plane-offset rate at each node (east, north) [1/s].
+    """
+
+    heights_m: np.ndarray
+    rates: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "MotionProfile":
+        """A profile without nodes (no motion known)."""
+        return cls(np.zeros(0), np.zeros((0, 2)))
+
+    def __len__(self) -> int:
+        return int(len(self.heights_m))
+
+    def nearest(self, height_m) -> np.ndarray:
+        """Index of the node nearest in ln h to each height (N,) [m] → (N,) int64."""
+        h = np.log(np.maximum(np.atleast_1d(np.asarray(height_m, np.float64)), 1e-3))
+        return np.argmin(np.abs(h[:, None] - np.log(np.maximum(self.heights_m, 1e-3))[None, :]), axis=1)
+
+    def rate_at(self, height_m) -> np.ndarray:
+        """Camera 2's rate (N, 2) [1/s] at heights (N,) [m]: the nearest node's."""
+        return self.rates[self.nearest(height_m)]
+
+    def moved_px(self, other: "MotionProfile", offset_s: float, px_per_rad: float) -> float:
+        """How far the compensation of an offset ``offset_s`` [s] moves (camera-2 pixels near the
+        zenith, ``px_per_rad`` [px/rad]) between this profile and ``other``, at every node of
+        either; inf when only one of them has nodes or the offset is unknown."""
+        if not len(self) and not len(other):
+            return 0.0
+        if not len(self) or not len(other) or not math.isfinite(offset_s):
+            return math.inf
+        h = np.concatenate([self.heights_m, other.heights_m])
+        d = np.linalg.norm(self.rate_at(h) - other.rate_at(h), axis=1)
+        return float(d.max()) * abs(offset_s) * px_per_rad
 
 
 @dataclass(frozen=True)
@@ -240,9 +330,9 @@ def offset_estimate(delta_s: np.ndarray, q_inv_m: np.ndarray, weight: np.ndarray
     weight (a spurious track with a large motion would otherwise dominate).
 
     NaN (unknown, never a guess) unless at least ``min_matches`` matches and ``min_share`` of
-    the matches at a plausible height count, and the estimate's standard error (1.4826 · MAD
-    / √n) is at most ``max_error_s``: with all motion along the baseline only wrong tracks
-    pass the observability test, few and scattered.
+    the matches at a plausible height count, and the estimate's standard error (1.4826 ·
+    weighted MAD / √n_eff, n_eff = (Σw)² / Σw²) is at most ``max_error_s``: with all motion
+    along the baseline only wrong tracks pass the observability test, few and scattered.
     """
     with np.errstate(invalid="ignore", divide="ignore"):
         h = 1.0 / q_inv_m
@@ -254,9 +344,93 @@ def offset_estimate(delta_s: np.ndarray, q_inv_m: np.ndarray, weight: np.ndarray
     d = delta_s[ok]
     w = np.minimum(weight[ok], 2.0 * np.median(weight[ok]))
     est = _weighted_median(d, w)
-    if 1.4826 * float(np.median(np.abs(d - est))) / math.sqrt(n) > max_error_s:
+    # the weighted spread over the effective number of matches: the matches of a slow layer, whose
+    # little motion across the baseline makes each a poor measure of δ (0.5 s from 0.1 px of LK
+    # noise at 1 m/s across a 50 m baseline), count as little in the error as in the estimate
+    n_eff = float(w.sum()) ** 2 / max(float((w * w).sum()), 1e-300)
+    if 1.4826 * _weighted_median(np.abs(d - est), w) / math.sqrt(n_eff) > max_error_s:
         return math.nan
     return est
+
+
+def parallax_heights(baseline_m: np.ndarray, dz_m: float, a1: np.ndarray, a2: np.ndarray, w1: np.ndarray,
+                     delta_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse height of each stereo match for a known clock offset δ, and what it leaves unexplained.
+
+    With δ known, ``q·B' = a1 − a2 + δ·w1`` (:func:`offset_per_match`) is two equations for q:
+    q is their least-squares solution (the parallax along B'), and the component across B' is
+    the match's miss (≈ the triangulation's ray miss / range, in plane offsets). Unlike a
+    triangulation of the raw pair, a match whose layer moved across the baseline during δ is
+    not lost: its height comes out right however far the cloud moved.
+
+    Parameters
+    ----------
+    baseline_m : ndarray, shape (2,)
+        Horizontal ENU baseline camera 1 → camera 2 [m].
+    dz_m : float
+        Camera 2's height above camera 1 [m].
+    a1, a2 : ndarray, shape (N, 2)
+        Plane offsets of the matched pixels in cameras 1 and 2 as captured [m/m].
+    w1 : ndarray, shape (N, 2)
+        Camera 1's plane-offset rate of the feature [1/s] (NaN: not tracked; with δ = 0 not needed).
+    delta_s : float
+        Camera 2's clock offset [s].
+
+    Returns
+    -------
+    q_inv_m : ndarray (N,)
+        1 / height above camera 1 [1/m].
+    miss : ndarray (N,)
+        Residual across B' [m/m] (signed).
+    """
+    b = np.asarray(baseline_m, np.float64)[None, :2] - dz_m * np.asarray(a2, np.float64)
+    c = np.asarray(a1, np.float64) - a2
+    if delta_s:
+        c = c + delta_s * np.asarray(w1, np.float64)
+    bb = np.maximum((b ** 2).sum(axis=1), 1e-12)
+    q = (b * c).sum(axis=1) / bb
+    miss = (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]) / np.sqrt(bb)
+    return q, miss
+
+
+def track_profile(height_m: np.ndarray, rates: np.ndarray, min_tracks: int, tolerance_log: float) -> MotionProfile:
+    """Nodes of a :class:`MotionProfile` from tracks: clusters in ln h, each node the cluster's
+    median height and component-wise median rate.
+
+    The tracks' heights are binned in ln h (bins of ``tolerance_log`` / 2), smoothed over one bin
+    and split at the valleys between the histogram's peaks (:mod:`.peaks`, the finder of the
+    layer histogram); a cluster with fewer than ``min_tracks`` tracks gives no node.
+
+    Parameters
+    ----------
+    height_m : ndarray, shape (N,)
+        Each track's height above the ENU origin [m] (NaN: none).
+    rates : ndarray, shape (N, 2)
+        Each track's plane-offset rate as seen from camera 2 [1/s] (NaN: lost).
+    min_tracks : int
+    tolerance_log : float
+        Layer tolerance in ln h (``MotionConfig.layer_tolerance_log``).
+    """
+    h = np.asarray(height_m, np.float64)
+    r = np.asarray(rates, np.float64).reshape(-1, 2)
+    ok = np.isfinite(h) & (h > 0) & np.isfinite(r).all(axis=1)
+    if int(ok.sum()) < max(int(min_tracks), 1):
+        return MotionProfile.empty()
+    lh, r = np.log(h[ok]), r[ok]
+    bw = 0.5 * max(float(tolerance_log), 1e-3)
+    b = np.floor((lh - lh.min()) / bw).astype(np.int64) + 2
+    votes = smooth_gaussian(np.bincount(b, minlength=int(b.max()) + 3).astype(np.float64), 1.0)
+    peaks = find_peaks(votes)
+    edges = np.array([-1] + valley_cuts(votes, peaks) + [len(votes)])
+    heights, out = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (b > lo) & (b <= hi)
+        if int(sel.sum()) >= min_tracks:
+            heights.append(float(np.exp(np.median(lh[sel]))))
+            out.append(np.median(r[sel], axis=0))
+    if not heights:
+        return MotionProfile.empty()
+    return MotionProfile(np.asarray(heights), np.asarray(out).reshape(-1, 2))
 
 
 _GRIDS: dict = {}  # (h, w, grid_px) → identity map and coarse-grid lookups (shared by every pair)
@@ -276,14 +450,97 @@ def _grids(h: int, w: int, grid_px: int):
     return _GRIDS[key]
 
 
+_OFFSETS: dict = {}  # id(camera) → (camera, grid key, plane offsets of the grid nodes): two cameras per pipeline
+
+
+def _grid_offsets(cam, grid: np.ndarray, key) -> np.ndarray:
+    """:func:`plane_offsets` of the coarse grid nodes of ``cam`` (cached for the camera object)."""
+    hit = _OFFSETS.get(id(cam))
+    if hit is None or hit[0] is not cam or hit[1] != key:
+        if len(_OFFSETS) >= 8:
+            _OFFSETS.clear()
+        hit = _OFFSETS[id(cam)] = (cam, key, plane_offsets(cam, grid))
+    return hit[2]
+
+
+def shift_map(cam, shape: tuple[int, int], da: np.ndarray, grid_px: int = 8) -> np.ndarray:
+    """Remap table of a camera's pixels whose plane offset moves by ``da``: pixel u is taken from
+    where ``a = a2(u) + da`` (exact geometry every ``grid_px`` pixels, bilinear in between).
+
+    Parameters
+    ----------
+    cam : Camera
+        The camera at working size.
+    shape : (int, int)
+        Image (H, W) [px].
+    da : ndarray, shape (2,)
+        Plane-offset shift (east, north) [m/m].
+
+    Returns
+    -------
+    ndarray, shape (H, W, 2), float32
+        ``cv2.remap`` table (x then y); unchanged pixels where the shifted ray leaves the sky.
+    """
+    h, w = shape
+    grid, gshape, ident = _grids(h, w, grid_px)
+    a2 = _grid_offsets(cam, grid, (h, w, grid_px))
+    seen = np.isfinite(a2).all(axis=1, keepdims=True)
+    a = a2 + np.asarray(da, np.float64)[None, :]
+    d = np.concatenate([a, np.ones((len(a), 1))], axis=1)
+    p = cam.direction_to_pixel(d / np.linalg.norm(d, axis=1, keepdims=True))
+    disp = np.where(np.isfinite(p) & seen, p - grid, 0.0).reshape(gshape + (2,)).astype(np.float32)
+    full = cv2.resize(disp, (gshape[1] * grid_px, gshape[0] * grid_px), interpolation=cv2.INTER_LINEAR)
+    return cv2.add(ident, full[:h, :w])
+
+
+def _sample(img: np.ndarray, m: np.ndarray) -> np.ndarray:
+    return cv2.remap(img, m, None, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+
+
+def shifted_images(gray: np.ndarray, cam, rates: list[np.ndarray], tau_s: float,
+                   grid_px: int = 8) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A camera's image resampled as if the whole sky moved with each rate for ``tau_s``: pixel u
+    shows what the image shows where ``a = a(u) + rate · τ`` (:func:`shift_map`), one image per
+    rate (one node of a :class:`MotionProfile` each).
+
+    With camera 2's current frame and τ = δ (its clock offset), each image is camera 2 moved back
+    to camera 1's capture time for the clouds of one height: the plane sweep matches each plane
+    at height H against the image of the node nearest to H (:class:`~cbh.pipeline.sweep.PlaneViews`),
+    so a cloud at H is compensated with its own layer's motion, with no need to tell which layer
+    a pixel of camera 2 shows (what :func:`compensate_camera2` decides for the sparse matchers).
+    With camera 1's previous frame and τ = −dt, each image is that frame moved on to now with
+    one node's motion: where it matches the current frame, the pixel moves with that node.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), uint8
+        The raw frame (working size).
+    cam : Camera
+        Its camera at working size.
+    rates : list of ndarray (2,)
+        The camera's plane-offset rate of each node [1/s].
+    tau_s : float
+        Time to move the sky by [s].
+
+    Returns
+    -------
+    images : list of ndarray (H, W) uint8
+        The resampled images (bicubic), one per rate.
+    maps : list of ndarray (H, W, 2) float32
+        Their remap tables (:func:`shift_map` of ``rate · τ``).
+    """
+    maps = [shift_map(cam, gray.shape[:2], np.asarray(r, np.float64) * tau_s, grid_px) for r in rates]
+    return [_sample(gray, m) for m in maps], maps
+
+
 def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates: list[np.ndarray],
-                       delta_s: float, dt_s: float, grid_px: int = 8) -> tuple[np.ndarray, np.ndarray]:
+                       delta_s: float, dt_s: float, grid_px: int = 8,
+                       maps: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Camera 2's current image moved back to camera 1's capture time (δ earlier).
 
     Each layer L moves camera 2's plane offsets by ``w_L = v_L / (h_L − z2)`` per second, so
-    the point seen at pixel u at camera 1's time is seen δ later where ``a = a2(u) + w_L·δ``:
-    exact geometry, evaluated on a grid every ``grid_px`` pixels and interpolated (smooth within
-    a layer). Which layer each pixel shows:
+    the point seen at pixel u at camera 1's time is seen δ later where ``a = a2(u) + w_L·δ``
+    (:func:`shift_map`). Which layer each pixel shows:
 
     1. in the current frame, photometrically: the layer whose motion over ``dt_s`` maps the
        pixel onto the most similar place of the previous frame (absolute difference, 9 × 9
@@ -304,6 +561,8 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
         ``w_L`` of each layer with a known motion, lowest layer first [1/s].
     delta_s, dt_s : float
         Clock offset of camera 2 [s]; time between the frames [s].
+    maps : list of ndarray (H, W, 2), optional
+        :func:`shift_map` of each ``w_L · δ`` when already made (:func:`shifted_images`).
 
     Returns
     -------
@@ -313,28 +572,15 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
         Where each pixel was taken from in the current frame (``cv2.remap`` table, x then y).
     """
     h, w = gray_now.shape[:2]
-    grid, gshape, ident = _grids(h, w, grid_px)
-    a2 = plane_offsets(cam2, grid)
-    seen = np.isfinite(a2).all(axis=1, keepdims=True)
-
-    def field(da):  # remap table of the pixels whose plane offset moves by da
-        a = a2 + da[None, :]
-        d = np.concatenate([a, np.ones((len(a), 1))], axis=1)
-        p = cam2.direction_to_pixel(d / np.linalg.norm(d, axis=1, keepdims=True))
-        disp = np.where(np.isfinite(p) & seen, p - grid, 0.0).reshape(gshape + (2,)).astype(np.float32)
-        full = cv2.resize(disp, (gshape[1] * grid_px, gshape[0] * grid_px), interpolation=cv2.INTER_LINEAR)
-        return cv2.add(ident, full[:h, :w])
-
-    def sample(img, m):
-        return cv2.remap(img, m, None, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-
     rates = [np.asarray(r, np.float64) for r in rates]
-    maps = [field(r * delta_s) for r in rates]
+    if maps is None:
+        maps = [shift_map(cam2, (h, w), r * delta_s, grid_px) for r in rates]
     if len(maps) == 1:
-        return sample(gray_now, maps[0]), maps[0]
+        return _sample(gray_now, maps[0]), maps[0]
     label_now, best = None, None  # per pixel of the current frame: the layer of the lowest cost
     for i, r in enumerate(rates):
-        back = cv2.remap(gray_prev, field(-r * dt_s), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        back = cv2.remap(gray_prev, shift_map(cam2, (h, w), -r * dt_s, grid_px), None, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
         cost = cv2.boxFilter(cv2.absdiff(back, gray_now), cv2.CV_32F, (9, 9))
         if best is None:
             label_now, best = np.zeros((h, w), np.uint8), cost
@@ -348,9 +594,9 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
         take = cv2.bitwise_and(cv2.compare(src, i, cv2.CMP_EQ), free)
         cv2.copyTo(m, take, out)
         free = cv2.bitwise_and(free, cv2.bitwise_not(take))
-    image = sample(gray_now, out)
+    image = _sample(gray_now, out)
     if cv2.countNonZero(free):
-        cv2.copyTo(sample(gray_prev, field(-rates[-1] * (dt_s - delta_s))), free, image)
+        cv2.copyTo(_sample(gray_prev, shift_map(cam2, (h, w), -rates[-1] * (dt_s - delta_s), grid_px)), free, image)
     return image, out
 
 

@@ -108,7 +108,7 @@ import itertools
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -116,7 +116,7 @@ import numpy as np
 from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
 from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 
-__all__ = ["PlaneMaps", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
+__all__ = ["PlaneMaps", "PlaneViews", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
            "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
@@ -339,6 +339,97 @@ _KEPT = _KeptPlanes()  # the process's kept plane tables (PlaneMaps.keep_planes)
 _KEPT_IDS = itertools.count(1)
 
 
+@dataclass(frozen=True)
+class PlaneViews:
+    """Camera 2's image per plane of the sweep: plane s is matched against ``images[k]``,
+    ``k = searchsorted(cuts_s, s, side="right")``.
+
+    One image for every plane is the plain sweep. With a clock offset, each image is camera 2
+    moved back to camera 1's time with the motion of one height (one node of the motion
+    profile, :func:`cbh.pipeline.motion.shifted_images`), and each plane takes the image of the
+    node nearest its height (:meth:`nearest`): the sweep's parallax for plane H then includes
+    the shift ``w(H)·δ`` of the layer whose height is H.
+
+    That leaves one ambiguity a single pair cannot resolve: a cloud of layer L seen through
+    layer M's image is shifted by ``(w_M − w_L)·δ``, and where that shift runs along the
+    baseline, L's texture matches perfectly on a plane of M's range (two-layers scene, 3 s: the
+    1200 m layer at ≈ 2100 m through the 3500 m layer's image). Camera 1's own motion tells the
+    two apart: the hypothesis "at height H" also says "moving with H's wind", so each pixel's
+    score on the planes of node k is multiplied by how well node k's motion explains the pixel
+    in camera 1 (``motion1``: camera 1's previous frame moved on to now with each node's
+    motion, :meth:`factors`).
+
+    Attributes
+    ----------
+    images : tuple of ndarray (H2, W2)
+        Camera 2's images, in ascending s (descending height).
+    cuts_s : ndarray, shape (len(images) − 1,), float64
+        Ascending boundaries in s = 1/(h − o1z) [1/m].
+    motion1 : tuple of ndarray (H1, W1), or None
+        Camera 1's previous frame moved on to camera 1's capture time with each node's motion,
+        in the order of ``images``; None: no motion test (every factor 1).
+    min_zncc : float
+        A pixel's motion test counts where its best node's ZNCC reaches this (the sweep's own
+        acceptance; elsewhere, e.g. a cloud that changed its shape, every factor is 1) [1].
+    """
+
+    images: tuple
+    cuts_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    motion1: tuple | None = None
+    min_zncc: float = 0.6
+
+    @classmethod
+    def single(cls, image: np.ndarray) -> "PlaneViews":
+        """The same image for every plane."""
+        return cls((image,), np.zeros(0))
+
+    @classmethod
+    def nearest(cls, images, heights_m, o1z: float, motion1=None, min_zncc: float = 0.6) -> "PlaneViews":
+        """Each plane takes the image of the height (above the ENU origin [m]) nearest to its
+        own in ln(h − o1z): the cuts lie at the geometric means of neighbouring heights.
+        ``images`` and ``motion1`` (optional) in the order of ``heights_m``."""
+        hz = np.maximum(np.asarray(heights_m, np.float64) - o1z, 1.0)
+        order = np.argsort(1.0 / hz, kind="stable")  # ascending s
+        s = 1.0 / hz[order]
+        m1 = None if motion1 is None else tuple(motion1[int(i)] for i in order)
+        return cls(tuple(images[int(i)] for i in order), np.sqrt(s[:-1] * s[1:]), m1, float(min_zncc))
+
+    def index(self, s: float) -> int:
+        """Index of the image to match plane ``s`` [1/m] against."""
+        return int(np.searchsorted(self.cuts_s, s, side="right")) if len(self.images) > 1 else 0
+
+    def for_plane(self, s: float) -> np.ndarray:
+        """The image to match plane ``s`` [1/m] against."""
+        return self.images[self.index(s)]
+
+    def map(self, fn) -> "PlaneViews":
+        """These views with ``fn`` applied to every image (and every ``motion1`` image)."""
+        m1 = None if self.motion1 is None else tuple(fn(im) for im in self.motion1)
+        return PlaneViews(tuple(fn(im) for im in self.images), self.cuts_s, m1, self.min_zncc)
+
+    def factors(self, score) -> list | None:
+        """Each node's motion factor per pixel, ``max(T_k, 0) / max_j T_j`` in [0, 1] (1 where
+        ``max_j T_j`` < ``min_zncc``), from ``score(image)`` → T: the ZNCC of camera 1's current
+        frame against each ``motion1`` image on the caller's grid; None without ``motion1``."""
+        if self.motion1 is None or len(self.images) < 2:
+            return None
+        t = [score(m) for m in self.motion1]
+        t_max = t[0].copy()
+        for x in t[1:]:
+            cv2.max(t_max, x, dst=t_max)
+        unsure = (t_max < self.min_zncc).view(np.uint8)
+        out = []
+        for x in t:
+            f = cv2.min(cv2.divide(cv2.max(x, 0.0), cv2.max(t_max, 1e-6)), 1.0)
+            f[unsure > 0] = 1.0
+            out.append(f)
+        return out
+
+
+def _as_views(gray2) -> PlaneViews:
+    return gray2 if isinstance(gray2, PlaneViews) else PlaneViews.single(gray2)
+
+
 def plane_maps(cam1, cam2, rays1_world: np.ndarray) -> PlaneMaps:
     """Build :class:`PlaneMaps` for two cameras (working size) and camera 1's ENU rays (H, W, 3)."""
     h, w = rays1_world.shape[:2]
@@ -366,34 +457,42 @@ def _box(img, k):
     return cv2.boxFilter(img, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT_101)
 
 
-def _zncc_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, window_px: int, sl):
-    """Yield (std1, None) once, then (j, score (h, w) float32) for every plane ``s_values[j]``.
+def _zncc_iter(i1: np.ndarray, gray2, maps: PlaneMaps, s_values: np.ndarray, window_px: int, sl):
+    """Yield (std1, None) once, then (j, score (h, w) float32) for every plane ``s_values[j]``
+    (``gray2``: an image or :class:`PlaneViews`).
 
     All per-pixel arithmetic goes through OpenCV (multi-threaded, no numpy temporaries):
     ZNCC = (E[i1·w] − μ1·μ2) / sqrt(var1·var2 + 1e-3) over a ``window_px`` box.
     """
+    views = _as_views(gray2)
     k = int(window_px)
     mu1 = _box(i1, k)
     var1 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101), cv2.multiply(mu1, mu1)), 0.0)
-    yield cv2.sqrt(var1), None
-    for j, s in enumerate(s_values):
-        mx, my = maps.at(float(s), sl)
-        w = cv2.remap(gray2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def score(w):
         mu2 = _box(w, k)
         var2 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(w, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101), cv2.multiply(mu2, mu2)), 0.0)
         cov = cv2.subtract(_box(cv2.multiply(i1, w), k), cv2.multiply(mu1, mu2))
         den = cv2.sqrt(cv2.add(cv2.multiply(var1, var2), 1e-3))
-        yield j, cv2.divide(cov, den)
+        return cv2.divide(cov, den)
+
+    factor = views.factors(lambda m: score(np.ascontiguousarray(m[sl], np.float32)))  # (PlaneViews.factors)
+    yield cv2.sqrt(var1), None
+    for j, s in enumerate(s_values):
+        mx, my = maps.at(float(s), sl)
+        v = views.index(float(s))
+        w = cv2.remap(views.images[v], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        yield j, (score(w) if factor is None else cv2.multiply(score(w), factor[v]))
 
 
-def zncc_planes(gray1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, window_px: int,
+def zncc_planes(gray1: np.ndarray, gray2, maps: PlaneMaps, s_values: np.ndarray, window_px: int,
                 sl=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
     """ZNCC of image 1 against image 2 mapped through each plane, on the region ``sl``.
 
     Parameters
     ----------
     gray1 : ndarray, shape (H1, W1), float32
-    gray2 : ndarray, shape (H2, W2), float32
+    gray2 : ndarray, shape (H2, W2), float32, or PlaneViews of such images
     maps : PlaneMaps (at the same size as the images)
     s_values : ndarray, shape (P,), float [1/m]
     window_px : int, odd
@@ -406,7 +505,7 @@ def zncc_planes(gray1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values:
         Grey-level standard deviation of image 1 in each window.
     """
     i1 = np.ascontiguousarray(gray1[sl], np.float32)
-    it = _zncc_iter(i1, np.asarray(gray2, np.float32), maps, s_values, window_px, sl)
+    it = _zncc_iter(i1, _as_views(gray2).map(lambda g: np.asarray(g, np.float32)), maps, s_values, window_px, sl)
     std1, _ = next(it)
     out = np.empty((len(s_values),) + i1.shape, np.float32)
     for j, score in it:
@@ -465,7 +564,7 @@ class _HalfZncc:
     block i again; the last row and column (no full window) repeat their neighbours.
     """
 
-    def __init__(self, i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, half_window: int, sl):
+    def __init__(self, i1: np.ndarray, gray2, maps: PlaneMaps, half_window: int, sl):
         k = self.k = int(half_window)
         self.off = 1 - k % 2
         h, w = i1.shape
@@ -477,20 +576,29 @@ class _HalfZncc:
         # means; the remap reads half the bytes of float32 (a 960 px image then stays in cache: the
         # plane maps of a yawed camera read it along diagonals) and rounds its output to 1/64 grey
         # level (std 0.005, against 0.29 for the 8-bit quantisation of the image itself)
-        self.src2 = np.rint(np.asarray(gray2, np.float32) * _SRC_SCALE).astype(np.uint16)
+        # (``gray2``: one image, or PlaneViews: each plane's own, see PlaneViews)
+        self.src2 = _as_views(gray2).map(lambda g: np.rint(np.asarray(g, np.float32) * _SRC_SCALE).astype(np.uint16))
         self.mu1 = _box(_pool2(i1), k)
         self.var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(self.mu1, self.mu1)), 0.0)
         self.std1 = self._grow(cv2.sqrt(self.var1))
+        # each node's motion factor (PlaneViews.factors), from camera 1's previous frame moved on with it
+        self.factor = self.src2.factors(lambda m: self._score(np.ascontiguousarray(m[sl], np.float32)))
         maps.warm(sl)  # before any thread asks for a plane
 
     def _grow(self, a):  # (h/2 − 1, w/2 − 1) → (h/2, w/2)
         return cv2.copyMakeBorder(a, 0, 1, 0, 1, cv2.BORDER_REPLICATE) if self.off else a
 
     def __call__(self, s: float) -> np.ndarray:
-        k, i1 = self.k, self.i1
         mx, my = self.maps.at(float(s), self.sl)
-        w2 = cv2.remap(self.src2, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        w2 = w2.astype(np.float32)  # in 1/_SRC_SCALE grey levels: ZNCC is gain-invariant (eps scaled alike)
+        j = self.src2.index(float(s))
+        w2 = cv2.remap(self.src2.images[j], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        score = self._score(w2.astype(np.float32))  # in 1/_SRC_SCALE grey levels: ZNCC is gain-invariant
+        return score if self.factor is None else cv2.multiply(score, self.factor[j])
+
+    def _score(self, w2: np.ndarray) -> np.ndarray:
+        """ZNCC (h/2, w/2) of image 1 against ``w2`` (float32 on the region's grid, in 1/_SRC_SCALE
+        grey levels; eps scaled alike)."""
+        k, i1 = self.k, self.i1
         mu2 = _box(_pool2(w2), k)
         var2 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(w2, w2)), k), cv2.multiply(mu2, mu2)), 0.0)
         cov = cv2.subtract(_box(_pool2(cv2.multiply(i1, w2)), k), cv2.multiply(self.mu1, mu2))
@@ -735,12 +843,12 @@ def _best_plane(c1: np.ndarray, c2: np.ndarray, maps: PlaneMaps, s: np.ndarray, 
     return best, cbest
 
 
-def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s_min: float, s_max: float,
+def coarse_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s_min: float, s_max: float,
                 o1z: float, cfg) -> CoarseLayers | None:
     """Pass 1: the planes from ``s_min`` to ``s_max`` one coarse pixel apart (:func:`coarse_planes`:
     near ones at half the coarse size); each cloud cell votes for its best plane (ZNCC ≥
     ``min_zncc``, :func:`coarse_votes`); the vote peaks are the layer hypotheses. None: no cloud
-    at coarse size."""
+    at coarse size. ``g2``: camera 2's image (float32) or :class:`PlaneViews` of such images."""
     f = max(int(cfg.coarse_factor), 1)
     plan = coarse_planes(s_min, s_max, maps.scale_px, cfg)
     reg = coarse_regions(cloud1, plan, cfg)
@@ -748,13 +856,13 @@ def coarse_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneM
         return None
     cl, slc, half = reg
     c1 = _area_down(g1, f) if f > 1 else g1
-    c2 = _area_down(g2, f) if f > 1 else g2
+    c2 = _as_views(g2).map(lambda g: _area_down(g, f)) if f > 1 else _as_views(g2)
     k = cfg.coarse_window_px // 2
     j_far = c_far = j_near = c_near = None
     if len(plan.far):
         j_far, c_far = _best_plane(c1, c2, maps.downsampled(f) if f > 1 else maps, plan.s[plan.far], k, slc)
     if half is not None:
-        j_near, c_near = _best_plane(_pool2(c1), _pool2(c2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
+        j_near, c_near = _best_plane(_pool2(c1), c2.map(_pool2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
     votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
     return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
 
@@ -785,12 +893,12 @@ def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: floa
     return s, ds
 
 
-def fine_pass(g1: np.ndarray, g2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, s: np.ndarray, ds: float,
+def fine_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s: np.ndarray, ds: float,
               cfg) -> FineCost:
     """Pass 2: at working size, each fine plane's ZNCC (``window_px`` rounded up to even) at half
     resolution; a pixel is accepted when it is textured cloud (window grey-level standard
     deviation ≥ ``min_texture``) and its 2 × 2 block's best ZNCC is ≥ ``min_zncc``. Streamed over
-    the planes: only the (P, h/2, w/2) cost stack is kept."""
+    the planes: only the (P, h/2, w/2) cost stack is kept. ``g2``: an image or :class:`PlaneViews`."""
     sl = _bbox(cloud1, cfg.window_px, even=True)
     i1 = np.ascontiguousarray(g1[sl])
     h, w = i1.shape
@@ -988,14 +1096,15 @@ class SweepField:
     info: dict  # planes, layers_m, timing_ms, and with aggregation votes, vote_bin_s, cuts_s
 
 
-def sweep_field(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, maps: PlaneMaps, o1z: float,
+def sweep_field(gray1: np.ndarray, gray2: "np.ndarray | PlaneViews", cloud1: np.ndarray, maps: PlaneMaps, o1z: float,
                 cfg) -> SweepField | None:
     """Dense plane sweep (see module doc): coarse → fine → label → refine, on camera 1's grid.
 
     Parameters
     ----------
     gray1, gray2 : ndarray, (H1, W1) and (H2, W2), uint8
-        Working-size grey images.
+        Working-size grey images; ``gray2`` may be :class:`PlaneViews` (camera 2 per plane:
+        compensated for a clock offset with each height's own motion).
     cloud1 : ndarray, (H1, W1), bool
         Camera 1's cloud mask: the pixels to match.
     maps : PlaneMaps
@@ -1018,7 +1127,7 @@ def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepFiel
     if not cloud1.any() or maps.scale_px <= 0:
         return None
     g1 = gray1.astype(np.float32)
-    g2 = gray2.astype(np.float32)
+    g2 = _as_views(gray2).map(lambda g: g.astype(np.float32))
     maps.keep_planes(cfg.map_cache_mb)
     s_min, s_max = plane_range(o1z, cfg)
     coarse = coarse_pass(g1, g2, cloud1, maps, s_min, s_max, o1z, cfg)
