@@ -729,26 +729,30 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     KeyboardInterrupt stops the run: finished days stay, the index is written, and the
     summary says ``interrupted``.
     """
-    opts = plan.options
-    emit = on_event or (lambda e: None)
-    t_start = time.perf_counter()
-    opts.out.mkdir(parents=True, exist_ok=True)
-    s = Summary(pairs_total=sum(len(d.pairs) for d in plan.days))
-    for d in plan.days:
-        if d.done is not None:
-            s.days_resumed += 1
-            s.pairs_resumed += len(d.pairs)
-    todo = plan.todo
-    sides: dict[tuple[str, date], dict] = {}
-    failed: dict[tuple[str, date], str] = {}
-    jobs = {j.name: j for j in plan.jobs}
-    if not todo:
-        s.elapsed_s = time.perf_counter() - t_start
-        emit({"event": "start", "pairs": 0, "days": 0, "workers": 0})
-        s.index = _write_index(plan, sides, failed, s)
-        return s
+    run = _Run(plan, on_event or (lambda e: None))
+    plan.options.out.mkdir(parents=True, exist_ok=True)
+    if not plan.todo:
+        run.emit({"event": "start", "pairs": 0, "days": 0, "workers": 0})
+        return run.finish()
+    owned, cpus = start_ray(plan.options.workers, plan.options.address, plan.options.device)
+    try:
+        run.start_workers(cpus)
+        while run.inflight or len(run.queue):
+            run.dispatch()
+            run.collect()
+    except KeyboardInterrupt:
+        run.summary.interrupted = True
+        log.warning("interrupted: finished days are kept; a rerun resumes the rest")
+    finally:
+        run.stop_workers(owned)
+        run.finish()
+    return run.summary
 
-    # chunks, per station in time order; handed out in contiguous stretches (see _ChunkQueue)
+
+def _plan_chunks(plan: Plan) -> tuple[dict[str, list[Chunk]], dict[tuple[str, date], int]]:
+    """The unfinished days cut into chunks (:func:`_chunk_bounds`), per station in time order,
+    each with its lead-in pair (the pair before it, possibly the previous day's last), and the
+    number of chunks per day."""
     by_station: dict[str, list[Chunk]] = defaultdict(list)
     expected: dict[tuple[str, date], int] = {}
     before: dict[tuple[str, date], PairRef | None] = {}  # the previous day's last pair: the day's lead-in
@@ -756,131 +760,184 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     for w in sorted(plan.days, key=lambda d: (d.station, d.day)):
         before[(w.station, w.day)] = last.get(w.station)
         last[w.station] = w.pairs[-1]
-    for w in todo:
-        bounds = _chunk_bounds(len(w.pairs), opts.chunk_pairs)
+    for w in plan.todo:
+        bounds = _chunk_bounds(len(w.pairs), plan.options.chunk_pairs)
         for n, (i, j) in enumerate(zip(bounds, bounds[1:])):
             lead = w.pairs[i - 1] if i else before[(w.station, w.day)]
             by_station[w.station].append(Chunk(w.station, w.day, n, tuple(w.pairs[i:j]), lead))
         expected[(w.station, w.day)] = len(bounds) - 1
-    queue = _ChunkQueue(by_station)
-    works = {(w.station, w.day): w for w in todo}
-    got: dict[tuple[str, date], list[ChunkResult]] = defaultdict(list)
+    return by_station, expected
 
-    owned, cpus = start_ray(opts.workers, opts.address, opts.device)
-    import ray
 
-    n_workers = opts.workers or cpus
-    if n_workers > cpus:
-        log.warning("%d workers asked, Ray offers %d CPUs: using %d", n_workers, cpus, cpus)
-        n_workers = cpus
-    n_workers = max(1, min(n_workers, len(queue)))
-    s.workers = n_workers
-    gpu_share = 0.0
-    if opts.device == "cuda":
-        gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / n_workers)
-    actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share, max_restarts=opts.actor_restarts,
-                                               max_task_retries=opts.actor_restarts)
-    stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs if j.name in by_station}
-    actors: list = []
-    inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt, actor handle)
-    load = [0] * n_workers
+class _Run:
+    """The driver's state of one :func:`run_plan`: chunks waiting and in flight, the actors,
+    the days' results so far, the summary; each step of the run is a method."""
 
-    def new_actor():
-        return actor_cls.remote(stations, opts.device)
+    def __init__(self, plan: Plan, emit: Callable[[dict], None]):
+        self.plan, self.opts, self.emit = plan, plan.options, emit
+        self.t_start = time.perf_counter()
+        self.summary = s = Summary(pairs_total=sum(len(d.pairs) for d in plan.days))
+        for d in plan.days:
+            if d.done is not None:
+                s.days_resumed += 1
+                s.pairs_resumed += len(d.pairs)
+        self.todo = plan.todo
+        self.jobs = {j.name: j for j in plan.jobs}
+        self.works = {(w.station, w.day): w for w in self.todo}
+        self.by_station, self.expected = _plan_chunks(plan)
+        self.queue = _ChunkQueue(self.by_station)  # handed out in contiguous stretches
+        self.got: dict[tuple[str, date], list[ChunkResult]] = defaultdict(list)
+        self.sides: dict[tuple[str, date], dict] = {}
+        self.failed: dict[tuple[str, date], str] = {}
+        self.actors: list = []
+        self.pids: list = []
+        self.inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt, actor handle)
+        self.load: list[int] = []
 
-    try:
-        emit({"event": "start", "pairs": sum(len(w.pairs) for w in todo), "days": len(todo), "workers": n_workers})
-        for _ in range(n_workers):
-            actors.append(new_actor())
-        pids = ray.get([a.pid.remote() for a in actors])
-        emit({"event": "workers", "pids": list(pids)})
-        while inflight or len(queue):
-            # breadth first: every actor gets one chunk before any gets a second (queued behind it)
-            for depth, slot in [(d, k) for d in (1, 2) for k in range(n_workers)]:
-                if load[slot] < depth:
-                    item = queue.next(slot)
-                    if item is None:
-                        break
-                    chunk, attempt = item
-                    inflight[actors[slot].process.remote(chunk)] = (slot, chunk, attempt, actors[slot])
-                    load[slot] += 1
-                    emit({"event": "dispatch", "slot": slot, "station": chunk.station, "day": chunk.day.isoformat(),
-                          "chunk": chunk.index, "pairs": len(chunk.pairs)})
-            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=1.0)
-            for ref in ready:
-                slot, chunk, attempt, actor = inflight.pop(ref)
-                load[slot] -= 1
-                key = (chunk.station, chunk.day)
-                try:
-                    res: ChunkResult = ray.get(ref)
-                except ray.exceptions.RayActorError as exc:  # Ray's restarts and retries used up
-                    s.retried_chunks += 1
-                    if actors[slot] is actor:  # not yet replaced (its other in-flight chunk may fail too)
-                        try:
-                            ray.kill(actor, no_restart=True)
-                        except Exception:
-                            pass
-                        actors[slot] = new_actor()
-                        pids[slot] = None
-                    if attempt < opts.max_attempts:
-                        queue.retry(chunk, attempt + 1)
-                        log.warning("worker died on %s %s chunk %d; retrying on a fresh worker (%s)",
-                                    chunk.station, chunk.day, chunk.index, type(exc).__name__)
-                        emit({"event": "retry", "station": chunk.station, "day": chunk.day.isoformat(),
-                              "chunk": chunk.index, "attempt": attempt + 1})
-                    else:
-                        failed[key] = f"worker died {attempt} times on chunk {chunk.index}"
-                        log.error("%s %s: %s; the day is left for a rerun", chunk.station, chunk.day, failed[key])
-                        got.pop(key, None)
-                        expected.pop(key, None)
-                    continue
-                except ray.exceptions.RayTaskError as exc:  # a bug, not an input problem: the day is not written
-                    failed[key] = f"error in worker: {str(exc).strip().splitlines()[-1]}"
-                    log.error("%s %s: %s", chunk.station, chunk.day, failed[key])
-                    got.pop(key, None)
-                    expected.pop(key, None)
-                    continue
-                if pids[slot] is not None and res.pid != pids[slot]:
-                    s.worker_restarts += 1  # Ray restarted this actor (its process died) and retried its tasks
-                pids[slot] = res.pid
-                if key not in expected:
-                    continue  # the day already failed
-                got[key].append(res)
-                s.pairs_processed += len(res.records) + len(res.failures)
-                s.failures += len(res.failures)
-                for f in res.failures:
-                    log.warning("pair failed: %s %s: %s", chunk.station, f["time_utc"], f["reason"],
-                                extra={"cbh_station": chunk.station, "cbh_time": f["time_utc"]})
-                emit({"event": "chunk", "station": chunk.station, "day": chunk.day.isoformat(),
-                      "pairs": len(res.records) + len(res.failures), "failures": len(res.failures),
-                      "pid": res.pid, "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "lead_in": res.lead_in})
-                if len(got[key]) == expected[key]:
-                    parts = sorted(got.pop(key), key=lambda r: r.index)
-                    recs = [r for p in parts for r in p.records]
-                    fails = [f for p in parts for f in p.failures]
-                    side = _write_day(plan, jobs[chunk.station], works[key], recs, fails)
-                    sides[key] = side
-                    s.days_written += 1
-                    s.files.extend(side["files"])
-                    log.info("day written", extra={"cbh_station": chunk.station, "cbh_day": side["day"],
-                                                   "cbh_pairs": side["pairs"], "cbh_failures": len(fails)})
-                    emit(dict(side, event="day"))
-    except KeyboardInterrupt:
-        s.interrupted = True
-        log.warning("interrupted: finished days are kept; a rerun resumes the rest")
-    finally:
+    # --- the workers ---------------------------------------------------------------------------
+
+    def start_workers(self, cpus: int) -> None:
+        """One actor per worker (at most Ray's CPUs and the chunks to do), each asked its pid."""
+        import ray
+
+        opts, s = self.opts, self.summary
+        n = opts.workers or cpus
+        if n > cpus:
+            log.warning("%d workers asked, Ray offers %d CPUs: using %d", n, cpus, cpus)
+            n = cpus
+        self.n_workers = s.workers = max(1, min(n, len(self.queue)))
+        gpu_share = 0.0
+        if opts.device == "cuda":
+            gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / self.n_workers)
+        self.actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share,
+                                                        max_restarts=opts.actor_restarts,
+                                                        max_task_retries=opts.actor_restarts)
+        self.stations = {j.name: (j.station.to_toml(), j.cameras) for j in self.plan.jobs if j.name in self.by_station}
+        self.load = [0] * self.n_workers
+        self.emit({"event": "start", "pairs": sum(len(w.pairs) for w in self.todo), "days": len(self.todo),
+                   "workers": self.n_workers})
+        self.actors = [self._new_actor() for _ in range(self.n_workers)]
+        self.pids = ray.get([a.pid.remote() for a in self.actors])
+        self.emit({"event": "workers", "pids": list(self.pids)})
+
+    def _new_actor(self):
+        return self.actor_cls.remote(self.stations, self.opts.device)
+
+    def stop_workers(self, owned: bool) -> None:
+        """A private Ray instance is shut down (its actors with it); on a shared cluster this
+        run's actors are killed, freeing their CPUs and GPUs."""
+        import ray
+
         if owned:
-            ray.shutdown()  # ends every actor with the private instance
+            ray.shutdown()
+            return
+        for a in self.actors:
+            try:
+                ray.kill(a, no_restart=True)
+            except Exception:
+                pass
+
+    # --- chunks out and results in -------------------------------------------------------------
+
+    def dispatch(self) -> None:
+        """Breadth first: every actor gets one chunk before any gets a second (queued behind it)."""
+        for depth, slot in [(d, k) for d in (1, 2) for k in range(self.n_workers)]:
+            if self.load[slot] < depth:
+                item = self.queue.next(slot)
+                if item is None:
+                    break
+                chunk, attempt = item
+                self.inflight[self.actors[slot].process.remote(chunk)] = (slot, chunk, attempt, self.actors[slot])
+                self.load[slot] += 1
+                self.emit({"event": "dispatch", "slot": slot, "station": chunk.station,
+                           "day": chunk.day.isoformat(), "chunk": chunk.index, "pairs": len(chunk.pairs)})
+
+    def collect(self) -> None:
+        """Wait up to 1 s for a chunk; handle what came back (a result, a dead actor, a bug)."""
+        import ray
+
+        ready, _ = ray.wait(list(self.inflight), num_returns=1, timeout=1.0)
+        for ref in ready:
+            slot, chunk, attempt, actor = self.inflight.pop(ref)
+            self.load[slot] -= 1
+            try:
+                res: ChunkResult = ray.get(ref)
+            except ray.exceptions.RayActorError as exc:  # Ray's restarts and retries used up
+                self._actor_died(slot, chunk, attempt, actor, exc)
+                continue
+            except ray.exceptions.RayTaskError as exc:  # a bug, not an input problem: the day is not written
+                self._day_failed(chunk, f"error in worker: {str(exc).strip().splitlines()[-1]}")
+                continue
+            self._chunk_done(slot, chunk, res)
+
+    def _actor_died(self, slot: int, chunk: Chunk, attempt: int, actor, exc) -> None:
+        """A fresh actor replaces the dead one; the chunk is retried up to ``max_attempts``."""
+        import ray
+
+        self.summary.retried_chunks += 1
+        if self.actors[slot] is actor:  # not yet replaced (its other in-flight chunk may fail too)
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception:
+                pass
+            self.actors[slot] = self._new_actor()
+            self.pids[slot] = None
+        if attempt < self.opts.max_attempts:
+            self.queue.retry(chunk, attempt + 1)
+            log.warning("worker died on %s %s chunk %d; retrying on a fresh worker (%s)",
+                        chunk.station, chunk.day, chunk.index, type(exc).__name__)
+            self.emit({"event": "retry", "station": chunk.station, "day": chunk.day.isoformat(),
+                       "chunk": chunk.index, "attempt": attempt + 1})
         else:
-            for a in actors:  # a shared cluster: free this run's CPUs/GPUs
-                try:
-                    ray.kill(a, no_restart=True)
-                except Exception:
-                    pass
-        s.days_failed = len(todo) - s.days_written
-        s.elapsed_s = time.perf_counter() - t_start
-        s.index = _write_index(plan, sides, failed, s)
-    return s
+            self._day_failed(chunk, f"worker died {attempt} times on chunk {chunk.index}",
+                             "; the day is left for a rerun")
+
+    def _day_failed(self, chunk: Chunk, reason: str, advice: str = "") -> None:
+        key = (chunk.station, chunk.day)
+        self.failed[key] = reason
+        log.error("%s %s: %s%s", chunk.station, chunk.day, reason, advice)
+        self.got.pop(key, None)
+        self.expected.pop(key, None)
+
+    def _chunk_done(self, slot: int, chunk: Chunk, res: ChunkResult) -> None:
+        """Count a chunk's pairs and failures; write its day once all the day's chunks are in."""
+        s, key = self.summary, (chunk.station, chunk.day)
+        if self.pids[slot] is not None and res.pid != self.pids[slot]:
+            s.worker_restarts += 1  # Ray restarted this actor (its process died) and retried its tasks
+        self.pids[slot] = res.pid
+        if key not in self.expected:
+            return  # the day already failed
+        self.got[key].append(res)
+        s.pairs_processed += len(res.records) + len(res.failures)
+        s.failures += len(res.failures)
+        for f in res.failures:
+            log.warning("pair failed: %s %s: %s", chunk.station, f["time_utc"], f["reason"],
+                        extra={"cbh_station": chunk.station, "cbh_time": f["time_utc"]})
+        self.emit({"event": "chunk", "station": chunk.station, "day": chunk.day.isoformat(),
+                   "pairs": len(res.records) + len(res.failures), "failures": len(res.failures),
+                   "pid": res.pid, "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "lead_in": res.lead_in})
+        if len(self.got[key]) == self.expected[key]:
+            self._write_day(key)
+
+    def _write_day(self, key: tuple[str, date]) -> None:
+        parts = sorted(self.got.pop(key), key=lambda r: r.index)
+        recs = [r for p in parts for r in p.records]
+        fails = [f for p in parts for f in p.failures]
+        side = _write_day(self.plan, self.jobs[key[0]], self.works[key], recs, fails)
+        self.sides[key] = side
+        self.summary.days_written += 1
+        self.summary.files.extend(side["files"])
+        log.info("day written", extra={"cbh_station": key[0], "cbh_day": side["day"],
+                                       "cbh_pairs": side["pairs"], "cbh_failures": len(fails)})
+        self.emit(dict(side, event="day"))
+
+    def finish(self) -> Summary:
+        """The summary's last counts and the index (also after Ctrl-C)."""
+        s = self.summary
+        s.days_failed = len(self.todo) - s.days_written
+        s.elapsed_s = time.perf_counter() - self.t_start
+        s.index = _write_index(self.plan, self.sides, self.failed, s)
+        return s
 
 
 def reprocess(stations, sources=(), *, cameras: str | None = None, on_event=None, **options) -> tuple[Plan, Summary]:
