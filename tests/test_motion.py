@@ -496,3 +496,91 @@ def test_a_noisy_single_layer_keeps_its_tracks(noise):
     out = pipe.stage_motion(lay, HeightMap(hm, hm, (w, h)), est, np.ones((h, w), bool))
     assert out.layers[0].motion_tracks >= 0.9 * 2 * n
     assert (out.layers[0].motion_east_ms, out.layers[0].motion_north_ms) == pytest.approx((-3.0, 8.0), rel=1e-6)
+
+
+def test_parallax_heights_for_a_known_offset_from_exact_geometry():
+    """The same noise-free geometry as above: with δ known, the least-squares q of
+    ``q·B' = a1 − a2 + δ·w1`` is the height exactly and nothing is left across the baseline;
+    with δ taken as 0 the cloud's move v·δ = (12.5, 10) m is left: its component across the
+    50 m east baseline, 10 m at 1500 m (6.7e-3 in plane offsets, i.e. rays that miss by 0.67 %
+    of the range), as the miss."""
+    from cbh.pipeline.motion import parallax_heights
+
+    rng = np.random.default_rng(1)
+    c1, c2 = np.zeros(3), np.array([50.0, 0.0, 2.0])
+    z, v, delta = 1500.0, np.array([5.0, 4.0]), 2.5
+    x = np.column_stack([rng.uniform(-2000, 2000, 200), rng.uniform(-2000, 2000, 200)])
+    a1 = (x - c1[:2]) / (z - c1[2])
+    a2 = (x + v * delta - c2[:2]) / (z - c2[2])
+    w1 = np.broadcast_to(v / (z - c1[2]), a1.shape)
+    q, miss = parallax_heights(c2[:2] - c1[:2], c2[2] - c1[2], a1, a2, w1, delta)
+    np.testing.assert_allclose(1.0 / q, z - c1[2], rtol=1e-9)
+    np.testing.assert_allclose(miss, 0.0, atol=1e-12)
+    _, miss0 = parallax_heights(np.array([50.0, 0.0]), 0.0, a1, (x + v * delta - c2[:2]) / z, w1, 0.0)
+    np.testing.assert_allclose(np.abs(miss0), v[1] * delta / z, rtol=1e-9)
+
+
+def test_track_profile_finds_each_layers_rate():
+    """Tracks of two layers, 1000 m (4 % height noise) and 4000 m (10 %: 2 px of parallax), each
+    with its own rate: two nodes at the layers' median heights with their median rates; a
+    cluster smaller than min_tracks (a few stray tracks at 2000 m) gives none; too few tracks in
+    all: an empty profile."""
+    from cbh.pipeline.motion import track_profile
+
+    rng = np.random.default_rng(3)
+    r_low, r_high = np.array([2.0, 1.0]) / 1000.0, np.array([-6.0, 18.0]) / 4000.0
+    h = np.concatenate([1000 * (1 + 0.04 * rng.standard_normal(150)), 4000 * (1 + 0.10 * rng.standard_normal(120)),
+                        np.full(5, 2000.0)])
+    rates = np.concatenate([np.tile(r_low, (150, 1)), np.tile(r_high, (120, 1)), np.tile([0.01, 0.0], (5, 1))])
+    rates = rates + 2e-5 * rng.standard_normal(rates.shape)
+    p = track_profile(h, rates, min_tracks=10, tolerance_log=0.1)
+    assert len(p) == 2
+    assert p.heights_m == pytest.approx([1000.0, 4000.0], rel=0.03)
+    np.testing.assert_allclose(p.rates, [r_low, r_high], atol=1e-5)
+    np.testing.assert_array_equal(p.nearest([900.0, 1900.0, 2100.0, 9000.0]), [0, 0, 1, 1])  # nearest in ln h
+    assert len(track_profile(h[:5], rates[:5], min_tracks=10, tolerance_log=0.1)) == 0
+
+
+def test_offset_error_weighs_each_match_as_the_estimate_does():
+    """offset_estimate's standard error is the weighted MAD over the effective number of matches.
+    70 matches of a slow layer (little motion across the baseline: each good to ±5 s) and 45 of
+    a fast one (±0.05 s; weight 25 ×, capped at 2 × the median): the unweighted MAD over √n is
+    0.12–0.16 s and refused δ (NaN), although the fast layer alone measures it to 0.01 s; now
+    it is found within 0.05 s (the weighted median of the fast matches' ±0.05 s, pulled a little
+    by the slow ones). 40 matches all at ±1.5 s (standard error 0.24 s) stay unknown."""
+    from cbh.pipeline.motion import offset_estimate
+
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        d = np.concatenate([3.0 + 5.0 * rng.standard_normal(70), 3.0 + 0.05 * rng.standard_normal(45)])
+        wt = np.concatenate([np.full(70, 1e-6), np.full(45, 25e-6)])
+        est = offset_estimate(d, np.full(len(d), 1 / 2000.0), wt, 100.0, 15000.0, 30.0, 30.0)
+        assert abs(est - 3.0) <= 0.05, (seed, est)
+    d = 3.0 + 1.5 * np.random.default_rng(9).standard_normal(40)
+    assert math.isnan(offset_estimate(d, np.full(40, 1 / 2000.0), np.full(40, 1e-6), 100.0, 15000.0, 30.0, 30.0))
+
+
+def test_track_test_keeps_a_layer_that_moved_across_the_baseline():
+    """Pipeline._jumped compares each track's parallax a1 − a2 between the frames: a layer 3 s
+    late in camera 2 and moving 19 m/s across the baseline keeps its (offset-shifted) parallax
+    and stays, though its rays miss by 1.4 % of the range and no longer triangulate; a track
+    whose parallax changed by a fifth (it jumped to another cloud; the tolerance: 10 % of |c|, or
+    3√2 × 0.1 px of LK noise, 0.0014 × 1/cos²θ at 960 px, against |c| = 0.022) goes."""
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+    from cbh.presets import station_path
+
+    pipe = Pipeline(load_station(station_path()).scaled(960))  # 306 px/rad: LK noise 3e-4, below a fifth of c
+    rng = np.random.default_rng(2)
+    z, v, delta, dt = 4000.0, np.array([-6.0, 18.0]), 3.0, 10.0
+    x = np.column_stack([rng.uniform(-3000, 3000, 100), rng.uniform(-3000, 3000, 100)])
+    b = np.array([50.0, 0.0])
+
+    def offsets(xy):
+        return xy / z, (xy + v * delta - b) / z
+
+    a1, a2 = offsets(x)
+    a1p, a2p = offsets(x - v * dt)
+    assert not pipe._jumped(a1, a2, a1p, a2p).any()
+    c = a1 - a2
+    assert pipe._jumped(a1, a1 - 1.2 * c, a1p, a2p).all()
