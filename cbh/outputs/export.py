@@ -629,101 +629,143 @@ def netcdf_dataset(records: list[PairRecord], info: dict):
     * every ``PairResult.diagnostics`` key as a (time) variable of that name, units from its
       suffix (:func:`diagnostic_units`), fill where a pair lacks it.
     """
-    import pandas as pd
     import xarray as xr
 
-    n_t = len(records)
     n_l = max([3] + [len(r.height_m) for r in records])  # ceilometers report up to 3 layers; more if found
-    shape = (n_t, n_l)
+    g = _RecordArrays(records, n_l)
+    data_vars = _layer_vars(g)
+    data_vars.update(_time_vars(g))
+    data_vars.update(_diagnostic_vars(records, set(data_vars) | set(_STATION_COORDS)))
+    return xr.Dataset(data_vars=data_vars, coords=_coords(records, info, n_l), attrs=_global_attrs(info))
 
-    def grid(attr: str, dtype=np.float64, fill=np.nan):
-        a = np.full(shape, fill, dtype)
-        for i, r in enumerate(records):
+
+_STATION_COORDS = ("time", "layer", "station_latitude", "station_longitude", "station_altitude", "station_name")
+
+
+def _var(dims, data, **attrs):
+    """An xarray variable spec: (dims, data, attrs)."""
+    return dims, data, attrs
+
+
+class _RecordArrays:
+    """Arrays of T pair records for :func:`netcdf_dataset`: (T, L) per layer, (T,) per pair."""
+
+    def __init__(self, records: list[PairRecord], n_layers: int):
+        self.records, self.shape = records, (len(records), n_layers)
+
+    def grid(self, attr: str, dtype=np.float64, fill=np.nan) -> np.ndarray:
+        """(T, L) of the records' per-layer ``attr``; ``fill`` where a pair has fewer layers."""
+        a = np.full(self.shape, fill, dtype)
+        for i, r in enumerate(self.records):
             v = getattr(r, attr)
             a[i, : len(v)] = v
         return a
 
-    def per_time(fn, dtype=np.float64):
-        return np.array([fn(r) for r in records], dtype)
+    def per_time(self, fn, dtype=np.float64) -> np.ndarray:
+        """(T,) of ``fn(record)``."""
+        return np.array([fn(r) for r in self.records], dtype)
 
-    nan = math.nan
-    H = grid("height_m")
-    A = grid("altitude_m")
-    C = grid("cover")
-    ve, vn = grid("motion_east_ms"), grid("motion_north_ms")
-    okta_l = np.full(shape, -1, np.int32)
-    for i, r in enumerate(records):
-        okta_l[i, : len(r.cover)] = [okta(c) for c in r.cover]
-    ceil = [r.ceiling for r in records]
-    qf = per_time(lambda r: flag_bits(r.flags), np.int32)
-    all_bits = np.array([int(f) for f in Flag], np.int32)
-    times = pd.DatetimeIndex([r.time_utc for r in records]).tz_convert("UTC").tz_localize(None).values.astype("datetime64[ns]")
-    fvar = lambda dims, data, **attrs: (dims, data, attrs)  # noqa: E731
-    md = info.get("metadata", {}) or {}
-    data_vars = {
-        "cloud_base_height": fvar(("time", "layer"), H, long_name="cloud base height above ground", units="m",
+    def okta(self) -> np.ndarray:
+        """(T, L) int32 layer cover in okta; -1 where there is no layer."""
+        a = np.full(self.shape, -1, np.int32)
+        for i, r in enumerate(self.records):
+            a[i, : len(r.cover)] = [okta(c) for c in r.cover]
+        return a
+
+
+def _layer_vars(g: _RecordArrays) -> dict:
+    """The (time, layer) variables: heights and altitudes (and the lowest layer's, per time),
+    cover, support and motion."""
+    TL = ("time", "layer")
+    H, A = g.grid("height_m"), g.grid("altitude_m")
+    ve, vn = g.grid("motion_east_ms"), g.grid("motion_north_ms")
+    return {
+        "cloud_base_height": _var(TL, H, long_name="cloud base height above ground", units="m",
                                   comment="above the station reference point (ENU origin); layer 1 = lowest; "
                                           "missing layers are fill"),
-        "cloud_base_altitude": fvar(("time", "layer"), A, long_name="cloud base altitude above mean sea level",
-                                    units="m"),
-        "lowest_cloud_base_height": fvar(("time",), H[:, 0].copy(), long_name="height of the lowest cloud base above ground",
-                                         units="m"),
-        "lowest_cloud_base_altitude": fvar(("time",), A[:, 0].copy(), standard_name="cloud_base_altitude",
+        "cloud_base_altitude": _var(TL, A, long_name="cloud base altitude above mean sea level", units="m"),
+        "lowest_cloud_base_height": _var(("time",), H[:, 0].copy(),
+                                         long_name="height of the lowest cloud base above ground", units="m"),
+        "lowest_cloud_base_altitude": _var(("time",), A[:, 0].copy(), standard_name="cloud_base_altitude",
                                            long_name="altitude of the lowest cloud base above mean sea level", units="m"),
-        "cloud_base_height_median": fvar(("time", "layer"), grid("median_height_m"),
+        "cloud_base_height_median": _var(TL, g.grid("median_height_m"),
                                          long_name="median height of the layer's points above ground", units="m"),
-        "cloud_base_height_spread": fvar(("time", "layer"), grid("spread_m"),
+        "cloud_base_height_spread": _var(TL, g.grid("spread_m"),
                                          long_name="robust spread (1.4826 MAD) of the layer's point heights", units="m"),
-        "cloud_layer_cover": fvar(("time", "layer"), C,
+        "cloud_layer_cover": _var(TL, g.grid("cover"),
                                   long_name="fraction of the reference camera's sky covered by the layer", units="1",
                                   valid_range=np.array([0.0, 1.0])),
-        "cloud_layer_okta": fvar(("time", "layer"), okta_l, long_name="cloud cover of the layer in okta (eighths)",
+        "cloud_layer_okta": _var(TL, g.okta(), long_name="cloud cover of the layer in okta (eighths)",
                                  units="1", valid_range=np.array([0, 8], np.int32)),
-        "cloud_layer_points": fvar(("time", "layer"), grid("points", np.int32, -1),
+        "cloud_layer_points": _var(TL, g.grid("points", np.int32, -1),
                                    long_name="triangulated points supporting the layer", units="1"),
-        "cloud_layer_confidence": fvar(("time", "layer"), grid("confidence"), long_name="layer confidence", units="1",
+        "cloud_layer_confidence": _var(TL, g.grid("confidence"), long_name="layer confidence", units="1",
                                        valid_range=np.array([0.0, 1.0])),
-        "cloud_motion_east": fvar(("time", "layer"), ve, long_name="eastward motion of the cloud layer over the ground",
+        "cloud_motion_east": _var(TL, ve, long_name="eastward motion of the cloud layer over the ground",
                                   units="m s-1"),
-        "cloud_motion_north": fvar(("time", "layer"), vn,
-                                   long_name="northward motion of the cloud layer over the ground", units="m s-1"),
-        "cloud_motion_spread": fvar(("time", "layer"), grid("motion_spread_ms"),
+        "cloud_motion_north": _var(TL, vn, long_name="northward motion of the cloud layer over the ground",
+                                   units="m s-1"),
+        "cloud_motion_spread": _var(TL, g.grid("motion_spread_ms"),
                                     long_name="robust spread (1.4826 MAD) of the layer's track velocities",
                                     units="m s-1"),
-        "cloud_motion_tracks": fvar(("time", "layer"), grid("motion_tracks", np.int32, -1),
+        "cloud_motion_tracks": _var(TL, g.grid("motion_tracks", np.int32, -1),
                                     long_name="feature tracks behind the layer's motion", units="1"),
-        "cloud_motion_speed": fvar(("time", "layer"), np.hypot(ve, vn), long_name="speed of the cloud layer over the ground",
+        "cloud_motion_speed": _var(TL, np.hypot(ve, vn), long_name="speed of the cloud layer over the ground",
                                    units="m s-1"),
-        "cloud_motion_direction": fvar(("time", "layer"), np.degrees(np.arctan2(ve, vn)) % 360.0,
+        "cloud_motion_direction": _var(TL, np.degrees(np.arctan2(ve, vn)) % 360.0,
                                        long_name="direction the cloud layer moves towards, clockwise from north",
                                        units="degree"),
-        "cloud_fraction": fvar(("time",), per_time(lambda r: r.cloud_fraction), standard_name="cloud_area_fraction",
+    }
+
+
+def _time_vars(g: _RecordArrays) -> dict:
+    """The (time) variables of the whole pair: cloud fraction, okta, ceiling, counts, flags."""
+    H = g.grid("height_m")
+    all_bits = np.array([int(f) for f in Flag], np.int32)
+    ceiling = np.array([H[i, r.ceiling] if r.ceiling is not None else math.nan for i, r in enumerate(g.records)])
+    return {
+        "cloud_fraction": _var(("time",), g.per_time(lambda r: r.cloud_fraction), standard_name="cloud_area_fraction",
                                long_name="total cloud fraction of the reference camera's sky", units="1"),
-        "total_cloud_okta": fvar(("time",), per_time(lambda r: okta(r.cloud_fraction), np.int32),
+        "total_cloud_okta": _var(("time",), g.per_time(lambda r: okta(r.cloud_fraction), np.int32),
                                  long_name="total cloud cover in okta (eighths)", units="1",
                                  valid_range=np.array([0, 8], np.int32)),
-        "ceiling_height": fvar(("time",), np.array([H[i, c] if c is not None else nan for i, c in enumerate(ceil)]),
+        "ceiling_height": _var(("time",), ceiling,
                                long_name="ceiling above ground: base of the lowest layer at which the summed "
                                          f"layer cover reaches {CEILING_OKTA} okta", units="m"),
-        "n_layers": fvar(("time",), per_time(lambda r: len(r.height_m), np.int32),
+        "n_layers": _var(("time",), g.per_time(lambda r: len(r.height_m), np.int32),
                          long_name="number of cloud layers detected", units="1"),
-        "point_count": fvar(("time",), per_time(lambda r: r.point_count, np.int32),
+        "point_count": _var(("time",), g.per_time(lambda r: r.point_count, np.int32),
                             long_name="triangulated points in the pair", units="1"),
-        "quality_flag": fvar(("time",), qf, standard_name="status_flag", long_name="quality flags of the frame pair",
+        "quality_flag": _var(("time",), g.per_time(lambda r: flag_bits(r.flags), np.int32), standard_name="status_flag",
+                             long_name="quality flags of the frame pair",
                              flag_masks=all_bits, flag_meanings=" ".join(f.name for f in Flag),
                              valid_range=np.array([0, int(all_bits.sum())], np.int32),
                              comment="bits of cbh.flags.Flag; layers of a pair with "
                                      f"{', '.join(sorted(INVALIDATING))} are not valid"),
     }
+
+
+def _diagnostic_vars(records: list[PairRecord], taken: set) -> dict:
+    """Every diagnostics key as a (time) variable: its own name where that is a valid NetCDF
+    name not already taken, else ``diagnostic_<key>``; fill where a pair lacks it."""
+    out = {}
     for key in _all_diagnostics(records):
-        taken = set(data_vars) | {"time", "layer", "station_latitude", "station_longitude", "station_altitude",
-                                  "station_name"}
-        name = key if _NC_NAME.match(key) and key not in taken else "diagnostic_" + re.sub(r"\W", "_", key)
-        data_vars[name] = fvar(("time",), per_time(lambda r: r.diagnostics.get(key, nan)),
-                               long_name=f"pair diagnostic {key}", units=diagnostic_units(key))
-    coords = {
+        used = taken | set(out)
+        name = key if _NC_NAME.match(key) and key not in used else "diagnostic_" + re.sub(r"\W", "_", key)
+        out[name] = _var(("time",), np.array([r.diagnostics.get(key, math.nan) for r in records], np.float64),
+                         long_name=f"pair diagnostic {key}", units=diagnostic_units(key))
+    return out
+
+
+def _coords(records: list[PairRecord], info: dict, n_layers: int) -> dict:
+    """Time (UTC, ns), layer (1 = lowest) and the station's scalar coordinates."""
+    import pandas as pd
+
+    times = pd.DatetimeIndex([r.time_utc for r in records]).tz_convert("UTC").tz_localize(None).values.astype("datetime64[ns]")
+    return {
         "time": ("time", times, {"standard_name": "time", "long_name": "capture time (UTC)", "axis": "T"}),
-        "layer": ("layer", np.arange(1, n_l + 1, dtype=np.int32), {"long_name": "cloud layer, 1 = lowest", "units": "1"}),
+        "layer": ("layer", np.arange(1, n_layers + 1, dtype=np.int32),
+                  {"long_name": "cloud layer, 1 = lowest", "units": "1"}),
         "station_latitude": ((), float(info["latitude_deg"]), {
             "standard_name": "latitude", "long_name": "station latitude", "units": "degrees_north"}),
         "station_longitude": ((), float(info["longitude_deg"]), {
@@ -733,6 +775,11 @@ def netcdf_dataset(records: list[PairRecord], info: dict):
             "positive": "up", "axis": "Z"}),
         "station_name": ((), str(info["station"]), {"long_name": "station name", "cf_role": "timeseries_id"}),
     }
+
+
+def _global_attrs(info: dict) -> dict:
+    """CF and E-PROFILE global attributes; ``[station.metadata]`` strings where given."""
+    md = info.get("metadata", {}) or {}
     attrs = {
         "Conventions": "CF-1.8",
         "title": f"Cloud base height from fisheye stereo cameras, station {info['station']}",
@@ -749,7 +796,7 @@ def netcdf_dataset(records: list[PairRecord], info: dict):
     for k in ("contact", "comment", "wigos_station_id"):
         if k in md:
             attrs[k] = md[k]
-    return xr.Dataset(data_vars=data_vars, coords=coords, attrs=attrs)
+    return attrs
 
 
 def write_netcdf(records: list[PairRecord], info: dict, out) -> None:
