@@ -164,13 +164,39 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     file is created exclusively). ``bind``: address of ``--rerun serve`` (default 127.0.0.1).
     ``device``: where the pipeline's dense work runs (``cpu``, ``cuda`` …).
     """
-    from datetime import timezone
-
-    from cbh.presets import scene_path, station_path
-    from cbh.live.sources import is_sim_spec, open_source
+    from cbh.presets import station_path
     from cbh.geometry.station import load_station
 
     st = load_station(station_path(station) if station else station_path())
+    names, specs, simulated = _camera_specs(st, cameras, _source_overrides(st, sources))
+    cfg_dict = dict(st.sections.get("service", {}))
+    over = {"cadence_s": cadence_s, "frames": frames, "duration_s": duration_s, "pair_tolerance_s": pair_tolerance_s}
+    cfg_dict.update({k: v for k, v in over.items() if v is not None})
+    ServiceConfig.from_dict(cfg_dict)  # cheap checks first: errors before the simulator is built
+    rerun_args = _check_outputs(rerun, export, record, rotate_mb, rotate_s, overwrite)
+    if record is not None and rotate_mb is None and rotate_s is None:
+        # an MCAP writer keeps an index entry per message until the file is finished (~3 KB
+        # per pair): an unrotated recording grows the process without bound
+        rotate_s = DEFAULT_ROTATE_S
+    notes: list[str] = []
+    sim, start = None, None
+    if simulated:
+        sim, start = _simulator(st, scene, size_px, cfg_dict, demo_frames, notes)
+        st = sim.station
+    elif size_px is not None:
+        raise ConfigError("an image size applies to simulated cameras only (real frames must match the calibration)")
+    elif scene is not None:
+        raise ConfigError("a scene applies to simulated cameras only, but both cameras have a source")
+    config = ServiceConfig.from_dict(cfg_dict)
+    srcs = _open_sources(st, names, specs, sim, config, start, watch=watch, realtime=realtime)
+    pipeline, pcfg = _pipeline(st, names, config, device)
+    sinks, recorder = _open_sinks(st, pcfg, record=record, export=export, rerun_args=rerun_args, bind=bind,
+                                  rotate_mb=rotate_mb, rotate_s=rotate_s, overwrite=overwrite, notes=notes)
+    return RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)
+
+
+def _source_overrides(st, sources) -> dict[str, str]:
+    """``--source CAMERA=SPEC`` values → camera → spec (each camera of the station, once)."""
     overrides: dict[str, str] = {}
     for s in sources:
         cam, sep, spec = s.partition("=")
@@ -183,16 +209,25 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
             raise ConfigError(f"camera {cam.strip()} has two --source: {overrides[cam.strip()]!r} and "
                               f"{spec.strip()!r} (give each camera one)")
         overrides[cam.strip()] = spec.strip()
+    return overrides
+
+
+def _camera_specs(st, cameras, overrides: dict[str, str]):
+    """(the pair's names, camera → source spec, the simulated ones): a ``--source``, else the
+    station's ``source`` key, else the simulator; both cameras simulated or neither."""
+    from cbh.live.sources import is_sim_spec
+
     c1, c2 = st.pair(cameras)
     names = (c1.name, c2.name)
     specs = {n: overrides.get(n) or st.cameras[n].source or "sim" for n in names}
     simulated = [n for n in names if is_sim_spec(specs[n])]
     if simulated and len(simulated) != 2:
         raise ConfigError(f"camera {simulated[0]} would be simulated and the other not: give both a source, or neither")
-    cfg_dict = dict(st.sections.get("service", {}))
-    over = {"cadence_s": cadence_s, "frames": frames, "duration_s": duration_s, "pair_tolerance_s": pair_tolerance_s}
-    cfg_dict.update({k: v for k, v in over.items() if v is not None})
-    ServiceConfig.from_dict(cfg_dict)  # cheap checks first: errors before the simulator is built
+    return names, specs, simulated
+
+
+def _check_outputs(rerun, export, record, rotate_mb, rotate_s, overwrite):
+    """The output options checked before anything is built; returns the parsed ``--rerun``."""
     rerun_args = None
     if rerun is not None:
         from cbh.outputs.rerun_view import parse_rerun_spec
@@ -205,29 +240,30 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     if record is None and overwrite:  # `--export x.csv --overwrite` appended, silently
         raise ConfigError("--overwrite replaces an existing --record PATH and needs --record "
                           "(an --export file is always appended to)")
-    if record is not None and rotate_mb is None and rotate_s is None:
-        # an MCAP writer keeps an index entry per message until the file is finished (~3 KB
-        # per pair): an unrotated recording grows the process without bound
-        rotate_s = DEFAULT_ROTATE_S
-    notes = []
-    sim = None
-    if simulated:
-        from cbh.sim import SkySimulator, load_scene
+    return rerun_args
 
-        sc = load_scene(scene_path(scene) if scene else scene_path())
-        sim = SkySimulator(st, sc, size_px=size_px)
-        st = sim.station
-        if "frames" not in cfg_dict and "duration_s" not in cfg_dict:
-            cfg_dict["frames"] = demo_frames
-            notes.append(f"simulated station {st.name} (scene {sc.name}): {demo_frames} pairs")
-        start = sc.time_utc.astimezone(timezone.utc)
-    else:
-        if size_px is not None:
-            raise ConfigError("an image size applies to simulated cameras only (real frames must match the calibration)")
-        if scene is not None:
-            raise ConfigError("a scene applies to simulated cameras only, but both cameras have a source")
-        start = None
-    config = ServiceConfig.from_dict(cfg_dict)
+
+def _simulator(st, scene, size_px, cfg_dict: dict, demo_frames: int, notes: list[str]):
+    """(the sky simulator of ``scene`` over the station, the scene's start time, UTC); a run
+    without frames or duration gets ``demo_frames`` pairs (said in ``notes``)."""
+    from datetime import timezone
+
+    from cbh.presets import scene_path
+    from cbh.sim import SkySimulator, load_scene
+
+    sc = load_scene(scene_path(scene) if scene else scene_path())
+    sim = SkySimulator(st, sc, size_px=size_px)
+    if "frames" not in cfg_dict and "duration_s" not in cfg_dict:
+        cfg_dict["frames"] = demo_frames
+        notes.append(f"simulated station {sim.station.name} (scene {sc.name}): {demo_frames} pairs")
+    return sim, sc.time_utc.astimezone(timezone.utc)
+
+
+def _open_sources(st, names, specs, sim, config: ServiceConfig, start, *, watch: bool, realtime: bool) -> list:
+    """One frame source per camera: simulated, or opened from its spec (relative paths from the
+    station file's folder; one folder for both cameras: told apart by file-name prefix)."""
+    from cbh.live.sources import open_source
+
     step = config.cadence_s if config.cadence_s > 0 else 10.0
     base_dir = st.path.parent if st.path is not None else None
     same_dir = specs[names[0]] == specs[names[1]]
@@ -241,40 +277,34 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
             srcs.append(open_source(
                 st.cameras[n], specs[n], watch=watch, decode=False, interval_s=config.snapshot_interval_s,
                 stall_timeout_s=config.stall_timeout_s, base_dir=base_dir, prefix=n if same_dir else None))
+    return srcs
+
+
+def _pipeline(st, names, config: ServiceConfig, device: str):
+    """(the pair pipeline, its config): the station's ``[pipeline]``, with the clock-offset
+    tolerance of the pairing (an offset above it is what the clock_offset flag reports)."""
     from cbh.pipeline import Pipeline, PipelineConfig
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
-    # an offset above the pairing tolerance is what the clock_offset flag reports
     pcfg = pcfg.replace(motion=replace(pcfg.motion, offset_tolerance_s=config.pair_tolerance_s))
-    pipeline = Pipeline(st, f"{names[0]},{names[1]}", pcfg, device=device)
-    sinks = []
+    return Pipeline(st, f"{names[0]},{names[1]}", pcfg, device=device), pcfg
+
+
+def _open_sinks(st, pcfg, *, record, export, rerun_args, bind, rotate_mb, rotate_s, overwrite: bool,
+                notes: list[str]):
+    """(the sinks, the recorder or None): MCAP recorder, layer export, Rerun view, in that
+    order; if one cannot be opened, those already open are closed again."""
+    sinks: list = []
     recorder = None
     try:
         if record is not None:
-            from cbh.outputs.record import McapRecorder
-
-            if record is True:
-                from datetime import datetime
-
-                stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-                out = Path("recordings") / f"{st.name}-{stamp}.mcap"
-                try:
-                    out.parent.mkdir(parents=True, exist_ok=True)
-                except OSError as exc:
-                    raise RecordingError(f"cannot create {out.parent}: {exc.strerror}") from None
-            else:
-                out = Path(record)
-            recorder = open_sink(out, lambda: McapRecorder(out, st, pcfg.to_dict(), rotate_mb=rotate_mb,
-                                                             rotate_s=rotate_s, overwrite=overwrite,
-                                                             unique=record is True))
-            if recorder.path != out:
-                notes.append(f"{out} exists: recording to {recorder.path}")
+            recorder = _open_recorder(st, pcfg, record, rotate_mb, rotate_s, overwrite, notes)
             sinks.append(recorder)
         if export is not None:
             from cbh.outputs.export import LayerExporter
 
             sinks.append(open_sink(export, lambda: LayerExporter(export, st)))
-        if rerun is not None:
+        if rerun_args is not None:
             from cbh.outputs.rerun_view import RerunSink
 
             if rerun_args[0] == "save":
@@ -287,7 +317,31 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
             except Exception:
                 pass
         raise
-    return RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)
+    return sinks, recorder
+
+
+def _open_recorder(st, pcfg, record, rotate_mb, rotate_s, overwrite: bool, notes: list[str]):
+    """The MCAP recorder: ``record`` True → ``recordings/<station>-<UTC>.mcap`` (the first free
+    ``…_2.mcap`` … if taken, said in ``notes``), else the path given."""
+    from datetime import datetime, timezone
+
+    from cbh.outputs.record import McapRecorder
+
+    if record is True:
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        out = Path("recordings") / f"{st.name}-{stamp}.mcap"
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RecordingError(f"cannot create {out.parent}: {exc.strerror}") from None
+    else:
+        out = Path(record)
+    recorder = open_sink(out, lambda: McapRecorder(out, st, pcfg.to_dict(), rotate_mb=rotate_mb,
+                                                     rotate_s=rotate_s, overwrite=overwrite,
+                                                     unique=record is True))
+    if recorder.path != out:
+        notes.append(f"{out} exists: recording to {recorder.path}")
+    return recorder
 
 
 def summary_lines(setup: RunSetup, stats) -> list[str]:
