@@ -2,7 +2,8 @@
 
 Static part (cached per camera): image circle ∩ zenith ≤ ``max_zenith_deg`` ∩ the station's
 obstacle mask image. Per frame: minus a disk around the sun (:func:`cbh.geometry.sun.sun_position` for the
-station and the frame's UTC time) and minus saturated blobs (sun, glare).
+station and the frame's UTC time) and minus saturated blobs (sun, glare), saturated meaning
+within a few DN of the image's own clip level (:mod:`cbh.pipeline.clip`).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from cbh.errors import ImageError
 from cbh.geometry.station import Camera
+from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, ClipLevel, saturated_pixels
 from cbh.pipeline.config import MasksConfig
 
 __all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask"]
@@ -64,10 +66,26 @@ def angle_map_deg(cam: Camera, direction_world: np.ndarray, rays_cam: np.ndarray
     return cv2.phase(c, sin, angleInDegrees=True)  # atan2(sin, cos): ≤ 0.01° from arccos, 8× faster
 
 
-def saturation_mask(image_bgr: np.ndarray, cfg: MasksConfig) -> np.ndarray:
-    """Saturated blobs (all channels ≥ level), grown by ``saturation_grow_px``, shape (H, W), bool."""
-    lvl = int(cfg.saturation_level)
-    sat = cv2.inRange(image_bgr, (lvl, lvl, lvl), (255, 255, 255))
+def saturation_mask(image_bgr: np.ndarray, cfg: MasksConfig, clip: ClipLevel | None = None) -> np.ndarray:
+    """Saturated blobs of at least ``saturation_min_area_px``, grown by ``saturation_grow_px``.
+
+    Saturated: every channel within ``255 − saturation_level`` DN of the image's clip level
+    (:func:`cbh.pipeline.clip.saturated_pixels`): ``saturation_level`` is the threshold of a
+    full-range image, and one that clips lower (limited-range video: 235; a sensor clipping
+    early) has its threshold lowered with it.
+
+    Parameters
+    ----------
+    image_bgr : ndarray, shape (H, W, 3), uint8
+    cfg : MasksConfig
+    clip : ClipLevel, optional
+        The image's clip level when the caller has it (default: estimated on ``image_bgr``).
+
+    Returns
+    -------
+    ndarray, shape (H, W), bool
+    """
+    sat = saturated_pixels(image_bgr, FULL_RANGE_WHITE_DN - int(cfg.saturation_level), clip)
     if not cv2.countNonZero(sat):
         return np.zeros(sat.shape, bool)
     x, y, w, h = cv2.boundingRect(sat)  # blobs and their growth: only around the saturated pixels
