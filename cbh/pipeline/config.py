@@ -298,129 +298,159 @@ def _positive(where, value, strict=True):
 
 
 def _validate(cfg: PipelineConfig, where: str) -> None:
+    """Ranges and choices of every section (types and unknown keys: :func:`dataclass_from_table`);
+    the first violation is a :class:`ConfigError` naming its key path under ``where``."""
     _positive(f"{where}.working_radius_px", cfg.working_radius_px, strict=False)
-    m = cfg.masks
-    if not 0 < m.max_zenith_deg <= 90:
-        raise ConfigError(f"{where}.masks.max_zenith_deg: must be in (0, 90], got {m.max_zenith_deg}")
-    _positive(f"{where}.masks.sun_radius_deg", m.sun_radius_deg, strict=False)
-    if not 0 < m.glare_radius_deg <= 180:
-        raise ConfigError(f"{where}.masks.glare_radius_deg: must be in (0, 180], got {m.glare_radius_deg}")
-    if not 0 <= m.saturation_level <= 255:
-        raise ConfigError(f"{where}.masks.saturation_level: must be in 0..255, got {m.saturation_level}")
-    _positive(f"{where}.masks.saturation_min_area_px", m.saturation_min_area_px, strict=False)
-    _positive(f"{where}.masks.saturation_grow_px", m.saturation_grow_px, strict=False)
     segmenters, matchers, layer_methods = _registries()
-    _choice(f"{where}.segmentation.method", cfg.segmentation.method, tuple(segmenters))
-    ph = cfg.photometric
-    for k in ("max_gain", "max_gamma", "max_wb"):
-        if not getattr(ph, k) >= 1.0:
-            raise ConfigError(f"{where}.photometric.{k}: must be >= 1, got {getattr(ph, k)}")
-    sg = cfg.segmentation
-    if not 50.0 <= sg.clear_percentile < 100.0:
-        raise ConfigError(f"{where}.segmentation.clear_percentile: must be in [50, 100), got {sg.clear_percentile}")
-    _positive(f"{where}.segmentation.min_gap", sg.min_gap)
-    _positive(f"{where}.segmentation.chroma_gap", sg.chroma_gap)
-    _positive(f"{where}.segmentation.texture_cv", sg.texture_cv, strict=False)
-    if not 0 <= sg.chroma_weight <= 1:
-        raise ConfigError(f"{where}.segmentation.chroma_weight: must be in 0..1, got {sg.chroma_weight}")
-    _positive(f"{where}.segmentation.brightness_weight", sg.brightness_weight, strict=False)
-    if not 0 < sg.score_threshold < 1:
-        raise ConfigError(f"{where}.segmentation.score_threshold: must be in (0, 1), got {sg.score_threshold}")
-    _positive(f"{where}.segmentation.max_side_px", sg.max_side_px, strict=False)
-    if not 0 <= cfg.segmentation.grey_chroma <= 1:
-        raise ConfigError(f"{where}.segmentation.grey_chroma: must be in 0..1, got {cfg.segmentation.grey_chroma}")
-    _positive(f"{where}.segmentation.sun_scale_deg", sg.sun_scale_deg)
-    if not 0 <= sg.horizon_start_deg < 90:
-        raise ConfigError(f"{where}.segmentation.horizon_start_deg: must be in [0, 90), got {sg.horizon_start_deg}")
-    if cfg.segmentation.otsu_min > cfg.segmentation.otsu_max:
-        raise ConfigError(f"{where}.segmentation.otsu_min: must be <= otsu_max")
-    mt = cfg.matching
-    if not mt.methods:
-        raise ConfigError(f"{where}.matching.methods: give at least one method (valid: {', '.join(matchers)})")
-    for i, name in enumerate(mt.methods):
-        _choice(f"{where}.matching.methods[{i}]", name, tuple(matchers))
-    if len(set(mt.methods)) != len(mt.methods):
-        raise ConfigError(f"{where}.matching.methods: duplicate method in {list(mt.methods)}")
-    if mt.lk.window_px < 5 or mt.lk.window_px % 2 == 0:
-        raise ConfigError(f"{where}.matching.lk.window_px: must be an odd number >= 5, got {mt.lk.window_px}")
-    _positive(f"{where}.matching.lk.max_points", mt.lk.max_points)
-    if not 0 < mt.lk.quality <= 1:
-        raise ConfigError(f"{where}.matching.lk.quality: must be in (0, 1], got {mt.lk.quality}")
-    _positive(f"{where}.matching.lk.min_distance_px", mt.lk.min_distance_px, strict=False)
-    _positive(f"{where}.matching.orb.max_hamming", mt.orb.max_hamming, strict=False)
-    _positive(f"{where}.matching.orb.max_parallax_deg", mt.orb.max_parallax_deg)
-    _positive(f"{where}.matching.sweep.label_px", mt.sweep.label_px)
-    _positive(f"{where}.matching.lk.fb_max_px", mt.lk.fb_max_px)
-    if not 0 <= mt.lk.levels <= 8:
-        raise ConfigError(f"{where}.matching.lk.levels: must be in 0..8, got {mt.lk.levels}")
-    _positive(f"{where}.matching.orb.max_features", mt.orb.max_features)
-    _choice(f"{where}.matching.dis.preset", mt.dis.preset, ("ultrafast", "fast", "medium"))
-    _positive(f"{where}.matching.dis.point_stride_px", mt.dis.point_stride_px)
-    _positive(f"{where}.matching.dis.fb_max_px", mt.dis.fb_max_px, strict=False)
-    _choice(f"{where}.matching.lk.space", mt.lk.space, ("warped", "raw"))
-    sw, swp = mt.sweep, f"{where}.matching.sweep"
-    for k in ("window_px", "coarse_window_px"):
-        v = getattr(sw, k)
-        if v < 3 or v % 2 == 0:
-            raise ConfigError(f"{swp}.{k}: must be an odd number >= 3, got {v}")
-    if not 1 <= sw.coarse_factor <= 8:
-        raise ConfigError(f"{swp}.coarse_factor: must be in 1..8, got {sw.coarse_factor}")
-    _positive(f"{swp}.far_px", sw.far_px, strict=False)
-    _positive(f"{swp}.coarse_near_px", sw.coarse_near_px, strict=False)
-    for k in ("coarse_step_px", "step_px", "min_height_m", "max_planes", "point_stride_px"):
-        _positive(f"{swp}.{k}", getattr(sw, k))
-    if not sw.min_height_m < sw.max_height_m:
-        raise ConfigError(f"{swp}.min_height_m: must be < max_height_m")
-    if not -1.0 <= sw.min_zncc < 1.0:
-        raise ConfigError(f"{swp}.min_zncc: must be in [-1, 1), got {sw.min_zncc}")
-    for k in ("min_vote_fraction", "extent_ratio", "valley_ratio"):
-        if not 0 < getattr(sw, k) <= 1:
-            raise ConfigError(f"{swp}.{k}: must be in (0, 1], got {getattr(sw, k)}")
-    _positive(f"{swp}.min_texture", sw.min_texture, strict=False)
-    _positive(f"{swp}.far_aggregate_px", sw.far_aggregate_px, strict=False)
-    if not 0 <= sw.vote_percentile < 100:
-        raise ConfigError(f"{swp}.vote_percentile: must be in [0, 100), got {sw.vote_percentile}")
-    fl = cfg.filtering
-    _positive(f"{where}.filtering.max_miss_ratio", fl.max_miss_ratio)
-    _positive(f"{where}.filtering.min_angle_deg", fl.min_angle_deg, strict=False)
-    if not fl.min_height_m < fl.max_height_m:
-        raise ConfigError(f"{where}.filtering.min_height_m: must be < max_height_m")
-    _positive(f"{where}.filtering.min_height_m", fl.min_height_m)
-    _positive(f"{where}.matching.sweep.map_cache_mb", cfg.matching.sweep.map_cache_mb, strict=False)
-    _positive(f"{where}.segmentation.min_sky_dn", cfg.segmentation.min_sky_dn, strict=False)
-    hm = cfg.height_map
-    _choice(f"{where}.height_map.fill", hm.fill, FILL_METHODS)
-    _positive(f"{where}.height_map.fill_max_px", hm.fill_max_px, strict=False)
-    gc = cfg.geometry_check
-    _positive(f"{where}.geometry_check.max_residual_px", gc.max_residual_px)
-    _positive(f"{where}.geometry_check.max_rotation_px", gc.max_rotation_px)
-    if not 0 <= gc.min_inlier_fraction <= 1:
-        raise ConfigError(f"{where}.geometry_check.min_inlier_fraction: must be in 0..1, got {gc.min_inlier_fraction}")
-    _positive(f"{where}.geometry_check.expected_miss_ratio", gc.expected_miss_ratio, strict=False)
-    _positive(f"{where}.geometry_check.min_matches", gc.min_matches)
-    _positive(f"{where}.geometry_check.max_matches", gc.max_matches)
-    _positive(f"{where}.geometry_check.identical_max_dn", gc.identical_max_dn, strict=False)
+    _check_masks(cfg.masks, f"{where}.masks")
+    _check_photometric(cfg.photometric, f"{where}.photometric")
+    _check_segmentation(cfg.segmentation, f"{where}.segmentation", segmenters)
+    _check_matching(cfg.matching, f"{where}.matching", matchers)
+    _check_sweep(cfg.matching.sweep, f"{where}.matching.sweep")
+    _check_filtering(cfg.filtering, f"{where}.filtering")
+    _choice(f"{where}.height_map.fill", cfg.height_map.fill, FILL_METHODS)
+    _positive(f"{where}.height_map.fill_max_px", cfg.height_map.fill_max_px, strict=False)
+    _check_geometry(cfg.geometry_check, f"{where}.geometry_check")
     _positive(f"{where}.sun_check.search_deg", cfg.sun_check.search_deg)
     _positive(f"{where}.sun_check.max_residual_deg", cfg.sun_check.max_residual_deg)
-    ly = cfg.layers
-    _choice(f"{where}.layers.method", ly.method, tuple(layer_methods))
+    _check_layers(cfg.layers, f"{where}.layers", layer_methods)
+    _check_motion(cfg.motion, f"{where}.motion")
+
+
+def _in_range(where: str, value, lo, hi, text: str) -> None:
+    """``ConfigError`` "``where``: must be in ``text``" unless ``lo <= value <= hi`` (``text``
+    states the bounds, e.g. "(0, 1]": the open ends are checked by the caller's ``lo``/``hi``)."""
+    if not lo <= value <= hi:
+        raise ConfigError(f"{where}: must be in {text}, got {value}")
+
+
+def _odd(where: str, value, least: int) -> None:
+    if value < least or value % 2 == 0:
+        raise ConfigError(f"{where}: must be an odd number >= {least}, got {value}")
+
+
+def _check_masks(m, where: str) -> None:
+    if not 0 < m.max_zenith_deg <= 90:
+        raise ConfigError(f"{where}.max_zenith_deg: must be in (0, 90], got {m.max_zenith_deg}")
+    _positive(f"{where}.sun_radius_deg", m.sun_radius_deg, strict=False)
+    if not 0 < m.glare_radius_deg <= 180:
+        raise ConfigError(f"{where}.glare_radius_deg: must be in (0, 180], got {m.glare_radius_deg}")
+    _in_range(f"{where}.saturation_level", m.saturation_level, 0, 255, "0..255")
+    _positive(f"{where}.saturation_min_area_px", m.saturation_min_area_px, strict=False)
+    _positive(f"{where}.saturation_grow_px", m.saturation_grow_px, strict=False)
+
+
+def _check_photometric(ph, where: str) -> None:
+    for k in ("max_gain", "max_gamma", "max_wb"):
+        if not getattr(ph, k) >= 1.0:
+            raise ConfigError(f"{where}.{k}: must be >= 1, got {getattr(ph, k)}")
+
+
+def _check_segmentation(sg, where: str, segmenters) -> None:
+    _choice(f"{where}.method", sg.method, tuple(segmenters))
+    if not 50.0 <= sg.clear_percentile < 100.0:
+        raise ConfigError(f"{where}.clear_percentile: must be in [50, 100), got {sg.clear_percentile}")
+    _positive(f"{where}.min_gap", sg.min_gap)
+    _positive(f"{where}.chroma_gap", sg.chroma_gap)
+    _positive(f"{where}.texture_cv", sg.texture_cv, strict=False)
+    _in_range(f"{where}.chroma_weight", sg.chroma_weight, 0, 1, "0..1")
+    _positive(f"{where}.brightness_weight", sg.brightness_weight, strict=False)
+    if not 0 < sg.score_threshold < 1:
+        raise ConfigError(f"{where}.score_threshold: must be in (0, 1), got {sg.score_threshold}")
+    _positive(f"{where}.max_side_px", sg.max_side_px, strict=False)
+    _in_range(f"{where}.grey_chroma", sg.grey_chroma, 0, 1, "0..1")
+    _positive(f"{where}.sun_scale_deg", sg.sun_scale_deg)
+    if not 0 <= sg.horizon_start_deg < 90:
+        raise ConfigError(f"{where}.horizon_start_deg: must be in [0, 90), got {sg.horizon_start_deg}")
+    if sg.otsu_min > sg.otsu_max:
+        raise ConfigError(f"{where}.otsu_min: must be <= otsu_max")
+    _positive(f"{where}.min_sky_dn", sg.min_sky_dn, strict=False)
+
+
+def _check_matching(mt, where: str, matchers) -> None:
+    """The method list and the LK, ORB and DIS settings (the sweep: :func:`_check_sweep`)."""
+    if not mt.methods:
+        raise ConfigError(f"{where}.methods: give at least one method (valid: {', '.join(matchers)})")
+    for i, name in enumerate(mt.methods):
+        _choice(f"{where}.methods[{i}]", name, tuple(matchers))
+    if len(set(mt.methods)) != len(mt.methods):
+        raise ConfigError(f"{where}.methods: duplicate method in {list(mt.methods)}")
+    lk, orb, dis = mt.lk, mt.orb, mt.dis
+    _odd(f"{where}.lk.window_px", lk.window_px, 5)
+    _positive(f"{where}.lk.max_points", lk.max_points)
+    if not 0 < lk.quality <= 1:
+        raise ConfigError(f"{where}.lk.quality: must be in (0, 1], got {lk.quality}")
+    _positive(f"{where}.lk.min_distance_px", lk.min_distance_px, strict=False)
+    _positive(f"{where}.orb.max_hamming", orb.max_hamming, strict=False)
+    _positive(f"{where}.orb.max_parallax_deg", orb.max_parallax_deg)
+    _positive(f"{where}.sweep.label_px", mt.sweep.label_px)
+    _positive(f"{where}.lk.fb_max_px", lk.fb_max_px)
+    _in_range(f"{where}.lk.levels", lk.levels, 0, 8, "0..8")
+    _positive(f"{where}.orb.max_features", orb.max_features)
+    _choice(f"{where}.dis.preset", dis.preset, ("ultrafast", "fast", "medium"))
+    _positive(f"{where}.dis.point_stride_px", dis.point_stride_px)
+    _positive(f"{where}.dis.fb_max_px", dis.fb_max_px, strict=False)
+    _choice(f"{where}.lk.space", lk.space, ("warped", "raw"))
+
+
+def _check_sweep(sw, where: str) -> None:
+    for k in ("window_px", "coarse_window_px"):
+        _odd(f"{where}.{k}", getattr(sw, k), 3)
+    _in_range(f"{where}.coarse_factor", sw.coarse_factor, 1, 8, "1..8")
+    _positive(f"{where}.far_px", sw.far_px, strict=False)
+    _positive(f"{where}.coarse_near_px", sw.coarse_near_px, strict=False)
+    for k in ("coarse_step_px", "step_px", "min_height_m", "max_planes", "point_stride_px"):
+        _positive(f"{where}.{k}", getattr(sw, k))
+    if not sw.min_height_m < sw.max_height_m:
+        raise ConfigError(f"{where}.min_height_m: must be < max_height_m")
+    if not -1.0 <= sw.min_zncc < 1.0:
+        raise ConfigError(f"{where}.min_zncc: must be in [-1, 1), got {sw.min_zncc}")
+    for k in ("min_vote_fraction", "extent_ratio", "valley_ratio"):
+        if not 0 < getattr(sw, k) <= 1:
+            raise ConfigError(f"{where}.{k}: must be in (0, 1], got {getattr(sw, k)}")
+    _positive(f"{where}.min_texture", sw.min_texture, strict=False)
+    _positive(f"{where}.far_aggregate_px", sw.far_aggregate_px, strict=False)
+    if not 0 <= sw.vote_percentile < 100:
+        raise ConfigError(f"{where}.vote_percentile: must be in [0, 100), got {sw.vote_percentile}")
+    _positive(f"{where}.map_cache_mb", sw.map_cache_mb, strict=False)
+
+
+def _check_filtering(fl, where: str) -> None:
+    _positive(f"{where}.max_miss_ratio", fl.max_miss_ratio)
+    _positive(f"{where}.min_angle_deg", fl.min_angle_deg, strict=False)
+    if not fl.min_height_m < fl.max_height_m:
+        raise ConfigError(f"{where}.min_height_m: must be < max_height_m")
+    _positive(f"{where}.min_height_m", fl.min_height_m)
+
+
+def _check_geometry(gc, where: str) -> None:
+    _positive(f"{where}.max_residual_px", gc.max_residual_px)
+    _positive(f"{where}.max_rotation_px", gc.max_rotation_px)
+    _in_range(f"{where}.min_inlier_fraction", gc.min_inlier_fraction, 0, 1, "0..1")
+    _positive(f"{where}.expected_miss_ratio", gc.expected_miss_ratio, strict=False)
+    _positive(f"{where}.min_matches", gc.min_matches)
+    _positive(f"{where}.max_matches", gc.max_matches)
+    _positive(f"{where}.identical_max_dn", gc.identical_max_dn, strict=False)
+
+
+def _check_layers(ly, where: str, layer_methods) -> None:
+    _choice(f"{where}.method", ly.method, tuple(layer_methods))
     for k in ("bin_log", "smooth_log", "min_separation_log"):
-        _positive(f"{where}.layers.{k}", getattr(ly, k))
+        _positive(f"{where}.{k}", getattr(ly, k))
     for k in ("min_fraction", "min_cover"):
         if not 0 <= getattr(ly, k) < 1:
-            raise ConfigError(f"{where}.layers.{k}: must be in [0, 1), got {getattr(ly, k)}")
+            raise ConfigError(f"{where}.{k}: must be in [0, 1), got {getattr(ly, k)}")
     if not ly.noise_margin >= 1.0:
-        raise ConfigError(f"{where}.layers.noise_margin: must be >= 1, got {ly.noise_margin}")
-    if not 0 <= ly.base_percentile <= 50:
-        raise ConfigError(f"{where}.layers.base_percentile: must be in 0..50, got {ly.base_percentile}")
+        raise ConfigError(f"{where}.noise_margin: must be >= 1, got {ly.noise_margin}")
+    _in_range(f"{where}.base_percentile", ly.base_percentile, 0, 50, "0..50")
     if not 0 < ly.valley_ratio <= 1:
-        raise ConfigError(f"{where}.layers.valley_ratio: must be in (0, 1], got {ly.valley_ratio}")
-    mo = cfg.motion
+        raise ConfigError(f"{where}.valley_ratio: must be in (0, 1], got {ly.valley_ratio}")
+
+
+def _check_motion(mo, where: str) -> None:
     for k in ("max_gap_s", "max_points", "fb_max_px", "min_tracks", "layer_tolerance_log", "offset_history",
               "offset_tolerance_s", "rematch_s", "max_offset_s"):
-        _positive(f"{where}.motion.{k}", getattr(mo, k))
-    _positive(f"{where}.motion.compensate_min_s", mo.compensate_min_s, strict=False)
-    if mo.window_px < 5 or mo.window_px % 2 == 0:
-        raise ConfigError(f"{where}.motion.window_px: must be an odd number >= 5, got {mo.window_px}")
-    if not 0 <= mo.levels <= 8:
-        raise ConfigError(f"{where}.motion.levels: must be in 0..8, got {mo.levels}")
+        _positive(f"{where}.{k}", getattr(mo, k))
+    _positive(f"{where}.compensate_min_s", mo.compensate_min_s, strict=False)
+    _odd(f"{where}.window_px", mo.window_px, 5)
+    _in_range(f"{where}.levels", mo.levels, 0, 8, "0..8")
