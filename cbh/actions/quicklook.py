@@ -35,67 +35,86 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.dates as mdates
     import matplotlib.pyplot as plt
-    from matplotlib.colors import BoundaryNorm, ListedColormap
 
     if not records:
         raise RecordingError("no complete pairs in the recording(s): nothing to draw")
-    times = np.array([np.datetime64(r.time_utc.replace(tzinfo=None), "us") for r in records])
-    n_l = max([len(r.height_m) for r in records] + [1])
-    H = np.full((len(records), n_l), np.nan)
-    C = np.full((len(records), n_l), np.nan)
-    VE = np.full((len(records), n_l), np.nan)
-    VN = np.full((len(records), n_l), np.nan)
-    bad = np.zeros(len(records), bool)
-    ceil = np.full(len(records), np.nan)
-    for i, r in enumerate(records):
-        k = len(r.height_m)
-        H[i, :k], C[i, :k] = r.height_m, r.cover
-        VE[i, :k] = r.motion_east_ms or [math.nan] * k
-        VN[i, :k] = r.motion_north_ms or [math.nan] * k
-        bad[i] = bool(set(r.flags) & INVALIDATING)
-        c = ceiling_index(r.cover)
-        if c is not None:
-            ceil[i] = r.height_m[c]
-    cf = np.array([r.cloud_fraction for r in records])
-    times, (H, C, VE, VN, ceil, cf), bad = _break_gaps(times, (H, C, VE, VN, ceil, cf), bad)
-    okta_cmap = ListedColormap(plt.get_cmap("viridis_r")(np.linspace(0.05, 0.95, 9)))
-    norm = BoundaryNorm(np.arange(-0.5, 9.5, 1.0), 9)
-
+    t = _Series(records)
     fig, axes = plt.subplots(4, 1, figsize=(11, 9.5), sharex=True,
                              gridspec_kw={"height_ratios": [3.2, 1.2, 1.2, 1.2], "hspace": 0.12})
     fig.subplots_adjust(left=0.09, right=0.86, top=0.95, bottom=0.07)
-    ax = axes[0]
+    try:
+        _draw_heights(fig, axes[0], t, title or f"cbh quicklook — station {info['station']} "
+                      f"({info['latitude_deg']:.4f}°, {info['longitude_deg']:.4f}°, {info['altitude_m']:.0f} m)")
+        _draw_fraction(axes[1], t)
+        _draw_motion(axes[2], axes[3], t)
+        _save(fig, out, dpi)
+    finally:
+        plt.close(fig)
+
+
+class _Series:
+    """The quicklook's time series, gaps broken (:func:`_break_gaps`): ``times`` (T,)
+    datetime64[us]; per layer (T, L): ``H`` height [m], ``C`` cover, ``VE``/``VN`` motion
+    [m/s]; per time (T,): ``ceil`` [m], ``cf`` cloud fraction, ``bad`` (an invalidating flag)."""
+
+    def __init__(self, records):
+        times = np.array([np.datetime64(r.time_utc.replace(tzinfo=None), "us") for r in records])
+        self.n_l = n_l = max([len(r.height_m) for r in records] + [1])
+        H, C, VE, VN = (np.full((len(records), n_l), np.nan) for _ in range(4))
+        bad = np.zeros(len(records), bool)
+        ceil = np.full(len(records), np.nan)
+        for i, r in enumerate(records):
+            k = len(r.height_m)
+            H[i, :k], C[i, :k] = r.height_m, r.cover
+            VE[i, :k] = r.motion_east_ms or [math.nan] * k
+            VN[i, :k] = r.motion_north_ms or [math.nan] * k
+            bad[i] = bool(set(r.flags) & INVALIDATING)
+            c = ceiling_index(r.cover)
+            if c is not None:
+                ceil[i] = r.height_m[c]
+        cf = np.array([r.cloud_fraction for r in records])
+        self.times, arrays, self.bad = _break_gaps(times, (H, C, VE, VN, ceil, cf), bad)
+        self.H, self.C, self.VE, self.VN, self.ceil, self.cf = arrays
+
+
+def _draw_heights(fig, ax, t: _Series, title: str) -> None:
+    """Panel 1: each layer's base [km] coloured by its cover (okta), flagged pairs as red
+    crosses, the ceiling as a black line; the okta colour bar to the right."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    okta_cmap = ListedColormap(plt.get_cmap("viridis_r")(np.linspace(0.05, 0.95, 9)))
+    norm = BoundaryNorm(np.arange(-0.5, 9.5, 1.0), 9)
     sc = None
-    for k in range(n_l):
-        good = np.isfinite(H[:, k]) & ~bad
-        okt = np.array([okta(c) for c in C[:, k]], float)
-        sc = ax.scatter(times[good], H[good, k] / 1000.0, c=okt[good], cmap=okta_cmap, norm=norm, s=26,
+    for k in range(t.n_l):
+        good = np.isfinite(t.H[:, k]) & ~t.bad
+        okt = np.array([okta(c) for c in t.C[:, k]], float)
+        sc = ax.scatter(t.times[good], t.H[good, k] / 1000.0, c=okt[good], cmap=okta_cmap, norm=norm, s=26,
                         marker=MARKERS[k % len(MARKERS)], edgecolors="k", linewidths=0.3, label=f"layer {k + 1}",
                         zorder=3)
-        flagged = np.isfinite(H[:, k]) & bad
+        flagged = np.isfinite(t.H[:, k]) & t.bad
         if flagged.any():
-            ax.scatter(times[flagged], H[flagged, k] / 1000.0, marker="x", c="tab:red", s=30, zorder=4,
+            ax.scatter(t.times[flagged], t.H[flagged, k] / 1000.0, marker="x", c="tab:red", s=30, zorder=4,
                        label="invalid (flagged)" if k == 0 else None)
-    if np.isfinite(ceil).any():
-        ax.plot(times, ceil / 1000.0, color="k", lw=1.0, label="ceiling (≥ 5 okta)", zorder=2)
-    top = np.nanmax(H) if np.isfinite(H).any() else 1000.0
+    if np.isfinite(t.ceil).any():
+        ax.plot(t.times, t.ceil / 1000.0, color="k", lw=1.0, label="ceiling (≥ 5 okta)", zorder=2)
+    top = np.nanmax(t.H) if np.isfinite(t.H).any() else 1000.0
     ax.set_ylim(0, max(1.0, top * 1.2 / 1000.0))
     ax.set_ylabel("cloud base above ground [km]")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", fontsize=8, ncol=4, framealpha=0.8)
-    pos = axes[0].get_position()
+    pos = ax.get_position()
     cax = fig.add_axes([0.915, pos.y0, 0.015, pos.height])  # right of the okta axis of panel 2
     cb = fig.colorbar(sc, cax=cax, ticks=range(9))
     cb.set_label("layer cover [okta]")
-    ax.set_title(title or f"cbh quicklook — station {info['station']} "
-                 f"({info['latitude_deg']:.4f}°, {info['longitude_deg']:.4f}°, {info['altitude_m']:.0f} m)",
-                 fontsize=11)
+    ax.set_title(title, fontsize=11)
 
-    ax = axes[1]
-    ax.fill_between(times, 0, cf, where=np.isfinite(cf), color="0.75")
-    ax.plot(times, cf, color="0.3", lw=1)
+
+def _draw_fraction(ax, t: _Series) -> None:
+    """Panel 2: total cloud fraction (0..1, with an okta axis on the right)."""
+    ax.fill_between(t.times, 0, t.cf, where=np.isfinite(t.cf), color="0.75")
+    ax.plot(t.times, t.cf, color="0.3", lw=1)
     ax.set_ylim(0, 1)
     ax.set_ylabel("cloud\nfraction")
     ax.grid(alpha=0.3)
@@ -104,37 +123,45 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
     ax2.set_yticks([0, 2, 4, 6, 8])
     ax2.set_ylabel("okta")
 
-    speed = np.hypot(VE, VN)
-    direction = np.degrees(np.arctan2(VE, VN)) % 360.0
+
+def _draw_motion(ax_speed, ax_dir, t: _Series) -> None:
+    """Panels 3 and 4: each layer's speed [m/s] and the direction it moves towards (no lines
+    across 0/360), "motion unknown" where no pair has motion; the time axis (UTC)."""
+    import matplotlib.dates as mdates
+
+    speed = np.hypot(t.VE, t.VN)
+    direction = np.degrees(np.arctan2(t.VE, t.VN)) % 360.0
     known = np.isfinite(speed).any()
-    for ax, data, label, lw in ((axes[2], speed, "speed\n[m/s]", 0.8),
-                                (axes[3], direction, "moves towards\n[deg from N]", 0.0)):  # no lines across 0/360
-        for k in range(n_l):
-            ax.plot(times, data[:, k], marker=MARKERS[k % len(MARKERS)], ms=3.5, lw=lw, label=f"layer {k + 1}")
+    for ax, data, label, lw in ((ax_speed, speed, "speed\n[m/s]", 0.8),
+                                (ax_dir, direction, "moves towards\n[deg from N]", 0.0)):
+        for k in range(t.n_l):
+            ax.plot(t.times, data[:, k], marker=MARKERS[k % len(MARKERS)], ms=3.5, lw=lw, label=f"layer {k + 1}")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         if not known:
             ax.text(0.5, 0.5, "motion unknown (not estimated in these recordings)", transform=ax.transAxes,
                     ha="center", va="center", color="0.4")
     if known:
-        axes[2].set_ylim(0, max(1.0, np.nanmax(speed) * 1.25))
-        axes[2].legend(loc="upper left", fontsize=8, ncol=n_l)
+        ax_speed.set_ylim(0, max(1.0, np.nanmax(speed) * 1.25))
+        ax_speed.legend(loc="upper left", fontsize=8, ncol=t.n_l)
     else:
-        axes[2].set_ylim(0, 10)
-    axes[3].set_ylim(0, 360)
-    axes[3].set_yticks([0, 90, 180, 270, 360], ["N", "E", "S", "W", "N"])
+        ax_speed.set_ylim(0, 10)
+    ax_dir.set_ylim(0, 360)
+    ax_dir.set_yticks([0, 90, 180, 270, 360], ["N", "E", "S", "W", "N"])
     loc = mdates.AutoDateLocator(minticks=4, maxticks=10)
-    axes[3].xaxis.set_major_locator(loc)
-    axes[3].xaxis.set_major_formatter(mdates.ConciseDateFormatter(loc))
-    axes[3].set_xlabel("time (UTC)")
+    ax_dir.xaxis.set_major_locator(loc)
+    ax_dir.xaxis.set_major_formatter(mdates.ConciseDateFormatter(loc))
+    ax_dir.set_xlabel("time (UTC)")
+
+
+def _save(fig, out, dpi: int) -> None:
+    """Whole or not at all: a temporary file beside ``out``, renamed over it; errors name ``out``."""
     fmt = Path(out).suffix[1:].lower() or "png"
-    try:  # whole or not at all: a temporary file beside ``out``, renamed over it
+    try:
         with atomic_write(out) as tmp:
             fig.savefig(tmp, dpi=dpi, format=fmt)
     except OSError as exc:
         raise write_error(out, exc) from None
-    finally:
-        plt.close(fig)
 
 
 def _break_gaps(times: np.ndarray, arrays: tuple, bad: np.ndarray):
