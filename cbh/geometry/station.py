@@ -352,6 +352,27 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
     st = data.get("station")
     if not isinstance(st, dict):
         raise ConfigError(f"{label}: [station] table missing")
+    allow_baseline, metadata, lat, lon = _parse_site(st)
+    cams_raw = data.get("cameras")
+    if not isinstance(cams_raw, list) or len(cams_raw) < 2:
+        raise ConfigError(f"{label}: needs at least two [[cameras]] entries")
+    base_dir = base_dir or Path.cwd()
+    cameras: dict[str, Camera] = {}
+    for i, c in enumerate(cams_raw):
+        cam = _parse_camera(i, c, base_dir, check_masks, cameras)
+        cameras[cam.name] = cam
+    sections = _extra_sections(data, lat, lon)
+    _check_baselines(cameras, allow_baseline)
+    return Station(
+        name=st["name"], latitude_deg=lat, longitude_deg=lon,
+        altitude_m=_num("station.altitude_m", st["altitude_m"]),
+        cameras=cameras, path=path, sections=sections, metadata=dict(metadata), allow_baseline=allow_baseline,
+    )
+
+
+def _parse_site(st: dict) -> tuple[bool, dict, float, float]:
+    """The ``[station]`` table: (allow_baseline, metadata, latitude [deg], longitude [deg]),
+    every required key present and in range."""
     _unknown("station", st, _STATION_KEYS | _STATION_OPTIONAL | {"metadata"})
     allow_baseline = st.get("allow_baseline", False)
     if not isinstance(allow_baseline, bool):
@@ -360,7 +381,6 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
     check_keys("station.metadata", metadata, METADATA_KEYS)
     for key, value in metadata.items():
         string(f"station.metadata.{key}", value)
-
     for key in _STATION_KEYS:
         if key not in st:
             raise ConfigError(f"station.{key}: missing")
@@ -372,61 +392,78 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
         raise ConfigError(f"station.latitude_deg: {lat} is outside -90..90")
     if not -180 <= lon <= 360:
         raise ConfigError(f"station.longitude_deg: {lon} is outside -180..180")
-    cams_raw = data.get("cameras")
-    if not isinstance(cams_raw, list) or len(cams_raw) < 2:
-        raise ConfigError(f"{label}: needs at least two [[cameras]] entries")
-    base_dir = base_dir or Path.cwd()
-    cameras: dict[str, Camera] = {}
-    for i, c in enumerate(cams_raw):
-        where = f"cameras[{i}]"
-        if not isinstance(c, dict):
-            raise ConfigError(f"{where}: expected a table")
-        _unknown(where, c, _CAMERA_KEYS)
-        name = c.get("name")
-        if not isinstance(name, str) or not name:
-            raise ConfigError(f"{where}.name: missing or not a string")
-        if name in cameras:
-            raise ConfigError(f"{where}.name: duplicate camera name {name!r}")
-        where = f"cameras[{name}]"
-        if ("calibration" in c) == ("intrinsics" in c):
-            raise ConfigError(f"{where}: give exactly one of 'calibration' (file) or 'intrinsics' (inline table)")
-        if "calibration" in c:
-            if not isinstance(c["calibration"], str):
-                raise ConfigError(f"{where}.calibration: expected a file path string")
-            cal = Path(c["calibration"])
-            cal = cal if cal.is_absolute() else base_dir / cal
-            try:
-                model = read_ocamcalib(cal)
-            except CalibrationError as exc:
-                raise ConfigError(f"{where}.calibration: {exc}") from None
-        else:
-            model = parse_intrinsics(f"{where}.intrinsics", c["intrinsics"])
-        if "position_m" not in c:
-            raise ConfigError(f"{where}.position_m: missing")
-        pos = np.array(_vec(f"{where}.position_m", c["position_m"], 3))
-        angles = [k for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in c]
-        if "rotation" in c:
-            if angles:
-                raise ConfigError(f"{where}.rotation: give either 'rotation' or the angles ({', '.join(angles)}), not both")
-            R = _rotation(f"{where}.rotation", c["rotation"])
-        else:
-            R = rotation_from_angles(*(_num(f"{where}.{k}", c.get(k, 0.0)) for k in ("yaw_deg", "pitch_deg", "roll_deg")))
-        mask = None
-        if "mask" in c:
-            if not isinstance(c["mask"], str):
-                raise ConfigError(f"{where}.mask: expected an image path string")
-            mask = Path(c["mask"]) if Path(c["mask"]).is_absolute() else base_dir / c["mask"]
-            if not mask.is_file():
-                raise ConfigError(f"{where}.mask: file not found: {mask}")
-            if check_masks:
-                mw, mh = _mask_size(where, mask)
-                if (mw, mh) != (model.width, model.height):
-                    raise ConfigError(f"{where}.mask: image is {mw}x{mh} px but the camera's calibration is for "
-                                      f"{model.width}x{model.height} px: {mask}")
-        source = c.get("source")
-        if source is not None and not isinstance(source, str):
-            raise ConfigError(f"{where}.source: expected a string (URL, file, directory or 'sim')")
-        cameras[name] = Camera(name=name, model=model, position_m=pos, R_world_from_cam=R, mask=mask, source=source)
+    return allow_baseline, metadata, lat, lon
+
+
+def _parse_camera(i: int, c, base_dir: Path, check_masks: bool, seen: dict) -> Camera:
+    """``[[cameras]]`` entry ``i``: its name (not in ``seen``), lens model, pose, mask, source."""
+    where = f"cameras[{i}]"
+    if not isinstance(c, dict):
+        raise ConfigError(f"{where}: expected a table")
+    _unknown(where, c, _CAMERA_KEYS)
+    name = c.get("name")
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{where}.name: missing or not a string")
+    if name in seen:
+        raise ConfigError(f"{where}.name: duplicate camera name {name!r}")
+    where = f"cameras[{name}]"
+    model = _camera_model(where, c, base_dir)
+    pos, R = _camera_pose(where, c)
+    mask = _camera_mask(where, c, base_dir, model, check_masks)
+    source = c.get("source")
+    if source is not None and not isinstance(source, str):
+        raise ConfigError(f"{where}.source: expected a string (URL, file, directory or 'sim')")
+    return Camera(name=name, model=model, position_m=pos, R_world_from_cam=R, mask=mask, source=source)
+
+
+def _camera_model(where: str, c: dict, base_dir: Path) -> CameraModel:
+    """The lens: an OCamCalib ``calibration`` file (relative to the station file) or inline ``intrinsics``."""
+    if ("calibration" in c) == ("intrinsics" in c):
+        raise ConfigError(f"{where}: give exactly one of 'calibration' (file) or 'intrinsics' (inline table)")
+    if "intrinsics" in c:
+        return parse_intrinsics(f"{where}.intrinsics", c["intrinsics"])
+    if not isinstance(c["calibration"], str):
+        raise ConfigError(f"{where}.calibration: expected a file path string")
+    cal = Path(c["calibration"])
+    cal = cal if cal.is_absolute() else base_dir / cal
+    try:
+        return read_ocamcalib(cal)
+    except CalibrationError as exc:
+        raise ConfigError(f"{where}.calibration: {exc}") from None
+
+
+def _camera_pose(where: str, c: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(position_m (3,) ENU [m], R_world_from_cam (3, 3)): ``rotation`` rows or yaw/pitch/roll [deg]."""
+    if "position_m" not in c:
+        raise ConfigError(f"{where}.position_m: missing")
+    pos = np.array(_vec(f"{where}.position_m", c["position_m"], 3))
+    angles = [k for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in c]
+    if "rotation" in c:
+        if angles:
+            raise ConfigError(f"{where}.rotation: give either 'rotation' or the angles ({', '.join(angles)}), not both")
+        return pos, _rotation(f"{where}.rotation", c["rotation"])
+    return pos, rotation_from_angles(*(_num(f"{where}.{k}", c.get(k, 0.0)) for k in ("yaw_deg", "pitch_deg", "roll_deg")))
+
+
+def _camera_mask(where: str, c: dict, base_dir: Path, model, check_masks: bool) -> Path | None:
+    """The obstacle ``mask`` image (relative to the station file), at the calibration's size."""
+    if "mask" not in c:
+        return None
+    if not isinstance(c["mask"], str):
+        raise ConfigError(f"{where}.mask: expected an image path string")
+    mask = Path(c["mask"]) if Path(c["mask"]).is_absolute() else base_dir / c["mask"]
+    if not mask.is_file():
+        raise ConfigError(f"{where}.mask: file not found: {mask}")
+    if check_masks:
+        mw, mh = _mask_size(where, mask)
+        if (mw, mh) != (model.width, model.height):
+            raise ConfigError(f"{where}.mask: image is {mw}x{mh} px but the camera's calibration is for "
+                              f"{model.width}x{model.height} px: {mask}")
+    return mask
+
+
+def _extra_sections(data: dict, lat: float, lon: float) -> dict[str, dict]:
+    """The other top-level tables, raw (``[ground]`` checked here: it needs the site)."""
     sections = {}
     for key in EXTRA_SECTIONS:
         if key in data:
@@ -435,12 +472,7 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
             sections[key] = data[key]
     if "ground" in sections:
         parse_ground(sections["ground"], lat, lon)  # strict keys, checked when the station is read
-    _check_baselines(cameras, allow_baseline)
-    return Station(
-        name=st["name"], latitude_deg=lat, longitude_deg=lon,
-        altitude_m=_num("station.altitude_m", st["altitude_m"]),
-        cameras=cameras, path=path, sections=sections, metadata=dict(metadata), allow_baseline=allow_baseline,
-    )
+    return sections
 
 
 def load_station(path: str | Path) -> Station:
