@@ -12,40 +12,18 @@ true orientation given. A layer is found when a reported one is within max(5 %, 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import tempfile
-import time
 from collections import defaultdict
 
 import numpy as np
 
 from cbh.flags import INVALIDATING
 from cbh.geometry.station import load_station
-from cbh.pipeline import Pipeline
 from cbh.presets import station_path
-from cbh.sim import SkySimulator
-from cbh.sim.evaluate import score_layers
-from cbh.sim.randomize import random_case, station_with_masks
+from cbh.sim.randomize import run_random_case
 
 BANDS = ((0, 1000), (1000, 3000), (3000, 6000), (6000, 10_001))
-
-
-def run_case(seed: int, base, size: int, folder: str):
-    """(case, result, layer score, cloud fraction of camera 1, seconds) of one randomized sky."""
-    case = random_case(seed, base)
-    sim = SkySimulator(case.station, case.scene, size_px=size)
-    shot = sim.render()
-    pipe = Pipeline(station_with_masks(case, sim, folder))
-    cams = list(sim.station.cameras)[:2]
-    t0 = time.perf_counter()
-    r = pipe.process(shot.views[cams[0]].image, shot.views[cams[1]].image, shot.time_utc, channels="bgr")
-    dt = time.perf_counter() - t0
-    cam1 = sim.station.cameras[cams[0]]
-    fov = cam1.zenith_map() <= pipe.config.masks.max_zenith_deg
-    fov &= ~sim.obstacle_mask(cams[0])
-    score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.poly[0])
-    return case, r, score, dt
 
 
 def main(argv=None) -> int:
@@ -61,7 +39,7 @@ def main(argv=None) -> int:
     bad_seeds = []
     with tempfile.TemporaryDirectory() as folder:
         for seed in range(args.seed, args.seed + args.n):
-            case, r, sc, dt = run_case(seed, base, args.size, folder)
+            case, r, sc, dt = run_random_case(seed, base, args.size, folder)
             cf = max(r.cloud_fraction.values(), default=0.0)
             expected += len(sc.expected_m)
             found += len(sc.matched)

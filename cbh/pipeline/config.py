@@ -58,6 +58,7 @@ class MasksConfig:
 
     max_zenith_deg: float = 80.0  # largest zenith angle of usable sky [deg]
     static_mask: bool = True  # apply the camera's obstacle mask image (station `mask`), if any
+    auto_obstacles: bool = True  # a camera without a mask: find dark horizon objects in each frame (and learn them over a run)
     sun: bool = True  # mask a disk around the sun (pvlib position from lat/lon + time)
     sun_radius_deg: float = 8.0  # radius of the masked sun disk [deg]
     saturation: bool = True  # also mask saturated blobs (sun, glare, specular reflections)
@@ -76,6 +77,7 @@ class SegmentationConfig:
     min_gap: float = 0.06  # hybrid: smallest blue deficit (reference − NBR) of cloud; below it one class only [1]
     chroma_gap: float = 0.06  # hybrid: … or half of it when the cloud class is this much greyer (chroma) and half as saturated [1]
     fixed_threshold: float = 0.15  # hybrid: one-class images are cloud when their median NBR is below this [1]
+    clear_chroma: float = 0.2  # hybrid: … or their median chroma is below this (a pale or warm-cast clear sky keeps ≥ 0.25) [1]
     texture_cv: float = 0.03  # hybrid: a one-class sky whose median local contrast (std/mean, 7 px) exceeds this is cloud [1]
     chroma_weight: float = 0.3  # hybrid: weight of the desaturation cue against the blue deficit, 0..1 [1]
     brightness_weight: float = 0.25  # hybrid: score added per ln(1.5) of brightness difference from the clear sky nearby [1]
@@ -205,6 +207,7 @@ class LayersConfig:
     min_points: int = 50  # a layer needs at least this many points [1]
     min_fraction: float = 0.04  # … and this fraction of all points [1]
     min_cover: float = 0.005  # … and this fraction of camera 1's usable sky [1]
+    reject_aliases: bool = True  # drop a layer whose pixels correlate as well at a bigger layer's height (see cbh.pipeline.support) [1]
 
 
 @dataclass(frozen=True)

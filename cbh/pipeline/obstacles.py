@@ -24,7 +24,7 @@ import numpy as np
 from cbh.geometry.camera import CameraModel
 from cbh.errors import ImageError, InputError
 
-__all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames"]
+__all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames", "FrameObstacleConfig", "obstacles_in_frame"]
 
 
 @dataclass(frozen=True)
@@ -91,3 +91,66 @@ def obstacle_mask_from_frames(images, model: CameraModel, cfg: ObstacleMaskConfi
         k = 2 * cfg.dilate_px + 1
         obstacle = cv2.dilate(obstacle.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
     return np.where(circle & ~obstacle, 255, 0).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class FrameObstacleConfig:
+    """Thresholds of :func:`obstacles_in_frame` (one frame: no temporal cue)."""
+
+    dark_ratio: float = 0.55  # obstacle brightness < this × the zenith ring's sky brightness [1]
+    ring_percentile: float = 90.0  # percentile of a zenith ring's brightness taken as its sky [%]
+    horizon_band_deg: float = 4.0  # obstacles must reach within this of the horizon (zenith 90°) [deg]
+    max_elevation_deg: float = 45.0  # nothing higher above the horizon is taken for an obstacle [deg]
+    min_area_px: int = 12  # smaller dark specks are left to the segmentation [px]
+    dilate_px: int = 2  # safety margin grown around obstacles (their edges blend with the sky) [px]
+
+
+def obstacles_in_frame(image_bgr: np.ndarray, zenith_deg: np.ndarray, circle: np.ndarray,
+                       cfg: FrameObstacleConfig = FrameObstacleConfig()) -> np.ndarray:
+    """Horizon obstacles (buildings, trees, masts) of ONE frame, for a camera without a mask.
+
+    Ground objects are dark against the sky of the same zenith angle (they are lit from above
+    and seen against the bright horizon sky; even a dark cloud base near the horizon is seen
+    through haze that brightens it), and they stand on the horizon. A pixel is an obstacle
+    when its brightest channel is below ``dark_ratio`` × the ``ring_percentile`` percentile of
+    its 1° zenith ring, it lies within ``max_elevation_deg`` of the horizon, and its dark
+    component reaches the band within ``horizon_band_deg`` of the horizon.
+
+    Parameters
+    ----------
+    image_bgr : ndarray, shape (H, W, 3), uint8
+    zenith_deg : ndarray, shape (H, W), float32
+        Zenith angle of each pixel in the world frame [deg].
+    circle : ndarray, shape (H, W), bool
+        The camera's image circle (pixels that see the sky or the ground).
+
+    Returns
+    -------
+    obstacle : ndarray, shape (H, W), bool
+    """
+    value = image_bgr.max(axis=2)
+    look = circle & (zenith_deg >= 90.0 - cfg.max_elevation_deg) & (zenith_deg <= 90.0)
+    if not look.any():
+        return np.zeros(value.shape, bool)
+    ring = np.clip(zenith_deg, 0.0, 90.0).astype(np.int32)
+    ref = np.zeros(92, np.float32)
+    rs, vs = ring[look], value[look]
+    order = np.argsort(rs, kind="stable")
+    rs, vs = rs[order], vs[order]
+    bounds = np.searchsorted(rs, np.arange(93))
+    for r in range(92):
+        a, b = bounds[r], bounds[r + 1]
+        if b > a:
+            ref[r] = np.percentile(vs[a:b], cfg.ring_percentile)
+    dark = look & (value < cfg.dark_ratio * ref[ring])
+    cand = cv2.morphologyEx(dark.astype(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
+    band = look & (zenith_deg >= 90.0 - cfg.horizon_band_deg)
+    touching = np.unique(labels[band & (cand > 0)])
+    touching = touching[(touching > 0)]
+    touching = touching[stats[touching, cv2.CC_STAT_AREA] >= cfg.min_area_px]
+    obstacle = np.isin(labels, touching)
+    if cfg.dilate_px > 0 and obstacle.any():
+        k = 2 * cfg.dilate_px + 1
+        obstacle = cv2.dilate(obstacle.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    return obstacle & circle

@@ -61,6 +61,8 @@ from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.pipeline.obstacles import obstacles_in_frame
+from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
@@ -79,6 +81,10 @@ log = logging.getLogger(__name__)
 
 _MAX_DISPLAY_MATCHES = 5000
 _FLOOR_LAYER_COVER = 0.05  # a layer at the sweep's floor counts for below_range from this cover up (see match.FLOOR_LAYER_RATIO)
+CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky (flag clear_sky; no geometry verdict)
+CLEAR_PAIR_MAX_FRACTION = 0.08  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
+_OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obstacles stay masked
+_OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
 _RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
 _MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
@@ -171,6 +177,8 @@ class Pipeline:
         self.factors = tuple(working_factor(c, self.config.working_radius_px) for c in (self.cam1_full, self.cam2_full))
         self.cam1, self.cam2 = (c.scaled(f) if f != 1.0 else c for c, f in zip((self.cam1_full, self.cam2_full), self.factors))
         self._static: dict[int, np.ndarray] = {}
+        self._circles: dict[int, np.ndarray] = {}  # image circle per camera at working size
+        self._obstacle_votes: dict[int, tuple[np.ndarray, int]] = {}  # frames in which each pixel was an obstacle, of n
         self._rays: dict[int, np.ndarray] = {}
         self._zenith: dict[int, np.ndarray] = {}
         self._geometry: PairGeometry | None = None
@@ -233,6 +241,28 @@ class Pipeline:
                 obstacle = load_obstacle_mask(cam.mask, cam.model.width, cam.model.height)
             self._static[i] = static_sky_mask(cam, self.config.masks, obstacle)
         return self._static[i]
+
+    def auto_obstacles(self, i: int, image: np.ndarray) -> np.ndarray | None:
+        """Horizon obstacles of camera ``i`` found in this frame (working size, (H, W) bool), or
+        None when the station gives the camera a mask (or ``masks.auto_obstacles`` is off).
+
+        Each frame's dark horizon objects (:func:`~.obstacles.obstacles_in_frame`), together with
+        what the run has learned: a pixel found in at least ``_OBSTACLE_LEARN_SHARE`` of the
+        camera's frames, after ``_OBSTACLE_LEARN_FRAMES`` of them, stays masked (a building
+        under a dark cloud, or at dusk, is still a building)."""
+        cam = (self.cam1, self.cam2)[i]
+        if not self.config.masks.auto_obstacles or (cam.mask is not None and self.config.masks.static_mask):
+            return None
+        if i not in self._circles:
+            self._circles[i] = cam.model.image_circle_mask()
+        found = obstacles_in_frame(image, self.zenith(i), self._circles[i])
+        votes, n = self._obstacle_votes.get(i, (np.zeros(found.shape, np.uint16), 0))
+        if n < np.iinfo(np.uint16).max:
+            votes, n = votes + found, n + 1
+            self._obstacle_votes[i] = (votes, n)
+        if n >= _OBSTACLE_LEARN_FRAMES:
+            found = found | (votes >= _OBSTACLE_LEARN_SHARE * n)
+        return found
 
     def rays_cam_device(self, i: int):
         """:meth:`rays_cam` as a tensor on the pipeline's device (uploaded once)."""
@@ -376,11 +406,11 @@ class Pipeline:
 
             def geometry():
                 with _timed(ctx, "geometry_check"):
-                    return self.geometry_findings(received, corr)
+                    return self.geometry_findings(received, corr, seg)
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
-                lay = self.stage_layers(pts, seg, masks, hmap, ctx)
+                lay = self.stage_layers(pts, seg, masks, hmap, ctx, gray=gray, comp=comp)
             est = MotionEstimate()
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
@@ -613,6 +643,9 @@ class Pipeline:
 
         def one(i):
             u = self.static_mask(i)
+            obst = self.auto_obstacles(i, work[i])
+            if obst is not None:
+                u = u & ~obst
             ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
             glare = False
             if cfg.masks.sun and ang is not None:
@@ -692,6 +725,10 @@ class Pipeline:
                            what=cams[i].name)
 
         (c1, f1), (c2, f2) = pmap(one, (0, 1), pool="stages")
+        if min(f1, f2) < CLEAR_SKY_FRACTION and max(f1, f2) < CLEAR_PAIR_MAX_FRACTION:
+            # a clear sky, as the pair sees it: both cameras look at one sky, so cloud over 1 % of
+            # it is in both; what only one camera calls cloud is its aureole, glare or noise
+            c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
     def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
@@ -756,14 +793,26 @@ class Pipeline:
         """Correspondences vs station geometry → ``geometry_*`` diagnostics and flags."""
         self._apply_geometry(self.geometry_findings(work, corr), ctx)
 
-    def geometry_findings(self, work, corr: "Correspondences") -> "tuple[bool, object] | None":
+    def geometry_findings(self, work, corr: "Correspondences", seg: "Segmentation | None" = None
+                          ) -> "tuple[bool, object] | None":
         """The geometry check's findings (identical images, :func:`check_geometry`'s result);
-        None when the check is off. Reads only its arguments: runs beside the height map."""
+        None when the check is off. Reads only its arguments: runs beside the height map.
+
+        With ``seg``, the geometry is judged on real cloud only: correspondences whose camera-2
+        pixel is cloud in camera 2 too (a match from cloud onto clear sky, glare or an unmasked
+        obstacle is a mismatch of the matcher, not of the station), and not at all when
+        camera 1's sky is clear (``clear_sky``: whatever matched there is not cloud)."""
         cfg = self.config.geometry_check
         if not cfg.enabled:
             return None
+        raw = corr.raw
+        if seg is not None:
+            if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION:
+                raw = []
+            else:
+                raw = [m.take(_on_mask(seg.clouds[1], m.px2)) for m in raw]
         return (images_identical(work[0], work[1], cfg.identical_max_dn),
-                check_geometry(self.geometry, corr.raw, self.config.filtering, cfg))
+                check_geometry(self.geometry, raw, self.config.filtering, cfg))
 
     @staticmethod
     def _apply_geometry(found, ctx: "PairContext") -> None:
@@ -833,11 +882,24 @@ class Pipeline:
                       per_method=[(p[0], len(p[1])) for p in parts])
 
     def stage_layers(self, pts: "Points", seg: "Segmentation", masks: "Masks", hmap: HeightMap,
-                     ctx: "PairContext") -> LayerSet:
-        """Height histogram → candidate intervals → supported layers with covers."""
+                     ctx: "PairContext", gray=None, comp=None) -> LayerSet:
+        """Height histogram → candidate intervals → supported layers with covers → less the
+        aliases of other layers (:mod:`.support`; with the working grey images ``gray`` and
+        camera 2's clock compensation ``comp``, as matched). A clear sky has no layer."""
         hist, intervals = self._layers(pts.xyz_m[:, 2], self.config.layers, self.config.filtering)
+        if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION:
+            intervals = []  # whatever matched on a clear sky is not cloud
         lay = supported_layers(pts.xyz_m[:, 2], pts.noise_m, hist, intervals, seg.clouds[0], masks.usable[0],
                                hmap.nearest_m, seg.fractions[self.cam1.name], self.config.layers)
+        if gray is not None and len(lay.layers) > 1 and self.config.layers.reject_aliases:
+            g2 = gray[1] if comp is None else cv2.remap(gray[1], comp, None, cv2.INTER_LINEAR,
+                                                        borderMode=cv2.BORDER_REPLICATE)
+            f = self.factors[0]
+            aliases = alias_layers(gray[0], g2, self.geometry.planes, float(self.cam1.position_m[2]),
+                                   [L.height_m for L in lay.layers], (pts.px1 + 0.5) * f - 0.5, lay.label)
+            if aliases:
+                ctx.diagnostics["alias_layers_m"] = float(sum(lay.layers[k].height_m for k in aliases) / len(aliases))
+            lay = without_aliases(lay, aliases)
         if lay.cover_incomplete:
             ctx.flags.append("cover_incomplete")
         alt = self.station.altitude_m
@@ -859,11 +921,11 @@ class Pipeline:
             if ("below_range_fraction" in ctx.diagnostics and "below_range" not in ctx.flags
                     and lowest <= FLOOR_LAYER_RATIO * floor_m and measured < FLOOR_LAYER_MATCHED):
                 ctx.flags.append("below_range")  # see FLOOR_LAYER_RATIO
-        if n < self.config.layers.min_points:
+        if frac1 < CLEAR_SKY_FRACTION:
+            ctx.flags.append("clear_sky")  # (and not few_points: a clear sky has nothing to match)
+        elif n < self.config.layers.min_points:
             ctx.flags.append("few_points")
-        if frac1 < 0.01:
-            ctx.flags.append("clear_sky")
-        elif frac1 > 0.9 and n < self.config.layers.min_points:
+        if frac1 > 0.9 and n < self.config.layers.min_points:
             ctx.flags.append("overcast_no_texture")
 
     def _assemble(self, ctx: "PairContext", seg: "Segmentation", hmap: HeightMap, pts: "Points",
@@ -893,6 +955,17 @@ class Pipeline:
             diagnostics=dict(ctx.diagnostics),
             matches=matches,
         )
+
+
+def _on_mask(mask: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Which of the pixels ``px`` (N, 2) [x, y] fall on True pixels of ``mask`` (H, W), (N,) bool."""
+    if len(px) == 0:
+        return np.zeros(0, bool)
+    H, W = mask.shape
+    x = np.clip(np.rint(px[:, 0]).astype(np.int64), 0, W - 1)
+    y = np.clip(np.rint(px[:, 1]).astype(np.int64), 0, H - 1)
+    ok = np.isfinite(px).all(axis=1)
+    return ok & mask[y, x]
 
 
 # --- typed intermediate results -------------------------------------------------------------

@@ -405,13 +405,101 @@ def hybrid_classes(rs: np.ndarray, cs: np.ndarray | None, cfg: SegmentationConfi
     return max(float(np.median(hi)), cfg.min_gap) if bimodal else None  # blue deficit of typical cloud
 
 
-def one_class_is_clear(nbr_s: np.ndarray, contrast_s, cfg: SegmentationConfig) -> bool:
+def one_class_is_clear(nbr_s: np.ndarray, contrast_s, cfg: SegmentationConfig, chroma_s=None) -> bool:
     """One class only (the hybrid-thresholding idea: no threshold from a unimodal histogram): a
-    clear sky when the sampled median NBR is at least ``fixed_threshold`` and the sky is smooth
-    (``contrast_s()``: the sampled local contrast, called only then; None = no image), else overcast."""
-    if float(np.median(nbr_s)) < cfg.fixed_threshold:
+    clear sky when the sky is blue — the sampled median NBR at least ``fixed_threshold``, or
+    (pale, hazy or warm-cast cameras, whose clear sky can sit at NBR 0.13) its median chroma
+    ``chroma_s`` at least ``clear_chroma``: grey cloud keeps ≈ 0.03–0.1 under the same casts —
+    and smooth (``contrast_s()``: the sampled local contrast, called only then; None = no
+    image); else overcast."""
+    blue = float(np.median(nbr_s)) >= cfg.fixed_threshold
+    if not blue and chroma_s is not None and chroma_s.size:
+        blue = float(np.median(chroma_s)) >= cfg.clear_chroma
+    if not blue:
         return False
     return contrast_s is None or float(np.median(contrast_s())) < cfg.texture_cv
+
+
+_AUREOLE_MAX_DEG = 40.0  # the circumsolar aureole's profile is followed out to this angle from the sun [deg]
+_AUREOLE_STEP_DEG = 1.5  # ring width of the aureole profile [deg]
+_AUREOLE_MIN_RING = 30  # a ring needs this many sampled pixels for its own value
+
+
+_TEXTURE_SIGMA_PX = 1.5  # fine texture: the grey image less its Gaussian blur of this sigma [px]
+_TEXTURE_BOX_PX = 9  # … its RMS over boxes of this side [px]
+_TEXTURED = 4.0  # a ring whose clearest pixels have this × the image's noise floor of fine texture is cloud (simulated: aureole ≤ 3.7, fog around the sun ≥ 4.3)
+
+
+def fine_texture(image_bgr: np.ndarray) -> np.ndarray:
+    """RMS of the grey image's fine detail (less its σ = 1.5 px blur) in 9 px boxes, (H, W) float32 [DN].
+
+    Clear sky, the aureole and haze are smooth: their fine detail is sensor and JPEG noise
+    (its floor over the image). Cloud has detail at every scale.
+    """
+    g = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    hp = cv2.subtract(g, cv2.GaussianBlur(g, (0, 0), _TEXTURE_SIGMA_PX))
+    return cv2.sqrt(cv2.blur(cv2.multiply(hp, hp), (_TEXTURE_BOX_PX, _TEXTURE_BOX_PX)))
+
+
+def aureole_profile(values_s: np.ndarray, sun_angle_s: np.ndarray, q: float,
+                    texture_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The clear sky's excess of a cloud-like feature in rings around the sun (the aureole).
+
+    The circumsolar aureole is whiter and brighter than any region's reference: its blue
+    deficit (and brightness) rises steeply and smoothly towards the sun, faster than the
+    zenith × sun-angle regions can follow. Per ring of ``_AUREOLE_STEP_DEG`` out to
+    ``_AUREOLE_MAX_DEG``, the ``q``-th percentile of the feature over the sampled pixels (the
+    clear part of the ring as long as ``q`` % of it is clear), floored at 0 and made
+    non-increasing outwards (the aureole fades monotonically from the sun; a cloudy ring
+    farther out cannot raise it), is the aureole's own value. With ``texture_s`` (the samples'
+    :func:`fine_texture`), a ring whose pixels at or below that percentile are textured
+    (median over ``_TEXTURED`` × the noise floor, the 10th percentile of all samples) is
+    cloud, not aureole: its excess, and so that of every ring outside it, is 0 (sunlit cloud
+    around the sun is never taken for the aureole).
+
+    Returns
+    -------
+    (centres_deg, excess) : two ndarrays (n,), float32, or None when no ring has an excess
+        Ring centres [deg] and the excess to subtract there (0 beyond the last ring).
+    """
+    edges = np.arange(0.0, _AUREOLE_MAX_DEG + _AUREOLE_STEP_DEG, _AUREOLE_STEP_DEG)
+    k = np.searchsorted(edges, sun_angle_s, side="right") - 1
+    prof = np.zeros(len(edges) - 1)
+    floor = max(float(np.percentile(texture_s, 10.0)), 0.5) if texture_s is not None and texture_s.size else 0.0
+    started = False
+    for i in range(len(prof)):
+        sel = values_s[k == i]
+        if sel.size < _AUREOLE_MIN_RING:
+            prof[i] = prof[i - 1] if (started and i) else 0.0  # inside the masked sun disk, or a gap
+            continue
+        prof[i] = max(float(np.percentile(sel, q)), 0.0)
+        if texture_s is not None and prof[i] > 0.0:
+            tex = texture_s[k == i]
+            if float(np.median(tex[sel <= prof[i]])) > _TEXTURED * floor:
+                prof[i] = 0.0
+        if started:
+            prof[i] = min(prof[i], prof[i - 1])
+        started = True
+    if not prof.any():
+        return None
+    prof = np.append(prof, 0.0)
+    centres = np.append(0.5 * (edges[:-1] + edges[1:]), edges[-1] + _AUREOLE_STEP_DEG)
+    return centres.astype(np.float32), prof.astype(np.float32)
+
+
+def apply_profile(sun_angle_deg: np.ndarray, profile) -> np.ndarray:
+    """The aureole excess (:func:`aureole_profile`) at every pixel, (H, W) float32 (0 beyond)."""
+    c, p = profile
+    a = np.asarray(sun_angle_deg, np.float32)
+    return np.interp(a.ravel(), c, p, left=p[0], right=0.0).astype(np.float32).reshape(a.shape)
+
+
+def _minus_aureole(feature, feature_s, sun_angle_s, sun_angle_deg, q: float, texture_s=None):
+    """``feature`` less the aureole's excess (:func:`aureole_profile` of its samples)."""
+    prof = aureole_profile(feature_s, sun_angle_s, q, texture_s)
+    if prof is None:
+        return feature
+    return cv2.subtract(feature, apply_profile(sun_angle_deg, prof))
 
 
 def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
@@ -430,13 +518,19 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     # class statistics on a regular subsample of the usable sky (≈ _SAMPLES pixels)
     sub = sample_lattice(np.count_nonzero(usable))
     us = usable[sub]
+    if sun_angle_deg is not None and us.any():  # the aureole is clear sky: its own excess removed
+        psi_s = np.asarray(sun_angle_deg, np.float32)[sub][us]
+        tex_s = fine_texture(image_bgr)[sub][us] if image_bgr is not None else None
+        r_n = _minus_aureole(r_n, r_n[sub][us], psi_s, sun_angle_deg, 100.0 - cfg.clear_percentile, tex_s)
+        if r_s is not None:
+            r_s = _minus_aureole(r_s, r_s[sub][us], psi_s, sun_angle_deg, 100.0 - cfg.clear_percentile, tex_s)
     rs = r_n[sub][us]
     if rs.size == 0:
         return np.zeros_like(usable)
     gap = hybrid_classes(rs, chroma[sub][us] if chroma is not None else None, cfg)
     if gap is None:  # one class only: the whole usable sky is clear or cloud
         contrast = None if image_bgr is None else (lambda: local_contrast(image_bgr)[sub][us])
-        if not one_class_is_clear(nbr[sub][us], contrast, cfg):
+        if not one_class_is_clear(nbr[sub][us], contrast, cfg, chroma[sub][us] if chroma is not None else None):
             return usable.copy()
         score = cv2.divide(r_n, cfg.min_gap * 2.0)  # clear: only what stands out from the clear sky
     else:
@@ -452,7 +546,12 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
         clear = usable & ~cloud
         if np.count_nonzero(clear) >= BRIGHTNESS_MIN_CLEAR * np.count_nonzero(usable):
             v_ref = clear_sky_references([value / 255.0], clear, zenith_deg, sun_angle_deg, 50.0, image_bgr)[0]
-            dv = cv2.absdiff(cv2.log(cv2.max(value, 1.0)), cv2.log(cv2.max(v_ref * 255.0, 1.0)))
+            dv = cv2.subtract(cv2.log(cv2.max(value, 1.0)), cv2.log(cv2.max(v_ref * 255.0, 1.0)))
+            if sun_angle_deg is not None:  # the aureole's brightening, from the clear pixels around the sun
+                cs_ = clear[sub]
+                dv = _minus_aureole(dv, dv[sub][cs_], np.asarray(sun_angle_deg, np.float32)[sub][cs_],
+                                    sun_angle_deg, 50.0, fine_texture(image_bgr)[sub][cs_])
+            dv = cv2.absdiff(dv, 0.0)
             score = cv2.addWeighted(score, 1.0, dv, cfg.brightness_weight / math.log(1.5), 0.0)
             cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
     return cloud & usable

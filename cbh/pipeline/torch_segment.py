@@ -34,8 +34,8 @@ import torch.nn.functional as F
 
 from cbh.pipeline.config import SegmentationConfig
 from cbh.pipeline.segment import (
-    _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, check_colour, hybrid_classes, one_class_is_clear,
-    reference_tables, sample_lattice, segment,
+    _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, aureole_profile, check_colour, fine_texture, hybrid_classes,
+    one_class_is_clear, reference_tables, sample_lattice, segment,
 )
 from cbh.pipeline.torch_ops import box, upload
 
@@ -100,6 +100,22 @@ def _local_contrast(grey: torch.Tensor, window_px: int = 7) -> torch.Tensor:
     return (var.sqrt() / m.clamp_min(1.0))[0, 0]
 
 
+def _minus_aureole(feature: torch.Tensor, feature_s: np.ndarray, sun_s: np.ndarray, sun: torch.Tensor,
+                   q: float, texture_s: np.ndarray | None = None) -> torch.Tensor:
+    """:func:`~.segment._minus_aureole` on the device: the profile from host samples, then a
+    piecewise-linear lookup in the sun angle (``numpy.interp`` with the end values held)."""
+    prof = aureole_profile(feature_s, sun_s, q, texture_s)
+    if prof is None:
+        return feature
+    c = torch.as_tensor(prof[0], device=sun.device)
+    p = torch.as_tensor(prof[1], device=sun.device)
+    k = torch.bucketize(sun, c).clamp(1, len(c) - 1)
+    c0, c1, p0, p1 = c[k - 1], c[k], p[k - 1], p[k]
+    w = ((sun - c0) / (c1 - c0)).clamp(0.0, 1.0)
+    excess = torch.where(sun > c[-1], torch.zeros_like(sun), p0 + w * (p1 - p0))
+    return feature - excess
+
+
 def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_angle_deg, cfg: SegmentationConfig,
                   device: torch.device | str = "cpu", what: str = "image") -> tuple[np.ndarray, float]:
     """:func:`cbh.pipeline.segment.segment` with its per-pixel work on ``device``.
@@ -133,6 +149,12 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     r_s = (ref_s - chroma) / ref_s.clamp_min(0.02)  # relative desaturation
     sub = sample_lattice(n_use)
     us = use[sub]
+    if sun is not None:  # the aureole is clear sky: its own excess removed (see segment._hybrid)
+        psi_s = sun[sub][us].cpu().numpy()
+        q = 100.0 - cfg.clear_percentile
+        tex_s = fine_texture(image_bgr)[sub][us.cpu().numpy()]  # host: OpenCV's blur, as segment._hybrid
+        r_n = _minus_aureole(r_n, r_n[sub][us].cpu().numpy(), psi_s, sun, q, tex_s)
+        r_s = _minus_aureole(r_s, r_s[sub][us].cpu().numpy(), psi_s, sun, q, tex_s)
     rs = r_n[sub][us].cpu().numpy()
     if rs.size == 0:  # no usable pixel on the sampling lattice (as segment._hybrid: nothing classified)
         return np.zeros((H, W), bool), 0.0
@@ -142,7 +164,7 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
         # level on 0.1 % of pixels); one-class skies only
         grey = lambda: upload(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY), dev, torch.float32)  # noqa: E731
         contrast = lambda: _local_contrast(grey())[sub][us].cpu().numpy()  # noqa: E731
-        if not one_class_is_clear(nbr[sub][us].cpu().numpy(), contrast, cfg):
+        if not one_class_is_clear(nbr[sub][us].cpu().numpy(), contrast, cfg, chroma[sub][us].cpu().numpy()):
             return use.cpu().numpy(), 1.0  # overcast
         score = r_n / (cfg.min_gap * 2.0)
     else:
@@ -154,7 +176,12 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
         clear = use & ~cloud
         if int(clear.count_nonzero()) >= BRIGHTNESS_MIN_CLEAR * n_use:
             v_ref = _references([mx / 255.0], clear, zen, sun, 50.0)[0]
-            dv = (torch.log(mx.clamp_min(1.0)) - torch.log((v_ref * 255.0).clamp_min(1.0))).abs()
+            dv = torch.log(mx.clamp_min(1.0)) - torch.log((v_ref * 255.0).clamp_min(1.0))
+            if sun is not None:
+                cs_ = clear[sub]
+                dv = _minus_aureole(dv, dv[sub][cs_].cpu().numpy(), sun[sub][cs_].cpu().numpy(), sun, 50.0,
+                                    fine_texture(image_bgr)[sub][cs_.cpu().numpy()])
+            dv = dv.abs()
             score = score + dv * (cfg.brightness_weight / math.log(1.5))
             cloud = (score > cfg.score_threshold) & use
     return cloud.cpu().numpy(), float(cloud.count_nonzero()) / n_use

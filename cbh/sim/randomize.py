@@ -28,7 +28,7 @@ import numpy as np
 from cbh.geometry.station import Station, rotation_from_angles
 from cbh.sim.scene import CloudLayer, Imperfection, ImageSettings, Obstacle, Scene, Sky, Sun
 
-__all__ = ["RandomCase", "random_case", "station_with_masks", "SKY_KINDS"]
+__all__ = ["RandomCase", "random_case", "station_with_masks", "run_random_case", "SKY_KINDS"]
 
 SKY_KINDS = ("clear", "broken", "overcast")
 
@@ -180,3 +180,32 @@ def station_with_masks(case: RandomCase, sim, folder: Path) -> Station:
         cv2.imwrite(str(p), np.where(sim.obstacle_mask(name), 0, 255).astype(np.uint8))
         cams[name] = replace(cams[name], mask=p)
     return replace(sim.station, cameras=cams)
+
+
+def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config=None):
+    """Render the randomized sky ``seed`` at ``size_px`` and run the pipeline on its pair.
+
+    Returns
+    -------
+    (case, result, score, seconds) : RandomCase, PairResult, LayerScore, float
+        ``score``: :func:`cbh.sim.evaluate.score_layers` against camera 1's truth over its
+        analysed field less the true obstacles; ``seconds``: the pipeline's wall time.
+    """
+    import time
+
+    from cbh.pipeline import Pipeline
+    from cbh.sim import SkySimulator
+    from cbh.sim.evaluate import score_layers
+
+    case = random_case(seed, base)
+    sim = SkySimulator(case.station, case.scene, size_px=size_px)
+    shot = sim.render()
+    pipe = Pipeline(station_with_masks(case, sim, folder), config=config)
+    cams = list(sim.station.cameras)[:2]
+    t0 = time.perf_counter()
+    r = pipe.process(shot.views[cams[0]].image, shot.views[cams[1]].image, shot.time_utc, channels="bgr")
+    dt = time.perf_counter() - t0
+    cam1 = sim.station.cameras[cams[0]]
+    fov = (cam1.zenith_map() <= pipe.config.masks.max_zenith_deg) & ~sim.obstacle_mask(cams[0])
+    score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.poly[0])
+    return case, r, score, dt
