@@ -45,7 +45,7 @@ def test_plane_views_take_the_image_of_the_nearest_height():
         assert v.for_plane(1.0 / 1990.0) is low and v.for_plane(1.0 / 2010.0) is high
         assert v.for_plane(1.0 / 150.0) is low and v.for_plane(0.0) is high  # beyond the nodes: the nearest
     one = PlaneViews.single(low)
-    assert one.for_plane(1e-3) is low and one.factors(lambda m: m) is None
+    assert one.for_plane(1e-3) is low and one.weights_on(np.s_[0:2, 0:2], (1, 1)) is None
 
 
 def test_per_height_compensation_is_the_moved_point(pipe320):
@@ -79,18 +79,32 @@ def test_per_height_compensation_is_the_moved_point(pipe320):
     assert np.abs(got - want).max() <= 0.02
 
 
-def test_motion_factor_prefers_the_node_that_moves_camera_1_right():
-    """PlaneViews.factors: a pixel's planes of node k are weighted by T_k / max_j T_j (T: ZNCC of
-    camera 1 now against its previous frame moved on with node k's motion); where no node
-    explains the pixel (max T below the sweep's min_zncc: a cloud that changed), every factor is
-    1, so the motion test can only demote a plane, never reject a pixel."""
-    from cbh.pipeline.sweep import PlaneViews
+def test_motion_weights_prefer_the_node_that_moves_camera_1_right(pipe320):
+    """The planes of node k are weighted by T_k / max_j T_j (T: ZNCC of camera 1 now against its
+    previous frame moved on with node k's motion; motion_factors); where no node explains the
+    pixel (max T below the sweep's min_zncc: a cloud that changed), every weight is 1, so the
+    test can only demote a plane, never reject a pixel. motion_weights, on a texture moved by a
+    node's exact motion: that node's weight is 1 where the texture is, the other's falls by
+    the ZNCC of the texture against itself shifted by the motion difference."""
+    from cbh.pipeline.motion import motion_factors, motion_weights, shift_map
 
-    t = {0: np.array([[0.95, 0.3, 0.9]], np.float32), 1: np.array([[0.5, 0.4, -0.2]], np.float32)}
-    v = PlaneViews((0, 1), np.array([1e-3]), motion1=(0, 1), min_zncc=0.6)
-    f0, f1 = v.factors(lambda k: t[k])
+    t = [np.array([[0.95, 0.3, 0.9]], np.float32), np.array([[0.5, 0.4, -0.2]], np.float32)]
+    f0, f1 = motion_factors(t, min_zncc=0.6)
     np.testing.assert_allclose(f0, [[1.0, 1.0, 1.0]])
     np.testing.assert_allclose(f1, [[0.5 / 0.95, 1.0, 0.0]], rtol=1e-6)
+
+    cam = pipe320.cam1
+    h, w = cam.model.height, cam.model.width
+    rng = np.random.default_rng(4)
+    import cv2
+
+    prev = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)).astype(np.float32), (0, 0), 2.0).astype(np.uint8)
+    r_low, r_high, dt = np.array([2.0, 1.0]) / 1000.0, np.array([-6.0, 18.0]) / 4000.0, 10.0
+    now = cv2.remap(prev, shift_map(cam, (h, w), -r_low * dt), None, cv2.INTER_LINEAR)  # all moving with r_low
+    wl, wh = motion_weights(now, prev, cam, [r_low, r_high], dt, window_px=9, min_zncc=0.6)
+    near = np.s_[h // 4 - 20: h // 4 + 20, w // 4 - 20: w // 4 + 20]  # (half resolution) near the zenith
+    # the nodes' motions differ by 3.6 px in 10 s here, against texture of σ = 2 px: ZNCC ≈ 0
+    assert np.median(wl[near]) == 1.0 and np.median(wh[near]) < 0.2
 
 
 def _scene(offset_s=OFFSET_S, slow=SLOW, fast=FAST):

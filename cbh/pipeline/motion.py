@@ -108,8 +108,8 @@ from cbh.pipeline.peaks import find_peaks, smooth_gaussian, valley_cuts
 from cbh.result import Layer
 
 __all__ = ["PairState", "MotionProfile", "Tracks", "track_back", "plane_offsets", "offset_per_match",
-           "offset_estimate", "parallax_heights", "track_profile", "shift_map", "shifted_images",
-           "compensate_camera2", "layer_motion", "running_offset"]
+           "offset_estimate", "parallax_heights", "track_profile", "shift_map", "shifted_images", "motion_factors",
+           "motion_weights", "compensate_camera2", "layer_motion", "running_offset"]
 
 
 @dataclass(frozen=True)
@@ -445,7 +445,8 @@ def _grids(h: int, w: int, grid_px: int):
         c = (grid_px - 1) / 2.0
         gy, gx = np.mgrid[0:nh, 0:nw].astype(np.float64) * grid_px + c
         ident = np.dstack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)))
-        _GRIDS.clear()
+        if len(_GRIDS) >= 4:  # (a camera pair's full and half working sizes)
+            _GRIDS.clear()
         _GRIDS[key] = (np.stack([gx.ravel(), gy.ravel()], axis=1), gy.shape, ident)
     return _GRIDS[key]
 
@@ -463,34 +464,42 @@ def _grid_offsets(cam, grid: np.ndarray, key) -> np.ndarray:
     return hit[2]
 
 
-def shift_map(cam, shape: tuple[int, int], da: np.ndarray, grid_px: int = 8) -> np.ndarray:
+def shift_map(cam, shape: tuple[int, int], da: np.ndarray, grid_px: int = 8, down: int = 1) -> np.ndarray:
     """Remap table of a camera's pixels whose plane offset moves by ``da``: pixel u is taken from
-    where ``a = a2(u) + da`` (exact geometry every ``grid_px`` pixels, bilinear in between).
+    where ``a = a(u) + da`` (exact geometry every ``grid_px`` pixels, bilinear in between).
 
     Parameters
     ----------
     cam : Camera
         The camera at working size.
     shape : (int, int)
-        Image (H, W) [px].
+        Working image size (H, W) [px].
     da : ndarray, shape (2,)
         Plane-offset shift (east, north) [m/m].
+    grid_px : int
+        Spacing of the exact nodes at working size [px] (a multiple of ``down``).
+    down : int
+        The table for the image downsampled by this whole factor (INTER_AREA blocks: pixel i
+        is working pixels down·i … down·i + down − 1), (H // down, W // down).
 
     Returns
     -------
-    ndarray, shape (H, W, 2), float32
+    ndarray, shape (H // down, W // down, 2), float32
         ``cv2.remap`` table (x then y); unchanged pixels where the shifted ray leaves the sky.
     """
     h, w = shape
-    grid, gshape, ident = _grids(h, w, grid_px)
-    a2 = _grid_offsets(cam, grid, (h, w, grid_px))
-    seen = np.isfinite(a2).all(axis=1, keepdims=True)
-    a = a2 + np.asarray(da, np.float64)[None, :]
+    grid, gshape, _ = _grids(h, w, grid_px)
+    a0 = _grid_offsets(cam, grid, (h, w, grid_px))
+    seen = np.isfinite(a0).all(axis=1, keepdims=True)
+    a = a0 + np.asarray(da, np.float64)[None, :]
     d = np.concatenate([a, np.ones((len(a), 1))], axis=1)
     p = cam.direction_to_pixel(d / np.linalg.norm(d, axis=1, keepdims=True))
-    disp = np.where(np.isfinite(p) & seen, p - grid, 0.0).reshape(gshape + (2,)).astype(np.float32)
-    full = cv2.resize(disp, (gshape[1] * grid_px, gshape[0] * grid_px), interpolation=cv2.INTER_LINEAR)
-    return cv2.add(ident, full[:h, :w])
+    # the nodes, at working pixel g = grid_px·k + (grid_px − 1)/2, are at (g + 0.5)/down − 0.5 =
+    # (grid_px/down)·k + (grid_px/down − 1)/2 downsampled: the same layout, grid_px/down apart
+    disp = (np.where(np.isfinite(p) & seen, p - grid, 0.0) / down).reshape(gshape + (2,)).astype(np.float32)
+    g, hd, wd = grid_px // down, h // down, w // down
+    full = cv2.resize(disp, (gshape[1] * g, gshape[0] * g), interpolation=cv2.INTER_LINEAR)
+    return cv2.add(_grids(hd, wd, g)[2], full[:hd, :wd])
 
 
 def _sample(img: np.ndarray, m: np.ndarray) -> np.ndarray:
@@ -533,9 +542,72 @@ def shifted_images(gray: np.ndarray, cam, rates: list[np.ndarray], tau_s: float,
     return [_sample(gray, m) for m in maps], maps
 
 
+def motion_factors(scores: list[np.ndarray], min_zncc: float) -> list[np.ndarray]:
+    """Each node's weight per pixel, ``max(T_k, 0) / max_j T_j`` in [0, 1], from the nodes' ZNCC
+    maps T_k of camera 1's current frame against its previous frame moved on with node k's
+    motion; 1 for every node where ``max_j T_j < min_zncc`` (no node explains the pixel, e.g. a
+    cloud that changed: the test can then tell nothing, and must not reject the pixel). The
+    best node keeps its planes' scores, the others are scaled down by how much worse they move
+    the pixel; a pixel that every node explains alike keeps all its scores."""
+    t_max = scores[0].copy()
+    for x in scores[1:]:
+        cv2.max(t_max, x, dst=t_max)
+    unsure = cv2.compare(t_max, float(min_zncc), cv2.CMP_LT)
+    out = []
+    for x in scores:
+        f = cv2.min(cv2.divide(cv2.max(x, 0.0), cv2.max(t_max, 1e-6)), 1.0)
+        f[unsure > 0] = 1.0
+        out.append(f)
+    return out
+
+
+def motion_weights(gray_now: np.ndarray, gray_prev: np.ndarray, cam, rates: list[np.ndarray], dt_s: float,
+                   window_px: int, min_zncc: float, grid_px: int = 8) -> list[np.ndarray]:
+    """How well each node's motion explains each 2 × 2 block of a camera's current frame: the
+    weights of :class:`~cbh.pipeline.sweep.PlaneViews`.
+
+    The previous frame, moved on by ``dt_s`` with node k's plane-offset rate (:func:`shift_map`
+    of ``−rate·dt``), is compared with the current frame by ZNCC (:func:`~cbh.pipeline.sweep.zncc_map`)
+    at half resolution over ``window_px // 2`` (rounded up to odd) blocks: the sweep's window;
+    the ZNCCs become weights by :func:`motion_factors`.
+
+    Parameters
+    ----------
+    gray_now, gray_prev : ndarray, shape (H, W), uint8
+        Camera 1's current and previous frames (working size).
+    cam : Camera
+        Camera 1 at working size.
+    rates : list of ndarray (2,)
+        Camera 1's plane-offset rate of each node [1/s].
+    dt_s : float
+        Time between the frames [s].
+    window_px : int
+        The sweep's ZNCC window at working size [px].
+    min_zncc : float
+        The sweep's acceptance (:func:`motion_factors`) [1].
+
+    Returns
+    -------
+    list of ndarray (H // 2, W // 2) float32
+        One weight map in [0, 1] per rate.
+    """
+    from cbh.pipeline.sweep import zncc_map
+
+    h, w = gray_now.shape[:2]
+    half = (w // 2, h // 2)
+    now = cv2.resize(gray_now[: h - h % 2, : w - w % 2], half, interpolation=cv2.INTER_AREA).astype(np.float32)
+    prev = cv2.resize(gray_prev[: h - h % 2, : w - w % 2], half, interpolation=cv2.INTER_AREA).astype(np.float32)
+    k = max(3, (int(window_px) // 2) | 1)
+    scores = []
+    for r in rates:
+        m = shift_map(cam, (h, w), -np.asarray(r, np.float64) * dt_s, grid_px, down=2)
+        scores.append(zncc_map(now, cv2.remap(prev, m, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), k))
+    return motion_factors(scores, min_zncc)
+
+
 def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates: list[np.ndarray],
-                       delta_s: float, dt_s: float, grid_px: int = 8,
-                       maps: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       delta_s: float, dt_s: float, grid_px: int = 8, maps: list[np.ndarray] | None = None,
+                       images: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Camera 2's current image moved back to camera 1's capture time (δ earlier).
 
     Each layer L moves camera 2's plane offsets by ``w_L = v_L / (h_L − z2)`` per second, so
@@ -561,8 +633,10 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
         ``w_L`` of each layer with a known motion, lowest layer first [1/s].
     delta_s, dt_s : float
         Clock offset of camera 2 [s]; time between the frames [s].
-    maps : list of ndarray (H, W, 2), optional
-        :func:`shift_map` of each ``w_L · δ`` when already made (:func:`shifted_images`).
+    maps, images : list of ndarray (H, W, 2) and (H, W), optional
+        :func:`shift_map` of each ``w_L · δ`` and ``gray_now`` resampled through it, when already
+        made (:func:`shifted_images`): the image is then put together from them (a remap's pixel
+        depends on its own table entry only), not resampled again.
 
     Returns
     -------
@@ -574,9 +648,9 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
     h, w = gray_now.shape[:2]
     rates = [np.asarray(r, np.float64) for r in rates]
     if maps is None:
-        maps = [shift_map(cam2, (h, w), r * delta_s, grid_px) for r in rates]
+        maps, images = [shift_map(cam2, (h, w), r * delta_s, grid_px) for r in rates], None
     if len(maps) == 1:
-        return _sample(gray_now, maps[0]), maps[0]
+        return (_sample(gray_now, maps[0]) if images is None else images[0]), maps[0]
     label_now, best = None, None  # per pixel of the current frame: the layer of the lowest cost
     for i, r in enumerate(rates):
         back = cv2.remap(gray_prev, shift_map(cam2, (h, w), -r * dt_s, grid_px), None, cv2.INTER_LINEAR,
@@ -589,12 +663,16 @@ def compensate_camera2(gray_now: np.ndarray, gray_prev: np.ndarray, cam2, rates:
             best = cv2.min(best, cost)
     free = np.full((h, w), 255, np.uint8)  # 255: no layer chosen yet
     out = maps[-1].copy()
+    image = None if images is None else images[-1].copy()
     for i, m in enumerate(maps):  # lowest first: it hides the ones above
         src = cv2.remap(label_now, m, None, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
         take = cv2.bitwise_and(cv2.compare(src, i, cv2.CMP_EQ), free)
         cv2.copyTo(m, take, out)
+        if image is not None:
+            cv2.copyTo(images[i], take, image)
         free = cv2.bitwise_and(free, cv2.bitwise_not(take))
-    image = _sample(gray_now, out)
+    if image is None:
+        image = _sample(gray_now, out)
     if cv2.countNonZero(free):
         cv2.copyTo(_sample(gray_prev, shift_map(cam2, (h, w), -rates[-1] * (dt_s - delta_s), grid_px)), free, image)
     return image, out

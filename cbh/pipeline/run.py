@@ -67,9 +67,9 @@ from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
                                 get_matcher, sample_map, triangulate_matches)
-from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, shifted_images,
-                                 layer_motion, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
-                                 running_offset, track_back, track_profile)
+from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, layer_motion,
+                                 motion_weights, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
+                                 running_offset, shifted_images, track_back, track_profile)
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import sample_lattice, segment
 from cbh.pipeline.threads import pmap
@@ -474,7 +474,8 @@ class Pipeline:
         with _timed(ctx, "compensation"):
             rates = list(profile.rates)  # lowest first
             images, maps = shifted_images(gray[1], self.cam2, rates, used_s)
-            g2, comp = compensate_camera2(gray[1], mot.prev_gray[1], self.cam2, rates, used_s, mot.dt_s, maps=maps)
+            g2, comp = compensate_camera2(gray[1], mot.prev_gray[1], self.cam2, rates, used_s, mot.dt_s, maps=maps,
+                                          images=images)
             c2 = cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE).astype(bool)
             views = None
@@ -483,8 +484,10 @@ class Pipeline:
 
                 z1, z2 = float(self.cam1.position_m[2]), float(self.cam2.position_m[2])
                 rates1 = [r * (h - z2) / (h - z1) for r, h in zip(rates, profile.heights_m)]  # as camera 1 sees them
-                moved1, _ = shifted_images(mot.prev_gray[0], self.cam1, rates1, -mot.dt_s)
-                views = PlaneViews.nearest(images, profile.heights_m, z1, moved1, self.config.matching.sweep.min_zncc)
+                sw = self.config.matching.sweep
+                weights = motion_weights(gray[0], mot.prev_gray[0], self.cam1, rates1, mot.dt_s, sw.window_px,
+                                         sw.min_zncc)
+                views = PlaneViews.nearest(images, profile.heights_m, z1, weights)
         return self.stage_match(work, masks, seg, ctx, gray=(gray[0], g2), cloud2=c2, views2=views), comp
 
     def _jumped(self, a1: np.ndarray, a2: np.ndarray, a1_prev: np.ndarray, a2_prev: np.ndarray) -> np.ndarray:

@@ -116,7 +116,7 @@ import numpy as np
 from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
 from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 
-__all__ = ["PlaneMaps", "PlaneViews", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
+__all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
            "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
@@ -355,9 +355,8 @@ class PlaneViews:
     baseline, L's texture matches perfectly on a plane of M's range (two-layers scene, 3 s: the
     1200 m layer at ≈ 2100 m through the 3500 m layer's image). Camera 1's own motion tells the
     two apart: the hypothesis "at height H" also says "moving with H's wind", so each pixel's
-    score on the planes of node k is multiplied by how well node k's motion explains the pixel
-    in camera 1 (``motion1``: camera 1's previous frame moved on to now with each node's
-    motion, :meth:`factors`).
+    score on the planes of node k is multiplied by ``weights[k]``, how well node k's motion
+    explains the pixel in camera 1 (:func:`cbh.pipeline.motion.motion_weights`).
 
     Attributes
     ----------
@@ -365,18 +364,17 @@ class PlaneViews:
         Camera 2's images, in ascending s (descending height).
     cuts_s : ndarray, shape (len(images) − 1,), float64
         Ascending boundaries in s = 1/(h − o1z) [1/m].
-    motion1 : tuple of ndarray (H1, W1), or None
-        Camera 1's previous frame moved on to camera 1's capture time with each node's motion,
-        in the order of ``images``; None: no motion test (every factor 1).
-    min_zncc : float
-        A pixel's motion test counts where its best node's ZNCC reaches this (the sweep's own
-        acceptance; elsewhere, e.g. a cloud that changed its shape, every factor is 1) [1].
+    weights : tuple of ndarray (H1 // 2, W1 // 2) float32, or None
+        Each node's weight in [0, 1] per 2 × 2 block of camera 1's working grid, in the order of
+        ``images``; None: every weight 1.
+    scale : int
+        The images are the working-size ones downsampled by this whole factor (:meth:`map`).
     """
 
     images: tuple
     cuts_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    motion1: tuple | None = None
-    min_zncc: float = 0.6
+    weights: tuple | None = None
+    scale: int = 1
 
     @classmethod
     def single(cls, image: np.ndarray) -> "PlaneViews":
@@ -384,15 +382,15 @@ class PlaneViews:
         return cls((image,), np.zeros(0))
 
     @classmethod
-    def nearest(cls, images, heights_m, o1z: float, motion1=None, min_zncc: float = 0.6) -> "PlaneViews":
+    def nearest(cls, images, heights_m, o1z: float, weights=None) -> "PlaneViews":
         """Each plane takes the image of the height (above the ENU origin [m]) nearest to its
         own in ln(h − o1z): the cuts lie at the geometric means of neighbouring heights.
-        ``images`` and ``motion1`` (optional) in the order of ``heights_m``."""
+        ``images`` and ``weights`` (optional) in the order of ``heights_m``."""
         hz = np.maximum(np.asarray(heights_m, np.float64) - o1z, 1.0)
         order = np.argsort(1.0 / hz, kind="stable")  # ascending s
         s = 1.0 / hz[order]
-        m1 = None if motion1 is None else tuple(motion1[int(i)] for i in order)
-        return cls(tuple(images[int(i)] for i in order), np.sqrt(s[:-1] * s[1:]), m1, float(min_zncc))
+        wt = None if weights is None else tuple(weights[int(i)] for i in order)
+        return cls(tuple(images[int(i)] for i in order), np.sqrt(s[:-1] * s[1:]), wt)
 
     def index(self, s: float) -> int:
         """Index of the image to match plane ``s`` [1/m] against."""
@@ -402,28 +400,43 @@ class PlaneViews:
         """The image to match plane ``s`` [1/m] against."""
         return self.images[self.index(s)]
 
-    def map(self, fn) -> "PlaneViews":
-        """These views with ``fn`` applied to every image (and every ``motion1`` image)."""
-        m1 = None if self.motion1 is None else tuple(fn(im) for im in self.motion1)
-        return PlaneViews(tuple(fn(im) for im in self.images), self.cuts_s, m1, self.min_zncc)
+    def map(self, fn, factor: int = 1) -> "PlaneViews":
+        """These views with ``fn`` applied to every image; ``factor``: ``fn`` downsamples by it."""
+        return PlaneViews(tuple(fn(im) for im in self.images), self.cuts_s, self.weights, self.scale * int(factor))
 
-    def factors(self, score) -> list | None:
-        """Each node's motion factor per pixel, ``max(T_k, 0) / max_j T_j`` in [0, 1] (1 where
-        ``max_j T_j`` < ``min_zncc``), from ``score(image)`` → T: the ZNCC of camera 1's current
-        frame against each ``motion1`` image on the caller's grid; None without ``motion1``."""
-        if self.motion1 is None or len(self.images) < 2:
+    def weights_on(self, sl, shape: tuple[int, int]) -> list | None:
+        """Each node's weights on a half-resolution grid of these images: block i of the region
+        ``sl`` (2 × 2 pixels of the images from ``sl``'s start), ``shape`` (h/2, w/2) float32;
+        None without weights."""
+        if self.weights is None or len(self.images) < 2:
             return None
-        t = [score(m) for m in self.motion1]
-        t_max = t[0].copy()
-        for x in t[1:]:
-            cv2.max(t_max, x, dst=t_max)
-        unsure = (t_max < self.min_zncc).view(np.uint8)
         out = []
-        for x in t:
-            f = cv2.min(cv2.divide(cv2.max(x, 0.0), cv2.max(t_max, 1e-6)), 1.0)
-            f[unsure > 0] = 1.0
-            out.append(f)
+        y0, x0 = sl[0].start // 2, sl[1].start // 2
+        for wt in self.weights:
+            wd = _area_down(wt, self.scale) if self.scale > 1 else wt
+            cut = wd[y0: y0 + shape[0], x0: x0 + shape[1]]
+            pad = (shape[0] - cut.shape[0], shape[1] - cut.shape[1])
+            if pad[0] or pad[1]:
+                cut = cv2.copyMakeBorder(cut, 0, pad[0], 0, pad[1], cv2.BORDER_REPLICATE)
+            out.append(np.ascontiguousarray(cut, np.float32))
         return out
+
+
+def zncc_map(i1: np.ndarray, i2: np.ndarray, window_px: int, mu1=None, var1=None) -> np.ndarray:
+    """ZNCC of two images on one grid over a ``window_px`` box (h, w) float32 in [−1, 1] (0 where
+    either window is flat): (E[i1·i2] − μ1·μ2) / sqrt(var1·var2 + 1e-3). ``mu1``, ``var1``: image
+    1's box mean and variance when already known (the sweep's planes share them)."""
+    k = int(window_px)
+    i1, i2 = np.asarray(i1, np.float32), np.asarray(i2, np.float32)
+    if mu1 is None:
+        mu1 = _box(i1, k)
+        var1 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101),
+                                    cv2.multiply(mu1, mu1)), 0.0)
+    mu2 = _box(i2, k)
+    var2 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i2, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101),
+                                cv2.multiply(mu2, mu2)), 0.0)
+    cov = cv2.subtract(_box(cv2.multiply(i1, i2), k), cv2.multiply(mu1, mu2))
+    return cv2.divide(cov, cv2.sqrt(cv2.add(cv2.multiply(var1, var2), 1e-3)))
 
 
 def _as_views(gray2) -> PlaneViews:
@@ -459,30 +472,26 @@ def _box(img, k):
 
 def _zncc_iter(i1: np.ndarray, gray2, maps: PlaneMaps, s_values: np.ndarray, window_px: int, sl):
     """Yield (std1, None) once, then (j, score (h, w) float32) for every plane ``s_values[j]``
-    (``gray2``: an image or :class:`PlaneViews`).
+    (``gray2``: an image or :class:`PlaneViews`, whose weights are brought to full resolution).
 
     All per-pixel arithmetic goes through OpenCV (multi-threaded, no numpy temporaries):
-    ZNCC = (E[i1·w] − μ1·μ2) / sqrt(var1·var2 + 1e-3) over a ``window_px`` box.
+    :func:`zncc_map` over a ``window_px`` box.
     """
     views = _as_views(gray2)
     k = int(window_px)
     mu1 = _box(i1, k)
     var1 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101), cv2.multiply(mu1, mu1)), 0.0)
-
-    def score(w):
-        mu2 = _box(w, k)
-        var2 = cv2.max(cv2.subtract(cv2.sqrBoxFilter(w, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REFLECT_101), cv2.multiply(mu2, mu2)), 0.0)
-        cov = cv2.subtract(_box(cv2.multiply(i1, w), k), cv2.multiply(mu1, mu2))
-        den = cv2.sqrt(cv2.add(cv2.multiply(var1, var2), 1e-3))
-        return cv2.divide(cov, den)
-
-    factor = views.factors(lambda m: score(np.ascontiguousarray(m[sl], np.float32)))  # (PlaneViews.factors)
+    h, w = i1.shape
+    half = views.weights_on(sl, (-(-h // 2), -(-w // 2)))
+    weight = None if half is None else [cv2.resize(x, (2 * x.shape[1], 2 * x.shape[0]),
+                                                   interpolation=cv2.INTER_NEAREST)[:h, :w] for x in half]
     yield cv2.sqrt(var1), None
     for j, s in enumerate(s_values):
         mx, my = maps.at(float(s), sl)
         v = views.index(float(s))
-        w = cv2.remap(views.images[v], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        yield j, (score(w) if factor is None else cv2.multiply(score(w), factor[v]))
+        wimg = cv2.remap(views.images[v], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        score = zncc_map(i1, wimg, k, mu1, var1)
+        yield j, (score if weight is None else cv2.multiply(score, weight[v]))
 
 
 def zncc_planes(gray1: np.ndarray, gray2, maps: PlaneMaps, s_values: np.ndarray, window_px: int,
@@ -581,8 +590,7 @@ class _HalfZncc:
         self.mu1 = _box(_pool2(i1), k)
         self.var1 = cv2.max(cv2.subtract(_box(_pool2(cv2.multiply(i1, i1)), k), cv2.multiply(self.mu1, self.mu1)), 0.0)
         self.std1 = self._grow(cv2.sqrt(self.var1))
-        # each node's motion factor (PlaneViews.factors), from camera 1's previous frame moved on with it
-        self.factor = self.src2.factors(lambda m: self._score(np.ascontiguousarray(m[sl], np.float32)))
+        self.factor = self.src2.weights_on(sl, self.std1.shape)  # each node's motion weight (PlaneViews)
         maps.warm(sl)  # before any thread asks for a plane
 
     def _grow(self, a):  # (h/2 − 1, w/2 − 1) → (h/2, w/2)
@@ -856,13 +864,13 @@ def coarse_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s_min: 
         return None
     cl, slc, half = reg
     c1 = _area_down(g1, f) if f > 1 else g1
-    c2 = _as_views(g2).map(lambda g: _area_down(g, f)) if f > 1 else _as_views(g2)
+    c2 = _as_views(g2).map(lambda g: _area_down(g, f), f) if f > 1 else _as_views(g2)
     k = cfg.coarse_window_px // 2
     j_far = c_far = j_near = c_near = None
     if len(plan.far):
         j_far, c_far = _best_plane(c1, c2, maps.downsampled(f) if f > 1 else maps, plan.s[plan.far], k, slc)
     if half is not None:
-        j_near, c_near = _best_plane(_pool2(c1), c2.map(_pool2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
+        j_near, c_near = _best_plane(_pool2(c1), c2.map(_pool2, 2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
     votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
     return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
 
