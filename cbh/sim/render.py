@@ -530,6 +530,11 @@ class SkySimulator:
             np.subtract(np.float32(1.0), alpha, out=alpha)
             trans *= alpha
 
+        image = self._compose(cs, t, glow, trans, airlight, lum, daylight)
+        return self._camera_output(cs, image, height, mask, daylight), height, mask
+
+    def _compose(self, cs: _CameraState, t: datetime, glow, trans, airlight, lum, daylight: float) -> np.ndarray:
+        """Sky, sun glow, airlight and cloud radiance into one noisy BGR uint8 image."""
         cloud_bgr = (0.893, 0.911, 0.93)  # grey-white, slightly warm: blue/red ≈ 0.96
         noise = self._noise_views(cs, t)
         chans = []
@@ -548,7 +553,13 @@ class SkySimulator:
         img = cv2.merge(chans)
         np.clip(img, 0.0, 255.0, out=img)
         img += np.float32(0.5)
-        image = img.astype(np.uint8)
+        return img.astype(np.uint8)
+
+    def _camera_output(self, cs: _CameraState, image: np.ndarray, height: np.ndarray, mask: np.ndarray,
+                       daylight: float) -> np.ndarray:
+        """Ground and obstacles painted in (their truth: no height, no cloud; ``height`` and
+        ``mask`` edited in place), then the camera's colour response, output levels and JPEG."""
+        scene = self.scene
         if cs.ground.any():
             image[cs.ground] = np.array(GROUND_BGR) * daylight
         if cs.obstacle_idx.size:
@@ -563,7 +574,7 @@ class SkySimulator:
             from cbh.imageio import decode_image, encode_jpeg
 
             image = decode_image(encode_jpeg(image, scene.image.jpeg_quality), "simulated image")
-        return image, height, mask
+        return image
 
     def _noise_views(self, cs: _CameraState, t: datetime):
         sigma = self.scene.image.noise_dn

@@ -298,30 +298,21 @@ def _parse_layer(where: str, d) -> CloudLayer:
     )
 
 
-def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) -> Scene:
-    """Validate a scene dict (as read from TOML) into a :class:`Scene`.
-
-    Raises
-    ------
-    ConfigError
-        Unknown key, wrong type or out-of-range value; the message names the key path.
-    """
-    data = _table("top level", data)
-    _unknown("", data, ("name", "description", "time_utc", "seed", "sun", "sky", "image",
-                        "layers", "obstacles", "imperfections"))
-
-    sun_d = _table("sun", data.get("sun", {}))
+def _parse_sun(d) -> Sun:
+    sun_d = _table("sun", d)
     _unknown("sun", sun_d, Sun.__dataclass_fields__)
-    sun = Sun(
+    return Sun(
         position=_choice("sun.position", sun_d.get("position", Sun.position), SUN_POSITIONS),
         zenith_deg=_num("sun.zenith_deg", sun_d.get("zenith_deg", Sun.zenith_deg), lo=0.0, hi=180.0),
         azimuth_deg=_num("sun.azimuth_deg", sun_d.get("azimuth_deg", Sun.azimuth_deg)) % 360.0,
         disk=_bool("sun.disk", sun_d.get("disk", True)),
     )
 
-    sky_d = _table("sky", data.get("sky", {}))
+
+def _parse_sky(d) -> Sky:
+    sky_d = _table("sky", d)
     _unknown("sky", sky_d, Sky.__dataclass_fields__)
-    sky = Sky(
+    return Sky(
         zenith_bgr=_vec("sky.zenith_bgr", sky_d.get("zenith_bgr", list(Sky.zenith_bgr)), 3, lo=0.0, hi=255.0),
         horizon_bgr=_vec("sky.horizon_bgr", sky_d.get("horizon_bgr", list(Sky.horizon_bgr)), 3, lo=0.0, hi=255.0),
         visibility_m=_num("sky.visibility_m", sky_d.get("visibility_m", Sky.visibility_m), lo=0.0, lo_open=True),
@@ -330,9 +321,11 @@ def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) ->
                                lo=0.5, hi=60.0),
     )
 
-    im_d = _table("image", data.get("image", {}))
+
+def _parse_image(d) -> ImageSettings:
+    im_d = _table("image", d)
     _unknown("image", im_d, ImageSettings.__dataclass_fields__)
-    image = ImageSettings(
+    return ImageSettings(
         exposure=_num("image.exposure", im_d.get("exposure", 1.0), lo=0.0, lo_open=True, hi=10.0),
         vignetting=_num("image.vignetting", im_d.get("vignetting", ImageSettings.vignetting), lo=0.0, hi=1.0),
         noise_dn=_num("image.noise_dn", im_d.get("noise_dn", ImageSettings.noise_dn), lo=0.0, hi=100.0),
@@ -342,35 +335,32 @@ def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) ->
         limited_range=_bool("image.limited_range", im_d.get("limited_range", False)),
     )
 
-    raw_layers = data.get("layers", [])
-    if not isinstance(raw_layers, list):
-        raise ConfigError("scene: layers: expected an array of tables ([[layers]])")
-    layers = [_parse_layer(f"layers[{i}]", d) for i, d in enumerate(raw_layers)]
-    layers.sort(key=lambda l: l.height_m)
 
-    raw_obs = data.get("obstacles", [])
-    if not isinstance(raw_obs, list):
-        raise ConfigError("scene: obstacles: expected an array of tables ([[obstacles]])")
-    obstacles = []
-    for i, d in enumerate(raw_obs):
-        w = f"obstacles[{i}]"
-        d = _table(w, d)
-        _unknown(w, d, Obstacle.__dataclass_fields__)
-        for key in ("kind", "azimuth_deg", "max_elevation_deg"):
-            if key not in d:
-                raise ConfigError(f"scene: {w}.{key}: missing")
-        obstacles.append(Obstacle(
-            kind=_choice(f"{w}.kind", d["kind"], OBSTACLE_KINDS),
-            azimuth_deg=_vec(f"{w}.azimuth_deg", d["azimuth_deg"], 2),
-            max_elevation_deg=_num(f"{w}.max_elevation_deg", d["max_elevation_deg"], lo=0.0, lo_open=True, hi=60.0),
-            seed=_int(f"{w}.seed", d.get("seed", i), lo=0, hi=2**32 - 1),
-        ))
+def _array(data: dict, key: str) -> list:
+    raw = data.get(key, [])
+    if not isinstance(raw, list):
+        raise ConfigError(f"scene: {key}: expected an array of tables ([[{key}]])")
+    return raw
 
-    raw_imp = data.get("imperfections", [])
-    if not isinstance(raw_imp, list):
-        raise ConfigError("scene: imperfections: expected an array of tables ([[imperfections]])")
+
+def _parse_obstacle(i: int, d) -> Obstacle:
+    w = f"obstacles[{i}]"
+    d = _table(w, d)
+    _unknown(w, d, Obstacle.__dataclass_fields__)
+    for key in ("kind", "azimuth_deg", "max_elevation_deg"):
+        if key not in d:
+            raise ConfigError(f"scene: {w}.{key}: missing")
+    return Obstacle(
+        kind=_choice(f"{w}.kind", d["kind"], OBSTACLE_KINDS),
+        azimuth_deg=_vec(f"{w}.azimuth_deg", d["azimuth_deg"], 2),
+        max_elevation_deg=_num(f"{w}.max_elevation_deg", d["max_elevation_deg"], lo=0.0, lo_open=True, hi=60.0),
+        seed=_int(f"{w}.seed", d.get("seed", i), lo=0, hi=2**32 - 1),
+    )
+
+
+def _parse_imperfections(raw: list) -> dict[str, Imperfection]:
     imperfections: dict[str, Imperfection] = {}
-    for i, d in enumerate(raw_imp):
+    for i, d in enumerate(raw):
         w = f"imperfections[{i}]"
         d = _table(w, d)
         _unknown(w, d, Imperfection.__dataclass_fields__)
@@ -388,7 +378,25 @@ def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) ->
             gamma=_num(f"{w}.gamma", d.get("gamma", 1.0), lo=0.2, hi=5.0),
             white_balance=_vec(f"{w}.white_balance", d.get("white_balance", [1.0, 1.0]), 2, lo=0.2, hi=5.0),
         )
+    return imperfections
 
+
+def parse_scene(data: dict, *, name: str = "scene", path: Path | None = None) -> Scene:
+    """Validate a scene dict (as read from TOML) into a :class:`Scene`.
+
+    Raises
+    ------
+    ConfigError
+        Unknown key, wrong type or out-of-range value; the message names the key path.
+    """
+    data = _table("top level", data)
+    _unknown("", data, ("name", "description", "time_utc", "seed", "sun", "sky", "image",
+                        "layers", "obstacles", "imperfections"))
+    sun, sky, image = _parse_sun(data.get("sun", {})), _parse_sky(data.get("sky", {})), _parse_image(data.get("image", {}))
+    layers = sorted((_parse_layer(f"layers[{i}]", d) for i, d in enumerate(_array(data, "layers"))),
+                    key=lambda l: l.height_m)
+    obstacles = [_parse_obstacle(i, d) for i, d in enumerate(_array(data, "obstacles"))]
+    imperfections = _parse_imperfections(_array(data, "imperfections"))
     return Scene(
         layers=tuple(layers),
         time_utc=_time("time_utc", data["time_utc"]) if "time_utc" in data else DEFAULT_TIME_UTC,
