@@ -4,7 +4,8 @@ Steps (numerics in :mod:`cbh.geometry.calibrate` and :mod:`cbh.pipeline.sundetec
 
 1. Frames of every station camera are read from its source (image folder with UTC-stamped
    names, video, stream for ``duration_s``, or a ``.mcap`` recording of ``cbh run --record``),
-   kept when inside ``[from_utc, to_utc]``, and resized to the pipeline's working size.
+   kept when inside ``[from_utc, to_utc]``, and resized to the pipeline's working size. Two
+   cameras whose frames are the same images (one folder or stream given for both) are refused.
 2. **Sun**: in each frame, the sun is looked for within ``search_deg`` of where the station
    file's orientation and pvlib put it; occluded, ambiguous and absent suns are rejected
    (:func:`~cbh.pipeline.sundetect.detect_sun`). A camera's sun track is used when it has at
@@ -19,11 +20,17 @@ Steps (numerics in :mod:`cbh.geometry.calibrate` and :mod:`cbh.pipeline.sundetec
    constraints (:func:`~cbh.geometry.calibrate.fit_orientations`). Without a usable sun
    track, ``relative_only`` keeps the reference camera (the first station camera) as the
    station file has it and fits the others relative to it; otherwise that is an error.
+   Rotations under which the cloud matches meet behind both cameras (below the station) are
+   refused, before the joint fit (cameras fixed by their sun) and after it: the two cameras'
+   frames are swapped.
 5. The station file is rewritten with the fitted angles (the rest of the text, comments
-   included, is kept) and a comment giving the date, data span and residuals.
+   included, is kept) and a comment giving the date, data span and residuals. Warnings (the
+   clouds far off their epipolar curves, scattered sun detections) are in the report and logged.
 """
 from __future__ import annotations
 
+import hashlib
+import logging
 import math
 import re
 import time
@@ -40,7 +47,11 @@ from cbh.fileio import atomic_write
 
 __all__ = ["CalibrateOptions", "calibrate", "rewrite_station_angles", "parse_sources"]
 
+_log = logging.getLogger(__name__)
+
 _IMAGE_GAP_S = 0.5
+_SAME_IMAGE_PAIRS = 3  # refuse as soon as this many pairs all held the same image twice
+_MIN_SIGN_ANGLE_DEG = 0.05  # rays closer than this to parallel do not vote in the front/behind count [deg]
 
 
 @dataclass
@@ -154,78 +165,146 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     ------
     CalibrationError
         No frames, no sun ever found (without ``relative_only``), no correspondences, an angle
-        the data cannot determine.
+        the data cannot determine; the same images for two cameras (one source given twice),
+        or cloud matches that triangulate behind both cameras (two cameras' sources swapped).
     ConfigError, ImageError, SourceError
         Bad station, missing/unknown cameras in ``sources``, unreadable images.
     """
-    from cbh.geometry.calibrate import (PairObservations, SunObservations, SunPairObservations,
-                                        fit_orientations, rotation_from_far_matches)
-    from cbh.geometry.station import angles_from_rotation, load_station
-    from cbh.imageio import decode_image
-    from cbh.live.pairing import Pairer
-    from cbh.pipeline import Pipeline
-    from cbh.geometry.sun import sun_position
-    from cbh.pipeline.match import MatchInput, get_matcher
-    from cbh.pipeline.sundetect import detect_sun
+    from cbh.geometry.station import load_station
 
     opt = options or CalibrateOptions()
     t_start = time.perf_counter()
-    station_path = Path(station_path)
-    out = Path(out)
+    station_path, out = Path(station_path), Path(out)
     if out.suffix.lower() != ".toml":  # a calibration written over `--out SESSION.mcap` lost the recording
         raise ConfigError(f"--out {out}: the calibrated station is TOML; use a .toml file name")
     station = load_station(station_path)
     _check_sources(station, sources)
-    names = list(station.cameras)
-    ref = names[0]
-    base = station_path.parent
-    # one pipeline per (reference, other) pair: working-size models, masks, segmentation
-    pipes = {n: Pipeline(station, f"{ref},{n}") for n in names[1:]}
-    cfg0 = next(iter(pipes.values())).config
-    orb_cfg = cfg0.matching.__class__(methods=("orb",), orb=cfg0.matching.orb.__class__(
-        max_features=cfg0.matching.orb.max_features, max_hamming=cfg0.matching.orb.max_hamming,
-        max_parallax_deg=opt.max_misorientation_deg))
-    work_cam = {ref: next(iter(pipes.values())).cam1}
-    work_cam.update({n: p.cam2 for n, p in pipes.items()})
-    data = {n: _CamData(n) for n in names}
-    pair_obs: dict[str, list] = {n: [] for n in names[1:]}
-    pair_counts = {n: 0 for n in names[1:]}
-    stash: dict[str, list] = {n: [] for n in names[1:]}
-    stash_stride = {n: 1 for n in names[1:]}
-    sun_cache: dict[int, np.ndarray | None] = {}
+    s = _Session(station, station_path.parent, opt)
+    s.read(sources)
+    s.check_frames(sources)
+    sun_obs, sun_notes = s.sun_tracks()
+    if not sun_obs and not opt.relative_only:
+        raise CalibrationError("no usable sun track: " + "; ".join(f"{n}: {sun_notes[n]}" for n in s.names)
+                               + " (with no sun, --relative-only calibrates the other cameras relative to "
+                               f"{s.ref})")
+    start, start_station, pairs = s.starting_rotations(sun_obs)
+    s.check_cloud_in_front({n: start_station[n] for n in sun_obs}, pairs)  # cameras each fixed by its sun
+    sun_pairs = s.sun_pairs(sun_obs, start)
+    fit = _best_fit([start, start_station], sun_obs, pairs, s.ref, loss="cauchy", scale=3.0, sun_pairs=sun_pairs)
+    if opt.refine_pairs > 0 and pairs:  # LK matches (sub-pixel) on the fitted geometry, then the fit again
+        pairs = s.refined_pairs(fit, pairs)
+        fit = _best_fit([{n: fit.cameras[n].R_world_from_cam for n in s.names}], sun_obs, pairs, s.ref,
+                        sun_pairs=sun_pairs)
+    s.check_cloud_in_front({n: c.R_world_from_cam for n, c in fit.cameras.items()}, pairs, fit.epipolar_rad)
+    report = s.report(fit, pairs, sun_obs, sun_notes, station_path, out, t_start)
+    _write_station(station_path, out, {n: fit.cameras[n] for n in s.names}, _comment(report))
+    for w in report["warnings"]:  # on stderr through the CLI's log handler, beside the report on stdout
+        _log.warning("%s", w)
+    return report
 
-    def sun_at(t: datetime):
+
+class _Session:
+    """One calibration's data, as the frames are read: per camera its sun detections, per
+    (reference, other) pair the cloud correspondences and the images kept for the refinement."""
+
+    def __init__(self, station, base_dir: Path, opt: CalibrateOptions):
+        from cbh.pipeline import Pipeline
+
+        self.station, self.base, self.opt = station, base_dir, opt
+        self.names = list(station.cameras)
+        self.ref = self.names[0]
+        others = self.names[1:]
+        # one pipeline per (reference, other) pair: working-size models, masks, segmentation
+        self.pipes = {n: Pipeline(station, f"{self.ref},{n}") for n in others}
+        first = next(iter(self.pipes.values()))
+        self.cfg0 = first.config
+        m = self.cfg0.matching
+        self.orb_cfg = m.__class__(methods=("orb",), orb=m.orb.__class__(
+            max_features=m.orb.max_features, max_hamming=m.orb.max_hamming,
+            max_parallax_deg=opt.max_misorientation_deg))
+        self.work_cam = {self.ref: first.cam1, **{n: p.cam2 for n, p in self.pipes.items()}}
+        self.data = {n: _CamData(n) for n in self.names}
+        self.pair_obs: dict[str, list] = {n: [] for n in others}
+        self.pair_counts = {n: 0 for n in others}
+        self.stash: dict[str, list] = {n: [] for n in others}
+        self.stash_stride = {n: 1 for n in others}
+        self.digests: dict[tuple[str, datetime], bytes] = {}  # each frame's pixels, hashed (same-image check)
+        self.compared = {n: 0 for n in others}
+        self.identical = {n: 0 for n in others}
+        self._sun_cache: dict[int, np.ndarray | None] = {}
+
+    # --- reading -------------------------------------------------------------------------------
+    def read(self, sources: dict[str, str]) -> None:
+        """Every camera's frames, taken in turns; each pair matched as soon as it is complete."""
+        from cbh.live.pairing import Pairer
+
+        pairers = {n: Pairer((self.ref, n), tolerance_s=_IMAGE_GAP_S) for n in self.names[1:]}
+        live = {n: _source_frames(self.station.cameras[n], sources[n], self.base, self.opt.duration_s)
+                for n in self.names}
+        while live:
+            for n in list(live):
+                try:
+                    f = next(live[n])
+                except StopIteration:
+                    del live[n]
+                    continue
+                except CbhError:
+                    raise
+                except OSError as exc:
+                    raise SourceError(f"{n}: {exc.strerror or exc}") from None
+                kept = self.take(f)
+                if kept is None:
+                    continue
+                for k, p in pairers.items():
+                    if n in (self.ref, k):
+                        p.push(kept)
+                        for fa, fb in p.pop_pairs():
+                            self.match(k, fa, fb)
+        for k, p in pairers.items():
+            for fa, fb in p.flush():
+                self.match(k, fa, fb)
+
+    def sun_at(self, t: datetime) -> np.ndarray | None:
+        """Apparent ENU sun direction at ``t`` (None at night)."""
+        from cbh.geometry.sun import sun_position
+
         key = int(t.timestamp())  # one pvlib call per second of data (the sun moves 0.004 deg/s)
-        if key not in sun_cache:
-            sp = sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, t)
-            sun_cache[key] = sp.direction_enu if sp.zenith_deg < 90.0 else None
-        return sun_cache[key]
+        if key not in self._sun_cache:
+            st = self.station
+            sp = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, t)
+            self._sun_cache[key] = sp.direction_enu if sp.zenith_deg < 90.0 else None
+        return self._sun_cache[key]
 
-    def to_working(name: str, img: np.ndarray) -> np.ndarray:
-        if name == ref:
-            return next(iter(pipes.values())).to_working(0, img)
-        return pipes[name].to_working(1, img)
+    def to_working(self, name: str, img: np.ndarray) -> np.ndarray:
+        if name == self.ref:
+            return next(iter(self.pipes.values())).to_working(0, img)
+        return self.pipes[name].to_working(1, img)
 
-    def take(frame: Frame) -> Frame | None:
-        t = frame.time_utc
+    def take(self, frame: Frame) -> Frame | None:
+        """One frame: in the time span? decoded, checked, at working size, its sun looked for."""
+        from cbh.imageio import decode_image
+        from cbh.pipeline.sundetect import detect_sun
+
+        t, opt = frame.time_utc, self.opt
         if (opt.from_utc and t < opt.from_utc) or (opt.to_utc and t > opt.to_utc):
             return None
-        cam = station.cameras[frame.camera]
+        cam = self.station.cameras[frame.camera]
         img = frame.image if frame.image is not None else decode_image(
             frame.encoded or b"", what=f"{frame.camera} frame at {t.isoformat()}")
         if img.ndim != 3 or img.shape[:2] != (cam.model.height, cam.model.width):
             raise ImageError(f"{frame.camera}: image at {t.isoformat()} is {img.shape[1]}x{img.shape[0]} px, "
                              f"its calibration is {cam.model.width}x{cam.model.height}")
-        w = to_working(frame.camera, img)
-        d = data[frame.camera]
+        self.digests[(frame.camera, t)] = hashlib.blake2b(np.ascontiguousarray(img).data, digest_size=16).digest()
+        w = self.to_working(frame.camera, img)
+        d = self.data[frame.camera]
         d.frames += 1
         d.t_first = t if d.t_first is None else min(d.t_first, t)
         d.t_last = t if d.t_last is None else max(d.t_last, t)
-        s = sun_at(t)
+        s = self.sun_at(t)
         if s is None:
             d.reasons["night"] = d.reasons.get("night", 0) + 1
         else:
-            wc = work_cam[frame.camera]
+            wc = self.work_cam[frame.camera]
             det = detect_sun(w, wc, s @ wc.R_world_from_cam, opt.search_deg)
             d.reasons[det.reason] = d.reasons.get(det.reason, 0) + 1
             if det.ok:
@@ -234,258 +313,319 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
                 d.sun_enu.append(s)
         return Frame(frame.camera, t, w)
 
-    def match(other: str, fa: Frame, fb: Frame) -> None:
-        pipe = pipes[other]
+    def match(self, other: str, fa: Frame, fb: Frame) -> None:
+        """ORB correspondences of one pair (reference, ``other``); its images kept for the
+        refinement when it falls on the even subset."""
+        from cbh.pipeline.match import MatchInput, get_matcher
         from cbh.pipeline.run import PairContext
 
-        ctx = PairContext(time_utc=fa.time_utc)
+        self._compare_images(other, fa, fb)
+        pipe = self.pipes[other]
         work = (fa.image, fb.image)
-        masks = pipe.stage_masks(work, ctx)
+        masks = pipe.stage_masks(work, PairContext(time_utc=fa.time_utc))
         seg = pipe.stage_segment(work, masks)
         if not seg.clouds[0].any():
             return
         inp = MatchInput(geometry=pipe.geometry, gray1=cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY),
                          gray2=cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY), cloud1=seg.clouds[0],
                          usable1=masks.usable[0], usable2=masks.usable[1], cloud2=seg.clouds[1])
-        m = get_matcher("orb")(inp, orb_cfg)
-        if len(m):
-            pair_obs[other].append((pipe.cam1.model.pixel_to_ray(m.px1), pipe.cam2.model.pixel_to_ray(m.px2)))
-            pair_counts[other] += 1
-            # keep grey images and masks of an even subset of the pairs for the LK refinement
-            kept = stash[other]
-            stride = stash_stride[other]
-            if pair_counts[other] % stride == 0:
-                kept.append((inp.gray1, inp.gray2, np.packbits(seg.clouds[0]), np.packbits(masks.usable[0]),
-                             np.packbits(masks.usable[1]), np.packbits(seg.clouds[1])))
-                if len(kept) > opt.refine_pairs:
-                    del kept[1::2]
-                    stash_stride[other] = stride * 2
+        m = get_matcher("orb")(inp, self.orb_cfg)
+        if not len(m):
+            return
+        self.pair_obs[other].append((pipe.cam1.model.pixel_to_ray(m.px1), pipe.cam2.model.pixel_to_ray(m.px2)))
+        self.pair_counts[other] += 1
+        # keep grey images and masks of an even subset of the pairs for the LK refinement
+        kept = self.stash[other]
+        stride = self.stash_stride[other]
+        if self.pair_counts[other] % stride == 0:
+            kept.append((inp.gray1, inp.gray2, np.packbits(seg.clouds[0]), np.packbits(masks.usable[0]),
+                         np.packbits(masks.usable[1]), np.packbits(seg.clouds[1])))
+            if len(kept) > self.opt.refine_pairs:
+                del kept[1::2]
+                self.stash_stride[other] = stride * 2
 
-    pairers = {n: Pairer((ref, n), tolerance_s=_IMAGE_GAP_S) for n in names[1:]}
-    iters = {n: _source_frames(station.cameras[n], sources[n], base, opt.duration_s) for n in names}
-    live = dict(iters)
-    while live:
-        for n in list(live):
-            try:
-                f = next(live[n])
-            except StopIteration:
-                del live[n]
+    def _compare_images(self, other: str, fa: Frame, fb: Frame) -> None:
+        """Count the pairs whose two images are the same; refuse at once when the first
+        ``_SAME_IMAGE_PAIRS`` all are (one folder or stream given for both cameras)."""
+        self.compared[other] += 1
+        if self.digests.get((fa.camera, fa.time_utc)) == self.digests.get((fb.camera, fb.time_utc)):
+            self.identical[other] += 1
+        if self.compared[other] == _SAME_IMAGE_PAIRS and self.identical[other] == _SAME_IMAGE_PAIRS:
+            self._refuse_identical(other)
+
+    def _refuse_identical(self, other: str) -> None:
+        raise CalibrationError(
+            f"{self.ref} and {other} delivered the same images ({self.identical[other]} of "
+            f"{self.compared[other]} pairs identical): the same folder or stream is given for both cameras? "
+            f"give each --source its own camera's frames")
+
+    def check_frames(self, sources: dict[str, str]) -> None:
+        """Every camera delivered frames; no two cameras delivered the same images."""
+        empty = [n for n in self.names if self.data[n].frames == 0]
+        if empty:
+            span = ""
+            if self.opt.from_utc or self.opt.to_utc:
+                span = f" between {_iso(self.opt.from_utc) or '…'} and {_iso(self.opt.to_utc) or '…'}"
+            raise CalibrationError(f"no frames{span} from camera(s) {', '.join(empty)} ({sources[empty[0]]})")
+        for other in self.names[1:]:
+            if self.compared[other] and 2 * self.identical[other] > self.compared[other]:
+                self._refuse_identical(other)
+
+    # --- the fit ---------------------------------------------------------------------------------
+    def sun_tracks(self) -> tuple[dict, dict]:
+        """Each camera's usable sun track ({camera: SunObservations}) and, for the others, why not."""
+        from cbh.geometry.calibrate import SunObservations
+
+        sun_obs, sun_notes = {}, {}
+        for n in self.names:
+            d = self.data[n]
+            k = len(d.rays)
+            if k == 0:
+                sun_notes[n] = f"no sun found in {d.frames} frames ({_reasons(d.reasons)})"
                 continue
-            except CbhError:
-                raise
-            except OSError as exc:
-                raise SourceError(f"{n}: {exc.strerror or exc}") from None
-            kept = take(f)
-            if kept is None:
+            az = np.degrees(np.arctan2([v[0] for v in d.sun_enu], [v[1] for v in d.sun_enu]))
+            span = _azimuth_span_deg(az)
+            if k < self.opt.min_sun_frames or span < self.opt.min_sun_azimuth_span_deg:
+                sun_notes[n] = (f"sun track too short: {k} detections over {span:.1f} deg of azimuth "
+                                f"(need {self.opt.min_sun_frames} over {self.opt.min_sun_azimuth_span_deg:g} deg; "
+                                f"give frames from more of the day)")
                 continue
-            for k, p in pairers.items():
-                if n in (ref, k):
-                    p.push(kept)
-                    for fa, fb in p.pop_pairs():
-                        match(k, fa, fb)
-    for k, p in pairers.items():
-        for fa, fb in p.flush():
-            match(k, fa, fb)
+            sun_obs[n] = SunObservations(np.array(d.rays), np.array(d.sun_enu), self.opt.sun_sigma_deg)
+        return sun_obs, sun_notes
 
-    empty = [n for n in names if data[n].frames == 0]
-    if empty:
-        span = ""
-        if opt.from_utc or opt.to_utc:
-            span = f" between {_iso(opt.from_utc) or '…'} and {_iso(opt.to_utc) or '…'}"
-        raise CalibrationError(f"no frames{span} from camera(s) {', '.join(empty)} ({sources[empty[0]]})")
+    def starting_rotations(self, sun_obs: dict) -> tuple[dict, dict, list]:
+        """Two starts for the fit (the RANSAC rotation of distant points; the station file's
+        relative rotations), each sun-tracked camera first fitted to its own sun, and the ORB
+        correspondences of every pair as PairObservations."""
+        from cbh.geometry.calibrate import PairObservations, fit_orientations, rotation_from_far_matches
 
-    # --- sun tracks ---------------------------------------------------------------------------
-    sun_obs, sun_notes = {}, {}
-    for n in names:
-        d = data[n]
-        k = len(d.rays)
-        if k == 0:
-            sun_notes[n] = f"no sun found in {d.frames} frames ({_reasons(d.reasons)})"
-            continue
-        az = np.degrees(np.arctan2([v[0] for v in d.sun_enu], [v[1] for v in d.sun_enu]))
-        span = _azimuth_span_deg(az)
-        if k < opt.min_sun_frames or span < opt.min_sun_azimuth_span_deg:
-            sun_notes[n] = (f"sun track too short: {k} detections over {span:.1f} deg of azimuth "
-                            f"(need {opt.min_sun_frames} over {opt.min_sun_azimuth_span_deg:g} deg; "
-                            f"give frames from more of the day)")
-            continue
-        sun_obs[n] = SunObservations(np.array(d.rays), np.array(d.sun_enu), opt.sun_sigma_deg)
-    if not sun_obs and not opt.relative_only:
-        raise CalibrationError("no usable sun track: " + "; ".join(f"{n}: {sun_notes[n]}" for n in names)
-                               + " (with no sun, --relative-only calibrates the other cameras relative to "
-                               f"{ref})")
+        R0 = {n: self.station.cameras[n].R_world_from_cam.copy() for n in self.names}
+        start = dict(R0)
+        for n, o in sun_obs.items():  # each sun-tracked camera on its own first
+            start[n] = fit_orientations({n: R0[n]}, {n: o}, [], reference=n).cameras[n].R_world_from_cam
+        start_station = dict(start)  # the alternative start: the station file's relative rotations
+        pairs = []
+        for other in self.names[1:]:
+            obs = self.pair_obs[other]
+            if not obs:
+                if other in sun_obs:
+                    continue
+                raise CalibrationError(f"no cloud correspondences between {self.ref} and {other} in "
+                                       f"{self.pair_counts[other]} pairs, and no sun track for {other}: its "
+                                       "orientation cannot be determined")
+            ra = np.concatenate([o[0] for o in obs])
+            rb = np.concatenate([o[1] for o in obs])
+            t = self.station.cameras[other].position_m - self.station.cameras[self.ref].position_m
+            thr = max(1.0, math.degrees(math.atan(float(np.linalg.norm(t)) / 500.0)))
+            R_rel, inl = rotation_from_far_matches(ra, rb, thr)
+            if inl.sum() < 20:
+                raise CalibrationError(f"only {int(inl.sum())} consistent cloud correspondences between "
+                                       f"{self.ref} and {other}")
+            if other not in sun_obs:
+                start[other] = start[self.ref] @ R_rel
+            # every correspondence (even subsample per pair, so no single pair dominates); the
+            # robust fit sorts out mismatches
+            cap = self.opt.max_matches_per_pair * max(len(obs), 1)
+            keep = np.arange(len(ra))
+            if len(keep) > cap:
+                keep = keep[:: len(keep) // cap + 1]
+            ppr = _px_per_rad(self.work_cam[other])
+            pairs.append(PairObservations(self.ref, other, ra[keep], rb[keep], t, self.opt.match_sigma_px / ppr, "orb"))
+        return start, start_station, pairs
 
-    # --- starting rotations -------------------------------------------------------------------
-    R0 = {n: station.cameras[n].R_world_from_cam.copy() for n in names}
-    start = dict(R0)
-    for n, o in sun_obs.items():  # each sun-tracked camera on its own first
-        start[n] = fit_orientations({n: R0[n]}, {n: o}, [], reference=n).cameras[n].R_world_from_cam
-    pairs = []
-    start_station = dict(start)  # the alternative start: the station file's relative rotations
-    start = dict(start)
-    for other in names[1:]:
-        obs = pair_obs[other]
-        if not obs:
-            if other in sun_obs:
+    def sun_pairs(self, sun_obs: dict, start: dict) -> list:
+        """The sun seen by both cameras of a pair at once: a relative constraint at infinity, for
+        cameras without a usable sun track of their own (detections that disagree with the
+        rest by more than 1 deg dropped)."""
+        from cbh.geometry.calibrate import SunPairObservations
+
+        out = []
+        for other in self.names[1:]:
+            if self.ref in sun_obs and other in sun_obs:
                 continue
-            raise CalibrationError(f"no cloud correspondences between {ref} and {other} in {pair_counts[other]} "
-                                   f"pairs, and no sun track for {other}: its orientation cannot be determined")
-        ra = np.concatenate([o[0] for o in obs])
-        rb = np.concatenate([o[1] for o in obs])
-        ca, cb = station.cameras[ref], station.cameras[other]
-        t = cb.position_m - ca.position_m
-        thr = max(1.0, math.degrees(math.atan(float(np.linalg.norm(t)) / 500.0)))
-        R_rel, inl = rotation_from_far_matches(ra, rb, thr)
-        if inl.sum() < 20:
-            raise CalibrationError(f"only {int(inl.sum())} consistent cloud correspondences between {ref} and {other}")
-        if other not in sun_obs:
-            start[other] = start[ref] @ R_rel
-        # every correspondence (even subsample per pair, so no single pair dominates); the
-        # robust fit sorts out mismatches
-        cap = opt.max_matches_per_pair * max(len(obs), 1)
-        keep = np.arange(len(ra))
-        if len(keep) > cap:
-            keep = keep[:: len(keep) // cap + 1]
-        ppr = _px_per_rad(work_cam[other])
-        pairs.append(PairObservations(ref, other, ra[keep], rb[keep], t, opt.match_sigma_px / ppr, "orb"))
-    # the sun seen by both cameras of a pair at once: a relative constraint at infinity, used
-    # for cameras without a usable sun track of their own
-    sun_pairs = []
-    for other in names[1:]:
-        if ref in sun_obs and other in sun_obs:
-            continue
-        ta = {t: r for t, r in zip(data[ref].times, data[ref].rays)}
-        both = [(ta[t], r) for t, r in zip(data[other].times, data[other].rays) if t in ta]
-        if len(both) > 2:  # many: drop those that disagree with the rest by more than 1 deg
-            A0, B0 = start[ref], start[other]
-            dis = np.array([math.degrees(math.acos(min(1.0, float((A0 @ a) @ (B0 @ b))))) for a, b in both])
-            both = [x for x, d in zip(both, dis) if abs(d - np.median(dis)) <= 1.0]
-        if both:
-            sun_pairs.append(SunPairObservations(ref, other, np.array([b[0] for b in both]),
-                                                 np.array([b[1] for b in both]), opt.sun_sigma_deg * math.sqrt(2.0)))
-    fit = _best_fit([start, start_station], sun_obs, pairs, ref, loss="cauchy", scale=3.0, sun_pairs=sun_pairs)
-    # --- refinement: LK matches (sub-pixel) with the fitted geometry, then the fit again --------
-    if opt.refine_pairs > 0 and pairs:
-        from dataclasses import replace as _replace
+            ta = {t: r for t, r in zip(self.data[self.ref].times, self.data[self.ref].rays)}
+            both = [(ta[t], r) for t, r in zip(self.data[other].times, self.data[other].rays) if t in ta]
+            if len(both) > 2:
+                A0, B0 = start[self.ref], start[other]
+                dis = np.array([math.degrees(math.acos(min(1.0, float((A0 @ a) @ (B0 @ b))))) for a, b in both])
+                both = [x for x, d in zip(both, dis) if abs(d - np.median(dis)) <= 1.0]
+            if both:
+                out.append(SunPairObservations(self.ref, other, np.array([b[0] for b in both]),
+                                               np.array([b[1] for b in both]), self.opt.sun_sigma_deg * math.sqrt(2.0)))
+        return out
 
-        fitted = _replace(station, cameras={n: _replace(c, R_world_from_cam=fit.cameras[n].R_world_from_cam)
-                                            for n, c in station.cameras.items()})
-        lk_cfg = cfg0.matching.__class__(methods=("lk",), lk=cfg0.matching.lk)
-        new_pairs = []
+    def refined_pairs(self, fit, pairs: list) -> list:
+        """``pairs``, each followed by the LK correspondences (sub-pixel) of its kept images,
+        matched on the fitted geometry (the ORB ones stay: LK alone can be few on real skies)."""
+        from dataclasses import replace
+
+        from cbh.geometry.calibrate import PairObservations
+        from cbh.pipeline import Pipeline
+        from cbh.pipeline.match import MatchInput, get_matcher
+
+        fitted = replace(self.station, cameras={n: replace(c, R_world_from_cam=fit.cameras[n].R_world_from_cam)
+                                                for n, c in self.station.cameras.items()})
+        lk_cfg = self.cfg0.matching.__class__(methods=("lk",), lk=self.cfg0.matching.lk)
+        new = []
         for p in pairs:
-            pipe = Pipeline(fitted, f"{ref},{p.cam_b}", config=pipes[p.cam_b].config)
+            pipe = Pipeline(fitted, f"{self.ref},{p.cam_b}", config=self.pipes[p.cam_b].config)
             shape1 = (pipe.cam1.model.height, pipe.cam1.model.width)
             shape2 = (pipe.cam2.model.height, pipe.cam2.model.width)
             ra_l, rb_l = [], []
-            for g1, g2, c1, u1, u2, c2 in stash[p.cam_b]:
-                unpack = lambda b, sh: np.unpackbits(b, count=sh[0] * sh[1]).reshape(sh).astype(bool)
-                inp = MatchInput(geometry=pipe.geometry, gray1=g1, gray2=g2, cloud1=unpack(c1, shape1),
-                                 usable1=unpack(u1, shape1), usable2=unpack(u2, shape2), cloud2=unpack(c2, shape2))
+            new.append(p)
+            for g1, g2, c1, u1, u2, c2 in self.stash[p.cam_b]:
+                inp = MatchInput(geometry=pipe.geometry, gray1=g1, gray2=g2, cloud1=_unpack(c1, shape1),
+                                 usable1=_unpack(u1, shape1), usable2=_unpack(u2, shape2), cloud2=_unpack(c2, shape2))
                 m = get_matcher("lk")(inp, lk_cfg)
                 if len(m):
                     ra_l.append(pipe.cam1.model.pixel_to_ray(m.px1))
                     rb_l.append(pipe.cam2.model.pixel_to_ray(m.px2))
-            new_pairs.append(p)  # the ORB correspondences stay (LK alone can be few on real skies)
             if ra_l:
-                ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
-                ppr = _px_per_rad(work_cam[p.cam_b])
-                new_pairs.append(PairObservations(ref, p.cam_b, ra, rb, p.baseline_m, opt.lk_sigma_px / ppr, "lk"))
-        start2 = {n: fit.cameras[n].R_world_from_cam for n in names}
-        pairs = new_pairs
-        fit = _best_fit([start2], sun_obs, pairs, ref, sun_pairs=sun_pairs)
+                ppr = _px_per_rad(self.work_cam[p.cam_b])
+                new.append(PairObservations(self.ref, p.cam_b, np.concatenate(ra_l), np.concatenate(rb_l),
+                                            p.baseline_m, self.opt.lk_sigma_px / ppr, "lk"))
+        return new
 
-    # --- report and station file ---------------------------------------------------------------
-    t_first = min(data[n].t_first for n in names)
-    t_last = max(data[n].t_last for n in names)
-    cams = {}
-    for n in names:
-        cf = fit.cameras[n]
-        before = angles_from_rotation(R0[n])
-        full_ppd = _px_per_rad(station.cameras[n]) * math.pi / 180.0
-        sres = []
+    def check_cloud_in_front(self, R: dict, pairs: list, epipolar_rad: list | None = None) -> None:
+        """Refuse rotations ``R`` ({camera: R_world_from_cam}) under which the cloud matches
+        triangulate behind both cameras.
+
+        A cloud seen from two cameras lies in front of both; with the two cameras' frames
+        swapped, every ray pair meets at the cloud's mirror image through the baseline, below
+        the station and behind both cameras (the epipolar constraint cannot tell: it is the
+        same for baseline ``t`` and ``−t``). Counted over the matches whose rays are not
+        near-parallel (distant points, whose sign noise decides) and, with ``epipolar_rad``
+        (a fit's residuals per pair), over that fit's inliers only.
+        """
+        from cbh.geometry.triangulate import triangulate
+
+        for i, p in enumerate(pairs):
+            if p.cam_a not in R or p.cam_b not in R:
+                continue
+            sel = np.ones(len(p.rays_a), bool) if epipolar_rad is None \
+                else np.abs(epipolar_rad[i]) <= 3.0 * p.sigma_rad * 2.0
+            n = int(sel.sum())
+            if n < 20:
+                continue
+            d1 = p.rays_a[sel] @ R[p.cam_a].T
+            d2 = p.rays_b[sel] @ R[p.cam_b].T
+            o1 = np.broadcast_to(self.station.cameras[p.cam_a].position_m, (n, 3))
+            o2 = np.broadcast_to(self.station.cameras[p.cam_b].position_m, (n, 3))
+            tri = triangulate(o1, d1, o2, d2)
+            clear = tri.angle_deg >= _MIN_SIGN_ANGLE_DEG
+            front = int(np.sum(clear & (tri.range1_m > 0) & (tri.range2_m > 0)))
+            behind = int(np.sum(clear & (tri.range1_m < 0) & (tri.range2_m < 0)))
+            if behind > front and behind >= 20:
+                raise CalibrationError(
+                    f"{p.cam_a}-{p.cam_b}: {behind} of {front + behind} cloud matches meet behind both cameras, "
+                    f"below the station: the two cameras' frames are probably swapped (--source {p.cam_a}=… "
+                    f"holding {p.cam_b}'s images); give each --source its own camera's frames")
+
+    # --- the report --------------------------------------------------------------------------
+    def report(self, fit, pairs: list, sun_obs: dict, sun_notes: dict, station_path: Path, out: Path,
+               t_start: float) -> dict:
+        """The JSON report of :func:`calibrate` (its ``summary`` lines included)."""
+        cams = {n: self._camera_report(n, fit.cameras[n], sun_obs, sun_notes) for n in self.names}
+        pair_rep = [self._pair_report(p, e) for p, e in zip(pairs, fit.epipolar_rad)]
+        relative = {}
+        for n in self.names[1:]:
+            Rr = fit.cameras[self.ref].R_world_from_cam.T @ fit.cameras[n].R_world_from_cam
+            R0 = self.station.cameras[self.ref].R_world_from_cam.T @ self.station.cameras[n].R_world_from_cam
+            relative[n] = {"relative_change_deg": math.degrees(math.acos(min(1.0, (np.trace(R0.T @ Rr) - 1.0) / 2.0)))}
+        report = {
+            "station": str(station_path),
+            "warnings": self._warnings(pairs, pair_rep, cams),
+            "out": str(out),
+            "calibrated_utc": _iso(datetime.now(timezone.utc)),
+            "data_from_utc": _iso(min(self.data[n].t_first for n in self.names)),
+            "data_to_utc": _iso(max(self.data[n].t_last for n in self.names)),
+            "absolute": fit.absolute,
+            "reference": self.ref,
+            "cameras": cams,
+            "pairs": pair_rep,
+            "relative": relative,
+            "elapsed_s": round(time.perf_counter() - t_start, 3),
+        }
+        report["summary"] = _summary(report)
+        return report
+
+    def _camera_report(self, n: str, cf, sun_obs: dict, sun_notes: dict) -> dict:
+        from cbh.geometry.station import angles_from_rotation
+
+        d, opt, used = self.data[n], self.opt, n in sun_obs
+        before = angles_from_rotation(self.station.cameras[n].R_world_from_cam)
+        full_ppd = _px_per_rad(self.station.cameras[n]) * math.pi / 180.0
         good = cf.sun_residual_deg[cf.sun_residual_deg <= opt.sun_outlier_deg]
         sun_rms = float(np.sqrt(np.mean(good ** 2))) if len(good) else math.nan
-        if n in sun_obs:
-            sres = [{"time_utc": _iso(t), "residual_deg": float(r)} for t, r in zip(data[n].times, cf.sun_residual_deg)]
-        cams[n] = {
+        sres = [{"time_utc": _iso(t), "residual_deg": float(r)} for t, r in zip(d.times, cf.sun_residual_deg)] if used else []
+        return {
             "angles_before_deg": _angles(before),
             "angles_deg": _angles(cf.angles_deg),
             "change_deg": _angles([(a - b + 180.0) % 360.0 - 180.0 for a, b in zip(cf.angles_deg, before)]),
             "sigma_deg": _angles(cf.sigma_deg),
-            "frames": data[n].frames,
-            "sun_detections": len(data[n].rays),
-            "sun_rejected": {k: v for k, v in data[n].reasons.items() if k != "ok"},
-            "sun_used": n in sun_obs,
+            "frames": d.frames,
+            "sun_detections": len(d.rays),
+            "sun_rejected": {k: v for k, v in d.reasons.items() if k != "ok"},
+            "sun_used": used,
             "sun_note": sun_notes.get(n),
-            "sun_rms_deg": _num(sun_rms) if n in sun_obs else None,
-            "sun_rms_px": _num(sun_rms * full_ppd) if n in sun_obs else None,
-            "sun_outliers": int(np.sum(cf.sun_residual_deg > opt.sun_outlier_deg)) if n in sun_obs else 0,
+            "sun_rms_deg": _num(sun_rms) if used else None,
+            "sun_rms_px": _num(sun_rms * full_ppd) if used else None,
+            "sun_outliers": int(np.sum(cf.sun_residual_deg > opt.sun_outlier_deg)) if used else 0,
             "sun_residuals": sres,
         }
-    pair_rep = []
-    for p, e in zip(pairs, fit.epipolar_rad):
-        ppr_full = _px_per_rad(station.cameras[p.cam_b])
+
+    def _pair_report(self, p, e: np.ndarray) -> dict:
+        ppr_full = _px_per_rad(self.station.cameras[p.cam_b])
         inl = np.abs(e) <= 3.0 * p.sigma_rad * 2.0
-        pair_rep.append({
+        return {
             "cameras": [p.cam_a, p.cam_b],
             "method": p.method,
-            "pairs_matched": pair_counts[p.cam_b],
-            "refined_pairs": len(stash[p.cam_b]) if p.method == "lk" else 0,
+            "pairs_matched": self.pair_counts[p.cam_b],
+            "refined_pairs": len(self.stash[p.cam_b]) if p.method == "lk" else 0,
             "matches_used": int(len(e)),
             "matches_inlier": int(inl.sum()),
             "epipolar_rms_deg": _num(math.degrees(float(np.sqrt(np.mean(e[inl] ** 2))))) if inl.any() else None,
             "epipolar_median_px": _num(float(np.median(np.abs(e))) * ppr_full),
-        })
-    R_rel_report = {}
-    for n in names[1:]:
-        Rr = fit.cameras[ref].R_world_from_cam.T @ fit.cameras[n].R_world_from_cam
-        Rr0 = R0[ref].T @ R0[n]
-        d_ang = math.degrees(math.acos(min(1.0, (np.trace(Rr0.T @ Rr) - 1.0) / 2.0)))
-        R_rel_report[n] = {"relative_change_deg": d_ang}
-    warnings = []
-    for p, pr in zip(pairs, pair_rep):
-        expect_px = p.sigma_rad * _px_per_rad(station.cameras[p.cam_b])
-        if pr["epipolar_median_px"] is not None and pr["epipolar_median_px"] > 3.0 * expect_px:
-            warnings.append(
-                f"{p.cam_a}-{p.cam_b} {p.method}: the cloud matches stay {pr['epipolar_median_px']:.1f} px off their "
-                f"epipolar curves (expected ~{expect_px:.1f} px): the lens calibrations or the data do not support "
-                "one rotation; check the new station with `cbh pair` before using it")
-    for n in names:
-        c = cams[n]
-        if c["sun_used"] and c["sun_rms_deg"] is not None and c["sun_rms_deg"] > 5 * opt.sun_sigma_deg:
-            warnings.append(f"{n}: the sun detections scatter by {c['sun_rms_deg']:.2f} deg RMS around the fit")
-    report = {
-        "station": str(station_path),
-        "warnings": warnings,
-        "out": str(out),
-        "calibrated_utc": _iso(datetime.now(timezone.utc)),
-        "data_from_utc": _iso(t_first),
-        "data_to_utc": _iso(t_last),
-        "absolute": fit.absolute,
-        "reference": ref,
-        "cameras": cams,
-        "pairs": pair_rep,
-        "relative": R_rel_report,
-        "elapsed_s": round(time.perf_counter() - t_start, 3),
-    }
-    comment = _comment(report)
-    report["summary"] = _summary(report)
-    text = station_path.read_text(encoding="utf-8")
-    new_text = rewrite_station_angles(text, {n: fit.cameras[n].angles_deg for n in names}, comment)
-    # the new file must read back to the fitted rotations
-    from cbh.geometry.station import parse_station
+        }
+
+    def _warnings(self, pairs: list, pair_rep: list, cams: dict) -> list[str]:
+        warnings = []
+        for p, pr in zip(pairs, pair_rep):
+            expect_px = p.sigma_rad * _px_per_rad(self.station.cameras[p.cam_b])
+            if pr["epipolar_median_px"] is not None and pr["epipolar_median_px"] > 3.0 * expect_px:
+                warnings.append(
+                    f"{p.cam_a}-{p.cam_b} {p.method}: the cloud matches stay {pr['epipolar_median_px']:.1f} px off "
+                    f"their epipolar curves (expected ~{expect_px:.1f} px): the lens calibrations or the data do not "
+                    "support one rotation; check the new station with `cbh pair` before using it")
+        for n, c in cams.items():
+            if c["sun_used"] and c["sun_rms_deg"] is not None and c["sun_rms_deg"] > 5 * self.opt.sun_sigma_deg:
+                warnings.append(f"{n}: the sun detections scatter by {c['sun_rms_deg']:.2f} deg RMS around the fit")
+        return warnings
+
+
+def _unpack(bits: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A mask kept by ``np.packbits``, back as (H, W) bool."""
+    return np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+
+
+def _write_station(station_path: Path, out: Path, fitted: dict, comment: list[str]) -> None:
+    """The station file rewritten with the fitted angles (comments and other keys kept), checked
+    to read back to the fitted rotations, written atomically to ``out``."""
     import tomllib
 
+    from cbh.geometry.station import parse_station
+
+    text = station_path.read_text(encoding="utf-8")
+    new_text = rewrite_station_angles(text, {n: cf.angles_deg for n, cf in fitted.items()}, comment)
     try:
-        back = parse_station(tomllib.loads(new_text), base_dir=base, path=out)
+        back = parse_station(tomllib.loads(new_text), base_dir=station_path.parent, path=out)
     except (tomllib.TOMLDecodeError, ConfigError) as exc:  # pragma: no cover - a bug here, said in one line
         raise CalibrationError(f"internal: the rewritten station does not read back ({exc})") from None
-    for n in names:
-        err = np.abs(back.cameras[n].R_world_from_cam - fit.cameras[n].R_world_from_cam).max()
+    for n, cf in fitted.items():
+        err = np.abs(back.cameras[n].R_world_from_cam - cf.R_world_from_cam).max()
         if err > 1e-6:  # pragma: no cover - a bug in rewrite_station_angles
             raise CalibrationError(f"internal: rewritten station disagrees for {n} ({err:.2g})")
     _write_atomic(out, new_text)
-    return report
 
 
 def _best_fit(starts: list[dict], sun_obs, pairs, ref, loss: str = "huber", scale: float = 2.0, sun_pairs=()):
@@ -530,7 +670,6 @@ def _summary(rep: dict) -> list[str]:
         out.append(f"{p['cameras'][0]}-{p['cameras'][1]} {p['method']}: {p['matches_used']} cloud matches from "
                    f"{p['refined_pairs'] or p['pairs_matched']} "
                    f"pairs, median epipolar residual {p['epipolar_median_px']:.2f} px")
-    out.extend(f"warning: {w}" for w in rep["warnings"])
     out.append(f"wrote {rep['out']} ({rep['elapsed_s']:.1f} s)")
     return out
 

@@ -195,97 +195,124 @@ def fit_orientations(
     -------
     OrientationFit
     """
-    from scipy.optimize import least_squares
+    problem = _OrientationProblem(R0, sun, pairs, reference, tuple(sun_pairs))
+    sol = problem.solve(loss, huber)
+    cov, degenerate = _covariance(sol, huber)
+    R = problem.rotations(sol.x)
+    fits = {}
+    for n in problem.names:
+        sig = problem.sigma_deg(n, sol.x, cov, degenerate)
+        bad = [a for a, s in zip(_ANGLES, sig) if not s <= max_sigma_deg]
+        if bad:
+            raise CalibrationError(
+                f"camera {n!r}: the data cannot determine its {', '.join(bad)} "
+                f"(standard deviation {max(sig):.2g} deg > {max_sigma_deg} deg); "
+                "give frames with the sun over more of the day, or more cloud pairs")
+        sres, ninl = problem.sun_residuals_deg(n, R[n], huber)
+        fits[n] = CameraFit(n, angles_from_rotation(R0[n]), angles_from_rotation(R[n]), sig, R[n], sres, ninl)
+    return OrientationFit(fits, problem.epipolar(R), problem.absolute, reference, float(sol.cost))
 
-    names = list(R0)
-    absolute = bool(sun)
-    free = [n for n in names if absolute or n != reference]
-    idx = {n: i for i, n in enumerate(free)}
-    for n in names:
-        if n not in sun and not any(n in (p.cam_a, p.cam_b) for p in pairs) and n in idx:
-            raise CalibrationError(f"camera {n!r}: neither a sun track nor correspondences determine its orientation")
 
-    sun_data = {n: (np.asarray(o.rays_cam, np.float64), np.asarray(o.sun_enu, np.float64),
-                    1.0 / math.radians(o.sigma_deg)) for n, o in sun.items() if n in R0}
-    pair_data = []
-    for p in pairs:
-        t = np.asarray(p.baseline_m, np.float64)
-        pair_data.append((p.cam_a, p.cam_b, np.asarray(p.rays_a, np.float64), np.asarray(p.rays_b, np.float64),
-                          t, 1.0 / p.sigma_rad))
+class _OrientationProblem:
+    """The least-squares problem of :func:`fit_orientations`: the free cameras (every camera
+    with a sun track; without any, all but the reference), each a rotation vector ``ω``
+    applied in the camera frame to its start, and the residuals in units of their noise."""
 
-    def rotations(x):
-        out = {}
-        for n in names:
-            out[n] = R0[n] @ rotvec_to_matrix(x[3 * idx[n]: 3 * idx[n] + 3]) if n in idx else R0[n]
-        return out
+    def __init__(self, R0, sun, pairs, reference, sun_pairs):
+        self.R0, self.sun, self.sun_pairs = R0, sun, sun_pairs
+        self.names = list(R0)
+        self.absolute = bool(sun)
+        free = [n for n in self.names if self.absolute or n != reference]
+        self.idx = {n: i for i, n in enumerate(free)}
+        for n in self.names:
+            if n not in sun and not any(n in (p.cam_a, p.cam_b) for p in pairs) and n in self.idx:
+                raise CalibrationError(f"camera {n!r}: neither a sun track nor correspondences determine its orientation")
+        self.sun_data = {n: (np.asarray(o.rays_cam, np.float64), np.asarray(o.sun_enu, np.float64),
+                             1.0 / math.radians(o.sigma_deg)) for n, o in sun.items() if n in R0}
+        self.pair_data = [(p.cam_a, p.cam_b, np.asarray(p.rays_a, np.float64), np.asarray(p.rays_b, np.float64),
+                           np.asarray(p.baseline_m, np.float64), 1.0 / p.sigma_rad) for p in pairs]
 
-    def residuals(x):
-        R = rotations(x)
+    def rotations(self, x: np.ndarray) -> dict[str, np.ndarray]:
+        """Every camera's ``R_world_from_cam`` at the parameters ``x`` (3 per free camera)."""
+        idx = self.idx
+        return {n: self.R0[n] @ rotvec_to_matrix(x[3 * idx[n]: 3 * idx[n] + 3]) if n in idx else self.R0[n]
+                for n in self.names}
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Sun rows (cross product of fitted and apparent sun), epipolar rows, then the
+        sun-pair rows, each in units of its expected noise."""
+        R = self.rotations(x)
         parts = []
-        for n, (s, d, wgt) in sun_data.items():
+        for n, (s, d, wgt) in self.sun_data.items():
             parts.append((np.cross(s @ R[n].T, d) * wgt).ravel())
-        for a, b, ra, rb, t, wgt in pair_data:
+        for a, b, ra, rb, t, wgt in self.pair_data:
             parts.append(epipolar_angle_rad(ra @ R[a].T, rb @ R[b].T, t) * wgt)
-        for sp in sun_pairs:
+        for sp in self.sun_pairs:
             parts.append((np.cross(sp.rays_a @ R[sp.cam_a].T, sp.rays_b @ R[sp.cam_b].T)
                           / math.radians(sp.sigma_deg)).ravel())
         return np.concatenate(parts) if parts else np.zeros(0)
 
-    x0 = np.zeros(3 * len(free))
-    n_res = len(residuals(x0))
-    if n_res < len(x0) + 1:
-        raise CalibrationError(f"too few observations ({n_res} residuals) for {len(free)} camera orientations")
-    # the sun-pair rows (last) are trusted: plain least squares; every other row gets the robust loss
-    n_trusted = sum(3 * len(sp.rays_a) for sp in sun_pairs)
-    robust = np.ones(n_res, bool)
-    if n_trusted:
-        robust[n_res - n_trusted:] = False
-    rloss = _row_loss(loss, robust)
-    sol = least_squares(residuals, x0, loss=rloss, f_scale=huber, x_scale=1e-2, method="trf")
-    # a second pass started at the first solution, so the robust weights fit the final residuals
-    sol = least_squares(residuals, sol.x, loss=rloss, f_scale=huber, x_scale=1e-2, method="trf")
+    def solve(self, loss: str, huber: float):
+        """Robust least squares (scipy ``least_squares``), twice: the second pass starts at the
+        first solution, so the robust weights fit the final residuals."""
+        from scipy.optimize import least_squares
+
+        x0 = np.zeros(3 * len(self.idx))
+        n_res = len(self.residuals(x0))
+        if n_res < len(x0) + 1:
+            raise CalibrationError(f"too few observations ({n_res} residuals) for {len(self.idx)} camera orientations")
+        # the sun-pair rows (last) are trusted: plain least squares; every other row gets the robust loss
+        n_trusted = sum(3 * len(sp.rays_a) for sp in self.sun_pairs)
+        robust = np.ones(n_res, bool)
+        if n_trusted:
+            robust[n_res - n_trusted:] = False
+        rloss = _row_loss(loss, robust)
+        sol = least_squares(self.residuals, x0, loss=rloss, f_scale=huber, x_scale=1e-2, method="trf")
+        return least_squares(self.residuals, sol.x, loss=rloss, f_scale=huber, x_scale=1e-2, method="trf")
+
+    def sigma_deg(self, n: str, x: np.ndarray, cov: np.ndarray, degenerate: bool) -> tuple[float, float, float]:
+        """Standard deviations of camera ``n``'s (yaw, pitch, roll) [deg] (0 for a held camera)."""
+        if n not in self.idx:
+            return (0.0, 0.0, 0.0)
+        if degenerate:
+            return (math.inf,) * 3
+        i = self.idx[n]
+        Ja = _angle_jacobian(self.R0[n], x[3 * i: 3 * i + 3])
+        c = Ja @ cov[3 * i: 3 * i + 3, 3 * i: 3 * i + 3] @ Ja.T
+        return tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(c))
+
+    def sun_residuals_deg(self, n: str, R: np.ndarray, huber: float) -> tuple[np.ndarray, int]:
+        """Camera ``n``'s angle between fitted and apparent sun per detection [deg], and how many
+        are inliers (within 3 × ``huber`` noise levels)."""
+        if n not in self.sun_data:
+            return np.zeros(0), 0
+        s, d, _ = self.sun_data[n]
+        sres = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", s @ R.T, d), -1.0, 1.0)))
+        return sres, int(np.sum(sres <= 3.0 * huber * self.sun[n].sigma_deg))
+
+    def epipolar(self, R: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """Epipolar residuals [rad] of every PairObservations under the rotations ``R``."""
+        return [epipolar_angle_rad(ra @ R[a].T, rb @ R[b].T, t) for a, b, ra, rb, t, _ in self.pair_data]
+
+
+def _covariance(sol, huber: float) -> tuple[np.ndarray, bool]:
+    """Gauss-Newton covariance of the parameters from the inlier rows of a ``least_squares``
+    solution, and whether the problem is degenerate (a singular value 1e-6 of the largest).
+
+    The measured noise level (robust: 1.4826 × median |r|, in units of the expected noise)
+    scales the covariance, so a data set noisier than assumed gets wider uncertainties (never
+    below the expected noise: a suspiciously clean fit does not shrink the uncertainty).
+    """
     r = sol.fun
     inl = np.abs(r) <= 3.0 * huber
     J = sol.jac[inl]
-    # the measured noise level (robust: 1.4826 × median |r|, in units of the expected noise)
-    # scales the covariance, so a data set noisier than assumed gets wider uncertainties
-    # (never below the expected noise: a suspiciously clean fit does not shrink the uncertainty)
     s2 = max(float((1.4826 * np.median(np.abs(r))) ** 2) * len(r) / max(int(inl.sum()), 1), 1.0)
     try:
         cov = np.linalg.pinv(J.T @ J) * s2
         sv = np.linalg.svd(J, compute_uv=False)
     except np.linalg.LinAlgError:  # pragma: no cover
         raise CalibrationError("the orientation fit is degenerate") from None
-    R = rotations(sol.x)
-    fits = {}
-    for n in names:
-        before = angles_from_rotation(R0[n])
-        after = angles_from_rotation(R[n])
-        if n in idx:
-            i = idx[n]
-            Ja = _angle_jacobian(R0[n], sol.x[3 * i: 3 * i + 3])
-            c = Ja @ cov[3 * i: 3 * i + 3, 3 * i: 3 * i + 3] @ Ja.T
-            sig = tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(c))
-            if sv.min() < 1e-6 * sv.max():
-                sig = (math.inf,) * 3
-            bad = [a for a, s in zip(_ANGLES, sig) if not s <= max_sigma_deg]
-            if bad:
-                raise CalibrationError(
-                    f"camera {n!r}: the data cannot determine its {', '.join(bad)} "
-                    f"(standard deviation {max(sig):.2g} deg > {max_sigma_deg} deg); "
-                    "give frames with the sun over more of the day, or more cloud pairs")
-        else:
-            sig = (0.0, 0.0, 0.0)
-        sres = np.zeros(0)
-        ninl = 0
-        if n in sun_data:
-            s, d, _ = sun_data[n]
-            cosang = np.clip(np.einsum("ij,ij->i", s @ R[n].T, d), -1.0, 1.0)
-            sres = np.degrees(np.arccos(cosang))
-            ninl = int(np.sum(sres <= 3.0 * huber * sun[n].sigma_deg))
-        fits[n] = CameraFit(n, before, after, sig, R[n], sres, ninl)
-    epi = [epipolar_angle_rad(ra @ R[a].T, rb @ R[b].T, t) for a, b, ra, rb, t, _ in pair_data]
-    return OrientationFit(fits, epi, absolute, reference, float(sol.cost))
+    return cov, bool(sv.min() < 1e-6 * sv.max())
 
 
 def _row_loss(kind: str, robust: np.ndarray):
