@@ -24,7 +24,7 @@ import numpy as np
 from cbh.geometry.camera import CameraModel
 from cbh.errors import ImageError, InputError
 
-__all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames", "FrameObstacleConfig", "obstacles_in_frame"]
+__all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames", "FrameObstacleConfig", "obstacle_rings", "obstacles_in_frame"]
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,29 @@ class FrameObstacleConfig:
     dilate_px: int = 2  # safety margin grown around obstacles (their edges blend with the sky) [px]
 
 
-def obstacles_in_frame(image_bgr: np.ndarray, zenith_deg: np.ndarray, circle: np.ndarray,
+def obstacle_rings(zenith_deg: np.ndarray, circle: np.ndarray, cfg: FrameObstacleConfig = FrameObstacleConfig()):
+    """The per-camera constants of :func:`obstacles_in_frame`: each pixel's 1° zenith ring
+    (uint8; 255 = not looked at: outside the circle, beyond the horizon or higher than
+    ``max_elevation_deg``) and the horizon band (bool)."""
+    look = circle & (zenith_deg >= 90.0 - cfg.max_elevation_deg) & (zenith_deg <= 90.0)
+    ring = np.where(look, np.clip(zenith_deg, 0.0, 90.0).astype(np.int32), 255).astype(np.uint8)
+    return ring, look & (zenith_deg >= 90.0 - cfg.horizon_band_deg)
+
+
+def _ring_percentile(value: np.ndarray, ring: np.ndarray, q: float) -> np.ndarray:
+    """The ``q``-th percentile (nearest rank) of uint8 ``value`` in each ring 0..90, (256,) float32
+    (0 for rings without pixels and for the 255 "not looked at" ring): one 2-D histogram."""
+    counts = np.bincount(ring.ravel().astype(np.int64) * 256 + value.ravel(), minlength=256 * 256).reshape(256, 256)
+    cum = np.cumsum(counts, axis=1)
+    n = cum[:, -1]
+    rank = np.ceil(n * (q / 100.0)).astype(np.int64)
+    ref = np.argmax(cum >= np.maximum(rank, 1)[:, None], axis=1).astype(np.float32)
+    ref[n == 0] = 0.0
+    ref[255] = 0.0
+    return ref
+
+
+def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray,
                        cfg: FrameObstacleConfig = FrameObstacleConfig()) -> np.ndarray:
     """Horizon obstacles (buildings, trees, masts) of ONE frame, for a camera without a mask.
 
@@ -119,38 +141,27 @@ def obstacles_in_frame(image_bgr: np.ndarray, zenith_deg: np.ndarray, circle: np
     Parameters
     ----------
     image_bgr : ndarray, shape (H, W, 3), uint8
-    zenith_deg : ndarray, shape (H, W), float32
-        Zenith angle of each pixel in the world frame [deg].
-    circle : ndarray, shape (H, W), bool
-        The camera's image circle (pixels that see the sky or the ground).
+    ring, band : ndarray, shape (H, W)
+        :func:`obstacle_rings` of the camera (uint8 ring index, bool horizon band).
 
     Returns
     -------
     obstacle : ndarray, shape (H, W), bool
     """
-    value = image_bgr.max(axis=2)
-    look = circle & (zenith_deg >= 90.0 - cfg.max_elevation_deg) & (zenith_deg <= 90.0)
-    if not look.any():
-        return np.zeros(value.shape, bool)
-    ring = np.clip(zenith_deg, 0.0, 90.0).astype(np.int32)
-    ref = np.zeros(92, np.float32)
-    rs, vs = ring[look], value[look]
-    order = np.argsort(rs, kind="stable")
-    rs, vs = rs[order], vs[order]
-    bounds = np.searchsorted(rs, np.arange(93))
-    for r in range(92):
-        a, b = bounds[r], bounds[r + 1]
-        if b > a:
-            ref[r] = np.percentile(vs[a:b], cfg.ring_percentile)
-    dark = look & (value < cfg.dark_ratio * ref[ring])
-    cand = cv2.morphologyEx(dark.astype(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
+    value = cv2.max(cv2.max(image_bgr[..., 0], image_bgr[..., 1]), image_bgr[..., 2])
+    ref = _ring_percentile(value, ring, cfg.ring_percentile)
+    dark = (value < (cfg.dark_ratio * ref)[ring]) & (ring != 255)
+    cand = cv2.morphologyEx(dark.view(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(cand, connectivity=8)
-    band = look & (zenith_deg >= 90.0 - cfg.horizon_band_deg)
     touching = np.unique(labels[band & (cand > 0)])
     touching = touching[(touching > 0)]
     touching = touching[stats[touching, cv2.CC_STAT_AREA] >= cfg.min_area_px]
-    obstacle = np.isin(labels, touching)
-    if cfg.dilate_px > 0 and obstacle.any():
+    if touching.size == 0:
+        return np.zeros(value.shape, bool)
+    keep = np.zeros(n, bool)
+    keep[touching] = True
+    obstacle = keep[labels]
+    if cfg.dilate_px > 0:
         k = 2 * cfg.dilate_px + 1
-        obstacle = cv2.dilate(obstacle.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
-    return obstacle & circle
+        obstacle = cv2.dilate(obstacle.view(np.uint8), np.ones((k, k), np.uint8)) > 0
+    return obstacle & (ring != 255)

@@ -61,7 +61,7 @@ from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
-from cbh.pipeline.obstacles import obstacles_in_frame
+from cbh.pipeline.obstacles import FrameObstacleConfig, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
@@ -83,6 +83,7 @@ _MAX_DISPLAY_MATCHES = 5000
 _FLOOR_LAYER_COVER = 0.05  # a layer at the sweep's floor counts for below_range from this cover up (see match.FLOOR_LAYER_RATIO)
 CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky (flag clear_sky; no geometry verdict)
 CLEAR_PAIR_MAX_FRACTION = 0.08  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
+_HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1)  # the defaults' pixels at half size
 _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obstacles stay masked
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
@@ -177,7 +178,7 @@ class Pipeline:
         self.factors = tuple(working_factor(c, self.config.working_radius_px) for c in (self.cam1_full, self.cam2_full))
         self.cam1, self.cam2 = (c.scaled(f) if f != 1.0 else c for c, f in zip((self.cam1_full, self.cam2_full), self.factors))
         self._static: dict[int, np.ndarray] = {}
-        self._circles: dict[int, np.ndarray] = {}  # image circle per camera at working size
+        self._circles: dict[int, tuple] = {}  # per camera: obstacle rings and horizon band (working size)
         self._obstacle_votes: dict[int, tuple[np.ndarray, int]] = {}  # frames in which each pixel was an obstacle, of n
         self._rays: dict[int, np.ndarray] = {}
         self._zenith: dict[int, np.ndarray] = {}
@@ -253,12 +254,19 @@ class Pipeline:
         cam = (self.cam1, self.cam2)[i]
         if not self.config.masks.auto_obstacles or (cam.mask is not None and self.config.masks.static_mask):
             return None
+        H, W = image.shape[:2]
+        half = ((W + 1) // 2, (H + 1) // 2)  # found at half size (4x cheaper), brought back with its margin
         if i not in self._circles:
-            self._circles[i] = cam.model.image_circle_mask()
-        found = obstacles_in_frame(image, self.zenith(i), self._circles[i])
+            z = cv2.resize(self.zenith(i), half, interpolation=cv2.INTER_NEAREST)
+            circle = cv2.resize(cam.model.image_circle_mask().view(np.uint8), half, interpolation=cv2.INTER_NEAREST) > 0
+            self._circles[i] = obstacle_rings(z, circle)
+        small = obstacles_in_frame(cv2.resize(image, half, interpolation=cv2.INTER_AREA), *self._circles[i],
+                                   _HALF_SIZE_OBSTACLES)
+        found = cv2.resize(small.view(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
         votes, n = self._obstacle_votes.get(i, (np.zeros(found.shape, np.uint16), 0))
         if n < np.iinfo(np.uint16).max:
-            votes, n = votes + found, n + 1
+            np.add(votes, found, out=votes)
+            n += 1
             self._obstacle_votes[i] = (votes, n)
         if n >= _OBSTACLE_LEARN_FRAMES:
             found = found | (votes >= _OBSTACLE_LEARN_SHARE * n)

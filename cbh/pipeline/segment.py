@@ -441,6 +441,18 @@ def fine_texture(image_bgr: np.ndarray) -> np.ndarray:
     return cv2.sqrt(cv2.blur(cv2.multiply(hp, hp), (_TEXTURE_BOX_PX, _TEXTURE_BOX_PX)))
 
 
+class _LazyTexture:
+    """:func:`fine_texture` of an image, computed on the first call and kept."""
+
+    def __init__(self, image_bgr):
+        self.image, self.value = image_bgr, None
+
+    def __call__(self) -> np.ndarray:
+        if self.value is None:
+            self.value = fine_texture(self.image)
+        return self.value
+
+
 def aureole_profile(values_s: np.ndarray, sun_angle_s: np.ndarray, q: float,
                     texture_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """The clear sky's excess of a cloud-like feature in rings around the sun (the aureole).
@@ -452,7 +464,7 @@ def aureole_profile(values_s: np.ndarray, sun_angle_s: np.ndarray, q: float,
     clear part of the ring as long as ``q`` % of it is clear), floored at 0 and made
     non-increasing outwards (the aureole fades monotonically from the sun; a cloudy ring
     farther out cannot raise it), is the aureole's own value. With ``texture_s`` (the samples'
-    :func:`fine_texture`), a ring whose pixels at or below that percentile are textured
+    :func:`fine_texture`, or a callable giving them when first needed), a ring whose pixels at or below that percentile are textured
     (median over ``_TEXTURED`` × the noise floor, the 10th percentile of all samples) is
     cloud, not aureole: its excess, and so that of every ring outside it, is 0 (sunlit cloud
     around the sun is never taken for the aureole).
@@ -465,7 +477,9 @@ def aureole_profile(values_s: np.ndarray, sun_angle_s: np.ndarray, q: float,
     edges = np.arange(0.0, _AUREOLE_MAX_DEG + _AUREOLE_STEP_DEG, _AUREOLE_STEP_DEG)
     k = np.searchsorted(edges, sun_angle_s, side="right") - 1
     prof = np.zeros(len(edges) - 1)
-    floor = max(float(np.percentile(texture_s, 10.0)), 0.5) if texture_s is not None and texture_s.size else 0.0
+    floor = 0.0
+    if texture_s is not None and not callable(texture_s) and texture_s.size:
+        floor = max(float(np.percentile(texture_s, 10.0)), 0.5)
     started = False
     for i in range(len(prof)):
         sel = values_s[k == i]
@@ -474,6 +488,9 @@ def aureole_profile(values_s: np.ndarray, sun_angle_s: np.ndarray, q: float,
             continue
         prof[i] = max(float(np.percentile(sel, q)), 0.0)
         if texture_s is not None and prof[i] > 0.0:
+            if callable(texture_s):  # computed on first need (most rings of most skies have no excess)
+                texture_s = texture_s()
+                floor = max(float(np.percentile(texture_s, 10.0)), 0.5) if texture_s.size else 0.0
             tex = texture_s[k == i]
             if float(np.median(tex[sel <= prof[i]])) > _TEXTURED * floor:
                 prof[i] = 0.0
@@ -520,7 +537,8 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     us = usable[sub]
     if sun_angle_deg is not None and us.any():  # the aureole is clear sky: its own excess removed
         psi_s = np.asarray(sun_angle_deg, np.float32)[sub][us]
-        tex_s = fine_texture(image_bgr)[sub][us] if image_bgr is not None else None
+        tex = _LazyTexture(image_bgr)
+        tex_s = (lambda: tex()[sub][us]) if image_bgr is not None else None
         r_n = _minus_aureole(r_n, r_n[sub][us], psi_s, sun_angle_deg, 100.0 - cfg.clear_percentile, tex_s)
         if r_s is not None:
             r_s = _minus_aureole(r_s, r_s[sub][us], psi_s, sun_angle_deg, 100.0 - cfg.clear_percentile, tex_s)
@@ -550,7 +568,7 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
             if sun_angle_deg is not None:  # the aureole's brightening, from the clear pixels around the sun
                 cs_ = clear[sub]
                 dv = _minus_aureole(dv, dv[sub][cs_], np.asarray(sun_angle_deg, np.float32)[sub][cs_],
-                                    sun_angle_deg, 50.0, fine_texture(image_bgr)[sub][cs_])
+                                    sun_angle_deg, 50.0, lambda: tex()[sub][cs_])
             dv = cv2.absdiff(dv, 0.0)
             score = cv2.addWeighted(score, 1.0, dv, cfg.brightness_weight / math.log(1.5), 0.0)
             cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from cbh.pipeline.config import SegmentationConfig
 from cbh.pipeline.segment import (
-    _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, aureole_profile, check_colour, fine_texture, hybrid_classes,
+    _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, _LazyTexture, aureole_profile, check_colour, hybrid_classes,
     one_class_is_clear, reference_tables, sample_lattice, segment,
 )
 from cbh.pipeline.torch_ops import box, upload
@@ -152,7 +152,9 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     if sun is not None:  # the aureole is clear sky: its own excess removed (see segment._hybrid)
         psi_s = sun[sub][us].cpu().numpy()
         q = 100.0 - cfg.clear_percentile
-        tex_s = fine_texture(image_bgr)[sub][us.cpu().numpy()]  # host: OpenCV's blur, as segment._hybrid
+        us_h = us.cpu().numpy()
+        tex = _LazyTexture(image_bgr)  # host: OpenCV's blur, as segment._hybrid
+        tex_s = lambda: tex()[sub][us_h]  # noqa: E731
         r_n = _minus_aureole(r_n, r_n[sub][us].cpu().numpy(), psi_s, sun, q, tex_s)
         r_s = _minus_aureole(r_s, r_s[sub][us].cpu().numpy(), psi_s, sun, q, tex_s)
     rs = r_n[sub][us].cpu().numpy()
@@ -179,8 +181,9 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
             dv = torch.log(mx.clamp_min(1.0)) - torch.log((v_ref * 255.0).clamp_min(1.0))
             if sun is not None:
                 cs_ = clear[sub]
+                cs_h = cs_.cpu().numpy()
                 dv = _minus_aureole(dv, dv[sub][cs_].cpu().numpy(), sun[sub][cs_].cpu().numpy(), sun, 50.0,
-                                    fine_texture(image_bgr)[sub][cs_.cpu().numpy()])
+                                    lambda: tex()[sub][cs_h])
             dv = dv.abs()
             score = score + dv * (cfg.brightness_weight / math.log(1.5))
             cloud = (score > cfg.score_threshold) & use
