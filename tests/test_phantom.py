@@ -131,3 +131,23 @@ def test_randomized_skies_regression(base, seed, tmp_path):
         _assert_clear(r)
     assert score.spurious_m == []
     assert not set(r.flags) & INVALIDATING
+
+
+def test_a_run_learns_its_obstacles_and_keeps_them(base):
+    """After ten frames the obstacles found in most of them stay masked, also in a frame where
+    they do not stand out (here: the silhouettes painted sky-bright)."""
+    from cbh.pipeline import Pipeline
+    from cbh.sim import SkySimulator
+
+    case = random_case(6, base)
+    sim = SkySimulator(case.station, case.scene, size_px=SIZE)
+    pipe = Pipeline(sim.station)
+    image = pipe.to_working(0, sim.view("cam1").image)
+    for _ in range(10):
+        seen = pipe.auto_obstacles(0, image)
+    bright = image.copy()
+    bright[seen] = np.percentile(image[pipe.static_mask(0)], 90, axis=0).astype(np.uint8)
+    fresh = Pipeline(sim.station).auto_obstacles(0, bright)
+    kept = pipe.auto_obstacles(0, bright)
+    assert fresh[seen].mean() < 0.2  # one frame alone no longer finds them …
+    assert kept[seen].mean() > 0.95  # … the run still masks them
