@@ -95,6 +95,12 @@ pass run on threads (:func:`~cbh.pipeline.threads.pmap`; the caller reduces them
 they come); everything per pixel goes through OpenCV (no numpy temporaries); numpy's masked
 ``copyto`` and ``argmax`` over a stack axis are avoided (20× and 10× slower).
 
+Clock offsets (camera 2 capturing δ late, :mod:`.motion`): image 2 may be a :class:`PlaneViews`,
+one image per height of the sky's motion profile, each camera 2 moved back to camera 1's time
+with that height's motion; plane H is matched against the image of the height nearest to H,
+its scores weighted by how well that motion explains camera 1's own motion. Each layer is then
+compensated with its own motion, however far it moves during δ. Every pass takes either.
+
 Output: :class:`SweepField`, the refined s of every accepted pixel of camera 1's region (the
 matcher makes the height map from it in closed form, h = o1z + 1/s, and a lattice of
 correspondences, :func:`field_points`: px2 = the plane mapping at s; the exact camera-2 ray
@@ -116,8 +122,8 @@ import numpy as np
 from cbh.pipeline.peaks import find_peaks, peak_extent, smooth_gaussian, valley_cuts
 from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 
-__all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes", "coarse_votes", "coarse_regions",
-           "coarse_pass",
+__all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes",
+           "coarse_votes", "coarse_regions", "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
            "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
 
