@@ -51,6 +51,7 @@ __all__ = [
     "fit_pose",
     "held_out_residuals",
     "error_stats",
+    "residuals_of",
     "inverse_polynomial",
     "model_from_params",
     "ray_error_px",
@@ -654,11 +655,25 @@ def calibrate(views_xy, boards_xy, width: int, height: int, config: LensCalConfi
     model = model_from_params(poly, centre, affine, width, height)
     r_obs = max(float(np.max(np.hypot(*(np.asarray(v) - centre).T))) for v in views_xy)
     _check_monotone(poly, r_obs)
-    return LensCalibration(model=model, poses=poses, residuals=_residuals_of(model, poses, views_xy, boards_xy),
+    return LensCalibration(model=model, poses=poses, residuals=residuals_of(model, poses, views_xy, boards_xy),
                            nfev=nfev)
 
 
-def _residuals_of(model: OCamModel, poses, views_xy, boards_xy) -> tuple:
+def residuals_of(model: OCamModel, poses, views_xy, boards_xy) -> tuple:
+    """Reprojected minus detected corners of every view through ``model`` and ``poses``.
+
+    Parameters
+    ----------
+    model : OCamModel
+    poses : array_like, shape (K, 6), float
+        Rotation vector [rad] and translation [board units] per view.
+    views_xy, boards_xy : sequence of ndarray, each shape (N_i, 2), float
+        Detected corners [px] and board coordinates [board units].
+
+    Returns
+    -------
+    tuple of ndarray, each shape (N_i, 2), float64 [px]
+    """
     prob = _Problem.of(views_xy, boards_xy, model.width, model.height)
     P = _board_to_cam(np.asarray(poses, float), prob.board_xy, prob.view)
     return prob.split(project_model(model, P) - prob.obs)
@@ -812,6 +827,8 @@ def inverse_polynomial(poly, width: int, height: int, max_err_px: float = 0.01, 
 def model_from_params(poly, center_xy, affine, width: int, height: int, invpol: bool = True) -> OCamModel:
     """An :class:`OCamModel` (cbh frame) with the toolbox's inverse polynomial (``invpol=True``)."""
     poly = tuple(float(a) for a in poly)
+    if poly[1] == 0.0:
+        poly = (poly[0], -0.0, *poly[2:])  # the file's ss = −poly then reads "0.000000e+00", not "-0.000000e+00"
     inv = inverse_polynomial(poly, width, height) if invpol else None
     return OCamModel(width=int(width), height=int(height), center_xy=(float(center_xy[0]), float(center_xy[1])),
                      affine=tuple(float(a) for a in affine), poly=poly, invpol=inv)

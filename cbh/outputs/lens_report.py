@@ -1,0 +1,128 @@
+"""``cbh calibrate-lens --report DIR``: residuals per image (CSV, PNG) and where the corners fell.
+
+Files: ``images.csv`` (errors per image), ``residuals.csv`` (every corner: pixel, angle from the
+axis, residual, held-out residual), ``residuals.png`` (per-image RMS, error against angle, the
+residual vectors over the frame) and ``coverage.png`` (the corners over the frame with circles
+at 30°, 60° and 90° from the axis: is the periphery that matters for the sky covered?).
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_lens_report"]
+
+
+def _write_images_csv(path: Path, report: dict) -> None:
+    keys = ["file", "board_found", "detector", "n_points", "rms_euclid_px", "rms_coord_px", "mean_euclid_px",
+            "max_euclid_px", "held_out_rms_euclid_px", "held_out_rms_coord_px", "max_theta_deg"]
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        for row in report["images"]:
+            w.writerow(row)
+
+
+def _write_residuals_csv(path: Path, model, corners, residuals, held, files) -> None:
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["file", "corner", "x_px", "y_px", "theta_deg", "dx_px", "dy_px", "err_px",
+                    "held_out_dx_px", "held_out_dy_px"])
+        for k, (c, r) in enumerate(zip(corners, residuals)):
+            th = model.theta_of_pixel(c)
+            for j in range(len(c)):
+                h = ("", "") if held is None else (f"{held[k][j, 0]:.5f}", f"{held[k][j, 1]:.5f}")
+                w.writerow([Path(files[k]).name, j, f"{c[j, 0]:.4f}", f"{c[j, 1]:.4f}", f"{th[j]:.3f}",
+                            f"{r[j, 0]:.5f}", f"{r[j, 1]:.5f}", f"{np.hypot(*r[j]):.5f}", *h])
+
+
+def _plot_residuals(path: Path, report: dict, model, corners, residuals) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    found = [e for e in report["images"] if e["board_found"]]
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.6))
+    x = np.arange(len(found))
+    ax[0].bar(x - 0.2, [e["rms_euclid_px"] for e in found], 0.4, label="fit")
+    if report["held_out"] is not None:
+        ax[0].bar(x + 0.2, [e["held_out_rms_euclid_px"] for e in found], 0.4, label="held out")
+    ax[0].set_xticks(x, [Path(e["file"]).stem for e in found], rotation=60, fontsize=7)
+    ax[0].set_ylabel("per-point Euclidean RMS [px]")
+    ax[0].legend()
+    for c, r in zip(corners, residuals):
+        ax[1].plot(model.theta_of_pixel(c), np.hypot(r[:, 0], r[:, 1]), ".", ms=3)
+    ax[1].set_xlabel("angle from the optical axis [deg]")
+    ax[1].set_ylabel("reprojection error [px]")
+    allc, allr = np.concatenate(corners), np.concatenate(residuals)
+    scale = 0.05 * model.width / max(float(np.max(np.hypot(allr[:, 0], allr[:, 1]))), 1e-9)
+    ax[2].quiver(allc[:, 0], allc[:, 1], allr[:, 0] * scale, allr[:, 1] * scale, angles="xy", scale_units="xy",
+                 scale=1, width=0.003)
+    ax[2].set_xlim(0, model.width)
+    ax[2].set_ylim(model.height, 0)
+    ax[2].set_aspect("equal")
+    ax[2].set_title(f"residuals × {scale:.0f}", fontsize=9)
+    o = report["overall"]
+    fig.suptitle(f"reprojection: {o['rms_euclid_px']:.3f} px per-point Euclidean RMS, "
+                 f"{o['rms_coord_px']:.3f} px per coordinate")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_coverage(path: Path, model, corners, files) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 8 * model.height / model.width + 0.6))
+    th = model.theta_map()
+    cs = ax.contour(th, levels=[30, 60, 90], colors=["0.6", "0.3", "k"], linewidths=1)
+    ax.clabel(cs, fmt="%d°", fontsize=8)
+    for c, f in zip(corners, files):
+        ax.plot(c[:, 0], c[:, 1], ".", ms=4, label=Path(f).stem)
+    ax.set_xlim(-0.5, model.width - 0.5)
+    ax.set_ylim(model.height - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_title("board corners over the field of view (circles: angle from the axis)")
+    if len(files) <= 20:
+        ax.legend(fontsize=6, loc="upper right", ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_lens_report(folder: Path, report: dict, model, corners, residuals, held, files) -> list[Path]:
+    """Write the report files of a lens calibration into ``folder`` (created if needed).
+
+    Parameters
+    ----------
+    folder : Path
+    report : dict
+        :func:`cbh.actions.calibrate_lens.calibrate_lens`'s report (per-image and overall errors).
+    model : OCamModel
+        The written lens.
+    corners, residuals : sequence of ndarray, each shape (N_i, 2), float
+        Detected corners [px] and their residuals [px], per image with a board.
+    held : sequence of ndarray or None
+        Held-out residuals [px], per image.
+    files : sequence of Path
+        The images with a board, in the same order.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = [folder / "images.csv", folder / "residuals.csv", folder / "residuals.png", folder / "coverage.png"]
+    _write_images_csv(out[0], report)
+    _write_residuals_csv(out[1], model, corners, residuals, held, files)
+    _plot_residuals(out[2], report, model, corners, residuals)
+    _plot_coverage(out[3], model, corners, files)
+    return out

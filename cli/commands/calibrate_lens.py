@@ -1,0 +1,37 @@
+"""`cbh calibrate-lens`: a fisheye lens's OCamCalib model (calib_results.txt) from chessboard images."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    app.command("calibrate-lens")(calibrate_lens_cmd)
+
+
+def calibrate_lens_cmd(
+    images: list[Path] = typer.Argument(..., help="Chessboard images of one camera (same size), the board in a different place in each."),
+    board: str = typer.Option(..., "--board", help="Inner corners COLSxROWS (OpenCV's patternSize), e.g. 6x8 for 7 x 9 squares."),
+    square_mm: float = typer.Option(..., "--square-mm", help="Side of a board square [mm]."),
+    out: Path = typer.Option(..., "--out", help="calib_results.txt to write (OCamCalib's layout; cbh and the toolbox read it)."),
+    order: int = typer.Option(4, "--order", min=2, max=12, help="Degree of the polynomial f(r)."),
+    loss: str = typer.Option("linear", "--loss", help="linear (least squares) or huber (robust)."),
+    huber_px: float = typer.Option(1.0, "--huber-px", help="Huber loss: residual where it turns linear [px]."),
+    method: str = typer.Option("trf", "--method", help="trf (sparse trust region) or lm (Levenberg-Marquardt, linear loss)."),
+    no_held_out: bool = typer.Option(False, "--no-held-out", help="Skip the leave-one-image-out error."),
+    json_out: bool = typer.Option(False, "--json", help="Print the full report as JSON."),
+    report: Path = typer.Option(None, "--report", help="Folder for residuals per image (CSV, PNG) and the coverage picture."),
+) -> None:
+    """Calibrate a fisheye lens (Scaramuzza's model): linear start as OCamCalib, then bundle adjustment."""
+    from cbh.actions.calibrate_lens import LensCalOptions, calibrate_lens, parse_board
+
+    opts = LensCalOptions(board=parse_board(board), square_mm=square_mm, order=order, loss=loss, huber_px=huber_px,
+                          method=method, held_out=not no_held_out, report_dir=report)
+    rep = calibrate_lens(images, out, opts)
+    if json_out:
+        print(json.dumps(rep, indent=1))
+        return
+    for line in rep["summary"]:
+        print(line)
