@@ -18,13 +18,14 @@ from .conftest import REPO
 
 @pytest.fixture(scope="module")
 def readme(shared):
-    """Namespace and printed output of the README's library example, run from the repository root."""
+    """Namespace and printed output of the README's library example ("## Use as a library"; the same
+    block is on docs/index.md, tests/test_docs.py checks they agree), run from the repository root."""
     import contextlib
     import io
     import os
 
     text = (REPO / "README.md").read_text()
-    code = re.search(r"```python\n(.*?)```", text[text.index("### Use as a library"):], re.S).group(1)
+    code = re.search(r"```python\n(.*?)```", text[text.index("## Use as a library"):], re.S).group(1)
     ns: dict = {}
     out = io.StringIO()
     cwd = os.getcwd()
