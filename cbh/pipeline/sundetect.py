@@ -116,23 +116,10 @@ def detect_sun(image_bgr: np.ndarray, cam: Camera, expected_ray_cam: np.ndarray 
     """
     m = cam.model
     h, w = image_bgr.shape[:2]
-    x0, y0, x1, y1 = 0, 0, w, h
-    if expected_ray_cam is not None:
-        e = np.asarray(expected_ray_cam, np.float64)
-        e = e / np.linalg.norm(e)
-        pe = m.ray_to_pixel(e[None, :])[0]
-        if not np.all(np.isfinite(pe)):
-            return SunDetection(False, "absent")
-        # pixels per degree near the prediction, from a ray one degree away
-        ortho = np.cross(e, [0.0, 0.0, 1.0] if abs(e[2]) < 0.9 else [1.0, 0.0, 0.0])
-        ortho /= np.linalg.norm(ortho)
-        p1 = m.ray_to_pixel((e * math.cos(math.radians(1)) + ortho * math.sin(math.radians(1)))[None, :])[0]
-        ppd = float(np.linalg.norm(p1 - pe)) if np.all(np.isfinite(p1)) else 0.5 * max(h, w) / 90.0
-        half = int(math.ceil(ppd * search_deg)) + 2
-        x0, y0 = max(int(pe[0]) - half, 0), max(int(pe[1]) - half, 0)
-        x1, y1 = min(int(pe[0]) + half + 1, w), min(int(pe[1]) + half + 1, h)
-        if x1 <= x0 or y1 <= y0:
-            return SunDetection(False, "absent")
+    window = _search_window(m, expected_ray_cam, search_deg, w, h)
+    if window is None:
+        return SunDetection(False, "absent")
+    x0, y0, x1, y1 = window
     if clip is None:
         clip = clip_level(image_bgr, cfg.clip)
     sat = saturated_pixels(image_bgr[y0:y1, x0:x1], cfg.saturation_margin_dn, clip)
@@ -171,20 +158,7 @@ def detect_sun(image_bgr: np.ndarray, cam: Camera, expected_ray_cam: np.ndarray 
         return SunDetection(False, "edge", area_px=area)
     ys, xs = np.nonzero(lab[by:by + bh, bx:bx + bw] == best)
     px = np.stack([xs + bx + x0, ys + by + y0], axis=-1).astype(np.float64)
-    rays = m.pixel_to_ray(px)
-    # solid angle of each pixel: |∂ray/∂x × ∂ray/∂y| (central differences of the lens model)
-    dx = m.pixel_to_ray(px + [0.5, 0.0]) - m.pixel_to_ray(px - [0.5, 0.0])
-    dy = m.pixel_to_ray(px + [0.0, 0.5]) - m.pixel_to_ray(px - [0.0, 0.5])
-    wgt = np.linalg.norm(np.cross(dx, dy), axis=1)
-    c = (rays * wgt[:, None]).sum(axis=0)
-    c /= np.linalg.norm(c)
-    # angular moments in the tangent plane at the centroid
-    u = np.cross(c, [0.0, 0.0, 1.0] if abs(c[2]) < 0.9 else [1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(c, u)
-    q = np.stack([rays @ u, rays @ v], axis=-1)
-    cov = (q * wgt[:, None]).T @ q / wgt.sum()
-    ev = np.linalg.eigvalsh(cov)
+    c, u, v, q, wgt, ev = _spherical_moments(m, px)
     rms = math.sqrt(max(ev.sum(), 0.0))
     radius_deg = math.degrees(rms)
     if radius_deg * math.sqrt(2.0) > cfg.max_radius_deg:
@@ -202,6 +176,52 @@ def detect_sun(image_bgr: np.ndarray, cam: Camera, expected_ray_cam: np.ndarray 
         return SunDetection(False, "occluded", area_px=area, radius_deg=radius_deg)
     pc = m.ray_to_pixel(c[None, :])[0]
     return SunDetection(True, "ok", ray_cam=c, px=pc, area_px=area, radius_deg=radius_deg)
+
+
+def _search_window(m, expected_ray_cam, search_deg: float, w: int, h: int) -> tuple[int, int, int, int] | None:
+    """Pixel box (x0, y0, x1, y1) within ``search_deg`` of the predicted sun (the whole image
+    without a prediction); None when the prediction falls off the image."""
+    if expected_ray_cam is None:
+        return 0, 0, w, h
+    e = np.asarray(expected_ray_cam, np.float64)
+    e = e / np.linalg.norm(e)
+    pe = m.ray_to_pixel(e[None, :])[0]
+    if not np.all(np.isfinite(pe)):
+        return None
+    # pixels per degree near the prediction, from a ray one degree away
+    ortho = np.cross(e, [0.0, 0.0, 1.0] if abs(e[2]) < 0.9 else [1.0, 0.0, 0.0])
+    ortho /= np.linalg.norm(ortho)
+    p1 = m.ray_to_pixel((e * math.cos(math.radians(1)) + ortho * math.sin(math.radians(1)))[None, :])[0]
+    ppd = float(np.linalg.norm(p1 - pe)) if np.all(np.isfinite(p1)) else 0.5 * max(h, w) / 90.0
+    half = int(math.ceil(ppd * search_deg)) + 2
+    x0, y0 = max(int(pe[0]) - half, 0), max(int(pe[1]) - half, 0)
+    x1, y1 = min(int(pe[0]) + half + 1, w), min(int(pe[1]) + half + 1, h)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return x0, y0, x1, y1
+
+
+def _spherical_moments(m, px: np.ndarray):
+    """A blob's solid-angle-weighted centroid ray ``c`` and second moments on the sphere.
+
+    Returns ``c`` (3,), the tangent-plane axes ``u``, ``v`` (3,), each pixel's tangent-plane
+    coordinates ``q`` (N, 2) [rad] and solid angle ``wgt`` (N,) [sr], and the eigenvalues
+    ``ev`` (2,) of the weighted covariance of ``q`` [rad²], ascending.
+    """
+    rays = m.pixel_to_ray(px)
+    # solid angle of each pixel: |∂ray/∂x × ∂ray/∂y| (central differences of the lens model)
+    dx = m.pixel_to_ray(px + [0.5, 0.0]) - m.pixel_to_ray(px - [0.5, 0.0])
+    dy = m.pixel_to_ray(px + [0.0, 0.5]) - m.pixel_to_ray(px - [0.0, 0.5])
+    wgt = np.linalg.norm(np.cross(dx, dy), axis=1)
+    c = (rays * wgt[:, None]).sum(axis=0)
+    c /= np.linalg.norm(c)
+    # angular moments in the tangent plane at the centroid
+    u = np.cross(c, [0.0, 0.0, 1.0] if abs(c[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(c, u)
+    q = np.stack([rays @ u, rays @ v], axis=-1)
+    cov = (q * wgt[:, None]).T @ q / wgt.sum()
+    return c, u, v, q, wgt, np.linalg.eigvalsh(cov)
 
 
 def _ring_stats(image_bgr, m, c, u, v, rho_edge, usable, clip: ClipLevel, margin_dn: int) -> tuple[float, float]:
