@@ -285,10 +285,10 @@ def test_full_day_at_960px_meets_the_issue_targets(tmp_path, repo, capsys, level
     """Issue 12's targets: 100 pairs at 960 px; each camera within 0.1°, relative within 0.05°,
     the 2000 m layer within 1 % after calibration. Also as limited-range video of a sensor
     clipping at 235 (issue 22: white at 16 + 235 · 219/255 = 218 DN; before, the sun was
-    found in none of the frames). Measured (2026-12): full range 0.053° / 0.052°, relative
-    0.0007°; limited range 0.090° / 0.090° (both −0.09° of pitch: the larger saturated blob of
-    a sensor clipping at 92 % of full scale takes in more of the glow, brighter towards the
-    horizon), relative 0.002°, the layer at 1995-1997 m."""
+    found in none of the frames). Measured: full range 0.054° / 0.054°, relative 0.0006°, the
+    layer at 1998-1999 m; limited range 0.090° / 0.090° (−0.09° of pitch in both, against
+    −0.05° at full range: a sensor clipping at 92 % of full scale saturates more of the glow,
+    which is brighter towards the horizon), relative 0.002°, the layer at 1995-1997 m."""
     from dataclasses import replace
 
     from cbh.imageio import read_image
