@@ -225,9 +225,11 @@ def test_real_wahrsis_pair_is_not_flagged_but_its_sun_is(shared, repo):
 
 
 def test_sun_in_one_camera_only_raises_no_alarm():
-    """Broken cumulus around the sun (the default two-layers scene at 14:00-14:00:30 UTC): in
-    some pairs one camera takes a saturated cloud beside the hidden sun for the sun, 3-5 deg
-    off. A correct station must not be flagged: the pair's residual needs the sun in both
+    """Broken cumulus around the sun (the default two-layers scene at 14:00-14:00:30 UTC): the
+    sun detector once took a saturated cloud beside the hidden sun for the sun in one camera,
+    3-5 deg off (it now rejects a round piece carved out of saturated cloud: its ring is
+    saturated all round). A correct station must not be flagged, and a sun found in either
+    camera is the sun (within 1 deg of the prediction); a pair's residual needs the sun in both
     cameras (the per-camera residuals stay in the diagnostics)."""
     from datetime import timedelta
 
@@ -239,17 +241,15 @@ def test_sun_in_one_camera_only_raises_no_alarm():
     sc = load_scene(scene_path("two-layers"))
     sim = SkySimulator(load_station(station_path("unb-lea")), sc)
     pipe = Pipeline(sim.station)
-    one_camera = 0
     for k in (0, 3):  # cam1 takes the cloud for the sun at 14:00:00, cam2 at 14:00:30
         t = sc.time_utc + timedelta(seconds=10 * k)
         shot = sim.render(t)
         r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, t, channels="bgr")
         assert "sun_misaligned" not in r.flags
         per_cam = [r.diagnostics[f"sun_residual_{c}_deg"] for c in ("cam1", "cam2")]
+        assert all(v < 1.0 for v in per_cam if math.isfinite(v))  # no cloud taken for the sun
         if sum(map(math.isfinite, per_cam)) == 1:
-            one_camera += 1
             assert math.isnan(r.diagnostics["sun_residual_deg"])
-    assert one_camera >= 1  # the case this test is about did occur
 
 
 def test_same_image_twice_is_flagged_when_working_sizes_differ(sim, shot):

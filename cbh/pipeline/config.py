@@ -62,7 +62,7 @@ class MasksConfig:
     sun: bool = True  # mask a disk around the sun (pvlib position from lat/lon + time)
     sun_radius_deg: float = 8.0  # radius of the masked sun disk [deg]
     saturation: bool = True  # also mask saturated blobs (sun, glare, specular reflections)
-    saturation_level: int = 250  # a pixel is saturated when all channels reach this [0..255]
+    saturation_level: int = 250  # full-range threshold: a pixel is saturated when all channels reach this, lowered by each image's own clip level (cbh.pipeline.clip) [0..255]
     saturation_min_area_px: int = 20  # smallest saturated blob kept, at working size [px]
     saturation_grow_px: int = 6  # dilation of saturated blobs, at working size [px]
     glare_radius_deg: float = 30.0  # with a known sun, only saturation within this angle of it is glare; beyond: over-exposed cloud (180 = all glare) [deg]

@@ -37,10 +37,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from cbh.pipeline.clip import clip_level
+
 __all__ = ["ColourResponse", "estimate_response", "channel_percentiles"]
 
 _QUANTILES = np.linspace(0.5, 99.5, 100)  # percentiles matched [%]
 _DARK, _BRIGHT = 4.0, 250.0  # values outside (_DARK, _BRIGHT) are not fitted [DN]
+_CLIP_MARGIN = 5  # … nor within this of the image's own clip level (cbh.pipeline.clip) [DN]
 _MIN_PIXELS = 2000  # fewer common pixels: no estimate (identity)
 _MIN_LOG_RANGE = 0.25  # spread of ln(I2) over the fitted quantiles below which γ is fixed to 1
 _GAMMA_LIMITS = (0.4, 2.5)  # estimates outside this are not a camera response: clamp
@@ -194,7 +197,11 @@ def estimate_response(image1: np.ndarray, image2: np.ndarray, geometry, usable1:
         return ColourResponse()
     q1 = channel_percentiles(image1[::s, ::s][common], _QUANTILES)  # (Q, 3) B, G, R
     q2 = channel_percentiles(cv2.remap(image2, mx, my, **kw)[common], _QUANTILES)
-    ok = (q1 > _DARK) & (q1 < _BRIGHT) & (q2 > _DARK) & (q2 < _BRIGHT)
+    # quantiles at a camera's own clip level (235 on limited-range video, not only 255) say nothing
+    # of its response: each camera's bright limit is its clip level less _CLIP_MARGIN
+    b1 = min(_BRIGHT, clip_level(image1).level_dn - _CLIP_MARGIN)
+    b2 = min(_BRIGHT, clip_level(image2).level_dn - _CLIP_MARGIN)
+    ok = (q1 > _DARK) & (q1 < b1) & (q2 > _DARK) & (q2 < b2)
     if ok.sum(axis=0).min() < 3:
         return ColourResponse(pixels=n)
     y = np.log(np.maximum(q1, 0.5) / 255.0)  # (quantiles of black pixels are not used: ``ok``)

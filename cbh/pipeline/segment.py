@@ -181,9 +181,12 @@ def _fisheye_circle(usable: np.ndarray, box) -> tuple[float, float, float] | Non
     return 0.5 * (y0 + y1 - 1), 0.5 * (x0 + x1 - 1), 0.5 * max(h, w)
 
 
-def _saturated_sun(image_bgr: np.ndarray, usable: np.ndarray, level: int = 250) -> tuple[float, float] | None:
-    """(row, col) of the largest saturated blob (the sun) of at least 0.02 % of the image, else None."""
-    sat = cv2.inRange(image_bgr, (level, level, level), (255, 255, 255))
+def _saturated_sun(image_bgr: np.ndarray, usable: np.ndarray) -> tuple[float, float] | None:
+    """(row, col) of the largest saturated blob (the sun; saturated at the image's own clip
+    level, :mod:`.clip`) of at least 0.02 % of the image, else None."""
+    from cbh.pipeline.clip import saturated_pixels
+
+    sat = saturated_pixels(image_bgr)
     n, _, stats, cent = cv2.connectedComponentsWithStats(sat, connectivity=8)
     if n < 2:
         return None

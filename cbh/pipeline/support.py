@@ -13,7 +13,9 @@ through the horizontal plane of each height hypothesis (:class:`~.sweep.PlaneMap
 exact plane mapping of the sweep) onto a ``window_px`` patch around the pixel, and scored by
 zero-mean normalised cross-correlation against camera 1's patch. The candidate is an alias of
 the bigger layer when at least ``alias_share`` of its pixels score there within ``margin`` of
-their score at its own height. Measured on randomized skies (``benchmarks/eval_random.py``,
+their score at its own height, and at least ``min_zncc``: a clear match (pixels that match
+nowhere, e.g. fog far below the sweep's floor, are chance matches at every height; those
+layers are left to the flags that say so, ``below_range`` and ``cloud_unmatched``). Measured on randomized skies (``benchmarks/eval_random.py``,
 640 px): the pixels of real, distinct layers do so at 2–20 %, those of an alias at 55 %.
 """
 from __future__ import annotations
@@ -31,6 +33,7 @@ class AliasConfig:
     window_px: int = 9  # ZNCC patch side at working size [px]
     margin: float = 0.02  # "as good": the other height's ZNCC at least own − this [1]
     alias_share: float = 0.4  # a layer is an alias when this share of its pixels is as good elsewhere [1]
+    min_zncc: float = 0.6  # … and clearly matched there: chance matches (fog below the sweep's floor) match nowhere [1]
     max_samples: int = 600  # points sampled per layer (the share is then good to ±2 %) [1]
 
 
@@ -117,7 +120,8 @@ def alias_layers(gray1, gray2, planes, o1z_m: float, heights_m, points_px1: np.n
         if not ok.any():
             continue
         for row, j in zip(z[1:], bigger):
-            share = float(np.mean(np.nan_to_num(row[ok], nan=-2.0) >= own[ok] - cfg.margin))
+            other = np.nan_to_num(row[ok], nan=-2.0)
+            share = float(np.mean((other >= own[ok] - cfg.margin) & (other >= cfg.min_zncc)))
             if share >= cfg.alias_share:
                 out[int(k)] = int(j)
                 break
