@@ -1,8 +1,9 @@
 """Chessboards rendered through a known lens, so that lens-calibration tests know the exact answer.
 
 Every pixel's ray (:meth:`~cbh.geometry.camera.OCamModel.pixel_to_ray`) is intersected with
-the board plane and shaded black or white by the square it hits, averaged over a sub-pixel
-grid (box-filtered, so the corner positions carry no half-pixel bias), then blurred, given
+the board plane and shaded black or white by the square it hits, averaged over sub-pixel
+samples on a Fibonacci lattice (a box filter, so the corner positions carry no half-pixel bias),
+then blurred, given
 sensor noise and JPEG-compressed. The true corners are the board's inner corners imaged
 through the same model (:func:`cbh.geometry.lenscal.project_model`).
 
@@ -145,19 +146,35 @@ def hemisphere_poses(board: Chessboard, n: int, rng: np.random.Generator, max_ze
     return poses
 
 
+def _lattice(n: int) -> np.ndarray:
+    """``n`` sub-pixel offsets in [−½, ½)², a rank-1 lattice with generator round(n / φ).
+
+    Every sample has its own x and its own y, so an edge of any direction, axis-parallel ones
+    included, is resolved to ~1/n of a pixel; a regular √n × √n grid resolves axis-parallel
+    edges only to 1/√n, the same way along the whole edge, which biases corners by ~0.03 px.
+    Random jitter removes that bias but adds ~15 grey levels of noise to every edge pixel.
+    """
+    g = int(round(n / ((1 + math.sqrt(5)) / 2)))
+    i = np.arange(n)
+    return np.stack([(i + 0.5) / n, ((i * g) % n + 0.5) / n], axis=-1) - 0.5
+
+
 def _board_xy(rays: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Board coordinates (N, 2) [mm] where the rays meet the board plane, and whether they do."""
     from scipy.spatial.transform import Rotation
 
     R = Rotation.from_rotvec(pose[:3]).as_matrix()
     t = pose[3:]
-    n = R[:, 2]
-    denom = rays @ n
+
+    def dot(v):  # rays · v, written out: a threaded BLAS product is slow on a busy machine
+        return rays[:, 0] * v[0] + rays[:, 1] * v[1] + rays[:, 2] * v[2]
+
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (t @ n) / denom
+        lam = float(t @ R[:, 2]) / dot(R[:, 2])
     hit = np.isfinite(lam) & (lam > 0)
-    P = rays * np.where(hit, lam, 0.0)[:, None] - t
-    return (P @ R)[:, :2], hit
+    lam = np.where(hit, lam, 0.0)
+    xy = np.stack([lam * dot(R[:, k]) - float(t @ R[:, k]) for k in (0, 1)], axis=-1)
+    return xy, hit
 
 
 def _shade(xy: np.ndarray, hit: np.ndarray, board: Chessboard, levels: tuple[float, float, float]) -> np.ndarray:
@@ -188,7 +205,7 @@ def _board_bbox(model: OCamModel, board: Chessboard, pose: np.ndarray) -> tuple[
 
 
 def render_board(model: OCamModel, board: Chessboard, pose, rng: np.random.Generator | None = None,
-                 supersample: int = 4, blur_px: float = 0.7, noise_dn: float = 2.0, jpeg_quality: int | None = 90,
+                 samples: int = 34, blur_px: float = 0.7, noise_dn: float = 2.0, jpeg_quality: int | None = 90,
                  levels: tuple[float, float, float] = (35.0, 215.0, 110.0), fov_deg: float = 190.0) -> BoardShot:
     """Image a chessboard through ``model``.
 
@@ -201,8 +218,9 @@ def render_board(model: OCamModel, board: Chessboard, pose, rng: np.random.Gener
         Rotation vector [rad] and translation [mm].
     rng : numpy.random.Generator, optional
         Source of the sensor noise (default: seeded 0).
-    supersample : int
-        Sub-pixel samples per pixel side (box filter).
+    samples : int
+        Sub-pixel samples per pixel (box filter), on the rank-1 Fibonacci lattice of
+        :func:`_lattice`; 34 keeps the corners within ~0.01 px of the truth.
     blur_px : float
         Gaussian blur σ [px] (optics); 0 for none.
     noise_dn : float
@@ -224,13 +242,12 @@ def render_board(model: OCamModel, board: Chessboard, pose, rng: np.random.Gener
     box = _board_bbox(model, board, pose)
     if box is not None:
         x0, x1, y0, y1 = box
-        off = (np.arange(supersample) + 0.5) / supersample - 0.5
         ys, xs = np.mgrid[y0:y1, x0:x1]
-        shape = (y1 - y0, x1 - x0, supersample, supersample)
-        sx = np.broadcast_to(xs[..., None, None] + off[None, None, None, :], shape).ravel()
-        sy = np.broadcast_to(ys[..., None, None] + off[None, None, :, None], shape).ravel()
+        lat = _lattice(samples)
+        sx = (xs[..., None] + lat[None, None, :, 0]).ravel()
+        sy = (ys[..., None] + lat[None, None, :, 1]).ravel()
         xy, hit = _board_xy(model.pixel_to_ray(np.stack([sx, sy], axis=-1)), pose)
-        grey = _shade(xy, hit, board, levels).reshape(y1 - y0, x1 - x0, supersample * supersample)
+        grey = _shade(xy, hit, board, levels).reshape(y1 - y0, x1 - x0, samples)
         img[y0:y1, x0:x1] = grey.mean(axis=-1)
     img[model.theta_map() > fov_deg / 2.0] = 0.0
     if blur_px > 0:

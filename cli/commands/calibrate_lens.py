@@ -19,7 +19,7 @@ def calibrate_lens_cmd(
     order: int = typer.Option(4, "--order", min=2, max=12, help="Degree of the polynomial f(r)."),
     loss: str = typer.Option("linear", "--loss", help="linear (least squares) or huber (robust)."),
     huber_px: float = typer.Option(1.0, "--huber-px", help="Huber loss: residual where it turns linear [px]."),
-    method: str = typer.Option("trf", "--method", help="trf (sparse trust region) or lm (Levenberg-Marquardt, linear loss)."),
+    method: str = typer.Option("auto", "--method", help="lm (Levenberg-Marquardt, linear loss), trf (sparse trust region, any loss) or auto (lm unless --loss huber)."),
     no_held_out: bool = typer.Option(False, "--no-held-out", help="Skip the leave-one-image-out error."),
     json_out: bool = typer.Option(False, "--json", help="Print the full report as JSON."),
     report: Path = typer.Option(None, "--report", help="Folder for residuals per image (CSV, PNG) and the coverage picture."),

@@ -1,0 +1,317 @@
+"""`cbh calibrate-lens` (issue 23): Scaramuzza lens calibration from chessboards.
+
+Truths: boards rendered through a known lens (cbh.sim.chessboard), exact projections, the
+toolbox's own equations (../shared/data/ocamcalib/README.md) and the published Fisheye1 results
+of Urban, Leitloff & Hinz (2015) (../shared/data/chessboard-fisheye1).
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from cbh.cli.main import main
+from cbh.geometry import lenscal as L
+from cbh.geometry.camera import OCamModel, format_ocamcalib, read_ocamcalib
+from cbh.sim.chessboard import Chessboard, pose_facing, render_board
+
+from .conftest import SHARED
+
+FISHEYE1 = SHARED / "data" / "chessboard-fisheye1"
+
+# Urban's bundle adjustment with sub-pixel corners on Fisheye1 (published_results.json,
+# method "urban_BA_subpixel"), in the cbh frame: poly = −ss, centre (column, row) 0-based.
+URBAN = OCamModel(width=1032, height=778, center_xy=(544.7632627101435 - 1, 378.7815348386259 - 1),
+                  affine=(0.9988832204900614, -0.011512448365649075, 0.010783396198865113),
+                  poly=(338.41035716557843, 0.0, -0.001202353200400185, 1.2764818032860186e-06,
+                        -2.857234715777272e-09))
+TRUTH = URBAN.scaled(0.5)  # 516 x 389 px: a real fisheye lens at a size the default tier can afford
+BOARD = Chessboard(cols=6, rows=8, square_mm=32.5)
+# (zenith, azimuth [deg], distance [mm], tilt, tilt axis, roll [deg]): centre, middle, periphery
+SPECS = [(5, 0, 330, 20, 0, 0), (35, 60, 330, 25, 90, 30), (45, 200, 330, 20, 45, 60),
+         (40, 290, 330, 25, 10, -30), (64, 0, 420, 15, 90, 10), (64, 180, 420, 15, 0, 80)]
+
+
+def one_error_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("cbh: error: ") and "Traceback" not in err, err
+    return lines[0]
+
+
+def exact_views(model: OCamModel, poses):
+    """Corners projected exactly through ``model`` (no image): the linear + BA path alone."""
+    from scipy.spatial.transform import Rotation
+
+    out = []
+    for p in poses:
+        R = Rotation.from_rotvec(p[:3]).as_matrix()
+        out.append(L.project_model(model, BOARD.corners() @ R[:, :2].T + p[3:]))
+    return out
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """Six boards rendered through TRUTH (2-DN noise, JPEG 90) as PNG files, and their truth."""
+    d = tmp_path_factory.mktemp("boards")
+    shots, paths = [], []
+    for i, spec in enumerate(SPECS):
+        shot = render_board(TRUTH, BOARD, pose_facing(BOARD, *spec), rng=np.random.default_rng(i))
+        paths.append(d / f"board{i}.png")
+        cv2.imwrite(str(paths[i]), shot.image)
+        shots.append(shot)
+    return d, paths, shots
+
+
+@pytest.fixture(scope="module")
+def cli_run(rendered, tmp_path_factory):
+    """``cbh calibrate-lens`` on the six rendered boards and a blank frame, with --json and --report."""
+    d, paths, _ = rendered
+    out = d / "calib_results.txt"
+    report = d / "report"
+    blank = d / "blank.png"
+    cv2.imwrite(str(blank), np.full((389, 516), 110, np.uint8))
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = main(["calibrate-lens", *map(str, paths), str(blank), "--board", "6x8", "--square-mm", "32.5",
+                   "--out", str(out), "--json", "--report", str(report)])
+    assert rc == 0
+    return json.loads(buf.getvalue()), out, report
+
+
+# --- numerics -----------------------------------------------------------------------------
+
+def test_board_points_and_ocam_row_column_conventions():
+    xy = L.board_points(3, 2, 10.0)
+    assert xy.tolist() == [[0, 0], [10, 0], [20, 0], [0, 10], [10, 10], [20, 10]]  # OpenCV's row-major order
+    rc = np.array([[1.0, 1.0], [379.5, 541.25]])  # MATLAB (row, column), 1-based
+    assert L.xy_from_ocam_rowcol(rc).tolist() == [[0.0, 0.0], [540.25, 378.5]]
+    assert np.array_equal(L.ocam_rowcol_from_xy(L.xy_from_ocam_rowcol(rc)), rc)
+
+
+def test_projection_agrees_with_the_camera_model():
+    rng = np.random.default_rng(1)
+    rays = rng.normal(size=(500, 3))
+    rays[:, 2] = np.abs(rays[:, 2]) + 0.05  # in front of the lens, below 90°
+    assert np.max(np.abs(L.project_model(URBAN, rays) - URBAN.ray_to_pixel(rays))) < 1e-9
+    px = L.project_model(URBAN, rays)
+    assert np.max(np.abs(np.cross(URBAN.pixel_to_ray(px), rays / np.linalg.norm(rays, axis=1)[:, None]))) < 1e-12
+
+
+def test_analytic_jacobian_matches_finite_differences():
+    from scipy.optimize._numdiff import approx_derivative
+
+    poses = [pose_facing(BOARD, *s) for s in SPECS[:3]]
+    views = exact_views(TRUTH, poses)
+    prob = L._Problem.of(views, [BOARD.corners()] * 3, TRUTH.width, TRUTH.height)
+    lay = L._Layout(3, 4, r_ref=300.0)
+    x = lay.pack((260.0, 190.0), 1.002, 0.003, TRUTH.poly, np.array(poses) + 0.01)
+    J = L._jacobian(x, lay, prob, dense=True)
+    Jn = approx_derivative(lambda v: L._reprojection(v, lay, prob).ravel(), x, method="3-point")
+    assert np.max(np.abs(J - Jn)) < 1e-5 * np.max(np.abs(Jn))
+
+
+def test_exact_corners_give_back_the_lens():
+    poses = [pose_facing(BOARD, *s) for s in SPECS]
+    views = exact_views(TRUTH, poses)
+    cal = L.calibrate(views, [BOARD.corners()] * 6, TRUTH.width, TRUTH.height)
+    assert L.error_stats(np.concatenate(cal.residuals))["rms_euclid_px"] < 1e-6
+    err = L.ray_error_px(cal.model, TRUTH, max_theta_deg=80.0)
+    assert err["max_px"] < 1e-5
+    # the truth's d ≠ e: its rotational part is traded against the board poses (the one gauge)
+    assert err["rotation_deg"] == pytest.approx(math.degrees((0.011512448365649075 + 0.010783396198865113) / 2), abs=0.01)
+
+
+def test_the_inverse_polynomial_is_findinvpoly():
+    inv = L.inverse_polynomial(URBAN.poly, URBAN.width, URBAN.height)
+    t = np.arange(-math.pi / 2, 1.2 + 1e-9, 0.01)
+    r = L._radius_of_t(np.asarray(URBAN.poly), t, math.hypot(URBAN.width / 2, URBAN.height / 2))
+    t, r = t[np.isfinite(r)], r[np.isfinite(r)]
+    err = np.abs(np.polynomial.polynomial.polyval(t, inv) - r)
+    assert err.max() < 0.01
+    lower = np.polynomial.polynomial.polyfit(t, r, len(inv) - 2)  # one degree less is not enough
+    assert np.abs(np.polynomial.polynomial.polyval(t, lower) - r).max() >= 0.01
+    # world2cam with the toolbox's equations (toolbox frame: x along rows, z < 0 in front)
+    rng = np.random.default_rng(2)
+    rays = rng.normal(size=(300, 3))
+    rays[:, 2] = np.abs(rays[:, 2]) + 0.1
+    x_tb, y_tb, z_tb = rays[:, 1], rays[:, 0], -rays[:, 2]
+    norm = np.hypot(x_tb, y_tb)
+    rho = np.polynomial.polynomial.polyval(np.arctan(z_tb / norm), inv)
+    u, v = x_tb / norm * rho, y_tb / norm * rho
+    c, d, e = URBAN.affine
+    row, col = u * c + v * d + URBAN.center_xy[1], u * e + v + URBAN.center_xy[0]
+    inside = URBAN.contains(URBAN.ray_to_pixel(rays))
+    got = np.stack([col, row], axis=-1)[inside]
+    assert np.max(np.hypot(*(got - URBAN.ray_to_pixel(rays)[inside]).T)) < 0.01
+
+
+def test_urbans_published_model_reprojects_his_corners_as_published(shared):
+    """Conventions end to end: 1-based (row, column) corners, Urban's sorted-out centre, poses
+    refit with the model held fixed give back his stored 0.4014 px (per-point Euclidean RMS)."""
+    pub = json.loads((FISHEYE1 / "published_results.json").read_text())
+    meth = pub["methods"]["urban_BA_subpixel"]
+    XY = np.array(pub["board"]["world_points_Xt_Yt_mm"])
+    res = [L.fit_pose(URBAN, L.xy_from_ocam_rowcol(v["corners_row_col_1based"]), XY)[1]
+           for v in meth["per_image"].values()]
+    rms = L.error_stats(np.concatenate(res))
+    assert 0.400 < rms["rms_euclid_px"] <= meth["recomputed"]["per_point_euclid_rms_px"] + 1e-4
+    assert rms["rms_coord_px"] == pytest.approx(rms["rms_euclid_px"] / math.sqrt(2), rel=1e-12)
+
+
+# --- renderer -----------------------------------------------------------------------------
+
+def test_rendered_corners_are_where_the_lens_puts_them(rendered):
+    from cbh.actions.calibrate_lens import detect_corners
+
+    _, _, shots = rendered
+    shot = shots[1]
+    zen = TRUTH.theta_of_pixel(shot.corners_xy).mean()
+    assert 25 < zen < 45  # the board sits in the requested direction (35° from the axis)
+    found, det = detect_corners(shot.image, 6, 8)
+    assert det == "sb"
+    truth = shot.corners_xy if np.linalg.norm(found[0] - shot.corners_xy[0]) < 5 else shot.corners_xy[::-1]
+    err = L.error_stats(found - truth)
+    assert 0.005 < err["rms_euclid_px"] < 0.06  # noise and JPEG move the corners, but only a little
+
+
+# --- the command ----------------------------------------------------------------------------
+
+def test_rendered_boards_calibrate_to_the_true_lens(cli_run):
+    rep, out, _ = cli_run
+    assert [p.rsplit("/", 1)[-1] for p in rep["no_board"]] == ["blank.png"] and rep["overall"]["n_images"] == 6
+    o, h = rep["overall"], rep["held_out"]
+    # 2-DN noise + JPEG put the detected corners 0.04-0.05 px from the truth (measured); the fit
+    # residual must be of that size, neither zero (overfit) nor larger (model or detector error)
+    assert 0.02 < o["rms_euclid_px"] < 0.07
+    assert o["rms_coord_px"] == pytest.approx(o["rms_euclid_px"] / math.sqrt(2), rel=1e-9)
+    assert o["rms_euclid_px"] < h["rms_euclid_px"] < 2 * o["rms_euclid_px"]
+    model = read_ocamcalib(out)
+    err = L.ray_error_px(model, TRUTH, max_theta_deg=rep["coverage"]["max_corner_theta_deg"])
+    assert err["rms_px"] < 0.1 and err["max_px"] < 0.2  # six small boards: measured 0.064 / 0.11 px
+    assert np.hypot(*(np.array(model.center_xy) - TRUTH.center_xy)) < 0.3
+
+
+def test_the_written_file_round_trips_exactly(cli_run):
+    rep, out, _ = cli_run
+    text = out.read_text()
+    model = read_ocamcalib(out)
+    assert format_ocamcalib(model) == text
+    assert read_ocamcalib(out) == model
+    m = rep["model"]
+    assert [-a for a in model.poly] == m["ss"] and list(model.invpol) == m["invpol"]
+    assert [model.center_xy[1], model.center_xy[0]] == m["center_row_col_0based"]
+    assert list(model.affine) == m["affine_c_d_e"] and (model.height, model.width) == (389, 516)
+    lines = [ln for ln in text.splitlines() if ln and not ln.startswith("#")]
+    assert lines[0].split()[0] == "5" and float(lines[0].split()[1]) < 0  # ss count, a0 < 0 (toolbox frame)
+    assert int(lines[1].split()[0]) == len(lines[1].split()) - 1
+
+
+def test_report_folder_has_residuals_and_coverage(cli_run):
+    rep, _, report = cli_run
+    with (report / "residuals.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 6 * 48 and {"dx_px", "held_out_dx_px", "theta_deg"} <= set(rows[0])
+    with (report / "images.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == 7  # six boards and the blank frame
+    for png in ("residuals.png", "coverage.png"):
+        assert (report / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_summary_names_the_errors_and_the_missing_board(cli_run):
+    rep, _, _ = cli_run
+    text = "\n".join(rep["summary"])  # what the command prints without --json
+    assert "per-point Euclidean RMS" in text and "per coordinate" in text and "held out" in text
+    assert "no board in: blank.png" in text
+    assert [e["file"].endswith("blank.png") for e in rep["images"] if not e["board_found"]] == [True]
+
+
+# --- bad input ----------------------------------------------------------------------------
+
+def _write(path, img):
+    cv2.imwrite(str(path), img)
+    return str(path)
+
+
+@pytest.mark.parametrize("case, says", [
+    ("no_board", "no 6x8 chessboard found in any of the 4 images"),
+    ("too_few_images", "2 images given; at least 4 are needed"),
+    ("sizes", "calibrate one camera (one image size) at a time"),
+    ("unreadable", "corrupt or unsupported image data"),
+    ("too_few_boards", "found in 3 of 4 images (none in blank.png); at least 4 board poses are needed: add 1 more"),
+    ("no_periphery", "the periphery of the field of view (beyond 60° from the axis) is covered by 0 boards (2 needed): add 2 more there"),
+    ("bad_board", "expected COLSxROWS"),
+])
+def test_bad_input_is_one_line_exit_2(case, says, rendered, tmp_path, capsys):
+    _, paths, _ = rendered
+    blank = np.full((389, 516), 110, np.uint8)
+    board = "6x8"
+    if case == "no_board":
+        args = [_write(tmp_path / f"b{i}.png", blank) for i in range(4)]
+    elif case == "too_few_images":
+        args = list(map(str, paths[:2]))
+    elif case == "sizes":
+        args = [*map(str, paths[:4]), _write(tmp_path / "small.png", blank[:200, :300])]
+    elif case == "unreadable":
+        bad = tmp_path / "bad.jpg"
+        bad.write_bytes(b"not a jpeg at all")
+        args = [*map(str, paths[:4]), str(bad)]
+    elif case == "too_few_boards":
+        args = [*map(str, paths[:3]), _write(tmp_path / "blank.png", blank)]
+    elif case == "no_periphery":
+        args = list(map(str, paths[:4]))  # centre and middle only
+    else:
+        args, board = list(map(str, paths)), "6by8"
+    rc = main(["calibrate-lens", *args, "--board", board, "--square-mm", "32.5", "--out", str(tmp_path / "c.txt")])
+    assert rc == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert says in line
+    assert not (tmp_path / "c.txt").exists()
+
+
+# --- slow: the real Fisheye1 set and a full-size synthetic set ------------------------------
+
+@pytest.mark.slow
+def test_fisheye1_as_good_as_urbans_bundle_adjustment(shared, tmp_path, capsys):
+    images = sorted(FISHEYE1.glob("Fisheye1_*.jpg"))
+    assert len(images) == 15
+    out = tmp_path / "calib_results.txt"
+    assert main(["calibrate-lens", *map(str, images), "--board", "6x8", "--square-mm", "32.5",
+                 "--out", str(out), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["overall"]["n_images"] == 15
+    assert rep["overall"]["rms_euclid_px"] <= 0.40  # Urban's BA + sub-pixel: 0.401
+    assert rep["overall"]["rms_euclid_px"] < rep["held_out"]["rms_euclid_px"] < 0.5
+    # measured Urban's way: on his published sub-pixel corners, each pose refit, the model fixed
+    pub = json.loads((FISHEYE1 / "published_results.json").read_text())
+    meth = pub["methods"]["urban_BA_subpixel"]
+    XY = np.array(pub["board"]["world_points_Xt_Yt_mm"])
+    model = read_ocamcalib(out)
+    res = [L.fit_pose(model, L.xy_from_ocam_rowcol(v["corners_row_col_1based"]), XY)[1]
+           for v in meth["per_image"].values()]
+    assert L.error_stats(np.concatenate(res))["rms_euclid_px"] <= 1.05 * meth["recomputed"]["per_point_euclid_rms_px"]
+
+
+@pytest.mark.slow
+def test_full_size_boards_give_rays_within_005_px(tmp_path):
+    from cbh.actions.calibrate_lens import LensCalOptions, calibrate_lens
+
+    specs = [(5, 0, 330, 20, 0, 0), (25, 120, 330, 25, 90, 30), (30, 250, 330, 20, 45, 60),
+             (35, 60, 330, 25, 90, 30), (45, 200, 330, 20, 45, 60), (40, 290, 330, 25, 10, -30),
+             (45, 20, 330, 20, 30, 15), (50, 140, 330, 20, 60, 45), (64, 0, 420, 15, 90, 10),
+             (64, 180, 420, 15, 0, 80), (66, 20, 420, 15, 30, 40), (66, 160, 420, 15, 60, 20)]
+    paths = []
+    for i, spec in enumerate(specs):
+        shot = render_board(URBAN, BOARD, pose_facing(BOARD, *spec), rng=np.random.default_rng(100 + i))
+        paths.append(tmp_path / f"b{i}.png")
+        cv2.imwrite(str(paths[-1]), shot.image)
+    rep = calibrate_lens(paths, tmp_path / "c.txt", LensCalOptions(board=(6, 8), square_mm=32.5, held_out=False))
+    assert rep["overall"]["n_images"] >= 11
+    err = L.ray_error_px(read_ocamcalib(tmp_path / "c.txt"), URBAN, rep["coverage"]["max_corner_theta_deg"])
+    assert err["rms_px"] < 0.05
