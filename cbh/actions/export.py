@@ -243,6 +243,14 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
         Ground grid and camera geometry for the maps (default: the recorded station).
     """
     out = Path(out)
+    from cbh.actions import aviation
+
+    if product in aviation.PRODUCTS:  # metar | cl61 | eprofile: cbh/actions/aviation.py
+        if not daily and out.is_file() and _mcap_state(out) != "foreign":
+            raise RecordingError(f"{out} is a recording: an export never replaces one (give another --out)")
+        if daily:
+            raise ConfigError(f"--daily is for --product layers, not {product}")
+        return aviation.export_product(sessions, out, product, fmt)
     if fmt is None:
         fmt = format_from_suffix(out)
         if fmt is None and daily:
@@ -262,7 +270,8 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
         rows, steps = layer_export.export_sessions(sessions, fmt, out)
         return f"wrote {steps} time steps ({rows} rows) to {out}"
     if product not in PRODUCTS:
-        raise ConfigError(f"--product: unknown {product!r} (valid: layers, {', '.join(PRODUCTS)})")
+        raise ConfigError(f"--product: unknown {product!r} (valid: layers, {', '.join(PRODUCTS)}, "
+                          f"{', '.join(aviation.PRODUCTS)})")
     if daily:
         raise ConfigError("--daily is for --product layers")
     if fmt not in MAP_FORMATS:

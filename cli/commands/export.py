@@ -14,7 +14,7 @@ def export_cmd(
     sessions: list[Path] = typer.Argument(..., help="One or more SESSION.mcap files (or directories of rotated files)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output file (replaced if it exists); a directory with --daily."),
     fmt: str = typer.Option(None, "--format", "-f", help="csv | parquet | netcdf | npz (default: from the --out suffix)."),
-    product: str = typer.Option("layers", "--product", help="layers | cloudmap | shadow (maps: netcdf or npz)."),
+    product: str = typer.Option("layers", "--product", help="layers | cloudmap | shadow (maps: netcdf or npz) | metar (csv, ampycloud) | cl61 | eprofile (netcdf)."),
     daily: bool = typer.Option(False, "--daily", help="One file per UTC day in the --out directory (layers)."),
     station: str = typer.Option(None, "--station", help="Station TOML whose [ground] grid the maps use (default: recorded)."),
 ) -> None:
