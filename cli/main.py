@@ -17,7 +17,7 @@ import typer
 from cbh.errors import CbhError
 
 COMMANDS = ("triangulate", "simulate", "pair", "run", "replay", "export", "inspect", "mask", "quicklook", "segment",
-            "calibrate", "reprocess", "calibrate_lens")
+            "calibrate", "reprocess", "calibrate_lens", "validate")
 
 app = typer.Typer(
     name="cbh",

@@ -53,7 +53,7 @@ __all__ = ["Camera", "Station", "load_station", "parse_station", "check_sections
 B_LEVEL_NORTH_UP = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
 
 #: Top-level tables a station file may have besides [station] and [[cameras]].
-EXTRA_SECTIONS = ("pipeline", "service", "scene", "ground")
+EXTRA_SECTIONS = ("pipeline", "service", "scene", "ground", "ceilometer")  # ceilometer: cbh/actions/validate.py
 #: Keys of the optional [station.metadata] table (strings; NetCDF global attributes).
 METADATA_KEYS = ("institution", "instrument", "site", "contact", "comment", "references", "wigos_station_id")
 
