@@ -18,8 +18,9 @@ before it prints (stdout and stderr together). Its lines, apart from ``…`` lin
 in the output in that order. The words of each line must be the same; its numbers must agree
 within ``abs + rel·|number|`` (defaults: exact), because simulated skies and the real pair's
 matching move in the last digits from one build to the next. ``ignore`` (repeatable) blanks
-what is not the program's result (a latency); ``<NAME>`` in a promised line stands for one word
-(a time stamp in a file name).
+what is not the program's result (a latency; with a group, only the group: one column of a
+table, such as a layer's spread); ``<NAME>`` in a promised line stands for one word (a time
+stamp in a file name).
 """
 from __future__ import annotations
 
@@ -197,9 +198,14 @@ def compare_output(promised: str, actual: str, opts: dict) -> list[str]:
     """Problems (empty: the output keeps the page's promise)."""
     rel, abs_ = float(opts.get("rel", 0)), float(opts.get("abs", 0))
 
+    def blank(m):  # the whole match, or only its first group (one column of a table)
+        if m.re.groups == 0:
+            return "<?>"
+        return m.group(0)[:m.start(1) - m.start(0)] + "<?>" + m.group(0)[m.end(1) - m.start(0):]
+
     def clean(text):
         for pat in opts["ignore"]:
-            text = re.sub(pat, "<?>", text)
+            text = re.sub(pat, blank, text, flags=re.M)
         return [ln for ln in text.splitlines() if ln.strip()]
 
     want = [ln for ln in clean(promised) if ln.strip() not in ("…", "...")]
@@ -229,6 +235,9 @@ def test_output_comparison_is_numeric_and_two_sided():
     assert compare_output("layers 1204 m, 3486 m\n", "layers 1204 m, 3600 m\n", opts)   # a number off
     assert compare_output("layers 1204 m\n", "layers 1204 km\n", opts)                  # a word off
     assert not compare_output("latency 4.03 s | ok\n", "latency 0.39 s | ok\n", opts)
+    col = {**opts, "ignore": [r"^\s*\d+\s+\d+\s+(\d+)"]}                                  # a column blanked
+    assert not compare_output("  1  1204  12  0.5\n", "  1  1204  60  0.5\n", col)
+    assert compare_output("  1  1204  12  0.5\n", "  1  1300  12  0.5\n", col)
     assert not compare_output("recorded: r/a-<UTC>.mcap\n", "recorded: r/a-20261202T1620Z.mcap\n", opts)
     assert compare_output("a 1\nb 2\n", "b 2\na 1\n", opts)                               # order kept
     assert not compare_output("a 1\nb 2\n", "b 2\na 1\n", {**opts, "order": "any"})
