@@ -21,8 +21,8 @@ Two samplers live behind one contract (:data:`HIT_METHODS`, :func:`get_hit_metho
     ground; a ceilometer whose every layer is clear there reports "no detection" (type 0); one
     whose points are all outside the usable sky reports nothing. Because the camera sees the
     upper layer through the lower one's gaps *elsewhere*, a virtual ceilometer can report the
-    upper layer above a lower cloud (as a ceilometer's 2nd hit): the okta of each layer is its
-    areal cover, as an observer would report it.
+    upper layer above a lower cloud (as a ceilometer's 2nd hit); where the camera's ray to the
+    upper point is blocked by a lower cloud, that layer counts as not hit there.
 ``map``
     The dense map sampled as hits: ``n`` sky directions on a sunflower pattern uniform in solid
     angle inside the usable zenith range, each one "ceilometer"; a direction that shows layer k
@@ -32,28 +32,29 @@ Two samplers live behind one contract (:data:`HIT_METHODS`, :func:`get_hit_metho
 
 Hit heights are the layer's base (:attr:`cbh.result.Layer.height_m`, cbh's robust low
 statistic), not the height map's pixel value: the per-pixel heights carry triangulation noise
-(σ ≈ 60 m at 1000 m, 150–320 m at 4000 m on the simulated ``l1000-4000`` scene), and ampycloud
-takes a layer's base as the 5th percentile of its hits, so pixel heights put the base about
-100 m (1000 m layer: 3 steps of 100 ft) too low. ``heights="pixel"`` keeps them for comparison.
+(σ ≈ 60 m at 1000 m, 150–320 m at 4000 m on the simulated ``l1000-4000`` scene; their 5th
+percentile is ~100 m below the base), and ampycloud takes a layer's base as the 5th percentile
+of its hits, so pixel heights pull the base down. ``heights="pixel"`` keeps them for comparison.
 
-Measured on a simulated recording (layers at 1000 m, coverage 0.45, and 4000 m, coverage 0.35;
-10 pairs 60 s apart, 640 px; ``python scripts/measure_metar_hits.py REC``, see
-tests/test_aviation.py): see the table in ``docs`` of that script's output, reproduced here:
+Measured with ``python scripts/measure_metar_hits.py REC`` (last pair's window, n = 128 per pair):
 
-==========  ========  =============================  ==================================
-method      heights   last METAR                     note
-==========  ========  =============================  ==================================
-virtual     layer     SCT032 FEW120                  upper okta = areal cover seen
-map         layer     SCT032 FEW120                  upper layer under-counted
-virtual     pixel     SCT029 FEW110                  bases 300 ft / 1 step too low
-==========  ========  =============================  ==================================
+* ``l1000-4000`` (a simulated recording, layers 1000 m / coverage 0.45 and 4000 m / 0.35,
+  10 pairs 60 s apart, 640 px, scene and command in the commit message of this module):
+  virtual+layer ``SCT032`` (3 okta, 3284 ft); virtual+pixel ``SCT032`` (3256 ft);
+  map+layer ``SCT032`` (4 okta, 3284 ft); map+pixel ``SCT032`` (4 okta, 3228 ft).
+  1000 m = 3281 ft: code 032 either way. The 4000 m deck is *not* in the METAR: seen through
+  the lower deck's gaps it covers 21 % of the virtual ceilometers (n = 256: 55 of 256) and
+  16 % of the sampled directions, ≤ 2 okta, and a second group must be ≥ SCT (3 okta) to be
+  significant (ICAO, applied by ampycloud) — as a real ceilometer would report it.
+* ``recordings/sample-two-layers.mcap`` (1200 m / 0.35 under 3500 m / 0.3, 8 pairs):
+  virtual+layer ``SCT039`` (3934 ft; 1200 m = 3937 ft), virtual+pixel ``SCT038``,
+  map+layer ``SCT039``.
 
-The heights come out the same in both samplers (they are the layers' bases); the samplers
-differ in okta. ``virtual`` reports the upper deck's cover where the camera can tell, as a
-ceilometer network spread under it would; ``map`` reports what a single sky view shows
-directly. ``virtual`` is the default because a METAR's amounts are areal (ground-projected)
-covers and the virtual network is what ampycloud is tuned for (several ceilometers, one
-measurement per ceilometer per time step).
+The samplers agree on heights (both hit the layer bases); they differ in okta. ``virtual`` is
+the default: a METAR's amounts are ground-projected covers, and a network of ceilometers under
+the sky (several instruments, one measurement each per time step, and a 2nd hit where the
+upper deck is seen above a lower cloud) is the input ampycloud is built for; ``map`` weighs
+large zenith angles, where the lower deck hides the upper one, as much as the zenith.
 
 pandas ≥ 3 and ampycloud 2.2.1: ampycloud casts the ``ceilo`` column to ``StringDtype()``,
 which pandas 3 backs with pyarrow, whose boolean masks ampycloud's hit counting cannot
