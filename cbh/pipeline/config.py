@@ -229,7 +229,7 @@ class MotionConfig:
     compensate_min_s: float = 0.2  # compensate camera 2 only above this |offset|: the estimate's systematic error reaches ≈ 0.15 s [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
     max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
-    plane_compensation: bool = True  # the sweep compensates each plane with the motion of its own height (False: every plane on one per-pixel compensated image)
+    plane_compensation: bool = True  # the sweep compensates each plane with the motion of its own height (False, and on a torch device: every plane on one per-pixel compensated image)
 
 
 @dataclass(frozen=True)

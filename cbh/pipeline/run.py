@@ -487,7 +487,7 @@ class Pipeline:
             c2 = cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE).astype(bool)
             views = None
-            if mcfg.plane_compensation and len(images) > 1:
+            if mcfg.plane_compensation and len(images) > 1 and self.backend != "torch":  # (the torch sweep: g2)
                 from cbh.pipeline.sweep import PlaneViews
 
                 z1, z2 = float(self.cam1.position_m[2]), float(self.cam2.position_m[2])
