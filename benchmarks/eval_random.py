@@ -1,6 +1,6 @@
 """Randomized-sky benchmark: layers found, spurious layers, clear skies with cloud, false alarms.
 
-Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--verbose]
+Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--jobs 2] [--verbose]
 
 Each sky is :func:`cbh.sim.randomize.random_case` (seed S, S+1, …): clear, broken or overcast;
 1–3 layers 300 m – 10 km; baselines 20–200 m in any direction; winds 0–30 m/s; the sun 10–85°
@@ -26,41 +26,44 @@ from cbh.sim.randomize import run_random_case
 BANDS = ((0, 1000), (1000, 3000), (3000, 6000), (6000, 10_001))
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--n", type=int, default=30)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--size", type=int, default=960)
-    ap.add_argument("--verbose", action="store_true", help="one line per sky")
-    args = ap.parse_args(argv)
+def one_sky(job):
+    """One sky's summary (run in a worker): (seed, kind, expected, matched, spurious, missed,
+    found, cloud fraction, layer count, flags, seconds)."""
+    seed, size = job
     base = load_station(station_path())
+    with tempfile.TemporaryDirectory() as folder:
+        case, r, sc, dt = run_random_case(seed, base, size, folder)
+    return dict(seed=seed, kind=case.kind, describe=case.describe(), expected=sc.expected_m, matched=sc.matched,
+                spurious=sc.spurious_m, missed=sc.missed_m, found=sc.found_m,
+                cf=max(r.cloud_fraction.values(), default=0.0), n_layers=len(r.layers), flags=list(r.flags), dt=dt)
+
+
+def report(rows, args) -> None:
+    """Print each failing sky (every sky with ``--verbose``) and the totals."""
     found = expected = spurious = clear_bad = clear_n = alarms = 0
     errs = defaultdict(list)
     bad_seeds = []
-    with tempfile.TemporaryDirectory() as folder:
-        for seed in range(args.seed, args.seed + args.n):
-            case, r, sc, dt = run_random_case(seed, base, args.size, folder)
-            cf = max(r.cloud_fraction.values(), default=0.0)
-            expected += len(sc.expected_m)
-            found += len(sc.matched)
-            spurious += len(sc.spurious_m)
-            inval = sorted(set(r.flags) & INVALIDATING)
-            alarms += bool(inval)
-            for h, f in sc.matched.items():
-                errs[next(b for b in BANDS if b[0] <= h < b[1])].append(abs(f - h) / h)
-            bad = bool(sc.missed_m or sc.spurious_m or inval)
-            if case.kind == "clear":
-                clear_n += 1
-                cbad = cf > 0.02 or bool(r.layers)
-                clear_bad += cbad
-                bad |= cbad
-            if bad:
-                bad_seeds.append(seed)
-            if args.verbose or bad:
-                fmt = lambda hs: "/".join(f"{h:.0f}" for h in hs) or "-"
-                print(f"{'BAD ' if bad else 'ok  '}{case.describe()}\n     expected {fmt(sc.expected_m)} found "
-                      f"{fmt(sc.found_m)} missed {fmt(sc.missed_m)} spurious {fmt(sc.spurious_m)} cf {cf:.3f} "
-                      f"flags {','.join(r.flags) or '-'} {dt:.2f} s", flush=True)
+    fmt = lambda hs: "/".join(f"{h:.0f}" for h in hs) or "-"  # noqa: E731
+    for row in rows:
+        expected += len(row["expected"])
+        found += len(row["matched"])
+        spurious += len(row["spurious"])
+        inval = sorted(set(row["flags"]) & INVALIDATING)
+        alarms += bool(inval)
+        for h, f in row["matched"].items():
+            errs[next(b for b in BANDS if b[0] <= h < b[1])].append(abs(f - h) / h)
+        bad = bool(row["missed"] or row["spurious"] or inval)
+        if row["kind"] == "clear":
+            clear_n += 1
+            cbad = row["cf"] > 0.02 or row["n_layers"] > 0
+            clear_bad += cbad
+            bad |= cbad
+        if bad:
+            bad_seeds.append(row["seed"])
+        if args.verbose or bad:
+            print(f"{'BAD ' if bad else 'ok  '}{row['describe']}\n     expected {fmt(row['expected'])} found "
+                  f"{fmt(row['found'])} missed {fmt(row['missed'])} spurious {fmt(row['spurious'])} cf {row['cf']:.3f} "
+                  f"flags {','.join(row['flags']) or '-'} {row['dt']:.2f} s", flush=True)
     print(f"\nskies {args.n} (seeds {args.seed}..{args.seed + args.n - 1}, {args.size} px)")
     print(f"layers found {found}/{expected} ({100 * found / max(expected, 1):.1f} %)")
     print(f"spurious layers {spurious}")
@@ -71,6 +74,25 @@ def main(argv=None) -> int:
         med = f"{100 * float(np.median(e)):.2f} %" if e else "-"
         print(f"  {b[0]:>5d}-{b[1]:<5d} m: {len(e):3d} layers, median error {med}")
     print(f"failing seeds: {' '.join(map(str, bad_seeds)) or 'none'}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=30)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--size", type=int, default=960)
+    ap.add_argument("--jobs", type=int, default=1, help="skies run side by side (processes)")
+    ap.add_argument("--verbose", action="store_true", help="one line per sky")
+    args = ap.parse_args(argv)
+    jobs = [(s, args.size) for s in range(args.seed, args.seed + args.n)]
+    if args.jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(args.jobs) as pool:
+            rows = pool.map(one_sky, jobs, chunksize=1)
+    else:
+        rows = [one_sky(j) for j in jobs]
+    report(rows, args)
     return 0
 
 
