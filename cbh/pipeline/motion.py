@@ -89,7 +89,7 @@ with agreeing clocks the estimate comes out within ±0.15 s (LK's sub-pixel bias
 baseline divided by the motion across it), and compensating such a spurious offset costs
 more than it saves.
 
-Limits (measured, README): what a moving low layer uncovers in δ is only approximated for
+Limits (measured, docs/accuracy.md): what a moving low layer uncovers in δ is only approximated for
 the sparse matchers, and resampling blurs camera 2 a little; the sweep on a torch device
 matches every plane against the per-pixel compensated image (no per-height views there). An
 offset with all motion along the baseline is unobservable (``clock_offset_s`` stays NaN;
