@@ -71,7 +71,7 @@ from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compen
                                  motion_weights, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
                                  running_offset, shifted_images, track_back, track_profile)
 from cbh.pipeline.photometric import estimate_response
-from cbh.pipeline.segment import sample_lattice, segment
+from cbh.pipeline.segment import chroma, sample_lattice, segment
 from cbh.pipeline.threads import pmap
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Prepared", "Masks", "Segmentation", "Correspondences",
@@ -82,7 +82,8 @@ log = logging.getLogger(__name__)
 _MAX_DISPLAY_MATCHES = 5000
 _FLOOR_LAYER_COVER = 0.05  # a layer at the sweep's floor counts for below_range from this cover up (see match.FLOOR_LAYER_RATIO)
 CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky (flag clear_sky; no geometry verdict)
-CLEAR_PAIR_MAX_FRACTION = 0.08  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
+CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
+_OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
 _HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1)  # the defaults' pixels at half size
 _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obstacles stay masked
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
@@ -736,11 +737,30 @@ class Pipeline:
                            what=cams[i].name)
 
         (c1, f1), (c2, f2) = pmap(one, (0, 1), pool="stages")
-        if min(f1, f2) < CLEAR_SKY_FRACTION and max(f1, f2) < CLEAR_PAIR_MAX_FRACTION:
-            # a clear sky, as the pair sees it: both cameras look at one sky, so cloud over 1 % of
-            # it is in both; what only one camera calls cloud is its aureole, glare or noise
+        if self._clear_pair((f1, f2), work, masks):
             c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
+
+    def _clear_pair(self, fractions: tuple[float, float], work, masks: "Masks") -> bool:
+        """Whether the pair sees a clear sky although one camera's mask says otherwise.
+
+        Both cameras look at one sky, so cloud over 1 % of it is in both: when one camera finds
+        under ``CLEAR_SKY_FRACTION`` and the other under ``CLEAR_PAIR_MAX_FRACTION``, what only
+        the second calls cloud is its aureole, glare or noise. And when one camera calls the
+        whole sky one cloud (overcast) while the other finds it clear *and* its sky has a
+        clear sky's colour (median chroma ≥ ``segmentation.clear_chroma``), the overcast one is
+        a pale or colour-cast camera: grey cloud does not turn blue in the other camera."""
+        lo, hi = min(fractions), max(fractions)
+        if lo >= CLEAR_SKY_FRACTION:
+            return False
+        if hi < CLEAR_PAIR_MAX_FRACTION:
+            return True
+        if hi < _OVERCAST_FRACTION:
+            return False
+        i = int(np.argmin(fractions))
+        sl = sample_lattice(np.count_nonzero(masks.usable[i]))
+        u = masks.usable[i][sl]
+        return bool(u.any()) and float(np.median(chroma(work[i][sl])[u])) >= self.config.segmentation.clear_chroma
 
     def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
                     cloud2: np.ndarray | None = None, views2=None) -> "Correspondences":
