@@ -34,8 +34,8 @@ import torch.nn.functional as F
 
 from cbh.pipeline.config import SegmentationConfig
 from cbh.pipeline.segment import (
-    _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, _LazyTexture, aureole_profile, check_colour, hybrid_classes,
-    one_class_is_clear, reference_tables, sample_lattice, segment,
+    _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, PROFILE_STEPS_PER_DEG, _LazyTexture, aureole_profile, check_colour, hybrid_classes,
+    one_class_is_clear, profile_table, reference_tables, sample_lattice, segment,
 )
 from cbh.pipeline.torch_ops import box, upload
 
@@ -102,18 +102,14 @@ def _local_contrast(grey: torch.Tensor, window_px: int = 7) -> torch.Tensor:
 
 def _minus_aureole(feature: torch.Tensor, feature_s: np.ndarray, sun_s: np.ndarray, sun: torch.Tensor,
                    q: float, texture_s: np.ndarray | None = None) -> torch.Tensor:
-    """:func:`~.segment._minus_aureole` on the device: the profile from host samples, then a
-    piecewise-linear lookup in the sun angle (``numpy.interp`` with the end values held)."""
+    """:func:`~.segment._minus_aureole` on the device: the profile from host samples, then the
+    same quarter-degree table lookup as :func:`~.segment.apply_profile`."""
     prof = aureole_profile(feature_s, sun_s, q, texture_s)
     if prof is None:
         return feature
-    c = torch.as_tensor(prof[0], device=sun.device)
-    p = torch.as_tensor(prof[1], device=sun.device)
-    k = torch.bucketize(sun, c).clamp(1, len(c) - 1)
-    c0, c1, p0, p1 = c[k - 1], c[k], p[k - 1], p[k]
-    w = ((sun - c0) / (c1 - c0)).clamp(0.0, 1.0)
-    excess = torch.where(sun > c[-1], torch.zeros_like(sun), p0 + w * (p1 - p0))
-    return feature - excess
+    table = torch.as_tensor(profile_table(prof), device=sun.device)
+    idx = torch.round(sun * PROFILE_STEPS_PER_DEG).clamp(0, 255).long()  # as segment.apply_profile
+    return feature - table[idx]
 
 
 def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_angle_deg, cfg: SegmentationConfig,
