@@ -150,6 +150,7 @@ def _run(args, capsys):
     return code, cap.out, cap.err
 
 
+@pytest.mark.slow
 def test_calibrate_recovers_each_camera_and_the_relative_rotation(day, tmp_path, capsys):
     out = tmp_path / "calibrated.toml"
     code, stdout, err = _run(["calibrate", "--station", str(day / "station.toml"), "--source", f"cam1={day / 'cam1'}",
@@ -213,6 +214,7 @@ def test_unreadable_image_is_one_line(day, tmp_path, capsys):
     assert code == 2 and err.startswith("cbh: error:") and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_no_sun_needs_relative_only_which_then_keeps_camera_1(day, tmp_path, capsys):
     """Two frames 40 min apart (--from/--to): the sun track is too short to fix any camera, so
     the command asks for --relative-only, which then keeps camera 1 and fits camera 2 to it."""
@@ -326,6 +328,7 @@ def test_full_day_at_960px_meets_the_issue_targets(tmp_path, repo, capsys, level
         assert abs(main_layer.height_m - 2000.0) <= 20.0
 
 
+@pytest.mark.slow
 def test_calibrate_reads_a_recording_of_cbh_run(tmp_path, repo, capsys):
     """A .mcap from `cbh run --record` as the source of both cameras; the station is already
     right, so the relative fit must leave camera 2 where it is (within 0.05°)."""

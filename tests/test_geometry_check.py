@@ -83,6 +83,7 @@ def test_swapped_cameras_are_flagged(pipe, shot):
                                        pytest.param((0.0, 0.5, 0.0), marks=pytest.mark.slow),
                                        pytest.param((0.6, 0.0, 0.0), marks=pytest.mark.slow),
                                        pytest.param((-5.6, -0.4, 0.25), marks=pytest.mark.slow)])
+@pytest.mark.slow
 def test_misoriented_camera_is_flagged(unb, repo, error_deg):
     """A tenth of a degree off is enough at the default working size (960 px images: 306 px/rad
     at 45° off axis, so 0.1° ≈ 0.53 px, against the rotation's 0.25 px). A 0.25° roll leaves a
@@ -126,6 +127,7 @@ def test_relative_rotation_recovers_a_small_turn_despite_outliers():
     assert 0 < sigma < 1e-4
 
 
+@pytest.mark.slow
 def test_sun_check_reports_the_residual_and_flags_a_misaligned_camera(unb, repo):
     from dataclasses import replace
 
@@ -209,6 +211,7 @@ def test_service_leaves_flagged_layers_out_and_warns_once():
     assert st.to_dict()["pairs_invalid"] == 3
 
 
+@pytest.mark.slow
 def test_real_wahrsis_pair_is_not_flagged_but_its_sun_is(shared, repo):
     """The authors' calibration: rays miss by 2–3 % of the range (the station states 3 %), and
     WAHRSIS4's rotation puts the sun 3.4° off (6° of azimuth at zenith 15°)."""
@@ -224,6 +227,7 @@ def test_real_wahrsis_pair_is_not_flagged_but_its_sun_is(shared, repo):
     assert 2.5 < r.diagnostics["sun_residual_cam2_deg"] < 4.5
 
 
+@pytest.mark.slow
 def test_sun_in_one_camera_only_raises_no_alarm():
     """Broken cumulus around the sun (the default two-layers scene at 14:00-14:00:30 UTC): the
     sun detector once took a saturated cloud beside the hidden sun for the sun in one camera,

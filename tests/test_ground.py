@@ -72,6 +72,7 @@ def _truth_shaded(sim, probes, sun, t) -> np.ndarray:
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_shadow_map_agrees_with_simulated_shadows_and_is_not_displaced(probe_world, unb_station):
     from cbh.geometry import ground
 
@@ -213,6 +214,7 @@ def test_shadow_map_through_the_whole_pipeline(unb_station):
     assert known.mean() >= 0.5 and agree >= 0.85, (agree, known.mean())
 
 
+@pytest.mark.slow
 def test_sun_blocked_now_comes_from_the_previous_pair_when_the_sun_disk_is_masked(probe_world):
     """The sun disk is masked (8°), so the pair itself cannot tell whether the sun is behind
     cloud right at the station; earlier pairs advected by the layers' motion can, once the

@@ -259,6 +259,7 @@ def test_simulate_clock_offset_option_shifts_camera2_only(tmp_path):
     assert main(["simulate", "--out", str(tmp_path / "c"), "--clock-offset", "cam2"]) == 2
 
 
+@pytest.mark.slow
 def test_cbh_pair_with_previous_prints_motion(sequence_dir, capsys):
     from cbh.cli.main import main
 

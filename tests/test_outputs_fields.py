@@ -186,6 +186,7 @@ def _cf_errors(exe, path, tmp_path) -> list:
     return [(p["name"], p["msgs"]) for p in res["high_priorities"] if p["msgs"]]
 
 
+@pytest.mark.slow
 def test_netcdf_exports_pass_the_cf_18_compliance_checker(tmp_path, recorded, moving):
     """IOOS compliance checker, CF-1.8: 0 errors for the layer file and both ground-map files."""
     from cbh.actions.export import export

@@ -78,6 +78,7 @@ def test_plane_view_puts_the_photograph_on_the_plane(photo):
     assert np.median(diff) <= 6
 
 
+@pytest.mark.slow
 def test_real_texture_at_1500_m_50_m_baseline(photo):
     _check(_run(photo, 1500.0, 50.0), 1500.0, 0.01, 0.02)
 

@@ -441,6 +441,7 @@ def test_process_batch_equals_one_by_one(small_sky):
         assert np.array_equal(a.height_map, b.height_map, equal_nan=True)
 
 
+@pytest.mark.slow
 def test_sparse_matchers_alone_leave_the_measured_share_unknown_and_unflagged():
     """LK or ORB alone measure a few hundred pixels of any cloud (0.6 %): that is not a sign of
     unmatched cloud, so measured_fraction is NaN and neither rule that reads it fires."""

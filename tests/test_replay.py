@@ -23,6 +23,7 @@ def test_sample_recording_is_small_and_complete():
 
 
 @needs_cli
+@pytest.mark.slow
 def test_replay_sample_into_verified_rrd_on_the_capture_time_line(tmp_path, capsys):
     from cbh.cli.main import main
 
@@ -67,6 +68,7 @@ def short_session(tmp_path_factory):
 
 
 @needs_cli
+@pytest.mark.slow
 def test_reprocess_reruns_the_pipeline_and_records(tmp_path, short_session, capsys):
     from cbh.outputs.record import open_session
     from cbh.cli.main import main
@@ -142,6 +144,7 @@ def test_connect_with_no_viewer_listening_is_one_line_within_seconds(short_sessi
     assert err.startswith("cbh: error: --rerun connect: no viewer at") and url in err and "\n" not in err, err
 
 
+@pytest.mark.slow
 def test_serve_keeps_serving_after_the_replay_until_ctrl_c(short_session):
     """A viewer that connects after the replay ended still finds the server; Ctrl-C ends it cleanly."""
     import signal

@@ -142,6 +142,7 @@ def test_chunks_are_handed_out_in_contiguous_stretches():
     assert [(c.station, c.index) for c in got] == [("a", 0), ("b", 0)]
 
 
+@pytest.mark.slow
 def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     """Every day's heights equal `cbh pair` on the same two files (the pipeline keeps no state
     between pairs and uses no temporal information here: identical, not just close); a second
@@ -241,6 +242,7 @@ def _kill_first_dispatched_worker():
     return killed, on_event
 
 
+@pytest.mark.slow
 def test_killed_worker_is_restarted_and_its_task_retried(archive, baseline, tmp_path):
     """SIGKILL of an actor process while its first chunk is in flight: Ray restarts the actor,
     retries the chunk, and the output equals the undisturbed run."""

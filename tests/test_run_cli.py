@@ -88,6 +88,7 @@ def test_record_without_path_goes_to_recordings(tmp_path, monkeypatch, capsys):
     assert len(lines) >= 2  # header + at least one layer row
 
 
+@pytest.mark.slow
 def test_http_cameras_with_a_drop_and_corrupt_frames(sim320, station320, tmp_path, capsys):
     """MJPEG camera 1 and snapshot camera 2 on loopback; cam2 goes offline, cam1 sends garbage.
     The cameras' clocks are the scene's (2024), far from this machine's: the outage's status
@@ -240,6 +241,7 @@ def _wait_pairs(p, lines, n, timeout_s=60.0):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.slow
 def test_signal_finishes_the_pair_closes_files_and_exits_0(tmp_path, sig):
     from cbh.outputs.record import open_session
 
@@ -260,6 +262,7 @@ def test_signal_finishes_the_pair_closes_files_and_exits_0(tmp_path, sig):
     assert len(rows) >= 1 + reported  # header + at least one layer per pair in this scene
 
 
+@pytest.mark.slow
 def test_sigkill_loses_at_most_the_pair_in_flight(tmp_path):
     from cbh.outputs.record import open_session, recover
 

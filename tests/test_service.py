@@ -285,6 +285,7 @@ def test_live_sources_get_no_look_ahead():
     assert [w for w, _ in calls] == ["prepare", "finish"] * len(sink.items)
 
 
+@pytest.mark.slow
 def test_events_before_any_frame_wait_for_one_but_not_for_ever(monkeypatch):
     """A camera down at start-up: its outage waits to be placed on the cameras' time line by
     their first frame, but a run whose cameras never deliver must not stay silent: after

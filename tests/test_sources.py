@@ -303,6 +303,7 @@ def test_memory_source_ends():
 
 # --- RTSP (loopback RTP/JPEG server, OpenCV's FFmpeg client) ----------------------------------
 
+@pytest.mark.slow
 def test_rtsp_stream_frames_in_order_with_stream_clock():
     from cbh.sim.camera_server import RtspCameraServer
 

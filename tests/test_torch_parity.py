@@ -145,6 +145,7 @@ def _rel_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(a[both] - b[both]) / a[both]
 
 
+@pytest.mark.slow
 def test_pipeline_on_torch_matches_opencv(scene):
     """Layers within 0.2 %; the height map's measured pixels: 99 % within 0.1 % (as the sweep's
     passes agree). With the fill, a filled pixel (≤ 3 px from a measured one) copies its nearest
@@ -242,6 +243,7 @@ def test_segmentation_on_torch_edge_cases_as_opencv(size):
 
 @pytest.mark.parametrize("exp", ["low", pytest.param("med", marks=pytest.mark.slow),
                                  pytest.param("high", marks=pytest.mark.slow)])
+@pytest.mark.slow
 def test_segmentation_on_torch_matches_opencv_on_the_real_pair(shared, exp):
     """The real WAHRSIS photographs (haze, JPEG noise, vignetting) at each exposure (the low one,
     noisiest, by default)."""

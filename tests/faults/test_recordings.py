@@ -11,6 +11,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 from cbh.cli.main import main
 from cbh.outputs.record import McapRecorder, open_session
 from cbh.outputs.record.reader import check_mcap_file
@@ -29,6 +31,7 @@ def _write_pairs(rec: McapRecorder, n: int, start_s: float = 0.0) -> None:
 
 # --- 1. an existing --record path -----------------------------------------------------------
 
+@pytest.mark.slow
 def test_existing_record_path_is_refused_naming_overwrite(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(["run", "--size", str(SIZE), "--frames", "3", "-q", "--record", "x.mcap"]) == 0
@@ -192,6 +195,7 @@ def test_folder_with_a_truncated_file_is_read_around_it(tmp_path, unb_station, c
     assert main(["replay", str(d), "--rerun", "save", str(tmp_path / "o.rrd")]) == 0
 
 
+@pytest.mark.slow
 def test_sighup_finalizes_the_recording(tmp_path):
     out = tmp_path / "hup.mcap"
     cmd = [str(Path(sys.executable).with_name("cbh")), "run", "--size", str(SIZE), "--realtime", "--cadence-s", "0.5",
@@ -213,6 +217,7 @@ def test_sighup_finalizes_the_recording(tmp_path):
     assert open_session(out).pair_count >= 1
 
 
+@pytest.mark.slow
 def test_run_that_processes_no_pair_says_so_and_fails(camera, capsys):
     cam = camera("404")
     rc = main(["run", "--station", "unb-lea", "--source", f"cam1={cam.url}", "--source", f"cam2={cam.url}",

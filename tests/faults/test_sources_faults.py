@@ -34,6 +34,7 @@ def _run_against(cam_url: str, caplog, duration_s: float = 2.0, mode: str = "aut
 
 @pytest.mark.parametrize("mode", ["html", pytest.param("404", marks=pytest.mark.slow),
                                   pytest.param("500", marks=pytest.mark.slow)])  # (one code path for all three)
+@pytest.mark.slow
 def test_login_page_and_http_errors_back_off_with_few_warnings(camera, caplog, mode):
     """An HTML login page with status 200 used to be ~3450 warnings/s (a corrupt frame per
     poll, reconnected at once); now it is a source error with the same backoff as 404/500."""
@@ -48,6 +49,7 @@ def test_login_page_and_http_errors_back_off_with_few_warnings(camera, caplog, m
     assert expect in warns[0]
 
 
+@pytest.mark.slow
 def test_junk_mjpeg_stream_is_a_source_error_with_backoff(camera, caplog):
     cam = camera("junk-mjpeg")
     st = _run_against(cam.url, caplog, mode="mjpeg")
@@ -82,6 +84,7 @@ def test_corrupt_frames_in_a_row_from_a_live_source_back_off():
     assert 5 * (g.opens - 1) <= svc.stats.sources["cam1"].corrupt <= 5 * g.opens
 
 
+@pytest.mark.slow
 def test_outage_and_recovery_are_recorded_as_status_messages(camera, tmp_path, unb_station):
     cam1, cam2 = camera("snapshot"), camera("snapshot")
     srcs = [HttpSource("cam1", cam1.url, mode="snapshot", interval_s=0.1),
