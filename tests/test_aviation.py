@@ -86,6 +86,7 @@ def test_samplers_overcast_and_clear(method):
     assert (clear.type == 0).all() and clear.measurements == 50
 
 
+@pytest.mark.slow
 def test_virtual_half_cover_and_metar():
     """Half the layer (east of the station) cloudy: about half the ceilometers hit; ampycloud gives
     SCT or BKN at 1000 m = 3280 ft -> 032 (floored to 100 ft)."""

@@ -201,6 +201,7 @@ def test_calibrate_writes_nothing_over_its_input_and_reports_one_line_errors(day
     assert st_file.read_bytes() == before
 
 
+@pytest.mark.slow
 def test_unreadable_image_is_one_line(day, tmp_path, capsys):
     import shutil
 
@@ -236,6 +237,7 @@ def test_no_sun_needs_relative_only_which_then_keeps_camera_1(day, tmp_path, cap
     assert angle_between_deg(st.cameras["cam2"].R_world_from_cam, level @ R1.T @ R2) < 0.05
 
 
+@pytest.mark.slow
 def test_swapped_sources_are_refused(day, tmp_path, capsys):
     """Camera 1's folder given for camera 2 and vice versa (two frames, --relative-only): the
     fit would put camera 2 7.6° off (its residual 1.2 px where 0.1 is expected). Each cloud

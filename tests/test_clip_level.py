@@ -140,6 +140,7 @@ def test_glare_is_masked_at_limited_range(level_station):
     assert (full & lim).sum() >= 0.8 * full.sum()
 
 
+@pytest.mark.slow
 def test_saturated_cloud_beside_a_hidden_sun_is_rejected_at_white_235(repo):
     """The default two-layers scene at 14:00:00-14:00:50 UTC, 480 px, its white at 235 through
     JPEG: sunlit cumulus hides the sun and saturates around it. No detection may be more than

@@ -125,6 +125,7 @@ def test_identical_consecutive_frames_give_exactly_zero_motion():
     assert math.isnan(b.diagnostics["clock_offset_pair_s"]) and math.isnan(b.diagnostics["clock_offset_s"])
 
 
+@pytest.mark.slow
 def test_no_motion_across_a_gap_or_without_time():
     from cbh.pipeline import Pipeline
 
@@ -323,6 +324,7 @@ def test_run_flags_offsets_above_its_pairing_tolerance(sequence_dir):
                 s.close()
 
 
+@pytest.mark.slow
 def test_wind_along_the_baseline_leaves_the_offset_unknown():
     """Both layers drifting east, along the 50 m east-west baseline: a clock offset would only
     scale the parallax along the baseline (indistinguishable from a height change), so the

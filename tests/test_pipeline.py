@@ -220,6 +220,7 @@ SIZES = [480, pytest.param(960, marks=pytest.mark.slow)]
 
 @pytest.mark.parametrize("size", SIZES)
 @pytest.mark.parametrize("scene, baseline_m, yaw2", SCENES)
+@pytest.mark.slow
 def test_simulated_scene_meets_the_bar(scene, baseline_m, yaw2, size):
     sim, shot = _sim_scene(scene, size, baseline_m, yaw2)
     _check(sim, shot)
@@ -336,6 +337,7 @@ def test_low_stratus_below_300_m_is_measured_not_pinned_to_the_sweep_range():
     assert r.layers[0].height_m == pytest.approx(200.0, rel=0.10)
 
 
+@pytest.mark.slow
 def test_low_stratus_under_cumulus_both_layers_meet_the_bar():
     """250 m stratus under 1500 m cumulus (B = 50 m). The coarse pass sweeps the planes with more
     than ``coarse_near_px`` of parallax at half its size; at 480 px the 250 m layer has ≈ 30 px,
@@ -423,6 +425,7 @@ def test_cloud_that_matches_almost_nowhere_is_flagged_unmatched():
     assert r.diagnostics["measured_fraction"] < UNMATCHED_FRACTION and "cloud_unmatched" in r.flags
 
 
+@pytest.mark.slow
 def test_process_batch_equals_one_by_one(small_sky):
     """process_batch runs pairs side by side on threads sharing the per-camera tables: each
     result must be exactly what process gives for that pair alone (no state leaks between the

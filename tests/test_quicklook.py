@@ -5,6 +5,8 @@ from dataclasses import replace
 
 import numpy as np
 
+import pytest
+
 from tests.test_record import small_station, synthetic_pair
 
 
@@ -22,6 +24,7 @@ def _session(path, station, motion: bool):
             rec.write(frames, res)
 
 
+@pytest.mark.slow
 def test_quicklook_png_from_recordings(tmp_path):
     import cv2
 

@@ -278,6 +278,7 @@ for k in range(1000):
 """
 
 
+@pytest.mark.slow
 def test_sigkill_loses_at_most_the_pair_in_flight(tmp_path):
     from cbh.outputs.record import open_session, recover
 

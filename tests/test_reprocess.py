@@ -466,6 +466,7 @@ def test_a_replaced_image_redoes_its_day_a_repaired_copy_does_not(tmp_path):
     assert _work_hash(recd) == h_rec
 
 
+@pytest.mark.slow
 def test_every_pair_failing_is_an_error(archive, ray_session, tmp_path, capsys):
     """An archive none of whose pairs can be processed (every camera-1 image unreadable) is a
     run that could not do its job: one line, exit 2, not 'days: 1 written'."""

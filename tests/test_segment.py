@@ -76,6 +76,7 @@ def test_hybrid_beats_the_old_default_on_a_blue_cast():
     assert recall_new >= 0.95 and recall_old < 0.5  # the issue's failure: cloud called clear
 
 
+@pytest.mark.slow
 def test_hybrid_agrees_across_exposures():
     """The same sky through the four responses: cloud fractions within 0.05 of each other."""
     fr = []

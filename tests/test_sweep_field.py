@@ -80,6 +80,7 @@ def test_height_map_is_the_field_and_points_sample_it(run):
     assert known >= 0.8 * stride * stride * n_sw
 
 
+@pytest.mark.slow
 def test_kept_plane_tables_give_the_same_result_within_their_budget(small_sky, monkeypatch):
     """The sweep's plane tables kept between pairs (``map_cache_mb``) are the tables it would
     compute: the second and third pair (filling, then reusing them) give bit-identical results

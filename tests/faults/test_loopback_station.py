@@ -39,6 +39,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_rerun_serve_listens_on_loopback_only(unb_station):
     from cbh.outputs.rerun_view import RerunSink
 

@@ -58,6 +58,7 @@ def test_junk_mjpeg_stream_is_a_source_error_with_backoff(camera, caplog):
     assert 1 <= len(warns) <= 2 and "junk in the MJPEG stream" in warns[0], warns
 
 
+@pytest.mark.slow
 def test_corrupt_frames_in_a_row_from_a_live_source_back_off():
     class Garbage(FrameSource):
         camera, live = "cam1", True
@@ -137,6 +138,7 @@ def test_full_speed_lossless_source_keeps_memory_bounded():
     assert ahead <= bound, (ahead, bound)
 
 
+@pytest.mark.slow
 def test_duration_is_honoured_with_a_full_speed_source():
     svc = Service([Endless("cam1"), Endless("cam2")], process_fn(delay_s=0.01), [MemorySink()],
                   ServiceConfig(duration_s=1.0))

@@ -70,6 +70,7 @@ def test_pairer_resynchronizes_when_one_camera_steps_back():
     assert p.pop_disagreements()[0][:2] == ("cam2", "cam1")
 
 
+@pytest.mark.slow
 def test_watched_folder_with_a_2030_pair_keeps_processing(tmp_path, caplog):
     """The case of the issue: a `--watch` folder, one pair stamped 2030, later files used to be
     skipped at DEBUG ("late file") while the process kept running and exited 0."""

@@ -17,6 +17,7 @@ small = st.floats(-10, 10, allow_nan=False)
 
 @settings(max_examples=200, deadline=None)
 @given(theta=st.floats(0, 89), phi=st.floats(0, 360), a2=st.floats(-9e-4, -3e-4), cx=st.floats(900, 1020), cy=st.floats(900, 1020))
+@pytest.mark.slow
 def test_ocam_round_trip_any_table1_like_lens(theta, phi, a2, cx, cy):
     # lenses of the Table 1 family: f(r) = a0 + a2 r² with f(r90) ≈ 0 near the image edge
     a0 = -a2 * 950.0**2
