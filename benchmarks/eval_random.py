@@ -76,14 +76,18 @@ def report(rows, args) -> None:
     print(f"failing seeds: {' '.join(map(str, bad_seeds)) or 'none'}")
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--size", type=int, default=960)
     ap.add_argument("--jobs", type=int, default=1, help="skies run side by side (processes)")
     ap.add_argument("--verbose", action="store_true", help="one line per sky")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
     jobs = [(s, args.size) for s in range(args.seed, args.seed + args.n)]
     if args.jobs > 1:
         import multiprocessing as mp

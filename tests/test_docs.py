@@ -172,10 +172,21 @@ def test_library_example_is_the_same_in_readme_and_docs():
     assert example("README.md") == example("docs/index.md")
 
 
-def test_accuracy_page_keeps_a_place_for_the_randomized_skies():
+def test_accuracy_page_gives_the_randomized_skies_with_their_command():
+    """The randomized-sky numbers name the command that made them, and the benchmark's own
+    argument parser takes it (200 skies, two jobs)."""
+    import importlib.util
+    import shlex
+
     text = (DOCS / "accuracy.md").read_text()
     sec = text[text.index("## Randomized skies (benchmarks/eval_random.py)"):]
-    assert sec.split("\n", 1)[1].lstrip().startswith("Numbers for 200 skies: see below.\n\n<!-- eval_random -->")
+    cmd = re.search(r"`python (benchmarks/eval_random.py [^`]+)`", sec).group(1)
+    assert "| layers found |" in sec
+    spec = importlib.util.spec_from_file_location("eval_random", REPO / "benchmarks" / "eval_random.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    args = mod.parser().parse_args(shlex.split(cmd)[1:])
+    assert (args.n, args.jobs) == (200, 2)
 
 
 # --- comparing promised output with what a command printed ----------------------------------
