@@ -34,7 +34,7 @@ class AliasConfig:
     margin: float = 0.02  # "as good": the other height's ZNCC at least own − this [1]
     alias_share: float = 0.4  # a layer is an alias when this share of its pixels is as good elsewhere [1]
     min_zncc: float = 0.6  # … and clearly matched there: chance matches (fog below the sweep's floor) match nowhere [1]
-    max_samples: int = 600  # points sampled per layer (the share is then good to ±2 %) [1]
+    max_samples: int = 300  # points sampled per layer (the share is then good to ±3 %) [1]
 
 
 def hypothesis_zncc(gray1: np.ndarray, gray2: np.ndarray, planes, s_values, px1: np.ndarray,
