@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -181,6 +182,7 @@ class Pipeline:
         self._static: dict[int, np.ndarray] = {}
         self._circles: dict[int, tuple] = {}  # per camera: obstacle rings and horizon band (working size)
         self._obstacle_votes: dict[int, tuple[np.ndarray, int]] = {}  # frames in which each pixel was an obstacle, of n
+        self._obstacle_lock = threading.Lock()
         self._rays: dict[int, np.ndarray] = {}
         self._zenith: dict[int, np.ndarray] = {}
         self._geometry: PairGeometry | None = None
@@ -264,13 +266,14 @@ class Pipeline:
         small = obstacles_in_frame(cv2.resize(image, half, interpolation=cv2.INTER_AREA), *self._circles[i],
                                    _HALF_SIZE_OBSTACLES)
         found = cv2.resize(small.view(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
-        votes, n = self._obstacle_votes.get(i, (np.zeros(found.shape, np.uint16), 0))
-        if n < np.iinfo(np.uint16).max:
-            np.add(votes, found, out=votes)
-            n += 1
-            self._obstacle_votes[i] = (votes, n)
-        if n >= _OBSTACLE_LEARN_FRAMES:
-            found = found | (votes >= _OBSTACLE_LEARN_SHARE * n)
+        with self._obstacle_lock:  # process_batch runs pairs side by side on one Pipeline
+            votes, n = self._obstacle_votes.get(i, (np.zeros(found.shape, np.uint16), 0))
+            if n < np.iinfo(np.uint16).max:
+                np.add(votes, found, out=votes)
+                n += 1
+                self._obstacle_votes[i] = (votes, n)
+            if n >= _OBSTACLE_LEARN_FRAMES:
+                found = found | (votes >= _OBSTACLE_LEARN_SHARE * n)
         return found
 
     def rays_cam_device(self, i: int):
