@@ -61,7 +61,7 @@ from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
 from cbh.pipeline.match import Matches, PairGeometry
 
-__all__ = ["GeometryCheck", "check_geometry", "relative_rotation", "images_identical", "CHECK_METHODS"]
+__all__ = ["GeometryCheck", "check_geometry", "relative_rotation", "images_identical", "seeded_matches", "CHECK_METHODS"]
 
 #: Matching methods whose correspondences can disagree with the geometry (2-D search).
 CHECK_METHODS = ("lk", "orb", "dis")
@@ -216,3 +216,47 @@ def images_identical(gray1: np.ndarray, gray2: np.ndarray, max_dn: float) -> boo
     if gray1.shape != gray2.shape:
         return False
     return float(cv2.norm(gray1, gray2, cv2.NORM_L1)) / gray1.size <= max_dn
+
+
+def seeded_matches(gray1: np.ndarray, gray2: np.ndarray, sweep: Matches, cloud1: np.ndarray,
+                   max_points: int = 600, window_px: int = 21, levels: int = 2, fb_max_px: float = 0.5) -> Matches:
+    """2-D correspondences for the geometry check where plain LK finds none: a long baseline.
+
+    LK starts at the point at infinity and converges within a few window widths; a 630 m
+    baseline puts a 1500 m cloud 100–200 px away from it (working size), so LK loses every
+    feature and the pair had no verdict. The plane sweep found each cloud pixel's height *on
+    the calibrated epipolar curve*; LK started there (``OPTFLOW_USE_INITIAL_FLOW``, a shallow
+    pyramid: the start is within a few pixels) finds where the texture really is, on or off the
+    curve. A misoriented camera moves the matches off their curves by δ · (px per rad) — the
+    sweep cannot, LK can — so :func:`check_geometry` judges these as it judges LK's
+    (forward-backward checked, ``fb_max_px``). ``sweep``: the sweep's lattice matches; features:
+    corners of camera 1's cloud (``max_points``), each started at its nearest lattice match.
+    Returns ``Matches("lk", …)`` (empty when nothing tracks).
+    """
+    empty = Matches("lk", np.zeros((0, 2)), np.zeros((0, 2)))
+    if len(sweep) < 4:
+        return empty
+    feats = cv2.goodFeaturesToTrack(gray1, maxCorners=max_points, qualityLevel=0.005, minDistance=5,
+                                    mask=cloud1.astype(np.uint8), blockSize=7)
+    if feats is None:
+        return empty
+    p1 = feats.reshape(-1, 2).astype(np.float32)
+    idx = _nearest(sweep.px1, p1)
+    near = np.linalg.norm(sweep.px1[idx] - p1, axis=1) <= 4.0  # a lattice match within 4 px (stride 3)
+    p1, idx = p1[near], idx[near]
+    if not len(p1):
+        return empty
+    init = (sweep.px2[idx] + (p1 - sweep.px1[idx])).astype(np.float32)  # locally a shift
+    lk = dict(winSize=(window_px, window_px), maxLevel=levels, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    p2, st, _ = cv2.calcOpticalFlowPyrLK(gray1, gray2, p1, init.copy(), **lk)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(gray2, gray1, p2, p1.copy(), **lk)
+    ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - p1, axis=1) <= fb_max_px)
+    return Matches("lk", p1[ok].astype(np.float64), p2[ok].astype(np.float64))
+
+
+def _nearest(lattice: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Index of the lattice point (N, 2) nearest to each of ``px`` (M, 2)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(lattice, np.float64)).query(np.asarray(px, np.float64))[1].astype(np.int64)

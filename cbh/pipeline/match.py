@@ -337,18 +337,45 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     # every accepted pixel whose camera-2 pixel lies inside camera 2's image and usable mask
     s = np.where(f.ok, f.s, np.float32(np.nan)).astype(np.float32)
     mx, my = g.planes.pixels(s, f.region)
+    _exact_beyond_tables(g, s, mx, my, f.region)
     s[~(cv2.remap(inp.usable2.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                    borderValue=0) > 0)] = np.nan
     field = DenseField(f.region, s, floor_fraction=_drop_floor(s, f.info.get("planes"), g.planes.scale_px, o1z,
                                                                 cfg.sweep))
     # the point set: the same matches on the point lattice
-    px1, px2, s_pt = field_points(replace(f, ok=np.isfinite(s)), g.planes, max(1, int(cfg.sweep.point_stride_px)))
+    # (camera 2's pixels from the sweep's own s; their heights from the field's, exact beyond the tables)
+    px1, px2, _ = field_points(replace(f, ok=np.isfinite(s)), g.planes, max(1, int(cfg.sweep.point_stride_px)))
+    y0, x0 = f.region[0].start, f.region[1].start
+    s_pt = s[px1[:, 1].astype(np.int64) - y0, px1[:, 0].astype(np.int64) - x0]
     # the camera-2 ray of a plane-sweep match is known exactly: the point o1 + d·(h − o1z)/d_z
     # seen from o2 is along d − s·d_z·B (s = 1/(h − o1z)); no fisheye back-projection of px2 needed
     d1 = g.rays1_world.reshape(-1, 3)[px1[:, 1].astype(np.int64) * g.rays1_world.shape[1] + px1[:, 0].astype(np.int64)]
     base = (g.cam2.position_m - g.cam1.position_m).astype(np.float32)
     d2 = d1 - (s_pt * d1[:, 2])[:, None] * base[None, :]
     return Matches("sweep", px1, px2, dense=True, ray2_world=d2, ray1_world=d1, field=field)
+
+
+def _exact_beyond_tables(g: PairGeometry, s: np.ndarray, mx: np.ndarray, my: np.ndarray, region) -> None:
+    """Re-triangulate, in place, the field's s where the plane tables extrapolate.
+
+    The tables give camera 2's pixel exactly up to s = 2·s_a (a parallax of 0.2 rad: heights
+    above 5·|B|, every cloud of a 50 m pair) and by the quadratic's extrapolation beyond. The
+    sweep still finds the right pixel there (the texture matches at p2(s)), but the s that the
+    extrapolated table put at that pixel is not the height of the two rays through it: on a
+    630 m pair a flat 1500 m base read 1528 m at the zenith and 1498 m at 60° (true rays: within
+    ±5 m). So pixels beyond the tables get s from camera 1's ray and camera 2's back-projected
+    ray through their matched pixel (closest approach: :func:`~cbh.geometry.triangulate.triangulate`)."""
+    far = np.isfinite(s) & (s > 2.0 * g.planes.s_a)
+    if not far.any():
+        return
+    ys, xs = np.nonzero(far)
+    d1 = g.rays1_world[region][ys, xs].astype(np.float64)
+    px2 = np.stack([mx[ys, xs], my[ys, xs]], axis=1).astype(np.float64)
+    d2 = g.cam2.pixel_to_world(px2)
+    t = triangulate(g.cam1.position_m, d1, g.cam2.position_m, d2, TriangulationLimits(max_range_m=1e7))
+    dz = t.height_m - float(g.cam1.position_m[2])
+    ok = t.valid & np.isfinite(dz) & (dz > 0)
+    s[ys, xs] = np.where(ok, 1.0 / np.where(ok, dz, 1.0), np.nan).astype(np.float32)
 
 
 def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg) -> float:

@@ -57,7 +57,7 @@ from cbh.timeutil import parse_utc
 from cbh.result import Enlarged, PairResult, PointSet
 from cbh.geometry.station import Camera, Station
 from cbh.pipeline.config import PipelineConfig
-from cbh.pipeline.geocheck import check_geometry, images_identical
+from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identical, seeded_matches
 from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
@@ -790,6 +790,7 @@ class Pipeline:
                     return get_matcher(name)(inp, cfg.matching)
 
             raw = list(pmap(one, cfg.matching.methods, pool="stages"))
+            raw = self._seeded_lk(raw, gray, seg, ctx)
         with _timed(ctx, "triangulation"):
             tris = [triangulate_matches(geom, m, cfg.filtering) for m in raw]
         floor = max((m.field.floor_fraction for m in raw if m.field is not None), default=math.nan)
@@ -798,6 +799,22 @@ class Pipeline:
             if floor > BELOW_RANGE_FRACTION and "below_range" not in ctx.flags:
                 ctx.flags.append("below_range")
         return Correspondences(triangulated=tris, raw=raw)
+
+    def _seeded_lk(self, raw: list, gray, seg: "Segmentation", ctx: "PairContext") -> list:
+        """``raw`` with LK's matches replaced by LK started at the sweep's
+        (:func:`~.geocheck.seeded_matches`) where the 2-D methods found fewer than the geometry
+        check's ``min_matches``: a long baseline (a 630 m pair sees 1500 m cloud 100–200 px from
+        the point at infinity, where plain LK starts and loses it). They give the pair its
+        geometry verdict and its angular noise (the layer bases)."""
+        n2d = sum(len(m) for m in raw if m.method in CHECK_METHODS)
+        sweep = [m for m in raw if m.method == "sweep" and len(m)]
+        if n2d >= self.config.geometry_check.min_matches or not sweep:
+            return raw
+        with _timed(ctx, "match_lk_seeded"):
+            c = self.config.matching.lk
+            seeded = seeded_matches(gray[0], gray[1], sweep[0], seg.clouds[0], c.max_points, c.window_px,
+                                    fb_max_px=c.fb_max_px)
+        return [m for m in raw if m.method != "lk"] + [seeded]
 
     def stage_sun_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
         """Detected vs predicted sun per camera → ``sun_residual_*_deg``, flag ``sun_misaligned``."""
