@@ -31,6 +31,8 @@ class Flag(enum.IntFlag):
     below_range = 1 << 12  # much of the measured cloud sits on the sweep's lowest plane: cloud at or below its floor
     cloud_unmatched = 1 << 13  # most of camera 1's cloud found no height: the layers describe only the matched part
     underexposed = 1 << 14  # a camera's sky is too dark for its colours to be read: cloud masks and cover unreliable
+    camera_mismatch = 1 << 15  # a network camera disagrees with the others' geometry and was left out (diagnostics mismatched_cameras); the others carry the result
+    camera_missing = 1 << 16  # a network camera delivered no frame: the result is from the cameras present
 
 
 #: Flags whose layers must not be reported as valid (exported with the flag, left out of

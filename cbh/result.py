@@ -12,7 +12,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-__all__ = ["Frame", "Layer", "Histogram", "PointSet", "PairResult", "Enlarged", "to_ns", "from_ns", "require_time"]
+__all__ = ["numeric_diagnostics", "Frame", "Layer", "Histogram", "PointSet", "PairResult", "Enlarged", "to_ns", "from_ns", "require_time"]
 
 
 def require_time(result: "PairResult", what: str) -> datetime:
@@ -90,6 +90,9 @@ class Layer:
     motion_north_ms: float = math.nan  # layer motion over the ground, north component [m/s], NaN = unknown
     motion_spread_ms: float = math.nan  # robust spread (1.4826 · MAD) of the layer's track velocities [m/s], NaN = unknown
     motion_tracks: int = 0  # feature tracks (both cameras) behind the layer's motion [1]; 0 = no motion
+    # a camera network's layer (cbh.pipeline.network): each pair's part, as (pair "a+b", points,
+    # height_m, weight share 0..1); () for a pair's own layer
+    support: tuple = ()
 
     def to_dict(self) -> dict:
         """JSON-ready: floats, with None where a value is unknown (NaN)."""
@@ -105,7 +108,16 @@ class Layer:
             "motion_north_ms": _num(self.motion_north_ms),
             "motion_spread_ms": _num(self.motion_spread_ms),
             "motion_tracks": int(self.motion_tracks),
+            **({"support": {p: {"points": int(n), "height_m": _num(h), "weight": _num(w)}
+                            for p, n, h, w in self.support}} if self.support else {}),
         }
+
+
+def numeric_diagnostics(diagnostics: dict) -> dict[str, float]:
+    """The scalar entries of ``PairResult.diagnostics`` (what every file format stores; a
+    network's ``mismatched_cameras`` list is also stored as its ``camera_mismatch_<name>``
+    scalars)."""
+    return {str(k): float(v) for k, v in diagnostics.items() if not isinstance(v, (list, tuple, str))}
 
 
 def _num(v: float) -> float | None:
@@ -189,7 +201,8 @@ class PairResult:
     time_utc : datetime or None
         Capture time of camera 1's frame; None = unknown (flag ``time_unknown``).
     cameras : tuple of str
-        (camera 1, camera 2) names.
+        (camera 1, camera 2) names; a camera network's result: every camera used, the
+        reference (whose grid the height map is on) first.
     layers : list of Layer
         Ascending by ``height_m``; empty for a clear sky.
     histogram : Histogram
@@ -231,6 +244,9 @@ class PairResult:
     matches: dict[str, np.ndarray] = field(default_factory=dict)  # method → (M, 4) x1,y1,x2,y2 kept matches (for display)
     diagnostics: dict[str, float] = field(default_factory=dict)
     state: object = field(default=None, repr=False, compare=False)
+    # a camera network's result (cbh.pipeline.network): each processed pair's own result, by
+    # "<a>+<b>"; not recorded (its numbers are in diagnostics)
+    pairs: dict = field(default_factory=dict, repr=False, compare=False)
 
     def enlarged(self, name: str, camera: str | None = None) -> "Enlarged | None":
         """The :class:`Enlarged` map behind ``height_map`` (or camera ``camera``'s cloud mask,
@@ -259,7 +275,10 @@ class PairResult:
             "cloud_fraction": {k: float(v) for k, v in self.cloud_fraction.items()},
             "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
             "flags": list(self.flags),
-            "diagnostics": {k: _num(v) for k, v in self.diagnostics.items()},
+            "diagnostics": {k: (list(v) if isinstance(v, (list, tuple)) else _num(v))
+                            for k, v in self.diagnostics.items()},
+            **({"pairs": {name: {"cameras": list(r.cameras), "layers": [l.to_dict() for l in r.layers],
+                                 "flags": list(r.flags)} for name, r in self.pairs.items()}} if self.pairs else {}),
         }
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from cbh.errors import ShapeError
 
-__all__ = ["Triangulation", "triangulate", "triangulate_svd", "TriangulationLimits"]
+__all__ = ["Triangulation", "triangulate", "triangulate_svd", "TriangulationLimits", "MultiView", "triangulate_views"]
 
 
 @dataclass(frozen=True)
@@ -280,3 +280,115 @@ def triangulate_pixels(cam1, px1, cam2, px2, limits: TriangulationLimits = Trian
     d1 = cam1.pixel_to_world(px1)
     d2 = cam2.pixel_to_world(px2)
     return triangulate(cam1.position_m, d1, cam2.position_m, d2, limits)
+
+
+@dataclass(frozen=True)
+class MultiView:
+    """Features seen in K views, triangulated over all their rays (:func:`triangulate_views`).
+
+    Attributes
+    ----------
+    point_m : shape (N, 3)
+        The point nearest to every ray in the least-squares sense, ENU [m] (NaN: fewer than
+        two usable rays, or rays too close to parallel for a point).
+    residual_rad : shape (N, K)
+        Angle between each view's ray and the direction from its camera to the point [rad]
+        (NaN for a view that does not see the feature).
+    views : shape (N,), int
+        Views that see the feature.
+    """
+
+    point_m: Any
+    residual_rad: Any
+    views: Any
+
+    @property
+    def height_m(self):
+        return self.point_m[:, 2]
+
+    @property
+    def max_residual_rad(self):
+        """Each feature's worst view [rad] (NaN where it has no point)."""
+        r = self.residual_rad
+        xp = _backend(r)
+        filled = xp.where(xp.isnan(r), xp.zeros_like(r), r)
+        worst = filled.max(axis=1) if xp is np else filled.max(dim=1).values
+        return xp.where(xp.isnan(self.point_m[:, 0]), self.point_m[:, 0], worst)
+
+
+def triangulate_views(origins, dirs, seen=None, min_det: float = 1e-10) -> MultiView:
+    """Least-squares triangulation of N features over K views (numpy or torch, one core).
+
+    The point X minimises Σ_k ‖(I − d_k d_kᵀ)(X − o_k)‖², the squared distances from X to
+    every ray (unit d_k): the normal equations Σ P_k X = Σ P_k o_k, P_k = I − d_k d_kᵀ, one
+    3 × 3 system per feature, solved in closed form (adjugate) for all features at once. For
+    K = 2 this is the midpoint of the common perpendicular (:func:`triangulate`). A feature's
+    angular residuals (the angle between each ray and the direction from its camera to X)
+    expose a mismatch: two rays always meet somewhere, three or more wrong ones do not.
+
+    Parameters
+    ----------
+    origins : shape (K, 3)
+        Camera projection centres, ENU [m].
+    dirs : shape (N, K, 3)
+        Each feature's ray in each view, ENU (any length; NaN for a view that does not see it).
+    seen : shape (N, K), bool, optional
+        Which views see each feature (default: finite ``dirs``).
+    min_det : float
+        Systems whose determinant (of the normalised normal matrix) is below this have no
+        point (near-parallel rays): NaN.
+
+    Returns
+    -------
+    MultiView
+    """
+    xp = _backend(dirs)
+    if dirs.ndim != 3 or dirs.shape[-1] != 3 or tuple(origins.shape) != (dirs.shape[1], 3):
+        raise ShapeError(f"triangulate_views: expected dirs (N, K, 3) and origins (K, 3), got "
+                         f"{tuple(dirs.shape)} and {tuple(origins.shape)}")
+    finite = ~xp.isnan(dirs).any(axis=-1) if xp is np else ~torch_isnan_any(dirs)
+    seen = finite if seen is None else (seen & finite)
+    norm = (dirs * dirs).sum(-1, keepdims=True) ** 0.5 if xp is np else (dirs * dirs).sum(-1, keepdim=True).sqrt()
+    w = seen[..., None] * 1.0
+    d = xp.nan_to_num(xp.where(seen[..., None], dirs / xp.where(norm > 0, norm, norm * 0 + 1), dirs * 0))
+    o = origins[None, :, :] * w  # (N, K, 3), zero for unseen views
+    eye = xp.eye(3, dtype=dirs.dtype) if xp is np else xp.eye(3, dtype=dirs.dtype, device=dirs.device)
+    # A = Σ_k w_k (I − d dᵀ), b = Σ_k w_k (o − d (d·o))
+    A = w.sum(1)[..., None] * eye - (d[..., :, None] * d[..., None, :]).sum(1)
+    b = o.sum(1) - (d * (d * o).sum(-1, keepdims=True) if xp is np else d * (d * o).sum(-1, keepdim=True)).sum(1)
+    X = _solve3(xp, A, b, seen.sum(1), min_det)
+    v = X[:, None, :] - origins[None, :, :]
+    vn = (v * v).sum(-1) ** 0.5
+    cosang = (v * d).sum(-1) / xp.where(vn > 0, vn, vn * 0 + 1)
+    cosang = xp.clip(cosang, -1.0, 1.0) if xp is np else cosang.clamp(-1.0, 1.0)
+    res = xp.arccos(cosang) if xp is np else xp.acos(cosang)
+    nan = X[:, :1] * float("nan")
+    res = xp.where(seen & ~xp.isnan(X[:, :1]), res, nan)
+    return MultiView(X, res, seen.sum(1))
+
+
+def torch_isnan_any(t):
+    """``isnan(t).any(-1)`` for a torch tensor."""
+    return t.isnan().any(dim=-1)
+
+
+def _solve3(xp, A, b, k, min_det: float):
+    """X = A⁻¹ b for N symmetric 3 × 3 systems (adjugate); NaN where fewer than 2 views see the
+    feature or det(A / k) < ``min_det`` (the rays are too close to parallel to fix a point)."""
+    a, bb, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    e, f, i = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    c00 = e * i - f * f
+    c01 = c * f - bb * i
+    c02 = bb * f - c * e
+    c11 = a * i - c * c
+    c12 = bb * c - a * f
+    c22 = a * e - bb * bb
+    det = a * c00 + bb * c01 + c * c02
+    kk = k * 1.0
+    ok = (k >= 2) & (det > min_det * kk ** 3)
+    inv = 1.0 / xp.where(ok, det, det * 0 + 1)
+    x = (c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2]) * inv
+    y = (c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2]) * inv
+    z = (c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]) * inv
+    X = xp.stack([x, y, z], axis=1) if xp is np else xp.stack([x, y, z], dim=1)
+    return xp.where(ok[:, None], X, X * float("nan"))

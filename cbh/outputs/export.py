@@ -62,7 +62,7 @@ import numpy as np
 from cbh.errors import ConfigError, RecordingError
 from cbh.flags import INVALIDATING, Flag, flag_bits
 from cbh.interfaces import ResultSink
-from cbh.result import Frame, PairResult, require_time
+from cbh.result import Frame, PairResult, numeric_diagnostics, require_time
 from cbh.fileio import atomic_write
 
 __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_records", "layer_table",
@@ -170,7 +170,7 @@ def pair_record(result: PairResult, station_altitude_m: float, altitude_m: list[
         # the motion's quality (getattr: layers made before the motion estimator carry none)
         motion_spread_ms=[float(getattr(l, "motion_spread_ms", math.nan)) for l in L],
         motion_tracks=[int(getattr(l, "motion_tracks", 0)) for l in L],
-        diagnostics={str(k): float(v) for k, v in result.diagnostics.items()},
+        diagnostics=numeric_diagnostics(result.diagnostics),
     )
 
 

@@ -76,11 +76,10 @@ class RecordedPair:
     result: PairResult
     altitude_m: list[float] = field(default_factory=list)  # per layer, as recorded [m above sea level]
 
-    def frames(self) -> tuple[Frame, Frame]:
-        """The two frames (camera 1, camera 2) with decoded images."""
-        c1, c2 = self.result.cameras
+    def frames(self) -> tuple[Frame, ...]:
+        """The frames (camera 1, camera 2, and a network's further cameras) with decoded images."""
         try:
-            return self.images[c1].frame(self.index), self.images[c2].frame(self.index)
+            return tuple(self.images[c].frame(self.index) for c in self.result.cameras)
         except KeyError as exc:
             raise RecordingError(f"pair {self.index}: no recorded image for camera {exc.args[0]!r}") from None
 
@@ -135,7 +134,8 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
     """Decode one pair's protobuf messages (topic → message) into a :class:`RecordedPair`."""
     pl = msgs[PAIR_TOPIC]
     t = from_ns(_ts_ns(pl.timestamp))
-    cams = (pl.camera1, pl.camera2)
+    cams = (pl.camera1, pl.camera2)  # a network's further cameras: in its cloud fractions, in order
+    cams += tuple(c.camera for c in pl.cloud_fraction if c.camera not in cams)
     images, masks = {}, {}
     for topic, m in msgs.items():
         parts = topic.strip("/").split("/")
@@ -169,7 +169,7 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
         time_utc=t, cameras=cams, layers=layers, histogram=hist, points=pts, height_map=hm,
         cloud_masks=masks, cloud_fraction={c.camera: c.fraction for c in pl.cloud_fraction},
         timing_ms={x.stage: x.ms for x in pl.timing}, flags=list(pl.flags), matches=matches,
-        diagnostics={d.name: d.value for d in pl.diagnostics},
+        diagnostics=_diagnostics(pl.diagnostics),
     )
     return RecordedPair(index=index, time_utc=t, images=images, result=result,
                         altitude_m=[l.altitude_m for l in pl.layers])
@@ -458,3 +458,13 @@ def _usable(paths: list[Path]):
             shutil.rmtree(tmp, ignore_errors=True)
         raise RecordingError(f"no readable recording among {len(paths)} files ({paths[0].parent})")
     return out, tmp
+
+
+def _diagnostics(recorded) -> dict:
+    """The recorded scalars, and a network's ``mismatched_cameras`` list rebuilt from its
+    ``camera_mismatch_<name>`` scalars (:mod:`cbh.pipeline.network`)."""
+    d = {x.name: x.value for x in recorded}
+    if any(k.startswith("camera_mismatch_") for k in d):
+        d["mismatched_cameras"] = [k[len("camera_mismatch_"):] for k, v in d.items()
+                                   if k.startswith("camera_mismatch_") and v == 1.0]
+    return d

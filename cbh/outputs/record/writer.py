@@ -21,7 +21,7 @@ import numpy as np
 from cbh.errors import RecordingError
 from cbh.flags import flag_bits
 from cbh.interfaces import ResultSink
-from cbh.result import Frame, PairResult, from_ns, require_time, to_ns
+from cbh.result import Frame, PairResult, from_ns, numeric_diagnostics, require_time, to_ns
 from cbh.outputs.record.schemas import cbh_types, foxglove_types
 
 __all__ = ["McapRecorder", "cbh_version", "METADATA_NAME", "FRAME_ID_WORLD"]
@@ -388,7 +388,7 @@ class McapRecorder(ResultSink):
         from cbh.imageio import encode_jpeg
 
         T, F = cbh_types(), foxglove_types()
-        cam1, cam2 = result.cameras
+        cam1, cam2 = result.cameras[:2]  # a network: the reference and its first pair's partner (the matches shown)
         out = []
         for fr in frames:
             fns = to_ns(fr.time_utc)
@@ -449,8 +449,8 @@ class McapRecorder(ResultSink):
                 v = float(getattr(layer, name, math.nan))
                 if math.isfinite(v):
                     setattr(m, name, v)
-        for name, value in result.diagnostics.items():
-            pl.diagnostics.add(name=str(name), value=float(value))
+        for name, value in numeric_diagnostics(result.diagnostics).items():
+            pl.diagnostics.add(name=name, value=value)
         for cam, frac in result.cloud_fraction.items():
             pl.cloud_fraction.add(camera=str(cam), fraction=float(frac))
         for stage, ms in result.timing_ms.items():

@@ -1,0 +1,562 @@
+"""Camera networks: three or more cameras of one station, fused into one answer.
+
+A pair's height precision is δH ≈ H² δθ / B (δθ the angular matching noise, B the baseline):
+a 50 m pair measures a 1500 m base to a few metres but sees an 8000 m layer with 2 px of
+parallax; a 630 m pair measures the high layer well, and the low one too while the two
+cameras still see the same cloud (their overlap). And a pair cannot tell which of its two
+cameras is wrong when the geometry check fails; three cameras can.
+
+:class:`StationPipeline` runs one :class:`~cbh.pipeline.run.Pipeline` per selected pair:
+
+1. **Pair selection** (:func:`plan_pairs`, once per station). Every two cameras: baseline and
+   *overlap* at heights from ``OVERLAP_HEIGHTS_M`` (:func:`pair_overlap`: the share of the
+   first camera's usable sky whose point at that height the second camera sees too). A pair
+   whose overlap stays under ``MIN_OVERLAP`` at every height is skipped, and the reason said
+   (``skipped``); a camera left without a usable pair is an error. The pairs run are the
+   *star*: the reference camera (the first) with each other camera, so every pixel of the
+   reference's sky has one height per baseline; a camera that overlaps only others joins
+   through its longest usable pair.
+2. **Per-pair results**, each with its own geometry check (the station's rays against the
+   images). The pairs run side by side.
+3. **Per-camera verdict** (:func:`camera_verdict`). A camera is ``mismatched`` when every
+   judged pair that holds it fails the check while a judged pair without it passes: the
+   others agree with each other and not with it. When every star pair fails, the reference
+   camera is the suspect: the pairs among the other cameras are run too (the tie-breakers)
+   and, if they pass, carry the result on with the next camera as the reference.
+4. **Fusion** (:func:`fuse_layers`). The layers of the agreeing pairs, grouped by height
+   (within ``LAYER_MATCH_LOG`` in ln height), are averaged with weights 1/σ², σ = H² δθ / B
+   (δθ is common to the pairs: the weight is B²); a pair counts for a layer only where its
+   overlap at that height is at least ``MIN_OVERLAP``. A group is a layer of the station when
+   the pairs reporting it hold at least ``MIN_SUPPORT_SHARE`` of the weight of all pairs
+   that could have seen it (a layer only a 50 m pair reports, and a 630 m pair that saw that
+   sky does not, is an alias of the short pair, not cloud). Each layer keeps its support from
+   every pair (:class:`~cbh.result.Layer` ``support``).
+5. **One dense height map** for the reference camera: each pixel from the longest baseline
+   that measured it (the most precise; all star pairs share the reference's grid).
+6. **Multi-view points** (:func:`multiview_points`). A reference pixel of the sweep's point
+   lattice that two or more star pairs matched is a feature seen in k ≥ 3 views: it is
+   triangulated by least squares over all its rays
+   (:func:`~cbh.geometry.triangulate.triangulate_views`), and dropped when a view's ray
+   misses the point by more than ``MULTIVIEW_MAX_RESIDUAL_DEG``: a mismatch in one pair
+   triangulates somewhere with two rays, not with three.
+
+The result is a :class:`~cbh.result.PairResult` whose ``cameras`` are the cameras used,
+reference first; ``diagnostics`` holds the per-pair results (keys ``"<a>+<b>.<name>"``), each
+camera's verdict (``camera_mismatch_<name>``: 1 mismatched, 0 agrees, NaN not judged), the
+``mismatched_cameras`` (a list of names) and the multi-view counts. Two cameras: exactly
+:class:`~cbh.pipeline.run.Pipeline` (no overhead).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+from datetime import datetime
+
+import numpy as np
+
+from cbh.errors import ConfigError, InputError
+from cbh.geometry.station import Camera, Station
+from cbh.pipeline.config import PipelineConfig
+from cbh.pipeline.threads import pmap
+from cbh.result import Enlarged, Layer, PairResult, PointSet
+
+log = logging.getLogger(__name__)
+
+__all__ = ["StationPipeline", "PairPlan", "NetworkState", "plan_pairs", "pair_overlap", "camera_verdict",
+           "fuse_layers", "multiview_points", "station_cameras"]
+
+#: Heights at which a pair's overlap is evaluated [m] (above the ENU origin).
+OVERLAP_HEIGHTS_M = (300.0, 600.0, 1000.0, 1500.0, 2500.0, 4000.0, 6000.0, 8000.0, 11000.0, 15000.0)
+#: A pair counts at a height where the cameras share at least this share of the sky [1].
+MIN_OVERLAP = 0.25
+#: Two pairs' layers are one layer within this difference of ln height (≈ 12 %; the layer
+#: histogram separates layers 18 % apart, :mod:`.layers`) [1].
+LAYER_MATCH_LOG = 0.12
+#: A layer needs the pairs reporting it to hold this share of the weight of all pairs that
+#: overlap at its height [1].
+MIN_SUPPORT_SHARE = 0.5
+#: A multi-view feature is a mismatch when a view misses its point by more than this [deg]
+#: (≈ 3 px at the default 960 px working size; matching noise is 0.1–0.3 px).
+MULTIVIEW_MAX_RESIDUAL_DEG = 0.5
+
+
+@dataclass(frozen=True)
+class PairPlan:
+    """One pair of station cameras and what the planner found about it."""
+
+    cameras: tuple[str, str]
+    baseline_m: float
+    overlap: tuple[float, ...]  # at OVERLAP_HEIGHTS_M [1]
+    skipped: str = ""  # why the pair is not used ("" = usable)
+
+    @property
+    def name(self) -> str:
+        return f"{self.cameras[0]}+{self.cameras[1]}"
+
+    def overlap_at(self, height_m: float) -> float:
+        """Overlap at ``height_m``, interpolated in ln height [1]."""
+        h = np.log(np.asarray(OVERLAP_HEIGHTS_M))
+        return float(np.interp(math.log(max(height_m, 1.0)), h, np.asarray(self.overlap)))
+
+
+@dataclass
+class NetworkState:
+    """What a processed station frame set leaves for the next: each pair's own state."""
+
+    time_utc: datetime | None
+    pairs: dict[str, object] = field(default_factory=dict)  # pair name → PairState
+
+
+def station_cameras(station: Station, cameras=None) -> list[str]:
+    """The camera names a network runs on: ``"a,b,c"`` or a list (default: all, file order)."""
+    if cameras is None:
+        names = list(station.cameras)
+    else:
+        names = [p.strip() for p in cameras.split(",")] if isinstance(cameras, str) else list(cameras)
+    if len(names) < 2 or not all(names):
+        raise ConfigError(f"a station needs at least two cameras, got {', '.join(names) or 'none'}")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"a camera is named twice: {', '.join(names)}")
+    for n in names:
+        station.camera(n)
+    return names
+
+
+def pair_overlap(cam_a: Camera, cam_b: Camera, heights_m, max_zenith_deg: float = 80.0, n: int = 64) -> np.ndarray:
+    """Share of camera a's usable sky (zenith ≤ ``max_zenith_deg``, in its image circle) whose
+    point at each height is in camera b's usable sky too, (len(heights_m),) [1].
+
+    Directions on an ``n`` × ``n`` grid uniform in solid angle over the cap."""
+    u, v = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n)
+    cosz = 1.0 - u.ravel() * (1.0 - math.cos(math.radians(max_zenith_deg)))
+    az = 2 * math.pi * v.ravel()
+    sinz = np.sqrt(1.0 - cosz ** 2)
+    d = np.stack([sinz * np.sin(az), sinz * np.cos(az), cosz], 1)
+    seen_a = cam_a.model.contains(cam_a.direction_to_pixel(d))
+    d = d[seen_a]
+    out = []
+    for h in heights_m:
+        dz = float(h) - float(cam_a.position_m[2])
+        if not len(d) or dz <= 0:
+            out.append(0.0)
+            continue
+        p = cam_a.position_m + d * (dz / d[:, 2])[:, None]
+        v2 = p - cam_b.position_m
+        ok = v2[:, 2] > np.linalg.norm(v2, axis=1) * math.cos(math.radians(max_zenith_deg))
+        ok[ok] = cam_b.model.contains(cam_b.direction_to_pixel(v2[ok]))
+        out.append(float(ok.mean()))
+    return np.asarray(out)
+
+
+def plan_pairs(station: Station, names: list[str], max_zenith_deg: float = 80.0) -> list[PairPlan]:
+    """Every two of ``names``, with baseline, overlap and why a pair is skipped.
+
+    Raises
+    ------
+    ConfigError
+        Two cameras at one place, or a camera that overlaps no other (every pair holding it
+        skipped)."""
+    plans = []
+    for j, b in enumerate(names):
+        for a in names[:j]:
+            ca, cb = station.camera(a), station.camera(b)
+            base = float(np.linalg.norm(cb.position_m - ca.position_m))
+            if base < 1e-3:
+                raise ConfigError(f"cameras {a} and {b} are at one place ({base:.3g} m apart): a pair needs a baseline")
+            ov = pair_overlap(ca, cb, OVERLAP_HEIGHTS_M, max_zenith_deg)
+            best = int(np.argmax(ov))
+            skipped = "" if ov[best] >= MIN_OVERLAP else (
+                f"overlap at most {100 * ov[best]:.0f} % (at {OVERLAP_HEIGHTS_M[best]:g} m), under "
+                f"{100 * MIN_OVERLAP:.0f} %")
+            plans.append(PairPlan((a, b), base, tuple(float(x) for x in ov), skipped))
+    for n in names:
+        mine = [p for p in plans if n in p.cameras]
+        if mine and all(p.skipped for p in mine):
+            raise ConfigError(f"camera {n} overlaps no other camera: "
+                              + "; ".join(f"{p.name}: {p.skipped}" for p in mine))
+    return plans
+
+
+# --- verdicts --------------------------------------------------------------------------------
+
+def pair_verdict(result: PairResult) -> bool | None:
+    """True: the pair agrees with the station's geometry; False: it does not
+    (``geometry_mismatch``); None: no verdict (too few 2-D matches, a clear sky)."""
+    if "geometry_mismatch" in result.flags:
+        return False
+    return True if math.isfinite(result.diagnostics.get("geometry_residual_px", math.nan)) else None
+
+
+def camera_verdict(names: list[str], verdicts: dict[tuple[str, str], bool | None]) -> dict[str, bool | None]:
+    """Each camera's verdict from its pairs': True = mismatched (every judged pair holding it
+    fails, and a judged pair without it passes: the others agree with each other, not with it),
+    False = agrees (a pair holding it passes), None = cannot tell."""
+    passing = [p for p, v in verdicts.items() if v is True]
+    out: dict[str, bool | None] = {}
+    for n in names:
+        mine = [v for p, v in verdicts.items() if n in p and v is not None]
+        if any(mine):
+            out[n] = False
+        elif mine and any(n not in p for p in passing):
+            out[n] = True
+        else:
+            out[n] = None
+    return out
+
+
+# --- fusion ----------------------------------------------------------------------------------
+
+def _weight(plan: PairPlan) -> float:
+    """A pair's weight for a layer it overlaps at: 1/σ² with σ = H² δθ / B, up to the factor
+    (H² δθ)² common to the pairs at one height: B² [m²]."""
+    return plan.baseline_m ** 2
+
+
+def _groups(entries: list[tuple[PairPlan, Layer]]) -> list[list[tuple[PairPlan, Layer]]]:
+    """The pairs' layers grouped by height: ascending; a layer joins the group whose running
+    weighted ln-height mean is within ``LAYER_MATCH_LOG`` (one layer per pair and group: a
+    second one of the same pair starts a new group)."""
+    groups: list[list[tuple[PairPlan, Layer]]] = []
+    for plan, L in sorted(entries, key=lambda e: e[1].height_m):
+        if groups:
+            g = groups[-1]
+            w = np.array([_weight(p) for p, _ in g])
+            centre = float(np.sum(w * np.log([x.height_m for _, x in g])) / w.sum())
+            if abs(math.log(L.height_m) - centre) <= LAYER_MATCH_LOG and all(p is not plan for p, _ in g):
+                g.append((plan, L))
+                continue
+        groups.append([(plan, L)])
+    return groups
+
+
+def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str) -> tuple[list[Layer], list[dict]]:
+    """One set of layers from the pairs' (see the module doc): ascending, each with its
+    ``support``; and the groups left out (as dicts: height, share of the weight, pairs) for
+    the diagnostics."""
+    entries = [(plan, L) for plan, r in pairs for L in r.layers if L.height_m > 0]
+    layers, dropped = [], []
+    for g in _groups(entries):
+        w = np.array([_weight(p) for p, _ in g])
+        h = float(np.sum(w * np.array([L.height_m for _, L in g])) / w.sum())
+        eligible = [p for p, _ in pairs if p.overlap_at(h) >= MIN_OVERLAP] or [p for p, _ in g]
+        total = sum(_weight(p) for p in {id(p): p for p in eligible + [p for p, _ in g]}.values())
+        share = float(w.sum()) / total
+        if share < MIN_SUPPORT_SHARE:
+            dropped.append({"height_m": h, "share": share, "pairs": [p.name for p, _ in g]})
+            continue
+        layers.append(_fused_layer(g, w, reference))
+    return layers, dropped
+
+
+def _fused_layer(g: list[tuple[PairPlan, Layer]], w: np.ndarray, reference: str) -> Layer:
+    """The weighted layer of one group; its cover from the heaviest pair on the reference's sky."""
+    wn = w / w.sum()
+    avg = lambda attr: float(sum(x * getattr(L, attr) for x, (_, L) in zip(wn, g)))  # noqa: E731
+    on_ref = [i for i, (p, _) in enumerate(g) if p.cameras[0] == reference] or list(range(len(g)))
+    cover = g[max(on_ref, key=lambda i: w[i])][1].cover
+    moving = [(x, L) for x, (_, L) in zip(w, g) if math.isfinite(L.motion_east_ms) and math.isfinite(L.motion_north_ms)]
+    mw = sum(x for x, _ in moving)
+    motion = {}
+    if moving:
+        motion = dict(motion_east_ms=sum(x * L.motion_east_ms for x, L in moving) / mw,
+                      motion_north_ms=sum(x * L.motion_north_ms for x, L in moving) / mw,
+                      motion_spread_ms=sum(x * L.motion_spread_ms for x, L in moving) / mw,
+                      motion_tracks=int(sum(L.motion_tracks for _, L in moving)))
+    height = avg("height_m")
+    alt = avg("altitude_m") - avg("height_m") if all(math.isfinite(L.altitude_m) for _, L in g) else math.nan
+    return Layer(height_m=height, median_height_m=avg("median_height_m"), spread_m=avg("spread_m"), cover=cover,
+                 points=int(sum(L.points for _, L in g)), confidence=avg("confidence"), altitude_m=height + alt,
+                 support=tuple((p.name, int(L.points), float(L.height_m), float(x)) for x, (p, L) in zip(wn, g)),
+                 **motion)
+
+
+def fused_height_map(pairs: list[tuple[PairPlan, PairResult]], reference: str):
+    """The reference camera's height map: each pixel from the longest baseline that measured it
+    (an :class:`~cbh.result.Enlarged` map when the pairs' are; None without a pair on it)."""
+    mine = sorted([(p, r) for p, r in pairs if p.cameras[0] == reference], key=lambda e: -e[0].baseline_m)
+    if not mine:
+        return None
+    small = [r.enlarged("height_map") for _, r in mine]
+    if all(s is not None for s in small) and len({s.small.shape for s in small}) == 1:
+        out = small[0].small.copy()
+        for s in small[1:]:
+            hole = ~np.isfinite(out)
+            out[hole] = s.small[hole]
+        return Enlarged(out, small[0].width, small[0].height)
+    out = np.array(mine[0][1].height_map, copy=True)
+    for _, r in mine[1:]:
+        hole = ~np.isfinite(out)
+        out[hole] = np.asarray(r.height_map)[hole]
+    return out
+
+
+def _pixel_keys(px: np.ndarray) -> np.ndarray:
+    """An integer key per pixel (N, 2) to 1/8 px: the star pairs' lattice pixels coincide exactly."""
+    q = np.rint(np.asarray(px, np.float64) * 8.0).astype(np.int64)
+    return q[:, 0] * 1_000_003 + q[:, 1]
+
+
+def multiview_points(station: Station, pairs: list[tuple[PairPlan, PairResult]], reference: str,
+                     max_residual_deg: float = MULTIVIEW_MAX_RESIDUAL_DEG) -> tuple[PointSet, dict[str, float]]:
+    """The station's point set from the pairs on the reference camera (see the module doc).
+
+    A reference pixel matched by two or more pairs is one feature in k ≥ 3 views: its point is
+    the least-squares point of all its rays (:func:`~cbh.geometry.triangulate.triangulate_views`),
+    kept when every view's ray passes within ``max_residual_deg`` of it. A pixel matched by one
+    pair keeps that pair's point. ``px2`` of a point: its pixel in the longest-baseline pair's
+    second camera that saw it. Returns (points, diagnostics: ``multiview_tracks``,
+    ``multiview_rejected``, ``multiview_median_residual_deg``)."""
+    from cbh.geometry.triangulate import triangulate_views
+
+    mine = sorted([(p, r) for p, r in pairs if p.cameras[0] == reference], key=lambda e: -e[0].baseline_m)
+    if not mine:
+        return PointSet.empty(), {}
+    keys = [_pixel_keys(r.points.px1) for _, r in mine]
+    allk, inv = np.unique(np.concatenate(keys), return_inverse=True)
+    n, K = len(allk), len(mine) + 1
+    px1 = np.zeros((n, 2), np.float64)
+    px2 = np.full((n, 2), np.nan, np.float64)
+    dirs = np.full((n, K, 3), np.nan, np.float64)
+    two_view = np.full((n, 3), np.nan, np.float64)
+    miss2 = np.zeros(n, np.float64)
+    off = 0
+    for k, ((plan, r), kk) in enumerate(zip(mine, keys)):
+        idx = inv[off: off + len(kk)]
+        off += len(kk)
+        P = r.points
+        first = np.isnan(px2[idx, 0])  # (longest baseline first: its px2 and two-view point win)
+        px1[idx] = P.px1
+        px2[idx[first]] = P.px2[first]
+        two_view[idx[first]] = P.xyz_m[first]
+        miss2[idx[first]] = P.miss_m[first]
+        dirs[idx, k + 1] = station.camera(plan.cameras[1]).pixel_to_world(P.px2.astype(np.float64))
+    ref = station.camera(reference)
+    dirs[:, 0] = ref.pixel_to_world(px1)
+    origins = np.stack([ref.position_m] + [station.camera(p.cameras[1]).position_m for p, _ in mine])
+    views = np.isfinite(dirs[..., 0]).sum(1)
+    multi = views >= 3
+    mv = triangulate_views(origins, dirs[multi])
+    worst = np.degrees(mv.max_residual_rad)
+    good = np.isfinite(worst) & (worst <= max_residual_deg)
+    xyz = two_view.copy()
+    xyz[np.flatnonzero(multi)[good]] = mv.point_m[good]
+    miss = miss2.copy()
+    rng = np.linalg.norm(mv.point_m - ref.position_m, axis=1)
+    miss[np.flatnonzero(multi)[good]] = (np.radians(worst) * rng)[good]
+    keep = ~multi
+    keep[np.flatnonzero(multi)[good]] = True
+    keep &= np.isfinite(xyz).all(1)
+    pts = PointSet(xyz[keep].astype(np.float32), miss[keep].astype(np.float32), px1[keep].astype(np.float32),
+                   px2[keep].astype(np.float32), np.full(int(keep.sum()), -1, np.int16))
+    diag = {"multiview_tracks": float(multi.sum()), "multiview_rejected": float((~good).sum()),
+            "multiview_median_residual_deg": float(np.median(worst[good])) if good.any() else math.nan}
+    return pts, diag
+
+
+def label_points(points: PointSet, layers: list[Layer]) -> PointSet:
+    """Each point's layer: the nearest in ln height within ``2 · LAYER_MATCH_LOG`` (−1: none)."""
+    if not layers or not len(points):
+        return points
+    lh = np.log(np.array([L.height_m for L in layers]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.abs(np.log(np.maximum(points.height_m.astype(np.float64), 1e-3))[:, None] - lh[None, :])
+    lab = np.argmin(d, axis=1).astype(np.int16)
+    lab[d.min(axis=1) > 2 * LAYER_MATCH_LOG] = -1
+    return replace(points, layer=lab)
+
+
+# --- the station pipeline ----------------------------------------------------------------------
+
+def _star(plans: list[PairPlan], names: list[str]) -> list[PairPlan]:
+    """The pairs run first: the reference with each camera it overlaps; a camera it does not
+    overlap joins through its longest usable pair with a camera already joined."""
+    usable = [p for p in plans if not p.skipped]
+    ref = names[0]
+    star = [p for p in usable if ref in p.cameras]
+    joined = {ref, *(c for p in star for c in p.cameras)}
+    for n in names:
+        if n in joined:
+            continue
+        links = [p for p in usable if n in p.cameras and (set(p.cameras) - {n}) & joined]
+        if links:
+            star.append(max(links, key=lambda p: p.baseline_m))
+            joined.add(n)
+    return star
+
+
+class StationPipeline:
+    """Cloud-base heights from one synchronized frame set of N ≥ 2 station cameras.
+
+    Parameters
+    ----------
+    station : Station
+    cameras : str, list of str or None
+        The cameras, reference first (``"cam1,cam2,cam3"``; default: all, in file order).
+    config, device, backend
+        As :class:`~cbh.pipeline.run.Pipeline` (one per pair, sharing them).
+
+    Raises
+    ------
+    ConfigError
+        Fewer than two cameras, two at one place, a camera that overlaps no other.
+    """
+
+    def __init__(self, station: Station, cameras=None, config: PipelineConfig | None = None,
+                 device: str = "cpu", backend: str = "auto"):
+        from cbh.pipeline.run import Pipeline
+
+        self.station = station
+        self.names = station_cameras(station, cameras)
+        self._make = lambda pair: Pipeline(station, ",".join(pair), config, device, backend)  # noqa: E731
+        self.single = self._make(self.names) if len(self.names) == 2 else None
+        self.config = self.single.config if self.single is not None else (
+            config if config is not None else PipelineConfig.from_dict(station.sections.get("pipeline", {})))
+        self.plans = [] if self.single is not None else plan_pairs(station, self.names,
+                                                                  self.config.masks.max_zenith_deg)
+        self.star = _star(self.plans, self.names) if self.plans else []
+        for p in self.plans:
+            if p.skipped:
+                log.info("pair %s not used: %s", p.name, p.skipped)
+        self._pipes: dict[tuple[str, str], object] = {}
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        return tuple(self.names)
+
+    def pipeline(self, pair: tuple[str, str]):
+        """The :class:`~cbh.pipeline.run.Pipeline` of one pair (made on first use)."""
+        if pair not in self._pipes:
+            self._pipes[pair] = self._make(pair)
+        return self._pipes[pair]
+
+    def process(self, images, time_utc: datetime | str | None = None, *, channels: str | None = None,
+                previous: "NetworkState | object | None" = None) -> PairResult:
+        """Run the station on one frame set.
+
+        Parameters
+        ----------
+        images : sequence or dict
+            One image per camera, in :attr:`cameras` order (or a dict name → image); paths or
+            arrays as :meth:`Pipeline.process <cbh.pipeline.run.Pipeline.process>`. None for a
+            camera that delivered nothing: the result is from the cameras present (flag
+            ``camera_missing``).
+        time_utc, channels
+            As :meth:`Pipeline.process <cbh.pipeline.run.Pipeline.process>`.
+        previous : NetworkState or None
+            The previous frame set's ``state``: motion and clock offsets per pair.
+        """
+        frames = self._frames(images, channels)
+        if self.single is not None:
+            if any(v is None for v in frames.values()):
+                raise InputError(f"a two-camera station needs both images ({', '.join(self.names)})")
+            prev = previous if not isinstance(previous, NetworkState) else None
+            return self.single.process(frames[self.names[0]], frames[self.names[1]], time_utc, channels="bgr",
+                                       previous=prev)
+        t0 = time.perf_counter()
+        present = [n for n in self.names if frames[n] is not None]
+        done = self._run_pairs([p for p in self.star if set(p.cameras) <= set(present)], frames, time_utc, previous)
+        verdicts = {p.cameras: pair_verdict(r) for p, r in done}
+        if verdicts and not any(v is True for v in verdicts.values()) and any(v is False for v in verdicts.values()):
+            run = {p.cameras for p, _ in done}
+            extra = [p for p in self.plans if not p.skipped and p.cameras not in run and set(p.cameras) <= set(present)]
+            more = self._run_pairs(extra, frames, time_utc, previous)  # the tie-breakers
+            done += more
+            verdicts.update({p.cameras: pair_verdict(r) for p, r in more})
+        if not done:
+            raise InputError("no usable camera pair among the cameras present: "
+                             + (", ".join(present) or "none"))
+        return self._fuse(done, verdicts, present, (time.perf_counter() - t0) * 1000.0)
+
+    def _frames(self, images, channels) -> dict:
+        """Each camera's image decoded once (BGR), None where missing."""
+        from cbh.imageio import as_bgr
+
+        if isinstance(images, dict):
+            unknown = set(images) - set(self.names)
+            if unknown:
+                raise InputError(f"images for cameras not in this run: {', '.join(sorted(unknown))}")
+            seq = [images.get(n) for n in self.names]
+        else:
+            seq = list(images)
+            if len(seq) != len(self.names):
+                raise InputError(f"{len(seq)} images for {len(self.names)} cameras ({', '.join(self.names)}): "
+                                 "give one per camera, in the station's order")
+        return {n: (None if im is None else as_bgr(im, channels, n, self.station.camera(n).model))
+                for n, im in zip(self.names, seq)}
+
+    def _run_pairs(self, plans: list[PairPlan], frames: dict, time_utc, previous) -> list[tuple[PairPlan, PairResult]]:
+        states = previous.pairs if isinstance(previous, NetworkState) else {}
+        for p in plans:  # made here, not on the threads (a pipeline's first use loads its tables)
+            self.pipeline(p.cameras)
+
+        def one(p: PairPlan):
+            a, b = p.cameras
+            return p, self.pipeline(p.cameras).process(frames[a], frames[b], time_utc, channels="bgr",
+                                                       previous=states.get(p.name))
+
+        return list(pmap(one, plans, pool="pairs"))
+
+    def _fuse(self, done: list[tuple[PairPlan, PairResult]], verdicts: dict, present: list[str],
+              wall_ms: float) -> PairResult:
+        """The station's result from the processed pairs (see the module doc)."""
+        cams_v = camera_verdict(present, verdicts)
+        mismatched = [n for n in present if cams_v[n] is True]
+        used = [(p, r) for p, r in done if verdicts[p.cameras] is not False and not set(p.cameras) & set(mismatched)]
+        used = used or done  # every pair disagrees and no camera can be blamed: flagged, as a pair would be
+        firsts = [p.cameras[0] for p, _ in used]
+        reference = next((n for n in present if n not in mismatched and n in firsts), firsts[0])
+        layers, dropped = fuse_layers(used, reference)
+        for d in dropped:
+            log.debug("network: layer at %.0f m left out (%.0f %% of the weight: %s)", d["height_m"],
+                      100 * d["share"], ", ".join(d["pairs"]))
+        points, mv = multiview_points(self.station, used, reference)
+        points = label_points(points, layers)
+        on_ref = [(p, r) for p, r in used if p.cameras[0] == reference]
+        head = on_ref[0][1] if on_ref else used[0][1]
+        cams = [reference, *(c for p, _ in used for c in p.cameras)]
+        cams = tuple(dict.fromkeys(head.cameras[:1] + head.cameras[1:2] + tuple(cams)))
+        masks, fractions = {}, {}
+        for _, r in used:
+            for c in r.cameras:
+                if c not in fractions:
+                    fractions[c] = r.cloud_fraction[c]
+                    masks[c] = r.enlarged("cloud_masks", c) or r.cloud_masks[c]
+        edges = head.histogram.edges_m
+        counts = (np.histogram(points.height_m, edges)[0].astype(np.float64) if len(edges) > 1
+                  else head.histogram.counts)
+        flags = [f for f in dict.fromkeys(f for _, r in used for f in r.flags)]
+        if mismatched:
+            flags.append("camera_mismatch")
+        if len(present) < len(self.names):
+            flags.append("camera_missing")
+        hmap = fused_height_map(used, reference)
+        from cbh.result import Histogram
+
+        result = PairResult(
+            time_utc=head.time_utc, cameras=cams, layers=layers, histogram=Histogram(edges, counts), points=points,
+            height_map=hmap if hmap is not None else head.height_map, cloud_masks=masks, cloud_fraction=fractions,
+            timing_ms={"total": wall_ms, **{f"{p.name}.total": r.timing_ms.get("total", math.nan) for p, r in done}},
+            flags=flags, matches=head.matches,
+            diagnostics=self._diagnostics(head, done, cams_v, mismatched, mv, len(used)),
+            pairs={p.name: r for p, r in done},
+        )
+        result.state = NetworkState(head.time_utc, {p.name: r.state for p, r in done})
+        return result
+
+    def _diagnostics(self, head: PairResult, done, cams_v: dict, mismatched: list[str], mv: dict,
+                     n_used: int) -> dict:
+        """The reference pair's own diagnostics, every pair's under ``"<a>+<b>."``, the per-camera
+        verdicts and the network's counts."""
+        d = dict(head.diagnostics)
+        for p, r in done:
+            d.update({f"{p.name}.{k}": v for k, v in r.diagnostics.items()})
+            d[f"{p.name}.baseline_m"] = p.baseline_m
+        for n in self.names:
+            v = cams_v.get(n)
+            d[f"geometry_mismatch_{n}"] = math.nan if v is None else float(v)
+        d.update(mv)
+        d["pairs_used"] = float(n_used)
+        d["mismatched_cameras"] = list(mismatched)
+        return d
