@@ -67,7 +67,7 @@ def test_pair_takes_the_file_name_stamp_as_utc(tmp_path):
     (tmp_path / "station.toml").write_text(sim.station.to_toml())
     for cam in ("cam1", "cam2"):
         cv2.imwrite(str(tmp_path / f"{cam}_20240621T140000.png"), shot.views[cam].image)
-    run = process_pair(tmp_path / "cam1_20240621T140000.png", tmp_path / "cam2_20240621T140000.png",
+    run = process_pair([tmp_path / "cam1_20240621T140000.png", tmp_path / "cam2_20240621T140000.png"],
                        tmp_path / "station.toml")
     assert run.result.time_utc == datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
     assert "time_unknown" not in run.result.flags

@@ -1,4 +1,5 @@
-"""``cbh pair`` in library terms: cloud-base heights from one synchronized image pair.
+"""``cbh pair`` in library terms: cloud-base heights from one synchronized image pair, or
+from one image per camera of a camera network (:mod:`cbh.pipeline.network`).
 
 Capture time (used for the sun's position): the given one; otherwise the UTC stamp in camera
 1's file name (file-name stamps are UTC: docs/conventions.md); otherwise unknown, and the
@@ -26,72 +27,83 @@ __all__ = ["PairRun", "process_pair", "format_pair"]
 
 @dataclass
 class PairRun:
-    """One processed pair and the pipeline that made it."""
+    """One processed frame set (a pair, or a network's N images) and the cameras it used."""
 
-    cameras: tuple[str, str]
+    cameras: tuple[str, ...]
     result: PairResult
-    with_motion: bool = False  # processed with the previous pair (motion columns in the table)
+    with_motion: bool = False  # processed with the previous set (motion columns in the table)
 
 
-def process_pair(image1, image2, station, cameras: str | None = None, time_utc: datetime | None = None,
+def process_pair(images, station, cameras: str | None = None, time_utc: datetime | None = None,
                  height_map_path=None, previous=None, previous_time: datetime | None = None,
                  device: str = "cpu") -> PairRun:
-    """Process one pair of image files.
+    """Process one synchronized set of image files: two cameras, or a network of N.
 
     Parameters
     ----------
-    image1, image2 : path-like
-        Camera 1's and camera 2's images (JPEG/PNG) at their calibration size.
+    images : sequence of path-like
+        One image (JPEG/PNG, at its calibration size) per camera, in the order of ``cameras``.
     station : path-like
         Station TOML (may carry a ``[pipeline]`` table).
     cameras : str, optional
-        ``"cam1,cam2"`` (default: the station's first two).
+        ``"cam1,cam2[,cam3…]"``: the cameras of ``images``, reference first (default: the
+        station's first ``len(images)`` cameras, in file order).
     time_utc : datetime, optional
-        Capture time (aware); default: camera 1's file-name stamp, else unknown.
+        Capture time (aware); default: the first image's file-name stamp, else unknown.
     height_map_path : path-like, optional
-        Write camera 1's dense height map there (float32 ``.npy``, NaN = unknown) [m].
-    previous : (path-like, path-like), optional
-        The pair captured before: with it, each layer's motion and camera 2's clock offset.
+        Write the reference camera's dense height map there (float32 ``.npy``, NaN = unknown) [m].
+    previous : sequence of path-like, optional
+        The set captured before (one image per camera): with it, each layer's motion and the
+        cameras' clock offsets.
     previous_time : datetime, optional
-        Its capture time (aware); default: the stamp in its camera-1 file name.
+        Its capture time (aware); default: the stamp in its first file name.
     device : str
         Where the dense work runs: ``"cpu"`` or a torch device (``"cuda"``); see :class:`~cbh.pipeline.Pipeline`.
 
     Raises
     ------
     InputError
-        ``previous`` without both capture times, or not captured before this pair.
+        ``previous`` without both capture times, not captured before this set, or with
+        another number of images.
     ConfigError
-        ``previous_time`` without ``previous``.
+        ``previous_time`` without ``previous``; fewer than two images, or more than the station
+        has cameras.
     """
+    from cbh.errors import ConfigError, InputError
     from cbh.geometry.station import load_station
+    from cbh.pipeline.network import StationPipeline
     from cbh.presets import station_path
-    from cbh.pipeline import Pipeline
 
     if height_map_path is not None and Path(height_map_path).suffix.lower() != ".npy":
-        from cbh.errors import ConfigError
-
         # any name was written over: `--height-map SESSION.mcap` (or an input image) was lost
         raise ConfigError(f"--height-map {height_map_path}: the map is a NumPy array; use a .npy file name")
-    pipe = Pipeline(load_station(station_path(str(station))), cameras, device=device)
-    t = time_utc if time_utc is not None else time_from_name(Path(image1).name)
+    images = [Path(p) for p in images]
+    st = load_station(station_path(str(station)))
+    if cameras is None:
+        if not 2 <= len(images) <= len(st.cameras):
+            raise ConfigError(f"{len(images)} image(s) for station {st.name!r} of {len(st.cameras)} cameras "
+                              f"({', '.join(st.cameras)}): give one image per camera, two at least")
+        cameras = ",".join(list(st.cameras)[:len(images)])
+    pipe = StationPipeline(st, cameras, device=device)
+    if len(images) != len(pipe.names):
+        raise ConfigError(f"{len(images)} images for {len(pipe.names)} cameras ({', '.join(pipe.names)})")
+    t = time_utc if time_utc is not None else time_from_name(images[0].name)
     state = None
     if previous is not None:
-        from cbh.errors import InputError
-
-        tp = previous_time if previous_time is not None else time_from_name(Path(previous[0]).name)
+        previous = [Path(p) for p in previous]
+        if len(previous) != len(images):
+            raise InputError(f"--previous: {len(previous)} images for {len(images)} cameras")
+        tp = previous_time if previous_time is not None else time_from_name(previous[0].name)
         if t is None or tp is None:
             raise InputError("--previous: motion needs both capture times (--time and --previous-time, "
                              "or UTC stamps in the file names)")
         if not tp < t:
-            raise InputError(f"--previous: the previous pair ({format_utc(tp)}) must be captured before "
+            raise InputError(f"--previous: the previous set ({format_utc(tp)}) must be captured before "
                              f"this one ({format_utc(t)})")
-        state = pipe.process(Path(previous[0]), Path(previous[1]), tp).state
+        state = pipe.process(previous, tp).state
     elif previous_time is not None:
-        from cbh.errors import ConfigError
-
-        raise ConfigError("--previous-time needs --previous P1 P2")
-    result = pipe.process(Path(image1), Path(image2), t, previous=state)
+        raise ConfigError("--previous-time needs --previous")
+    result = pipe.process(images, t, previous=state)
     if height_map_path is not None:
         from cbh.actions.run import open_sink
 
@@ -99,13 +111,13 @@ def process_pair(image1, image2, station, cameras: str | None = None, time_utc: 
             with open(height_map_path, "wb") as fh:
                 np.save(fh, result.height_map.astype(np.float32))
         open_sink(height_map_path, write)
-    return PairRun(pipe.cameras, result, previous is not None)
+    return PairRun(tuple(result.cameras), result, previous is not None)
 
 
 def format_pair(run: PairRun) -> str:
     """The human-readable table of ``cbh pair``."""
     s = run.result.summary()
-    out = [f"{run.cameras[0]} + {run.cameras[1]}  {format_utc(run.result.time_utc)}"]
+    out = [f"{' + '.join(run.cameras)}  {format_utc(run.result.time_utc)}"]
     if not s["layers"]:
         out.append("no cloud layer")
     else:
@@ -132,6 +144,30 @@ def format_pair(run: PairRun) -> str:
                     else "motion: none; ")
                    + f"clock offset {run.cameras[1]} - {run.cameras[0]}: "
                    + (f"{off:+.2f} s" if off is not None else "unknown"))
+    out += _network_lines(run.result)
     if s["flags"]:
         out.append("flags: " + ", ".join(s["flags"]))
     return "\n".join(out)
+
+
+def _network_lines(result: PairResult) -> list[str]:
+    """A camera network's part of the table: each layer's support, each pair's verdict, the
+    cameras that disagree (none for a two-camera pair)."""
+    if not result.pairs:
+        return []
+    d = result.diagnostics
+    out = []
+    for i, L in enumerate(result.layers):
+        out.append(f"layer {i + 1} support: " + ", ".join(f"{p} {100 * w:.0f} % ({h:.0f} m)" for p, _, h, w in
+                                                          sorted(L.support, key=lambda e: -e[3])))
+    parts = []
+    for name, r in result.pairs.items():
+        b = d.get(f"{name}.baseline_m", math.nan)
+        verdict = ("disagrees" if "geometry_mismatch" in r.flags else
+                   "agrees" if math.isfinite(d.get(f"{name}.geometry_residual_px", math.nan)) else "no verdict")
+        parts.append(f"{name} ({b:.0f} m) {verdict}")
+    out.append("pairs: " + "; ".join(parts))
+    bad = d.get("mismatched_cameras") or []
+    if bad:
+        out.append("cameras that disagree with the others (left out): " + ", ".join(bad))
+    return out

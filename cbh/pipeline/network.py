@@ -77,6 +77,16 @@ LAYER_MATCH_LOG = 0.12
 #: A layer needs the pairs reporting it to hold this share of the weight of all pairs that
 #: overlap at its height [1].
 MIN_SUPPORT_SHARE = 0.5
+#: The largest angle between two cameras' views of one cloud the matching is given [deg]: a
+#: pair's sweep starts at the height B / tan(this) (a 630 m pair at 900 m; a 50 m pair at its
+#: 100 m floor). Beyond, the two views of a cloud base differ too much for 9 px correlation
+#: windows (at 35° a window's footprint is foreshortened by 18 %), and the planes below cost
+#: the most (a 630 m pair swept 100 m – 15 km in 447 ms, 900 m – 15 km in 255 ms).
+MAX_PARALLAX_DEG = 35.0
+#: Plain LK (started at the point at infinity) finds matches within about this parallax [deg]
+#: (a 50 m pair at 1500 m, 1.9°: 600 of 600 features; a 630 m pair, 23°: 24). A pair with more
+#: at 3 km, a typical cloud, runs LK started at the sweep's matches only (``_seeded_lk``).
+LK_REACH_DEG = 10.0
 #: A multi-view feature is a mismatch when a view misses its point by more than this [deg]
 #: (≈ 3 px at the default 960 px working size; matching noise is 0.1–0.3 px).
 MULTIVIEW_MAX_RESIDUAL_DEG = 0.5
@@ -90,13 +100,16 @@ class PairPlan:
     baseline_m: float
     overlap: tuple[float, ...]  # at OVERLAP_HEIGHTS_M [1]
     skipped: str = ""  # why the pair is not used ("" = usable)
+    floor_m: float = 0.0  # the pair sweeps from this height up (MAX_PARALLAX_DEG) [m above the first camera]
 
     @property
     def name(self) -> str:
         return f"{self.cameras[0]}+{self.cameras[1]}"
 
     def overlap_at(self, height_m: float) -> float:
-        """Overlap at ``height_m``, interpolated in ln height [1]."""
+        """Overlap at ``height_m``, interpolated in ln height; 0 below the pair's floor [1]."""
+        if height_m < self.floor_m:
+            return 0.0
         h = np.log(np.asarray(OVERLAP_HEIGHTS_M))
         return float(np.interp(math.log(max(height_m, 1.0)), h, np.asarray(self.overlap)))
 
@@ -170,7 +183,8 @@ def plan_pairs(station: Station, names: list[str], max_zenith_deg: float = 80.0)
             skipped = "" if ov[best] >= MIN_OVERLAP else (
                 f"overlap at most {100 * ov[best]:.0f} % (at {OVERLAP_HEIGHTS_M[best]:g} m), under "
                 f"{100 * MIN_OVERLAP:.0f} %")
-            plans.append(PairPlan((a, b), base, tuple(float(x) for x in ov), skipped))
+            floor = base / math.tan(math.radians(MAX_PARALLAX_DEG))
+            plans.append(PairPlan((a, b), base, tuple(float(x) for x in ov), skipped, floor))
     for n in names:
         mine = [p for p in plans if n in p.cameras]
         if mine and all(p.skipped for p in mine):
@@ -208,6 +222,11 @@ def camera_verdict(names: list[str], verdicts: dict[tuple[str, str], bool | None
 
 # --- fusion ----------------------------------------------------------------------------------
 
+#: A pair flagged ``below_range`` reports cloud below its floor on its lowest planes: its layers
+#: under this × its floor are left to the shorter pairs [1].
+_FLOOR_MARGIN = 1.2
+
+
 def _weight(plan: PairPlan) -> float:
     """A pair's weight for a layer it overlaps at: 1/σ² with σ = H² δθ / B, up to the factor
     (H² δθ)² common to the pairs at one height: B² [m²]."""
@@ -235,7 +254,8 @@ def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str) -> tup
     """One set of layers from the pairs' (see the module doc): ascending, each with its
     ``support``; and the groups left out (as dicts: height, share of the weight, pairs) for
     the diagnostics."""
-    entries = [(plan, L) for plan, r in pairs for L in r.layers if L.height_m > 0]
+    entries = [(plan, L) for plan, r in pairs for L in r.layers if L.height_m > 0
+               and not ("below_range" in r.flags and L.height_m < _FLOOR_MARGIN * plan.floor_m)]
     layers, dropped = [], []
     for g in _groups(entries):
         w = np.array([_weight(p) for p, _ in g])
@@ -369,6 +389,17 @@ def label_points(points: PointSet, layers: list[Layer]) -> PointSet:
 
 # --- the station pipeline ----------------------------------------------------------------------
 
+def pair_config(config: PipelineConfig, plan: PairPlan, o1z_m: float) -> PipelineConfig:
+    """A network pair's pipeline configuration: the sweep from the pair's floor up
+    (:data:`MAX_PARALLAX_DEG`), and no plain LK on a pair beyond its reach (:data:`LK_REACH_DEG`)."""
+    m = config.matching
+    floor = max(m.sweep.min_height_m, o1z_m + plan.floor_m)
+    methods = m.methods
+    if math.degrees(math.atan(plan.baseline_m / 3000.0)) > LK_REACH_DEG and "sweep" in methods:
+        methods = tuple(x for x in methods if x != "lk")
+    return replace(config, matching=replace(m, methods=methods, sweep=replace(m.sweep, min_height_m=floor)))
+
+
 def _star(plans: list[PairPlan], names: list[str]) -> list[PairPlan]:
     """The pairs run first: the reference with each camera it overlaps; a camera it does not
     overlap joins through its longest usable pair with a camera already joined."""
@@ -409,10 +440,12 @@ class StationPipeline:
 
         self.station = station
         self.names = station_cameras(station, cameras)
-        self._make = lambda pair: Pipeline(station, ",".join(pair), config, device, backend)  # noqa: E731
-        self.single = self._make(self.names) if len(self.names) == 2 else None
+        self.single = Pipeline(station, ",".join(self.names), config, device, backend) if len(self.names) == 2 else None
         self.config = self.single.config if self.single is not None else (
             config if config is not None else PipelineConfig.from_dict(station.sections.get("pipeline", {})))
+        self._make = lambda plan: Pipeline(  # noqa: E731
+            station, ",".join(plan.cameras),
+            pair_config(self.config, plan, float(station.camera(plan.cameras[0]).position_m[2])), device, backend)
         self.plans = [] if self.single is not None else plan_pairs(station, self.names,
                                                                   self.config.masks.max_zenith_deg)
         self.star = _star(self.plans, self.names) if self.plans else []
@@ -425,11 +458,11 @@ class StationPipeline:
     def cameras(self) -> tuple[str, ...]:
         return tuple(self.names)
 
-    def pipeline(self, pair: tuple[str, str]):
+    def pipeline(self, plan: PairPlan):
         """The :class:`~cbh.pipeline.run.Pipeline` of one pair (made on first use)."""
-        if pair not in self._pipes:
-            self._pipes[pair] = self._make(pair)
-        return self._pipes[pair]
+        if plan.cameras not in self._pipes:
+            self._pipes[plan.cameras] = self._make(plan)
+        return self._pipes[plan.cameras]
 
     def process(self, images, time_utc: datetime | str | None = None, *, channels: str | None = None,
                 previous: "NetworkState | object | None" = None) -> PairResult:
@@ -487,13 +520,16 @@ class StationPipeline:
                 for n, im in zip(self.names, seq)}
 
     def _run_pairs(self, plans: list[PairPlan], frames: dict, time_utc, previous) -> list[tuple[PairPlan, PairResult]]:
+        from cbh.pipeline.run import FrameMemo
+
         states = previous.pairs if isinstance(previous, NetworkState) else {}
+        memo = FrameMemo()  # camera 1's masks, sun check and segmentation, once for its pairs
         for p in plans:  # made here, not on the threads (a pipeline's first use loads its tables)
-            self.pipeline(p.cameras)
+            self.pipeline(p).frame_memo = memo
 
         def one(p: PairPlan):
             a, b = p.cameras
-            return p, self.pipeline(p.cameras).process(frames[a], frames[b], time_utc, channels="bgr",
+            return p, self.pipeline(p).process(frames[a], frames[b], time_utc, channels="bgr",
                                                        previous=states.get(p.name))
 
         return list(pmap(one, plans, pool="pairs"))

@@ -189,6 +189,9 @@ class Pipeline:
         self._tables_key: str | None = None  # set once the disk cache was consulted (cbh.pipeline.tables)
         self._tables_loaded = False
         self._layers = get_layer_method(self.config.layers.method)
+        # a camera network's per-frame-set memo of camera 1's own stages, shared by the pipelines of
+        # the pairs that hold it as camera 1 (cbh.pipeline.network sets it per frame set; None: off)
+        self.frame_memo: FrameMemo | None = None
         for name in self.config.matching.methods:
             get_matcher(name)
 
@@ -318,6 +321,13 @@ class Pipeline:
         f = self.factors[i]
         return px if f == 1.0 else (px + 0.5) / f - 0.5
 
+    def _camera1_once(self, i: int, stage: str, fn):
+        """``fn()``; for camera 1 under a network's :class:`FrameMemo`, computed once per frame
+        set by whichever of its pairs gets there first."""
+        if i != 0 or self.frame_memo is None:
+            return fn()
+        return self.frame_memo.get((self.cameras[0], stage), fn)
+
     # --- the pair -------------------------------------------------------------------------
     def process(self, image1, image2, time_utc: datetime | str | None = None, *,
                 channels: str | None = None, previous: PairState | None = None) -> PairResult:
@@ -385,9 +395,10 @@ class Pipeline:
             self.stage_sun_check(work, masks, ctx)
         received = (image1, image2)  # as the cameras delivered them, full size (the identical-image check)
         with _timed(ctx, "photometric"):
+            work1 = work[0]
             work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
-            seg = self.stage_segment(work, masks)
+            seg = self.stage_segment(work, masks, as_received1=work[0] is work1)
             gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
         return Prepared(ctx=ctx, t_all=t_all, first=first, work=work, masks=masks, seg=seg, gray=gray, received=received,
                         prepare_ms=_ms(t_all))
@@ -675,7 +686,8 @@ class Pipeline:
                     u, glare = u & ~sat, True
             return u, ang, glare, _sky_dn(work[i], u)
 
-        (u1, a1, glare1, dn1), (u2, a2, _, dn2) = pmap(one, (0, 1), pool="stages")
+        (u1, a1, glare1, dn1), (u2, a2, _, dn2) = pmap(lambda i: self._camera1_once(i, "masks", lambda: one(i)),
+                                                        (0, 1), pool="stages")
         if glare1:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
@@ -726,8 +738,11 @@ class Pipeline:
             return (cv2.LUT(work[0], lut12), work[1])
         return (work[0], cv2.LUT(work[1], lut21))
 
-    def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks") -> "Segmentation":
-        """Cloud mask and cloud fraction of each camera's usable sky."""
+    def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks", as_received1: bool = False
+                      ) -> "Segmentation":
+        """Cloud mask and cloud fraction of each camera's usable sky (``as_received1``: camera 1's
+        image is as delivered, not mapped onto camera 2's response: its mask is its own, and a
+        network's pairs share it)."""
         cams = (self.cam1, self.cam2)
 
         def one(i):
@@ -739,7 +754,8 @@ class Pipeline:
             return segment(work[i], masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
                            what=cams[i].name)
 
-        (c1, f1), (c2, f2) = pmap(one, (0, 1), pool="stages")
+        (c1, f1), (c2, f2) = pmap(lambda i: self._camera1_once(i, "segment", lambda: one(i)) if as_received1 else one(i),
+                                  (0, 1), pool="stages")
         if self._clear_pair((f1, f2), work, masks):
             c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
@@ -828,7 +844,7 @@ class Pipeline:
             det = detect_sun(work[i], cams[i], expected, cfg.search_deg, usable=self.static_mask(i))
             return math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
 
-        res = list(pmap(one, (0, 1), pool="stages"))
+        res = list(pmap(lambda i: self._camera1_once(i, "sun_check", lambda: one(i)), (0, 1), pool="stages"))
         for role, r in zip(("cam1", "cam2"), res):
             ctx.diagnostics[f"sun_residual_{role}_deg"] = r
         seen = [r for r in res if math.isfinite(r)]
@@ -1006,6 +1022,35 @@ class Pipeline:
             diagnostics=dict(ctx.diagnostics),
             matches=matches,
         )
+
+
+class FrameMemo:
+    """Values computed once per frame set and shared between threads: the first caller of a key
+    computes it, later callers wait for it (and see its exception, if it raised)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._slots: dict = {}
+
+    def get(self, key, fn):
+        with self._lock:
+            slot = self._slots.get(key)
+            owner = slot is None
+            if owner:
+                slot = self._slots[key] = [threading.Event(), None, None]
+        if owner:
+            try:
+                slot[1] = fn()
+            except BaseException as exc:
+                slot[2] = exc
+                raise
+            finally:
+                slot[0].set()
+            return slot[1]
+        slot[0].wait()
+        if slot[2] is not None:
+            raise slot[2]
+        return slot[1]
 
 
 def _on_mask(mask: np.ndarray, px: np.ndarray) -> np.ndarray:

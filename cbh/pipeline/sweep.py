@@ -894,16 +894,22 @@ def coarse_hypotheses(votes: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: fl
 def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: float, cfg) -> tuple[np.ndarray, float]:
     """The fine planes (ascending s, ``step_px`` apart): the far range from infinity up to
     ``far_px`` of parallax, and each coarse hypothesis's extent ± 1.5 coarse steps; at most
-    ``max_planes`` (thinned uniformly beyond). Returns (s (P,), nominal step ds)."""
-    ds = cfg.step_px / scale_px
-    parts = [np.arange(0.0, min(cfg.far_px / scale_px, s_max) + 0.5 * ds, ds)]
-    for lo, hi in coarse.ranges:
-        a = max(coarse.s[lo] - 1.5 * coarse.ds, s_min)
-        b = min(coarse.s[hi] + 1.5 * coarse.ds, s_max)
-        parts.append(np.arange(a, b + 0.5 * ds, ds))
-    s = np.unique(np.round(np.concatenate(parts) / ds) * ds)
-    if len(s) > cfg.max_planes:  # too many: thin uniformly (coarser steps)
-        s = s[np.linspace(0, len(s) - 1, cfg.max_planes).round().astype(int)]
+    ``max_planes``: beyond, the step grows (a whole multiple of ``step_px``) until they fit, so
+    that the planes stay evenly spaced — the refinement's parabola needs a pixel's neighbouring
+    planes one step away (thinning by index left gaps: a 630 m pair's 3500 m layer fell between
+    3575 and 3452 m with no plane at 3512 m, and every pixel snapped to 3452 m, −1.4 %).
+    Returns (s (P,), nominal step ds)."""
+    base = cfg.step_px / scale_px
+    for k in range(1, 1 << 12):
+        ds = base * k
+        parts = [np.arange(0.0, min(cfg.far_px / scale_px, s_max) + 0.5 * ds, ds)]
+        for lo, hi in coarse.ranges:
+            a = max(coarse.s[lo] - 1.5 * coarse.ds, s_min)
+            b = min(coarse.s[hi] + 1.5 * coarse.ds, s_max)
+            parts.append(np.arange(a, b + 0.5 * ds, ds))
+        s = np.unique(np.round(np.concatenate(parts) / ds) * ds)
+        if len(s) <= cfg.max_planes:
+            break
     return s, ds
 
 
