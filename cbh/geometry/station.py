@@ -1,5 +1,8 @@
 """A station: two or more fisheye cameras with ENU positions and orientations (TOML).
 
+Any number of cameras (a camera network: :mod:`cbh.pipeline.network`); cameras kilometres apart
+may give their positions as latitude, longitude and altitude instead of ENU metres.
+
 See docs/conventions.md for the frames. The file format::
 
     [station]
@@ -22,6 +25,9 @@ See docs/conventions.md for the frames. The file format::
     name = "cam1"
     calibration = "cam1_calib_results.txt"   # OCamCalib file, relative to this TOML
     position_m = [0.0, 0.0, 0.0]             # east, north, up of the projection centre
+    # latitude_deg, longitude_deg, altitude_m  # instead of position_m: WGS 84 latitude and
+    #                                        # longitude [deg] and altitude [m, as the station's],
+    #                                        # converted to ENU about [station] (pymap3d)
     yaw_deg = 0.0                            # azimuth the image top faces, clockwise from north
     pitch_deg = 0.0
     roll_deg = 0.0
@@ -59,8 +65,10 @@ METADATA_KEYS = ("institution", "instrument", "site", "contact", "comment", "ref
 
 _CAMERA_KEYS = {
     "name", "calibration", "intrinsics", "position_m", "yaw_deg", "pitch_deg", "roll_deg",
-    "rotation", "mask", "source",
+    "rotation", "mask", "source", "latitude_deg", "longitude_deg", "altitude_m",
 }
+#: A camera's geodetic position, instead of ``position_m`` (converted with pymap3d about the station).
+_GEODETIC_KEYS = ("latitude_deg", "longitude_deg", "altitude_m")
 _STATION_KEYS = {"name", "latitude_deg", "longitude_deg", "altitude_m"}
 _STATION_OPTIONAL = {"allow_baseline"}
 #: Plausible camera separation [m]: below, a pair cannot triangulate clouds km away (the
@@ -358,8 +366,9 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
         raise ConfigError(f"{label}: needs at least two [[cameras]] entries")
     base_dir = base_dir or Path.cwd()
     cameras: dict[str, Camera] = {}
+    site = (lat, lon, _num("station.altitude_m", st["altitude_m"]))
     for i, c in enumerate(cams_raw):
-        cam = _parse_camera(i, c, base_dir, check_masks, cameras)
+        cam = _parse_camera(i, c, base_dir, check_masks, cameras, site)
         cameras[cam.name] = cam
     sections = _extra_sections(data, lat, lon)
     _check_baselines(cameras, allow_baseline)
@@ -395,7 +404,8 @@ def _parse_site(st: dict) -> tuple[bool, dict, float, float]:
     return allow_baseline, metadata, lat, lon
 
 
-def _parse_camera(i: int, c, base_dir: Path, check_masks: bool, seen: dict) -> Camera:
+def _parse_camera(i: int, c, base_dir: Path, check_masks: bool, seen: dict,
+                  site: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Camera:
     """``[[cameras]]`` entry ``i``: its name (not in ``seen``), lens model, pose, mask, source."""
     where = f"cameras[{i}]"
     if not isinstance(c, dict):
@@ -408,7 +418,7 @@ def _parse_camera(i: int, c, base_dir: Path, check_masks: bool, seen: dict) -> C
         raise ConfigError(f"{where}.name: duplicate camera name {name!r}")
     where = f"cameras[{name}]"
     model = _camera_model(where, c, base_dir)
-    pos, R = _camera_pose(where, c)
+    pos, R = _camera_pose(where, c, site)
     mask = _camera_mask(where, c, base_dir, model, check_masks)
     source = c.get("source")
     if source is not None and not isinstance(source, str):
@@ -432,17 +442,43 @@ def _camera_model(where: str, c: dict, base_dir: Path) -> CameraModel:
         raise ConfigError(f"{where}.calibration: {exc}") from None
 
 
-def _camera_pose(where: str, c: dict) -> tuple[np.ndarray, np.ndarray]:
-    """(position_m (3,) ENU [m], R_world_from_cam (3, 3)): ``rotation`` rows or yaw/pitch/roll [deg]."""
-    if "position_m" not in c:
-        raise ConfigError(f"{where}.position_m: missing")
-    pos = np.array(_vec(f"{where}.position_m", c["position_m"], 3))
+def _camera_pose(where: str, c: dict, site: tuple[float, float, float] = (0.0, 0.0, 0.0)
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(position_m (3,) ENU [m], R_world_from_cam (3, 3)): ``position_m`` or the geodetic
+    position (:func:`_geodetic_position`); ``rotation`` rows or yaw/pitch/roll [deg]."""
+    geo = [k for k in _GEODETIC_KEYS if k in c]
+    if geo and "position_m" in c:
+        raise ConfigError(f"{where}: give either position_m or {', '.join(_GEODETIC_KEYS)}, not both")
+    if geo:
+        pos = _geodetic_position(where, c, site)
+    elif "position_m" not in c:
+        raise ConfigError(f"{where}.position_m: missing (or give {', '.join(_GEODETIC_KEYS)})")
+    else:
+        pos = np.array(_vec(f"{where}.position_m", c["position_m"], 3))
     angles = [k for k in ("yaw_deg", "pitch_deg", "roll_deg") if k in c]
     if "rotation" in c:
         if angles:
             raise ConfigError(f"{where}.rotation: give either 'rotation' or the angles ({', '.join(angles)}), not both")
         return pos, _rotation(f"{where}.rotation", c["rotation"])
     return pos, rotation_from_angles(*(_num(f"{where}.{k}", c.get(k, 0.0)) for k in ("yaw_deg", "pitch_deg", "roll_deg")))
+
+
+def _geodetic_position(where: str, c: dict, site: tuple[float, float, float]) -> np.ndarray:
+    """A camera's ``latitude_deg``, ``longitude_deg``, ``altitude_m`` → ENU [m] about the station's
+    site (``pymap3d.geodetic2enu`` on WGS 84: exact at any distance, unlike a flat-earth
+    approximation, which is 8 m off in height 10 km away)."""
+    import pymap3d
+
+    missing = [k for k in _GEODETIC_KEYS if k not in c]
+    if missing:
+        raise ConfigError(f"{where}: a geodetic position needs {', '.join(_GEODETIC_KEYS)} (missing: {', '.join(missing)})")
+    lat, lon, alt = (_num(f"{where}.{k}", c[k]) for k in _GEODETIC_KEYS)
+    if not -90 <= lat <= 90:
+        raise ConfigError(f"{where}.latitude_deg: {lat} is outside -90..90")
+    if not -180 <= lon <= 360:
+        raise ConfigError(f"{where}.longitude_deg: {lon} is outside -180..180")
+    e, n, u = pymap3d.geodetic2enu(lat, lon, alt, *site)
+    return np.array([float(e), float(n), float(u)])
 
 
 def _camera_mask(where: str, c: dict, base_dir: Path, model, check_masks: bool) -> Path | None:

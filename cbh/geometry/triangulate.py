@@ -358,10 +358,12 @@ def triangulate_views(origins, dirs, seen=None, min_det: float = 1e-10) -> Multi
     b = o.sum(1) - (d * (d * o).sum(-1, keepdims=True) if xp is np else d * (d * o).sum(-1, keepdim=True)).sum(1)
     X = _solve3(xp, A, b, seen.sum(1), min_det)
     v = X[:, None, :] - origins[None, :, :]
-    vn = (v * v).sum(-1) ** 0.5
-    cosang = (v * d).sum(-1) / xp.where(vn > 0, vn, vn * 0 + 1)
-    cosang = xp.clip(cosang, -1.0, 1.0) if xp is np else cosang.clamp(-1.0, 1.0)
-    res = xp.arccos(cosang) if xp is np else xp.acos(cosang)
+    # the angle as atan2(|v × d|, v · d): accurate for the small angles that matter (acos is not)
+    cx = v[..., 1] * d[..., 2] - v[..., 2] * d[..., 1]
+    cy = v[..., 2] * d[..., 0] - v[..., 0] * d[..., 2]
+    cz = v[..., 0] * d[..., 1] - v[..., 1] * d[..., 0]
+    sin_part = (cx * cx + cy * cy + cz * cz) ** 0.5
+    res = (xp.arctan2 if xp is np else xp.atan2)(sin_part, (v * d).sum(-1))
     nan = X[:, :1] * float("nan")
     res = xp.where(seen & ~xp.isnan(X[:, :1]), res, nan)
     return MultiView(X, res, seen.sum(1))
