@@ -152,7 +152,12 @@ def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: b
     cfg = None if "pipeline" in st.sections else PipelineConfig.from_dict(s.config, where="recorded pipeline config")
     first = next(s.pairs(layers_only=True), None)
     pair_names = cameras or (",".join(first.result.cameras) if first else None)
-    pipeline = Pipeline(st, pair_names, cfg, device=device)
+    if pair_names is not None and len(pair_names.split(",")) > 2:  # a camera network's recording
+        from cbh.pipeline.network import StationPipeline
+
+        pipeline = StationPipeline(st, pair_names, cfg, device=device)
+    else:
+        pipeline = Pipeline(st, pair_names, cfg, device=device)
     probe = next(s.pairs(), None)
     if probe is not None:  # a size mismatch fails before any output file is opened
         for cam in pipeline.cameras:

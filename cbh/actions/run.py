@@ -112,16 +112,27 @@ class RunSetup:
         self.notes = notes
         self.motion = MotionChain(config.cadence_s)
 
+    @property
+    def network(self) -> bool:
+        """Three or more cameras (:class:`~cbh.pipeline.network.StationPipeline`)."""
+        return len(self.cameras) > 2
+
     def prepare(self, f1: Frame, f2: Frame):
         """The part of a pair that does not need the pair before (:meth:`Pipeline.prepare`)."""
         return self.pipeline.prepare(f1.image, f2.image, f1.time_utc, channels="bgr")
 
-    def process(self, f1: Frame, f2: Frame, prepared=None) -> PairResult:
-        """One pair through the pipeline, with the previous pair's state (motion, clock offset).
-        ``prepared``: a future of :meth:`prepare` for this pair (the service's look-ahead)."""
+    def process(self, *frames: Frame | None, prepared=None) -> PairResult:
+        """One pair (or a network's frame set, None for a missing camera) through the pipeline,
+        with the previous one's state (motion, clock offset). ``prepared``: a future of
+        :meth:`prepare` for this pair (the service's look-ahead; pairs only)."""
+        t = next(f.time_utc for f in frames if f is not None)
         try:
-            prep = prepared.result() if prepared is not None else self.prepare(f1, f2)
-            result = self.pipeline.finish(prep, previous=self.motion.previous(f1.time_utc))
+            if self.network:
+                result = self.pipeline.process({f.camera: f.image for f in frames if f is not None}, t,
+                                               channels="bgr", previous=self.motion.previous(t))
+            else:
+                prep = prepared.result() if prepared is not None else self.prepare(*frames)
+                result = self.pipeline.finish(prep, previous=self.motion.previous(t))
         except Exception:
             self.motion.lost()
             raise
@@ -130,7 +141,8 @@ class RunSetup:
 
     def service(self, on_pair: Callable | None = None) -> Service:
         """The :class:`Service` for this run; ``on_pair(stats, result)`` is called after each pair."""
-        return Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair, prepare=self.prepare)
+        return Service(self.sources, self.process, self.sinks, self.config, on_pair=on_pair,
+                       prepare=None if self.network else self.prepare)
 
     def outputs(self) -> list[tuple[str, str]]:
         """What this run writes: ("recorded" | "exported", path) pairs."""
@@ -213,16 +225,18 @@ def _source_overrides(st, sources) -> dict[str, str]:
 
 
 def _camera_specs(st, cameras, overrides: dict[str, str]):
-    """(the pair's names, camera → source spec, the simulated ones): a ``--source``, else the
-    station's ``source`` key, else the simulator; both cameras simulated or neither."""
+    """(the cameras' names, camera → source spec, the simulated ones): a ``--source``, else the
+    station's ``source`` key, else the simulator; every camera simulated or none. The cameras:
+    ``--cameras`` (two, or a network's N), default every camera of the station."""
     from cbh.live.sources import is_sim_spec
+    from cbh.pipeline.network import station_cameras
 
-    c1, c2 = st.pair(cameras)
-    names = (c1.name, c2.name)
+    names = tuple(station_cameras(st, cameras))
     specs = {n: overrides.get(n) or st.cameras[n].source or "sim" for n in names}
     simulated = [n for n in names if is_sim_spec(specs[n])]
-    if simulated and len(simulated) != 2:
-        raise ConfigError(f"camera {simulated[0]} would be simulated and the other not: give both a source, or neither")
+    if simulated and len(simulated) != len(names):
+        raise ConfigError(f"camera {simulated[0]} would be simulated and another not: give every camera a source, "
+                          "or none")
     return names, specs, simulated
 
 
@@ -266,7 +280,7 @@ def _open_sources(st, names, specs, sim, config: ServiceConfig, start, *, watch:
 
     step = config.cadence_s if config.cadence_s > 0 else 10.0
     base_dir = st.path.parent if st.path is not None else None
-    same_dir = specs[names[0]] == specs[names[1]]
+    shared = {spec for spec in specs.values() if list(specs.values()).count(spec) > 1}
     srcs = []
     for n in names:
         if sim is not None:
@@ -276,17 +290,21 @@ def _open_sources(st, names, specs, sim, config: ServiceConfig, start, *, watch:
         else:
             srcs.append(open_source(
                 st.cameras[n], specs[n], watch=watch, decode=False, interval_s=config.snapshot_interval_s,
-                stall_timeout_s=config.stall_timeout_s, base_dir=base_dir, prefix=n if same_dir else None))
+                stall_timeout_s=config.stall_timeout_s, base_dir=base_dir, prefix=n if specs[n] in shared else None))
     return srcs
 
 
 def _pipeline(st, names, config: ServiceConfig, device: str):
-    """(the pair pipeline, its config): the station's ``[pipeline]``, with the clock-offset
-    tolerance of the pairing (an offset above it is what the clock_offset flag reports)."""
+    """(the pair pipeline, or a network's :class:`~cbh.pipeline.network.StationPipeline`, and
+    its config): the station's ``[pipeline]``, with the clock-offset tolerance of the pairing
+    (an offset above it is what the clock_offset flag reports)."""
     from cbh.pipeline import Pipeline, PipelineConfig
+    from cbh.pipeline.network import StationPipeline
 
     pcfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
     pcfg = pcfg.replace(motion=replace(pcfg.motion, offset_tolerance_s=config.pair_tolerance_s))
+    if len(names) > 2:
+        return StationPipeline(st, list(names), pcfg, device=device), pcfg
     return Pipeline(st, f"{names[0]},{names[1]}", pcfg, device=device), pcfg
 
 

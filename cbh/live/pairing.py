@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from cbh.errors import ConfigError
 from cbh.result import Frame
 
-__all__ = ["Pairer", "PairingStats"]
+__all__ = ["Pairer", "Grouper", "PairingStats", "make_pairer"]
 
 
 @dataclass
@@ -168,3 +168,106 @@ class Pairer:
             while q:
                 self._drop(q.popleft())
         return self.pop_pairs()
+
+
+class Grouper:
+    """Groups frames of N ≥ 3 cameras (a camera network) into frame sets by time stamp.
+
+    The anchor is the oldest waiting frame of any camera. Every other camera contributes its
+    waiting frame nearest to the anchor within ``tolerance_s``, once its choice is final: it
+    has a frame later than anchor + tolerance (later frames are only farther), or the run ends,
+    or it has fallen behind by ``patience`` frames of the cameras that did answer (it went
+    away: the set goes on without it, ``None`` in its place). A set needs two frames at least;
+    an anchor no other camera matches is dropped as unpaired, and so are frames older than the
+    ones chosen. ``pop_pairs`` returns tuples in ``cameras`` order. Out-of-order frames (older
+    than their camera's newest) are dropped. The interface is :class:`Pairer`'s.
+    """
+
+    def __init__(self, cameras: tuple[str, ...], tolerance_s: float = 0.5, max_waiting: int = 16,
+                 patience: int = 2, jump_s: float | None = None):
+        if not tolerance_s > 0:
+            raise ConfigError(f"pair tolerance must be > 0 s, got {tolerance_s}")
+        if len(set(cameras)) != len(cameras) or len(cameras) < 2:
+            raise ConfigError(f"grouping needs two or more different cameras, got {cameras}")
+        if max_waiting < 2:
+            raise ConfigError(f"max_waiting must be >= 2, got {max_waiting}")
+        self.cameras = tuple(cameras)
+        self.tolerance_s, self.max_waiting, self.patience = float(tolerance_s), int(max_waiting), int(patience)
+        self.jump_s = jump_s
+        self._q: dict[str, deque[Frame]] = {c: deque() for c in self.cameras}
+        self._ready: list[tuple] = []
+        self.stats = PairingStats(unpaired={c: 0 for c in self.cameras})
+
+    def waiting(self) -> dict[str, int]:
+        return {c: len(q) for c, q in self._q.items()}
+
+    def pop_disagreements(self) -> list[tuple[str, str, float]]:
+        return []
+
+    def push(self, frame: Frame) -> None:
+        """Add one frame (of any camera)."""
+        q = self._q.get(frame.camera)
+        if q is None:
+            raise ConfigError(f"frame of camera {frame.camera!r}, but grouping {','.join(self.cameras)}")
+        if q and frame.time_utc < q[-1].time_utc:
+            self.stats.unpaired[frame.camera] += 1
+            return
+        q.append(frame)
+        while len(q) > self.max_waiting:
+            self.stats.unpaired[frame.camera] += 1
+            q.popleft()
+        self._match()
+
+    def _choice(self, cam: str, t, final: bool, answered: int):
+        """(decided, index of the nearest frame within tolerance or None) of one camera."""
+        q = self._q[cam]
+        dts = [(f.time_utc - t).total_seconds() for f in q]
+        near = [i for i, d in enumerate(dts) if abs(d) <= self.tolerance_s]
+        best = min(near, key=lambda i: abs(dts[i])) if near else None
+        decided = final or (dts and dts[-1] > self.tolerance_s) or answered > self.patience
+        return bool(decided), best
+
+    def _match(self, final: bool = False) -> None:
+        while True:
+            heads = [(q[0].time_utc, c) for c, q in self._q.items() if q]
+            if not heads:
+                return
+            t, anchor = min(heads)
+            behind = max(len(q) for q in self._q.values())  # frames the busiest camera has waiting
+            choices = {c: self._choice(c, t, final, behind) for c in self.cameras if c != anchor}
+            if not all(d for d, _ in choices.values()):
+                return  # a camera may still deliver a nearer frame
+            picked = {anchor: self._q[anchor].popleft()}
+            for c, (_, i) in choices.items():
+                if i is not None:
+                    for _ in range(i):  # older than the chosen one: never in a set
+                        self.stats.unpaired[c] += 1
+                        self._q[c].popleft()
+                    picked[c] = self._q[c].popleft()
+            if len(picked) < 2:
+                self.stats.unpaired[anchor] += 1
+                continue
+            dt = max(abs((f.time_utc - t).total_seconds()) for f in picked.values())
+            self.stats.pairs += 1
+            self.stats.max_dt_s = max(self.stats.max_dt_s, dt)
+            self._ready.append(tuple(picked.get(c) for c in self.cameras))
+
+    def pop_pairs(self) -> list[tuple]:
+        """The frame sets formed since the last call, oldest first (``None`` for a missing camera)."""
+        out, self._ready = self._ready, []
+        return out
+
+    def flush(self) -> list[tuple]:
+        """At the end of a run: group what can be grouped, count the rest as unpaired."""
+        self._match(final=True)
+        for c, q in self._q.items():
+            self.stats.unpaired[c] += len(q)
+            q.clear()
+        return self.pop_pairs()
+
+
+def make_pairer(cameras: tuple[str, ...], tolerance_s: float, max_waiting: int, jump_s: float | None):
+    """A :class:`Pairer` for two cameras, a :class:`Grouper` for a network."""
+    if len(cameras) == 2:
+        return Pairer(tuple(cameras), tolerance_s, max_waiting=max_waiting, jump_s=jump_s)
+    return Grouper(tuple(cameras), tolerance_s, max_waiting=max_waiting, jump_s=jump_s)

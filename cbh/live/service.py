@@ -456,8 +456,10 @@ class Service:
     Parameters
     ----------
     sources : sequence of FrameSource
-        Exactly two: camera 1's and camera 2's (pairs come out in this order).
-    process : callable (Frame, Frame) → PairResult
+        One per camera: camera 1's and camera 2's (pairs come out in this order), or a camera
+        network's N (frame sets grouped by :class:`~cbh.live.pairing.Grouper`; a camera that
+        delivers nothing is ``None`` in its set, and the set goes on without it).
+    process : callable (Frame, Frame[, Frame …]) → PairResult
         Usually ``lambda f1, f2: pipeline.process(f1.image, f2.image, f1.time_utc, channels="bgr")``.
         Frames arrive decoded (``image`` set).
     sinks : sequence of ResultSink
@@ -489,12 +491,12 @@ class Service:
                  config: ServiceConfig | None = None, on_pair: Callable | None = None,
                  prepare: Callable[[Frame, Frame], object] | None = None):
         sources = list(sources)
-        if len(sources) != 2:
-            raise ConfigError(f"the service needs exactly two sources, got {len(sources)}")
+        if len(sources) < 2:
+            raise ConfigError(f"the service needs two sources at least (one per camera), got {len(sources)}")
         self.sources, self.process, self.sinks = sources, process, list(sinks)
         self.cfg = config or ServiceConfig()
         self.on_pair = on_pair
-        self.cameras = (sources[0].camera, sources[1].camera)
+        self.cameras = tuple(s.camera for s in sources)
         self.stats = ServiceStats(sources={s.camera: SourceStatus() for s in sources})
         self._stop = threading.Event()
         self._wake = threading.Event()
@@ -532,7 +534,7 @@ class Service:
         source failed, ``duration_s`` passed with no pair, the files held no pair) raises
         :class:`SourceError` / :class:`InputError` saying why (after closing the sinks).
         """
-        from cbh.live.pairing import Pairer
+        from cbh.live.pairing import make_pairer
 
         old = {}
         if handle_signals and threading.current_thread() is threading.main_thread():
@@ -547,8 +549,8 @@ class Service:
                     s.open()
                     self.stats.sources[s.camera].state = "streaming"
                 opened.append(not s.live)
-            pairer = Pairer(self.cameras, self.cfg.pair_tolerance_s,
-                            max_waiting=max(2 * self.cfg.queue_frames, 8), jump_s=self.cfg.time_jump_s)
+            pairer = make_pairer(self.cameras, self.cfg.pair_tolerance_s, max(2 * self.cfg.queue_frames, 8),
+                                 self.cfg.time_jump_s)
             self.stats.unpaired = pairer.stats.unpaired
             self.stats.started_monotonic = time.monotonic()
             readers = [_Reader(s, self.cfg, self.stats.sources[s.camera], self._stop, self._wake, o,
@@ -718,11 +720,11 @@ class Service:
         while moved:
             moved = False
             for r in readers:
-                other = readers[1] if r is readers[0] else readers[0]
-                # lossless: leave frames with a reader that is ahead of the other camera
-                # (it waits) instead of overflowing the pairer, unless the other has ended
+                others = [o for o in readers if o is not r]
+                # lossless: leave frames with a reader that is ahead of the other cameras
+                # (it waits) instead of overflowing the pairer, unless the others have ended
                 if (not live and pairer.waiting()[r.src.camera] >= pairer.max_waiting - 1
-                        and not (other.done and other.q.empty())):
+                        and not all(o.done and o.q.empty() for o in others)):
                     continue
                 try:
                     f = r.q.get_nowait()
@@ -795,6 +797,8 @@ class Service:
 
     def _prepare_job(self, pair: tuple[Frame, Frame]):
         for f in pair:
+            if f is None:
+                continue
             try:
                 decode_frame(f)
             except ImageError as exc:
@@ -803,7 +807,8 @@ class Service:
 
     def _handle(self, pair: tuple[Frame, Frame], nxt: tuple[Frame, Frame] | None = None) -> None:
         st = self.stats
-        f1, f2 = pair
+        present = tuple(f for f in pair if f is not None)  # a network's set may lack a camera
+        f1 = present[0]
         fut = None
         if self._ahead is not None and self._ahead[0] is pair:
             fut = self._ahead[1]
@@ -812,14 +817,11 @@ class Service:
             if isinstance(exc, _Corrupt):
                 return self._corrupt(exc.frame, exc.exc)
         else:
-            try:
-                decode_frame(f1)
-            except ImageError as exc:
-                return self._corrupt(f1, exc)
-            try:
-                decode_frame(f2)
-            except ImageError as exc:
-                return self._corrupt(f2, exc)
+            for f in present:
+                try:
+                    decode_frame(f)
+                except ImageError as exc:
+                    return self._corrupt(f, exc)
         if nxt is not None and self._ahead is None:  # the next pair's first half beside this one's second
             if self._ahead_pool is None:
                 from concurrent.futures import ThreadPoolExecutor
@@ -828,7 +830,7 @@ class Service:
             self._ahead = (nxt, self._ahead_pool.submit(self._prepare_job, nxt))
         t0 = time.monotonic()
         try:
-            result = self.process(f1, f2, prepared=fut) if fut is not None else self.process(f1, f2)
+            result = self.process(*pair, prepared=fut) if fut is not None else self.process(*pair)
         except Exception as exc:  # a bad pair never stops the service
             st.pairs_failed += 1
             st.last_error = str(exc) if isinstance(exc, CbhError) else f"{type(exc).__name__}: {exc}"
@@ -839,13 +841,13 @@ class Service:
             self._notify(None)
             return
         st.process_s = time.monotonic() - t0
-        jumps = [self._jumps.pop((f.camera, f.sequence, f.time_utc), None) for f in pair]
+        jumps = [self._jumps.pop((f.camera, f.sequence, f.time_utc), None) for f in present]
         jumps = [j for j in jumps if j is not None]
         if jumps:
             if "time_jump" not in result.flags:
                 result.flags.append("time_jump")
             result.diagnostics["time_jump_s"] = float(max(jumps, key=abs))
-        self._to_sinks("write", pair, result)
+        self._to_sinks("write", present, result)
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
         invalid = [f for f in result.flags if f in INVALIDATING]
@@ -882,8 +884,7 @@ class Service:
         elif math.isfinite(result.diagnostics.get("sun_residual_deg", math.nan)) and "sun_misaligned" not in result.flags:
             st.sun_misaligned = False  # the sun was seen where expected
         st.last_layers_m = [] if invalid else [float(l.height_m) for l in result.layers]
-        recv = max(f1.received_s if f1.received_s is not None else t0,
-                   f2.received_s if f2.received_s is not None else t0)
+        recv = max(f.received_s if f.received_s is not None else t0 for f in present)
         st.latency_s = time.monotonic() - recv
         self._write_status(result.time_utc, st.to_dict())
         log.info("pair processed", extra={

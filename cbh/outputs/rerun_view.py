@@ -161,10 +161,11 @@ def cloud_outline(mask: np.ndarray, max_px: int = MAX_OUTLINE_PX) -> list[np.nda
     return out
 
 
-def default_blueprint(cam1: str, cam2: str, height_range_m=HEIGHT_RANGE_M):
-    """The raw sky first: both fisheye images with the cloud outline (matches, flow and the
-    mask fill are there but hidden, one click away), the 3D cloud base with motion arrows,
-    the height map, the histogram, layer heights and cloud fraction over time, the legend."""
+def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RANGE_M):
+    """The raw sky first: every camera's fisheye image with the cloud outline (matches, flow and
+    the mask fill are there but hidden, one click away; a camera network's further cameras
+    beside them), the 3D cloud base with motion arrows, the height map, the histogram, layer
+    heights and cloud fraction over time, the legend."""
     import rerun.blueprint as rrb
 
     hidden = rrb.EntityBehavior(visible=False)
@@ -178,6 +179,7 @@ def default_blueprint(cam1: str, cam2: str, height_range_m=HEIGHT_RANGE_M):
             rrb.Horizontal(
                 sky(cam1, ("flow",)),
                 sky(cam2),
+                *(sky(c) for c in more),
                 rrb.Tabs(
                     rrb.Spatial3DView(origin="/world", name="cloud base (ENU, m)"),
                     rrb.Spatial2DView(origin="/height_map", name=f"height map ({cam1})"),
@@ -220,7 +222,9 @@ def log_station(rec, station, cameras: tuple[str, str], height_range_m=HEIGHT_RA
     for c in cameras:
         rec.log(f"/{c}", rr.AnnotationContext([(0, "sky", (0, 0, 0, 0)), (1, "cloud", (255, 255, 255, 255))]),
                 static=True)
-    for name, colour in zip(cameras, ((235, 235, 235), (140, 180, 255))):
+    palette = ((235, 235, 235), (140, 180, 255), (255, 170, 90), (150, 230, 150), (230, 140, 230))
+    for k, name in enumerate(cameras):
+        colour = palette[k % len(palette)]
         rec.log(f"/cloud_fraction/{name}", rr.SeriesLines(names=name, colors=[colour]), static=True)
     rec.log("/legend", rr.Image(legend_image(height_range_m)), static=True)
 
@@ -239,7 +243,7 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
     import rerun as rr
 
     rec.set_time(TIMELINE, timestamp=np.datetime64(to_ns(require_time(result, "Rerun view")), "ns"))
-    cam1, cam2 = result.cameras
+    cam1, cam2 = result.cameras[:2]  # (a network: the reference and its first pair's partner)
     for cam, (data, fmt) in images.items():
         media = {"jpeg": "image/jpeg", "jpg": "image/jpeg", "png": "image/png"}.get(fmt.lower())
         if media is None:
@@ -308,8 +312,8 @@ class RerunSink(ResultSink):
     mode : {"spawn", "serve", "connect", "save"}
     target : str, optional
         URL for ``connect`` (default: the local viewer), PATH.rrd for ``save``.
-    cameras : (str, str), optional
-        The pair shown (default: the station's first two cameras).
+    cameras : tuple of str, optional
+        The cameras shown (default: every camera of the station).
     grpc_port : int, optional
         Port of the ``serve`` mode (default: Rerun's, 9876). The URL is in :attr:`url`.
     bind : str, optional
@@ -326,8 +330,10 @@ class RerunSink(ResultSink):
 
         self.mode, self.target = parse_rerun_spec(mode, target)
         self.station = station
-        c1, c2 = station.pair(cameras)
-        self.cameras = (c1.name, c2.name)
+        from cbh.pipeline.network import station_cameras
+
+        self.cameras = tuple(station_cameras(station, cameras)) if cameras is not None or len(station.cameras) > 2 \
+            else tuple(c.name for c in station.pair(None))
         self.height_range_m = tuple(height_range_m)
         self.url: str | None = None
         self._styled: list[int] = []

@@ -121,6 +121,16 @@ class NetworkState:
     time_utc: datetime | None
     pairs: dict[str, object] = field(default_factory=dict)  # pair name → PairState
 
+    @property
+    def gray(self):
+        """A pair's frames, None when no pair kept any (the motion chain's test for a hole)."""
+        return next((s.gray for s in self.pairs.values() if s is not None and s.gray is not None), None)
+
+    def without_frames(self) -> "NetworkState":
+        """The state with every pair's frames dropped (no motion across a hole; offsets kept)."""
+        return NetworkState(self.time_utc, {k: (s.without_frames() if s is not None else None)
+                                            for k, s in self.pairs.items()})
+
 
 def station_cameras(station: Station, cameras=None) -> list[str]:
     """The camera names a network runs on: ``"a,b,c"`` or a list (default: all, file order)."""

@@ -24,7 +24,7 @@ def run_cmd(
     source: list[str] = typer.Option(None, "--source", metavar="CAM=SPEC",
                                      help="Camera source: rtsp://…, http(s)://… (MJPEG or snapshot), mjpeg+http://…, "
                                           "snapshot+http://…, a video file, an image directory, or sim. Repeatable."),
-    cameras: str = typer.Option(None, "--cameras", help="The two cameras, e.g. cam1,cam2 (default: first two)."),
+    cameras: str = typer.Option(None, "--cameras", help="The cameras, reference first: two (cam1,cam2) or a network's N (default: every camera of the station)."),
     record: bool = typer.Option(False, "--record", help="Record MCAP to PATH (default recordings/<station>-<UTC>.mcap)."),
     rerun: str = typer.Option(None, "--rerun", metavar="MODE",
                               help="Live Rerun view: spawn | serve | connect[=URL] | save=PATH.rrd (or just URL / PATH.rrd)."),
