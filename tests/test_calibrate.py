@@ -363,3 +363,46 @@ def test_out_must_be_a_toml_name(tmp_path, capsys):
                          f"cam1={tmp_path}", "--source", f"cam2={tmp_path}", "--out", str(rec)], capsys)
     assert code == 2 and err.startswith("cbh: error:") and err.count("\n") == 1 and ".toml" in err, err
     assert rec.read_bytes() == b"\x89MCAP0\r\n recorded data"
+
+
+def test_calibrate_a_camera_network_fits_every_pair_consistently(tmp_path, repo, capsys):
+    """Three cameras (the level station plus cam3 630 m north, stated level, really at
+    (1.0, −0.3, 0.4)°), 14 frames at 480 px: every pair's cloud matches (cam1-cam2, cam1-cam3,
+    cam2-cam3) go into the one joint fit, so the three relative rotations are consistent by
+    construction (one rotation per camera). Bars: absolute 0.2° as the two-camera test (cam3
+    has too short a sun track of its own: it is fixed by the clouds); relative 0.02° for the
+    50 m pair and 0.15° for the 630 m pairs, whose LK matches, between views 17° apart at
+    2000 m, leave 0.22 px of epipolar residual against 0.06 px (a working pixel is 0.38°)."""
+    from dataclasses import replace
+
+    from cbh.geometry.station import parse_station
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.io import write_shot
+    from cbh.sim.scene import Imperfection
+    from cbh.tomlio import read_toml
+
+    d = read_toml(repo / "configs" / "unb-lea-level.toml", "station")
+    d["cameras"].append({**d["cameras"][0], "name": "cam3", "position_m": [0.0, 630.0, 0.0]})
+    st = parse_station(d, base_dir=repo / "configs")
+    sc = load_scene(repo / "configs" / "scenes" / "misoriented-day.toml")
+    true = {**TRUE, "cam3": (1.0, -0.3, 0.4)}
+    sc = replace(sc, imperfections={**sc.imperfections, "cam3": Imperfection(camera="cam3", rotation_error_deg=true["cam3"])})
+    sim = SkySimulator(st, sc, size_px=480)
+    (tmp_path / "station.toml").write_text(sim.station.to_toml())
+    t0 = datetime(2024, 6, 21, 10, 0, tzinfo=timezone.utc)
+    for i in range(14):
+        write_shot(sim.render(t0 + timedelta(minutes=40 * i)), tmp_path, 92)
+    out = tmp_path / "calibrated.toml"
+    code, stdout, err = _run(["calibrate", "--station", str(tmp_path / "station.toml"), "--out", str(out), "--json",
+                              *[a for c in true for a in ("--source", f"{c}={tmp_path / c}")]], capsys)
+    assert code == 0, err
+    rep = json.loads(stdout)
+    assert {tuple(p["cameras"]) for p in rep["pairs"]} == {("cam1", "cam2"), ("cam1", "cam3"), ("cam2", "cam3")}
+    fitted = load_station(out)
+    C = {c: fitted.cameras[c].R_world_from_cam for c in true}
+    R = {c: rotation_from_angles(*v) for c, v in true.items()}
+    for c in true:
+        assert angle_between_deg(C[c], R[c]) < 0.2, c
+    assert angle_between_deg(C["cam1"].T @ C["cam2"], R["cam1"].T @ R["cam2"]) < 0.02
+    for a, b in (("cam1", "cam3"), ("cam2", "cam3")):
+        assert angle_between_deg(C[a].T @ C[b], R[a].T @ R[b]) < 0.15, (a, b)

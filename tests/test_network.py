@@ -186,6 +186,22 @@ def test_camera_verdict_names_the_camera_every_failing_pair_shares():
     assert set(camera_verdict(names, {("cam1", "cam2"): None, ("cam1", "cam3"): None}).values()) == {None}
 
 
+def test_a_pair_that_matched_far_less_cloud_than_a_passing_one_fails():
+    from cbh.geometry.station import parse_station
+    from cbh.pipeline.network import pair_verdicts, plan_pairs
+
+    st = parse_station(_network_dict())
+    plans = {p.name: p for p in plan_pairs(st, list(st.cameras))}
+    good = _pair_result(("cam1", "cam2"), [1500.0])
+    good.diagnostics.update(geometry_residual_px=0.07, measured_fraction=0.92)
+    broken = _pair_result(("cam1", "cam3"), [5561.0])
+    broken.diagnostics.update(geometry_residual_px=math.nan, measured_fraction=0.09)
+    v = pair_verdicts([(plans["cam1+cam2"], good), (plans["cam1+cam3"], broken)])
+    assert v == {("cam1", "cam2"): True, ("cam1", "cam3"): False}
+    broken.diagnostics["measured_fraction"] = 0.8  # no verdict, but it matched the cloud: not blamed
+    assert pair_verdicts([(plans["cam1+cam2"], good), (plans["cam1+cam3"], broken)])[("cam1", "cam3")] is None
+
+
 def _pair_result(cameras, heights, points=1000):
     from cbh.result import Histogram, Layer, PairResult, PointSet
 
@@ -261,8 +277,12 @@ def test_the_reference_camera_off_level_is_named_and_the_others_carry_the_result
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("camera,axis", [("cam2", 1), ("cam3", 1), ("cam3", 2), ("cam2", 2)])
+@pytest.mark.parametrize("camera,axis", [("cam2", 1), ("cam3", 1), ("cam3", 2), ("cam2", 2), ("cam1", 2), ("cam3", 0)])
 def test_any_camera_off_level_is_named(camera, axis):
+    """2° of pitch (axis 1) or roll (2), or of yaw (0), on any camera. (cam3 rolled 2° about the
+    630 m baseline once left its pair with no verdict — 9 % of the cloud matched, too few
+    seeded-LK matches — and its garbage layers carried 99 % of the weight: kept as a
+    regression case)."""
     r = _process(*_network_sky(camera, axis))
     assert r.diagnostics["mismatched_cameras"] == [camera]
     assert "geometry_mismatch" not in r.flags and camera not in r.cameras

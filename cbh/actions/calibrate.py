@@ -204,8 +204,10 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
 
 
 class _Session:
-    """One calibration's data, as the frames are read: per camera its sun detections, per
-    (reference, other) pair the cloud correspondences and the images kept for the refinement."""
+    """One calibration's data, as the frames are read: per camera its sun detections, per pair
+    of cameras (every pair: a camera network's relative rotations come from all of them, made
+    consistent by the one joint fit) the cloud correspondences and the images kept for the
+    refinement."""
 
     def __init__(self, station, base_dir: Path, opt: CalibrateOptions):
         from cbh.pipeline import Pipeline
@@ -213,24 +215,27 @@ class _Session:
         self.station, self.base, self.opt = station, base_dir, opt
         self.names = list(station.cameras)
         self.ref = self.names[0]
-        others = self.names[1:]
-        # one pipeline per (reference, other) pair: working-size models, masks, segmentation
-        self.pipes = {n: Pipeline(station, f"{self.ref},{n}") for n in others}
-        first = next(iter(self.pipes.values()))
+        self.pairs = [(a, b) for j, b in enumerate(self.names) for a in self.names[:j]]
+        # one pipeline per pair: working-size models, masks, segmentation
+        self.pipes = {pq: Pipeline(station, f"{pq[0]},{pq[1]}") for pq in self.pairs}
+        first = self.pipes[self.pairs[0]]
         self.cfg0 = first.config
         m = self.cfg0.matching
         self.orb_cfg = m.__class__(methods=("orb",), orb=m.orb.__class__(
             max_features=m.orb.max_features, max_hamming=m.orb.max_hamming,
             max_parallax_deg=opt.max_misorientation_deg))
-        self.work_cam = {self.ref: first.cam1, **{n: p.cam2 for n, p in self.pipes.items()}}
+        self.work_cam = {}
+        for (a, b), pipe in self.pipes.items():
+            self.work_cam.setdefault(a, pipe.cam1)
+            self.work_cam.setdefault(b, pipe.cam2)
         self.data = {n: _CamData(n) for n in self.names}
-        self.pair_obs: dict[str, list] = {n: [] for n in others}
-        self.pair_counts = {n: 0 for n in others}
-        self.stash: dict[str, list] = {n: [] for n in others}
-        self.stash_stride = {n: 1 for n in others}
+        self.pair_obs: dict[tuple[str, str], list] = {pq: [] for pq in self.pairs}
+        self.pair_counts = {pq: 0 for pq in self.pairs}
+        self.stash: dict[tuple[str, str], list] = {pq: [] for pq in self.pairs}
+        self.stash_stride = {pq: 1 for pq in self.pairs}
         self.digests: dict[tuple[str, datetime], bytes] = {}  # each frame's pixels, hashed (same-image check)
-        self.compared = {n: 0 for n in others}
-        self.identical = {n: 0 for n in others}
+        self.compared = {pq: 0 for pq in self.pairs}
+        self.identical = {pq: 0 for pq in self.pairs}
         self._sun_cache: dict[int, np.ndarray | None] = {}
 
     # --- reading -------------------------------------------------------------------------------
@@ -238,7 +243,7 @@ class _Session:
         """Every camera's frames, taken in turns; each pair matched as soon as it is complete."""
         from cbh.live.pairing import Pairer
 
-        pairers = {n: Pairer((self.ref, n), tolerance_s=_IMAGE_GAP_S) for n in self.names[1:]}
+        pairers = {pq: Pairer(pq, tolerance_s=_IMAGE_GAP_S) for pq in self.pairs}
         live = {n: _source_frames(self.station.cameras[n], sources[n], self.base, self.opt.duration_s)
                 for n in self.names}
         while live:
@@ -256,7 +261,7 @@ class _Session:
                 if kept is None:
                     continue
                 for k, p in pairers.items():
-                    if n in (self.ref, k):
+                    if n in k:
                         p.push(kept)
                         for fa, fb in p.pop_pairs():
                             self.match(k, fa, fb)
@@ -276,9 +281,8 @@ class _Session:
         return self._sun_cache[key]
 
     def to_working(self, name: str, img: np.ndarray) -> np.ndarray:
-        if name == self.ref:
-            return next(iter(self.pipes.values())).to_working(0, img)
-        return self.pipes[name].to_working(1, img)
+        pq = next(pq for pq in self.pairs if name in pq)
+        return self.pipes[pq].to_working(pq.index(name), img)
 
     def take(self, frame: Frame) -> Frame | None:
         """One frame: in the time span? decoded, checked, at working size, its sun looked for."""
@@ -313,8 +317,8 @@ class _Session:
                 d.sun_enu.append(s)
         return Frame(frame.camera, t, w)
 
-    def match(self, other: str, fa: Frame, fb: Frame) -> None:
-        """ORB correspondences of one pair (reference, ``other``); its images kept for the
+    def match(self, other: tuple[str, str], fa: Frame, fb: Frame) -> None:
+        """ORB correspondences of one pair (``other``: its two cameras); its images kept for the
         refinement when it falls on the even subset."""
         from cbh.pipeline.match import MatchInput, get_matcher
         from cbh.pipeline.run import PairContext
@@ -344,7 +348,7 @@ class _Session:
                 del kept[1::2]
                 self.stash_stride[other] = stride * 2
 
-    def _compare_images(self, other: str, fa: Frame, fb: Frame) -> None:
+    def _compare_images(self, other: tuple[str, str], fa: Frame, fb: Frame) -> None:
         """Count the pairs whose two images are the same; refuse at once when the first
         ``_SAME_IMAGE_PAIRS`` all are (one folder or stream given for both cameras)."""
         self.compared[other] += 1
@@ -353,9 +357,9 @@ class _Session:
         if self.compared[other] == _SAME_IMAGE_PAIRS and self.identical[other] == _SAME_IMAGE_PAIRS:
             self._refuse_identical(other)
 
-    def _refuse_identical(self, other: str) -> None:
+    def _refuse_identical(self, other: tuple[str, str]) -> None:
         raise CalibrationError(
-            f"{self.ref} and {other} delivered the same images ({self.identical[other]} of "
+            f"{other[0]} and {other[1]} delivered the same images ({self.identical[other]} of "
             f"{self.compared[other]} pairs identical): the same folder or stream is given for both cameras? "
             f"give each --source its own camera's frames")
 
@@ -367,7 +371,7 @@ class _Session:
             if self.opt.from_utc or self.opt.to_utc:
                 span = f" between {_iso(self.opt.from_utc) or '…'} and {_iso(self.opt.to_utc) or '…'}"
             raise CalibrationError(f"no frames{span} from camera(s) {', '.join(empty)} ({sources[empty[0]]})")
-        for other in self.names[1:]:
+        for other in self.pairs:
             if self.compared[other] and 2 * self.identical[other] > self.compared[other]:
                 self._refuse_identical(other)
 
@@ -403,35 +407,55 @@ class _Session:
         start = dict(R0)
         for n, o in sun_obs.items():  # each sun-tracked camera on its own first
             start[n] = fit_orientations({n: R0[n]}, {n: o}, [], reference=n).cameras[n].R_world_from_cam
+        started = {self.ref, *sun_obs}
         start_station = dict(start)  # the alternative start: the station file's relative rotations
         pairs = []
-        for other in self.names[1:]:
-            obs = self.pair_obs[other]
-            if not obs:
-                if other in sun_obs:
-                    continue
-                raise CalibrationError(f"no cloud correspondences between {self.ref} and {other} in "
-                                       f"{self.pair_counts[other]} pairs, and no sun track for {other}: its "
-                                       "orientation cannot be determined")
+        for a, b in self._start_order(sun_obs):  # each camera started from a pair with one started before it
+            obs = self.pair_obs[(a, b)]
             ra = np.concatenate([o[0] for o in obs])
             rb = np.concatenate([o[1] for o in obs])
-            t = self.station.cameras[other].position_m - self.station.cameras[self.ref].position_m
+            t = self.station.cameras[b].position_m - self.station.cameras[a].position_m
             thr = max(1.0, math.degrees(math.atan(float(np.linalg.norm(t)) / 500.0)))
             R_rel, inl = rotation_from_far_matches(ra, rb, thr)
             if inl.sum() < 20:
                 raise CalibrationError(f"only {int(inl.sum())} consistent cloud correspondences between "
-                                       f"{self.ref} and {other}")
-            if other not in sun_obs:
-                start[other] = start[self.ref] @ R_rel
+                                       f"{a} and {b}")
+            if b not in sun_obs and b not in started:
+                start[b] = start[a] @ R_rel
+                started.add(b)
+            elif a not in sun_obs and a not in started:
+                start[a] = start[b] @ R_rel.T
+                started.add(a)
             # every correspondence (even subsample per pair, so no single pair dominates); the
             # robust fit sorts out mismatches
             cap = self.opt.max_matches_per_pair * max(len(obs), 1)
             keep = np.arange(len(ra))
             if len(keep) > cap:
                 keep = keep[:: len(keep) // cap + 1]
-            ppr = _px_per_rad(self.work_cam[other])
-            pairs.append(PairObservations(self.ref, other, ra[keep], rb[keep], t, self.opt.match_sigma_px / ppr, "orb"))
+            ppr = _px_per_rad(self.work_cam[b])
+            pairs.append(PairObservations(a, b, ra[keep], rb[keep], t, self.opt.match_sigma_px / ppr, "orb"))
         return start, start_station, pairs
+
+    def _start_order(self, sun_obs: dict) -> list[tuple[str, str]]:
+        """The pairs with cloud correspondences, ordered so that each camera without a sun track
+        is reached from one already started (the reference first, then through the others).
+
+        Raises CalibrationError for a camera that no such pair reaches."""
+        have = [pq for pq in self.pairs if self.pair_obs[pq]]
+        started, order = {self.ref, *sun_obs}, []
+        while True:
+            nxt = [pq for pq in have if pq not in order and (pq[0] in started or pq[1] in started)]
+            if not nxt:
+                break
+            order.extend(nxt)
+            started.update(c for pq in nxt for c in pq)
+        for n in self.names:
+            if n not in started:
+                counts = ", ".join(f"{a}-{b} {self.pair_counts[(a, b)]}" for a, b in self.pairs if n in (a, b))
+                raise CalibrationError(f"no cloud correspondences between {n} and a camera of known orientation "
+                                       f"(pairs read: {counts}), and no sun track for {n}: its orientation "
+                                       "cannot be determined")
+        return order
 
     def sun_pairs(self, sun_obs: dict, start: dict) -> list:
         """The sun seen by both cameras of a pair at once: a relative constraint at infinity, for
@@ -440,17 +464,17 @@ class _Session:
         from cbh.geometry.calibrate import SunPairObservations
 
         out = []
-        for other in self.names[1:]:
-            if self.ref in sun_obs and other in sun_obs:
+        for ref, other in self.pairs:
+            if ref in sun_obs and other in sun_obs:
                 continue
-            ta = {t: r for t, r in zip(self.data[self.ref].times, self.data[self.ref].rays)}
+            ta = {t: r for t, r in zip(self.data[ref].times, self.data[ref].rays)}
             both = [(ta[t], r) for t, r in zip(self.data[other].times, self.data[other].rays) if t in ta]
             if len(both) > 2:
-                A0, B0 = start[self.ref], start[other]
+                A0, B0 = start[ref], start[other]
                 dis = np.array([math.degrees(math.acos(min(1.0, float((A0 @ a) @ (B0 @ b))))) for a, b in both])
                 both = [x for x, d in zip(both, dis) if abs(d - np.median(dis)) <= 1.0]
             if both:
-                out.append(SunPairObservations(self.ref, other, np.array([b[0] for b in both]),
+                out.append(SunPairObservations(ref, other, np.array([b[0] for b in both]),
                                                np.array([b[1] for b in both]), self.opt.sun_sigma_deg * math.sqrt(2.0)))
         return out
 
@@ -468,12 +492,12 @@ class _Session:
         lk_cfg = self.cfg0.matching.__class__(methods=("lk",), lk=self.cfg0.matching.lk)
         new = []
         for p in pairs:
-            pipe = Pipeline(fitted, f"{self.ref},{p.cam_b}", config=self.pipes[p.cam_b].config)
+            pipe = Pipeline(fitted, f"{p.cam_a},{p.cam_b}", config=self.pipes[(p.cam_a, p.cam_b)].config)
             shape1 = (pipe.cam1.model.height, pipe.cam1.model.width)
             shape2 = (pipe.cam2.model.height, pipe.cam2.model.width)
             ra_l, rb_l = [], []
             new.append(p)
-            for g1, g2, c1, u1, u2, c2 in self.stash[p.cam_b]:
+            for g1, g2, c1, u1, u2, c2 in self.stash[(p.cam_a, p.cam_b)]:
                 inp = MatchInput(geometry=pipe.geometry, gray1=g1, gray2=g2, cloud1=_unpack(c1, shape1),
                                  usable1=_unpack(u1, shape1), usable2=_unpack(u2, shape2), cloud2=_unpack(c2, shape2))
                 m = get_matcher("lk")(inp, lk_cfg)
@@ -482,7 +506,7 @@ class _Session:
                     rb_l.append(pipe.cam2.model.pixel_to_ray(m.px2))
             if ra_l:
                 ppr = _px_per_rad(self.work_cam[p.cam_b])
-                new.append(PairObservations(self.ref, p.cam_b, np.concatenate(ra_l), np.concatenate(rb_l),
+                new.append(PairObservations(p.cam_a, p.cam_b, np.concatenate(ra_l), np.concatenate(rb_l),
                                             p.baseline_m, self.opt.lk_sigma_px / ppr, "lk"))
         return new
 
@@ -580,8 +604,8 @@ class _Session:
         return {
             "cameras": [p.cam_a, p.cam_b],
             "method": p.method,
-            "pairs_matched": self.pair_counts[p.cam_b],
-            "refined_pairs": len(self.stash[p.cam_b]) if p.method == "lk" else 0,
+            "pairs_matched": self.pair_counts[(p.cam_a, p.cam_b)],
+            "refined_pairs": len(self.stash[(p.cam_a, p.cam_b)]) if p.method == "lk" else 0,
             "matches_used": int(len(e)),
             "matches_inlier": int(inl.sum()),
             "epipolar_rms_deg": _num(math.degrees(float(np.sqrt(np.mean(e[inl] ** 2))))) if inl.any() else None,

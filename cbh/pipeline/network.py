@@ -20,7 +20,10 @@ cameras is wrong when the geometry check fails; three cameras can.
    images). The pairs run side by side.
 3. **Per-camera verdict** (:func:`camera_verdict`). A camera is ``mismatched`` when every
    judged pair that holds it fails the check while a judged pair without it passes: the
-   others agree with each other and not with it. When every star pair fails, the reference
+   others agree with each other and not with it. A pair too broken to judge (its matches
+   gone: it measured under :data:`UNMATCHED_RATIO` of the cloud a passing pair on the same
+   reference measured) fails (:func:`pair_verdicts`); the pairs that passed carry the result,
+   pairs without a verdict only where none passed. When every star pair fails, the reference
    camera is the suspect: the pairs among the other cameras are run too (the tie-breakers)
    and, if they pass, carry the result on with the next camera as the reference.
 4. **Fusion** (:func:`fuse_layers`). The layers of the agreeing pairs, grouped by height
@@ -211,6 +214,31 @@ def pair_verdict(result: PairResult) -> bool | None:
     if "geometry_mismatch" in result.flags:
         return False
     return True if math.isfinite(result.diagnostics.get("geometry_residual_px", math.nan)) else None
+
+
+#: A pair without a verdict of its own that measured under this share of the cloud that a
+#: passing pair on the same reference camera measured disagrees with the station: the cloud is
+#: the same, only its geometry differs (a camera rolled 2° about the long baseline left the
+#: sweep 9 % of the cloud and the seeded LK too few matches to judge, while the agreeing pair
+#: measured 92 %) [1].
+UNMATCHED_RATIO = 0.5
+
+
+def pair_verdicts(done: list[tuple[PairPlan, PairResult]]) -> dict[tuple[str, str], bool | None]:
+    """Each pair's :func:`pair_verdict`, and False for a pair without one that matched far less
+    of the cloud than a passing pair on its reference camera (:data:`UNMATCHED_RATIO`)."""
+    v = {p.cameras: pair_verdict(r) for p, r in done}
+    best: dict[str, float] = {}
+    for p, r in done:
+        mf = r.diagnostics.get("measured_fraction", math.nan)
+        if v[p.cameras] is True and math.isfinite(mf):
+            best[p.cameras[0]] = max(best.get(p.cameras[0], 0.0), mf)
+    for p, r in done:
+        mf = r.diagnostics.get("measured_fraction", math.nan)
+        ref = best.get(p.cameras[0], math.nan)
+        if v[p.cameras] is None and math.isfinite(mf) and math.isfinite(ref) and mf < UNMATCHED_RATIO * ref:
+            v[p.cameras] = False
+    return v
 
 
 def camera_verdict(names: list[str], verdicts: dict[tuple[str, str], bool | None]) -> dict[str, bool | None]:
@@ -500,13 +528,12 @@ class StationPipeline:
         t0 = time.perf_counter()
         present = [n for n in self.names if frames[n] is not None]
         done = self._run_pairs([p for p in self.star if set(p.cameras) <= set(present)], frames, time_utc, previous)
-        verdicts = {p.cameras: pair_verdict(r) for p, r in done}
+        verdicts = pair_verdicts(done)
         if verdicts and not any(v is True for v in verdicts.values()) and any(v is False for v in verdicts.values()):
             run = {p.cameras for p, _ in done}
             extra = [p for p in self.plans if not p.skipped and p.cameras not in run and set(p.cameras) <= set(present)]
-            more = self._run_pairs(extra, frames, time_utc, previous)  # the tie-breakers
-            done += more
-            verdicts.update({p.cameras: pair_verdict(r) for p, r in more})
+            done += self._run_pairs(extra, frames, time_utc, previous)  # the tie-breakers
+            verdicts = pair_verdicts(done)
         if not done:
             raise InputError("no usable camera pair among the cameras present: "
                              + (", ".join(present) or "none"))
@@ -549,7 +576,9 @@ class StationPipeline:
         """The station's result from the processed pairs (see the module doc)."""
         cams_v = camera_verdict(present, verdicts)
         mismatched = [n for n in present if cams_v[n] is True]
-        used = [(p, r) for p, r in done if verdicts[p.cameras] is not False and not set(p.cameras) & set(mismatched)]
+        clean = [(p, r) for p, r in done if verdicts[p.cameras] is not False and not set(p.cameras) & set(mismatched)]
+        # the pairs that passed carry the result; pairs without a verdict only where none passed
+        used = [(p, r) for p, r in clean if verdicts[p.cameras] is True] or clean
         used = used or done  # every pair disagrees and no camera can be blamed: flagged, as a pair would be
         firsts = [p.cameras[0] for p, _ in used]
         reference = next((n for n in present if n not in mismatched and n in firsts), firsts[0])
