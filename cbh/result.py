@@ -115,7 +115,7 @@ class Layer:
 
 def numeric_diagnostics(diagnostics: dict) -> dict[str, float]:
     """The scalar entries of ``PairResult.diagnostics`` (what every file format stores; a
-    network's ``mismatched_cameras`` list is also stored as its ``camera_mismatch_<name>``
+    network's ``mismatched_cameras`` list is also stored as its ``geometry_mismatch_<camera>``
     scalars)."""
     return {str(k): float(v) for k, v in diagnostics.items() if not isinstance(v, (list, tuple, str))}
 

@@ -80,11 +80,24 @@ class FrameRef:
 
 @dataclass(frozen=True, slots=True)
 class PairRef:
-    """A frame pair to process; ``time_utc`` is camera 1's capture time (the pair's time)."""
+    """A frame pair to process; ``time_utc`` is camera 1's capture time (the pair's time).
+
+    A camera network's frame set: ``more`` holds cameras 3…N, and any frame but the first
+    present may be None (a camera without a frame within the tolerance)."""
 
     time_utc: datetime
-    frame1: FrameRef
-    frame2: FrameRef
+    frame1: FrameRef | None
+    frame2: FrameRef | None
+    more: tuple = ()
+
+    @property
+    def frames(self) -> tuple:
+        """Every camera's frame, in the station's camera order (None: missing)."""
+        return (self.frame1, self.frame2, *self.more)
+
+    @property
+    def present(self) -> list:
+        return [f for f in self.frames if f is not None]
 
 
 @dataclass
@@ -197,7 +210,7 @@ def _open_recording(path: Path, workdir: Path, inv: Inventory):
     return sess, copy
 
 
-def scan_recordings(cameras: tuple[str, str], spec: Path, workdir: Path, inv: Inventory) -> list[PairRef]:
+def scan_recordings(cameras: tuple[str, ...], spec: Path, workdir: Path, inv: Inventory) -> list[PairRef]:
     """Recorded pairs of ``cameras`` in a ``.mcap`` file or a folder of them."""
     files = [spec] if spec.is_file() else sorted(spec.glob("*.mcap"))
     pairs = []
@@ -217,8 +230,8 @@ def scan_recordings(cameras: tuple[str, str], spec: Path, workdir: Path, inv: In
                                     "reason": f"recorded pair of {','.join(rp.result.cameras)}, not {','.join(cameras)}"})
                 continue
             p = str(Path(used).resolve())
-            pairs.append(PairRef(rp.time_utc, FrameRef(cameras[0], rp.time_utc, "recording", p, rp.index),
-                                 FrameRef(cameras[1], rp.time_utc, "recording", p, rp.index)))
+            refs = [FrameRef(c, rp.time_utc, "recording", p, rp.index) for c in cameras]
+            pairs.append(PairRef(rp.time_utc, refs[0], refs[1], tuple(refs[2:])))
         for c in cameras:
             inv.frames[c] = inv.frames.get(c, 0) + len(recs)
     return pairs
@@ -249,7 +262,31 @@ def pair_frames(frames1: list[FrameRef], frames2: list[FrameRef], tolerance_s: f
     return pairs, dict(pairer.stats.unpaired)
 
 
-def scan_station(cameras: tuple[str, str], specs: dict[str, str], tolerance_s: float, workdir: Path,
+def group_frames(lists: dict[str, list[FrameRef]], tolerance_s: float) -> tuple[list[PairRef], dict]:
+    """A camera network's frame sets: every camera's frames grouped by nearest time within
+    ``tolerance_s`` (the live service's :class:`~cbh.live.pairing.Grouper`, fed in time order;
+    a camera without a frame in a set is None there). Returns (sets, unpaired per camera)."""
+    from cbh.live.pairing import Grouper
+
+    cams = tuple(lists)
+    g = Grouper(cams, tolerance_s=tolerance_s, max_waiting=max(16, sum(len(v) for v in lists.values()) + 2))
+    merged = sorted([(f.time_utc, k, i) for k, c in enumerate(cams) for i, f in enumerate(lists[c])])
+    sets = []
+
+    def take(ready):
+        for group in ready:
+            refs = [None if f is None else lists[f.camera][f.sequence] for f in group]
+            t = next(r.time_utc for r in refs if r is not None)
+            sets.append(PairRef(t, refs[0], refs[1], tuple(refs[2:])))
+
+    for t, k, i in merged:
+        g.push(Frame(cams[k], t, None, sequence=i))
+        take(g.pop_pairs())
+    take(g.flush())
+    return sets, dict(g.stats.unpaired)
+
+
+def scan_station(cameras: tuple[str, ...], specs: dict[str, str], tolerance_s: float, workdir: Path,
                  t_from: datetime | None = None, t_to: datetime | None = None) -> Inventory:
     """The pairs of one station's inputs within [``t_from``, ``t_to``).
 
@@ -286,7 +323,10 @@ def scan_station(cameras: tuple[str, str], specs: dict[str, str], tolerance_s: f
                 frames[c], skipped = scan_images(c, Path(specs[c]))
                 inv.skipped.extend(skipped)
             inv.frames[c] = len(frames[c])
-        pairs, inv.unpaired = pair_frames(frames[cameras[0]], frames[cameras[1]], tolerance_s)
+        if len(cameras) == 2:
+            pairs, inv.unpaired = pair_frames(frames[cameras[0]], frames[cameras[1]], tolerance_s)
+        else:
+            pairs, inv.unpaired = group_frames({c: frames[c] for c in cameras}, tolerance_s)
     for s in inv.skipped:
         log.warning("input skipped: %s: %s", s["path"], s["reason"], extra={"cbh_file": s["path"]})
     pairs = [p for p in pairs if (t_from is None or p.time_utc >= t_from) and (t_to is None or p.time_utc < t_to)]

@@ -86,7 +86,7 @@ class StationJob:
 
     name: str
     station: object  # cbh.geometry.station.Station
-    cameras: tuple[str, str]
+    cameras: tuple[str, ...]  # two, or a camera network's N
     specs: dict[str, str]  # camera → absolute input path
 
 
@@ -105,7 +105,7 @@ def _read_entries(path: Path) -> list[dict]:
 
         [[stations]]
         station = "site-a/station.toml"   # required
-        cameras = "cam1,cam2"             # optional (default: the station's first two)
+        cameras = "cam1,cam2"             # optional (default: every camera of the station; 3+: a network)
         [stations.sources]                # optional (default: the cameras' `source` keys)
         cam1 = "/archive/site-a/cam1"
         cam2 = "/archive/site-a/cam2"
@@ -150,7 +150,7 @@ def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJ
         ``CAMERA=PATH`` (the station with that camera; ambiguous in a network whose stations
         share camera names) or ``STATION/CAMERA=PATH``. Relative paths: from the current folder.
     cameras : str or None
-        ``"cam1,cam2"`` for every station given directly (default: the first two cameras).
+        ``"cam1,cam2"`` for every station given directly (default: every camera of the station; three or more are a camera network).
     """
     from cbh.geometry.station import load_station
     from cbh.presets import station_path
@@ -162,17 +162,19 @@ def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJ
         entries.extend(_read_entries(Path(station_path(str(s)))))
     jobs: list[dict] = []
     for e in entries:
+        from cbh.pipeline.network import station_cameras
+
         st = load_station(e["station"])
-        c1, c2 = st.pair(e["cameras"] or cameras)
+        cams = [st.camera(n) for n in station_cameras(st, e["cameras"] or cameras)]
         specs = {}
-        for c in (c1, c2):
+        for c in cams:
             if c.name in e["sources"]:
                 src = e["sources"][c.name]
                 specs[c.name] = src if "://" in src else str((e["base"] / src).resolve())
             elif c.source:
                 base = st.path.parent if st.path is not None else Path.cwd()
                 specs[c.name] = str((base / c.source).resolve()) if "://" not in c.source else c.source
-        jobs.append({"station": st, "cameras": (c1.name, c2.name), "specs": specs})
+        jobs.append({"station": st, "cameras": tuple(c.name for c in cams), "specs": specs})
     names = [j["station"].name for j in jobs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -286,7 +288,7 @@ def _work_hash(pairs: list[PairRef]) -> str:
 
     h = hashlib.sha256()
     for p in pairs:
-        for f in (p.frame1, p.frame2):
+        for f in p.present:
             h.update(f"{f.time_utc.isoformat()}|{f.kind}|{f.path}|{f.index}|{stamp(f)}\n".encode())
     return h.hexdigest()[:16]
 
@@ -388,9 +390,13 @@ class PairWorker:
             self._pipes.move_to_end(station)
             return self._pipes[station]
         from cbh.pipeline import Pipeline
+        from cbh.pipeline.network import StationPipeline
 
         st, cams = self.stations[station]
-        pipe = Pipeline(st, f"{cams[0]},{cams[1]}", device=self.device)  # the dense work on the worker's device
+        if len(cams) > 2:  # a camera network
+            pipe = StationPipeline(st, list(cams), device=self.device)
+        else:
+            pipe = Pipeline(st, f"{cams[0]},{cams[1]}", device=self.device)  # the dense work on the worker's device
         self._pipes[station] = pipe
         while len(self._pipes) > _PIPELINES_PER_WORKER:
             self._last.pop(self._pipes.popitem(last=False)[0], None)  # its handed-on state too
@@ -412,15 +418,19 @@ class PairWorker:
             motion.state = last[1]
         else:
             lead = (chunk.lead,) if chunk.lead is not None else ()
-        images = load_images([f for p in lead + chunk.pairs for f in (p.frame1, p.frame2)])
+        images = load_images([f for p in lead + chunk.pairs for f in p.present])
         records, failures = [], []
         for k, p in enumerate(lead + chunk.pairs):
-            img1, img2 = images[p.frame1], images[p.frame2]
-            bad = img1 if isinstance(img1, Exception) else img2 if isinstance(img2, Exception) else None
+            imgs = {f.camera: images[f] for f in p.present}
+            bad = next((v for v in imgs.values() if isinstance(v, Exception)), None)
             if bad is None:
                 try:
-                    result = pipe.process(img1, img2, p.time_utc, channels="bgr",  # decoded by OpenCV
-                                          previous=motion.previous(p.time_utc))
+                    prev = motion.previous(p.time_utc)
+                    if len(p.frames) > 2:  # a camera network: one image per camera present
+                        result = pipe.process(imgs, p.time_utc, channels="bgr", previous=prev)
+                    else:
+                        result = pipe.process(imgs[p.frame1.camera], imgs[p.frame2.camera], p.time_utc,
+                                              channels="bgr", previous=prev)  # decoded by OpenCV
                     motion.keep(result)
                     if k >= len(lead):
                         records.append(pair_record(result, st.altitude_m))
@@ -433,7 +443,7 @@ class PairWorker:
             if k < len(lead):
                 continue  # the lead-in pair is another chunk's: counted there
             reason = str(bad) if isinstance(bad, CbhError) else f"{type(bad).__name__}: {bad}"
-            failures.append({"time_utc": _iso(p.time_utc), "frames": [p.frame1.describe(), p.frame2.describe()],
+            failures.append({"time_utc": _iso(p.time_utc), "frames": [f.describe() for f in p.present],
                              "reason": reason})
         if chunk.pairs:
             self._last[chunk.station] = (chunk.pairs[-1], _as_lead_in(motion.state))
@@ -448,8 +458,12 @@ def _as_lead_in(state):
     would give, and the heights do not depend on which actor took which chunk."""
     from dataclasses import replace
 
+    from cbh.pipeline.network import NetworkState
+
     if state is None or state.gray is None:
         return None
+    if isinstance(state, NetworkState):  # a camera network: each pair's own state, as above
+        return NetworkState(state.time_utc, {k: _as_lead_in(v) for k, v in state.pairs.items()})
     return replace(state, offsets_s=(), layer_rates=())
 
 

@@ -175,16 +175,18 @@ class Grouper:
 
     The anchor is the oldest waiting frame of any camera. Every other camera contributes its
     waiting frame nearest to the anchor within ``tolerance_s``, once its choice is final: it
-    has a frame later than anchor + tolerance (later frames are only farther), or the run ends,
-    or it has fallen behind by ``patience`` frames of the cameras that did answer (it went
-    away: the set goes on without it, ``None`` in its place). A set needs two frames at least;
+    has a frame later than anchor + tolerance (later frames are only farther), or its source
+    ended (:meth:`end`) or the run ends, or — live cameras — it has fallen behind by
+    ``patience`` frames of the cameras that did answer (it went away: the set goes on without
+    it, ``None`` in its place; ``patience=None``, for files read as fast as they can be, never
+    presumes a camera gone that is only read more slowly). A set needs two frames at least;
     an anchor no other camera matches is dropped as unpaired, and so are frames older than the
     ones chosen. ``pop_pairs`` returns tuples in ``cameras`` order. Out-of-order frames (older
     than their camera's newest) are dropped. The interface is :class:`Pairer`'s.
     """
 
     def __init__(self, cameras: tuple[str, ...], tolerance_s: float = 0.5, max_waiting: int = 16,
-                 patience: int = 2, jump_s: float | None = None):
+                 patience: int | None = 2, jump_s: float | None = None):
         if not tolerance_s > 0:
             raise ConfigError(f"pair tolerance must be > 0 s, got {tolerance_s}")
         if len(set(cameras)) != len(cameras) or len(cameras) < 2:
@@ -192,8 +194,10 @@ class Grouper:
         if max_waiting < 2:
             raise ConfigError(f"max_waiting must be >= 2, got {max_waiting}")
         self.cameras = tuple(cameras)
-        self.tolerance_s, self.max_waiting, self.patience = float(tolerance_s), int(max_waiting), int(patience)
+        self.tolerance_s, self.max_waiting = float(tolerance_s), int(max_waiting)
+        self.patience = None if patience is None else int(patience)
         self.jump_s = jump_s
+        self._ended: set[str] = set()
         self._q: dict[str, deque[Frame]] = {c: deque() for c in self.cameras}
         self._ready: list[tuple] = []
         self.stats = PairingStats(unpaired={c: 0 for c in self.cameras})
@@ -203,6 +207,11 @@ class Grouper:
 
     def pop_disagreements(self) -> list[tuple[str, str, float]]:
         return []
+
+    def end(self, camera: str) -> None:
+        """Camera ``camera``'s source delivers no more frames: the sets go on without it."""
+        self._ended.add(camera)
+        self._match()
 
     def push(self, frame: Frame) -> None:
         """Add one frame (of any camera)."""
@@ -224,7 +233,8 @@ class Grouper:
         dts = [(f.time_utc - t).total_seconds() for f in q]
         near = [i for i, d in enumerate(dts) if abs(d) <= self.tolerance_s]
         best = min(near, key=lambda i: abs(dts[i])) if near else None
-        decided = final or (dts and dts[-1] > self.tolerance_s) or answered > self.patience
+        gone = cam in self._ended or (self.patience is not None and answered > self.patience)
+        decided = final or (dts and dts[-1] > self.tolerance_s) or gone
         return bool(decided), best
 
     def _match(self, final: bool = False) -> None:
@@ -266,8 +276,10 @@ class Grouper:
         return self.pop_pairs()
 
 
-def make_pairer(cameras: tuple[str, ...], tolerance_s: float, max_waiting: int, jump_s: float | None):
-    """A :class:`Pairer` for two cameras, a :class:`Grouper` for a network."""
+def make_pairer(cameras: tuple[str, ...], tolerance_s: float, max_waiting: int, jump_s: float | None,
+                live: bool = True):
+    """A :class:`Pairer` for two cameras, a :class:`Grouper` for a network (``live``: a camera
+    that falls behind the others is presumed gone)."""
     if len(cameras) == 2:
         return Pairer(tuple(cameras), tolerance_s, max_waiting=max_waiting, jump_s=jump_s)
-    return Grouper(tuple(cameras), tolerance_s, max_waiting=max_waiting, jump_s=jump_s)
+    return Grouper(tuple(cameras), tolerance_s, max_waiting=max_waiting, patience=2 if live else None, jump_s=jump_s)

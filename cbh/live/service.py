@@ -550,7 +550,7 @@ class Service:
                     self.stats.sources[s.camera].state = "streaming"
                 opened.append(not s.live)
             pairer = make_pairer(self.cameras, self.cfg.pair_tolerance_s, max(2 * self.cfg.queue_frames, 8),
-                                 self.cfg.time_jump_s)
+                                 self.cfg.time_jump_s, live=any(s.live for s in self.sources))
             self.stats.unpaired = pairer.stats.unpaired
             self.stats.started_monotonic = time.monotonic()
             readers = [_Reader(s, self.cfg, self.stats.sources[s.camera], self._stop, self._wake, o,
@@ -733,6 +733,10 @@ class Service:
                 self._check_time(r, f)
                 pairer.push(f)
                 moved = True
+        if hasattr(pairer, "end"):  # a network: a source that ended is not waited for
+            for r in readers:
+                if r.done and r.q.empty():
+                    pairer.end(r.src.camera)
         for a, b, dt in pairer.pop_disagreements():
             self._throttle(f"disagree:{a}", logging.WARNING,
                            f"{a} frame dropped: {b}'s clock is {abs(dt):.0f} s {'ahead' if dt > 0 else 'behind'} "

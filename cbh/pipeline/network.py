@@ -45,7 +45,7 @@ cameras is wrong when the geometry check fails; three cameras can.
 
 The result is a :class:`~cbh.result.PairResult` whose ``cameras`` are the cameras used,
 reference first; ``diagnostics`` holds the per-pair results (keys ``"<a>+<b>.<name>"``), each
-camera's verdict (``camera_mismatch_<name>``: 1 mismatched, 0 agrees, NaN not judged), the
+camera's verdict (``geometry_mismatch_<name>``: 1 mismatched, 0 agrees, NaN not judged), the
 ``mismatched_cameras`` (a list of names) and the multi-view counts. Two cameras: exactly
 :class:`~cbh.pipeline.run.Pipeline` (no overhead).
 """

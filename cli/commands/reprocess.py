@@ -28,7 +28,7 @@ def reprocess_cmd(
     t_to: str = typer.Option(None, "--to", help="Process pairs before this time (ISO 8601 with a zone)."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda (each actor asks Ray for a GPU share)."),
     fmt: str = typer.Option("netcdf,parquet", "--format", help="netcdf, parquet or both (comma-separated)."),
-    cameras: str = typer.Option(None, "--cameras", help="Camera pair, e.g. cam1,cam2 (default: the first two)."),
+    cameras: str = typer.Option(None, "--cameras", help="Cameras, e.g. cam1,cam2 or a network's cam1,cam2,cam3 (default: every camera of the station)."),
     pair_tolerance_s: float = typer.Option(None, "--pair-tolerance-s", help="Largest |t1 - t2| of a pair [s] (default: the station's, 0.5)."),
     chunk_pairs: int = typer.Option(32, "--chunk-pairs", help="At most this many pairs per Ray task (a day is cut into equal chunks)."),
 ) -> None:

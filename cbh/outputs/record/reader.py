@@ -462,9 +462,9 @@ def _usable(paths: list[Path]):
 
 def _diagnostics(recorded) -> dict:
     """The recorded scalars, and a network's ``mismatched_cameras`` list rebuilt from its
-    ``camera_mismatch_<name>`` scalars (:mod:`cbh.pipeline.network`)."""
+    ``geometry_mismatch_<camera>`` scalars (:mod:`cbh.pipeline.network`)."""
     d = {x.name: x.value for x in recorded}
-    if any(k.startswith("camera_mismatch_") for k in d):
-        d["mismatched_cameras"] = [k[len("camera_mismatch_"):] for k, v in d.items()
-                                   if k.startswith("camera_mismatch_") and v == 1.0]
+    if any(k.startswith("geometry_mismatch_") for k in d):
+        d["mismatched_cameras"] = [k[len("geometry_mismatch_"):] for k, v in d.items()
+                                   if k.startswith("geometry_mismatch_") and v == 1.0]
     return d
