@@ -228,15 +228,20 @@ def pair_verdicts(done: list[tuple[PairPlan, PairResult]]) -> dict[tuple[str, st
     """Each pair's :func:`pair_verdict`, and False for a pair without one that matched far less
     of the cloud than a passing pair on its reference camera (:data:`UNMATCHED_RATIO`)."""
     v = {p.cameras: pair_verdict(r) for p, r in done}
-    best: dict[str, float] = {}
+    best: dict[str, tuple[float, list]] = {}  # reference → (measured fraction, layers) of its best passing pair
     for p, r in done:
         mf = r.diagnostics.get("measured_fraction", math.nan)
-        if v[p.cameras] is True and math.isfinite(mf):
-            best[p.cameras[0]] = max(best.get(p.cameras[0], 0.0), mf)
+        if v[p.cameras] is True and math.isfinite(mf) and mf > best.get(p.cameras[0], (0.0, []))[0]:
+            best[p.cameras[0]] = (mf, r.layers)
     for p, r in done:
         mf = r.diagnostics.get("measured_fraction", math.nan)
-        ref = best.get(p.cameras[0], math.nan)
-        if v[p.cameras] is None and math.isfinite(mf) and math.isfinite(ref) and mf < UNMATCHED_RATIO * ref:
+        ref, layers = best.get(p.cameras[0], (math.nan, []))
+        # only the cloud above this pair's floor is expected of it (cloud below is below_range, not a
+        # geometry error: a 432 m layer under an 886 m pair's 1265 m floor)
+        cover = sum(L.cover for L in layers)
+        above = sum(L.cover for L in layers if L.height_m >= _FLOOR_MARGIN * p.floor_m) / cover if cover > 0 else 0.0
+        if (v[p.cameras] is None and math.isfinite(mf) and math.isfinite(ref) and above >= 0.5
+                and mf < UNMATCHED_RATIO * ref * above):
             v[p.cameras] = False
     return v
 
@@ -290,10 +295,13 @@ def _groups(entries: list[tuple[PairPlan, Layer]]) -> list[list[tuple[PairPlan, 
 
 def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str) -> tuple[list[Layer], list[dict]]:
     """One set of layers from the pairs' (see the module doc): ascending, each with its
-    ``support``; and the groups left out (as dicts: height, share of the weight, pairs) for
-    the diagnostics."""
+    ``support``; and the groups left out (as dicts: height, share of the weight, pairs, why)
+    for the diagnostics. A group that another pair on the reference's grid contradicts pixel by
+    pixel (:func:`_contradicted`) is left out; one without such evidence needs
+    ``MIN_SUPPORT_SHARE`` of the weight of the pairs that overlap at its height."""
     entries = [(plan, L) for plan, r in pairs for L in r.layers if L.height_m > 0
                and not ("below_range" in r.flags and L.height_m < _FLOOR_MARGIN * plan.floor_m)]
+    maps = _reference_maps(pairs, reference)
     layers, dropped = [], []
     for g in _groups(entries):
         w = np.array([_weight(p) for p, _ in g])
@@ -301,11 +309,62 @@ def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str) -> tup
         eligible = [p for p, _ in pairs if p.overlap_at(h) >= MIN_OVERLAP] or [p for p, _ in g]
         total = sum(_weight(p) for p in {id(p): p for p in eligible + [p for p, _ in g]}.values())
         share = float(w.sum()) / total
-        if share < MIN_SUPPORT_SHARE:
-            dropped.append({"height_m": h, "share": share, "pairs": [p.name for p, _ in g]})
+        verdict = _contradicted(g, h, maps, eligible)
+        why = (f"contradicted by {verdict}" if verdict else
+               "" if verdict == "" or share >= MIN_SUPPORT_SHARE else f"{100 * share:.1f} % of the weight")
+        if why:
+            dropped.append({"height_m": h, "share": share, "pairs": [p.name for p, _ in g], "why": why})
             continue
         layers.append(_fused_layer(g, w, reference))
     return layers, dropped
+
+
+#: Pixels two pairs must both have measured for one to contradict the other's layer [1].
+MIN_COMPARED_PX = 200
+#: Two pairs' heights of one reference pixel agree within this parallax difference, in working
+#: pixels of the 960 px Table 1 lens at 45° (305 px/rad): matching noise is 0.1–0.3 px, so 2 px
+#: is a mismatch, not noise (a 341 m cloud under a 372 m pair's floor read as 7051 m by that
+#: pair, 0.14 rad of parallax off the 51 m pair's 341 m) [rad].
+AGREE_PARALLAX_RAD = 2.0 / 305.0
+
+
+def _reference_maps(pairs, reference: str) -> dict[str, np.ndarray]:
+    """Pair name → its height map on the reference's working grid (pairs on that reference)."""
+    out = {}
+    for p, r in pairs:
+        if p.cameras[0] != reference:
+            continue
+        e = r.enlarged("height_map")
+        m = np.asarray(e.small if e is not None else r.height_map, np.float64)
+        out[p.name] = np.where(m > 0, m, np.nan)
+    shapes = {m.shape for m in out.values()}
+    return out if len(shapes) == 1 else {}
+
+
+def _contradicted(g, h: float, maps: dict[str, np.ndarray], eligible: list[PairPlan]) -> str | None:
+    """The pair that contradicts group ``g`` at height ``h``: the pixels its heaviest pair puts
+    in this layer were measured by that other pair too (at least ``MIN_COMPARED_PX``), and most
+    of them at a parallax more than ``AGREE_PARALLAX_RAD`` away from the layer's. "" when some
+    other pair could compare and none contradicts, None when there is no such evidence."""
+    top = max(g, key=lambda e: _weight(e[0]))[0]
+    if top.name not in maps:
+        return None
+    hm = maps[top.name]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        near = np.abs(np.log(hm / h)) <= 2 * LAYER_MATCH_LOG
+    evidence = None
+    for q in eligible:
+        if any(q is p for p, _ in g) or q.name not in maps:
+            continue
+        hq = maps[q.name][near]
+        hq = hq[np.isfinite(hq)]
+        if hq.size < MIN_COMPARED_PX:
+            continue
+        agree = np.abs(q.baseline_m * (1.0 / hq - 1.0 / h)) <= AGREE_PARALLAX_RAD
+        if agree.mean() < 0.5:
+            return q.name
+        evidence = ""
+    return evidence
 
 
 def _fused_layer(g: list[tuple[PairPlan, Layer]], w: np.ndarray, reference: str) -> Layer:
