@@ -19,44 +19,18 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import replace
 
 import numpy as np
 
 BANDS = ((0, 1000), (1000, 3000), (3000, 6000), (6000, 10_001))
 
 
-def network_case(seed: int, size: int, tilt: bool):
-    """(case, station told, simulator, tilted camera or None)."""
-    from cbh.geometry.station import load_station, rotation_from_angles
-    from cbh.presets import station_path
-    from cbh.sim import SkySimulator
-    from cbh.sim.randomize import random_case
-    from cbh.sim.scene import Imperfection
-
-    base = load_station(station_path("unb-lea-network"))
-    case = random_case(seed, base)
-    rng = np.random.default_rng(seed + 7_000_000)
-    cams = dict(case.station.cameras)
-    d3, b3 = rng.uniform(0, 2 * math.pi), float(rng.uniform(300.0, 1000.0))
-    cams["cam3"] = replace(base.cameras["cam3"], position_m=np.array([b3 * math.sin(d3), b3 * math.cos(d3), 0.0]),
-                           R_world_from_cam=rotation_from_angles(float(rng.uniform(-180, 180))))
-    station = replace(case.station, cameras=cams)
-    imps = dict(case.scene.imperfections)
-    bad = None
-    if tilt:
-        bad = str(rng.choice(["cam1", "cam2", "cam3"]))
-        a = rng.uniform(0, 2 * math.pi)
-        old = imps.get(bad, Imperfection(camera=bad))
-        imps[bad] = replace(old, rotation_error_deg=(0.0, 2.0 * math.cos(a), 2.0 * math.sin(a)))
-    scene = replace(case.scene, imperfections=imps)
-    return case, SkySimulator(station, scene, size_px=size), bad, b3
-
-
 def one(seed: int, size: int, tilt: bool, verbose: bool):
     from cbh.pipeline.network import StationPipeline
 
-    case, sim, bad, b3 = network_case(seed, size, tilt)
+    from cbh.sim.randomize import random_network_case
+
+    case, sim, bad, b3 = random_network_case(seed, size, tilt)
     shot = sim.render()
     t0 = time.perf_counter()
     r = StationPipeline(sim.station).process([shot.views[c].image for c in ("cam1", "cam2", "cam3")],

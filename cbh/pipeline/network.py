@@ -22,8 +22,9 @@ cameras is wrong when the geometry check fails; three cameras can.
    judged pair that holds it fails the check while a judged pair without it passes: the
    others agree with each other and not with it. A pair too broken to judge (its matches
    gone: it measured under :data:`UNMATCHED_RATIO` of the cloud a passing pair on the same
-   reference measured) fails (:func:`pair_verdicts`); the pairs that passed carry the result,
-   pairs without a verdict only where none passed. When every star pair fails, the reference
+   reference measured) fails (:func:`pair_verdicts`), and one that measured the reference's
+   cloud at a passing pair's heights (median within ``HEIGHT_AGREEMENT``) passes; the pairs that
+   passed carry the result, pairs without a verdict only where none passed. When every star pair fails, the reference
    camera is the suspect: the pairs among the other cameras are run too (the tie-breakers)
    and, if they pass, carry the result on with the next camera as the reference.
 4. **Fusion** (:func:`fuse_layers`). The layers of the agreeing pairs, grouped by height
@@ -228,38 +229,82 @@ def pair_verdicts(done: list[tuple[PairPlan, PairResult]]) -> dict[tuple[str, st
     """Each pair's :func:`pair_verdict`, and False for a pair without one that matched far less
     of the cloud than a passing pair on its reference camera (:data:`UNMATCHED_RATIO`)."""
     v = {p.cameras: pair_verdict(r) for p, r in done}
+    passing = any(x is True for x in v.values())
     best: dict[str, tuple[float, list]] = {}  # reference → (measured fraction, layers) of its best passing pair
     for p, r in done:
         mf = r.diagnostics.get("measured_fraction", math.nan)
-        if v[p.cameras] is True and math.isfinite(mf) and mf > best.get(p.cameras[0], (0.0, []))[0]:
-            best[p.cameras[0]] = (mf, r.layers)
+        # no pair passes: the best pair not failing stands in, on any reference (one sky)
+        key = p.cameras[0] if passing else "*"
+        if v[p.cameras] is (True if passing else None) and math.isfinite(mf) and mf > best.get(key, (0.0, []))[0]:
+            best[key] = (mf, r.layers)
     for p, r in done:
         mf = r.diagnostics.get("measured_fraction", math.nan)
-        ref, layers = best.get(p.cameras[0], (math.nan, []))
+        ref, layers = best.get(p.cameras[0] if passing else "*", (math.nan, []))
         # only the cloud above this pair's floor is expected of it (cloud below is below_range, not a
         # geometry error: a 432 m layer under an 886 m pair's 1265 m floor)
         cover = sum(L.cover for L in layers)
-        above = sum(L.cover for L in layers if L.height_m >= _FLOOR_MARGIN * p.floor_m) / cover if cover > 0 else 0.0
+        above = sum(L.cover for L in layers if L.height_m >= p.floor_m) / cover if cover > 0 else 0.0
         if (v[p.cameras] is None and math.isfinite(mf) and math.isfinite(ref) and above >= 0.5
                 and mf < UNMATCHED_RATIO * ref * above):
             v[p.cameras] = False
+    for p, _ in done:
+        if v[p.cameras] is None and _agrees_by_heights(p, done, v):
+            v[p.cameras] = True
     return v
 
 
-def camera_verdict(names: list[str], verdicts: dict[tuple[str, str], bool | None]) -> dict[str, bool | None]:
+#: A pair without a 2-D verdict agrees with the station when its heights of the reference's
+#: pixels are, in the median, within this of a passing pair's (a 2° tilt moves a 630 m pair's
+#: 1500 m by 8 %; the passing 50 m-class pairs' own errors: p90 0.9 % at 1–3 km) [1].
+HEIGHT_AGREEMENT = 0.02
+
+
+def _agrees_by_heights(p: PairPlan, done, v: dict) -> bool:
+    """Whether pair ``p`` measured the reference's cloud where a passing pair on the same
+    reference did, at the same heights: at least ``MIN_COMPARED_PX`` pixels in common, their
+    median height ratio within ``HEIGHT_AGREEMENT`` of 1 and most of them within
+    ``AGREE_PARALLAX_RAD`` of the passing pair's parallax. (A long pair often has too few
+    2-D matches for the geometry check of its own: LK between views 20–30° apart.)"""
+    maps = _reference_maps(done, p.cameras[0])
+    if p.name not in maps:
+        return False
+    hp = maps[p.name]
+    for q, _ in done:
+        if q is p or v.get(q.cameras) is not True or q.name not in maps:
+            continue
+        hq = maps[q.name]
+        both = np.isfinite(hp) & np.isfinite(hq)
+        if both.sum() < MIN_COMPARED_PX:
+            continue
+        a, b = hp[both], hq[both]
+        close = np.abs(q.baseline_m * (1.0 / a - 1.0 / b)) <= AGREE_PARALLAX_RAD
+        if abs(float(np.median(a / b)) - 1.0) <= HEIGHT_AGREEMENT and close.mean() >= 0.5:
+            return True
+    return False
+
+
+def camera_verdict(names: list[str], verdicts: dict[tuple[str, str], bool | None],
+                   stand_in=None) -> dict[str, bool | None]:
     """Each camera's verdict from its pairs': True = mismatched (every judged pair holding it
-    fails, and a judged pair without it passes: the others agree with each other, not with it),
-    False = agrees (a pair holding it passes), None = cannot tell."""
+    fails, and a judged pair without it passes: the others agree with each other, not with it;
+    where no pair passes, one without a verdict that does not fail stands in, if that blames
+    one camera only; ``stand_in``: the pairs that may, default all), False = agrees (a pair
+    holding it passes), None = cannot tell."""
     passing = [p for p, v in verdicts.items() if v is True]
+    # no pair passes: a pair that does not fail (no verdict of its own) stands in, when that
+    # blames exactly one camera
+    standing = passing or [p for p, v in verdicts.items() if v is None and (stand_in is None or p in stand_in)]
     out: dict[str, bool | None] = {}
     for n in names:
         mine = [v for p, v in verdicts.items() if n in p and v is not None]
         if any(mine):
             out[n] = False
-        elif mine and any(n not in p for p in passing):
+        elif mine and any(n not in p for p in standing):
             out[n] = True
         else:
             out[n] = None
+    if not passing and sum(v is True for v in out.values()) > 1:
+        out = {n: (None if v is True else v) for n, v in out.items()}
     return out
 
 
@@ -633,11 +678,16 @@ class StationPipeline:
     def _fuse(self, done: list[tuple[PairPlan, PairResult]], verdicts: dict, present: list[str],
               wall_ms: float) -> PairResult:
         """The station's result from the processed pairs (see the module doc)."""
-        cams_v = camera_verdict(present, verdicts)
+        from cbh.flags import INVALIDATING
+
+        sound = {p.cameras for p, r in done if not INVALIDATING & set(r.flags)}  # e.g. not below_range
+        cams_v = camera_verdict(present, verdicts, stand_in=sound)
         mismatched = [n for n in present if cams_v[n] is True]
         clean = [(p, r) for p, r in done if verdicts[p.cameras] is not False and not set(p.cameras) & set(mismatched)]
-        # the pairs that passed carry the result; pairs without a verdict only where none passed
-        used = [(p, r) for p, r in clean if verdicts[p.cameras] is True] or clean
+        # the pairs that passed carry the result; pairs without a verdict only where none passed,
+        # and then the sound ones first
+        used = ([(p, r) for p, r in clean if verdicts[p.cameras] is True]
+                or [(p, r) for p, r in clean if p.cameras in sound] or clean)
         used = used or done  # every pair disagrees and no camera can be blamed: flagged, as a pair would be
         firsts = [p.cameras[0] for p, _ in used]
         reference = next((n for n in present if n not in mismatched and n in firsts), firsts[0])
@@ -663,6 +713,13 @@ class StationPipeline:
         flags = [f for f in dict.fromkeys(f for _, r in used for f in r.flags)]
         if mismatched:
             flags.append("camera_mismatch")
+        floor = min(p.floor_m for p, _ in used)
+        if (all("cloud_unmatched" in r.flags for _, r in used) and floor > self.config.matching.sweep.min_height_m
+                and "below_range" not in flags):
+            # the pairs left sweep from their floor up only (MAX_PARALLAX_DEG): most of the cloud
+            # unmatched by all of them is cloud below it (an overcast 494 m base under 1265 m
+            # floors, after the 86 m pair's camera was knocked), not a layer to report
+            flags.append("below_range")
         if len(present) < len(self.names):
             flags.append("camera_missing")
         hmap = fused_height_map(used, reference)

@@ -28,7 +28,7 @@ import numpy as np
 from cbh.geometry.station import Station, rotation_from_angles
 from cbh.sim.scene import CloudLayer, Imperfection, ImageSettings, Obstacle, Scene, Sky, Sun
 
-__all__ = ["RandomCase", "random_case", "station_with_masks", "run_random_case", "SKY_KINDS"]
+__all__ = ["RandomCase", "random_case", "random_network_case", "station_with_masks", "run_random_case", "SKY_KINDS"]
 
 SKY_KINDS = ("clear", "broken", "overcast")
 
@@ -209,3 +209,33 @@ def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config
     fov = (cam1.zenith_map() <= pipe.config.masks.max_zenith_deg) & ~sim.obstacle_mask(cams[0])
     score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.poly[0])
     return case, r, score, dt
+
+
+def random_network_case(seed: int, size: int, tilt: bool = False):
+    """The randomized sky of ``seed`` (:func:`random_case`) seen by a three-camera network:
+    cam1 at the origin and cam2 as the case has them (20–200 m), cam3 (camera 1's lens of
+    ``unb-lea-network``) 300–1000 m away in a random direction, yawed anywhere. ``tilt``: one
+    camera, drawn, 2° off level about a random horizontal axis (the station says level).
+
+    Returns (case, simulator at ``size_px``, the tilted camera or None, cam3's baseline [m])."""
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim import SkySimulator
+
+    base = load_station(station_path("unb-lea-network"))
+    case = random_case(seed, base)
+    rng = np.random.default_rng(seed + 7_000_000)
+    cams = dict(case.station.cameras)
+    d3, b3 = rng.uniform(0, 2 * math.pi), float(rng.uniform(300.0, 1000.0))
+    cams["cam3"] = replace(base.cameras["cam3"], position_m=np.array([b3 * math.sin(d3), b3 * math.cos(d3), 0.0]),
+                           R_world_from_cam=rotation_from_angles(float(rng.uniform(-180, 180))))
+    station = replace(case.station, cameras=cams)
+    imps = dict(case.scene.imperfections)
+    bad = None
+    if tilt:
+        bad = str(rng.choice(["cam1", "cam2", "cam3"]))
+        a = rng.uniform(0, 2 * math.pi)
+        old = imps.get(bad, Imperfection(camera=bad))
+        imps[bad] = replace(old, rotation_error_deg=(0.0, 2.0 * math.cos(a), 2.0 * math.sin(a)))
+    scene = replace(case.scene, imperfections=imps)
+    return case, SkySimulator(station, scene, size_px=size), bad, b3
