@@ -680,7 +680,9 @@ class StationPipeline:
         """The station's result from the processed pairs (see the module doc)."""
         from cbh.flags import INVALIDATING
 
-        sound = {p.cameras for p, r in done if not INVALIDATING & set(r.flags)}  # e.g. not below_range
+        # pairs that may stand in for a verdict: they measured the cloud (not below_range, not
+        # cloud_unmatched: an overcast without texture measured nothing and proves nothing)
+        sound = {p.cameras for p, r in done if not (INVALIDATING | {"cloud_unmatched"}) & set(r.flags)}
         cams_v = camera_verdict(present, verdicts, stand_in=sound)
         mismatched = [n for n in present if cams_v[n] is True]
         clean = [(p, r) for p, r in done if verdicts[p.cameras] is not False and not set(p.cameras) & set(mismatched)]
