@@ -70,7 +70,10 @@ def _match(found, truth, tol_rel):
 def summarize(rows, tilt: bool) -> None:
     px = math.radians(90.0) / 480.0  # a working pixel at the zenith of the 960 px lens [rad]
     stats = {k: {b: [] for b in BANDS} for k in ("fused", "short")}
+    from cbh.flags import INVALIDATING
+
     spur = {"fused": 0, "short": 0}
+    spur_valid = 0  # in station answers not flagged invalid (what a user is told to rely on)
     missed = 0
     for row in rows:
         tol = lambda h: max(0.05, h * 0.5 * px / row["b3"])  # noqa: E731
@@ -79,6 +82,8 @@ def summarize(rows, tilt: bool) -> None:
                 continue
             errs, sp = _match(row[k], row["truth"], tol)
             spur[k] += len(sp)
+            if k == "fused" and not INVALIDATING & set(row["flags"]):
+                spur_valid += len(sp)
             for h, e in errs.items():
                 band = next(b for b in BANDS if b[0] <= h < b[1])
                 stats[k][band].append(abs(e))
@@ -90,7 +95,8 @@ def summarize(rows, tilt: bool) -> None:
         f, s = np.array(stats["fused"][b]), np.array(stats["short"][b])
         q = lambda a, p: f"{100 * np.percentile(a, p):6.2f}%" if a.size else "     -"  # noqa: E731
         print(f"{b[0]:>6}-{b[1]:<7} {f.size:7d} {q(f, 50):>7} {q(f, 90):>7} {s.size:12d} {q(s, 50):>7} {q(s, 90):>7}")
-    print(f"spurious layers: station {spur['fused']}, cam1+cam2 alone {spur['short']}")
+    print(f"spurious layers: station {spur['fused']} ({spur_valid} in answers not flagged invalid), "
+          f"cam1+cam2 alone {spur['short']}")
     if tilt:
         right = sum(r["named"] == [r["bad"]] for r in rows)
         wrong = sum(bool(set(r["named"]) - {r["bad"]}) for r in rows)

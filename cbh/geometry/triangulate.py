@@ -348,24 +348,28 @@ def triangulate_views(origins, dirs, seen=None, min_det: float = 1e-10) -> Multi
                          f"{tuple(dirs.shape)} and {tuple(origins.shape)}")
     finite = ~xp.isnan(dirs).any(axis=-1) if xp is np else ~torch_isnan_any(dirs)
     seen = finite if seen is None else (seen & finite)
-    norm = (dirs * dirs).sum(-1, keepdims=True) ** 0.5 if xp is np else (dirs * dirs).sum(-1, keepdim=True).sqrt()
-    w = seen[..., None] * 1.0
-    d = xp.nan_to_num(xp.where(seen[..., None], dirs / xp.where(norm > 0, norm, norm * 0 + 1), dirs * 0))
-    o = origins[None, :, :] * w  # (N, K, 3), zero for unseen views
-    eye = xp.eye(3, dtype=dirs.dtype) if xp is np else xp.eye(3, dtype=dirs.dtype, device=dirs.device)
-    # A = Σ_k w_k (I − d dᵀ), b = Σ_k w_k (o − d (d·o))
-    A = w.sum(1)[..., None] * eye - (d[..., :, None] * d[..., None, :]).sum(1)
-    b = o.sum(1) - (d * (d * o).sum(-1, keepdims=True) if xp is np else d * (d * o).sum(-1, keepdim=True)).sum(1)
+    # components as (N, K) arrays: no (N, K, 3, 3) outer products
+    dx, dy, dz = (xp.nan_to_num(dirs[..., i]) for i in range(3))
+    n2 = dx * dx + dy * dy + dz * dz
+    seen = seen & (n2 > 0)
+    w = seen * 1.0
+    inv = w / xp.sqrt(xp.where(seen, n2, n2 * 0 + 1))  # unseen views weigh nothing
+    dx, dy, dz = dx * inv, dy * inv, dz * inv
+    ox, oy, oz = origins[:, 0][None, :], origins[:, 1][None, :], origins[:, 2][None, :]
+    k = w.sum(1)
+    sm = lambda a: a.sum(1)  # noqa: E731
+    # A = Σ_k w_k (I − d dᵀ), b = Σ_k w_k (o − d (d·o)) (w_k = 0 for an unseen view: d = 0 there)
+    A = xp.stack([k - sm(dx * dx), -sm(dx * dy), -sm(dx * dz),
+                  -sm(dx * dy), k - sm(dy * dy), -sm(dy * dz),
+                  -sm(dx * dz), -sm(dy * dz), k - sm(dz * dz)], -1).reshape(-1, 3, 3)
+    do = dx * ox + dy * oy + dz * oz
+    b = xp.stack([sm(w * ox - dx * do), sm(w * oy - dy * do), sm(w * oz - dz * do)], -1)
     X = _solve3(xp, A, b, seen.sum(1), min_det)
-    v = X[:, None, :] - origins[None, :, :]
+    vx, vy, vz = X[:, 0:1] - ox, X[:, 1:2] - oy, X[:, 2:3] - oz
     # the angle as atan2(|v × d|, v · d): accurate for the small angles that matter (acos is not)
-    cx = v[..., 1] * d[..., 2] - v[..., 2] * d[..., 1]
-    cy = v[..., 2] * d[..., 0] - v[..., 0] * d[..., 2]
-    cz = v[..., 0] * d[..., 1] - v[..., 1] * d[..., 0]
-    sin_part = (cx * cx + cy * cy + cz * cz) ** 0.5
-    res = (xp.arctan2 if xp is np else xp.atan2)(sin_part, (v * d).sum(-1))
-    nan = X[:, :1] * float("nan")
-    res = xp.where(seen & ~xp.isnan(X[:, :1]), res, nan)
+    cx, cy, cz = vy * dz - vz * dy, vz * dx - vx * dz, vx * dy - vy * dx
+    res = (xp.arctan2 if xp is np else xp.atan2)(xp.sqrt(cx * cx + cy * cy + cz * cz), vx * dx + vy * dy + vz * dz)
+    res = xp.where(seen & ~xp.isnan(X[:, :1]), res, res * float("nan"))
     return MultiView(X, res, seen.sum(1))
 
 

@@ -380,8 +380,8 @@ def _reference_maps(pairs, reference: str) -> dict[str, np.ndarray]:
         if p.cameras[0] != reference:
             continue
         e = r.enlarged("height_map")
-        m = np.asarray(e.small if e is not None else r.height_map, np.float64)
-        out[p.name] = np.where(m > 0, m, np.nan)
+        m = np.asarray(e.small if e is not None else r.height_map, np.float32)
+        out[p.name] = m if not (m <= 0).any() else np.where(m > 0, m, np.float32(np.nan))
     shapes = {m.shape for m in out.values()}
     return out if len(shapes) == 1 else {}
 
@@ -395,8 +395,9 @@ def _contradicted(g, h: float, maps: dict[str, np.ndarray], eligible: list[PairP
     if top.name not in maps:
         return None
     hm = maps[top.name]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        near = np.abs(np.log(hm / h)) <= 2 * LAYER_MATCH_LOG
+    band = math.exp(2 * LAYER_MATCH_LOG)
+    with np.errstate(invalid="ignore"):
+        near = (hm >= h / band) & (hm <= h * band)
     evidence = None
     for q in eligible:
         if any(q is p for p, _ in g) or q.name not in maps:
