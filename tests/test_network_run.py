@@ -91,3 +91,22 @@ def test_replay_shows_every_camera_and_reprocesses_the_network(sky_folders, tmp_
     first = [rp.result for rp in open_session(rec).pairs()]
     second = [rp.result for rp in open_session(again).pairs()]
     assert [[round(L.height_m) for L in r.layers] for r in first] == [[round(L.height_m) for L in r.layers] for r in second]
+
+
+def test_pair_of_a_network_with_the_previous_set_gives_each_layer_its_motion(sky_folders, capsys):
+    """`cbh pair` on three images with `--previous-images`: each layer's motion from the pairs'
+    own tracks (the scene: 1500 m drifting (6, 2) m/s, 8000 m (15, 5) m/s; 10 s apart). A 480 px
+    working pixel at 1500 m is ≈ 10 m at the zenith, 1 m/s over 10 s: within 1 m/s."""
+    import json
+
+    files = {c: sorted((sky_folders / c).glob("*.jpg")) for c in NETWORK}
+    now = [str(files[c][1]) for c in NETWORK]
+    before = ",".join(str(files[c][0]) for c in NETWORK)
+    assert main(["pair", *now, "--station", str(sky_folders / "station.toml"), "--previous-images", before,
+                 "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    low = min(s["layers"], key=lambda L: L["height_m"])
+    assert low["motion_east_ms"] == pytest.approx(6.0, abs=1.0) and low["motion_north_ms"] == pytest.approx(2.0, abs=1.0)
+    assert main(["pair", *now, "--station", str(sky_folders / "station.toml"), "--previous-images", before,
+                 "--previous", now[0], now[1]]) == 2
+    assert "not both" in capsys.readouterr().err
