@@ -397,3 +397,29 @@ def test_without_a_passing_pair_a_sound_pair_stands_in_when_it_blames_one_camera
     v = {("cam1", "cam2"): False, ("cam1", "cam3"): None, ("cam2", "cam3"): None}
     assert not any(camera_verdict(names, v).values())  # both long pairs stand in: cam1 and cam2 blamed, ambiguous
     assert camera_verdict(names, v, stand_in={("cam1", "cam3")})["cam2"] is True
+
+
+def test_cameras_looking_at_another_sky_are_one_line_errors(tmp_path, capsys):
+    """Two cameras 200 km away overlap each other but none of the reference's: not one station.
+    Through the CLI: one line, exit 2 (like the upside-down camera)."""
+    from cbh.cli.main import main
+    from cbh.geometry.station import parse_station
+    from cbh.pipeline.network import StationPipeline
+    from cbh.tomlio import dumps_toml
+
+    d = _network_dict()
+    d["station"]["allow_baseline"] = True
+    d["cameras"] += [{**d["cameras"][0], "name": "cam4", "position_m": [0.0, 200000.0, 0.0]},
+                     {**d["cameras"][0], "name": "cam5", "position_m": [50.0, 200000.0, 0.0]}]
+    with pytest.raises(ConfigError, match="cam4, cam5 share no sky with cam1's cameras"):
+        StationPipeline(parse_station(d))
+    up = _network_dict()
+    up["cameras"][2]["pitch_deg"] = 180.0
+    (tmp_path / "up.toml").write_text(dumps_toml(up))
+    img = tmp_path / "x.png"
+    import cv2
+
+    cv2.imwrite(str(img), np.zeros((1920, 1920, 3), np.uint8))
+    assert main(["pair", str(img), str(img), str(img), "--station", str(tmp_path / "up.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("cbh: error:") and "cam3 overlaps no other camera" in err[0]

@@ -167,6 +167,8 @@ def _network_lines(result: PairResult) -> list[str]:
                    "agrees" if math.isfinite(d.get(f"{name}.geometry_residual_px", math.nan)) else "no verdict")
         parts.append(f"{name} ({b:.0f} m) {verdict}")
     out.append("pairs: " + "; ".join(parts))
+    for skipped in d.get("skipped_pairs") or []:
+        out.append(f"pair not used: {skipped}")
     bad = d.get("mismatched_cameras") or []
     if bad:
         out.append("cameras that disagree with the others (left out): " + ", ".join(bad))

@@ -195,6 +195,7 @@ def plan_pairs(station: Station, names: list[str], max_zenith_deg: float = 80.0)
             ov = pair_overlap(ca, cb, OVERLAP_HEIGHTS_M, max_zenith_deg)
             best = int(np.argmax(ov))
             skipped = "" if ov[best] >= MIN_OVERLAP else (
+                f"no shared sky from {OVERLAP_HEIGHTS_M[0]:g} m to {OVERLAP_HEIGHTS_M[-1]:g} m" if ov[best] <= 0 else
                 f"overlap at most {100 * ov[best]:.0f} % (at {OVERLAP_HEIGHTS_M[best]:g} m), under "
                 f"{100 * MIN_OVERLAP:.0f} %")
             floor = base / math.tan(math.radians(MAX_PARALLAX_DEG))
@@ -417,8 +418,11 @@ def _fused_layer(g: list[tuple[PairPlan, Layer]], w: np.ndarray, reference: str)
     """The weighted layer of one group; its cover from the heaviest pair on the reference's sky."""
     wn = w / w.sum()
     avg = lambda attr: float(sum(x * getattr(L, attr) for x, (_, L) in zip(wn, g)))  # noqa: E731
+    # the cover from the pair on the reference's sky with the lowest floor: a pair splits the cloud
+    # among the layers it sees, and one with a high floor counts lower cloud into its lowest layer
+    # (a 4.4 km pair, floor 6.3 km, gave an 8 km layer 0.48 of the sky; its 630 m partner 0.14)
     on_ref = [i for i, (p, _) in enumerate(g) if p.cameras[0] == reference] or list(range(len(g)))
-    cover = g[max(on_ref, key=lambda i: w[i])][1].cover
+    cover = g[min(on_ref, key=lambda i: (g[i][0].floor_m, -w[i]))][1].cover
     moving = [(x, L) for x, (_, L) in zip(w, g) if math.isfinite(L.motion_east_ms) and math.isfinite(L.motion_north_ms)]
     mw = sum(x for x, _ in moving)
     motion = {}
@@ -437,22 +441,33 @@ def _fused_layer(g: list[tuple[PairPlan, Layer]], w: np.ndarray, reference: str)
 
 def fused_height_map(pairs: list[tuple[PairPlan, PairResult]], reference: str):
     """The reference camera's height map: each pixel from the longest baseline that measured it
-    (an :class:`~cbh.result.Enlarged` map when the pairs' are; None without a pair on it)."""
-    mine = sorted([(p, r) for p, r in pairs if p.cameras[0] == reference], key=lambda e: -e[0].baseline_m)
+    consistently (an :class:`~cbh.result.Enlarged` map when the pairs' are; None without a pair
+    on it).
+
+    From the shortest pair up, a longer pair's height replaces the one so far where it is above
+    ``_FLOOR_MARGIN`` × its floor and within ``AGREE_PARALLAX_RAD`` of it in the parallax of
+    the pair that gave it (the longer pair is the more precise; a disagreement that large is a
+    mismatch: cloud under the longer pair's floor swept onto its lowest planes), and fills the
+    pixels no shorter pair measured."""
+    mine = sorted([(p, r) for p, r in pairs if p.cameras[0] == reference], key=lambda e: e[0].baseline_m)
     if not mine:
         return None
     small = [r.enlarged("height_map") for _, r in mine]
-    if all(s is not None for s in small) and len({s.small.shape for s in small}) == 1:
-        out = small[0].small.copy()
-        for s in small[1:]:
-            hole = ~np.isfinite(out)
-            out[hole] = s.small[hole]
-        return Enlarged(out, small[0].width, small[0].height)
-    out = np.array(mine[0][1].height_map, copy=True)
-    for _, r in mine[1:]:
-        hole = ~np.isfinite(out)
-        out[hole] = np.asarray(r.height_map)[hole]
-    return out
+    if all(e is not None for e in small) and len({e.small.shape for e in small}) == 1:
+        maps, wrap = [e.small for e in small], lambda m: Enlarged(m, small[0].width, small[0].height)  # noqa: E731
+    else:
+        maps, wrap = [np.asarray(r.height_map, np.float32) for _, r in mine], lambda m: m  # noqa: E731
+    out = np.array(maps[0], np.float32, copy=True)
+    base = np.where(np.isfinite(out), np.float32(mine[0][0].baseline_m), np.float32(np.nan))
+    for (p, _), hp in zip(mine[1:], maps[1:]):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ok = np.isfinite(hp) & (hp >= _FLOOR_MARGIN * p.floor_m)
+            had = np.isfinite(out)
+            agree = np.abs(base * (1.0 / hp - 1.0 / out)) <= AGREE_PARALLAX_RAD
+        take = ok & (~had | agree)
+        out[take] = hp[take]
+        base[take] = p.baseline_m
+    return wrap(out)
 
 
 def _pixel_keys(px: np.ndarray) -> np.ndarray:
@@ -545,7 +560,8 @@ def pair_config(config: PipelineConfig, plan: PairPlan, o1z_m: float) -> Pipelin
 
 def _star(plans: list[PairPlan], names: list[str]) -> list[PairPlan]:
     """The pairs run first: the reference with each camera it overlaps; a camera it does not
-    overlap joins through its longest usable pair with a camera already joined."""
+    overlap joins through its longest usable pair with a camera already joined. A camera that
+    no such chain reaches (cameras looking at another sky) is a :class:`ConfigError`."""
     usable = [p for p in plans if not p.skipped]
     ref = names[0]
     star = [p for p in usable if ref in p.cameras]
@@ -557,6 +573,11 @@ def _star(plans: list[PairPlan], names: list[str]) -> list[PairPlan]:
         if links:
             star.append(max(links, key=lambda p: p.baseline_m))
             joined.add(n)
+    apart = [n for n in names if n not in joined]
+    if apart:
+        raise ConfigError(f"camera(s) {', '.join(apart)} share no sky with {ref}'s cameras "
+                          f"({', '.join(n for n in names if n in joined)}): one station looks at one sky; "
+                          "give them a station file of their own")
     return star
 
 
@@ -594,7 +615,7 @@ class StationPipeline:
         self.star = _star(self.plans, self.names) if self.plans else []
         for p in self.plans:
             if p.skipped:
-                log.info("pair %s not used: %s", p.name, p.skipped)
+                log.warning("pair %s not used: %s", p.name, p.skipped)
         self._pipes: dict[tuple[str, str], object] = {}
 
     @property
@@ -753,4 +774,5 @@ class StationPipeline:
         d.update(mv)
         d["pairs_used"] = float(n_used)
         d["mismatched_cameras"] = list(mismatched)
+        d["skipped_pairs"] = [f"{p.name}: {p.skipped}" for p in self.plans if p.skipped]  # (not stored in files)
         return d
