@@ -423,3 +423,24 @@ def test_cameras_looking_at_another_sky_are_one_line_errors(tmp_path, capsys):
     assert main(["pair", str(img), str(img), str(img), "--station", str(tmp_path / "up.toml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("cbh: error:") and "cam3 overlaps no other camera" in err[0]
+
+
+def test_a_far_camera_listed_first_still_gets_the_low_cloud_from_the_short_pair():
+    """cam3 (630 m away) first in the file: the reference's pairs both sweep from 900 m, so the
+    50 m pair (without the reference) runs too and gives the 500 m layer; 2500 m comes from all."""
+    from cbh.geometry.station import parse_station
+    from cbh.pipeline.network import StationPipeline
+    from cbh.sim import SkySimulator, parse_scene
+
+    d = _network_dict()
+    d["cameras"] = [d["cameras"][2], d["cameras"][0], d["cameras"][1]]
+    sc = parse_scene({"name": "low", "time_utc": "2024-06-21T14:00:00Z",
+                      "layers": [{"height_m": 500.0, "coverage": 0.4, "seed": 3},
+                                 {"height_m": 2500.0, "coverage": 0.3, "seed": 4}]})
+    sim = SkySimulator(parse_station(d), sc, size_px=480)
+    shot = sim.render()
+    sp = StationPipeline(sim.station)
+    assert [p.name for p in sp.star] == ["cam3+cam1", "cam3+cam2", "cam1+cam2"]
+    r = sp.process([shot.views[c].image for c in sp.names], shot.time_utc, channels="bgr")
+    assert r.cameras[0] == "cam3" and [round(L.height_m, -1) for L in r.layers] == pytest.approx([500, 2500], rel=0.01)
+    assert {p for p, *_ in r.layers[0].support} == {"cam1+cam2"}

@@ -226,9 +226,12 @@ def pair_verdict(result: PairResult) -> bool | None:
 UNMATCHED_RATIO = 0.5
 
 
-def pair_verdicts(done: list[tuple[PairPlan, PairResult]]) -> dict[tuple[str, str], bool | None]:
+def pair_verdicts(done: list[tuple[PairPlan, PairResult]], promoted: set | None = None
+                  ) -> dict[tuple[str, str], bool | None]:
     """Each pair's :func:`pair_verdict`, and False for a pair without one that matched far less
-    of the cloud than a passing pair on its reference camera (:data:`UNMATCHED_RATIO`)."""
+    of the cloud than a passing pair on its reference camera (:data:`UNMATCHED_RATIO`); True for
+    one whose heights agree with a passing pair's (:func:`_agrees_by_heights`; its name then
+    goes into ``promoted``)."""
     v = {p.cameras: pair_verdict(r) for p, r in done}
     passing = any(x is True for x in v.values())
     best: dict[str, tuple[float, list]] = {}  # reference → (measured fraction, layers) of its best passing pair
@@ -251,6 +254,8 @@ def pair_verdicts(done: list[tuple[PairPlan, PairResult]]) -> dict[tuple[str, st
     for p, _ in done:
         if v[p.cameras] is None and _agrees_by_heights(p, done, v):
             v[p.cameras] = True
+            if promoted is not None:
+                promoted.add(p.name)
     return v
 
 
@@ -270,6 +275,8 @@ def _agrees_by_heights(p: PairPlan, done, v: dict) -> bool:
     if p.name not in maps:
         return False
     hp = maps[p.name]
+    if not any(v.get(q.cameras) is True and q.name in maps for q, _ in done):
+        return _layers_agree(p, done, v)  # no passing pair on this grid: compare the layers
     for q, _ in done:
         if q is p or v.get(q.cameras) is not True or q.name not in maps:
             continue
@@ -339,7 +346,8 @@ def _groups(entries: list[tuple[PairPlan, Layer]]) -> list[list[tuple[PairPlan, 
     return groups
 
 
-def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str) -> tuple[list[Layer], list[dict]]:
+def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str,
+                promoted=frozenset()) -> tuple[list[Layer], list[dict]]:
     """One set of layers from the pairs' (see the module doc): ascending, each with its
     ``support``; and the groups left out (as dicts: height, share of the weight, pairs, why)
     for the diagnostics. A group that another pair on the reference's grid contradicts pixel by
@@ -358,11 +366,41 @@ def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str) -> tup
         verdict = _contradicted(g, h, maps, eligible)
         why = (f"contradicted by {verdict}" if verdict else
                "" if verdict == "" or share >= MIN_SUPPORT_SHARE else f"{100 * share:.1f} % of the weight")
+        if not why and verdict is None and _only_unsound(g, pairs, eligible):
+            why = "reported only by pairs with cloud under their floor, not by a sound pair that sees this height"
+        if not why and verdict is None and _unconfirmed(g, h, eligible, promoted):
+            why = "reported only by pairs passed on their heights, not by a judged pair that resolves it"
         if why:
             dropped.append({"height_m": h, "share": share, "pairs": [p.name for p, _ in g], "why": why})
             continue
         layers.append(_fused_layer(g, w, reference))
     return layers, dropped
+
+
+_UNSOUND = ("below_range", "cloud_unmatched")
+
+
+def _only_unsound(g, pairs, eligible: list[PairPlan]) -> bool:
+    """Whether every pair reporting group ``g`` has cloud under its floor or unmatched
+    (``_UNSOUND`` flags) while a pair without them, overlapping at that height, does not report
+    it (a far reference's 630 m pairs swept a 500 m base onto 7480 m; the 50 m pair, on another
+    grid, saw no such layer)."""
+    flags = {p.name: set(r.flags) for p, r in pairs}
+    if not all(flags[p.name] & set(_UNSOUND) for p, _ in g):
+        return False
+    return any(not flags.get(q.name, set()) & set(_UNSOUND) and all(q is not p for p, _ in g) for q in eligible)
+
+
+def _unconfirmed(g, h: float, eligible: list[PairPlan], promoted) -> bool:
+    """Whether every pair reporting group ``g`` passed on its heights only (``promoted``: no 2-D
+    verdict of its own) while a judged pair that resolves height ``h`` (2 px of parallax,
+    ``AGREE_PARALLAX_RAD``) and overlaps there does not report it. Their agreement holds on the
+    layers both see; a layer only they see is unconfirmed (a far reference's 630 m pair swept a
+    500 m base, under its floor, onto 7477 m)."""
+    if not all(p.name in promoted for p, _ in g):
+        return False
+    return any(q.name not in promoted and all(q is not p for p, _ in g) and q.baseline_m / h >= AGREE_PARALLAX_RAD
+               for q in eligible)
 
 
 #: Pixels two pairs must both have measured for one to contradict the other's layer [1].
@@ -558,10 +596,25 @@ def pair_config(config: PipelineConfig, plan: PairPlan, o1z_m: float) -> Pipelin
     return replace(config, matching=replace(m, methods=methods, sweep=replace(m.sweep, min_height_m=floor)))
 
 
+def _layers_agree(p: PairPlan, done, v: dict) -> bool:
+    """Whether pair ``p`` reports, within 2 × ``HEIGHT_AGREEMENT``, every layer (cover ≥ 5 %) that
+    a passing pair on another reference reports above ``p``'s floor, and at least one."""
+    mine = [L.height_m for q, r in done if q is p for L in r.layers]
+    for q, r in done:
+        if v.get(q.cameras) is not True:
+            continue
+        theirs = [L.height_m for L in r.layers if L.cover >= 0.05 and L.height_m >= _FLOOR_MARGIN * p.floor_m]
+        if theirs and all(any(abs(h / m - 1.0) <= 2 * HEIGHT_AGREEMENT for m in mine) for h in theirs):
+            return True
+    return False
+
+
 def _star(plans: list[PairPlan], names: list[str]) -> list[PairPlan]:
     """The pairs run first: the reference with each camera it overlaps; a camera it does not
-    overlap joins through its longest usable pair with a camera already joined. A camera that
-    no such chain reaches (cameras looking at another sky) is a :class:`ConfigError`."""
+    overlap joins through its longest usable pair with a camera already joined; the station's
+    shortest usable pair joins when the reference's pairs are all longer (it sees the lowest
+    cloud). A camera that no such chain reaches (cameras looking at another sky) is a
+    :class:`ConfigError`."""
     usable = [p for p in plans if not p.skipped]
     ref = names[0]
     star = [p for p in usable if ref in p.cameras]
@@ -573,6 +626,11 @@ def _star(plans: list[PairPlan], names: list[str]) -> list[PairPlan]:
         if links:
             star.append(max(links, key=lambda p: p.baseline_m))
             joined.add(n)
+    # low cloud: the station's shortest usable pair sees lowest (its sweep floor); when it does not
+    # hold the reference (a far camera listed first), it runs too, for the layers
+    shortest = min(usable, key=lambda p: p.floor_m, default=None)
+    if shortest is not None and star and all(p.floor_m > shortest.floor_m for p in star):
+        star.append(shortest)
     apart = [n for n in names if n not in joined]
     if apart:
         raise ConfigError(f"camera(s) {', '.join(apart)} share no sky with {ref}'s cameras "
@@ -654,16 +712,18 @@ class StationPipeline:
         t0 = time.perf_counter()
         present = [n for n in self.names if frames[n] is not None]
         done = self._run_pairs([p for p in self.star if set(p.cameras) <= set(present)], frames, time_utc, previous)
-        verdicts = pair_verdicts(done)
+        promoted: set = set()
+        verdicts = pair_verdicts(done, promoted)
         if verdicts and not any(v is True for v in verdicts.values()) and any(v is False for v in verdicts.values()):
             run = {p.cameras for p, _ in done}
             extra = [p for p in self.plans if not p.skipped and p.cameras not in run and set(p.cameras) <= set(present)]
             done += self._run_pairs(extra, frames, time_utc, previous)  # the tie-breakers
-            verdicts = pair_verdicts(done)
+            promoted = set()
+            verdicts = pair_verdicts(done, promoted)
         if not done:
             raise InputError("no usable camera pair among the cameras present: "
                              + (", ".join(present) or "none"))
-        return self._fuse(done, verdicts, present, (time.perf_counter() - t0) * 1000.0)
+        return self._fuse(done, verdicts, present, (time.perf_counter() - t0) * 1000.0, promoted)
 
     def _frames(self, images, channels) -> dict:
         """Each camera's image decoded once (BGR), None where missing."""
@@ -698,7 +758,7 @@ class StationPipeline:
         return list(pmap(one, plans, pool="pairs"))
 
     def _fuse(self, done: list[tuple[PairPlan, PairResult]], verdicts: dict, present: list[str],
-              wall_ms: float) -> PairResult:
+              wall_ms: float, promoted: set = frozenset()) -> PairResult:
         """The station's result from the processed pairs (see the module doc)."""
         from cbh.flags import INVALIDATING
 
@@ -715,7 +775,7 @@ class StationPipeline:
         used = used or done  # every pair disagrees and no camera can be blamed: flagged, as a pair would be
         firsts = [p.cameras[0] for p, _ in used]
         reference = next((n for n in present if n not in mismatched and n in firsts), firsts[0])
-        layers, dropped = fuse_layers(used, reference)
+        layers, dropped = fuse_layers(used, reference, promoted)
         for d in dropped:
             log.debug("network: layer at %.0f m left out (%.0f %% of the weight: %s)", d["height_m"],
                       100 * d["share"], ", ".join(d["pairs"]))
