@@ -585,15 +585,30 @@ def label_points(points: PointSet, layers: list[Layer]) -> PointSet:
 
 # --- the station pipeline ----------------------------------------------------------------------
 
-def pair_config(config: PipelineConfig, plan: PairPlan, o1z_m: float) -> PipelineConfig:
+def pair_config(config: PipelineConfig, plan: PairPlan, o1z_m: float, cam1: Camera | None = None) -> PipelineConfig:
     """A network pair's pipeline configuration: the sweep from the pair's floor up
-    (:data:`MAX_PARALLAX_DEG`), and no plain LK on a pair beyond its reach (:data:`LK_REACH_DEG`)."""
+    (:data:`MAX_PARALLAX_DEG`), no plain LK on a pair beyond its reach (:data:`LK_REACH_DEG`),
+    and (with camera 1, whose lens gives the pixels per radian) no far range of fine planes
+    where even the sweep's highest height has more than ``far_px`` of parallax: those planes lie
+    above it (a 630 m pair's six far planes were at 33–200 km, of its 37)."""
     m = config.matching
     floor = max(m.sweep.min_height_m, o1z_m + plan.floor_m)
     methods = m.methods
     if math.degrees(math.atan(plan.baseline_m / 3000.0)) > LK_REACH_DEG and "sweep" in methods:
         methods = tuple(x for x in methods if x != "lk")
-    return replace(config, matching=replace(m, methods=methods, sweep=replace(m.sweep, min_height_m=floor)))
+    sweep = replace(m.sweep, min_height_m=floor)
+    if cam1 is not None and _zenith_px_per_rad(cam1, config) * plan.baseline_m / max(
+            m.sweep.max_height_m - o1z_m, 1.0) > m.sweep.far_px:
+        sweep = replace(sweep, far_px=0.0)
+    return replace(config, matching=replace(m, methods=methods, sweep=sweep))
+
+
+def _zenith_px_per_rad(cam: Camera, config: PipelineConfig) -> float:
+    """Camera ``cam``'s radial scale at the zenith at the pipeline's working size [px/rad]."""
+    from cbh.pipeline.run import working_factor
+
+    r = np.asarray(cam.model.r_from_theta(np.array([0.0, 0.01])), np.float64)
+    return float((r[1] - r[0]) / 0.01) * working_factor(cam, config.working_radius_px)
 
 
 def _layers_agree(p: PairPlan, done, v: dict) -> bool:
@@ -667,7 +682,8 @@ class StationPipeline:
             config if config is not None else PipelineConfig.from_dict(station.sections.get("pipeline", {})))
         self._make = lambda plan: Pipeline(  # noqa: E731
             station, ",".join(plan.cameras),
-            pair_config(self.config, plan, float(station.camera(plan.cameras[0]).position_m[2])), device, backend)
+            pair_config(self.config, plan, float(station.camera(plan.cameras[0]).position_m[2]),
+                        station.camera(plan.cameras[0])), device, backend)
         self.plans = [] if self.single is not None else plan_pairs(station, self.names,
                                                                   self.config.masks.max_zenith_deg)
         self.star = _star(self.plans, self.names) if self.plans else []
