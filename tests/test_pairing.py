@@ -92,3 +92,53 @@ def test_bad_configuration_is_rejected():
     p = Pairer(("cam1", "cam2"), 0.5)
     with pytest.raises(ConfigError, match="cam3"):
         p.push(fr("cam3", 0.0))
+
+
+def _frames(cam, times_s, t0=None):
+    from datetime import datetime, timedelta, timezone
+
+    from cbh.result import Frame
+
+    t0 = t0 or datetime(2024, 1, 1, tzinfo=timezone.utc)
+    return [Frame(cam, t0 + timedelta(seconds=s), None) for s in times_s]
+
+
+def _names(sets):
+    return [tuple(None if f is None else (f.camera, f.time_utc.second) for f in s) for s in sets]
+
+
+def test_grouper_sets_frames_of_three_cameras_and_goes_on_without_one_that_went_away():
+    """A camera network's sets (issue 24): nearest frames within the tolerance; live, a camera
+    that stops is presumed gone once the others are more than `patience` (2) frames ahead of
+    it, and the sets go on without it (None in its place)."""
+    from cbh.live.pairing import Grouper
+
+    g = Grouper(("a", "b", "c"), tolerance_s=0.5, patience=2)
+    for k in range(5):
+        for cam, off in (("a", 0.0), ("b", 0.1), ("c", 0.2)):
+            if cam == "c" and k >= 2:
+                continue  # c goes away after two frames
+            for f in _frames(cam, [10 * k + off]):
+                g.push(f)
+    got = _names(g.pop_pairs())
+    assert got[:2] == [(("a", 0), ("b", 0), ("c", 0)), (("a", 10), ("b", 10), ("c", 10))]
+    assert got[2] == (("a", 20), ("b", 20), None)  # emitted while a and b kept coming, before the end
+    assert _names(g.flush())[-1] == (("a", 40), ("b", 40), None)
+    assert g.stats.unpaired == {"a": 0, "b": 0, "c": 0}
+
+
+def test_grouper_of_files_waits_for_a_slower_camera_until_its_source_ends():
+    """Files are read as fast as they can be: a camera behind is not gone (patience None) until
+    its source ends (`end`)."""
+    from cbh.live.pairing import Grouper
+
+    g = Grouper(("a", "b", "c"), tolerance_s=0.5, patience=None)
+    for f in _frames("a", [0, 10, 20, 30]) + _frames("b", [0.1, 10.1, 20.1, 30.1]):
+        g.push(f)
+    assert g.pop_pairs() == []  # c has delivered nothing yet: waited for
+    for f in _frames("c", [0.2, 10.2]):
+        g.push(f)
+    assert _names(g.pop_pairs()) == [(("a", 0), ("b", 0), ("c", 0))]  # 10 s: c's next may be nearer
+    g.end("c")
+    got = _names(g.pop_pairs())  # c ended: 10 s with its frame, 20 s without; 30 s waits for b's next
+    assert got == [(("a", 10), ("b", 10), ("c", 10)), (("a", 20), ("b", 20), None)]
