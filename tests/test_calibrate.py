@@ -24,6 +24,7 @@ from cbh.geometry.calibrate import (
 from cbh.geometry.station import angles_from_rotation, load_station, rotation_from_angles
 
 TRUE = {"cam1": (2.0, 0.3, -0.2), "cam2": (-5.6, -0.4, 0.25)}
+DAY_START = datetime(2024, 6, 21, 10, 0, tzinfo=timezone.utc)  # the simulated days' first frame
 
 
 def angle_between_deg(A, B) -> float:
@@ -132,16 +133,22 @@ def test_epipolar_angle_is_zero_for_coplanar_rays_and_grows_with_rotation():
 def day(tmp_path_factory, repo):
     """14 frame pairs at 480 px from 10:00 to 18:40 UTC (every 40 min) of the misoriented day."""
     from cbh.sim import SkySimulator, load_scene
-    from cbh.sim.io import write_shot
 
     out = tmp_path_factory.mktemp("day")
     st = load_station(repo / "configs" / "unb-lea-level.toml")
     sim = SkySimulator(st, load_scene(repo / "configs" / "scenes" / "misoriented-day.toml"), size_px=480)
-    (out / "station.toml").write_text("# installation day: both cameras level, yaw 0\n" + sim.station.to_toml())
-    t0 = datetime(2024, 6, 21, 10, 0, tzinfo=timezone.utc)
-    for i in range(14):
-        write_shot(sim.render(t0 + timedelta(minutes=40 * i)), out, 92)
+    _render_day(sim, out, 14, 40 * 60.0, "# installation day: both cameras level, yaw 0\n")
     return out
+
+
+def _render_day(sim, out, frames: int, step_s: float, header: str = "") -> None:
+    """``out/station.toml`` (the simulator's station, after ``header``) and ``frames`` time steps
+    of every camera from ``DAY_START``, ``step_s`` apart."""
+    from cbh.sim.io import write_shot
+
+    (out / "station.toml").write_text(header + sim.station.to_toml())
+    for i in range(frames):
+        write_shot(sim.render(DAY_START + timedelta(seconds=step_s * i)), out, 92)
 
 
 def _run(args, capsys):
@@ -298,17 +305,13 @@ def test_full_day_at_960px_meets_the_issue_targets(tmp_path, repo, capsys, level
     from cbh.imageio import read_image
     from cbh.pipeline import Pipeline
     from cbh.sim import SkySimulator, load_scene
-    from cbh.sim.io import write_shot
 
     st = load_station(repo / "configs" / "unb-lea-level.toml")
     scene = load_scene(repo / "configs" / "scenes" / "misoriented-day.toml")
     if levels == "limited-range":
         scene = replace(scene, image=replace(scene.image, white_level=235, limited_range=True))
     sim = SkySimulator(st, scene, size_px=960)
-    (tmp_path / "station.toml").write_text(sim.station.to_toml())
-    t0 = datetime(2024, 6, 21, 10, 0, tzinfo=timezone.utc)
-    for i in range(100):
-        write_shot(sim.render(t0 + timedelta(seconds=360 * i)), tmp_path, 92)
+    _render_day(sim, tmp_path, 100, 360.0)
     out = tmp_path / "cal.toml"
     code, _, err = _run(["calibrate", "--station", str(tmp_path / "station.toml"), "--source",
                          f"cam1={tmp_path / 'cam1'}", "--source", f"cam2={tmp_path / 'cam2'}", "--out", str(out)], capsys)
@@ -320,7 +323,7 @@ def test_full_day_at_960px_meets_the_issue_targets(tmp_path, repo, capsys, level
     assert angle_between_deg(c1.T @ c2, R1.T @ R2) < 0.05
     pipe = Pipeline(cal)
     for i in (10, 50, 90):
-        t = t0 + timedelta(seconds=360 * i)
+        t = DAY_START + timedelta(seconds=360 * i)
         tag = t.strftime("%Y%m%dT%H%M%S.000Z")
         i1, _ = read_image(tmp_path / "cam1" / f"cam1_{tag}.jpg")
         i2, _ = read_image(tmp_path / "cam2" / f"cam2_{tag}.jpg")
@@ -377,7 +380,6 @@ def test_calibrate_a_camera_network_fits_every_pair_consistently(tmp_path, repo,
 
     from cbh.geometry.station import parse_station
     from cbh.sim import SkySimulator, load_scene
-    from cbh.sim.io import write_shot
     from cbh.sim.scene import Imperfection
     from cbh.tomlio import read_toml
 
@@ -388,10 +390,7 @@ def test_calibrate_a_camera_network_fits_every_pair_consistently(tmp_path, repo,
     true = {**TRUE, "cam3": (1.0, -0.3, 0.4)}
     sc = replace(sc, imperfections={**sc.imperfections, "cam3": Imperfection(camera="cam3", rotation_error_deg=true["cam3"])})
     sim = SkySimulator(st, sc, size_px=480)
-    (tmp_path / "station.toml").write_text(sim.station.to_toml())
-    t0 = datetime(2024, 6, 21, 10, 0, tzinfo=timezone.utc)
-    for i in range(14):
-        write_shot(sim.render(t0 + timedelta(minutes=40 * i)), tmp_path, 92)
+    _render_day(sim, tmp_path, 14, 40 * 60.0)
     out = tmp_path / "calibrated.toml"
     code, stdout, err = _run(["calibrate", "--station", str(tmp_path / "station.toml"), "--out", str(out), "--json",
                               *[a for c in true for a in ("--source", f"{c}={tmp_path / c}")]], capsys)

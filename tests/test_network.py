@@ -465,3 +465,15 @@ def test_a_far_camera_listed_first_still_gets_the_low_cloud_from_the_short_pair(
     r = sp.process([shot.views[c].image for c in sp.names], shot.time_utc, channels="bgr")
     assert r.cameras[0] == "cam3" and [round(L.height_m, -1) for L in r.layers] == pytest.approx([500, 2500], rel=0.01)
     assert {p for p, *_ in r.layers[0].support} == {"cam1+cam2"}
+
+
+def test_without_the_reference_camera_the_others_carry_the_set(level_network):
+    """cam1 (the reference) delivers nothing: cam2 + cam3 become the station (camera_missing),
+    not a failed set. (It once raised: the star only held cam1's pairs.)"""
+    from cbh.pipeline.network import StationPipeline
+
+    sim, shot, _ = level_network
+    r = StationPipeline(sim.station).process({c: shot.views[c].image for c in ("cam2", "cam3")}, shot.time_utc,
+                                             channels="bgr")
+    assert r.cameras == ("cam2", "cam3") and "camera_missing" in r.flags
+    assert [L.height_m for L in r.layers] == pytest.approx([LOW, HIGH], rel=0.01)

@@ -332,8 +332,7 @@ class RerunSink(ResultSink):
         self.station = station
         from cbh.pipeline.network import station_cameras
 
-        self.cameras = tuple(station_cameras(station, cameras)) if cameras is not None or len(station.cameras) > 2 \
-            else tuple(c.name for c in station.pair(None))
+        self.cameras = tuple(station_cameras(station, cameras))
         self.height_range_m = tuple(height_range_m)
         self.url: str | None = None
         self._styled: list[int] = []

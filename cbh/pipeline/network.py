@@ -105,6 +105,13 @@ class PairPlan:
     overlap: tuple[float, ...]  # at OVERLAP_HEIGHTS_M [1]
     skipped: str = ""  # why the pair is not used ("" = usable)
     floor_m: float = 0.0  # the pair sweeps from this height up (MAX_PARALLAX_DEG) [m above the first camera]
+    px_per_rad: float = 305.0  # the first camera's radial scale at the zenith, at working size [px/rad]
+
+    @property
+    def agree_rad(self) -> float:
+        """Two heights of one pixel agree within this parallax difference in this pair [rad]:
+        ``AGREE_PX`` working pixels of its first camera."""
+        return AGREE_PX / self.px_per_rad
 
     @property
     def name(self) -> str:
@@ -177,7 +184,8 @@ def pair_overlap(cam_a: Camera, cam_b: Camera, heights_m, max_zenith_deg: float 
     return np.asarray(out)
 
 
-def plan_pairs(station: Station, names: list[str], max_zenith_deg: float = 80.0) -> list[PairPlan]:
+def plan_pairs(station: Station, names: list[str], max_zenith_deg: float = 80.0,
+               working_radius_px: float | None = None) -> list[PairPlan]:
     """Every two of ``names``, with baseline, overlap and why a pair is skipped.
 
     Raises
@@ -199,7 +207,8 @@ def plan_pairs(station: Station, names: list[str], max_zenith_deg: float = 80.0)
                 f"overlap at most {100 * ov[best]:.0f} % (at {OVERLAP_HEIGHTS_M[best]:g} m), under "
                 f"{100 * MIN_OVERLAP:.0f} %")
             floor = base / math.tan(math.radians(MAX_PARALLAX_DEG))
-            plans.append(PairPlan((a, b), base, tuple(float(x) for x in ov), skipped, floor))
+            plans.append(PairPlan((a, b), base, tuple(float(x) for x in ov), skipped, floor,
+                                  _zenith_px_per_rad(ca, working_radius_px)))
     for n in names:
         mine = [p for p in plans if n in p.cameras]
         if mine and all(p.skipped for p in mine):
@@ -269,7 +278,7 @@ def _agrees_by_heights(p: PairPlan, done, v: dict) -> bool:
     """Whether pair ``p`` measured the reference's cloud where a passing pair on the same
     reference did, at the same heights: at least ``MIN_COMPARED_PX`` pixels in common, their
     median height ratio within ``HEIGHT_AGREEMENT`` of 1 and most of them within
-    ``AGREE_PARALLAX_RAD`` of the passing pair's parallax. (A long pair often has too few
+    ``PairPlan.agree_rad`` of the passing pair's parallax. (A long pair often has too few
     2-D matches for the geometry check of its own: LK between views 20–30° apart.)"""
     maps = _reference_maps(done, p.cameras[0])
     if p.name not in maps:
@@ -285,7 +294,7 @@ def _agrees_by_heights(p: PairPlan, done, v: dict) -> bool:
         if both.sum() < MIN_COMPARED_PX:
             continue
         a, b = hp[both], hq[both]
-        close = np.abs(q.baseline_m * (1.0 / a - 1.0 / b)) <= AGREE_PARALLAX_RAD
+        close = np.abs(q.baseline_m * (1.0 / a - 1.0 / b)) <= q.agree_rad
         if abs(float(np.median(a / b)) - 1.0) <= HEIGHT_AGREEMENT and close.mean() >= 0.5:
             return True
     return False
@@ -347,7 +356,7 @@ def _groups(entries: list[tuple[PairPlan, Layer]]) -> list[list[tuple[PairPlan, 
 
 
 def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str,
-                promoted=frozenset()) -> tuple[list[Layer], list[dict]]:
+                promoted=frozenset(), station: Station | None = None) -> tuple[list[Layer], list[dict]]:
     """One set of layers from the pairs' (see the module doc): ascending, each with its
     ``support``; and the groups left out (as dicts: height, share of the weight, pairs, why)
     for the diagnostics. A group that another pair on the reference's grid contradicts pixel by
@@ -364,12 +373,12 @@ def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str,
         total = sum(_weight(p) for p in {id(p): p for p in eligible + [p for p, _ in g]}.values())
         share = float(w.sum()) / total
         verdict = _contradicted(g, h, maps, eligible)
+        if not verdict and station is not None:  # the pairs on other grids, through the layer's points
+            verdict = _contradicted_across(g, h, pairs, eligible, station) or verdict
         why = (f"contradicted by {verdict}" if verdict else
                "" if verdict == "" or share >= MIN_SUPPORT_SHARE else f"{100 * share:.1f} % of the weight")
-        if not why and verdict is None and _only_unsound(g, pairs, eligible):
-            why = "reported only by pairs with cloud under their floor, not by a sound pair that sees this height"
         if not why and verdict is None and _unconfirmed(g, h, eligible, promoted):
-            why = "reported only by pairs passed on their heights, not by a judged pair that resolves it"
+            why = "reported only by pairs passed on their heights, not by another pair that resolves it"
         if why:
             dropped.append({"height_m": h, "share": share, "pairs": [p.name for p, _ in g], "why": why})
             continue
@@ -377,39 +386,62 @@ def fuse_layers(pairs: list[tuple[PairPlan, PairResult]], reference: str,
     return layers, dropped
 
 
-_UNSOUND = ("below_range", "cloud_unmatched")
-
-
-def _only_unsound(g, pairs, eligible: list[PairPlan]) -> bool:
-    """Whether every pair reporting group ``g`` has cloud under its floor or unmatched
-    (``_UNSOUND`` flags) while a pair without them, overlapping at that height, does not report
-    it (a far reference's 630 m pairs swept a 500 m base onto 7480 m; the 50 m pair, on another
-    grid, saw no such layer)."""
-    flags = {p.name: set(r.flags) for p, r in pairs}
-    if not all(flags[p.name] & set(_UNSOUND) for p, _ in g):
-        return False
-    return any(not flags.get(q.name, set()) & set(_UNSOUND) and all(q is not p for p, _ in g) for q in eligible)
-
-
 def _unconfirmed(g, h: float, eligible: list[PairPlan], promoted) -> bool:
     """Whether every pair reporting group ``g`` passed on its heights only (``promoted``: no 2-D
-    verdict of its own) while a judged pair that resolves height ``h`` (2 px of parallax,
-    ``AGREE_PARALLAX_RAD``) and overlaps there does not report it. Their agreement holds on the
-    layers both see; a layer only they see is unconfirmed (a far reference's 630 m pair swept a
-    500 m base, under its floor, onto 7477 m)."""
+    verdict of its own) while another pair that resolves height ``h`` (2 px of parallax,
+    ``PairPlan.agree_rad``) and overlaps there does not report it. Their agreement holds on the
+    layers both see; a layer only they see is unconfirmed (a far reference's 630 m pairs swept a
+    500 m base, under their floors, onto 7477 m and 12973 m; the 50 m pair, or the other 630 m
+    pair, saw no such layer)."""
     if not all(p.name in promoted for p, _ in g):
         return False
-    return any(q.name not in promoted and all(q is not p for p, _ in g) and q.baseline_m / h >= AGREE_PARALLAX_RAD
-               for q in eligible)
+    return any(all(q is not p for p, _ in g) and q.baseline_m / h >= q.agree_rad for q in eligible)
 
 
 #: Pixels two pairs must both have measured for one to contradict the other's layer [1].
 MIN_COMPARED_PX = 200
-#: Two pairs' heights of one reference pixel agree within this parallax difference, in working
-#: pixels of the 960 px Table 1 lens at 45° (305 px/rad): matching noise is 0.1–0.3 px, so 2 px
-#: is a mismatch, not noise (a 341 m cloud under a 372 m pair's floor read as 7051 m by that
-#: pair, 0.14 rad of parallax off the 51 m pair's 341 m) [rad].
-AGREE_PARALLAX_RAD = 2.0 / 305.0
+#: The same across reference grids, in a layer's points (the sweep's lattice: 1 point per 9 px) [1].
+MIN_COMPARED_POINTS = 50
+#: Two pairs' heights of one reference pixel agree within this parallax difference [working px]
+#: (:attr:`PairPlan.agree_rad`: 6.3 mrad for the Table 1 lens at 960 px): matching noise is
+#: 0.1–0.3 px, so 2 px is a mismatch, not noise (a 341 m cloud under a 372 m pair's floor read as
+#: 7051 m by that pair, 0.14 rad of parallax off the 51 m pair's 341 m) [px].
+AGREE_PX = 2.0
+
+
+def _contradicted_across(g, h: float, pairs, eligible: list[PairPlan], station: Station) -> str | None:
+    """:func:`_contradicted` for the pairs on another reference camera: the heaviest reporting
+    pair's points of this layer, seen from that pair's reference camera, looked up in its height
+    map. The pair that measured at least ``MIN_COMPARED_POINTS`` of them, most at a parallax more
+    than its ``agree_rad`` away from the layer's, is returned (a far reference's two 630 m pairs
+    both put a 500 m base, under their floors, at 13 km; the 50 m pair on cam1's grid had 500 m
+    there); "" when one compared and agreed; None without evidence."""
+    top = max(g, key=lambda e: _weight(e[0]))[0]
+    res = dict((p.name, x) for p, x in pairs)[top.name]
+    band = math.exp(2 * LAYER_MATCH_LOG)
+    xyz = np.asarray(res.points.xyz_m, np.float64)
+    xyz = xyz[(xyz[:, 2] >= h / band) & (xyz[:, 2] <= h * band)]
+    evidence = None
+    for q in eligible:
+        if q.cameras[0] == top.cameras[0] or any(q is p for p, _ in g):
+            continue
+        e = dict((p.name, x) for p, x in pairs)[q.name]
+        m = e.enlarged("height_map")
+        hm = np.asarray(m.small if m is not None else e.height_map, np.float32)
+        cam = station.camera(q.cameras[0])
+        px = cam.world_to_pixel(xyz)
+        f = hm.shape[1] / cam.model.width
+        ok = np.isfinite(px).all(axis=1)
+        xi = np.clip(np.rint((px[ok, 0] + 0.5) * f - 0.5).astype(int), 0, hm.shape[1] - 1)
+        yi = np.clip(np.rint((px[ok, 1] + 0.5) * f - 0.5).astype(int), 0, hm.shape[0] - 1)
+        hq = hm[yi, xi]
+        hq = hq[np.isfinite(hq) & (hq > 0)]
+        if hq.size < MIN_COMPARED_POINTS:
+            continue
+        if (np.abs(q.baseline_m * (1.0 / hq - 1.0 / h)) <= q.agree_rad).mean() < 0.5:
+            return q.name
+        evidence = ""
+    return evidence
 
 
 def _reference_maps(pairs, reference: str) -> dict[str, np.ndarray]:
@@ -428,7 +460,7 @@ def _reference_maps(pairs, reference: str) -> dict[str, np.ndarray]:
 def _contradicted(g, h: float, maps: dict[str, np.ndarray], eligible: list[PairPlan]) -> str | None:
     """The pair that contradicts group ``g`` at height ``h``: the pixels its heaviest pair puts
     in this layer were measured by that other pair too (at least ``MIN_COMPARED_PX``), and most
-    of them at a parallax more than ``AGREE_PARALLAX_RAD`` away from the layer's. "" when some
+    of them at a parallax more than ``PairPlan.agree_rad`` away from the layer's. "" when some
     other pair could compare and none contradicts, None when there is no such evidence."""
     top = max(g, key=lambda e: _weight(e[0]))[0]
     if top.name not in maps:
@@ -445,7 +477,7 @@ def _contradicted(g, h: float, maps: dict[str, np.ndarray], eligible: list[PairP
         hq = hq[np.isfinite(hq)]
         if hq.size < MIN_COMPARED_PX:
             continue
-        agree = np.abs(q.baseline_m * (1.0 / hq - 1.0 / h)) <= AGREE_PARALLAX_RAD
+        agree = np.abs(q.baseline_m * (1.0 / hq - 1.0 / h)) <= q.agree_rad
         if agree.mean() < 0.5:
             return q.name
         evidence = ""
@@ -483,7 +515,7 @@ def fused_height_map(pairs: list[tuple[PairPlan, PairResult]], reference: str):
     on it).
 
     From the shortest pair up, a longer pair's height replaces the one so far where it is above
-    ``_FLOOR_MARGIN`` × its floor and within ``AGREE_PARALLAX_RAD`` of it in the parallax of
+    ``_FLOOR_MARGIN`` × its floor and within ``PairPlan.agree_rad`` of it in the parallax of
     the pair that gave it (the longer pair is the more precise; a disagreement that large is a
     mismatch: cloud under the longer pair's floor swept onto its lowest planes), and fills the
     pixels no shorter pair measured."""
@@ -501,7 +533,7 @@ def fused_height_map(pairs: list[tuple[PairPlan, PairResult]], reference: str):
         with np.errstate(invalid="ignore", divide="ignore"):
             ok = np.isfinite(hp) & (hp >= _FLOOR_MARGIN * p.floor_m)
             had = np.isfinite(out)
-            agree = np.abs(base * (1.0 / hp - 1.0 / out)) <= AGREE_PARALLAX_RAD
+            agree = np.abs(base * (1.0 / hp - 1.0 / out)) <= p.agree_rad  # (one reference camera: one px scale)
         take = ok & (~had | agree)
         out[take] = hp[take]
         base[take] = p.baseline_m
@@ -597,18 +629,21 @@ def pair_config(config: PipelineConfig, plan: PairPlan, o1z_m: float, cam1: Came
     if math.degrees(math.atan(plan.baseline_m / 3000.0)) > LK_REACH_DEG and "sweep" in methods:
         methods = tuple(x for x in methods if x != "lk")
     sweep = replace(m.sweep, min_height_m=floor)
-    if cam1 is not None and _zenith_px_per_rad(cam1, config) * plan.baseline_m / max(
+    if cam1 is not None and _zenith_px_per_rad(cam1, config.working_radius_px) * plan.baseline_m / max(
             m.sweep.max_height_m - o1z_m, 1.0) > m.sweep.far_px:
         sweep = replace(sweep, far_px=0.0)
     return replace(config, matching=replace(m, methods=methods, sweep=sweep))
 
 
-def _zenith_px_per_rad(cam: Camera, config: PipelineConfig) -> float:
-    """Camera ``cam``'s radial scale at the zenith at the pipeline's working size [px/rad]."""
+def _zenith_px_per_rad(cam: Camera, working_radius_px: float | None = None) -> float:
+    """Camera ``cam``'s radial scale at the zenith at the pipeline's working size [px/rad]
+    (``working_radius_px``: default the pipeline's)."""
     from cbh.pipeline.run import working_factor
 
+    if working_radius_px is None:
+        working_radius_px = PipelineConfig().working_radius_px
     r = np.asarray(cam.model.r_from_theta(np.array([0.0, 0.01])), np.float64)
-    return float((r[1] - r[0]) / 0.01) * working_factor(cam, config.working_radius_px)
+    return float((r[1] - r[0]) / 0.01) * working_factor(cam, working_radius_px)
 
 
 def _layers_agree(p: PairPlan, done, v: dict) -> bool:
@@ -684,8 +719,8 @@ class StationPipeline:
             station, ",".join(plan.cameras),
             pair_config(self.config, plan, float(station.camera(plan.cameras[0]).position_m[2]),
                         station.camera(plan.cameras[0])), device, backend)
-        self.plans = [] if self.single is not None else plan_pairs(station, self.names,
-                                                                  self.config.masks.max_zenith_deg)
+        self.plans = [] if self.single is not None else plan_pairs(
+            station, self.names, self.config.masks.max_zenith_deg, self.config.working_radius_px)
         self.star = _star(self.plans, self.names) if self.plans else []
         for p in self.plans:
             if p.skipped:
@@ -727,7 +762,7 @@ class StationPipeline:
                                        previous=prev)
         t0 = time.perf_counter()
         present = [n for n in self.names if frames[n] is not None]
-        done = self._run_pairs([p for p in self.star if set(p.cameras) <= set(present)], frames, time_utc, previous)
+        done = self._run_pairs(self._star_of(present), frames, time_utc, previous)
         promoted: set = set()
         verdicts = pair_verdicts(done, promoted)
         if verdicts and not any(v is True for v in verdicts.values()) and any(v is False for v in verdicts.values()):
@@ -740,6 +775,21 @@ class StationPipeline:
             raise InputError("no usable camera pair among the cameras present: "
                              + (", ".join(present) or "none"))
         return self._fuse(done, verdicts, present, (time.perf_counter() - t0) * 1000.0, promoted)
+
+    def _star_of(self, present: list[str]) -> list[PairPlan]:
+        """The pairs to run first among the cameras ``present``: the station's star, or — a camera
+        missing, the reference perhaps — the star of the cameras that delivered, the first of
+        them the reference (a camera left out by it: not run; fewer than two: none)."""
+        if len(present) == len(self.names):
+            return self.star
+        plans = [p for p in self.plans if set(p.cameras) <= set(present) and not p.skipped]
+        if len(present) < 2 or not plans:
+            return []
+        order = [present[0]] + [n for n in present[1:] if any(n in p.cameras for p in plans)]
+        try:
+            return _star(plans, order)
+        except ConfigError:  # a camera present shares no sky with the new reference's: the pairs that do
+            return [p for p in plans if present[0] in p.cameras]
 
     def _frames(self, images, channels) -> dict:
         """Each camera's image decoded once (BGR), None where missing."""
@@ -791,10 +841,9 @@ class StationPipeline:
         used = used or done  # every pair disagrees and no camera can be blamed: flagged, as a pair would be
         firsts = [p.cameras[0] for p, _ in used]
         reference = next((n for n in present if n not in mismatched and n in firsts), firsts[0])
-        layers, dropped = fuse_layers(used, reference, promoted)
+        layers, dropped = fuse_layers(used, reference, promoted, self.station)
         for d in dropped:
-            log.debug("network: layer at %.0f m left out (%.0f %% of the weight: %s)", d["height_m"],
-                      100 * d["share"], ", ".join(d["pairs"]))
+            log.debug("network: layer at %.0f m left out (%s: %s)", d["height_m"], d["why"], ", ".join(d["pairs"]))
         points, mv = multiview_points(self.station, used, reference)
         points = label_points(points, layers)
         on_ref = [(p, r) for p, r in used if p.cameras[0] == reference]
