@@ -182,7 +182,8 @@ class Grouper:
     presumes a camera gone that is only read more slowly). A set needs two frames at least;
     an anchor no other camera matches is dropped as unpaired, and so are frames older than the
     ones chosen. ``pop_pairs`` returns tuples in ``cameras`` order. Out-of-order frames (older
-    than their camera's newest) are dropped. The interface is :class:`Pairer`'s.
+    than their camera's newest) are dropped, also after a clock jump: ``jump_s`` is taken for
+    :class:`Pairer`'s interface and not used (no resynchronisation; docs/networks.md, Limits).
     """
 
     def __init__(self, cameras: tuple[str, ...], tolerance_s: float = 0.5, max_waiting: int = 16,
