@@ -64,7 +64,10 @@ def parse_utc(value, what: str = "time", error: type[Exception] = InputError) ->
 
 
 _NAME_TIME = re.compile(
-    r"(?<!\d)(\d{4})-?(\d{2})-?(\d{2})[T_ \-]?(\d{2})[:\-]?(\d{2})[:\-]?(\d{2})(?:[.,](\d{1,9}))?(Z)?(?!\d)",
+    r"(?<!\d)(\d{4})-?(\d{2})-?(\d{2})[T_ \-]?(\d{2})[:\-]?(\d{2})[:\-]?(\d{2})(?:[.,](\d{1,9}))?(Z)?(?!\d)"
+    # a zone right after the time: UTC, UTC+1, UTCp1 / UTCm2 (the "+"/"-" spelled out, as IP cameras
+    # name files where "+" is awkward), UTC+05:30, or an ISO offset +01:00 / +0100
+    r"(?:[_\-]?UTC(?:([+\-pm])(\d{1,2})(?::?(\d{2}))?)?(?![a-z])|([+\-])(\d{2}):(\d{2})(?!\d)|(\+)(\d{2})(\d{2})(?!\d))?",
     re.IGNORECASE,
 )
 
@@ -73,10 +76,14 @@ def time_from_name(name: str) -> datetime | None:
     """UTC time stamped in a file name, or None.
 
     The first ``YYYY-MM-DD[T_ -]HH:MM:SS[.fff][Z]`` in the name, with or without the ``-``
-    and ``:`` separators, read as UTC (with or without ``Z``: docs/conventions.md).
+    and ``:`` separators, read as UTC (with or without ``Z``: docs/conventions.md), unless a
+    zone follows the time: ``UTC+1`` / ``UTCp1`` / ``UTCm2`` / ``UTC+05:30`` or ``+01:00`` / ``+0100``
+    (VIVOTEK cameras name files ``FE3_Image_20160901_100000_UTCp1.jpg``: 09:00:00 UTC).
 
     >>> time_from_name("cam1_20151029T045801.250Z.jpg").isoformat()
     '2015-10-29T04:58:01.250000+00:00'
+    >>> time_from_name("FE3_Image_20160901_100000_UTCp1.jpg").isoformat()
+    '2016-09-01T09:00:00+00:00'
     """
     m = _NAME_TIME.search(str(name))
     if not m:
@@ -88,7 +95,19 @@ def time_from_name(name: str) -> datetime | None:
         return None
     if frac:
         t += timedelta(microseconds=int(round(int(frac) / 10 ** len(frac) * 1e6)))
-    return t
+    return t - _name_zone_offset(m.groups()[8:])
+
+
+def _name_zone_offset(groups) -> timedelta:
+    """The zone offset a file name states after its time (0 for none, ``Z`` or plain ``UTC``)."""
+    sign, hh, mm, *iso = groups  # (a "-HHMM" without a colon is not read: a frame counter looks alike)
+    for k in (0, 3):
+        if iso[k]:
+            sign, hh, mm = iso[k:k + 3]
+    if not sign:
+        return timedelta(0)
+    off = timedelta(hours=int(hh), minutes=int(mm or 0))
+    return -off if sign.lower() in ("-", "m") else off
 
 
 def parse_time_header(value: str | None) -> datetime | None:

@@ -1,0 +1,263 @@
+"""Camera 2's clock offset from the sky itself: dense flow on sky maps, no stereo match that must
+already triangulate.
+
+**Why sky maps.** Both cameras' images are resampled onto one north-up grid of *plane offsets*
+``a = (r_e, r_n) / r_u`` (the horizontal offset per metre of height of a ray; the gnomonic
+projection of the sky onto a horizontal plane). On that grid a flat cloud layer at height h
+moving at v over the ground is a pure translation, everywhere in the map:
+
+- between two frames of one camera ``dt`` apart, by ``w·dt`` with ``w = v / (h − z)``;
+- between camera 1 and camera 2 at one instant, by the parallax ``−q·B'`` (q = 1/h above camera 1,
+  B' the horizontal baseline corrected for camera 2's height, :mod:`.motion`);
+- and camera 2 capturing δ late adds ``w·δ``.
+
+So the flow f from camera 1's map to camera 2's, at each pixel a, is ``f = −q·B' + w·δ``, and camera
+1's own backward flow to its previous frame is ``−w·dt``. The component of f *across* the baseline
+has no parallax in it: ``n·f = δ·(n·w)``, n ⟂ B. Each pixel with motion across the baseline gives δ;
+nothing has to triangulate first (a 30 s offset moves a cirrus deck 4–6° while its parallax over 241 m
+is 1.7°: the stereo matches of the raw pair are then mostly wrong, and a matcher that keeps only those
+that triangulate keeps none). Static things (masts, the other camera, overlay text, the sun's flare)
+have w = 0 and carry no weight. Layers moving in different directions each give δ with their own w.
+
+**Large offsets.** f can be tens of map pixels (a 120 s offset, a fast layer): before the dense
+flow (DIS, :func:`cv2.DISOpticalFlow`), camera 2's map is shifted by the dominant translation
+found by phase correlation, and the flow measures only what is left.
+
+**Estimate.** δ per pixel, weighted by ``(n·w)²`` (inverse variance); pixels are pooled in tiles
+(one value per tile: neighbouring pixels of a flow are not independent) and δ is the median of the
+tiles, with a standard error from their spread. NaN (unknown, never a guess) when too few tiles see
+motion across the baseline or the error is above ``max_error_s``. With δ, each pixel's height follows
+from the along-baseline component, and the (height, rate) pairs give camera 2's motion profile, the
+input of the compensation (:func:`~cbh.pipeline.motion.compensate_camera2`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["SkyGrid", "SkyClock", "sky_grid", "sky_clock"]
+
+
+@dataclass(frozen=True)
+class SkyGrid:
+    """A north-up grid of plane offsets (x east, y north up) and each camera's remap onto it.
+
+    res : float
+        Plane-offset step per map pixel [m/m].
+    a_max : float
+        The grid covers |a_e|, |a_n| ≤ a_max (zenith ≤ atan(a_max) on the axes).
+    maps : tuple of (mapx, mapy) float32 per camera (working-size pixels; −1 outside its view)
+    """
+
+    res: float
+    a_max: float
+    maps: tuple
+
+    @property
+    def size(self) -> int:
+        return int(self.maps[0][0].shape[0])
+
+    def offsets(self) -> tuple[np.ndarray, np.ndarray]:
+        """(a_e, a_n) of each map pixel, each (S, S) float64."""
+        n = self.size
+        ax = (np.arange(n) - (n - 1) / 2.0) * self.res
+        return np.meshgrid(ax, -ax)
+
+    def sample(self, k: int, image: np.ndarray, interpolation=cv2.INTER_LINEAR) -> np.ndarray:
+        mx, my = self.maps[k]
+        return cv2.remap(image, mx, my, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def sky_grid(cams, max_zenith_deg: float = 60.0, res: float | None = None) -> SkyGrid:
+    """The grid for working-size cameras ``cams`` (their lens and ENU orientation).
+
+    The step defaults to the lens's own angular pixel size at the zenith, doubled: fine enough
+    that a flow of 0.1 map px is a few hundredths of a degree, coarse enough that the map holds
+    a few hundred pixels (the flow's cost)."""
+    a_max = math.tan(math.radians(max_zenith_deg))
+    if res is None:
+        m = cams[0].model
+        px_per_rad = float(np.atleast_1d(m.r_from_theta(np.array([0.05])))[0]) / 0.05
+        res = 2.0 / px_per_rad
+    n = int(2 * math.ceil(a_max / res)) + 1
+    ax = (np.arange(n) - (n - 1) / 2.0) * res
+    ae, an = np.meshgrid(ax, -ax)
+    rays = np.stack([ae, an, np.ones_like(ae)], axis=-1).reshape(-1, 3)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    maps = []
+    for cam in cams:
+        rc = rays @ np.asarray(cam.R_world_from_cam, np.float64)  # world → camera frame
+        px = cam.model.ray_to_pixel(rc).reshape(n, n, 2)
+        inside = cam.model.contains(px.reshape(-1, 2)).reshape(n, n) & (rc[:, 2].reshape(n, n) > 0.02)
+        px = np.where(inside[..., None] & np.isfinite(px), px, -1.0)
+        maps.append((np.ascontiguousarray(px[..., 0], np.float32), np.ascontiguousarray(px[..., 1], np.float32)))
+    return SkyGrid(res=float(res), a_max=float(a_max), maps=tuple(maps))
+
+
+@dataclass(frozen=True)
+class SkyClock:
+    """One pair's sky-map estimate (see the module docstring).
+
+    offset_s : float
+        Camera 2's clock offset (positive: it captures late) [s]; NaN = not observable here.
+    error_s : float
+        Its standard error (tile spread / √tiles) [s].
+    tiles : int
+        Tiles that saw motion across the baseline.
+    heights_m : ndarray (N,)
+        Sampled pixels' heights above the ENU origin for that offset [m] (NaN: none).
+    rates2 : ndarray (N, 2)
+        Their plane-offset rates as camera 2 sees them [1/s].
+    """
+
+    offset_s: float
+    error_s: float
+    tiles: int
+    heights_m: np.ndarray
+    rates2: np.ndarray
+
+    @classmethod
+    def unknown(cls, tiles: int = 0) -> "SkyClock":
+        return cls(math.nan, math.nan, tiles, np.zeros(0), np.zeros((0, 2)))
+
+
+def _texture(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Grey sky map → uint8 with its large-scale brightness removed (clouds' texture, not the sky's
+    gradient or vignetting), invalid pixels at the mean."""
+    f = img.astype(np.float32)
+    v = valid.astype(np.float32)
+    k = (0, 0)
+    s = max(3.0, img.shape[0] / 40.0)
+    mean = cv2.GaussianBlur(f * v, k, s) / np.maximum(cv2.GaussianBlur(v, k, s), 1e-3)
+    hp = np.where(valid, f - mean, 0.0)
+    sd = float(np.std(hp[valid])) if valid.any() else 1.0
+    return np.clip(128.0 + hp * (40.0 / max(sd, 1e-3)), 0, 255).astype(np.uint8)
+
+
+def _dominant_shift(s1: np.ndarray, s2: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Translation (dx, dy) [map px] taking s1's content to s2's (phase correlation)."""
+    f1 = np.where(valid, s1.astype(np.float32) - 128.0, 0.0).astype(np.float32)
+    f2 = np.where(valid, s2.astype(np.float32) - 128.0, 0.0).astype(np.float32)
+    win = cv2.createHanningWindow(f1.shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(f1, f2, win)
+    return np.array([dx, dy], np.float64)
+
+
+def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    return dis.calc(a, b, None)
+
+
+def _sample(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return cv2.remap(field, x.astype(np.float32), y.astype(np.float32), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+
+
+def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m: np.ndarray, dz_m: float,
+              dt_s: float, *, tile_px: int = 24, min_tiles: int = 6, min_motion_px: float = 0.5,
+              fb_max_px: float = 0.5, max_error_s: float = 2.0, height_range_m=(50.0, 20000.0)) -> SkyClock:
+    """Camera 2's clock offset from one pair and the pair before (see the module docstring).
+
+    Parameters
+    ----------
+    grid : SkyGrid
+    now, prev : (gray1, gray2)
+        Both cameras' working-size grey frames, now and at the previous pair (``dt_s`` earlier on
+        camera 1's clock; each camera's own frames are ``dt_s`` apart on its own clock).
+    usable : (mask1, mask2)
+        Working-size usable-sky masks (obstacles, sun, outside the circle: False).
+    baseline_m : ndarray (2,)
+        Camera 2 minus camera 1, east and north [m].
+    dz_m : float
+        Camera 2's height above camera 1 [m].
+    """
+    if not (dt_s > 0):
+        return SkyClock.unknown()
+    u = [grid.sample(k, usable[k].astype(np.uint8), cv2.INTER_NEAREST) > 0 for k in (0, 1)]
+    s1, s2 = grid.sample(0, now[0]), grid.sample(1, now[1])
+    p1, p2 = grid.sample(0, prev[0]), grid.sample(1, prev[1])
+    t1, t2, tp1, tp2 = _texture(s1, u[0]), _texture(s2, u[1]), _texture(p1, u[0]), _texture(p2, u[1])
+    n = grid.size
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    # camera 2's map pre-shifted by the dominant translation, so the dense flow sees small motions
+    both = u[0] & u[1]
+    d0 = _dominant_shift(t1, t2, both)
+    t2s = cv2.warpAffine(t2, np.float32([[1, 0, -d0[0]], [0, 1, -d0[1]]]), (n, n), flags=cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=128)
+    f12 = _flow(t1, t2s)
+    f21 = _flow(t2s, t1)
+    x2, y2 = xx + f12[..., 0], yy + f12[..., 1]
+    fb12 = np.hypot(*np.moveaxis(_sample(f21, x2, y2) + f12, -1, 0))
+    f12 = f12 + d0.astype(np.float32)  # camera 1 → camera 2 as captured [map px]
+    g1 = _flow(t1, tp1)  # camera 1 back to its previous frame: −w·dt
+    g1b = _flow(tp1, t1)
+    fbg1 = np.hypot(*np.moveaxis(_sample(g1b, xx + g1[..., 0], yy + g1[..., 1]) + g1, -1, 0))
+    g2 = _flow(t2, tp2)  # camera 2's own, sampled where camera 2 sees the camera-1 pixel
+    g2_at = _sample(g2, xx + f12[..., 0], yy + f12[..., 1])
+    ok = (u[0] & (fb12 <= fb_max_px) & (fbg1 <= fb_max_px) & np.isfinite(g2_at).all(axis=-1)
+          & (_sample(u[1].astype(np.float32), xx + f12[..., 0], yy + f12[..., 1]) > 0.5))
+    # the two cameras' own motions agree (the same cloud, nearly the same height above each)
+    ok &= np.hypot(*np.moveaxis(g1 - g2_at, -1, 0)) <= max(1.0, 0.25 * float(np.median(np.hypot(*np.moveaxis(g1, -1, 0))[ok]))
+                                                             if ok.any() else 1.0)
+    # map px → plane offsets (x east, y south: the map's rows run north to south)
+    to_a = np.array([grid.res, -grid.res])
+    f = f12 * to_a  # a2 − a1
+    w = -0.5 * (g1 + g2_at) * to_a / dt_s  # rate [1/s]
+    b = np.asarray(baseline_m, np.float64)
+    bn = b / np.linalg.norm(b)
+    nrm = np.array([-bn[1], bn[0]])
+    nw = w[..., 0] * nrm[0] + w[..., 1] * nrm[1]
+    nf = f[..., 0] * nrm[0] + f[..., 1] * nrm[1]
+    moving = ok & (np.abs(nw) * dt_s >= min_motion_px * grid.res)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d_px = np.where(moving, nf / nw, np.nan)
+    est, err, tiles = _tile_median(d_px, np.where(moving, nw ** 2, 0.0), tile_px, min_tiles)
+    if not math.isfinite(est) or err > max_error_s:
+        return SkyClock.unknown(tiles)
+    # heights for that offset: q·B' = w·δ − f (along the baseline), B' ≈ B (Δz·a2 is small beside B)
+    ae, an = grid.offsets()
+    a2 = np.stack([ae, an], -1) + f
+    bp = b[None, None, :] - dz_m * a2
+    rhs = w * est - f
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = (rhs * bp).sum(-1) / (bp * bp).sum(-1)
+        h = 1.0 / q
+    sel = ok & np.isfinite(h) & (h >= height_range_m[0]) & (h <= height_range_m[1])
+    step = max(1, int(math.sqrt(max(int(sel.sum()), 1) / 3000.0)))
+    sub = np.zeros_like(sel)
+    sub[::step, ::step] = True
+    sel &= sub
+    hh = h[sel]
+    w2 = w[sel] * ((hh / (hh - dz_m)))[:, None]  # camera 2's rate: v / (h − z2), heights above camera 1
+    return SkyClock(offset_s=est, error_s=err, tiles=tiles, heights_m=hh, rates2=w2)
+
+
+def _tile_median(d: np.ndarray, wt: np.ndarray, tile: int, min_tiles: int) -> tuple[float, float, int]:
+    """Median over tiles of each tile's weighted median of d (tiles with ≥ 10 % of their pixels
+    carrying weight); (estimate, standard error, tiles)."""
+    n = d.shape[0]
+    vals, weights = [], []
+    for y in range(0, n - tile + 1, tile):
+        for x in range(0, n - tile + 1, tile):
+            dd, ww = d[y:y + tile, x:x + tile].ravel(), wt[y:y + tile, x:x + tile].ravel()
+            m = np.isfinite(dd) & (ww > 0)
+            if m.sum() < 0.1 * tile * tile:
+                continue
+            vals.append(_wmedian(dd[m], ww[m]))
+            weights.append(float(ww[m].sum()))
+    if len(vals) < min_tiles:
+        return math.nan, math.nan, len(vals)
+    v, wv = np.asarray(vals), np.asarray(weights)
+    wv = np.minimum(wv, 2.0 * np.median(wv))  # no tile dominates
+    est = _wmedian(v, wv)
+    mad = _wmedian(np.abs(v - est), wv)
+    return est, 1.4826 * mad * 1.25 / math.sqrt(len(v)), len(v)
+
+
+def _wmedian(v: np.ndarray, w: np.ndarray) -> float:
+    o = np.argsort(v)
+    c = np.cumsum(w[o])
+    return float(v[o][np.searchsorted(c, 0.5 * c[-1])])
