@@ -228,7 +228,9 @@ class MotionConfig:
     offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
     compensate_min_s: float = 0.2  # compensate camera 2 only above this |offset|: the estimate's systematic error reaches ≈ 0.15 s [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
-    max_offset_s: float = 30.0  # per-match offsets beyond this are outliers [s]
+    max_offset_s: float = 150.0  # a pair's offset estimate beyond this is not believed (real IP cameras: ±120 s) [s]
+    offset_jump_s: float = 3.0  # two pairs in a row this far from the running offset (and agreeing): the clock jumped, start again [s]
+    sky_matching: bool = True  # with a known offset, match on the sky maps, each pixel carried by its own motion (.skyclock)
     plane_compensation: bool = True  # the sweep compensates each plane with the motion of its own height (False, and on a torch device: every plane on one per-pixel compensated image)
 
 
@@ -452,7 +454,7 @@ def _check_layers(ly, where: str, layer_methods) -> None:
 
 def _check_motion(mo, where: str) -> None:
     for k in ("max_gap_s", "max_points", "fb_max_px", "min_tracks", "layer_tolerance_log", "offset_history",
-              "offset_tolerance_s", "rematch_s", "max_offset_s"):
+              "offset_tolerance_s", "rematch_s", "max_offset_s", "offset_jump_s"):
         _positive(f"{where}.{k}", getattr(mo, k))
     _positive(f"{where}.compensate_min_s", mo.compensate_min_s, strict=False)
     _odd(f"{where}.window_px", mo.window_px, 5)

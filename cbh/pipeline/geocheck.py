@@ -64,7 +64,7 @@ from cbh.pipeline.match import Matches, PairGeometry
 __all__ = ["GeometryCheck", "check_geometry", "relative_rotation", "images_identical", "seeded_matches", "CHECK_METHODS"]
 
 #: Matching methods whose correspondences can disagree with the geometry (2-D search).
-CHECK_METHODS = ("lk", "orb", "dis")
+CHECK_METHODS = ("lk", "orb", "dis", "skyflow")
 #: The fitted rotation is tolerated up to this share of the matches' median parallax (a 2 % height
 #: error, the bar for a single low layer; near cloud at 130 m, 480 px, fitted 0.17° ± 0.05°), when that is
 #: more than ``max_rotation_px`` (the height error a turn causes is its shift over the parallax).

@@ -109,7 +109,7 @@ from cbh.result import Layer
 
 __all__ = ["PairState", "MotionProfile", "Tracks", "track_back", "plane_offsets", "offset_per_match",
            "offset_estimate", "parallax_heights", "track_profile", "shift_map", "shifted_images", "motion_factors",
-           "motion_weights", "compensate_camera2", "layer_motion", "running_offset"]
+           "motion_weights", "compensate_camera2", "layer_motion", "running_offset", "update_offsets"]
 
 
 @dataclass(frozen=True)
@@ -159,6 +159,25 @@ class PairState:
     def without_frames(self) -> "PairState":
         """This state with its frames dropped (a lost pair): the offset history is kept."""
         return replace(self, gray=None)
+
+
+def update_offsets(history, new_s: float, keep: int, jump_s: float) -> tuple[float, ...]:
+    """The offset history with this pair's estimate ``new_s`` appended (NaN: unchanged), the last
+    ``keep`` kept.
+
+    A camera whose clock jumped (a reboot, a clock set by hand) shows as two pairs in a row that
+    agree with each other within ``jump_s`` and both differ from the running median by more: the
+    history is then restarted from those two, so that the new offset is used from the next pair
+    instead of after half the history."""
+    hist = tuple(o for o in history if math.isfinite(o))
+    if not math.isfinite(new_s):
+        return hist[-keep:]
+    if len(hist) >= 3 and jump_s > 0:
+        ref = running_offset(hist[:-1])
+        last = hist[-1]
+        if abs(new_s - ref) > jump_s and abs(last - ref) > jump_s and abs(new_s - last) <= jump_s:
+            return (last, new_s)
+    return (hist + (new_s,))[-keep:]
 
 
 def running_offset(offsets_s) -> float:

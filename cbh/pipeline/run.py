@@ -70,7 +70,8 @@ from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LA
                                 get_matcher, sample_map, triangulate_matches)
 from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, layer_motion,
                                  motion_weights, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
-                                 running_offset, shifted_images, track_back, track_profile)
+                                 running_offset, shifted_images, track_back, track_profile, update_offsets)
+from cbh.pipeline.skyclock import SkyClock, sky_clock, sky_grid
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import chroma, sample_lattice, segment
 from cbh.pipeline.threads import pmap
@@ -187,6 +188,7 @@ class Pipeline:
         self._zenith: dict[int, np.ndarray] = {}
         self._geometry: PairGeometry | None = None
         self._tables_key: str | None = None  # set once the disk cache was consulted (cbh.pipeline.tables)
+        self._sky_grid = None  # both cameras' sky-map remap tables (cbh.pipeline.skyclock), built at first use
         self._tables_loaded = False
         self._layers = get_layer_method(self.config.layers.method)
         # a camera network's per-frame-set memo of camera 1's own stages, shared by the pipelines of
@@ -412,12 +414,22 @@ class Pipeline:
         time_utc = ctx.time_utc
         mot = self._motion_input(previous, time_utc, gray)
         mcfg = self.config.motion
-        used = running_offset(mot.offsets_s) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
-        profile, pair_s = mot.profile, math.nan  # (pair_s: this pair's latest own offset estimate)
+        sky = self._sky_clock(gray, masks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
+        history = update_offsets(mot.offsets_s, sky.offset_s, mcfg.offset_history, mcfg.offset_jump_s)
+        used = running_offset(history) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
+        profile = mot.profile
+        if len(sky.heights_m) and math.isfinite(used):  # the motion over height for that offset, now
+            sky_profile = track_profile(sky.heights_m, sky.rates2, mcfg.min_tracks, mcfg.layer_tolerance_log)
+            profile = sky_profile if len(sky_profile) else profile
+        pair_s = sky.offset_s  # (this pair's latest own offset estimate; the LK tracks' where the sky has none)
         n_flags = len(ctx.flags)
         for attempt in range(_MAX_PASSES):  # more passes only when this pair moved the offset estimate (.motion)
             del ctx.flags[n_flags:]
-            corr, comp = self._match_compensated(work, masks, seg, ctx, gray, mot, used, profile)
+            sky_mode = self._sky_mode(sky, used)
+            if sky_mode:  # camera 2 carried to camera 1's time pixel by pixel (.skyclock)
+                corr, comp = self._sky_correspondences(sky, used, seg, ctx), None
+            else:
+                corr, comp = self._match_compensated(work, masks, seg, ctx, gray, mot, used, profile)
 
             def height_map():
                 with _timed(ctx, "height_map"):
@@ -429,7 +441,7 @@ class Pipeline:
 
             def geometry():
                 with _timed(ctx, "geometry_check"):
-                    return self.geometry_findings(received, corr, seg)
+                    return self.geometry_findings(received, corr, seg, sky.carry_noise_rad if sky_mode else 0.0)
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -437,23 +449,25 @@ class Pipeline:
             est = MotionEstimate()
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
-                    est = self._stereo_tracks(corr, gray, masks, seg, mot, comp)
+                    est = (self._sky_tracks(corr, sky, mot) if sky_mode else
+                           self._stereo_tracks(corr, gray, masks, seg, mot, comp))
                     lay = self.stage_motion(lay, hmap, est, seg.clouds[0])
-            pair_s = est.pair_offset_s if math.isfinite(est.pair_offset_s) else pair_s
-            new = running_offset((mot.offsets_s + (pair_s,))[-mcfg.offset_history:])
+            if not math.isfinite(sky.offset_s):
+                pair_s = est.pair_offset_s if math.isfinite(est.pair_offset_s) else pair_s
+            new = running_offset(update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s))
             moved = math.isfinite(new) and abs(new - (used if comp is not None else 0.0)) > mcfg.rematch_s
             if attempt and comp is not None:  # start-up passes: also until the motion profile settles
                 moved = moved or profile.moved_px(est.profile, new, self._px_per_rad2()) > _RATES_SETTLED_PX
-            if (attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not len(est.profile)
+            if (attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not len(est.profile) or sky_mode
                     or not math.isfinite(new)):
                 break
             used, profile = new, est.profile
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
         self._quality_flags(pts, seg, ctx, hmap, lay)
-        offsets = mot.offsets_s + ((pair_s,) if math.isfinite(pair_s) else ())
-        offsets = offsets[-mcfg.offset_history:]
+        offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
         running = running_offset(offsets)
-        ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s)
+        ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
+                               clock_offset_error_s=sky.error_s)
         if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
             ctx.flags.append("clock_offset")
         if first and not self._tables_loaded:
@@ -478,6 +492,67 @@ class Pipeline:
         if not 0.0 < dt <= cfg.max_gap_s:
             return MotionInput(offsets_s=offsets)
         return MotionInput(prev_gray=previous.gray, dt_s=dt, offsets_s=offsets, profile=previous.profile)
+
+    def _sky_clock(self, gray, masks: "Masks", mot: "MotionInput", ctx: "PairContext") -> SkyClock:
+        """Camera 2's clock offset from this pair and the previous one on sky maps
+        (:mod:`.skyclock`); unknown without a previous pair, or with the estimate switched off."""
+        mcfg = self.config.motion
+        if mot.prev_gray is None or not mcfg.clock_offset:
+            return SkyClock.unknown()
+        with _timed(ctx, "clock"):
+            if self._sky_grid is None:
+                self._sky_grid = sky_grid((self.cam1, self.cam2))
+            c1, c2 = self.cam1.position_m, self.cam2.position_m
+            filt = self.config.filtering
+            sc = sky_clock(self._sky_grid, gray, mot.prev_gray, masks.usable, np.asarray(c2 - c1, np.float64)[:2],
+                           float(c2[2] - c1[2]), mot.dt_s, height_range_m=(filt.min_height_m, filt.max_height_m))
+        if math.isfinite(sc.offset_s) and abs(sc.offset_s) > mcfg.max_offset_s:
+            return SkyClock.unknown(sc.tiles)
+        return sc
+
+    def _sky_mode(self, sky: SkyClock, used_s: float) -> bool:
+        """Whether the pair is matched on the sky maps: its offset is known and large enough to
+        compensate (``compensate_min_s``) and the maps gave matches."""
+        mcfg = self.config.motion
+        return bool(mcfg.sky_matching and len(sky.a1) and math.isfinite(used_s) and abs(used_s) >= mcfg.compensate_min_s)
+
+    def _sky_correspondences(self, sky: SkyClock, used_s: float, seg: "Segmentation",
+                             ctx: "PairContext") -> "Correspondences":
+        """The sky maps' matches (:mod:`.skyclock`) as the pair's correspondences, method
+        ``skyflow``: each carries camera 2 to camera 1's time by its own pixel's motion (the
+        raw-image matchers would see camera 2 resampled with one motion per height node, whose error
+        grows with the offset), on camera 1's cloud."""
+        with _timed(ctx, "match_skyflow"):
+            r1 = np.concatenate([sky.a1, np.ones((len(sky.a1), 1))], axis=1)
+            r2 = np.concatenate([sky.matched(used_s), np.ones((len(sky.a1), 1))], axis=1)
+            r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
+            r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
+            px1 = self.cam1.model.ray_to_pixel(r1 @ np.asarray(self.cam1.R_world_from_cam, np.float64))
+            px2 = self.cam2.model.ray_to_pixel(r2 @ np.asarray(self.cam2.R_world_from_cam, np.float64))
+            m = Matches("skyflow", px1.astype(np.float64), px2.astype(np.float64),
+                        ray2_world=r2.astype(np.float32), ray1_world=r1.astype(np.float32))
+            m = m.take(_on_mask(seg.clouds[0], m.px1))
+        with _timed(ctx, "triangulation"):
+            tri = triangulate_matches(self.geometry, m, self.config.filtering)
+        return Correspondences(triangulated=[tri], raw=[m])
+
+    def _sky_tracks(self, corr: "Correspondences", sky: SkyClock, mot: "MotionInput") -> "MotionEstimate":
+        """The motion estimate of a pair matched on the sky maps: every kept match is a track, with
+        its own pixel's motion (camera 1's rate, and camera 2's at the match's height)."""
+        tr = corr.triangulated[0]
+        m = tr.matches
+        if not len(m):
+            return MotionEstimate(dt_s=mot.dt_s, pair_offset_s=sky.offset_s)
+        r1 = np.asarray(m.ray1_world, np.float64)
+        w1 = sky.rate_at(r1[:, :2] / r1[:, 2:3])  # camera 1's own rate at each kept match
+        h = tr.height_m
+        z1, z2 = float(self.cam1.position_m[2]), float(self.cam2.position_m[2])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w2 = w1 * ((h - z1) / (h - z2))[:, None]
+        cfg = self.config.motion
+        profile = track_profile(h, w2, cfg.min_tracks, cfg.layer_tolerance_log)
+        return MotionEstimate(dt_s=mot.dt_s, px1=m.px1, w1=w1, w2=w2, pair_offset_s=sky.offset_s, height_m=h,
+                              profile=profile)
 
     def _px_per_rad2(self) -> float:
         """Camera 2's lens scale near the zenith at working size [px/rad]."""
@@ -860,18 +935,25 @@ class Pipeline:
         """Correspondences vs station geometry → ``geometry_*`` diagnostics and flags."""
         self._apply_geometry(self.geometry_findings(work, corr), ctx)
 
-    def geometry_findings(self, work, corr: "Correspondences", seg: "Segmentation | None" = None
-                          ) -> "tuple[bool, object] | None":
+    def geometry_findings(self, work, corr: "Correspondences", seg: "Segmentation | None" = None,
+                          carry_noise_rad: float = 0.0) -> "tuple[bool, object] | None":
         """The geometry check's findings (identical images, :func:`check_geometry`'s result);
         None when the check is off. Reads only its arguments: runs beside the height map.
 
         With ``seg``, the geometry is judged on real cloud only: correspondences whose camera-2
         pixel is cloud in camera 2 too (a match from cloud onto clear sky, glare or an unmasked
         obstacle is a mismatch of the matcher, not of the station), and not at all when
-        camera 1's sky is clear (``clear_sky``: whatever matched there is not cloud)."""
+        camera 1's sky is clear (``clear_sky``: whatever matched there is not cloud).
+
+        ``carry_noise_rad``: the angular noise of carrying camera 2 to camera 1's time (a pair
+        matched on the sky maps with a clock offset, :mod:`.skyclock`), added in quadrature to the
+        miss the station's calibration is expected to leave: a miss that the carry explains is not
+        the geometry's."""
         cfg = self.config.geometry_check
         if not cfg.enabled:
             return None
+        if carry_noise_rad > 0:
+            cfg = replace(cfg, expected_miss_ratio=math.hypot(cfg.expected_miss_ratio, carry_noise_rad))
         raw = corr.raw
         if seg is not None:
             if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION:

@@ -33,7 +33,7 @@ input of the compensation (:func:`~cbh.pipeline.motion.compensate_camera2`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -111,6 +111,12 @@ class SkyClock:
         Sampled pixels' heights above the ENU origin for that offset [m] (NaN: none).
     rates2 : ndarray (N, 2)
         Their plane-offset rates as camera 2 sees them [1/s].
+    a1, flow, rate : ndarray (M, 2)
+        Correspondences on the sky maps: camera 1's plane offset a1 [m/m], the flow to camera 2 as
+        captured f [m/m] and the pixel's own motion w [1/s], so that camera 2 carried to camera 1's
+        capture time sees it at ``a1 + f − w·δ`` (:meth:`matched`): the pair's matches once its
+        offset is known (only flow outliers, a miss across the baseline above ``max_miss_deg``, are
+        left out: the geometry check and the triangulation judge the rest).
     """
 
     offset_s: float
@@ -118,6 +124,25 @@ class SkyClock:
     tiles: int
     heights_m: np.ndarray
     rates2: np.ndarray
+    a1: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    flow: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    rate: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    carry_noise_rad: float = 0.0  # the carry's own noise near the zenith: |δ| × the rate's noise [rad] (see sky_clock)
+    rate_map: np.ndarray | None = None  # (S, S, 2) each map pixel's rate [1/s] (NaN: none)
+    res: float = math.nan  # the map's step [m/m]
+
+    def rate_at(self, a: np.ndarray) -> np.ndarray:
+        """The measured rate (N, 2) [1/s] at plane offsets a (N, 2) (the nearest map pixel's)."""
+        n = self.rate_map.shape[0]
+        c = np.clip(np.round(a[:, 0] / self.res + (n - 1) / 2.0).astype(np.int64), 0, n - 1)
+        r = np.clip(np.round(-a[:, 1] / self.res + (n - 1) / 2.0).astype(np.int64), 0, n - 1)
+        return self.rate_map[r, c]
+
+    def matched(self, offset_s: float) -> np.ndarray:
+        """Camera 2's plane offsets (M, 2) of the matches at camera 1's capture time, for the offset
+        ``offset_s`` [s] (the running estimate rather than this pair's own)."""
+        return self.a1 + self.flow - self.rate * offset_s
 
     @classmethod
     def unknown(cls, tiles: int = 0) -> "SkyClock":
@@ -158,7 +183,8 @@ def _sample(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m: np.ndarray, dz_m: float,
               dt_s: float, *, tile_px: int = 24, min_tiles: int = 6, min_motion_px: float = 0.5,
-              fb_max_px: float = 0.5, max_error_s: float = 2.0, height_range_m=(50.0, 20000.0)) -> SkyClock:
+              fb_max_px: float = 0.5, max_error_s: float = 2.0, height_range_m=(50.0, 20000.0),
+              max_miss_deg: float = 2.0, match_step: int = 1) -> SkyClock:
     """Camera 2's clock offset from one pair and the pair before (see the module docstring).
 
     Parameters
@@ -200,8 +226,8 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     ok = (u[0] & (fb12 <= fb_max_px) & (fbg1 <= fb_max_px) & np.isfinite(g2_at).all(axis=-1)
           & (_sample(u[1].astype(np.float32), xx + f12[..., 0], yy + f12[..., 1]) > 0.5))
     # the two cameras' own motions agree (the same cloud, nearly the same height above each)
-    ok &= np.hypot(*np.moveaxis(g1 - g2_at, -1, 0)) <= max(1.0, 0.25 * float(np.median(np.hypot(*np.moveaxis(g1, -1, 0))[ok]))
-                                                             if ok.any() else 1.0)
+    disagree = np.hypot(*np.moveaxis(g1 - g2_at, -1, 0))
+    ok &= disagree <= max(1.0, 0.25 * float(np.median(np.hypot(*np.moveaxis(g1, -1, 0))[ok])) if ok.any() else 1.0)
     # map px → plane offsets (x east, y south: the map's rows run north to south)
     to_a = np.array([grid.res, -grid.res])
     f = f12 * to_a  # a2 − a1
@@ -217,6 +243,9 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     est, err, tiles = _tile_median(d_px, np.where(moving, nw ** 2, 0.0), tile_px, min_tiles)
     if not math.isfinite(est) or err > max_error_s:
         return SkyClock.unknown(tiles)
+    # the carry's noise: the two cameras measure one rate; half their difference is the noise of
+    # the mean (each one's is the difference / √2, the mean's that / √2), times |δ|
+    carry = 0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s * abs(est)
     # heights for that offset: q·B' = w·δ − f (along the baseline), B' ≈ B (Δz·a2 is small beside B)
     ae, an = grid.offsets()
     a2 = np.stack([ae, an], -1) + f
@@ -226,13 +255,22 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
         q = (rhs * bp).sum(-1) / (bp * bp).sum(-1)
         h = 1.0 / q
     sel = ok & np.isfinite(h) & (h >= height_range_m[0]) & (h <= height_range_m[1])
+    # the matches: the across-baseline residual once δ is out is the rays' miss (as an angle: a
+    # plane-offset step at a is cos²θ = 1 / (1 + |a|²) of a radian)
+    miss = np.abs(nf - est * nw) / (1.0 + ae ** 2 + an ** 2)
+    good = ok & np.isfinite(miss) & (miss <= math.radians(max_miss_deg))
+    mstep = np.zeros_like(good)
+    mstep[::match_step, ::match_step] = True
+    good &= mstep
+    a1m = np.stack([ae[good], an[good]], -1)
     step = max(1, int(math.sqrt(max(int(sel.sum()), 1) / 3000.0)))
     sub = np.zeros_like(sel)
     sub[::step, ::step] = True
     sel &= sub
     hh = h[sel]
     w2 = w[sel] * ((hh / (hh - dz_m)))[:, None]  # camera 2's rate: v / (h − z2), heights above camera 1
-    return SkyClock(offset_s=est, error_s=err, tiles=tiles, heights_m=hh, rates2=w2)
+    return SkyClock(offset_s=est, error_s=err, tiles=tiles, heights_m=hh, rates2=w2, a1=a1m, flow=f[good],
+                    rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res)
 
 
 def _tile_median(d: np.ndarray, wt: np.ndarray, tile: int, min_tiles: int) -> tuple[float, float, int]:
