@@ -417,15 +417,16 @@ class Pipeline:
         sky = self._sky_clock(gray, masks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
         history = update_offsets(mot.offsets_s, sky.offset_s, mcfg.offset_history, mcfg.offset_jump_s)
         used = running_offset(history) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
-        profile = mot.profile
-        if len(sky.heights_m) and math.isfinite(used):  # the motion over height for that offset, now
-            sky_profile = track_profile(sky.heights_m, sky.rates2, mcfg.min_tracks, mcfg.layer_tolerance_log)
-            profile = sky_profile if len(sky_profile) else profile
+        profile = mot.profile  # (the tracks' of the pair before; the sky maps' where there is none yet)
+        sky_seeded = False
+        if not len(profile) and len(sky.heights_m) and math.isfinite(used):
+            profile = track_profile(sky.heights_m, sky.rates2, mcfg.min_tracks, mcfg.layer_tolerance_log)
+            sky_seeded = bool(len(profile))
         pair_s = sky.offset_s  # (this pair's latest own offset estimate; the LK tracks' where the sky has none)
         n_flags = len(ctx.flags)
         for attempt in range(_MAX_PASSES):  # more passes only when this pair moved the offset estimate (.motion)
             del ctx.flags[n_flags:]
-            sky_mode = self._sky_mode(sky, used)
+            sky_mode = self._sky_mode(sky, used, profile)
             if sky_mode:  # camera 2 carried to camera 1's time pixel by pixel (.skyclock)
                 corr, comp = self._sky_correspondences(sky, used, seg, ctx), None
             else:
@@ -452,12 +453,15 @@ class Pipeline:
                     est = (self._sky_tracks(corr, sky, mot) if sky_mode else
                            self._stereo_tracks(corr, gray, masks, seg, mot, comp))
                     lay = self.stage_motion(lay, hmap, est, seg.clouds[0])
-            if not math.isfinite(sky.offset_s):
+            if not sky_mode:  # a short carry: the compensated stereo tracks refine the sky maps' start
                 pair_s = est.pair_offset_s if math.isfinite(est.pair_offset_s) else pair_s
             new = running_offset(update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s))
             moved = math.isfinite(new) and abs(new - (used if comp is not None else 0.0)) > mcfg.rematch_s
             if attempt and comp is not None:  # start-up passes: also until the motion profile settles
                 moved = moved or profile.moved_px(est.profile, new, self._px_per_rad2()) > _RATES_SETTLED_PX
+            # a pass started from the sky maps' estimate and profile is matched again with the
+            # compensated tracks' (the maps' flow smooths across layer edges: 2.84 s for 3.0)
+            moved = moved or (attempt == 0 and sky_seeded and comp is not None and math.isfinite(new))
             if (attempt == _MAX_PASSES - 1 or not mcfg.clock_offset or not moved or not len(est.profile) or sky_mode
                     or not math.isfinite(new)):
                 break
@@ -510,11 +514,18 @@ class Pipeline:
             return SkyClock.unknown(sc.tiles)
         return sc
 
-    def _sky_mode(self, sky: SkyClock, used_s: float) -> bool:
-        """Whether the pair is matched on the sky maps: its offset is known and large enough to
-        compensate (``compensate_min_s``) and the maps gave matches."""
+    def _sky_mode(self, sky: SkyClock, used_s: float, profile: MotionProfile) -> bool:
+        """Whether the pair is matched on the sky maps: its offset is known, the maps gave matches,
+        and the carry is long: the fastest layer moves more than ``sky_matching_min_px`` (working
+        size, near the zenith) in ``used_s``. The raw-image compensation moves each pixel with one
+        motion per height node; the motion within a layer varies by 10–20 %, so its error is that
+        share of the carry, and past ≈ 8 px it is more than a pixel. Below, it is the better
+        matcher (every method, the whole sky, layers seen through gaps)."""
         mcfg = self.config.motion
-        return bool(mcfg.sky_matching and len(sky.a1) and math.isfinite(used_s) and abs(used_s) >= mcfg.compensate_min_s)
+        if not (mcfg.sky_matching and len(sky.a1) and math.isfinite(used_s) and len(profile)):
+            return False
+        carry_px = abs(used_s) * float(np.linalg.norm(profile.rates, axis=1).max()) * self._px_per_rad2()
+        return carry_px >= mcfg.sky_matching_min_px
 
     def _sky_correspondences(self, sky: SkyClock, used_s: float, seg: "Segmentation",
                              ctx: "PairContext") -> "Correspondences":
