@@ -57,18 +57,21 @@ def agrees(h: float, refs: list[tuple[float, float]]) -> bool:
 def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool = True, config=None) -> dict:
     from cbh.geometry.station import load_station
     from cbh.pipeline import Pipeline
+    from cbh.pipeline.motion import PairState
 
     station = load_station(data / "station.toml")
     pipe = Pipeline(station, config=config) if config is not None else Pipeline(station)
     ref = reference_layers(data)
-    rows, state = [], None
+    rows, state = [], PairState.start()  # as `cbh run` starts
     for k, (a, b, t) in enumerate(frames(data, shift)[:first]):
         t0 = time.perf_counter()
         r = pipe.process(a, b, t, previous=state)
         state = r.state
         refs = ref.get(t, [])
         lead = max(r.layers, key=lambda L: L.cover) if r.layers else None
-        valid = not ({"geometry_mismatch", "identical_images", "below_range"} & set(r.flags))
+        from cbh.flags import INVALIDATING
+
+        valid = not (INVALIDATING & set(r.flags))
         row = {"time": t.isoformat(), "offset_s": r.diagnostics.get("clock_offset_s"),
                "offset_pair_s": r.diagnostics.get("clock_offset_pair_s"), "flags": r.flags,
                "layers": [(round(L.height_m), round(L.cover, 3)) for L in r.layers], "ref": refs,

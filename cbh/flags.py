@@ -33,11 +33,12 @@ class Flag(enum.IntFlag):
     underexposed = 1 << 14  # a camera's sky is too dark for its colours to be read: cloud masks and cover unreliable
     camera_mismatch = 1 << 15  # a network camera disagrees with the others' geometry and was left out (diagnostics mismatched_cameras); the others carry the result
     camera_missing = 1 << 16  # a network camera delivered no frame: the result is from the cameras present
+    clock_unknown = 1 << 17  # the matches disagree with the geometry while the cameras' clock offset, which could explain it, is not known yet (a run's first pair): layers not valid
 
 
 #: Flags whose layers must not be reported as valid (exported with the flag, left out of
 #: "latest layers").
-INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range"})
+INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range", "clock_unknown"})
 
 
 def check_flags(names: Iterable[str]) -> list[str]:

@@ -177,7 +177,8 @@ def test_motion_chain_drops_frames_after_a_gap_or_a_failure():
         return r
 
     chain = MotionChain(cadence_s=0.0)
-    assert chain.previous(t0) is None
+    first = chain.previous(t0)  # a run's first pair: a run is under way, nothing known yet
+    assert first.gray is None and first.offsets_s == () and first.time_utc is None
     for k in range(4):
         chain.keep(res(t0 + timedelta(seconds=10 * k)))
     t = t0 + timedelta(seconds=30)

@@ -12,6 +12,7 @@ from typing import Callable
 
 from cbh.errors import ConfigError, RecordingError
 from cbh.live.service import Service, ServiceConfig
+from cbh.pipeline.motion import PairState
 from cbh.result import Frame, PairResult
 
 __all__ = ["RunSetup", "MotionChain", "build_run", "open_sink", "check_writable", "summary_lines", "DEFAULT_ROTATE_S"]
@@ -78,7 +79,9 @@ class MotionChain:
     def previous(self, time_utc):
         """The state to pass as ``previous`` for a pair captured at ``time_utc``."""
         s = self.state
-        if s is None or s.gray is None or time_utc is None or s.time_utc is None:
+        if s is None:
+            return PairState.start()  # a run's first pair: nothing known yet
+        if s.gray is None or time_utc is None or s.time_utc is None:
             return s
         gap = (time_utc - s.time_utc).total_seconds()
         recent = sorted(self._gaps[-5:])

@@ -65,7 +65,7 @@ METADATA_KEYS = ("institution", "instrument", "site", "contact", "comment", "ref
 
 _CAMERA_KEYS = {
     "name", "calibration", "intrinsics", "position_m", "yaw_deg", "pitch_deg", "roll_deg",
-    "rotation", "mask", "source", "latitude_deg", "longitude_deg", "altitude_m",
+    "rotation", "mask", "source", "latitude_deg", "longitude_deg", "altitude_m", "clock_offset_s",
 }
 #: A camera's geodetic position, instead of ``position_m`` (converted with pymap3d about the station).
 _GEODETIC_KEYS = ("latitude_deg", "longitude_deg", "altitude_m")
@@ -135,6 +135,10 @@ class Camera:
         Static obstacle mask image (non-zero = sky usable), if configured.
     source : str or None
         Where live frames come from (URL, file, directory, ``sim``), if configured.
+    clock_offset_s : float or None
+        How many seconds late the camera captures against its own time stamps, when the station
+        states it (``cbh calibrate`` reports it); the pipeline starts its offset estimate from the
+        difference of two cameras' values and goes on estimating. None: not stated.
     """
 
     name: str
@@ -143,6 +147,7 @@ class Camera:
     R_world_from_cam: np.ndarray
     mask: Path | None = None
     source: str | None = None
+    clock_offset_s: float | None = None  # how late the camera captures against its own stamps [s]; None = not stated
 
     def pixel_to_world(self, px) -> np.ndarray:
         """Unit ray directions in ENU of pixels (N, 2) → (N, 3) float64."""
@@ -236,6 +241,8 @@ class Station:
                 d["mask"] = str(Path(c.mask).resolve())
             if c.source is not None:
                 d["source"] = c.source
+            if c.clock_offset_s is not None:
+                d["clock_offset_s"] = float(c.clock_offset_s)
             cams.append(d)
         out = {
             "station": {
@@ -423,7 +430,13 @@ def _parse_camera(i: int, c, base_dir: Path, check_masks: bool, seen: dict,
     source = c.get("source")
     if source is not None and not isinstance(source, str):
         raise ConfigError(f"{where}.source: expected a string (URL, file, directory or 'sim')")
-    return Camera(name=name, model=model, position_m=pos, R_world_from_cam=R, mask=mask, source=source)
+    clock = c.get("clock_offset_s")
+    if clock is not None:
+        clock = _num(f"{where}.clock_offset_s", clock)
+        if not abs(clock) <= 3600.0:
+            raise ConfigError(f"{where}.clock_offset_s: expected seconds within ±3600, got {clock}")
+    return Camera(name=name, model=model, position_m=pos, R_world_from_cam=R, mask=mask, source=source,
+                  clock_offset_s=clock)
 
 
 def _camera_model(where: str, c: dict, base_dir: Path) -> CameraModel:

@@ -156,6 +156,14 @@ class PairState:
         """Running estimate of camera 2's clock offset (median of ``offsets_s``) [s]; NaN = unknown."""
         return running_offset(self.offsets_s)
 
+    @classmethod
+    def start(cls) -> "PairState":
+        """The state before a run's first pair: a run is under way, nothing is known yet (no
+        frames, no offset). A pair processed with it whose matches disagree with the geometry is
+        flagged ``clock_unknown`` rather than ``geometry_mismatch``: a clock offset, not yet
+        measurable, would look the same."""
+        return cls(time_utc=None, cameras=(), gray=None)
+
     def without_frames(self) -> "PairState":
         """This state with its frames dropped (a lost pair): the offset history is kept."""
         return replace(self, gray=None)

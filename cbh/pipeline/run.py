@@ -414,6 +414,8 @@ class Pipeline:
         time_utc = ctx.time_utc
         mot = self._motion_input(previous, time_utc, gray)
         mcfg = self.config.motion
+        if not mot.offsets_s and math.isfinite(self._stated_offset()) and mcfg.clock_offset:
+            mot = replace(mot, offsets_s=(self._stated_offset(),))  # the station states the clocks
         sky = self._sky_clock(gray, masks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
         history = update_offsets(mot.offsets_s, sky.offset_s, mcfg.offset_history, mcfg.offset_jump_s)
         used = running_offset(history) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
@@ -470,6 +472,9 @@ class Pipeline:
         self._quality_flags(pts, seg, ctx, hmap, lay)
         offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
         running = running_offset(offsets)
+        if (previous is not None and mcfg.clock_offset and not math.isfinite(running)
+                and "geometry_mismatch" in ctx.flags):  # in a run: a clock not yet measured looks the same
+            ctx.flags[ctx.flags.index("geometry_mismatch")] = "clock_unknown"
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
                                clock_offset_error_s=sky.error_s)
         if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
@@ -496,6 +501,14 @@ class Pipeline:
         if not 0.0 < dt <= cfg.max_gap_s:
             return MotionInput(offsets_s=offsets)
         return MotionInput(prev_gray=previous.gray, dt_s=dt, offsets_s=offsets, profile=previous.profile)
+
+    def _stated_offset(self) -> float:
+        """Camera 2's offset against camera 1 as the station states it (``clock_offset_s`` of
+        both cameras, a missing one read as 0 when the other is stated) [s]; NaN: not stated."""
+        a, b = self.cam1.clock_offset_s, self.cam2.clock_offset_s
+        if a is None and b is None:
+            return math.nan
+        return float(b or 0.0) - float(a or 0.0)
 
     def _sky_clock(self, gray, masks: "Masks", mot: "MotionInput", ctx: "PairContext") -> SkyClock:
         """Camera 2's clock offset from this pair and the previous one on sky maps
