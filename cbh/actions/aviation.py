@@ -22,7 +22,7 @@ PRODUCTS = ("metar", "cl61", "eprofile")
 
 def _pairs_hits(sessions, method: str, n: int, heights: str):
     """(time_utc, PairHits) of every complete pair of the sessions, in time order."""
-    from cbh.actions.export import pair_ground
+    from cbh.actions.pairground import pair_ground
     from cbh.outputs.aviation import get_hit_method
     from cbh.outputs.record import open_session
     from cbh.pipeline.config import PipelineConfig

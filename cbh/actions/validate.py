@@ -51,7 +51,7 @@ def ceilometer_position(station) -> np.ndarray:
 def column_bases(sessions, position_m=None):
     """(times datetime64[ns] (T,), cbh base above the ceilometer [m] (T,), NaN = clear, total okta (T,),
     known (T,) bool) of every valid pair."""
-    from cbh.actions.export import pair_ground
+    from cbh.actions.pairground import pair_ground
     from cbh.geometry.ground import lookup_layer
     from cbh.outputs.export import okta
     from cbh.outputs.record import open_session
