@@ -55,6 +55,7 @@ def agrees(h: float, refs: list[tuple[float, float]]) -> bool:
 
 
 def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool = True, config=None) -> dict:
+    from cbh.flags import INVALIDATING
     from cbh.geometry.station import load_station
     from cbh.pipeline import Pipeline
     from cbh.pipeline.motion import PairState
@@ -69,8 +70,6 @@ def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool
         state = r.state
         refs = ref.get(t, [])
         lead = max(r.layers, key=lambda L: L.cover) if r.layers else None
-        from cbh.flags import INVALIDATING
-
         valid = not (INVALIDATING & set(r.flags))
         row = {"time": t.isoformat(), "offset_s": r.diagnostics.get("clock_offset_s"),
                "offset_pair_s": r.diagnostics.get("clock_offset_pair_s"), "flags": r.flags,

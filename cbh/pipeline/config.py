@@ -230,6 +230,7 @@ class MotionConfig:
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
     max_offset_s: float = 150.0  # a pair's offset estimate beyond this is not believed (real IP cameras: ±120 s) [s]
     offset_jump_s: float = 3.0  # two pairs in a row this far from the running offset (and agreeing): the clock jumped, start again [s]
+    sky_check_pairs: int = 10  # with a known offset followed by the stereo tracks, the sky maps check it every this many pairs [1]
     sky_matching: bool = True  # with a long carry, match on the sky maps, each pixel carried by its own motion (.skyclock)
     sky_matching_min_px: float = 8.0  # … when |offset| × the fastest layer's rate exceeds this, at working size near the zenith [px]
     plane_compensation: bool = True  # the sweep compensates each plane with the motion of its own height (False, and on a torch device: every plane on one per-pixel compensated image)
@@ -455,7 +456,7 @@ def _check_layers(ly, where: str, layer_methods) -> None:
 
 def _check_motion(mo, where: str) -> None:
     for k in ("max_gap_s", "max_points", "fb_max_px", "min_tracks", "layer_tolerance_log", "offset_history",
-              "offset_tolerance_s", "rematch_s", "max_offset_s", "offset_jump_s", "sky_matching_min_px"):
+              "offset_tolerance_s", "rematch_s", "max_offset_s", "offset_jump_s", "sky_matching_min_px", "sky_check_pairs"):
         _positive(f"{where}.{k}", getattr(mo, k))
     _positive(f"{where}.compensate_min_s", mo.compensate_min_s, strict=False)
     _odd(f"{where}.window_px", mo.window_px, 5)

@@ -109,7 +109,8 @@ from cbh.result import Layer
 
 __all__ = ["PairState", "MotionProfile", "Tracks", "track_back", "plane_offsets", "offset_per_match",
            "offset_estimate", "parallax_heights", "track_profile", "shift_map", "shifted_images", "motion_factors",
-           "motion_weights", "compensate_camera2", "layer_motion", "running_offset", "update_offsets"]
+           "motion_weights", "compensate_camera2", "layer_motion", "running_offset", "update_offsets",
+           "jump_threshold"]
 
 
 @dataclass(frozen=True)
@@ -133,6 +134,8 @@ class PairState:
         camera 2's pixels by ``rate · δ``.
     rate_heights_m : tuple of float
         The height of each entry of ``layer_rates`` above the ENU origin [m].
+    sky_check_in : int
+        Pairs until the sky maps (:mod:`.skyclock`) estimate the offset again; 0: the next pair.
     """
 
     time_utc: datetime | None
@@ -141,6 +144,7 @@ class PairState:
     offsets_s: tuple[float, ...] = ()
     layer_rates: tuple[np.ndarray, ...] = ()
     rate_heights_m: tuple[float, ...] = ()
+    sky_check_in: int = 0  # pairs until the sky maps estimate the offset again (0: the next pair; .skyclock)
 
     @property
     def profile(self) -> "MotionProfile":
@@ -174,18 +178,29 @@ def update_offsets(history, new_s: float, keep: int, jump_s: float) -> tuple[flo
     ``keep`` kept.
 
     A camera whose clock jumped (a reboot, a clock set by hand) shows as two pairs in a row that
-    agree with each other within ``jump_s`` and both differ from the running median by more: the
+    agree with each other and both differ from the running median by more than the threshold: the
     history is then restarted from those two, so that the new offset is used from the next pair
-    instead of after half the history."""
+    instead of after half the history. The threshold is ``jump_s`` or four robust spreads of the
+    history, whichever is larger: estimates of a 90 s offset scatter by ±3 s from pair to pair
+    (a 3 s threshold alone restarted a steady history twice in half an hour)."""
     hist = tuple(o for o in history if math.isfinite(o))
     if not math.isfinite(new_s):
         return hist[-keep:]
     if len(hist) >= 3 and jump_s > 0:
-        ref = running_offset(hist[:-1])
-        last = hist[-1]
-        if abs(new_s - ref) > jump_s and abs(last - ref) > jump_s and abs(new_s - last) <= jump_s:
+        ref, last = running_offset(hist[:-1]), hist[-1]
+        thr = jump_threshold(hist[:-1], jump_s)
+        if abs(new_s - ref) > thr and abs(last - ref) > thr and abs(new_s - last) <= thr:
             return (last, new_s)
     return (hist + (new_s,))[-keep:]
+
+
+def jump_threshold(offsets_s, jump_s: float) -> float:
+    """How far an estimate must be from the running offset to suggest a jumped clock [s]:
+    ``jump_s`` or four robust spreads (1.4826 · MAD) of the recent estimates, whichever is larger."""
+    v = np.asarray([o for o in offsets_s if math.isfinite(o)], np.float64)
+    if v.size < 2:
+        return float(jump_s)
+    return max(float(jump_s), 4.0 * 1.4826 * float(np.median(np.abs(v - np.median(v)))))
 
 
 def running_offset(offsets_s) -> float:

@@ -70,7 +70,8 @@ from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LA
                                 get_matcher, sample_map, triangulate_matches)
 from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, layer_motion,
                                  motion_weights, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
-                                 running_offset, shifted_images, track_back, track_profile, update_offsets)
+                                 running_offset, shifted_images, track_back, track_profile, update_offsets,
+                                 jump_threshold)
 from cbh.pipeline.skyclock import SkyClock, sky_clock, sky_grid
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import chroma, sample_lattice, segment
@@ -470,10 +471,13 @@ class Pipeline:
             used, profile = new, est.profile
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
         self._quality_flags(pts, seg, ctx, hmap, lay)
+        if "geometry_mismatch" in ctx.flags and not math.isfinite(sky.offset_s):  # not checked this pair: now
+            sky = self._sky_clock(gray, masks, replace(mot, sky_check_in=0), ctx)
+            pair_s = sky.offset_s if math.isfinite(sky.offset_s) else pair_s
+        before = running_offset(mot.offsets_s)
         offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
         running = running_offset(offsets)
-        if (previous is not None and mcfg.clock_offset and not math.isfinite(running)
-                and "geometry_mismatch" in ctx.flags):  # in a run: a clock not yet measured looks the same
+        if "geometry_mismatch" in ctx.flags and self._clock_explains(previous, mot, sky, before):
             ctx.flags[ctx.flags.index("geometry_mismatch")] = "clock_unknown"
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
                                clock_offset_error_s=sky.error_s)
@@ -484,7 +488,8 @@ class Pipeline:
         ctx.timing["total"] = _ms(t_all)
         result = self._assemble(ctx, seg, hmap, pts, lay)
         result.state = PairState(time_utc=ctx.time_utc, cameras=self.cameras, gray=gray, offsets_s=offsets,
-                                 layer_rates=tuple(est.profile.rates), rate_heights_m=tuple(est.profile.heights_m))
+                                 layer_rates=tuple(est.profile.rates), rate_heights_m=tuple(est.profile.heights_m),
+                                 sky_check_in=self._next_sky_check(mot, sky, sky_mode, running, ctx.flags))
         return result
 
     # --- motion and clock offset (see cbh.pipeline.motion) ---------------------------------
@@ -500,7 +505,8 @@ class Pipeline:
         dt = (time_utc - previous.time_utc).total_seconds()
         if not 0.0 < dt <= cfg.max_gap_s:
             return MotionInput(offsets_s=offsets)
-        return MotionInput(prev_gray=previous.gray, dt_s=dt, offsets_s=offsets, profile=previous.profile)
+        return MotionInput(prev_gray=previous.gray, dt_s=dt, offsets_s=offsets, profile=previous.profile,
+                           sky_check_in=previous.sky_check_in)
 
     def _stated_offset(self) -> float:
         """Camera 2's offset against camera 1 as the station states it (``clock_offset_s`` of
@@ -512,9 +518,13 @@ class Pipeline:
 
     def _sky_clock(self, gray, masks: "Masks", mot: "MotionInput", ctx: "PairContext") -> SkyClock:
         """Camera 2's clock offset from this pair and the previous one on sky maps
-        (:mod:`.skyclock`); unknown without a previous pair, or with the estimate switched off."""
+        (:mod:`.skyclock`); unknown without a previous pair, with the estimate switched off, or
+        when it is not due (:meth:`_next_sky_check`: the offset is known and the compensated
+        stereo tracks follow it)."""
         mcfg = self.config.motion
         if mot.prev_gray is None or not mcfg.clock_offset:
+            return SkyClock.unknown()
+        if mot.sky_check_in > 0 and math.isfinite(running_offset(mot.offsets_s)):
             return SkyClock.unknown()
         with _timed(ctx, "clock"):
             if self._sky_grid is None:
@@ -526,6 +536,37 @@ class Pipeline:
         if math.isfinite(sc.offset_s) and abs(sc.offset_s) > mcfg.max_offset_s:
             return SkyClock.unknown(sc.tiles)
         return sc
+
+    def _clock_explains(self, previous, mot: "MotionInput", sky: SkyClock, running_before: float) -> bool:
+        """Whether a geometry mismatch may be the clock's, not yet measured: in a run (``previous``
+        given) before any motion (a run's first pair: no offset can be measured, and one would look
+        the same), or when this pair's own offset from the sky maps is further from the running one than a jump
+        (:func:`~.motion.jump_threshold`) that compensated it (a clock that jumped; the next pair confirms it)."""
+        mcfg = self.config.motion
+        if previous is None or not mcfg.clock_offset:
+            return False
+        if mot.prev_gray is None:
+            return not math.isfinite(running_before)
+        return (math.isfinite(sky.offset_s) and math.isfinite(running_before)
+                and abs(sky.offset_s - running_before) > jump_threshold(mot.offsets_s, mcfg.offset_jump_s))
+
+    def _next_sky_check(self, mot: "MotionInput", sky: SkyClock, sky_mode: bool, running: float, flags) -> int:
+        """Pairs until the sky maps estimate the offset again. Every pair while the offset is
+        unknown, the pair is matched on the maps (a long carry), it disagreed with the geometry
+        (the tracks may have lost the offset), or the maps just disagreed with the running offset
+        as a jump would (:func:`~.motion.jump_threshold`; two pairs confirm a jump); otherwise every
+        ``sky_check_pairs``: the compensated stereo tracks follow a known offset at no cost, and
+        the maps' check catches a clock that jumped beyond their reach. (The maps cost ≈ 200–300 ms
+        at 1920 px, about as much as the rest of the pair.)"""
+        mcfg = self.config.motion
+        if sky_mode or not math.isfinite(running) or "geometry_mismatch" in flags:
+            return 0
+        if (math.isfinite(sky.offset_s)
+                and abs(sky.offset_s - running) > jump_threshold(mot.offsets_s, mcfg.offset_jump_s)):
+            return 0  # perhaps a jump: the next pair confirms it (update_offsets) or not
+        if math.isfinite(sky.offset_s):
+            return mcfg.sky_check_pairs - 1
+        return max(mot.sky_check_in - 1, 0)
 
     def _sky_mode(self, sky: SkyClock, used_s: float, profile: MotionProfile) -> bool:
         """Whether the pair is matched on the sky maps: its offset is known, the maps gave matches,
@@ -1206,6 +1247,7 @@ class MotionInput:
     dt_s: float = math.nan
     offsets_s: tuple[float, ...] = ()
     profile: MotionProfile = field(default_factory=MotionProfile.empty)  # the previous pair's motion profile
+    sky_check_in: int = 0  # pairs until the sky maps estimate the offset again (0: this one; .skyclock)
 
 
 @dataclass(frozen=True)

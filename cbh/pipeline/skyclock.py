@@ -184,7 +184,7 @@ def _sample(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m: np.ndarray, dz_m: float,
               dt_s: float, *, tile_px: int = 24, min_tiles: int = 6, min_motion_px: float = 0.5,
               fb_max_px: float = 0.5, max_error_s: float = 2.0, height_range_m=(50.0, 20000.0),
-              max_miss_deg: float = 2.0, match_step: int = 1) -> SkyClock:
+              max_miss_deg: float = 2.0, lattice: int = 2) -> SkyClock:
     """Camera 2's clock offset from one pair and the pair before (see the module docstring).
 
     Parameters
@@ -203,31 +203,10 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     if not (dt_s > 0):
         return SkyClock.unknown()
     u = [grid.sample(k, usable[k].astype(np.uint8), cv2.INTER_NEAREST) > 0 for k in (0, 1)]
-    s1, s2 = grid.sample(0, now[0]), grid.sample(1, now[1])
-    p1, p2 = grid.sample(0, prev[0]), grid.sample(1, prev[1])
-    t1, t2, tp1, tp2 = _texture(s1, u[0]), _texture(s2, u[1]), _texture(p1, u[0]), _texture(p2, u[1])
-    n = grid.size
-    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
-    # camera 2's map pre-shifted by the dominant translation, so the dense flow sees small motions
-    both = u[0] & u[1]
-    d0 = _dominant_shift(t1, t2, both)
-    t2s = cv2.warpAffine(t2, np.float32([[1, 0, -d0[0]], [0, 1, -d0[1]]]), (n, n), flags=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=128)
-    f12 = _flow(t1, t2s)
-    f21 = _flow(t2s, t1)
-    x2, y2 = xx + f12[..., 0], yy + f12[..., 1]
-    fb12 = np.hypot(*np.moveaxis(_sample(f21, x2, y2) + f12, -1, 0))
-    f12 = f12 + d0.astype(np.float32)  # camera 1 → camera 2 as captured [map px]
-    g1 = _flow(t1, tp1)  # camera 1 back to its previous frame: −w·dt
-    g1b = _flow(tp1, t1)
-    fbg1 = np.hypot(*np.moveaxis(_sample(g1b, xx + g1[..., 0], yy + g1[..., 1]) + g1, -1, 0))
-    g2 = _flow(t2, tp2)  # camera 2's own, sampled where camera 2 sees the camera-1 pixel
-    g2_at = _sample(g2, xx + f12[..., 0], yy + f12[..., 1])
-    ok = (u[0] & (fb12 <= fb_max_px) & (fbg1 <= fb_max_px) & np.isfinite(g2_at).all(axis=-1)
-          & (_sample(u[1].astype(np.float32), xx + f12[..., 0], yy + f12[..., 1]) > 0.5))
-    # the two cameras' own motions agree (the same cloud, nearly the same height above each)
-    disagree = np.hypot(*np.moveaxis(g1 - g2_at, -1, 0))
-    ok &= disagree <= max(1.0, 0.25 * float(np.median(np.hypot(*np.moveaxis(g1, -1, 0))[ok])) if ok.any() else 1.0)
+    maps = [_texture(grid.sample(k, img[k]), u[k]) for img in (now, prev) for k in (0, 1)]
+    f12, g1, g2_at, ok, disagree = _lattice_flows(*maps, u, fb_max_px, lattice)
+    ae, an = (a[::lattice, ::lattice] for a in grid.offsets())
+    tile_px = max(2, tile_px // lattice)
     # map px → plane offsets (x east, y south: the map's rows run north to south)
     to_a = np.array([grid.res, -grid.res])
     f = f12 * to_a  # a2 − a1
@@ -247,7 +226,6 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     # the mean (each one's is the difference / √2, the mean's that / √2), times |δ|
     carry = 0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s * abs(est)
     # heights for that offset: q·B' = w·δ − f (along the baseline), B' ≈ B (Δz·a2 is small beside B)
-    ae, an = grid.offsets()
     a2 = np.stack([ae, an], -1) + f
     bp = b[None, None, :] - dz_m * a2
     rhs = w * est - f
@@ -259,9 +237,6 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     # plane-offset step at a is cos²θ = 1 / (1 + |a|²) of a radian)
     miss = np.abs(nf - est * nw) / (1.0 + ae ** 2 + an ** 2)
     good = ok & np.isfinite(miss) & (miss <= math.radians(max_miss_deg))
-    mstep = np.zeros_like(good)
-    mstep[::match_step, ::match_step] = True
-    good &= mstep
     a1m = np.stack([ae[good], an[good]], -1)
     step = max(1, int(math.sqrt(max(int(sel.sum()), 1) / 3000.0)))
     sub = np.zeros_like(sel)
@@ -270,7 +245,56 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     hh = h[sel]
     w2 = w[sel] * ((hh / (hh - dz_m)))[:, None]  # camera 2's rate: v / (h − z2), heights above camera 1
     return SkyClock(offset_s=est, error_s=err, tiles=tiles, heights_m=hh, rates2=w2, a1=a1m, flow=f[good],
-                    rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res)
+                    rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res * lattice)
+
+
+def _lattice_flows(t1, t2, tp1, tp2, u, fb_max_px: float, step: int):
+    """The three flows of :func:`sky_clock` on every ``step``-th map pixel [map px]: camera 1 →
+    camera 2 as captured (f12), camera 1 back to its previous frame (g1), camera 2 back to its
+    previous frame where it sees the camera-1 pixel (g2); a usable mask (forward-backward checks,
+    both cameras' motions agreeing) and that disagreement.
+
+    DIS gives each dense field (after a phase correlation takes out camera 2's dominant shift, so
+    that a 120 s offset is in reach); its variational smoothing pulls a layer's flow towards its
+    neighbour's across their edges (a 1200 m layer read 8 % high beside a 3500 m one, its rate
+    4 % slow), so each lattice point is then refined by Lucas–Kanade in a 9 px window from there."""
+    n = t1.shape[0]
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    d0 = _dominant_shift(t1, t2, u[0] & u[1])
+    t2s = cv2.warpAffine(t2, np.float32([[1, 0, -d0[0]], [0, 1, -d0[1]]]), (n, n), flags=cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=128)
+    f12 = _flow(t1, t2s)
+    fb12 = np.hypot(*np.moveaxis(_sample(_flow(t2s, t1), xx + f12[..., 0], yy + f12[..., 1]) + f12, -1, 0))
+    f12 = f12 + d0.astype(np.float32)  # camera 1 → camera 2 as captured
+    g1 = _flow(t1, tp1)
+    fbg1 = np.hypot(*np.moveaxis(_sample(_flow(tp1, t1), xx + g1[..., 0], yy + g1[..., 1]) + g1, -1, 0))
+    g2 = _flow(t2, tp2)
+    sl = (slice(None, None, step), slice(None, None, step))
+    p0 = np.stack([xx[sl], yy[sl]], -1)
+    f12, ok12 = _refine(t1, t2, p0, f12[sl])
+    g1, ok1 = _refine(t1, tp1, p0, g1[sl])
+    p2 = p0 + f12
+    g2_at, ok2 = _refine(t2, tp2, p2, _sample(g2, p2[..., 0], p2[..., 1]))
+    ok = (u[0][sl] & ok12 & ok1 & ok2 & (fb12[sl] <= fb_max_px) & (fbg1[sl] <= fb_max_px)
+          & (_sample(u[1].astype(np.float32), p2[..., 0], p2[..., 1]) > 0.5))
+    # the two cameras' own motions agree (the same cloud, nearly the same height above each)
+    disagree = np.hypot(*np.moveaxis(g1 - g2_at, -1, 0))
+    ok &= disagree <= max(1.0, 0.25 * float(np.median(np.hypot(*np.moveaxis(g1, -1, 0))[ok])) if ok.any() else 1.0)
+    return f12, g1, g2_at, ok, disagree
+
+
+def _refine(a: np.ndarray, b: np.ndarray, p0: np.ndarray, flow0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lucas–Kanade from points p0 (..., 2) of ``a`` into ``b``, started at ``p0 + flow0``: the
+    refined flow and where it converged."""
+    shape = p0.shape[:-1]
+    start = np.nan_to_num(p0 + flow0, nan=-1e4).reshape(-1, 1, 2).astype(np.float32)
+    pts = p0.reshape(-1, 1, 2).astype(np.float32)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, pts, start.copy(), winSize=(9, 9), maxLevel=0,
+                                         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                         criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.01))
+    flow = (p1 - pts).reshape(*shape, 2)
+    ok = (st.reshape(shape) == 1) & np.isfinite(flow0).all(-1) & (np.hypot(*np.moveaxis(flow - flow0, -1, 0)) <= 2.0)
+    return np.where(ok[..., None], flow, np.nan).astype(np.float32), ok
 
 
 def _tile_median(d: np.ndarray, wt: np.ndarray, tile: int, min_tiles: int) -> tuple[float, float, int]:

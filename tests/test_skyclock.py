@@ -1,0 +1,107 @@
+"""The sky maps' clock estimate (cbh/pipeline/skyclock.py) on simulated stations, where the truth is
+known: offsets beyond the cadence, a clock that jumps mid-run, a station whose clocks agree (quiet,
+and the maps not paid for on every pair)."""
+from __future__ import annotations
+
+from datetime import timedelta
+
+import numpy as np
+import pytest
+
+from cbh.pipeline.motion import PairState
+
+
+def _sim(offset_s: float):
+    from cbh.geometry.station import load_station
+    from cbh.presets import scene_path, station_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.scene import with_clock_offsets
+
+    sc = load_scene(scene_path("two-layers"))  # 1200 m at (6, 2) m/s, 3500 m at (−3, 8) m/s; B = 50 m east
+    if offset_s:
+        sc = with_clock_offsets(sc, [f"cam2={offset_s}"])
+    return SkySimulator(load_station(station_path()), sc, size_px=640), sc
+
+
+def _run(sims, cadence_s: float, n: int):
+    """``n`` pairs ``cadence_s`` apart, pair i rendered by ``sims(i)``, as `cbh run` hands them on."""
+    from cbh.pipeline import Pipeline
+
+    first, sc = sims(0)
+    pipe, state, out = Pipeline(first.station), PairState.start(), []
+    for i in range(n):
+        sim, _ = sims(i)
+        shot = sim.render(sc.time_utc + timedelta(seconds=cadence_s * i))
+        r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr",
+                         previous=state)
+        state = r.state
+        out.append(r)
+    return out
+
+
+def test_offset_beyond_the_cadence_found_from_the_second_pair():
+    """Camera 2 captures 45 s early at a 30 s cadence (1.5 cadences; the stereo-track estimate
+    allowed ±30 s and needed matches that triangulate): within 1 s from the second pair, and the low
+    layer within 10 % (the carry is 5× the parallax there, so a 1 % error of a pixel's measured
+    motion is 5 % of its height)."""
+    sim = _sim(-45.0)
+    rs = _run(lambda i: sim, 30.0, 3)
+    for r in rs[1:]:
+        assert abs(r.diagnostics["clock_offset_s"] + 45.0) <= 1.0, r.diagnostics
+        assert "clock_offset" in r.flags and "geometry_mismatch" not in r.flags
+        assert any(abs(L.height_m / 1200.0 - 1) <= 0.10 for L in r.layers), [L.height_m for L in r.layers]
+
+
+@pytest.mark.slow  # (8 pairs; update_offsets' own test in test_fehmarn.py runs by default)
+def test_a_clock_that_jumps_is_followed_within_two_pairs():
+    """Synchronised clocks for four pairs, then camera 2 comes back 20 s early (a reboot). The pair
+    after the jump whose own estimate disagrees is `clock_unknown` (not the geometry's fault), the
+    next one confirms the jump and is compensated: both layers back within 5 %."""
+    a, b = _sim(0.0), _sim(-20.0)
+    rs = _run(lambda i: a if i < 4 else b, 10.0, 8)
+    assert all(abs(r.diagnostics["clock_offset_s"]) <= 0.2 for r in rs[1:4])
+    assert "clock_unknown" in rs[5].flags and "geometry_mismatch" not in rs[5].flags
+    for r in rs[6:]:
+        assert abs(r.diagnostics["clock_offset_s"] + 20.0) <= 0.5, r.diagnostics
+        for h in (1200.0, 3500.0):
+            assert any(abs(L.height_m / h - 1) <= 0.05 for L in r.layers), ([L.height_m for L in r.layers], h)
+
+
+def test_agreeing_clocks_stay_quiet_and_the_maps_are_not_run_every_pair():
+    """A station whose clocks agree: no clock_offset flag, the estimate within 0.2 s; the sky maps
+    (≈ 200 ms at 1920 px) run on the second pair and then every ``sky_check_pairs``, not on every
+    pair (the compensated stereo tracks follow a known offset)."""
+    sim = _sim(0.0)
+    rs = _run(lambda i: sim, 10.0, 4)
+    assert "clock" in rs[1].timing_ms
+    assert not any("clock" in r.timing_ms for r in rs[2:])
+    assert rs[-1].state.sky_check_in == 7
+    for r in rs[1:]:
+        assert "clock_offset" not in r.flags and abs(r.diagnostics["clock_offset_s"]) <= 0.2
+        assert {round(L.height_m / 100) for L in r.layers} == {12, 35}
+
+
+@pytest.mark.parametrize("offset_s", [20.0, -20.0])
+def test_sky_map_heights_unbiased_by_the_flow_smoothing(offset_s):
+    """The maps' own heights (before any matching) of both simulated layers within 3 %: the dense
+    flow's smoothing across the layers' edges read the 1200 m layer 8 % high and its motion 4 % slow
+    until each point was refined by Lucas–Kanade."""
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.skyclock import sky_clock, sky_grid
+
+    sim, sc = _sim(offset_s)
+    pipe = Pipeline(sim.station)
+    preps = []
+    for i in range(2):
+        shot = sim.render(sc.time_utc + timedelta(seconds=10 * i))
+        preps.append(pipe.prepare(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr"))
+    c1, c2 = pipe.cam1.position_m, pipe.cam2.position_m
+    est = sky_clock(sky_grid((pipe.cam1, pipe.cam2)), preps[1].gray, preps[0].gray, preps[1].masks.usable,
+                    np.asarray(c2 - c1)[:2], float(c2[2] - c1[2]), 10.0)
+    assert abs(est.offset_s - offset_s) <= 0.3
+    for h, v in ((1200.0, (6.0, 2.0)), (3500.0, (-3.0, 8.0))):
+        near = np.abs(np.log(est.heights_m / h)) < 0.15
+        assert near.sum() >= 300
+        assert abs(np.median(est.heights_m[near]) / h - 1) <= 0.03
+        rate = np.median(est.rates2[near], axis=0) * h  # ≈ v (camera 2 at the camera-1 height)
+        assert np.allclose(rate, v, atol=0.2), rate
