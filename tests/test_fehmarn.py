@@ -135,3 +135,19 @@ def test_offset_history_restarts_on_a_clock_jump():
     h = update_offsets(h, 12.3, 15, 3.0)  # a second that agrees with it: the clock jumped
     assert h == (12.0, 12.3)
     assert update_offsets(h, math.nan, 15, 3.0) == h
+
+
+def test_run_summary_names_each_cause(station):
+    """The end of a run says what made pairs invalid, cause by cause: a clock not yet measured is
+    not a geometry (the summary said "disagreed with the station geometry" for both)."""
+    from types import SimpleNamespace
+
+    from cbh.actions.run import summary_lines
+    from cbh.live.service import ServiceStats
+
+    st = ServiceStats(pairs_processed=31, pairs_invalid=10, invalid_counts={"clock_unknown": 1, "geometry_mismatch": 9},
+                      stop_reason="sources ended")
+    setup = SimpleNamespace(station=station, outputs=lambda: [])
+    text = "\n".join(summary_lines(setup, st))
+    assert "1 disagreed while the cameras' clock offset was not known yet (clock_unknown)" in text
+    assert "9 disagreed with the station geometry (geometry_mismatch)" in text

@@ -365,14 +365,25 @@ def _open_recorder(st, pcfg, record, rotate_mb, rotate_s, overwrite: bool, notes
     return recorder
 
 
+#: What each invalidating flag means, for the end-of-run summary.
+_INVALID_CAUSE = {
+    "geometry_mismatch": "disagreed with the station geometry (geometry_mismatch)",
+    "clock_unknown": "disagreed while the cameras' clock offset was not known yet (clock_unknown)",
+    "below_range": "had cloud below the lowest height searched (below_range)",
+    "identical_images": "had both cameras deliver the same image (identical_images)",
+}
+
+
 def summary_lines(setup: RunSetup, stats) -> list[str]:
     """The end-of-run summary: counts, stop reason, latest layers, files written."""
     lines = [f"processed {stats.pairs_processed} pairs ({stats.pairs_dropped} dropped, "
              f"{stats.pairs_skipped} skipped by cadence, {stats.pairs_failed} failed, "
              f"{sum(stats.unpaired.values())} unpaired frames); stopped: {stats.stop_reason}"]
     if stats.pairs_invalid:
-        lines.append(f"{stats.pairs_invalid} pairs disagreed with the station geometry: their layers are flagged, "
-                     "not reported as valid" + (f" (last pair: {', '.join(stats.last_invalid)})" if stats.last_invalid else ""))
+        lines.append(f"{stats.pairs_invalid} pairs not valid ("
+                     + ", ".join(f"{n} {_INVALID_CAUSE.get(f, f)}" for f, n in stats.invalid_counts.items())
+                     + "): their layers are flagged, not reported as valid"
+                     + (f" (last pair: {', '.join(stats.last_invalid)})" if stats.last_invalid else ""))
     if stats.last_layers_m:
         lines.append("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
                      + f" above the station ({setup.station.altitude_m:.0f} m a.s.l.)")

@@ -138,6 +138,7 @@ class ServiceStats:
     last_layers_m: list[float] = field(default_factory=list)  # latest VALID layer heights above the ENU origin [m]
     pairs_invalid: int = 0  # pairs whose flags invalidate their layers (cbh.flags.INVALIDATING)
     last_invalid: list[str] = field(default_factory=list)  # invalidating flags of the last pair ([] = valid)
+    invalid_counts: dict[str, int] = field(default_factory=dict)  # pairs carrying each invalidating flag
     sun_misaligned: bool = False  # the last pair that saw the sun saw it off (flag sun_misaligned)
     started_monotonic: float = field(default_factory=time.monotonic)
     stop_reason: str | None = None
@@ -855,9 +856,17 @@ class Service:
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
         invalid = [f for f in result.flags if f in INVALIDATING]
-        geometric = [f for f in invalid if f != "below_range"]
+        geometric = [f for f in invalid if f not in ("below_range", "clock_unknown")]
         if invalid and not st.last_invalid:  # one warning per change of state, not per pair
-            if geometric:
+            if not geometric and "clock_unknown" in invalid:
+                own, run = (result.diagnostics.get(k, math.nan) for k in ("clock_offset_pair_s", "clock_offset_s"))
+                why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"
+                       if math.isfinite(own) and math.isfinite(run) else "no motion yet to measure it")
+                log.warning(f"pair at {f1.time_utc.isoformat()}: clock_unknown: the cameras' matches disagree with "
+                            "the station geometry while their clock offset, which would look the same, is not known "
+                            f"({why}); layers are not reported as valid until the offset is measured",
+                            extra={"cbh_event": "clock_unknown", "cbh_flags": invalid})
+            elif geometric:
                 diag = ", ".join(f"{k} {v:.3g}" for k, v in result.diagnostics.items()
                                  if k.startswith(("geometry_", "sun_")))
                 log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(geometric)}: the cameras disagree with the "
@@ -878,6 +887,8 @@ class Service:
             log.warning(f"pair at {f1.time_utc.isoformat()}: layers valid again ({', '.join(st.last_invalid)} cleared)",
                         extra={"cbh_event": "geometry_valid"})
         st.pairs_invalid += bool(invalid)
+        for f in invalid:
+            st.invalid_counts[f] = st.invalid_counts.get(f, 0) + 1
         st.last_invalid = invalid
         if "sun_misaligned" in result.flags and not st.sun_misaligned:  # once per change, like the above
             log.warning(f"pair at {f1.time_utc.isoformat()}: the sun is "
