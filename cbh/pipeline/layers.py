@@ -153,19 +153,56 @@ def layer_covers(cloud: np.ndarray, usable: np.ndarray, nearest_m: np.ndarray,
     return covers, float(np.count_nonzero(cl)) / n_usable - sum(covers)
 
 
-def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndarray | None = None) -> Layer:
+_TREND_MIN_POINTS = 60  # a layer's large-scale trend is fitted (6 terms) only on this many points
+_TREND_MIN_EXTENT = 0.15  # ... spread over this much of the sky (plane offsets' standard deviation, ≈ 9°)
+
+
+def local_spread(h: np.ndarray, offsets: np.ndarray | None) -> float:
+    """A layer's height spread about its own large-scale trend [m] (1.4826 · MAD, relative to
+    the median height): what a cloud base's vertical extent can be.
+
+    A trend across the sky, ln h quadratic in the points' plane offsets (6 terms, fitted
+    robustly: least squares, then again without the residuals beyond 3 σ), is a tilted deck or a
+    calibration error, which one pair cannot tell apart; neither is depth in the cloud base
+    (the real 241 m station's authors' calibration puts a linear trend of ±15 % across its
+    8 km deck: read as extent, the base came out 25 % below the median). Without enough
+    points spread over enough sky: the plain spread."""
+    med = float(np.median(h))
+    plain = 1.4826 * float(np.median(np.abs(h - med)))
+    if offsets is None or len(h) < _TREND_MIN_POINTS:
+        return plain
+    a = np.asarray(offsets, np.float64)
+    ok = np.isfinite(a).all(1) & (h > 0)
+    if ok.sum() < _TREND_MIN_POINTS or float(np.sqrt(np.linalg.eigvalsh(np.cov(a[ok].T)).max())) < _TREND_MIN_EXTENT:
+        return plain
+    a, y = a[ok], np.log(h[ok])
+    X = np.column_stack([np.ones(len(a)), a, a ** 2, a[:, 0] * a[:, 1]])
+    use = np.ones(len(y), bool)
+    for _ in range(2):
+        coef, *_ = np.linalg.lstsq(X[use], y[use], rcond=None)
+        r = y - X @ coef
+        sig = 1.4826 * float(np.median(np.abs(r[use] - np.median(r[use]))))
+        use = np.abs(r - np.median(r[use])) <= 3.0 * max(sig, 1e-9)
+    return min(plain, med * sig)
+
+
+def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndarray | None = None,
+                offsets: np.ndarray | None = None) -> Layer:
     """Statistics of one layer's point heights ``h`` (N,) [m] (see module doc).
 
     ``noise_m`` (N,): predicted height noise of each point [m] (:func:`height_noise`);
-    None = unknown (0).
+    None = unknown (0). ``offsets`` (N, 2): the points' plane offsets from camera 1 (horizontal
+    offset / height); with them, the base is deconvolved from the spread about the layer's
+    large-scale trend (:func:`local_spread`), not from its whole spread.
     """
     from statistics import NormalDist
 
     med = float(np.median(h))
     spread = 1.4826 * float(np.median(np.abs(h - med)))
+    local = local_spread(h, offsets)
     sig_n = float(np.median(noise_m)) if noise_m is not None and len(noise_m) else 0.0
     sig_e = cfg.noise_margin * sig_n  # the noise the spread is tested against (model uncertainty)
-    sig_t = math.sqrt(max(spread * spread - sig_e * sig_e, 0.0))
+    sig_t = math.sqrt(max(local * local - sig_e * sig_e, 0.0))
     z = -NormalDist().inv_cdf(min(max(cfg.base_percentile, 1e-6), 50.0) / 100.0)
     n = int(h.size)
     conf = (1 - math.exp(-n / (4.0 * max(cfg.min_points, 1)))) * math.exp(-(spread / med) / 0.15)
@@ -195,7 +232,8 @@ class LayerSet:
 
 def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram,
                      intervals: list[tuple[float, float]], cloud: np.ndarray, usable: np.ndarray,
-                     nearest_m: np.ndarray, cloud_fraction: float, cfg: LayersConfig) -> LayerSet:
+                     nearest_m: np.ndarray, cloud_fraction: float, cfg: LayersConfig,
+                     offsets: np.ndarray | None = None) -> LayerSet:
     """Keep the candidate intervals with enough support (points, share of points, cover).
 
     Parameters
@@ -210,6 +248,8 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
         Nearest measured height of each pixel (:func:`cbh.pipeline.heightmap.nearest_fill`).
     cloud_fraction : float
         Camera 1's cloud fraction, 0..1.
+    offsets : ndarray, shape (N, 2), optional
+        The points' plane offsets from camera 1 (:func:`local_spread`).
     """
     label = np.full(len(heights_m), -1, np.int16)
     cover_of, unassigned = layer_covers(cloud, usable, nearest_m, intervals)
@@ -221,7 +261,8 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
             unassigned += cover_of[k]  # cloud of an unsupported height interval: in no layer
             continue
         label[sel] = len(layers)
-        layers.append(layer_stats(heights_m[sel], cover_of[k], cfg, noise_m[sel]))
+        layers.append(layer_stats(heights_m[sel], cover_of[k], cfg, noise_m[sel],
+                                  None if offsets is None else offsets[sel]))
     incomplete = bool(layers) and unassigned > max(_COVER_SLACK * cloud_fraction, 0.005)
     if not isinstance(hist, Histogram):
         hist = Histogram(np.zeros(1), np.zeros(0))
