@@ -502,3 +502,27 @@ def test_full_size_maps_are_the_working_maps_enlarged_on_read(small_sky):
         full = r.cloud_masks[c]
         assert full.shape == (320, 320) and full.dtype == bool
         np.testing.assert_array_equal(full, np.repeat(np.repeat(m.small, 2, axis=0), 2, axis=1))
+
+
+def test_a_tilt_across_the_sky_is_not_read_as_depth_of_the_base():
+    """A deck whose height varies smoothly across the sky (a calibration's tilt, or a tilted
+    deck: one pair cannot tell them apart; the real Fehmarn station's calibration puts ±15 %
+    across its 8 km deck) has no depth: its base is its median, not 25 % below it, when the
+    spread about the trend is the noise. Real depth stays: the same trend over cloud whose
+    heights reach 10 % above a base of 8 km keeps the base below the median."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    a = rng.uniform(-1.2, 1.2, (n, 2))  # plane offsets: the sky to 50° from the zenith
+    trend = np.exp(0.12 * a[:, 0] - 0.08 * a[:, 1] + 0.04 * a[:, 0] * a[:, 1])
+    noise = 0.02 * rng.standard_normal(n)
+    tilted = 8000.0 * trend * (1.0 + noise)
+    st = layer_stats(tilted, 0.5, LayersConfig(), np.full(n, 160.0), offsets=a)
+    plain = layer_stats(tilted, 0.5, LayersConfig(), np.full(n, 160.0))
+    assert st.height_m == pytest.approx(st.median_height_m, rel=0.01)  # noise explains the local spread
+    assert plain.height_m < 0.9 * plain.median_height_m  # the spread as extent: far below
+    assert st.spread_m == pytest.approx(plain.spread_m)  # the spread reported is still the whole one
+    deep = 8000.0 * trend * (1.0 + 0.1 * np.abs(rng.standard_normal(n)) + noise)
+    st2 = layer_stats(deep, 0.5, LayersConfig(), np.full(n, 160.0), offsets=a)
+    assert st2.height_m < st2.median_height_m - 0.04 * 8000.0
+    few = layer_stats(tilted[:40], 0.5, LayersConfig(), np.full(40, 160.0), offsets=a[:40])
+    assert few.height_m == pytest.approx(layer_stats(tilted[:40], 0.5, LayersConfig(), np.full(40, 160.0)).height_m)

@@ -18,7 +18,7 @@ import numpy as np
 
 from cbh.errors import ShapeError
 
-__all__ = ["Triangulation", "triangulate", "triangulate_svd", "TriangulationLimits", "MultiView", "triangulate_views"]
+__all__ = ["Triangulation", "triangulate", "triangulate_svd", "points_on_epipolar", "TriangulationLimits", "MultiView", "triangulate_views"]
 
 
 @dataclass(frozen=True)
@@ -229,6 +229,28 @@ def _asin_deg(xp, q, obtuse):
         q = xp.where(obtuse, np.pi - q, q)
     q *= 180.0 / np.pi
     return q
+
+
+def points_on_epipolar(o1: np.ndarray, d1: np.ndarray, o2: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """Points (N, 3) [m] on camera 1's upward rays ``d1`` at the height that the parallax *along*
+    the baseline alone gives: each match moved onto its epipolar line first (NaN: no positive
+    height). Numpy, float64.
+
+    The closest approach of two skew rays is biased short: its range is ``b⊥·Δd / |Δd|²``, and a
+    miss m across the baseline adds m² to the denominator, so noise across the baseline (a
+    carried match has as much of it as along) pulls every height down (a real 241 m station's
+    8.4 km deck read 6 % low). In plane offsets ``a = (e, n) / u`` a point at height h above
+    camera 1 has ``a2 − a1 = −q·B'`` with q = 1/h and B' = B − Δz·a2 (B the horizontal baseline,
+    Δz camera 2's height above camera 1), so ``q = −(a2 − a1)·B' / |B'|²``."""
+    o1, o2 = np.asarray(o1, np.float64).reshape(3), np.asarray(o2, np.float64).reshape(3)
+    d1, d2 = np.asarray(d1, np.float64), np.asarray(d2, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a1, a2 = d1[:, :2] / d1[:, 2:3], d2[:, :2] / d2[:, 2:3]
+        bp = (o2 - o1)[None, :2] - (o2[2] - o1[2]) * a2
+        q = -((a2 - a1) * bp).sum(1) / (bp * bp).sum(1)
+        up = (d1[:, 2] > 0) & (d2[:, 2] > 0) & (q > 0)
+        point = o1[None, :] + np.concatenate([a1, np.ones((len(a1), 1))], axis=1) / q[:, None]
+    return np.where(up[:, None], point, np.nan)
 
 
 def triangulate_svd(o1, d1, o2, d2, limits: TriangulationLimits = TriangulationLimits()) -> Triangulation:

@@ -224,7 +224,7 @@ class MotionConfig:
     min_tracks: int = 10  # a layer needs this many tracks for a motion [1]
     layer_tolerance_log: float = 0.1  # a track belongs to a layer within this |ln(h / h_layer)| (or 3 spreads) [1]
     clock_offset: bool = True  # estimate camera 2's clock offset and compensate it in the matching
-    offset_history: int = 15  # pairs in the running (median) clock-offset estimate [1]
+    offset_history: int = 60  # pairs in the running (median) clock-offset estimate [1] (15 drifted 3 s at -90 s)
     offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
     compensate_min_s: float = 0.2  # compensate camera 2 only above this |offset|: the estimate's systematic error reaches ≈ 0.15 s [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]

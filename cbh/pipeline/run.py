@@ -56,6 +56,7 @@ from cbh.imageio import as_bgr
 from cbh.timeutil import parse_utc
 from cbh.result import Enlarged, PairResult, PointSet
 from cbh.geometry.station import Camera, Station
+from cbh.geometry.triangulate import points_on_epipolar
 from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identical, seeded_matches
 from cbh.pipeline.sundetect import detect_sun
@@ -586,43 +587,39 @@ class Pipeline:
         """The sky maps' matches (:mod:`.skyclock`) as the pair's correspondences, method
         ``skyflow``: each carries camera 2 to camera 1's time by its own pixel's motion (the
         raw-image matchers would see camera 2 resampled with one motion per height node, whose error
-        grows with the offset), on camera 1's cloud."""
+        grows with the offset), on camera 1's cloud, carried by the running offset ``used_s`` (this
+        pair's own estimate scatters by 1–4 s, and a second moves an 8 km deck over 241 m by 8 %;
+        carried by its own, the geometry check flagged 3 of 29 real pairs, by the running one none)."""
         with _timed(ctx, "match_skyflow"):
-            r1 = np.concatenate([sky.a1, np.ones((len(sky.a1), 1))], axis=1)
-            r2 = np.concatenate([sky.matched(used_s), np.ones((len(sky.a1), 1))], axis=1)
-            r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
-            r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
-            px1 = self.cam1.model.ray_to_pixel(r1 @ np.asarray(self.cam1.R_world_from_cam, np.float64))
-            px2 = self.cam2.model.ray_to_pixel(r2 @ np.asarray(self.cam2.R_world_from_cam, np.float64))
-            m = Matches("skyflow", px1.astype(np.float64), px2.astype(np.float64),
-                        ray2_world=r2.astype(np.float32), ray1_world=r1.astype(np.float32))
-            m = m.take(_on_mask(seg.clouds[0], m.px1))
+            m = self._carried_matches(sky, used_s, seg.clouds[0])
         with _timed(ctx, "triangulation"):
             tri = triangulate_matches(self.geometry, m, self.config.filtering)
             tri = self._on_epipolar(tri)
         return Correspondences(triangulated=[tri], raw=[m])
 
-    def _on_epipolar(self, tri: TriangulatedMatches) -> TriangulatedMatches:
-        """Sky-map matches' points with each match moved onto its epipolar line first (its miss is
-        kept: the rays as measured, for the geometry check and the noise).
+    def _carried_matches(self, sky: SkyClock, offset_s: float, cloud1: np.ndarray) -> Matches:
+        """The sky maps' matches with camera 2 carried by ``offset_s`` [s], on camera 1's cloud."""
+        r1 = np.concatenate([sky.a1, np.ones((len(sky.a1), 1))], axis=1)
+        r2 = np.concatenate([sky.matched(offset_s), np.ones((len(sky.a1), 1))], axis=1)
+        r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
+        r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
+        px1 = self.cam1.model.ray_to_pixel(r1 @ np.asarray(self.cam1.R_world_from_cam, np.float64))
+        px2 = self.cam2.model.ray_to_pixel(r2 @ np.asarray(self.cam2.R_world_from_cam, np.float64))
+        m = Matches("skyflow", px1.astype(np.float64), px2.astype(np.float64),
+                    ray2_world=r2.astype(np.float32), ray1_world=r1.astype(np.float32))
+        return m.take(_on_mask(cloud1, m.px1))
 
-        The closest approach of two skew rays is biased short: the range is
-        ``b⊥·Δd / |Δd|²``, and a miss m across the baseline adds m² to the denominator, so the
-        carry's noise across the baseline (as large as its noise along it) pulled a 241 m
-        station's 8.4 km deck 6 % low. Along the line, the height is the along-baseline parallax's
-        alone: ``q = (a2 − a1)·B' / |B'|²`` in plane offsets (:mod:`.skyclock`), B' = B − Δz·a1."""
+    def _on_epipolar(self, tri: TriangulatedMatches) -> TriangulatedMatches:
+        """Sky-map matches' points moved onto their epipolar lines (:func:`points_on_epipolar`:
+        the closest approach of skew rays is biased short by the carry's noise across the
+        baseline); each keeps its miss as measured (the geometry check, the noise)."""
         m = tri.matches
         if not len(m):
             return tri
-        c1, c2 = np.asarray(self.cam1.position_m, np.float64), np.asarray(self.cam2.position_m, np.float64)
-        r1, r2 = np.asarray(m.ray1_world, np.float64), np.asarray(m.ray2_world, np.float64)
-        a1, a2 = r1[:, :2] / r1[:, 2:3], r2[:, :2] / r2[:, 2:3]
-        bp = (c2 - c1)[None, :2] - (c2[2] - c1[2]) * a1
-        with np.errstate(invalid="ignore", divide="ignore"):
-            q = -((a2 - a1) * bp).sum(1) / (bp * bp).sum(1)  # 1 / (height above camera 1)
-            point = c1[None, :] + np.concatenate([a1, np.ones((len(a1), 1))], axis=1) / q[:, None]
+        point = points_on_epipolar(self.cam1.position_m, m.ray1_world, self.cam2.position_m, m.ray2_world)
         filt = self.config.filtering
-        keep = np.isfinite(point).all(1) & (q > 0) & (point[:, 2] >= filt.min_height_m) & (point[:, 2] <= filt.max_height_m)
+        with np.errstate(invalid="ignore"):
+            keep = np.isfinite(point).all(1) & (point[:, 2] >= filt.min_height_m) & (point[:, 2] <= filt.max_height_m)
         return replace(tri, matches=m.take(keep), point_m=point[keep], miss_m=tri.miss_m[keep])
 
     def _sky_tracks(self, corr: "Correspondences", sky: SkyClock, mot: "MotionInput") -> "MotionEstimate":
