@@ -122,10 +122,7 @@ def test_pale_clear_sky_of_one_class_is_clear():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [105, 111, pytest.param(113, marks=pytest.mark.xfail(
-    strict=True, reason="1172 and 1699 m at B = 30 m are 1.9 px of parallax apart at 640 px: reported as one "
-                        "layer at 1429 m (a spurious layer between two true ones; see docs, Limits)")),
-    117, 121, 137, 200, 201, 202, 203, 204, 205])
+@pytest.mark.parametrize("seed", [105, 111, 113, 117, 121, 137, 200, 201, 202, 203, 204, 205])
 def test_randomized_skies_regression(base, seed, tmp_path):
     """Randomized skies at 640 px: no spurious layer, no invalidating flag on the true station,
     every clear sky clear, and each layer found (within max(5 %, the baseline's physics))."""
