@@ -10,7 +10,7 @@ from __future__ import annotations
 import enum
 from typing import Iterable
 
-__all__ = ["Flag", "flag_bits", "flag_names", "check_flags", "INVALIDATING"]
+__all__ = ["Flag", "flag_bits", "flag_names", "check_flags", "flag_meaning", "INVALIDATING"]
 
 
 class Flag(enum.IntFlag):
@@ -39,6 +39,35 @@ class Flag(enum.IntFlag):
 #: Flags whose layers must not be reported as valid (exported with the flag, left out of
 #: "latest layers").
 INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range", "clock_unknown"})
+
+
+_MEANING = {
+    "time_unknown": "the pair has no capture time: no sun mask beyond the saturated disc, no motion",
+    "sun_glare": "a saturated sun or glare region was masked",
+    "cover_incomplete": "the layers' covers add up to less than the cloud fraction",
+    "few_points": "too few triangulated points for a layer",
+    "clear_sky": "no cloud in the usable sky",
+    "overcast_no_texture": "cloud everywhere but too little texture to match",
+    "geometry_mismatch": "the matches disagree with the station geometry (a camera moved, turned or was "
+                         "swapped, or its calibration is off), and no clock offset explains it",
+    "sun_misaligned": "the sun seen in a camera is off the predicted sun by more than the tolerance",
+    "time_jump": "a frame's time jumped against the other camera or the wall clock",
+    "clock_offset": "the cameras' clocks differ (the estimate is taken out of the result)",
+    "exposure_mismatch": "the cameras' photometric difference is large (corrected, reported)",
+    "identical_images": "both cameras delivered the same image",
+    "below_range": "much of the cloud sits on the lowest height searched: cloud at or below it",
+    "cloud_unmatched": "most of the cloud found no height: the layers describe only the matched part",
+    "underexposed": "a camera's sky is too dark for its colours to be read",
+    "camera_mismatch": "a network camera disagrees with the others' geometry and was left out",
+    "camera_missing": "a network camera delivered no frame",
+    "clock_unknown": "the matches disagree with the geometry while the cameras' clock offset, which could "
+                     "explain it, is not known yet",
+}
+
+
+def flag_meaning(name: str) -> str:
+    """What a flag means, in one line (for people: the viewer's flag panel, summaries)."""
+    return _MEANING.get(name, name)
 
 
 def check_flags(names: Iterable[str]) -> list[str]:

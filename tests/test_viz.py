@@ -178,3 +178,54 @@ def test_matches_are_a_small_subsample():
     shown = rec.logged["/cam1/matches"][0].positions.as_arrow_array()
     assert 0 < len(shown) <= MAX_SHOWN_MATCHES
     assert len(rec.logged["/world/points"][0].positions.as_arrow_array()) == n  # 3D keeps every point
+
+
+def test_a_flagged_pair_looks_flagged_and_says_why(tmp_path):
+    """Issue 32: on the real station's first pair the viewer drew three layers and nothing said
+    they were invalid. An invalid pair's points and layer samples are grey (layers as crosses),
+    and the flag panel names each flag and its meaning; a valid pair says so and keeps its colours."""
+    from dataclasses import replace
+
+    from cbh.outputs.rerun_view import FLAGGED_RGB, RerunSink, flag_text
+
+    st = small_station()
+    frames, res = synthetic_pair(st, 0)
+    bad = replace(res, flags=list(res.flags) + ["clock_unknown"],
+                  diagnostics={**res.diagnostics, "clock_offset_s": float("nan")})
+    text = flag_text(bad)
+    assert text.startswith("**Not valid** (clock_unknown)") and "clock offset, which could explain it" in text
+    good = replace(res, flags=[f for f in res.flags if f not in ("clock_unknown", "geometry_mismatch")],
+                   diagnostics={**res.diagnostics, "clock_offset_s": -31.04, "clock_offset_pair_s": -30.8})
+    gtext = flag_text(good)
+    assert gtext.startswith("**Valid.**") and "−" in gtext and "-31.0 s" in gtext
+    out, ok = tmp_path / "f.rrd", tmp_path / "ok.rrd"
+    with RerunSink(st, "save", str(out)) as sink:
+        sink.write(frames, bad)
+    with RerunSink(st, "save", str(ok)) as sink:
+        sink.write(frames, good)
+    assert rrd_verify(out).returncode == 0 and rrd_verify(ok).returncode == 0
+    grey = int.from_bytes(bytes(FLAGGED_RGB) + b"\xff", "big")  # Rerun's packed RGBA
+    bad_cols, ok_cols = _components(out), _components(ok)
+    assert set(bad_cols["/world/points", "Points3D:colors"]) == {grey}
+    assert grey not in set(ok_cols["/world/points", "Points3D:colors"])
+    assert set(bad_cols["/layers/0", "SeriesPoints:colors"]) == {grey}
+    assert bad_cols["/layers/0", "SeriesPoints:markers"] != ok_cols["/layers/0", "SeriesPoints:markers"]
+    assert bad_cols["/flags", "TextDocument:text"][0].startswith("**Not valid** (clock_unknown)")
+    assert ok_cols["/flags", "TextDocument:text"][0].startswith("**Valid.**")
+
+
+def _components(path) -> dict:
+    """(entity, component) → the flattened values logged on the capture time line, read back from
+    the .rrd with Rerun's own reader."""
+    from rerun.chunk import RrdReader
+
+    out = {}
+    for ch in RrdReader(str(path)).stream().to_chunks():
+        t = ch.to_record_batch()
+        if "capture_time" not in t.schema.names:
+            continue
+        for name in t.schema.names:
+            if ":" in name:
+                vals = [v for row in t.column(name).to_pylist() for v in (row if isinstance(row, list) else [row])]
+                out.setdefault((str(ch.entity_path), name), []).extend(vals)
+    return out

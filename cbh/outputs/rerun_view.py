@@ -20,7 +20,11 @@ Entities (time line ``capture_time``, UTC):
 - ``/histogram`` (BarChart of point heights in linear bins, ~60 bars up to the highest
   point), ``/layers/<i>`` (Scalars: layer i+1's cloud-base height [m above ground], each
   sample coloured by its height), ``/cloud_fraction/<cam>`` (Scalars 0..1);
-- ``/legend`` (Image: the height colour scale, static).
+- ``/legend`` (Image: the height colour scale, static);
+- ``/flags`` (TextDocument, markdown: valid or not and why, each flag with its meaning, the
+  cameras' clock offset; :func:`flag_text`). A pair whose flags invalidate its layers
+  (:data:`cbh.flags.INVALIDATING`) has its points, layer samples and motion drawn grey
+  (``FLAGGED_RGB``), the layer samples as crosses: a flagged layer never looks like a valid one.
 
 Modes: ``spawn`` (start a viewer), ``serve`` (gRPC server; viewers connect to the printed URL),
 ``connect`` (to a running viewer, ``target`` = URL, default the local one), ``save``
@@ -29,6 +33,7 @@ Modes: ``spawn`` (start a viewer), ``serve`` (gRPC server; viewers connect to th
 from __future__ import annotations
 
 import logging
+import math
 import uuid
 from pathlib import Path
 
@@ -36,10 +41,11 @@ import cv2
 import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
+from cbh.flags import INVALIDATING, flag_meaning
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult, require_time, to_ns
 
-__all__ = ["RerunSink", "default_blueprint", "log_pair", "log_station", "parse_rerun_spec", "height_colors",
+__all__ = ["RerunSink", "default_blueprint", "log_pair", "flag_text", "log_station", "parse_rerun_spec", "height_colors",
            "legend_image", "display_histogram", "cloud_outline",
            "MODES", "TIMELINE"]
 
@@ -190,10 +196,11 @@ def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RA
                 rrb.TimeSeriesView(origin="/layers", name="layer base [m above ground]",
                                    axis_y=rrb.ScalarAxis(range=tuple(float(v) for v in height_range_m))),
                 rrb.Vertical(
+                    rrb.TextDocumentView(origin="/flags", name="flags of this pair"),
                     rrb.TimeSeriesView(origin="/cloud_fraction", name="cloud fraction",
                                        axis_y=rrb.ScalarAxis(range=(0.0, 1.0))),
                     rrb.Spatial2DView(origin="/legend", name="height colour scale"),
-                    row_shares=[3, 1],
+                    row_shares=[2, 2, 1],
                 ),
                 column_shares=[2, 3, 2],
             ),
@@ -254,9 +261,11 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
                                                          draw_order=1.5))
         rec.log(f"/{cam}/cloud_mask", rr.SegmentationImage(np.asarray(mask, bool).astype(np.uint8), opacity=0.2,
                                                            draw_order=1.0))
+    rec.log("/flags", rr.TextDocument(flag_text(result), media_type=rr.MediaType.MARKDOWN))
+    valid = not (INVALIDATING & set(result.flags))
     pts = result.points
     h = pts.height_m
-    cols = height_colors(h, height_range_m)
+    cols = height_colors(h, height_range_m) if valid else _flagged(len(h))
     rec.log("/world/points", rr.Points3D(np.asarray(pts.xyz_m, np.float32), colors=cols, radii=-2.0))
     shown = np.arange(len(h))[:: max(1, -(-len(h) // MAX_SHOWN_MATCHES))]
     rec.log(f"/{cam1}/matches", rr.Points2D(np.asarray(pts.px1, np.float32)[shown], colors=cols[shown], radii=-2.5,
@@ -283,8 +292,9 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
         if i not in styled:
             rec.log(f"/layers/{i}", rr.SeriesPoints(names=f"layer {i + 1}", marker_sizes=5.0), static=True)
             styled.append(i)
-        colour = height_colors(np.array([layer.height_m]), height_range_m)[0]
-        rec.log(f"/layers/{i}", rr.Scalars(float(layer.height_m)), rr.SeriesPoints.from_fields(colors=[colour]))
+        colour = height_colors(np.array([layer.height_m]), height_range_m)[0] if valid else _flagged(1)[0]
+        rec.log(f"/layers/{i}", rr.Scalars(float(layer.height_m)),
+                rr.SeriesPoints.from_fields(colors=[colour], markers=["circle" if valid else "cross"]))
         ve, vn = float(layer.motion_east_ms), float(layer.motion_north_ms)
         if np.isfinite(ve) and np.isfinite(vn):
             sel = np.asarray(pts.layer) == i
@@ -293,7 +303,8 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
             arrows.append([ve * MOTION_ARROW_S, vn * MOTION_ARROW_S, 0.0])
             arrow_cols.append(colour)
             speed, bearing = float(np.hypot(ve, vn)), float(np.degrees(np.arctan2(ve, vn)) % 360.0)
-            arrow_labels.append(f"layer {i + 1}: {speed:.1f} m/s towards {bearing:.0f}°")
+            arrow_labels.append(f"layer {i + 1}: {speed:.1f} m/s towards {bearing:.0f}°"
+                                + ("" if valid else " (flagged: not valid)"))
     if arrows:
         rec.log("/world/motion", rr.Arrows3D(vectors=np.array(arrows), origins=np.array(origins), colors=arrow_cols,
                                              labels=arrow_labels, radii=-3.0))
@@ -301,6 +312,33 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
         rec.log("/world/motion", rr.Clear(recursive=False))
     for cam, frac in result.cloud_fraction.items():
         rec.log(f"/cloud_fraction/{cam}", rr.Scalars(float(frac)))
+
+
+FLAGGED_RGB = (150, 150, 150)  # a flagged pair's points and layers: grey, its layers as crosses
+
+
+def _flagged(n: int) -> np.ndarray:
+    return np.tile(np.array(FLAGGED_RGB, np.uint8), (n, 1))
+
+
+def flag_text(result: PairResult) -> str:
+    """The flag panel of a pair (markdown): valid or not and why, each flag with its meaning, the
+    cameras' clock offset. An invalid pair's layers are drawn grey, as crosses."""
+    bad = sorted(INVALIDATING & set(result.flags))
+    head = ("**Valid.**" if not bad else
+            f"**Not valid** ({', '.join(bad)}): the layers are drawn grey, as crosses, and are not reported as valid.")
+    lines = [head, ""]
+    lines += [f"- `{f}`: {flag_meaning(f)}" for f in result.flags] or ["- no flag"]
+    d = result.diagnostics
+    off = d.get("clock_offset_s")
+    if isinstance(off, (int, float)) and math.isfinite(off):
+        own = d.get("clock_offset_pair_s")
+        lines += ["", f"clock offset {result.cameras[1]} − {result.cameras[0]}: {off:+.1f} s"
+                  + (f" (this pair's own estimate {own:+.1f} s)" if isinstance(own, (int, float)) and math.isfinite(own)
+                     else "")]
+    layers = ", ".join(f"{L.height_m:.0f} m" for L in result.layers)
+    lines += ["", f"layers: {layers or 'none'}"]
+    return "\n".join(lines)
 
 
 class RerunSink(ResultSink):
