@@ -61,7 +61,8 @@ _MEANING = {
     "camera_mismatch": "a network camera disagrees with the others' geometry and was left out",
     "camera_missing": "a network camera delivered no frame",
     "clock_unknown": "the matches disagree with the geometry while the cameras' clock offset, which could "
-                     "explain it, is not known yet",
+                     "explain it, is not known yet (or, resumed from a recording, not yet taken out: a run's "
+                     "first pair has no motion to carry a camera with)",
 }
 
 

@@ -167,3 +167,42 @@ def test_run_summary_names_each_cause(station):
     text = "\n".join(summary_lines(setup, st))
     assert "1 disagreed while the cameras' clock offset was not known yet (clock_unknown)" in text
     assert "9 disagreed with the station geometry (geometry_mismatch)" in text
+
+
+@pytest.mark.slow
+def test_a_restarted_run_resumes_the_recorded_clock(tmp_path, capsys):
+    """`cbh run --record DIR` on the real station, stopped after three pairs and started again on
+    the next frames: the second run resumes the first one's offset from its recording (said in the
+    notes), so its first pair already states it, within 2 s of the first run's. (That pair has no
+    motion yet to carry a camera with: its mismatch is the clock's, ``clock_unknown``, not the
+    geometry's.)"""
+    from cbh.cli.main import main
+    from cbh.outputs.record import open_session
+
+    dirs = {}
+    for part, idx in (("a", range(0, 3)), ("b", range(3, 5))):
+        for cam in ("fe3", "fe4"):
+            d = tmp_path / part / cam
+            d.mkdir(parents=True)
+            for f in sorted((DATA / cam).glob("*.jpg"))[idx.start:idx.stop]:
+                (d / f.name).symlink_to(f)  # the shared frames themselves, never copied
+            dirs[part, cam] = d
+    rec = tmp_path / "rec"
+    rec.mkdir()
+
+    def run(part):
+        assert main(["run", "--station", str(DATA / "station.toml"), "--source", f"fe3={dirs[part, 'fe3']}",
+                     "--source", f"fe4={dirs[part, 'fe4']}", "--record", str(rec), "-q"]) == 0
+        cap = capsys.readouterr()
+        return cap.out + cap.err
+
+    run("a")
+    first = [p.result.diagnostics["clock_offset_s"] for p in open_session(rec).pairs(layers_only=True)]
+    out = run("b")
+    assert "clock offset fe4 - fe3 resumed from" in out, out
+    files = sorted(rec.glob("*.mcap"), key=lambda f: f.stat().st_mtime)
+    again = [p.result for p in open_session(files[-1]).pairs(layers_only=True)]
+    assert math.isnan(first[0]) and math.isfinite(first[-1])
+    assert abs(again[0].diagnostics["clock_offset_s"] - first[-1]) <= 2.0, (first, again[0].diagnostics)
+    assert "clock_offset" in again[0].flags and "geometry_mismatch" not in again[0].flags
+    assert "clock_unknown" not in again[1].flags

@@ -6,14 +6,20 @@ them and hands the service a processor and sinks.
 from __future__ import annotations
 
 import errno
+import logging
+import math
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable
+
+import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
 from cbh.live.service import Service, ServiceConfig
 from cbh.pipeline.motion import PairState
 from cbh.result import Frame, PairResult
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["RunSetup", "MotionChain", "build_run", "open_sink", "check_writable", "summary_lines", "DEFAULT_ROTATE_S"]
 
@@ -71,16 +77,24 @@ class MotionChain:
         A gap is a hole above this many usual intervals [1].
     """
 
-    def __init__(self, cadence_s: float = 0.0, gap_factor: float = 2.5):
+    def __init__(self, cadence_s: float = 0.0, gap_factor: float = 2.5, start: PairState | None = None):
         self.cadence_s, self.gap_factor = float(cadence_s), float(gap_factor)
         self.state = None
+        self.start = start if start is not None else PairState.start()  # (a resumed clock: PairState.resumed)
         self._gaps: list[float] = []
 
     def previous(self, time_utc):
         """The state to pass as ``previous`` for a pair captured at ``time_utc``."""
         s = self.state
-        if s is None:
-            return PairState.start()  # a run's first pair: nothing known yet
+        if s is None:  # a run's first pair: nothing known yet, or a recorded session's clock if recent
+            st = self.start
+            if st.offsets_s and st.time_utc is not None and time_utc is not None:
+                age = (time_utc - st.time_utc).total_seconds()
+                if not 0.0 <= age <= RESUME_MAX_AGE_S:
+                    _log.warning("the resumed clock offset is from %.1f h before the run's first pair: not used",
+                                 age / 3600.0)
+                    return PairState.start()
+            return replace(st, time_utc=None)
         if s.gray is None or time_utc is None or s.time_utc is None:
             return s
         gap = (time_utc - s.time_utc).total_seconds()
@@ -103,6 +117,34 @@ class MotionChain:
         """A pair failed: no motion across it."""
         if self.state is not None:
             self.state = self.state.without_frames()
+
+
+#: A recorded clock offset older than this is not resumed [s]: a camera without NTP drifts seconds a day.
+RESUME_MAX_AGE_S = 86400.0
+
+
+def resumed_clock(path, cameras: tuple[str, str], history: int):
+    """The clock-offset history a run resumes from a recording (a ``.mcap`` file or a directory
+    of them): (the last ``history`` finite per-pair estimates, ``clock_offset_pair_s``, of the
+    same camera pair; the capture time of the last; a note for the run). Nothing (and a note
+    saying why) when no pair of these cameras has an estimate."""
+    from cbh.outputs.record import open_session
+
+    session = open_session(path)
+    offs, last = [], None
+    for rp in session.pairs(layers_only=True):
+        if tuple(rp.result.cameras[:2]) != tuple(cameras):
+            continue
+        o = rp.result.diagnostics.get("clock_offset_pair_s")
+        if isinstance(o, (int, float)) and math.isfinite(o):
+            offs.append(float(o))
+            last = rp.time_utc
+    if not offs:
+        return (), None, f"{path}: no clock offset of {cameras[0]} + {cameras[1]} recorded: not resumed"
+    kept = tuple(offs[-history:])
+    return kept, last, (f"clock offset {cameras[1]} - {cameras[0]} resumed from {path}: "
+                        f"{float(np.median(kept)):+.1f} s ({len(kept)} pairs up to {last:%Y-%m-%dT%H:%M:%SZ}; "
+                        f"used if the run's first pair is within {RESUME_MAX_AGE_S / 3600:.0f} h after it)")
 
 
 class RunSetup:
@@ -167,7 +209,7 @@ def _rerun_args(spec: str) -> tuple[str, str | None]:
 def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None, rerun=None, export=None,
               cadence_s=None, frames=None, duration_s=None, size_px=None, pair_tolerance_s=None, watch=False,
               realtime=False, rotate_mb=None, rotate_s=None, demo_frames: int = 6, overwrite: bool = False,
-              bind: str | None = None, device: str = "cpu") -> RunSetup:
+              bind: str | None = None, device: str = "cpu", resume_clock=None) -> RunSetup:
     """Assemble ``cbh run``: station, sources, pipeline, sinks, service config (no thread started).
 
     Cameras without a ``--source`` use their station ``source`` key; cameras with neither are
@@ -177,7 +219,9 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     first free ``…_2.mcap``, ``…_3.mcap``, noted in :attr:`RunSetup.notes`) or a path (a
     ``.mcap`` file, refused if it exists unless ``overwrite``; or a directory, in which every
     file is created exclusively). ``bind``: address of ``--rerun serve`` (default 127.0.0.1).
-    ``device``: where the pipeline's dense work runs (``cpu``, ``cuda`` …).
+    ``device``: where the pipeline's dense work runs (``cpu``, ``cuda`` …). ``resume_clock``: a
+    recording whose clock-offset history the run starts from (default: the newest earlier one
+    where it records, if any; :func:`resumed_clock`).
     """
     from cbh.presets import station_path
     from cbh.geometry.station import load_station
@@ -205,9 +249,49 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     config = ServiceConfig.from_dict(cfg_dict)
     srcs = _open_sources(st, names, specs, sim, config, start, watch=watch, realtime=realtime)
     pipeline, pcfg = _pipeline(st, names, config, device)
+    start = _resume(st, names, record, resume_clock, pcfg.motion.offset_history, notes)
     sinks, recorder = _open_sinks(st, pcfg, record=record, export=export, rerun_args=rerun_args, bind=bind,
                                   rotate_mb=rotate_mb, rotate_s=rotate_s, overwrite=overwrite, notes=notes)
-    return RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)
+    setup = RunSetup(st, names, srcs, pipeline, sinks, config, recorder, notes)
+    if start is not None:
+        setup.motion.start = start
+    return setup
+
+
+def _resume(st, names, record, resume_clock, history: int, notes: list[str]) -> PairState | None:
+    """The first pair's state when the run resumes a recorded clock offset (:func:`resumed_clock`):
+    from ``--resume-clock REC``, or else from the newest earlier recording where this one goes
+    (``--record`` to ``recordings/`` or to a directory). None: nothing to resume. A pair only:
+    a network's offsets are each camera's against the reference, estimated afresh."""
+    if len(names) != 2:
+        return None
+    src = Path(resume_clock) if resume_clock is not None else _previous_recording(st, record)
+    if src is None:
+        return None
+    if resume_clock is not None and not src.exists():
+        raise RecordingError(f"--resume-clock {src}: not found")
+    try:
+        offs, last, note = resumed_clock(src, tuple(names), history)
+    except RecordingError as exc:
+        if resume_clock is not None:
+            raise
+        notes.append(f"clock offset not resumed: {exc}")
+        return None
+    notes.append(note)
+    return PairState.resumed(tuple(names), offs, last) if offs else None
+
+
+def _previous_recording(st, record) -> Path | None:
+    """The newest ``.mcap`` of this station where the run records (``recordings/<station>-*``
+    for ``--record`` alone, any in a ``--record DIR``); None elsewhere."""
+    if record is True:
+        files = list(Path("recordings").glob(f"{st.name}-*.mcap"))
+    elif record is not None and Path(record).is_dir():
+        files = list(Path(record).glob("*.mcap"))
+    else:
+        return None
+    files = [f for f in files if f.is_file() and f.stat().st_size > 0]
+    return max(files, key=lambda f: f.stat().st_mtime) if files else None
 
 
 def _source_overrides(st, sources) -> dict[str, str]:

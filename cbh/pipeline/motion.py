@@ -168,6 +168,13 @@ class PairState:
         measurable, would look the same."""
         return cls(time_utc=None, cameras=(), gray=None)
 
+    @classmethod
+    def resumed(cls, cameras: tuple[str, str], offsets_s, time_utc: datetime | None = None) -> "PairState":
+        """The state before a run's first pair that resumes a recorded session's clock-offset
+        history (oldest first, [s]) for the same ``cameras``, last estimated at ``time_utc``: no
+        frames, the offset known."""
+        return cls(time_utc=time_utc, cameras=tuple(cameras), gray=None, offsets_s=tuple(float(o) for o in offsets_s))
+
     def without_frames(self) -> "PairState":
         """This state with its frames dropped (a lost pair): the offset history is kept."""
         return replace(self, gray=None)

@@ -43,6 +43,9 @@ def run_cmd(
     bind: str = typer.Option(None, "--bind", metavar="ADDR",
                              help="Address of the --rerun serve server (default 127.0.0.1; 0.0.0.0: every interface)."),
     device: str = typer.Option("cpu", "--device", help="Where the dense work runs: cpu (default) or a torch device, e.g. cuda."),
+    resume_clock: Path = typer.Option(None, "--resume-clock", metavar="REC",
+                                      help="Start from the cameras' clock offset recorded in REC (.mcap or directory; "
+                                           "default: the newest earlier recording where --record writes)."),
 ) -> None:
     """Run the service: pair the two cameras' frames, compute cloud-base heights, record/view/export.
 
@@ -62,5 +65,6 @@ def run_cmd(
         cadence_s=cadence_s, frames=frames, duration_s=duration, size_px=size,
         pair_tolerance_s=pair_tolerance_s, watch=watch, realtime=realtime,
         rotate_mb=rotate_mb, rotate_s=rotate_s, demo_frames=DEMO_FRAMES, overwrite=overwrite, bind=bind, device=device,
+        resume_clock=resume_clock,
     )
     print("\n".join(summary_lines(setup, run_with_status(setup, status=not quiet))))
