@@ -206,3 +206,25 @@ def test_a_restarted_run_resumes_the_recorded_clock(tmp_path, capsys):
     assert abs(again[0].diagnostics["clock_offset_s"] - first[-1]) <= 2.0, (first, again[0].diagnostics)
     assert "clock_offset" in again[0].flags and "geometry_mismatch" not in again[0].flags
     assert "clock_unknown" not in again[1].flags
+
+
+@pytest.mark.slow
+def test_calibrate_reports_the_clock_beside_the_orientation(tmp_path):
+    """`cbh calibrate --relative-only` on the half hour (the sun's track is too short for an
+    absolute fit): it measures FE4's clock from the sky maps (within 2 s of the run's −31 s),
+    writes it into the station (``clock_offset_s``, which a run then starts from), matches the
+    clouds carried to one capture time (ORB at one stamp met behind both cameras, and the fit was
+    refused as swapped cameras), and warns that the clouds alone turn FE4 by more than the
+    station's calibration claims: its tilt along the baseline trades against the heights."""
+    from cbh.actions.calibrate import CalibrateOptions, calibrate
+    from cbh.geometry.station import load_station
+
+    out = tmp_path / "cal.toml"
+    rep = calibrate(DATA / "station.toml", {"fe3": str(DATA / "fe3"), "fe4": str(DATA / "fe4")}, out,
+                    CalibrateOptions(relative_only=True))
+    c = rep["cameras"]["fe4"]
+    assert abs(c["clock_offset_s"] + 31.0) <= 2.0 and c["clock_offset_pairs"] >= 25, c
+    assert rep["pairs"][0]["method"] == "skyflow"
+    assert load_station(out).cameras["fe4"].clock_offset_s == pytest.approx(c["clock_offset_s"])
+    assert any("trades against the layers' heights" in w for w in rep["warnings"]), rep["warnings"]
+    assert any("clock offset" in line for line in rep["summary"])

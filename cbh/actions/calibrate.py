@@ -187,7 +187,8 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
         raise CalibrationError("no usable sun track: " + "; ".join(f"{n}: {sun_notes[n]}" for n in s.names)
                                + " (with no sun, --relative-only calibrates the other cameras relative to "
                                f"{s.ref})")
-    start, start_station, pairs = s.starting_rotations(sun_obs)
+    clocks = s.use_clocks()
+    start, start_station, pairs = s.starting_rotations(sun_obs, clocks)
     s.check_cloud_in_front({n: start_station[n] for n in sun_obs}, pairs)  # cameras each fixed by its sun
     sun_pairs = s.sun_pairs(sun_obs, start)
     fit = _best_fit([start, start_station], sun_obs, pairs, s.ref, loss="cauchy", scale=3.0, sun_pairs=sun_pairs)
@@ -197,7 +198,8 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
                         sun_pairs=sun_pairs)
     s.check_cloud_in_front({n: c.R_world_from_cam for n, c in fit.cameras.items()}, pairs, fit.epipolar_rad)
     report = s.report(fit, pairs, sun_obs, sun_notes, station_path, out, t_start)
-    _write_station(station_path, out, {n: fit.cameras[n] for n in s.names}, _comment(report))
+    _write_station(station_path, out, {n: fit.cameras[n] for n in s.names}, _comment(report),
+                   {n: c["clock_offset_s"] for n, c in report["cameras"].items() if c["clock_offset_s"] is not None})
     for w in report["warnings"]:  # on stderr through the CLI's log handler, beside the report on stdout
         _log.warning("%s", w)
     return report
@@ -237,6 +239,10 @@ class _Session:
         self.compared = {pq: 0 for pq in self.pairs}
         self.identical = {pq: 0 for pq in self.pairs}
         self._sun_cache: dict[int, np.ndarray | None] = {}
+        # the clocks: per pair its frames before, each pair's sky-map offset and carried matches
+        self.prev: dict[tuple[str, str], tuple] = {}
+        self.clock: dict[tuple[str, str], list[float]] = {pq: [] for pq in self.pairs}
+        self.carried: dict[tuple[str, str], list] = {pq: [] for pq in self.pairs}
 
     # --- reading -------------------------------------------------------------------------------
     def read(self, sources: dict[str, str]) -> None:
@@ -333,6 +339,7 @@ class _Session:
         inp = MatchInput(geometry=pipe.geometry, gray1=cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY),
                          gray2=cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY), cloud1=seg.clouds[0],
                          usable1=masks.usable[0], usable2=masks.usable[1], cloud2=seg.clouds[1])
+        self._sky(other, fa.time_utc, (inp.gray1, inp.gray2), masks.usable, seg.clouds[0])
         m = get_matcher("orb")(inp, self.orb_cfg)
         if not len(m):
             return
@@ -347,6 +354,63 @@ class _Session:
             if len(kept) > self.opt.refine_pairs:
                 del kept[1::2]
                 self.stash_stride[other] = stride * 2
+
+    def _sky(self, other: tuple[str, str], t: datetime, gray, usable, cloud1) -> None:
+        """The pair's clock offset on the sky maps against the pair before (within the motion's
+        ``max_gap_s``) and its carried matches on camera a's cloud (:meth:`Pipeline.sky_offset`):
+        the cloud correspondences of a pair whose clocks differ (:meth:`use_clocks`)."""
+        from cbh.pipeline.run import _on_mask
+
+        pipe = self.pipes[other]
+        before = self.prev.get(other)
+        self.prev[other] = (t, gray)
+        if before is None:
+            return
+        dt = (t - before[0]).total_seconds()
+        if not 0.0 < dt <= pipe.config.motion.max_gap_s:
+            return
+        sky = pipe.sky_offset(gray, usable, before[1], dt)
+        if not math.isfinite(sky.offset_s):
+            return
+        self.clock[other].append(float(sky.offset_s))
+        rays = np.concatenate([sky.a1, np.ones((len(sky.a1), 1))], axis=1) @ pipe.cam1.R_world_from_cam
+        on = _on_mask(cloud1, pipe.cam1.model.ray_to_pixel(rays))
+        if on.any():
+            self.carried[other].append((sky.a1[on], sky.flow[on], sky.rate[on]))
+
+    def clock_offset(self, pq: tuple[str, str]) -> tuple[float, float, int]:
+        """Camera b's clock offset against camera a from the sky maps: (median [s], robust spread
+        [s], pairs); NaN with none."""
+        v = np.asarray(self.clock[pq], np.float64)
+        if not v.size:
+            return math.nan, math.nan, 0
+        med = float(np.median(v))
+        return med, float(1.4826 * np.median(np.abs(v - med))), int(v.size)
+
+    def use_clocks(self) -> dict[tuple[str, str], float]:
+        """Pairs whose clocks differ by more than the pairing tolerance take their cloud
+        correspondences from the sky maps, camera b carried to camera a's capture time by each
+        pixel's own motion and the median offset, in place of ORB at the same stamp (with a 30 s
+        offset the real Fehmarn station's ORB matches missed their epipolar curves by 2° and,
+        triangulated, met behind both cameras: the fit was refused as "swapped cameras"); their
+        images are not re-matched by LK at the same stamp either. Returns {pair: offset used}."""
+        used = {}
+        for pq in self.pairs:
+            off, _, n = self.clock_offset(pq)
+            if not (n and abs(off) > self.pipes[pq].config.motion.offset_tolerance_s and self.carried[pq]):
+                continue
+            pipe = self.pipes[pq]
+            obs = []
+            for a1, flow, rate in self.carried[pq]:
+                r1 = np.concatenate([a1, np.ones((len(a1), 1))], axis=1)
+                r2 = np.concatenate([a1 + flow - rate * off, np.ones((len(a1), 1))], axis=1)
+                r1 = (r1 / np.linalg.norm(r1, axis=1, keepdims=True)) @ pipe.cam1.R_world_from_cam
+                r2 = (r2 / np.linalg.norm(r2, axis=1, keepdims=True)) @ pipe.cam2.R_world_from_cam
+                obs.append((r1, r2))
+            self.pair_obs[pq] = obs
+            self.stash[pq] = []
+            used[pq] = off
+        return used
 
     def _compare_images(self, other: tuple[str, str], fa: Frame, fb: Frame) -> None:
         """Count the pairs whose two images are the same; refuse at once when the first
@@ -397,7 +461,7 @@ class _Session:
             sun_obs[n] = SunObservations(np.array(d.rays), np.array(d.sun_enu), self.opt.sun_sigma_deg)
         return sun_obs, sun_notes
 
-    def starting_rotations(self, sun_obs: dict) -> tuple[dict, dict, list]:
+    def starting_rotations(self, sun_obs: dict, clocks: dict | None = None) -> tuple[dict, dict, list]:
         """Two starts for the fit (the RANSAC rotation of distant points; the station file's
         relative rotations), each sun-tracked camera first fitted to its own sun, and the ORB
         correspondences of every pair as PairObservations."""
@@ -433,7 +497,9 @@ class _Session:
             if len(keep) > cap:
                 keep = keep[:: len(keep) // cap + 1]
             ppr = _px_per_rad(self.work_cam[b])
-            pairs.append(PairObservations(a, b, ra[keep], rb[keep], t, self.opt.match_sigma_px / ppr, "orb"))
+            carried = (a, b) in (clocks or {})
+            pairs.append(PairObservations(a, b, ra[keep], rb[keep], t, self.opt.match_sigma_px / ppr,
+                                          "skyflow" if carried else "orb"))
         return start, start_station, pairs
 
     def _start_order(self, sun_obs: dict) -> list[tuple[str, str]]:
@@ -549,16 +615,20 @@ class _Session:
     def report(self, fit, pairs: list, sun_obs: dict, sun_notes: dict, station_path: Path, out: Path,
                t_start: float) -> dict:
         """The JSON report of :func:`calibrate` (its ``summary`` lines included)."""
-        cams = {n: self._camera_report(n, fit.cameras[n], sun_obs, sun_notes) for n in self.names}
+        cams = {n: {**self._camera_report(n, fit.cameras[n], sun_obs, sun_notes), **self._clock_report(n)}
+                for n in self.names}
         pair_rep = [self._pair_report(p, e) for p, e in zip(pairs, fit.epipolar_rad)]
         relative = {}
         for n in self.names[1:]:
             Rr = fit.cameras[self.ref].R_world_from_cam.T @ fit.cameras[n].R_world_from_cam
             R0 = self.station.cameras[self.ref].R_world_from_cam.T @ self.station.cameras[n].R_world_from_cam
             relative[n] = {"relative_change_deg": math.degrees(math.acos(min(1.0, (np.trace(R0.T @ Rr) - 1.0) / 2.0)))}
+        warnings = self._warnings(pairs, pair_rep, cams)
+        if not fit.absolute:
+            warnings += self._relative_warnings(relative)
         report = {
             "station": str(station_path),
-            "warnings": self._warnings(pairs, pair_rep, cams),
+            "warnings": warnings,
             "out": str(out),
             "calibrated_utc": _iso(datetime.now(timezone.utc)),
             "data_from_utc": _iso(min(self.data[n].t_first for n in self.names)),
@@ -598,6 +668,33 @@ class _Session:
             "sun_residuals": sres,
         }
 
+    def _relative_warnings(self, relative: dict) -> list[str]:
+        """Without the sun, a relative turn well beyond what the station says its calibration
+        leaves (``expected_miss_ratio``, or 0.15°): the clouds alone barely constrain camera b's
+        tilt along the baseline (it moves a deck's parallax, not its epipolar curves, near the
+        zenith), and a lens model's error can pull it. On the real Fehmarn hour they asked for
+        0.7° (mostly pitch) and put its 8.5 km deck at 5.5–6.5 km."""
+        gc = self.cfg0.geometry_check
+        limit = max(3.0 * math.degrees(gc.expected_miss_ratio), 0.15)
+        return [f"{n}: the clouds alone turn it by {r['relative_change_deg']:.2f} deg against {self.ref} (more than "
+                f"{limit:.2f} deg): without the sun, a camera's tilt along the baseline trades against the layers' "
+                "heights; check the new station on a known height (a kite, a drone: `cbh triangulate`; a ceilometer: "
+                "`cbh validate`) before using it"
+                for n, r in relative.items() if r["relative_change_deg"] > limit]
+
+    def _clock_report(self, n: str) -> dict:
+        """Camera ``n``'s clock offset against the reference (as a station file states it:
+        how many seconds late it captures against its stamps, the reference's own stated value
+        added): None when not measured; the reference keeps its stated value."""
+        stated = self.station.cameras[self.ref].clock_offset_s
+        if n == self.ref:
+            return {"clock_offset_s": stated, "clock_offset_spread_s": None, "clock_offset_pairs": 0}
+        off, spread, k = self.clock_offset((self.ref, n))
+        if not k:
+            return {"clock_offset_s": None, "clock_offset_spread_s": None, "clock_offset_pairs": 0}
+        return {"clock_offset_s": round(off + float(stated or 0.0), 2), "clock_offset_spread_s": round(spread, 2),
+                "clock_offset_pairs": k}
+
     def _pair_report(self, p, e: np.ndarray) -> dict:
         ppr_full = _px_per_rad(self.station.cameras[p.cam_b])
         inl = np.abs(e) <= 3.0 * p.sigma_rad * 2.0
@@ -632,15 +729,15 @@ def _unpack(bits: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
 
 
-def _write_station(station_path: Path, out: Path, fitted: dict, comment: list[str]) -> None:
-    """The station file rewritten with the fitted angles (comments and other keys kept), checked
-    to read back to the fitted rotations, written atomically to ``out``."""
+def _write_station(station_path: Path, out: Path, fitted: dict, comment: list[str], clocks: dict | None = None) -> None:
+    """The station file rewritten with the fitted angles and measured clock offsets (comments and
+    other keys kept), checked to read back to the fitted rotations, written atomically to ``out``."""
     import tomllib
 
     from cbh.geometry.station import parse_station
 
     text = station_path.read_text(encoding="utf-8")
-    new_text = rewrite_station_angles(text, {n: cf.angles_deg for n, cf in fitted.items()}, comment)
+    new_text = rewrite_station_angles(text, {n: cf.angles_deg for n, cf in fitted.items()}, comment, clocks)
     try:
         back = parse_station(tomllib.loads(new_text), base_dir=station_path.parent, path=out)
     except (tomllib.TOMLDecodeError, ConfigError) as exc:  # pragma: no cover - a bug here, said in one line
@@ -689,6 +786,10 @@ def _summary(rep: dict) -> list[str]:
             line += f", sun RMS {c['sun_rms_deg']:.3f} deg ({c['sun_rms_px']:.2f} px), {c['sun_outliers']} outliers"
         elif c["sun_note"]:
             line += f" ({c['sun_note']})"
+        if n != rep["reference"]:
+            line += (f"; clock offset {c['clock_offset_s']:+.2f} s (spread {c['clock_offset_spread_s']:.2f} s over "
+                     f"{c['clock_offset_pairs']} pairs)" if c.get("clock_offset_s") is not None
+                     else "; clock offset not measured (no cloud motion across the baseline)")
         out.append(line)
     for p in rep["pairs"]:
         out.append(f"{p['cameras'][0]}-{p['cameras'][1]} {p['method']}: {p['matches_used']} cloud matches from "
@@ -760,14 +861,17 @@ _CAMERA_HEADER = re.compile(r"^\s*\[\[\s*cameras\s*\]\]\s*(#.*)?$")
 _TABLE_HEADER = re.compile(r"""^\s*\[\[?\s*[A-Za-z_"']""")
 _ANGLE_KEY = re.compile(r"^\s*(yaw_deg|pitch_deg|roll_deg)\s*=")
 _ROTATION_KEY = re.compile(r"^\s*rotation\s*=")
+_CLOCK_KEY = re.compile(r"^\s*clock_offset_s\s*=")
 _NAME_KEY = re.compile(r"""^\s*name\s*=\s*["']([^"']*)["']""")
 
 
-def rewrite_station_angles(text: str, angles: dict[str, tuple[float, float, float]], comment: list[str]) -> str:
+def rewrite_station_angles(text: str, angles: dict[str, tuple[float, float, float]], comment: list[str],
+                           clocks: dict[str, float] | None = None) -> str:
     """The station TOML ``text`` with each named camera's orientation replaced by ``angles``
-    (yaw, pitch, roll [deg]); a ``rotation`` matrix is replaced too. Everything else (comments,
-    other keys, tables) is kept; ``comment`` lines go above the first ``[[cameras]]``, replacing
-    an earlier calibration comment."""
+    (yaw, pitch, roll [deg]); a ``rotation`` matrix is replaced too, and ``clock_offset_s`` by
+    ``clocks`` where given. Everything else (comments, other keys, tables) is kept; ``comment``
+    lines go above the first ``[[cameras]]``, replacing an earlier calibration comment."""
+    clocks = clocks or {}
     lines = text.splitlines()
     # drop an earlier `cbh calibrate` comment block
     out_lines, skip = [], False
@@ -801,7 +905,7 @@ def rewrite_station_angles(text: str, angles: dict[str, tuple[float, float, floa
                 kept, k, anchor = [], 0, None
                 while k < len(block):
                     b = block[k]
-                    if _ANGLE_KEY.match(b):
+                    if _ANGLE_KEY.match(b) or (name in clocks and _CLOCK_KEY.match(b)):
                         anchor = anchor if anchor is not None else len(kept)
                         k += 1
                         continue
@@ -820,6 +924,8 @@ def rewrite_station_angles(text: str, angles: dict[str, tuple[float, float, floa
                                  default=len(kept))
                 y, p, r = angles[name]
                 new = [f"yaw_deg = {y:.5f}", f"pitch_deg = {p:.5f}", f"roll_deg = {r:.5f}"]
+                if name in clocks:
+                    new.append(f"clock_offset_s = {clocks[name]:.2f}  # measured by `cbh calibrate` (sky maps)")
                 block = kept[:anchor] + new + kept[anchor:]
             result.append(ln)
             result.extend(block)

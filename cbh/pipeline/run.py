@@ -528,13 +528,19 @@ class Pipeline:
         if mot.sky_check_in > 0 and math.isfinite(running_offset(mot.offsets_s)):
             return SkyClock.unknown()
         with _timed(ctx, "clock"):
-            if self._sky_grid is None:
-                self._sky_grid = sky_grid((self.cam1, self.cam2))
-            c1, c2 = self.cam1.position_m, self.cam2.position_m
-            filt = self.config.filtering
-            sc = sky_clock(self._sky_grid, gray, mot.prev_gray, masks.usable, np.asarray(c2 - c1, np.float64)[:2],
-                           float(c2[2] - c1[2]), mot.dt_s, height_range_m=(filt.min_height_m, filt.max_height_m))
-        if math.isfinite(sc.offset_s) and abs(sc.offset_s) > mcfg.max_offset_s:
+            return self.sky_offset(gray, masks.usable, mot.prev_gray, mot.dt_s)
+
+    def sky_offset(self, gray, usable, prev_gray, dt_s: float) -> SkyClock:
+        """Camera 2's clock offset on the sky maps (:func:`~.skyclock.sky_clock`) from this pair's
+        working-size grey frames ``gray`` and usable masks and the pair ``dt_s`` [s] before
+        (``prev_gray``); unknown beyond ``max_offset_s``. (Also what `cbh calibrate` reports.)"""
+        if self._sky_grid is None:
+            self._sky_grid = sky_grid((self.cam1, self.cam2))
+        c1, c2 = self.cam1.position_m, self.cam2.position_m
+        filt = self.config.filtering
+        sc = sky_clock(self._sky_grid, gray, prev_gray, usable, np.asarray(c2 - c1, np.float64)[:2],
+                       float(c2[2] - c1[2]), dt_s, height_range_m=(filt.min_height_m, filt.max_height_m))
+        if math.isfinite(sc.offset_s) and abs(sc.offset_s) > self.config.motion.max_offset_s:
             return SkyClock.unknown(sc.tiles)
         return sc
 
