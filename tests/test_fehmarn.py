@@ -124,7 +124,9 @@ def test_re_paired_at_minus_ninety_seconds(station, as_recorded):
 
 def test_a_stated_offset_is_used_from_the_first_pair(station, tmp_path):
     """A station file that states the clocks (``clock_offset_s`` per camera): the first pair already
-    knows the offset (no ``clock_unknown``), and the estimate goes on from there."""
+    reports the offset, and the estimate goes on from there. Without motion it cannot carry a
+    camera yet, so its mismatch is the clock's (``clock_unknown``), never ``geometry_mismatch``;
+    the second pair is valid."""
     from dataclasses import replace
 
     cams = dict(station.cameras)
@@ -135,9 +137,10 @@ def test_a_stated_offset_is_used_from_the_first_pair(station, tmp_path):
     (tmp_path / "station.toml").write_text(st.to_toml())
     again = load_station(tmp_path / "station.toml")
     assert again.cameras["fe4"].clock_offset_s == -30.5
-    r = _run(again, 0, 1)[0]
+    r, r2 = _run(again, 0, 2)
     assert r.diagnostics["clock_offset_s"] == pytest.approx(-30.5)
-    assert "clock_unknown" not in r.flags and "clock_offset" in r.flags
+    assert "geometry_mismatch" not in r.flags and "clock_offset" in r.flags
+    assert not {"clock_unknown", "geometry_mismatch"} & set(r2.flags), r2.flags
 
 
 def test_offset_history_restarts_on_a_clock_jump():
