@@ -7,7 +7,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_write"]
+__all__ = ["atomic_write", "refuse_inputs"]
 
 
 @contextmanager
@@ -37,3 +37,51 @@ def atomic_write(path: str | Path) -> Iterator[Path]:
             pass
         except OSError:  # pragma: no cover - e.g. the folder went away; the caller reports its own error
             pass
+
+
+_DATA_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".mcap", ".nc", ".mp4",
+                            ".avi", ".mkv", ".mov", ".toml", ".csv", ".parquet", ".txt"})
+
+
+def _same(a: Path, b: Path) -> bool:
+    """One file (or folder) under two names: the same inode when both exist, else the same
+    resolved path."""
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def refuse_inputs(outputs, inputs, option: str = "--out") -> None:
+    """Refuse (:class:`~cbh.errors.ConfigError`, one line, exit 2) to write any of ``outputs``
+    over one of the command's ``inputs``, before anything is read or written.
+
+    Paths are compared as files, not names: resolved paths, and inodes where both exist (a
+    hard link, a symlink, ``./a`` and ``a`` are caught). An input folder (image folders,
+    rotated recordings) counts with every data file directly in it (images, videos, recordings,
+    NetCDF: ``_DATA_SUFFIXES``); an output folder is refused when it is an input. Anything that is not a local path (a URL, ``sim``) is skipped. ``outputs``
+    and ``inputs``: iterables of str / Path (None entries ignored)."""
+    from cbh.errors import ConfigError
+
+    ins: list[Path] = []
+    for x in inputs:
+        if x is None or (isinstance(x, str) and ("://" in x or x.strip().lower() == "sim")):
+            continue
+        q = Path(x)
+        ins.append(q)
+        if q.is_dir():
+            try:
+                ins.extend(f for f in q.iterdir() if f.is_file() and f.suffix.lower() in _DATA_SUFFIXES)
+            except OSError:
+                pass
+    for o in outputs:
+        if o is None:
+            continue
+        out = Path(o)
+        for q in ins:
+            if _same(out, q):
+                kind = "folder" if q.is_dir() else "file"
+                raise ConfigError(f"{option} {out}: that is one of the command's own inputs ({kind} {q}); "
+                                  "writing it would destroy it: give another path")

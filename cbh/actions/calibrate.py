@@ -177,6 +177,9 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     station_path, out = Path(station_path), Path(out)
     if out.suffix.lower() != ".toml":  # a calibration written over `--out SESSION.mcap` lost the recording
         raise ConfigError(f"--out {out}: the calibrated station is TOML; use a .toml file name")
+    from cbh.fileio import refuse_inputs
+
+    refuse_inputs([out], list(sources.values()), "--out")  # (over the station file itself: as the help says)
     station = load_station(station_path)
     _check_sources(station, sources)
     s = _Session(station, station_path.parent, opt)

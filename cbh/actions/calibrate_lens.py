@@ -73,8 +73,13 @@ class LensCalOptions:
         cols, rows = self.board
         if cols < 2 or rows < 2:
             raise InputError(f"--board {cols}x{rows}: a board needs at least 2 x 2 inner corners")
-        if not (self.square_mm > 0 and math.isfinite(self.square_mm)):
-            raise InputError(f"--square-mm must be a positive length in mm, got {self.square_mm}")
+        if not (math.isfinite(self.square_mm) and SQUARE_MM_RANGE[0] <= self.square_mm <= SQUARE_MM_RANGE[1]):
+            raise InputError(f"--square-mm: a board square's side in mm, {SQUARE_MM_RANGE[0]:g} to "
+                             f"{SQUARE_MM_RANGE[1]:g}, got {self.square_mm:g}")
+
+
+#: A board square's side [mm]: a printed board's 1 mm up to a 10 m target (1e-300 ended in a traceback).
+SQUARE_MM_RANGE = (0.1, 10_000.0)
 
 
 def parse_board(text: str) -> tuple[int, int]:
@@ -268,7 +273,13 @@ def _write_model(model, out: Path):
         raise InputError(f"--out {out}: is a directory; give the file name, e.g. {out / 'calib_results.txt'}")
     if not out.parent.is_dir():
         raise InputError(f"--out {out}: folder {out.parent} does not exist")
-    out.write_text(format_ocamcalib(model))
+    from cbh.fileio import atomic_write
+
+    replaced = out.exists()
+    with atomic_write(out) as tmp:  # a full disk or Ctrl-C leaves the older file whole
+        tmp.write_text(format_ocamcalib(model))
+    if replaced:
+        log.info("--out %s existed: replaced", out)
     return read_ocamcalib(out)
 
 
@@ -296,9 +307,13 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
         Too few images or boards, no board anywhere, images of different sizes, an unreadable
         file, a field of view left uncovered (the message says how many boards more, and where).
     """
+    from cbh.fileio import refuse_inputs
     from cbh.geometry import lenscal
 
     paths = [Path(p) for p in images]
+    refuse_inputs([out], paths, "--out")
+    if opts.report_dir is not None:
+        refuse_inputs([opts.report_dir], paths, "--report")
     if len(paths) < MIN_BOARDS:
         raise InputError(f"{len(paths)} image{'' if len(paths) == 1 else 's'} given; at least {MIN_BOARDS} are "
                          "needed, each with the board in another part of the view")
@@ -318,9 +333,11 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
     t0 = time.perf_counter()
     held = lenscal.held_out_residuals(corners, boards, calib, config) if opts.held_out else None
     t_held = time.perf_counter() - t0
+    replaced = Path(out).exists()
     stored = _write_model(calib.model, Path(out))
     residuals = lenscal.residuals_of(stored, calib.poses, corners, boards)
     report = _report(paths, views, stored, residuals, held, cov, opts, Path(out))
+    report["out_replaced"] = replaced
     report["timing_s"] = {"detect": round(views.seconds, 3), "calibrate": round(t_cal, 3),
                           "held_out": round(t_held, 3), "bundle_adjustment_nfev": calib.nfev}
     if opts.report_dir is not None:
@@ -370,7 +387,7 @@ def _report(paths, views: _Views, model, residuals, held, cov, opts: LensCalOpti
 def _summary(rep: dict) -> list[str]:
     o, m, c = rep["overall"], rep["model"], rep["coverage"]
     n_all = len(rep["images"])
-    lines = [f"{rep['out']}: lens calibrated from {o['n_images']} of {n_all} images "
+    lines = [f"{rep['out']}{' (replaced)' if rep.get('out_replaced') else ''}: lens calibrated from {o['n_images']} of {n_all} images "
              f"({o['n_points']} corners, order {rep['config']['order']})"]
     if rep["no_board"]:
         lines.append("no board in: " + ", ".join(Path(p).name for p in rep["no_board"]))

@@ -188,8 +188,11 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
     station : Station or None
         Ground grid and camera geometry for the maps (default: the recorded station).
     """
-    out = Path(out)
     from cbh.actions import aviation
+    from cbh.fileio import refuse_inputs
+
+    out = Path(out)
+    refuse_inputs([out], list(sessions) if isinstance(sessions, (list, tuple)) else [sessions], "--out")
 
     if product in aviation.PRODUCTS:  # metar | cl61 | eprofile: cbh/actions/aviation.py
         if not daily and out.is_file() and _mcap_state(out) != "foreign":

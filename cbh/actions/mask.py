@@ -44,8 +44,11 @@ def obstacle_mask(source: str, camera: str, out, station=None, frames: int = 30,
     from cbh.pipeline.obstacles import obstacle_mask_from_frames
     from cbh.presets import station_path
 
+    from cbh.fileio import refuse_inputs
+
     out = Path(out)
     _check_out(out)
+    refuse_inputs([out], [source, station if isinstance(station, (str, Path)) else None], "--out")
     st = load_station(station_path(station) if station else station_path())
     cam = st.camera(camera)
     src = open_source(cam, source, base_dir=base_dir if base_dir is not None else Path.cwd())

@@ -194,7 +194,10 @@ def _check_image_suffix(out: Path) -> None:
 
 def quicklook(sessions, out, *, title: str | None = None) -> str:
     """Draw the quicklook of recorded sessions to ``out`` (PNG); returns the CLI's summary line."""
+    from cbh.fileio import refuse_inputs
+
     out = Path(out)
+    refuse_inputs([out], list(sessions) if isinstance(sessions, (list, tuple)) else [sessions], "--out")
     if out.is_dir():
         raise RecordingError(f"--out {out}: is a directory; give the image's file name (e.g. {out / 'quicklook.png'})")
     if not out.parent.is_dir():

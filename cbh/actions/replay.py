@@ -66,8 +66,10 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
     device : str
         Reprocess only: where the pipeline's dense work runs (``"cpu"``, ``"cuda"`` …).
     """
+    from cbh.fileio import refuse_inputs
     from cbh.outputs.record import open_session
 
+    refuse_inputs([record, rerun[1] if rerun and rerun[0] == "save" else None], [session, station], "--record")
     s = open_session(session)
     t0 = time.perf_counter()
     if station is None:

@@ -226,8 +226,13 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     from cbh.presets import station_path
     from cbh.geometry.station import load_station
 
+    from cbh.fileio import refuse_inputs
+
     st = load_station(station_path(station) if station else station_path())
     names, specs, simulated = _camera_specs(st, cameras, _source_overrides(st, sources))
+    srcs_in = [v for v in specs.values() if isinstance(v, (str, Path))] if isinstance(specs, dict) else []
+    refuse_inputs([record if record is not True else None], srcs_in, "--record")
+    refuse_inputs([export], srcs_in, "--export")
     cfg_dict = dict(st.sections.get("service", {}))
     over = {"cadence_s": cadence_s, "frames": frames, "duration_s": duration_s, "pair_tolerance_s": pair_tolerance_s}
     cfg_dict.update({k: v for k, v in over.items() if v is not None})

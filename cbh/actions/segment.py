@@ -195,7 +195,11 @@ def segment_files(paths: list[Path], out: Path, station_file: Path | None = None
     paths = [Path(p) for p in paths]
     if not paths:
         raise InputError("give at least one image")
+    from cbh.fileio import refuse_inputs
+
+    refuse_inputs([out], [*paths, station_file], "--out")
     dests = mask_paths(paths, Path(out))
+    refuse_inputs(dests, [*paths, station_file], "--out")
     rows = []
     for p, dest in zip(paths, dests):
         img, _ = read_image(p)

@@ -66,11 +66,15 @@ def simulate_to_folder(out, *, station=None, scene="two-layers", frames: int = 1
         raise ConfigError(f"frames must be >= 1, got {frames}")
     if not (math.isfinite(cadence_s) and cadence_s > 0):
         raise ConfigError(f"cadence must be > 0 s, got {cadence_s}")
+    from cbh.fileio import refuse_inputs
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output folder is a file, not a directory: {out}")
-    st = load_station(station_path(station) if station else station_path())
+    st_file = station_path(station) if station else station_path()
     scene_file = scene_path(scene)
+    refuse_inputs([out / "station.toml", out / "scene.toml"], [st_file, scene_file], "--out")
+    st = load_station(st_file)
     sc = load_scene(scene_file)
     if clock_offsets:
         from cbh.sim.scene import with_clock_offsets

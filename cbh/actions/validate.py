@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import ConfigError, InputError, RecordingError
+from cbh.fileio import atomic_write
 
 __all__ = ["BANDS_M", "column_bases", "match", "statistics", "validate"]
 
@@ -118,6 +119,35 @@ def statistics(cbh_m, ceilo_m) -> dict:
             "bias_m": float(d.mean()), "r2": r2, "within_150m": float((np.abs(d) <= WITHIN_M).mean())}
 
 
+def detection(cbh_m, ceilo_m, matched) -> dict:
+    """The detection table of a comparison (the matched pairs): both cloudy (hits), the ceilometer
+    cloudy and cbh clear above it (misses), cbh cloudy and the ceilometer clear (false alarms),
+    both clear; with the probability of detection and the false-alarm ratio (None: undefined)."""
+    a, b, m = np.asarray(cbh_m, np.float64), np.asarray(ceilo_m, np.float64), np.asarray(matched, bool)
+    ca, cb = np.isfinite(a) & m, np.isfinite(b) & m
+    hits, misses = int((ca & cb).sum()), int((~ca & cb & m).sum())
+    fa, clear = int((ca & ~cb).sum()), int((m & ~ca & ~cb).sum())
+    return {"hits": hits, "misses": misses, "false_alarms": fa, "both_clear": clear,
+            "pod": hits / (hits + misses) if hits + misses else None,
+            "far": fa / (hits + fa) if hits + fa else None}
+
+
+def _save(fig, path: Path) -> None:
+    """A figure written whole or not at all (a full disk leaves the older file)."""
+    import matplotlib.pyplot as plt
+
+    try:
+        with atomic_write(path) as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+    finally:
+        plt.close(fig)
+
+
+def _span(t) -> str:
+    t = np.sort(np.asarray(t).astype("datetime64[s]"))
+    return f"{t[0]}Z .. {t[-1]}Z" if t.size else "nothing"
+
+
 def _plots(t, a, b, out_dir: Path, stem: str) -> list[Path]:
     import matplotlib
 
@@ -132,7 +162,7 @@ def _plots(t, a, b, out_dir: Path, stem: str) -> list[Path]:
     ax.plot([0, hi], [0, hi], "k--", lw=0.8)
     ax.set_xlabel("ceilometer base [m]"), ax.set_ylabel("cbh base above the ceilometer [m]")
     p = out_dir / f"{stem}-scatter.png"
-    fig.savefig(p, dpi=100), plt.close(fig)
+    _save(fig, p)
     paths.append(p)
     fig, ax = plt.subplots(figsize=(8, 3.5))
     ax.plot(t, b, ".", ms=3, label="ceilometer")
@@ -140,20 +170,32 @@ def _plots(t, a, b, out_dir: Path, stem: str) -> list[Path]:
     ax.set_ylabel("cloud base [m]"), ax.legend()
     fig.autofmt_xdate()
     p = out_dir / f"{stem}-timeseries.png"
-    fig.savefig(p, dpi=100), plt.close(fig)
+    _save(fig, p)
     paths.append(p)
     return paths
+
+
+#: The largest --match-s: a day [s] (a window beyond it pairs everything with everything).
+MAX_MATCH_S = 86400.0
+
+
+def _session_paths(sessions) -> list:
+    return list(sessions) if isinstance(sessions, (list, tuple)) else [sessions]
 
 
 def validate(ceilometer_files, sessions, out, match_s: float = 30.0) -> tuple[dict, str]:
     """Compare; write ``out`` (JSON) and its two PNGs beside it. Returns (report, text)."""
     from cbh.outputs.ceilometer import read_ceilometer
 
+    from cbh.fileio import refuse_inputs
+
     out = Path(out)
     if not out.parent.is_dir():
         raise RecordingError(f"output directory does not exist: {out.parent}")
-    if match_s <= 0:
-        raise ConfigError(f"--match-s: must be > 0, got {match_s}")
+    if not (math.isfinite(match_s) and 0 < match_s <= MAX_MATCH_S):
+        raise ConfigError(f"--match-s: a time window in seconds, > 0 and at most {MAX_MATCH_S:g} (a day), got {match_s}")
+    beside = [out.parent / f"{out.stem}-{k}.png" for k in ("scatter", "timeseries")]
+    refuse_inputs([out, *beside], [*ceilometer_files, *_session_paths(sessions)], "--out")
     files = []
     ct, cb = [], []
     for f in ceilometer_files:
@@ -161,19 +203,30 @@ def validate(ceilometer_files, sessions, out, match_s: float = 30.0) -> tuple[di
         files.append({"file": str(f), "kind": c.kind, "profiles": int(c.time_utc.size), "skipped": c.skipped})
         ct.append(c.time_utc), cb.append(c.bases_m[:, 0])
     ct, cb = np.concatenate(ct), np.concatenate(cb)
+    if not ct.size:
+        raise InputError(f"no time-stamped profile in {', '.join(str(f) for f in ceilometer_files)}: nothing to "
+                         "compare with (CL31/CL51 messages need their time stamps)")
     t, a, okt, known = column_bases(sessions)
     b, n = match(t, a, ct, cb, match_s)
+    if not (n > 0).any():
+        raise InputError(f"no overlap: the recording(s) span {_span(t)}, the ceilometer file(s) {_span(ct)} "
+                         f"(pairs are matched to profiles within ±{match_s:g} s)")
+    det = detection(a, b, known & (n > 0))
     a = np.where(known & (n > 0), a, np.nan)
     rep = {"ceilometer_files": files, "pairs": int(t.size), "matched_pairs": int((n > 0).sum()),
-           "all": statistics(a, b), "by_height_band": {}, "by_sky_type": {}}
+           "detection": det, "all": statistics(a, b), "by_height_band": {}, "by_sky_type": {}}
     for lo, hi in BANDS_M:
         sel = (b >= lo) & (b < hi)
         rep["by_height_band"][f"{lo:.0f}-{hi:.0f} m" if math.isfinite(hi) else f">={lo:.0f} m"] = statistics(a[sel], b[sel])
     for name, sel in (("broken/overcast", okt >= 5), ("few/scattered", (okt >= 0) & (okt < 5))):
         rep["by_sky_type"][name] = statistics(a[sel], b[sel])
     rep["plots"] = [str(p) for p in _plots(t.astype("datetime64[ms]").astype(object), a, b, out.parent, out.stem)]
-    out.write_text(json.dumps(rep, indent=2))
-    lines = [f"{rep['matched_pairs']} of {rep['pairs']} pairs matched to {ct.size} ceilometer profiles"]
+    with atomic_write(out) as tmp:
+        tmp.write_text(json.dumps(rep, indent=2))
+    lines = [f"{rep['matched_pairs']} of {rep['pairs']} pairs matched to {ct.size} ceilometer profiles",
+             f"  detection: {det['hits']} both cloudy, {det['misses']} missed (the ceilometer saw cloud over it, cbh "
+             f"none), {det['false_alarms']} false alarms (cbh cloud, the ceilometer clear), {det['both_clear']} both "
+             "clear; heights compared on the first"]
 
     def fmt(name, s):
         if not s["n"]:

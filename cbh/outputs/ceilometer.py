@@ -162,9 +162,30 @@ class CeiloBases:
     skipped: int = 0  # messages that could not be placed in time
 
 
+def _classic_complete(path: Path) -> None:
+    """A classic (CDF-1/2) NetCDF file holds every byte its header declares, or InputError.
+
+    A classic file cut short still opens: the missing data read back as fill (time 00:00, base
+    0), and a half file was "0 of 6 pairs matched" instead of an error. scipy's reader checks
+    each variable's extent against the bytes present."""
+    from scipy.io import netcdf_file
+
+    try:
+        with netcdf_file(path, "r", mmap=False):
+            pass
+    except ValueError as exc:
+        raise InputError(f"{path}: a truncated NetCDF file: its header declares more data than the file holds "
+                         f"({exc}); was it cut short in a copy or a download?") from None
+    except (OSError, TypeError) as exc:  # not classic after all: xarray judges it
+        log.debug("classic NetCDF check skipped for %s: %s", path, exc)
+
+
 def _nc_bases(path: Path) -> CeiloBases:
     import xarray as xr
 
+    with open(path, "rb") as fh:
+        if fh.read(3) == b"CDF":
+            _classic_complete(path)
     try:
         ds = xr.open_dataset(path, decode_timedelta=False)
     except Exception as exc:  # xarray/netCDF4 raise many kinds for a foreign file

@@ -825,11 +825,22 @@ def write_netcdf(records: list[PairRecord], info: dict, out) -> None:
         raise write_error(out, exc) from None
 
 
+def _disk_full(path) -> bool:
+    """Whether ``path``'s folder is writable but its file system has no room left: the NetCDF/HDF5
+    library reports a full disk as "Permission denied" (EACCES)."""
+    folder = Path(path).parent
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return os.access(folder, os.W_OK) and st.f_bavail * st.f_frsize < 64 * 1024
+
+
 def write_error(path, exc: OSError) -> RecordingError:
     """The one-line error of a failed write of ``path``: disk full, or the OS's reason, and never
     the temporary file beside ``path`` that the writer actually had open (:func:`atomic_write`;
     pyarrow's own messages name it)."""
-    if exc.errno == errno.ENOSPC:
+    if exc.errno == errno.ENOSPC or (exc.errno in (errno.EACCES, errno.EPERM) and _disk_full(path)):
         return RecordingError(f"disk full while writing {path}")
     why = os.strerror(exc.errno) if exc.errno else " ".join(str(exc).split())
     return RecordingError(f"cannot write {path}: {why}")
@@ -848,15 +859,21 @@ def _write_records(records: list[PairRecord], info: dict, fmt: str, out: Path) -
             raise RecordingError("no complete pairs in the recording(s): nothing to export")
         write_netcdf(records, info, out)
         return sum(max(1, len(r.height_m)) for r in records), len(records)
-    if out.exists():
-        out.unlink()  # an explicit --out is replaced
     from types import SimpleNamespace
 
-    with LayerExporter(out, SimpleNamespace(altitude_m=info["altitude_m"]), fmt=fmt,
-                       diagnostics=_all_diagnostics(records)) as exp:
-        for r in records:
-            exp.write_record(r)
-        n = exp.rows_written
+    # an explicit --out is replaced, whole: written beside it and renamed over it (a full disk
+    # or Ctrl-C leaves the older file; it was unlinked first and then written in place)
+    try:
+        with atomic_write(out) as tmp:
+            with LayerExporter(tmp, SimpleNamespace(altitude_m=info["altitude_m"]), fmt=fmt,
+                               diagnostics=_all_diagnostics(records)) as exp:
+                for r in records:
+                    exp.write_record(r)
+                n = exp.rows_written
+    except OSError as exc:
+        raise write_error(out, exc) from None
+    except RecordingError as exc:  # the exporter names its file: the temporary one
+        raise RecordingError(str(exc).replace(str(tmp), str(out))) from None
     return n, len(records)
 
 

@@ -15,7 +15,7 @@ def calibrate_lens_cmd(
     images: list[Path] = typer.Argument(..., help="Chessboard images of one camera (same size), the board in a different place in each."),
     board: str = typer.Option(..., "--board", help="Inner corners COLSxROWS (OpenCV's patternSize), e.g. 6x8 for 7 x 9 squares."),
     square_mm: float = typer.Option(..., "--square-mm", help="Side of a board square [mm]."),
-    out: Path = typer.Option(..., "--out", help="calib_results.txt to write (OCamCalib's layout; cbh and the toolbox read it)."),
+    out: Path = typer.Option(..., "--out", help="calib_results.txt to write (OCamCalib's layout; cbh and the toolbox read it; an existing one is replaced, never one of the images)."),
     order: int = typer.Option(4, "--order", min=2, max=12, help="Degree of the polynomial f(r)."),
     loss: str = typer.Option("linear", "--loss", help="linear (least squares) or huber (robust)."),
     huber_px: float = typer.Option(1.0, "--huber-px", help="Huber loss: residual where it turns linear [px]."),
