@@ -43,6 +43,10 @@ def inputs(tmp_path):
         if (BOARDS / f"Fisheye1_{k}.jpg").is_file():
             (d / f"board{k}.jpg").symlink_to(BOARDS / f"Fisheye1_{k}.jpg")
     (d / "station.toml").write_text((REPO / "configs" / "unb-lea.toml").read_text())
+    for k in (1, 2):  # a camera folder each, for `run`
+        (d / f"c{k}").mkdir()
+        if (BOARDS / "Fisheye1_1.jpg").is_file():
+            (d / f"c{k}" / f"cam{k}_20240621T140000Z.jpg").symlink_to(BOARDS / "Fisheye1_1.jpg")
     return d
 
 
@@ -58,8 +62,8 @@ def _commands(d: Path) -> list[tuple[str, list[str], list[Path]]]:
                             "{OUT}"], [b1, b2]),
         ("segment", ["segment", str(b1), "--out", "{OUT}"], [b1]),
         ("replay", ["replay", str(rec), "--rerun", "save", "{OUT}"], [rec]),
-        ("run --export", ["run", "--station", str(st), "--source", f"cam1={d}", "--source", f"cam2={d}",
-                          "--export", "{OUT}", "-q"], [b1]),
+        ("run --export", ["run", "--station", str(st), "--source", f"cam1={d / 'c1'}", "--source",
+                          f"cam2={d / 'c2'}", "--export", "{OUT}", "-q"], [d / "c1" / "cam1_20240621T140000Z.jpg"]),
     ]
 
 
@@ -68,7 +72,7 @@ def test_no_command_writes_over_its_own_inputs(inputs, capsys):
     """Round 3: `calibrate-lens … --out IMG1.jpg` overwrote a chessboard image, `validate … -o REC.mcap`
     replaced the recording. Every output, pointed at every input (by another name: ./x, a link),
     is refused before anything is read, and no input changes."""
-    every = sorted(p for p in inputs.iterdir())
+    every = sorted(p for p in inputs.rglob("*") if p.is_file())
     before = {p: _digest(p) for p in every}
     originals = {p: _digest(p.resolve()) for p in every}
     for name, argv, reads in _commands(inputs):
@@ -79,7 +83,8 @@ def test_no_command_writes_over_its_own_inputs(inputs, capsys):
                 assert rc == 2, (name, alias)
                 assert len(err) == 1 and err[0].startswith("cbh: error:"), (name, err)
                 # refused as an input, or (replay, segment) for a name no output of theirs can have
-                assert any(m in err[0] for m in ("one of the command's own inputs", "must end in .rrd")), (name, err)
+                assert any(m in err[0] for m in ("one of the command's own inputs", "must end in .rrd",
+                                                 "is written as PNG", "would overwrite the input")), (name, err)
     assert {p: _digest(p) for p in every} == before
     assert {p: _digest(p.resolve()) for p in every} == originals
 

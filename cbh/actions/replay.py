@@ -69,7 +69,8 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
     from cbh.fileio import refuse_inputs
     from cbh.outputs.record import open_session
 
-    refuse_inputs([record, rerun[1] if rerun and rerun[0] == "save" else None], [session, station], "--record")
+    refuse_inputs([rerun[1] if rerun and rerun[0] == "save" else None], [session, station], "--rerun save")
+    # (--record onto the session: refused by _reprocess_setup, which says how)
     s = open_session(session)
     t0 = time.perf_counter()
     if station is None:

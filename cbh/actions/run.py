@@ -231,6 +231,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     st = load_station(station_path(station) if station else station_path())
     names, specs, simulated = _camera_specs(st, cameras, _source_overrides(st, sources))
     srcs_in = [v for v in specs.values() if isinstance(v, (str, Path))] if isinstance(specs, dict) else []
+    _check_shared_folders(names, specs)
     refuse_inputs([record if record is not True else None], srcs_in, "--record")
     refuse_inputs([export], srcs_in, "--export")
     cfg_dict = dict(st.sections.get("service", {}))
@@ -297,6 +298,34 @@ def _previous_recording(st, record) -> Path | None:
         return None
     files = [f for f in files if f.is_file() and f.stat().st_size > 0]
     return max(files, key=lambda f: f.stat().st_mtime) if files else None
+
+
+def _check_shared_folders(names, specs: dict) -> None:
+    """Two cameras on one image folder read the same frames unless its files are named by camera
+    (``cam1_…``, ``cam2_…``): refused, as is a camera whose folder holds only another camera's
+    images (cam2 pointed at cam1's folder ran to the end with identical "pairs" and no word)."""
+    from cbh.live.sources import IMAGE_SUFFIXES, camera_prefixed
+
+    folders: dict[Path, list[str]] = {}
+    for n in names:
+        spec = specs.get(n)
+        if isinstance(spec, (str, Path)) and "://" not in str(spec) and Path(spec).is_dir():
+            folders.setdefault(Path(spec).resolve(), []).append(n)
+    for folder, cams in folders.items():
+        try:
+            files = [p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+        except OSError:
+            continue
+        for c in cams:
+            own = any(camera_prefixed(f, c) for f in files)
+            others = [o for o in names if o != c and any(camera_prefixed(f, o) for f in files)]
+            if not own and others:
+                raise ConfigError(f"{c}: its folder {folder} holds {others[0]}'s images ({others[0]}_…), none named "
+                                  f"{c}_…: give {c} its own camera's folder")
+            if not own and len(cams) > 1:
+                raise ConfigError(f"{', '.join(cams)}: one folder {folder} for several cameras, its images not named "
+                                  f"by camera: they would all read the same frames (name them {cams[0]}_…, "
+                                  f"{cams[1]}_…, or give each camera its own folder)")
 
 
 def _source_overrides(st, sources) -> dict[str, str]:
@@ -473,6 +502,13 @@ def summary_lines(setup: RunSetup, stats) -> list[str]:
                      + ", ".join(f"{n} {_INVALID_CAUSE.get(f, f)}" for f, n in stats.invalid_counts.items())
                      + "): their layers are flagged, not reported as valid"
                      + (f" (last pair: {', '.join(stats.last_invalid)})" if stats.last_invalid else ""))
+    silent = [n for n, src in stats.sources.items() if src.frames == 0]
+    if silent and stats.pairs_processed:  # (none at all is an error of its own)
+        lines.append(f"camera(s) {', '.join(silent)} delivered no frame: every result is from the others "
+                     "(flag camera_missing)")
+    corrupt = {n: src.corrupt for n, src in stats.sources.items() if src.corrupt}
+    if corrupt:
+        lines.append("unreadable frames skipped: " + ", ".join(f"{n} {k}" for n, k in corrupt.items()))
     if stats.last_layers_m:
         lines.append("latest layers: " + ", ".join(f"{h:.0f} m" for h in stats.last_layers_m)
                      + f" above the station ({setup.station.altitude_m:.0f} m a.s.l.)")

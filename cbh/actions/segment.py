@@ -197,8 +197,7 @@ def segment_files(paths: list[Path], out: Path, station_file: Path | None = None
         raise InputError("give at least one image")
     from cbh.fileio import refuse_inputs
 
-    refuse_inputs([out], [*paths, station_file], "--out")
-    dests = mask_paths(paths, Path(out))
+    dests = mask_paths(paths, Path(out))  # (its own checks first: a .png name, the inputs by path)
     refuse_inputs(dests, [*paths, station_file], "--out")
     rows = []
     for p, dest in zip(paths, dests):

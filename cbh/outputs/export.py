@@ -833,7 +833,8 @@ def _disk_full(path) -> bool:
         st = os.statvfs(folder)
     except OSError:
         return False
-    return os.access(folder, os.W_OK) and st.f_bavail * st.f_frsize < 64 * 1024
+    writable = os.access(folder, os.W_OK) and not st.f_flag & os.ST_RDONLY
+    return writable and st.f_blocks > 0 and st.f_bavail * st.f_frsize < 64 * 1024  # (sysfs & co: 0 blocks)
 
 
 def write_error(path, exc: OSError) -> RecordingError:
