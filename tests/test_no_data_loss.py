@@ -196,3 +196,52 @@ def test_a_full_disk_leaves_the_older_output_whole(inputs, tmp_path, monkeypatch
     assert old.read_bytes() == b"the older output, whole\n"
     assert not [p for p in folder.iterdir() if p.name.startswith(".") and p.name.endswith(".tmp")]
     assert {p: _digest(p) for p in inputs.iterdir()} == before
+
+
+@needs_shared
+def test_validate_says_why_an_answer_is_empty(inputs, tmp_path, capsys):
+    """Round 3: validate gave exit 0 and a report of nulls for times that do not overlap, read a
+    NetCDF cut in half as profiles at 00:00 with base 0, and called a folder "not found". Each is
+    one line and exit 2 now; an overlapping comparison counts hits, misses and false alarms."""
+    half = tmp_path / "half.nc"
+    data = (inputs / "ceil.nc").read_bytes()
+    half.write_bytes(data[: len(data) // 2])
+    rec = str(inputs / "rec.mcap")
+    for ceil, says in ((inputs / "ceil.nc", "no overlap: the recording(s) span 2024-06-21T14:00:00Z"),
+                       (half, "a truncated NetCDF file"), (tmp_path, "is a directory")):
+        assert main(["validate", "--ceilometer", str(ceil), rec, "-o", str(tmp_path / "v.json")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], err
+    for bad in ("nan", "inf", "1e30", "0"):
+        assert main(["validate", "--ceilometer", str(inputs / "ceil.nc"), rec, "-o", "v.json", "--match-s", bad]) == 2
+        assert "--match-s" in capsys.readouterr().err
+    cl61 = tmp_path / "cl61.nc"  # the recording's own CL61 export (the sky's lowest layer, every pair cloudy)
+    assert main(["export", rec, "--product", "cl61", "-o", str(cl61)]) == 0
+    assert main(["validate", "--ceilometer", str(cl61), rec, "-o", str(tmp_path / "v.json")]) == 0
+    out = capsys.readouterr().out
+    import json
+    import re
+
+    m = re.search(r"detection: (\d+) both cloudy, (\d+) missed .*?, (\d+) false alarms .*?, (\d+) both clear", out)
+    assert m and sum(map(int, m.groups())) == 8, out  # every matched pair in one cell
+    det = json.loads((tmp_path / "v.json").read_text())["detection"]
+    assert det["hits"] + det["misses"] == 8 and det["false_alarms"] == det["both_clear"] == 0  # it is never clear
+
+
+def test_run_names_a_silent_camera_and_refuses_a_borrowed_folder(tmp_path, capsys):
+    """Round 3: a network camera with an empty folder, or cam2 pointed at cam1's folder, gave
+    exit 0 and no word. The summary names the camera that delivered nothing; a folder holding
+    only another camera's images is refused before the run."""
+    from cbh.actions.simulate import simulate_to_folder
+
+    out = tmp_path / "sim"
+    for _ in simulate_to_folder(out, station="unb-lea-network", frames=2, size_px=160):
+        pass
+    (out / "empty").mkdir()
+    st = str(out / "station.toml")
+    assert main(["run", "--station", st, "--source", f"cam1={out / 'cam1'}", "--source", f"cam2={out / 'cam2'}",
+                 "--source", f"cam3={out / 'empty'}", "-q"]) == 0
+    assert "camera(s) cam3 delivered no frame" in capsys.readouterr().out
+    assert main(["run", "--station", st, "--source", f"cam1={out / 'cam1'}", "--source", f"cam2={out / 'cam1'}",
+                 "--source", f"cam3={out / 'cam3'}", "-q"]) == 2
+    assert "holds cam1's images" in capsys.readouterr().err

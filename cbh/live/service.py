@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import copy
 import errno
+from pathlib import Path
 import math
 import logging
 import queue
@@ -943,13 +944,26 @@ def _iso(t: datetime) -> str:
     return t.isoformat().replace("+00:00", "Z")
 
 
+def _kept(name) -> str:
+    """What a stopped writer leaves: a recording that could not be finished (no room for its
+    summary and index) holds every complete pair but is not a readable MCAP file until repaired;
+    any other file is whole up to its last complete row."""
+    p = Path(str(name))
+    if p.suffix.lower() == ".mcap":
+        return (f"every complete pair is in it; if there was no room left to finish it (its index), it reads "
+                f"only after `cbh inspect {p} --repair {p.with_name(p.stem + '-repaired.mcap')}` (with room on "
+                "the disk)")
+    return "everything written before is kept"
+
+
 def _sink_error(sink, exc: Exception, doing: str) -> RecordingError:
     paths = sink.output_paths()
     name = paths[-1] if paths else type(sink).__name__
+    kept = _kept(name)
     if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-        return RecordingError(f"disk full while {doing} {name}: stopped; everything written before is kept")
+        return RecordingError(f"disk full while {doing} {name}: stopped; {kept}")
     if isinstance(exc, OSError):
-        return RecordingError(f"cannot write {name}: {exc.strerror or exc}; stopped; everything written before is kept")
+        return RecordingError(f"cannot write {name}: {exc.strerror or exc}; stopped; {kept}")
     if isinstance(exc, RecordingError) and "disk full" in str(exc):
         return exc
     return RecordingError(f"{doing} {name} failed: {exc}; stopped")

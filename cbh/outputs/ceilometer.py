@@ -268,6 +268,8 @@ def _cl_bases(path: Path) -> CeiloBases:
 def read_ceilometer(path) -> CeiloBases:
     """Cloud bases of one ceilometer file, NetCDF (by its variables) or CL31/CL51 messages."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"ceilometer file {path}: is a directory; give the files in it (e.g. {path}/*.nc)")
     if not path.is_file():
         raise InputError(f"ceilometer file not found: {path}")
     with open(path, "rb") as fh:
