@@ -171,7 +171,7 @@ def _shadow(pg: PairGround, grid) -> tuple[np.ndarray, np.ndarray]:
 
 
 def export(sessions, out, fmt: str | None = None, *, product: str = "layers", daily: bool = False,
-           station=None) -> str:
+           station=None, sites=(), leads: str | None = None, pyranometer=None) -> str:
     """Export sessions; returns the one-line summary the CLI prints.
 
     Parameters
@@ -194,6 +194,15 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
     out = Path(out)
     refuse_inputs([out], list(sessions) if isinstance(sessions, (list, tuple)) else [sessions], "--out")
 
+    if product == "irradiance":  # GHI nowcasts at sites: cbh/actions/nowcast.py
+        from cbh.actions.nowcast import export_irradiance
+
+        if daily:
+            raise ConfigError("--daily is for --product layers, not irradiance")
+        refuse_inputs([out], [pyranometer], "--out")
+        return export_irradiance(sessions, out, list(sites), leads, pyranometer, fmt)
+    if sites or leads or pyranometer:
+        raise ConfigError("--site, --leads and --pyranometer are for --product irradiance")
     if product in aviation.PRODUCTS:  # metar | cl61 | eprofile: cbh/actions/aviation.py
         if not daily and out.is_file() and _mcap_state(out) != "foreign":
             raise RecordingError(f"{out} is a recording: an export never replaces one (give another --out)")
@@ -219,7 +228,7 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
         rows, steps = layer_export.export_sessions(sessions, fmt, out)
         return f"wrote {steps} time steps ({rows} rows) to {out}"
     if product not in PRODUCTS:
-        raise ConfigError(f"--product: unknown {product!r} (valid: layers, {', '.join(PRODUCTS)}, "
+        raise ConfigError(f"--product: unknown {product!r} (valid: layers, irradiance, {', '.join(PRODUCTS)}, "
                           f"{', '.join(aviation.PRODUCTS)})")
     if daily:
         raise ConfigError("--daily is for --product layers")

@@ -1,0 +1,188 @@
+"""`cbh export --product irradiance`: GHI nowcasts at ground sites from recorded sessions
+(:mod:`cbh.outputs.nowcast` has the physics)."""
+from __future__ import annotations
+
+import csv
+import math
+from datetime import timedelta
+from pathlib import Path
+
+import numpy as np
+
+from cbh.errors import ConfigError, RecordingError
+from cbh.fileio import atomic_write
+
+__all__ = ["export_irradiance", "nowcast_rows", "COLUMNS"]
+
+COLUMNS = ["time_utc", "site", "lead_s", "valid_time_utc", "ghi_wm2", "clear_sky_ghi_wm2", "clear_sky_index",
+           "shade_probability", "k_sun", "k_shade", "flags"]
+
+
+def _iso(t) -> str:
+    return t.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple[list[dict], dict]:
+    """The nowcast rows (dicts of :data:`COLUMNS`, numbers as floats) of every recorded pair, site
+    and lead, in time order; and a summary (pairs, sites, the levels learned)."""
+    from cbh.actions.pairground import pair_ground
+    from cbh.flags import INVALIDATING
+    from cbh.geometry.sun import sun_position
+    from cbh.outputs import nowcast as nc
+    from cbh.outputs.record import open_session
+    from cbh.pipeline.config import PipelineConfig
+
+    if not sites:
+        raise ConfigError("--product irradiance needs at least one --site LAT,LON[,ALT_M]")
+    pyr = nc.read_pyranometer(pyranometer) if pyranometer else None
+    rows, seen, station, places = [], set(), None, None
+    levels: dict[str, nc.Levels] = {}
+    seen_clear: dict[tuple, float] = {}  # (site, valid time) → the latest shade probability seen clear of the sun
+    pending: dict[str, list] = {}  # site → (valid time, shade probability) of forecasts not yet verified
+    for path in sessions:
+        s = open_session(path)
+        st = s.station
+        if station is None:
+            station = st
+            places = [nc.parse_site(t, st, i) for i, t in enumerate(sites)]
+            levels = {p.name: nc.Levels() for p in places}
+        elif (st.latitude_deg, st.longitude_deg) != (station.latitude_deg, station.longitude_deg):
+            raise RecordingError(f"{path}: another station ({st.name}) than the first session's ({station.name})")
+        cfg = PipelineConfig.from_dict(s.config, where="recorded pipeline config")
+        for pair in s.pairs():
+            res = pair.result
+            if res.time_utc is None or res.time_utc in seen:
+                continue
+            seen.add(res.time_utc)
+            bad = sorted(set(res.flags) & INVALIDATING)
+            pg = pair_ground(st, cfg.masks, res)
+            for site in places:
+                if pyr is not None:  # the forecasts now verified (valid up to this issue time) teach the levels
+                    _learn(levels[site.name], pending, site, pyr, res.time_utc)
+                ks, kd = levels[site.name].levels()
+                for lead in leads_s:
+                    tv = res.time_utc + timedelta(seconds=float(lead))
+                    sp = sun_position(site.latitude_deg, site.longitude_deg, site.altitude_m, tv)
+                    if bad:
+                        p, why, wide = math.nan, "pair_invalid:" + "+".join(bad), False
+                    else:
+                        p, why, wide = nc.shade_at(pg, site.enu_m, sp.direction_enu if sp.zenith_deg < 90 else None,
+                                                   float(lead))
+                    key = (site.name, tv)
+                    if wide and key in seen_clear:  # the sun's glare covers it now: as seen before it got there
+                        p, why = seen_clear[key], "seen_earlier"
+                    elif math.isfinite(p) and not wide and lead > 0:
+                        seen_clear[key] = p
+                        pending.setdefault(site.name, []).append((tv, p))
+                    rows.append({"time_utc": res.time_utc, "site": site.name, "lead_s": float(lead), "valid_time_utc": tv,
+                                 "shade_probability": p, "k_sun": ks, "k_shade": kd, "flags": why, "_site": site})
+    if not rows:
+        raise RecordingError("no complete pairs in the recording(s): nothing to nowcast")
+    _fill_ghi(rows, places)
+    summary = {"pairs": len(seen), "sites": [p.name for p in places], "leads_s": list(leads_s),
+               "levels": {n: {"k_sun": round(lv.levels()[0], 3), "k_shade": round(lv.levels()[1], 3),
+                              "observations": lv.n} for n, lv in levels.items()}}
+    return rows, summary
+
+
+def _learn(levels, pending: dict, site, pyr, now) -> None:
+    """Every forecast of ``site`` valid by ``now`` (lead ≥ 1 min, seen clear of the sun's glare),
+    with the clear-sky index the pyranometer measured at its valid time, into ``levels``."""
+    due = [(tv, p) for tv, p in pending.get(site.name, []) if tv <= now]
+    pending[site.name] = [(tv, p) for tv, p in pending.get(site.name, []) if tv > now]
+    for tv, p in due:
+        levels.add(p, _measured_index(pyr, site, tv))
+
+
+def _measured_index(pyr, site, t) -> float:
+    from cbh.outputs import nowcast as nc
+
+    g = nc.measured_at(pyr[0], pyr[1], t)
+    cs = float(nc.clear_sky_ghi(site, [t])[0])
+    return g / cs if cs > 50.0 and math.isfinite(g) else math.nan
+
+
+def _fill_ghi(rows: list[dict], places) -> None:
+    """Clear-sky GHI (one pvlib call per site), the clear-sky index and GHI of every row."""
+    from cbh.outputs import nowcast as nc
+
+    for site in places:
+        mine = [r for r in rows if r["_site"] is site]
+        cs = nc.clear_sky_ghi(site, [r["valid_time_utc"] for r in mine])
+        for r, c in zip(mine, cs):
+            p = r["shade_probability"]
+            k = r["k_sun"] + (r["k_shade"] - r["k_sun"]) * p if math.isfinite(p) else math.nan
+            r["clear_sky_ghi_wm2"] = float(c)
+            r["clear_sky_index"] = k
+            r["ghi_wm2"] = k * float(c) if c > 0 else (0.0 if math.isfinite(k) else math.nan)
+            if c <= 0 and not r["flags"]:
+                r["flags"] = "night"
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else f"{v:.4g}" if abs(v) < 10 else f"{v:.1f}"
+    if hasattr(v, "strftime"):
+        return _iso(v)
+    return str(v)
+
+
+def export_irradiance(sessions, out, sites: list[str], leads: str | None = None, pyranometer=None,
+                      fmt: str | None = None) -> str:
+    """Write the nowcast to ``out``: CSV (one row per issue time, site and lead: :data:`COLUMNS`)
+    or NetCDF (an xarray dataset on (time, lead, site), what pvlib and pysteps users read); returns
+    the CLI's summary line."""
+    from cbh.outputs import nowcast as nc
+
+    out = Path(out)
+    kind = (fmt or out.suffix.lstrip(".") or "csv").lower()
+    if kind in ("nc", "netcdf"):
+        kind = "netcdf"
+    if kind not in ("csv", "netcdf"):
+        raise ConfigError(f"--product irradiance: csv or netcdf, not {kind!r}")
+    if out.is_dir() or not out.parent.is_dir():
+        raise RecordingError(f"--out {out}: give a file in an existing folder")
+    rows, summary = nowcast_rows(sessions, sites, nc.parse_leads(leads), pyranometer)
+    try:
+        with atomic_write(out) as tmp:
+            if kind == "csv":
+                with open(tmp, "w", newline="") as fh:
+                    w = csv.writer(fh)
+                    w.writerow(COLUMNS)
+                    for r in rows:
+                        w.writerow([_fmt(r[c]) for c in COLUMNS])
+            else:
+                _dataset(rows, summary).to_netcdf(tmp)
+    except OSError as exc:
+        from cbh.outputs.export import write_error
+
+        raise write_error(out, exc) from None
+    lv = "; ".join(f"{n}: k_sun {v['k_sun']:.2f}, k_shade {v['k_shade']:.2f} from {v['observations']} measurements"
+                   for n, v in summary["levels"].items())
+    return (f"wrote {len(rows)} nowcast rows ({summary['pairs']} issue times x {len(summary['sites'])} site(s) x "
+            f"{len(summary['leads_s'])} leads) to {out}" + (f" (levels {lv})" if pyranometer else ""))
+
+
+def _dataset(rows: list[dict], summary: dict):
+    """The nowcast as an xarray dataset on (time, lead_time, site)."""
+    import xarray as xr
+
+    times = sorted({r["time_utc"] for r in rows})
+    leads, sites = summary["leads_s"], summary["sites"]
+    ti = {t: i for i, t in enumerate(times)}
+    li = {float(v): i for i, v in enumerate(leads)}
+    si = {n: i for i, n in enumerate(sites)}
+    shape = (len(times), len(leads), len(sites))
+    data = {k: np.full(shape, np.nan) for k in ("ghi_wm2", "clear_sky_ghi_wm2", "clear_sky_index", "shade_probability")}
+    for r in rows:
+        j = (ti[r["time_utc"]], li[r["lead_s"]], si[r["site"]])
+        for k in data:
+            data[k][j] = r[k]
+    units = {"ghi_wm2": "W m-2", "clear_sky_ghi_wm2": "W m-2", "clear_sky_index": "1", "shade_probability": "1"}
+    t64 = np.array([np.datetime64(t.replace(tzinfo=None), "ns") for t in times])
+    ds = xr.Dataset({k: (("time", "lead_time", "site"), v, {"units": units[k]}) for k, v in data.items()},
+                    coords={"time": t64, "lead_time": ("lead_time", np.asarray(leads, np.float64), {"units": "s"}),
+                            "site": np.asarray(sites, dtype=object)},
+                    attrs={"title": "cbh irradiance nowcast", "source": "cbh export --product irradiance",
+                           "Conventions": "CF-1.8"})
+    return ds

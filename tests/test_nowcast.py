@@ -1,0 +1,137 @@
+"""The irradiance nowcast (issue 35): the shade geometry on an analytic sky, the export, and the real
+Fehmarn pyranometer (slow)."""
+from __future__ import annotations
+
+import math
+from datetime import datetime, timezone
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from .conftest import REPO, SHARED
+
+SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
+FEHMARN = SHARED / "data" / "fehmarn-2016-09-01"
+
+
+def _half_sky(edge_east_m: float, height_m: float = 3000.0, size: int = 320):
+    """Camera 1 of the default station at ``size`` px, looking at one layer at ``height_m`` that is
+    cloud west of ``edge_east_m`` and clear east of it: its labels, as pair_ground makes them."""
+    from cbh.geometry import ground
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+
+    cam = load_station(station_path()).pair()[0]
+    cam = cam.scaled(size / cam.model.width)
+    H, W = cam.model.height, cam.model.width
+    yy, xx = np.mgrid[0:H, 0:W]
+    rays = cam.pixel_to_world(np.column_stack([xx.ravel(), yy.ravel()]).astype(np.float64))
+    up = rays[:, 2] > 0.05
+    t = np.where(up, (height_m - cam.position_m[2]) / np.where(up, rays[:, 2], 1.0), np.nan)
+    x = cam.position_m[0] + rays[:, 0] * t
+    lab = np.full(H * W, ground.UNKNOWN, np.int16)
+    lab[up & (x < edge_east_m)] = 0
+    lab[up & (x >= edge_east_m)] = ground.CLEAR
+    return SimpleNamespace(camera=cam, labels=lab.reshape(H, W), heights=[height_m + float(cam.position_m[2])],
+                           motions=[(10.0, 0.0)], cloud_fraction=0.5)
+
+
+def test_the_shadow_edge_arrives_within_a_minute_of_the_truth():
+    """A straight cloud edge on a 3000 m layer moving east at 10 m/s, the sun 40° from the zenith
+    in the south: the site is shaded while the sun ray meets the cloud. Its shade probability
+    crosses 1/2 within a minute of the true arrival of the shadow edge, at every lead up to 5 min
+    and for edges 0.2–2.8 km away (the issue's bar: ≥ 90 % of edges within one minute)."""
+    from cbh.outputs.nowcast import shade_probability
+
+    zen = math.radians(40.0)
+    sun = np.array([0.0, -math.sin(zen), math.cos(zen)])  # towards the south
+    errors = []
+    for edge in (-200.0, -600.0, -1200.0, -2000.0, -2800.0):  # the edge is west of the site; cloud moves east
+        pg = _half_sky(edge)
+        site = np.array([0.0, 0.0, float(pg.camera.position_m[2])])
+        # the shadow edge reaches the site when the edge has moved |edge| east: t = |edge| / 10 m/s
+        truth = -edge / 10.0
+        leads = np.arange(0.0, 301.0, 10.0)
+        p = np.array([shade_probability(pg, site, sun, lead)[0] for lead in leads])
+        # the ray point is x = −v·lead (the sun is due south: no east offset); cloud there while x < edge
+        assert np.nanmax(p) <= 1.0 and np.nanmin(p) >= 0.0
+        if truth <= 300.0:
+            cross = leads[np.flatnonzero(p >= 0.5)[0]] if (p >= 0.5).any() else math.inf
+            errors.append(abs(cross - truth))
+        else:
+            assert np.nanmax(p) < 0.5, (edge, p)  # not yet: sunny throughout
+    assert errors and all(e <= 60.0 for e in errors), errors
+
+
+def test_the_map_ends_where_the_camera_stops_seeing():
+    """A sun ray that leaves the camera's view (a low sun and a long lead) has no forecast, and says so."""
+    from cbh.outputs.nowcast import shade_probability
+
+    pg = _half_sky(-500.0, height_m=1000.0)
+    zen = math.radians(75.0)
+    p, why = shade_probability(pg, np.zeros(3), np.array([0.0, -math.sin(zen), math.cos(zen)]), 600.0)
+    assert math.isnan(p) and why == "beyond_view"
+    p, why = shade_probability(pg, np.zeros(3), np.array([0.0, 0.0, -1.0]), 0.0)
+    assert math.isnan(p) and why == "night"
+
+
+def test_irradiance_export_rows_and_dataset(tmp_path, capsys):
+    """`cbh export --product irradiance`: one row per issue time, site and lead with the clear-sky
+    GHI of pvlib; a NetCDF dataset on (time, lead_time, site); refused without a site."""
+    import csv
+
+    import xarray as xr
+
+    from cbh.cli.main import main
+    from cbh.outputs.record import open_session
+
+    st = open_session(SAMPLE).station
+    site = f"plant={st.latitude_deg + 0.001},{st.longitude_deg}"
+    out = tmp_path / "n.csv"
+    assert main(["export", str(SAMPLE), "--product", "irradiance", "--site", site, "--leads", "0,1,5",
+                 "-o", str(out)]) == 0
+    assert "8 issue times x 1 site(s) x 3 leads" in capsys.readouterr().out
+    with out.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 24 and rows[0]["site"] == "plant"
+    for r in rows:
+        cs = float(r["clear_sky_ghi_wm2"])
+        assert 500.0 < cs < 1100.0  # a June afternoon at the sample station
+        if r["ghi_wm2"]:
+            assert 0.0 <= float(r["shade_probability"]) <= 1.0
+            assert float(r["ghi_wm2"]) == pytest.approx(float(r["clear_sky_index"]) * cs, rel=2e-3)
+    nc = tmp_path / "n.nc"
+    assert main(["export", str(SAMPLE), "--product", "irradiance", "--site", site, "-o", str(nc)]) == 0
+    ds = xr.open_dataset(nc)
+    assert ds["ghi_wm2"].dims == ("time", "lead_time", "site") and ds.sizes["lead_time"] == 21
+    ds.close()
+    assert main(["export", str(SAMPLE), "--product", "irradiance", "-o", str(out)]) == 2
+    assert "needs at least one --site" in capsys.readouterr().err
+
+
+def test_pyranometer_records_read_in_their_zone(tmp_path):
+    """The LEX 2016 logger's file (date; time_utcp1; …; G_wm2) is read as UTC: 10:00 UTC+1 is 09:00."""
+    from cbh.outputs.nowcast import read_pyranometer
+
+    f = tmp_path / "r.csv"
+    f.write_text("date;time_utcp1;G_wm2\n01.09.2016;10:00;531.8\n01.09.2016;10:01;-1\n")
+    t, g = read_pyranometer(f)
+    assert t[0] == datetime(2016, 9, 1, 9, 0, tzinfo=timezone.utc) and g[0] == 531.8 and math.isnan(g[1])
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not FEHMARN.is_dir(), reason="needs ../shared/data/fehmarn-2016-09-01")
+def test_the_real_pyranometer_half_hour(tmp_path):
+    """The real hour's first half against its pyranometer (benchmarks/eval_irradiance.py): skill
+    against smart persistence above 0 at 5 and 10 min (the issue's target; measured +0.21 and
+    +0.12), and a forecast at every issue time for those leads."""
+    import sys
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from eval_irradiance import evaluate, record
+
+    res = evaluate(record(FEHMARN, tmp_path / "f.mcap"), FEHMARN, "0,5,10")
+    for lead in (5, 10):
+        v = res["leads"][lead]
+        assert v["skill_vs_persistence"] > 0.0 and v["n"] >= 28, v
