@@ -61,7 +61,7 @@ def evaluate(rec: Path, data: Path = DEFAULT, leads: str = LEADS) -> dict:
         out["leads"][int(lead // 60)] = {
             "n": int(ok.sum()), "rmse_wm2": round(r_fc, 1), "bias_wm2": round(float(np.mean(fc[ok] - meas[ok])), 1),
             "rmse_smart_persistence_wm2": round(r_sp, 1), "rmse_clear_sky_wm2": round(r_cs, 1),
-            "skill_vs_persistence": round(1.0 - r_fc / r_sp, 3) if r_sp > 0 else None,
+            "skill_vs_persistence": round(1.0 - r_fc / r_sp, 3) if lead > 0 and r_sp > 0 else None,
             "rmse_over_clear_sky": round(r_fc / r_cs, 3) if r_cs > 0 else None}
     return out
 
@@ -79,8 +79,9 @@ def main() -> None:
     print(f"levels learned: {res['levels']}")
     print("lead  n   RMSE  bias  RMSE(smart pers.)  RMSE(clear sky)  skill  RMSE/clear-sky  [W/m2]")
     for lead, v in res["leads"].items():
+        skill = "      —" if v["skill_vs_persistence"] is None else f"{v['skill_vs_persistence']:+7.3f}"
         print(f"{lead:3d} min {v['n']:3d} {v['rmse_wm2']:6.1f} {v['bias_wm2']:+6.1f} {v['rmse_smart_persistence_wm2']:10.1f} "
-              f"{v['rmse_clear_sky_wm2']:14.1f} {v['skill_vs_persistence']:+7.3f} {v['rmse_over_clear_sky']:9.3f}")
+              f"{v['rmse_clear_sky_wm2']:14.1f} {skill} {v['rmse_over_clear_sky']:9.3f}")
     if a.json:
         a.json.write_text(json.dumps(res, indent=1))
 
