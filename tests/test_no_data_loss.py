@@ -235,7 +235,7 @@ def test_run_names_a_silent_camera_and_refuses_a_borrowed_folder(tmp_path, capsy
     from cbh.actions.simulate import simulate_to_folder
 
     out = tmp_path / "sim"
-    for _ in simulate_to_folder(out, station="unb-lea-network", frames=2, size_px=160):
+    for _ in simulate_to_folder(out, station="unb-lea-network", frames=3, size_px=160):
         pass
     (out / "empty").mkdir()
     st = str(out / "station.toml")
@@ -245,3 +245,10 @@ def test_run_names_a_silent_camera_and_refuses_a_borrowed_folder(tmp_path, capsy
     assert main(["run", "--station", st, "--source", f"cam1={out / 'cam1'}", "--source", f"cam2={out / 'cam1'}",
                  "--source", f"cam3={out / 'cam3'}", "-q"]) == 2
     assert "holds cam1's images" in capsys.readouterr().err
+    # one truncated cam3 frame: its time step goes on with cam1 and cam2 (it dropped all three)
+    bad = sorted((out / "cam3").glob("*.jpg"))[1]
+    bad.write_bytes(bad.read_bytes()[:2000])
+    assert main(["run", "--station", st, "--source", f"cam1={out / 'cam1'}", "--source", f"cam2={out / 'cam2'}",
+                 "--source", f"cam3={out / 'cam3'}", "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "processed 3 pairs" in text and "unreadable frames skipped: cam3 1" in text, text

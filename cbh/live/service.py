@@ -827,7 +827,13 @@ class Service:
                 try:
                     decode_frame(f)
                 except ImageError as exc:
-                    return self._corrupt(f, exc)
+                    self._corrupt(f, exc)
+                    if len(pair) == 2 or len(present) <= 2:
+                        return None  # a pair (or what is left of a set) needs two frames
+                    # a network's set goes on without the camera (camera_missing): one bad frame of
+                    # cam3 dropped cam1's and cam2's good ones with it
+                    pair = tuple(None if g is f else g for g in pair)
+                    return self._handle(pair, nxt)
         if nxt is not None and self._ahead is None:  # the next pair's first half beside this one's second
             if self._ahead_pool is None:
                 from concurrent.futures import ThreadPoolExecutor
