@@ -47,6 +47,7 @@ def inputs(tmp_path):
         (d / f"c{k}").mkdir()
         if (BOARDS / "Fisheye1_1.jpg").is_file():
             (d / f"c{k}" / f"cam{k}_20240621T140000Z.jpg").symlink_to(BOARDS / "Fisheye1_1.jpg")
+    (d / "c1" / "cam1_20240621T141000Z.png").write_bytes(b"\x89PNG an input mask-sized image")
     return d
 
 
@@ -62,6 +63,10 @@ def _commands(d: Path) -> list[tuple[str, list[str], list[Path]]]:
                             "{OUT}"], [b1, b2]),
         ("segment", ["segment", str(b1), "--out", "{OUT}"], [b1]),
         ("replay", ["replay", str(rec), "--rerun", "save", "{OUT}"], [rec]),
+        ("mask", ["mask", str(d / "c1"), "--station", str(st), "--camera", "cam1", "--frames", "3",
+                  "--out", "{OUT}"], [d / "c1" / "cam1_20240621T141000Z.png"]),
+        ("reprocess", ["reprocess", "--station", str(st), "--source", f"cam1={d / 'c1'}", "--source",
+                       f"cam2={d / 'c2'}", "--out", "{OUT}"], [d / "c1"]),
         ("run --export", ["run", "--station", str(st), "--source", f"cam1={d / 'c1'}", "--source",
                           f"cam2={d / 'c2'}", "--export", "{OUT}", "-q"], [d / "c1" / "cam1_20240621T140000Z.jpg"]),
     ]

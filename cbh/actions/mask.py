@@ -68,12 +68,18 @@ def obstacle_mask(source: str, camera: str, out, station=None, frames: int = 30,
     finally:
         src.close()
     mask = obstacle_mask_from_frames(images, cam.model)
+    from cbh.fileio import atomic_write
+
+    ok, png = cv2.imencode(".png", mask)
+    if not ok:
+        raise RecordingError(f"cannot encode the mask image {out}")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        ok = cv2.imwrite(str(out), mask)
-    except (OSError, cv2.error) as exc:
-        raise RecordingError(f"cannot write mask image {out}: {exc}") from None
-    if not ok:
-        raise RecordingError(f"cannot write mask image {out}")
+        with atomic_write(out) as tmp:  # whole or not at all: a full disk leaves an older mask
+            tmp.write_bytes(png.tobytes())
+    except OSError as exc:
+        from cbh.outputs.export import write_error
+
+        raise write_error(out, exc) from None
     usable = (mask > 0).sum() / max(1, cam.model.image_circle_mask().sum())
     return MaskReport(camera, len(images), out, float(1.0 - usable))

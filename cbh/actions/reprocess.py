@@ -956,7 +956,11 @@ class _Run:
 
 def reprocess(stations, sources=(), *, cameras: str | None = None, on_event=None, **options) -> tuple[Plan, Summary]:
     """Plan and run (see the module docstring); ``options`` are :class:`ReprocessOptions` fields."""
+    from cbh.fileio import refuse_inputs
+
     opts = ReprocessOptions(**options)
+    refuse_inputs([opts.out], [*(stations if isinstance(stations, (list, tuple)) else [stations]),
+                               *(s.partition("=")[2] or s for s in sources)], "--out")
     plan = plan_reprocess(load_jobs(stations, sources, cameras), opts)
     if not plan.days:  # as `cbh run` over the same folders: an error, and nothing written
         raise _nothing_found(plan)
