@@ -135,3 +135,29 @@ def test_the_real_pyranometer_half_hour(tmp_path):
     for lead in (5, 10):
         v = res["leads"][lead]
         assert v["skill_vs_persistence"] > 0.0 and v["n"] >= 28, v
+
+
+@pytest.mark.slow  # (4 real pairs through `cbh run`: 6 s)
+@pytest.mark.skipif(not FEHMARN.is_dir(), reason="needs ../shared/data/fehmarn-2016-09-01")
+def test_a_station_states_its_pyranometer(tmp_path, capsys):
+    """``[station] pyranometer = FILE`` (relative to the station file) travels with the recording:
+    the export learns its levels from it without --pyranometer."""
+    from cbh.cli.main import main
+
+    text = (FEHMARN / "station.toml").read_text().replace("altitude_m = 9.0\n", 'altitude_m = 9.0\npyranometer = "r.csv"\n', 1)
+    (tmp_path / "st.toml").write_text(text)
+    (tmp_path / "r.csv").symlink_to(FEHMARN / "radiation-20160901.csv")
+    d = {}
+    for cam in ("fe3", "fe4"):
+        d[cam] = tmp_path / cam
+        d[cam].mkdir()
+        for f in sorted((FEHMARN / cam).glob("*.jpg"))[:4]:
+            (d[cam] / f.name).symlink_to(f)
+    rec = tmp_path / "r.mcap"
+    assert main(["run", "--station", str(tmp_path / "st.toml"), "--source", f"fe3={d['fe3']}", "--source",
+                 f"fe4={d['fe4']}", "--record", str(rec), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["export", str(rec), "--product", "irradiance", "--site", "54.4947,11.240817", "--leads", "0:3",
+                 "-o", str(tmp_path / "n.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "levels site1: k_sun" in out and "measurements" in out, out

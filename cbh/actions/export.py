@@ -199,6 +199,7 @@ def export(sessions, out, fmt: str | None = None, *, product: str = "layers", da
 
         if daily:
             raise ConfigError("--daily is for --product layers, not irradiance")
+        pyranometer = pyranometer or (station.pyranometer if station is not None else None)
         refuse_inputs([out], [pyranometer], "--out")
         return export_irradiance(sessions, out, list(sites), leads, pyranometer, fmt)
     if sites or leads or pyranometer:

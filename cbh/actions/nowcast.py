@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 import math
 from datetime import timedelta
 from pathlib import Path
@@ -13,6 +14,8 @@ from cbh.errors import ConfigError, RecordingError
 from cbh.fileio import atomic_write
 
 __all__ = ["export_irradiance", "nowcast_rows", "COLUMNS"]
+
+log = logging.getLogger(__name__)
 
 COLUMNS = ["time_utc", "site", "lead_s", "valid_time_utc", "ghi_wm2", "clear_sky_ghi_wm2", "clear_sky_index",
            "shade_probability", "k_sun", "k_shade", "flags"]
@@ -46,6 +49,11 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
             station = st
             places = [nc.parse_site(t, st, i) for i, t in enumerate(sites)]
             levels = {p.name: nc.Levels() for p in places}
+            if pyr is None and st.pyranometer is not None:  # the recorded station's [station] pyranometer
+                if Path(st.pyranometer).is_file():
+                    pyr = nc.read_pyranometer(st.pyranometer)
+                else:
+                    log.warning("the station's pyranometer %s is not here: default levels", st.pyranometer)
         elif (st.latitude_deg, st.longitude_deg) != (station.latitude_deg, station.longitude_deg):
             raise RecordingError(f"{path}: another station ({st.name}) than the first session's ({station.name})")
         cfg = PipelineConfig.from_dict(s.config, where="recorded pipeline config")
@@ -160,7 +168,8 @@ def export_irradiance(sessions, out, sites: list[str], leads: str | None = None,
     lv = "; ".join(f"{n}: k_sun {v['k_sun']:.2f}, k_shade {v['k_shade']:.2f} from {v['observations']} measurements"
                    for n, v in summary["levels"].items())
     return (f"wrote {len(rows)} nowcast rows ({summary['pairs']} issue times x {len(summary['sites'])} site(s) x "
-            f"{len(summary['leads_s'])} leads) to {out}" + (f" (levels {lv})" if pyranometer else ""))
+            f"{len(summary['leads_s'])} leads) to {out}"
+            + (f" (levels {lv})" if any(v["observations"] for v in summary["levels"].values()) else ""))
 
 
 def _dataset(rows: list[dict], summary: dict):

@@ -70,7 +70,7 @@ _CAMERA_KEYS = {
 #: A camera's geodetic position, instead of ``position_m`` (converted with pymap3d about the station).
 _GEODETIC_KEYS = ("latitude_deg", "longitude_deg", "altitude_m")
 _STATION_KEYS = {"name", "latitude_deg", "longitude_deg", "altitude_m"}
-_STATION_OPTIONAL = {"allow_baseline"}
+_STATION_OPTIONAL = {"allow_baseline", "pyranometer"}
 #: Plausible camera separation [m]: below, a pair cannot triangulate clouds km away (the
 #: parallax of a 5 m baseline at 5 km is 0.06°, about the fisheye's pixel size); above, the
 #: two cameras no longer see the same cloud base. ``[station] allow_baseline = true`` lifts it.
@@ -192,6 +192,7 @@ class Station:
     sections: dict[str, dict] = field(default_factory=dict)
     allow_baseline: bool = False  # accept camera separations outside BASELINE_RANGE_M
     metadata: dict[str, str] = field(default_factory=dict)  # [station.metadata]: keys of METADATA_KEYS
+    pyranometer: Path | None = None  # [station] pyranometer = FILE: the site's GHI record (irradiance nowcast levels)
 
     @property
     def ground(self) -> GroundGrid:
@@ -251,6 +252,7 @@ class Station:
                 "longitude_deg": self.longitude_deg,
                 "altitude_m": self.altitude_m,
                 **({"allow_baseline": True} if self.allow_baseline else {}),
+                **({"pyranometer": str(Path(self.pyranometer).resolve())} if self.pyranometer else {}),
                 **({"metadata": dict(self.metadata)} if self.metadata else {}),
             },
             "cameras": cams,
@@ -379,10 +381,14 @@ def parse_station(data: dict, base_dir: Path | None = None, path: Path | None = 
         cameras[cam.name] = cam
     sections = _extra_sections(data, lat, lon)
     _check_baselines(cameras, allow_baseline)
+    pyr = st.get("pyranometer")
+    if pyr is not None and (not isinstance(pyr, str) or not pyr.strip()):
+        raise ConfigError(f"station.pyranometer: expected a file path, got {pyr!r}")
     return Station(
         name=st["name"], latitude_deg=lat, longitude_deg=lon,
         altitude_m=_num("station.altitude_m", st["altitude_m"]),
         cameras=cameras, path=path, sections=sections, metadata=dict(metadata), allow_baseline=allow_baseline,
+        pyranometer=(base_dir / pyr).resolve() if pyr else None,
     )
 
 
