@@ -161,3 +161,18 @@ def test_a_station_states_its_pyranometer(tmp_path, capsys):
                  "-o", str(tmp_path / "n.csv")]) == 0
     out = capsys.readouterr().out
     assert "levels site1: k_sun" in out and "measurements" in out, out
+
+
+@pytest.mark.slow
+def test_shadow_edges_in_simulation_do_not_regress():
+    """benchmarks/eval_nowcast_sim.py on 6 minutes of the two-layer scene: the share of true shadow
+    edges the forecast places within 60 s (measured 71 % at lead 0 and 63–69 % at 1–2 min; the
+    issue's target is 90 %, see docs/accuracy.md): kept from falling back."""
+    import sys
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from eval_nowcast_sim import evaluate
+
+    res = evaluate("two-layers", 480, 6.0)["leads"]
+    assert res[0]["edges"] >= 20 and res[0]["share"] >= 0.6, res
+    assert res[60]["share"] >= 0.5 and res[120]["share"] >= 0.5, res

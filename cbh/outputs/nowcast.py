@@ -10,7 +10,8 @@ For each recorded pair (the issue time t), each site and each lead time L:
    carried by the layer's motion v_k; ``s`` the sun direction at ``t + L``). Camera 1's layer labels
    (:func:`cbh.geometry.ground.layer_labels`: each cloud pixel on its layer, clear sky, unknown)
    are read on a disk around that point, Gaussian-weighted with a radius that grows with the lead
-   (the motion's error, ``MOTION_ERROR``, times L, plus ``EDGE_M``): the weighted cloud share of
+   (the motion's error, ``MOTION_ERROR``, times L, plus ``EDGE_M`` and ``EDGE_RANGE`` of the slant
+   range: the sun's width and a 1 % height error): the weighted cloud share of
    the known samples is the layer's probability of shading the site, and the layers combine as
    independent screens, ``1 − Π(1 − p_k)``. Where the disk is mostly unknown (the masked sun
    itself at short leads), it widens (``WIDEN``) to the nearest sky the camera sees around it.
@@ -47,8 +48,9 @@ LEADS_S = tuple(float(s) for s in range(0, 1201, 60))
 K_SUN = 1.0  # clear-sky index with the sun unobstructed (default level)
 K_SHADE = 0.45  # clear-sky index in a cloud's shadow (default level; thin altocumulus lets more through)
 PRIOR_WEIGHT = 3.0  # the default levels count as this many pyranometer observations
-EDGE_M = 150.0  # the shade disk's radius at lead 0 [m]: the sun's width on an 8 km layer is 70 m
-MOTION_ERROR = (0.15, 0.5)  # a layer's motion is known to 15 % + 0.5 m/s: the disk grows by this × lead
+EDGE_M = 10.0  # the shade disk's radius at lead 0 [m] ...
+EDGE_RANGE = 0.01  # ... plus this share of the slant range to the layer: the sun's width (0.5°) and a 1 % height error
+MOTION_ERROR = (0.05, 0.2)  # a layer's motion is known to 5 % + 0.2 m/s: the disk grows by this × lead
 WIDEN = (2.0, 4.0, 8.0, 16.0)  # the disk widens by these factors until a third of it is known
 MIN_KNOWN = 0.3  # known share of the disk's weight needed for a probability
 #: The map ends here [deg from camera 1's zenith]: further out a layer is seen edge-on, its gaps
@@ -197,7 +199,8 @@ def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float
             unknown = unknown or "beyond_view"
             continue
         speed = math.hypot(ve, vn)
-        sigma = EDGE_M + (MOTION_ERROR[0] * speed + MOTION_ERROR[1]) * lead_s
+        slant = float(np.linalg.norm(centre - np.asarray(site_enu, np.float64)))
+        sigma = EDGE_M + EDGE_RANGE * slant + (MOTION_ERROR[0] * speed + MOTION_ERROR[1]) * lead_s
         p, wide = _layer_share(pg, k, centre, sigma)
         widened |= wide
         if not math.isfinite(p):
