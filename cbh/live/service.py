@@ -811,6 +811,55 @@ class Service:
                 raise _Corrupt(f, exc) from None
         return self.prepare(*pair)
 
+    def _note_validity(self, result: PairResult, f1: Frame) -> list[str]:
+        """Count and say (once per change of state) what invalidates this pair's layers, and when
+        they are valid again; the same for a sun seen off its place. Returns the invalidating flags."""
+        st = self.stats
+        invalid = [f for f in result.flags if f in INVALIDATING]
+        geometric = [f for f in invalid if f not in ("below_range", "clock_unknown")]
+        if invalid and not st.last_invalid:  # one warning per change of state, not per pair
+            if not geometric and "clock_unknown" in invalid:
+                own, run = (result.diagnostics.get(k, math.nan) for k in ("clock_offset_pair_s", "clock_offset_s"))
+                why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"
+                       if math.isfinite(own) and math.isfinite(run) else "no motion yet to measure it")
+                log.warning(f"pair at {f1.time_utc.isoformat()}: clock_unknown: the cameras' matches disagree with "
+                            "the station geometry while their clock offset, which would look the same, is not known "
+                            f"({why}); layers are not reported as valid until the offset is measured",
+                            extra={"cbh_event": "clock_unknown", "cbh_flags": invalid})
+            elif geometric:
+                diag = ", ".join(f"{k} {v:.3g}" for k, v in result.diagnostics.items()
+                                 if k.startswith(("geometry_", "sun_")))
+                log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(geometric)}: the cameras disagree with the "
+                            f"station geometry ({diag}); layers are not reported as valid until they agree again "
+                            "(check the sources and the orientation: `cbh calibrate`; on the first pairs of a run, "
+                            "cameras whose clocks differ look the same until the offset is estimated)",
+                            extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
+            else:
+                d = result.diagnostics
+                log.warning(f"pair at {f1.time_utc.isoformat()}: below_range: "
+                            f"{100 * d.get('below_range_fraction', float('nan')):.0f} % of the measured cloud on the "
+                            f"lowest height searched, {100 * d.get('measured_fraction', float('nan')):.0f} % of the cloud "
+                            "measured at all: cloud at or below that height (fog, lifting stratus); layers are not "
+                            "reported as valid until the cloud base is above it (to search lower: `min_height_m` in "
+                            "[pipeline.matching.sweep] and [pipeline.filtering])",
+                            extra={"cbh_event": "below_range", "cbh_flags": invalid})
+        elif not invalid and st.last_invalid:
+            log.warning(f"pair at {f1.time_utc.isoformat()}: layers valid again ({', '.join(st.last_invalid)} cleared)",
+                        extra={"cbh_event": "geometry_valid"})
+        st.pairs_invalid += bool(invalid)
+        for f in invalid:
+            st.invalid_counts[f] = st.invalid_counts.get(f, 0) + 1
+        st.last_invalid = invalid
+        if "sun_misaligned" in result.flags and not st.sun_misaligned:  # once per change, like the above
+            log.warning(f"pair at {f1.time_utc.isoformat()}: the sun is "
+                        f"{result.diagnostics.get('sun_residual_deg', float('nan')):.2f} deg from where the station's "
+                        "orientation puts it (sun_misaligned): a camera may have moved; `cbh calibrate` fits it again",
+                        extra={"cbh_event": "sun_misaligned"})
+            st.sun_misaligned = True
+        elif math.isfinite(result.diagnostics.get("sun_residual_deg", math.nan)) and "sun_misaligned" not in result.flags:
+            st.sun_misaligned = False  # the sun was seen where expected
+        return invalid
+
     def _handle(self, pair: tuple[Frame, Frame], nxt: tuple[Frame, Frame] | None = None) -> None:
         st = self.stats
         present = tuple(f for f in pair if f is not None)  # a network's set may lack a camera
@@ -862,49 +911,7 @@ class Service:
         self._to_sinks("write", present, result)
         st.pairs_processed += 1
         st.last_time_utc = result.time_utc
-        invalid = [f for f in result.flags if f in INVALIDATING]
-        geometric = [f for f in invalid if f not in ("below_range", "clock_unknown")]
-        if invalid and not st.last_invalid:  # one warning per change of state, not per pair
-            if not geometric and "clock_unknown" in invalid:
-                own, run = (result.diagnostics.get(k, math.nan) for k in ("clock_offset_pair_s", "clock_offset_s"))
-                why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"
-                       if math.isfinite(own) and math.isfinite(run) else "no motion yet to measure it")
-                log.warning(f"pair at {f1.time_utc.isoformat()}: clock_unknown: the cameras' matches disagree with "
-                            "the station geometry while their clock offset, which would look the same, is not known "
-                            f"({why}); layers are not reported as valid until the offset is measured",
-                            extra={"cbh_event": "clock_unknown", "cbh_flags": invalid})
-            elif geometric:
-                diag = ", ".join(f"{k} {v:.3g}" for k, v in result.diagnostics.items()
-                                 if k.startswith(("geometry_", "sun_")))
-                log.warning(f"pair at {f1.time_utc.isoformat()}: {', '.join(geometric)}: the cameras disagree with the "
-                            f"station geometry ({diag}); layers are not reported as valid until they agree again "
-                            "(check the sources and the orientation: `cbh calibrate`; on the first pairs of a run, "
-                            "cameras whose clocks differ look the same until the offset is estimated)",
-                            extra={"cbh_event": "geometry_invalid", "cbh_flags": invalid})
-            else:
-                d = result.diagnostics
-                log.warning(f"pair at {f1.time_utc.isoformat()}: below_range: "
-                            f"{100 * d.get('below_range_fraction', float('nan')):.0f} % of the measured cloud on the "
-                            f"lowest height searched, {100 * d.get('measured_fraction', float('nan')):.0f} % of the cloud "
-                            "measured at all: cloud at or below that height (fog, lifting stratus); layers are not "
-                            "reported as valid until the cloud base is above it (to search lower: `min_height_m` in "
-                            "[pipeline.matching.sweep] and [pipeline.filtering])",
-                            extra={"cbh_event": "below_range", "cbh_flags": invalid})
-        elif not invalid and st.last_invalid:
-            log.warning(f"pair at {f1.time_utc.isoformat()}: layers valid again ({', '.join(st.last_invalid)} cleared)",
-                        extra={"cbh_event": "geometry_valid"})
-        st.pairs_invalid += bool(invalid)
-        for f in invalid:
-            st.invalid_counts[f] = st.invalid_counts.get(f, 0) + 1
-        st.last_invalid = invalid
-        if "sun_misaligned" in result.flags and not st.sun_misaligned:  # once per change, like the above
-            log.warning(f"pair at {f1.time_utc.isoformat()}: the sun is "
-                        f"{result.diagnostics.get('sun_residual_deg', float('nan')):.2f} deg from where the station's "
-                        "orientation puts it (sun_misaligned): a camera may have moved; `cbh calibrate` fits it again",
-                        extra={"cbh_event": "sun_misaligned"})
-            st.sun_misaligned = True
-        elif math.isfinite(result.diagnostics.get("sun_residual_deg", math.nan)) and "sun_misaligned" not in result.flags:
-            st.sun_misaligned = False  # the sun was seen where expected
+        invalid = self._note_validity(result, f1)
         st.last_layers_m = [] if invalid else [float(l.height_m) for l in result.layers]
         recv = max(f.received_s if f.received_s is not None else t0 for f in present)
         st.latency_s = time.monotonic() - recv
