@@ -826,13 +826,18 @@ class Pipeline:
     def stage_masks(self, work: tuple[np.ndarray, np.ndarray], ctx: "PairContext") -> "Masks":
         """Usable sky per camera (static mask, sun disk, saturated glare) and the sun angle maps."""
         cfg = self.config
-        sun_dir = None
+        sun_dir, known = None, None
         if ctx.time_utc is not None and (cfg.masks.sun or cfg.segmentation.method in ("nbr_adaptive", "hybrid")):
             st = self.station
             sun = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, ctx.time_utc)
             sun_dir, sun_zen = sun.direction_enu, sun.zenith_deg
             if sun_zen >= 90.0:
                 sun_dir = None
+            known = sun_dir
+        elif ctx.time_utc is None and cfg.masks.sun and cfg.masks.saturation:
+            sun_dir = self._sun_from_image(work[0])  # its aureole masked and modelled as with a time
+            if sun_dir is not None:
+                ctx.diagnostics["sun_from_image"] = 1.0
 
         def one(i):
             u = self.static_mask(i)
@@ -858,7 +863,34 @@ class Pipeline:
         if glare1:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
-        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=sun_dir)
+        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known)  # (the sun check: a known time only)
+
+    def _sun_from_image(self, image_bgr: np.ndarray) -> np.ndarray | None:
+        """The sun's ENU direction from camera 1's image when the capture time is unknown: the
+        centroid of its largest saturated blob, if that blob is compact (a disk and its glare,
+        not an over-exposed cloud deck) and above the horizon. Without it the sun was masked only
+        where it saturates, and its aureole was called cloud: a clear sky gave a layer at 2 km and
+        a geometry_mismatch. None: no such blob (an overcast or night sky: nothing to mask)."""
+        sat = saturation_mask(image_bgr, self.config.masks).astype(np.uint8)
+        if not sat.any():  # a camera whose white clips low or not at all: the brightest 0.1 % of the sky
+            grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+            inside = self.static_mask(0)
+            if not inside.any():
+                return None
+            sat = ((grey >= np.percentile(grey[inside], 99.9)) & inside).astype(np.uint8)
+        n, lab, stats, cent = cv2.connectedComponentsWithStats(sat, connectivity=8)
+        if n < 2:
+            return None
+        k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        w, h, area = stats[k, cv2.CC_STAT_WIDTH], stats[k, cv2.CC_STAT_HEIGHT], stats[k, cv2.CC_STAT_AREA]
+        # ragged or a sixth of the view: an over-exposed deck, not a sun's glare (a low sun's glare at
+        # the image's edge spans 150–230 px of 480 and fills 0.8 of its box)
+        if area < 0.4 * w * h or area > 0.12 * image_bgr.shape[0] * image_bgr.shape[1]:
+            return None
+        ray = self.cam1.model.pixel_to_ray(np.asarray(cent[k:k + 1], np.float64))[0]
+        d = np.asarray(self.cam1.R_world_from_cam, np.float64) @ ray
+        d /= np.linalg.norm(d)
+        return d if d[2] > 0.05 else None
 
     def _exposure_check(self, sky_dn: tuple[float, float], ctx: "PairContext") -> None:
         """``sky_cam1_dn``, ``sky_cam2_dn``: median brightest channel of each camera's usable sky (as
