@@ -176,3 +176,20 @@ def test_shadow_edges_in_simulation_do_not_regress():
     res = evaluate("two-layers", 480, 6.0)["leads"]
     assert res[0]["edges"] >= 20 and res[0]["share"] >= 0.6, res
     assert res[60]["share"] >= 0.5 and res[120]["share"] >= 0.5, res
+
+
+def test_quicklook_gains_the_ghi_panel_with_a_pyranometer(tmp_path, capsys):
+    """`cbh quicklook --pyranometer FILE`: the measured GHI, the clear sky and the nowcast 5 and 10
+    min ahead in a fifth panel (the figure grows by it); without one, the four panels as before."""
+    import cv2
+
+    from cbh.cli.main import main
+
+    pyr = tmp_path / "g.csv"
+    pyr.write_text("time_utc,ghi_wm2\n" + "".join(f"2024-06-21T14:{m:02d}:00Z,{700 + 10 * m}\n" for m in range(12)))
+    assert main(["quicklook", str(SAMPLE), "-o", str(tmp_path / "a.png"), "--pyranometer", str(pyr)]) == 0
+    assert "with the GHI panel" in capsys.readouterr().out
+    assert main(["quicklook", str(SAMPLE), "-o", str(tmp_path / "b.png")]) == 0
+    assert "GHI" not in capsys.readouterr().out
+    a, b = cv2.imread(str(tmp_path / "a.png")), cv2.imread(str(tmp_path / "b.png"))
+    assert a.shape[1] == b.shape[1] and a.shape[0] > b.shape[0] * 1.15

@@ -30,8 +30,10 @@ __all__ = ["quicklook", "draw_quicklook", "MARKERS"]
 MARKERS = ("o", "s", "^", "D", "v", "P")  # layer 1, 2, 3 …
 
 
-def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: int = 120) -> None:
-    """Draw the quicklook of pair records (:func:`cbh.outputs.export.session_records`) to ``out`` (PNG)."""
+def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: int = 120, ghi: dict | None = None) -> None:
+    """Draw the quicklook of pair records (:func:`cbh.outputs.export.session_records`) to ``out``
+    (PNG); with ``ghi`` (:func:`_ghi_series`) a fifth panel: the pyranometer's GHI, the clear sky and
+    the nowcast issued 5 and 10 min before."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -40,14 +42,19 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
     if not records:
         raise RecordingError("no complete pairs in the recording(s): nothing to draw")
     t = _Series(records)
-    fig, axes = plt.subplots(4, 1, figsize=(11, 9.5), sharex=True,
-                             gridspec_kw={"height_ratios": [3.2, 1.2, 1.2, 1.2], "hspace": 0.12})
+    rows = 5 if ghi else 4
+    fig, axes = plt.subplots(rows, 1, figsize=(11, 9.5 + 2.0 * (rows - 4)), sharex=True,
+                             gridspec_kw={"height_ratios": [3.2, 1.2, 1.2, 1.2, 1.8][:rows], "hspace": 0.12})
     fig.subplots_adjust(left=0.09, right=0.86, top=0.95, bottom=0.07)
     try:
         _draw_heights(fig, axes[0], t, title or f"cbh quicklook — station {info['station']} "
                       f"({info['latitude_deg']:.4f}°, {info['longitude_deg']:.4f}°, {info['altitude_m']:.0f} m)")
         _draw_fraction(axes[1], t)
         _draw_motion(axes[2], axes[3], t)
+        if ghi:
+            _draw_ghi(axes[4], ghi)
+            axes[3].set_xlabel("")
+            axes[4].set_xlabel("time (UTC)")
         _save(fig, out, dpi)
     finally:
         plt.close(fig)
@@ -154,6 +161,43 @@ def _draw_motion(ax_speed, ax_dir, t: _Series) -> None:
     ax_dir.set_xlabel("time (UTC)")
 
 
+def _ghi_series(sessions, pyranometer) -> dict:
+    """The GHI panel's series at the station (camera 1's site): measured, clear sky, and the
+    nowcast (:func:`cbh.actions.nowcast.nowcast_rows`) at 5 and 10 min, each at its valid time."""
+    from cbh.actions.nowcast import nowcast_rows
+    from cbh.outputs import nowcast as nc
+    from cbh.outputs.record import open_session
+
+    st = open_session(list(sessions)[0]).station
+    rows, _ = nowcast_rows(sessions, [f"{st.name}={st.latitude_deg},{st.longitude_deg}"], (0.0, 300.0, 600.0),
+                           pyranometer)
+    t64 = lambda ts: np.array([np.datetime64(x.replace(tzinfo=None), "us") for x in ts])  # noqa: E731
+    out = {"clear": (t64([r["valid_time_utc"] for r in rows if r["lead_s"] == 0]),
+                     np.array([r["clear_sky_ghi_wm2"] for r in rows if r["lead_s"] == 0]))}
+    for lead in (300.0, 600.0):
+        sel = [r for r in rows if r["lead_s"] == lead]
+        out[f"nowcast {lead / 60:.0f} min ahead"] = (t64([r["valid_time_utc"] for r in sel]),
+                                                     np.array([r["ghi_wm2"] for r in sel]))
+    if pyranometer is not None:
+        times, g = nc.read_pyranometer(pyranometer)
+        lo, hi = min(r["time_utc"] for r in rows), max(r["valid_time_utc"] for r in rows)
+        keep = [i for i, x in enumerate(times) if lo <= x <= hi]
+        out["measured"] = (t64([times[i] for i in keep]), g[keep])
+    return out
+
+
+def _draw_ghi(ax, ghi: dict) -> None:
+    styles = {"measured": dict(color="k", lw=1.4), "clear": dict(color="0.6", lw=1.0, ls="--"),
+              "nowcast 5 min ahead": dict(color="tab:orange", lw=1.0, marker=".", ms=4),
+              "nowcast 10 min ahead": dict(color="tab:red", lw=1.0, marker=".", ms=4)}
+    for name, (t, v) in ghi.items():
+        ax.plot(t, v, label="clear sky (pvlib Ineichen)" if name == "clear" else name, **styles.get(name, {}))
+    ax.set_ylabel("GHI at the station\n[W/m²]")
+    ax.set_ylim(bottom=0)
+    ax.legend(loc="upper left", fontsize=8, ncol=4)
+    ax.grid(alpha=0.3)
+
+
 def _save(fig, out, dpi: int) -> None:
     """Whole or not at all: a temporary file beside ``out``, renamed over it; errors name ``out``."""
     fmt = Path(out).suffix[1:].lower() or "png"
@@ -192,12 +236,15 @@ def _check_image_suffix(out: Path) -> None:
                           f"{', '.join(sorted(kinds))})")
 
 
-def quicklook(sessions, out, *, title: str | None = None) -> str:
-    """Draw the quicklook of recorded sessions to ``out`` (PNG); returns the CLI's summary line."""
+def quicklook(sessions, out, *, title: str | None = None, pyranometer=None) -> str:
+    """Draw the quicklook of recorded sessions to ``out`` (PNG); returns the CLI's summary line.
+    With a pyranometer (``pyranometer``, or the recorded station's ``[station] pyranometer``) it
+    gains the GHI panel: measured, clear sky, and cbh's nowcast 5 and 10 min ahead."""
     from cbh.fileio import refuse_inputs
 
     out = Path(out)
-    refuse_inputs([out], list(sessions) if isinstance(sessions, (list, tuple)) else [sessions], "--out")
+    sessions = list(sessions) if isinstance(sessions, (list, tuple)) else [sessions]
+    refuse_inputs([out], [*sessions, pyranometer], "--out")
     if out.is_dir():
         raise RecordingError(f"--out {out}: is a directory; give the image's file name (e.g. {out / 'quicklook.png'})")
     if not out.parent.is_dir():
@@ -206,5 +253,11 @@ def quicklook(sessions, out, *, title: str | None = None) -> str:
     if not out.suffix:
         out = out.with_suffix(".png")  # what matplotlib would write; the summary names the real file
     records, info = session_records(sessions)
-    draw_quicklook(records, info, out, title=title)
-    return f"drew {len(records)} time steps to {out}"
+    if pyranometer is None:
+        from cbh.outputs.record import open_session
+
+        rec_pyr = open_session(sessions[0]).station.pyranometer
+        pyranometer = rec_pyr if rec_pyr is not None and Path(rec_pyr).is_file() else None
+    ghi = _ghi_series(sessions, pyranometer) if pyranometer is not None else None
+    draw_quicklook(records, info, out, title=title, ghi=ghi)
+    return f"drew {len(records)} time steps to {out}" + (" with the GHI panel" if ghi else "")

@@ -14,8 +14,9 @@ def quicklook_cmd(
     sessions: list[Path] = typer.Argument(..., help="One or more SESSION.mcap files (or directories of rotated files)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output PNG (replaced if it exists)."),
     title: str = typer.Option(None, "--title", help="Figure title (default: station and position)."),
+    pyranometer: Path = typer.Option(None, "--pyranometer", help="The station's GHI record (CSV): adds measured and nowcast GHI."),
 ) -> None:
     """Layer bases against time coloured by cover (okta), cloud fraction, layer speed and direction."""
     from cbh.actions.quicklook import quicklook
 
-    print(quicklook(sessions, out, title=title))
+    print(quicklook(sessions, out, title=title, pyranometer=pyranometer))
