@@ -588,3 +588,20 @@ def test_track_test_keeps_a_layer_that_moved_across_the_baseline():
     assert not pipe._jumped(a1, a2, a1p, a2p).any()
     c = a1 - a2
     assert pipe._jumped(a1, a1 - 1.2 * c, a1p, a2p).all()
+
+
+def test_a_resumed_clock_is_used_only_near_its_time():
+    """`cbh run` resumes a recorded clock offset (PairState.resumed): on a first pair within a day of
+    its last estimate, either way in time (an archive, a simulated run may start before it); a
+    day beyond, a camera without NTP has drifted: not used, and the run starts afresh."""
+    from datetime import datetime, timedelta, timezone
+
+    from cbh.actions.run import MotionChain
+    from cbh.pipeline.motion import PairState
+
+    t0 = datetime(2016, 9, 1, 9, 30, tzinfo=timezone.utc)
+    for dt_h, kept in ((-1.0, True), (3.0, True), (49.0, False)):
+        chain = MotionChain(start=PairState.resumed(("fe3", "fe4"), (-31.0, -30.5), t0))
+        s = chain.previous(t0 + timedelta(hours=dt_h))
+        assert (s.offsets_s == (-31.0, -30.5)) is kept and (s.cameras == ("fe3", "fe4")) is kept
+        assert s.time_utc is None and s.gray is None

@@ -193,3 +193,16 @@ def test_quicklook_gains_the_ghi_panel_with_a_pyranometer(tmp_path, capsys):
     assert "GHI" not in capsys.readouterr().out
     a, b = cv2.imread(str(tmp_path / "a.png")), cv2.imread(str(tmp_path / "b.png"))
     assert a.shape[1] == b.shape[1] and a.shape[0] > b.shape[0] * 1.15
+
+
+def test_a_pyranometer_file_that_is_not_one_is_one_line(tmp_path, capsys):
+    """A recording (binary) or a CSV without a GHI column given as the pyranometer: one line, exit 2."""
+    from cbh.cli.main import main
+
+    for bad, says in ((SAMPLE, "not text"), (tmp_path / "x.csv", "no GHI column")):
+        if bad.suffix == ".csv":
+            bad.write_text("time_utc,temperature\n2024-06-21T14:00:00Z,20\n")
+        assert main(["export", str(SAMPLE), "--product", "irradiance", "--site", "-15.76,-47.87", "--pyranometer",
+                     str(bad), "-o", str(tmp_path / "n.csv")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0] and err[0].isprintable(), err

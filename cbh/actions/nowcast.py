@@ -95,19 +95,23 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
 
 def _learn(levels, pending: dict, site, pyr, now) -> None:
     """Every forecast of ``site`` valid by ``now`` (lead ≥ 1 min, seen clear of the sun's glare),
-    with the clear-sky index the pyranometer measured at its valid time, into ``levels``."""
+    with the clear-sky index the pyranometer measured at its valid time, into ``levels`` (one
+    pvlib call for them all)."""
     due = [(tv, p) for tv, p in pending.get(site.name, []) if tv <= now]
     pending[site.name] = [(tv, p) for tv, p in pending.get(site.name, []) if tv > now]
-    for tv, p in due:
-        levels.add(p, _measured_index(pyr, site, tv))
+    if due:
+        for (tv, p), k in zip(due, _measured_index(pyr, site, [tv for tv, _ in due])):
+            levels.add(p, k)
 
 
-def _measured_index(pyr, site, t) -> float:
+def _measured_index(pyr, site, times) -> np.ndarray:
+    """The clear-sky index the pyranometer measured at ``times`` (NaN: no record, or night)."""
     from cbh.outputs import nowcast as nc
 
-    g = nc.measured_at(pyr[0], pyr[1], t)
-    cs = float(nc.clear_sky_ghi(site, [t])[0])
-    return g / cs if cs > 50.0 and math.isfinite(g) else math.nan
+    g = np.array([nc.measured_at(pyr[0], pyr[1], t) for t in times])
+    cs = nc.clear_sky_ghi(site, times)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where((cs > 50.0) & np.isfinite(g), g / cs, np.nan)
 
 
 def _fill_ghi(rows: list[dict], places) -> None:

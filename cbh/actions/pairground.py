@@ -42,20 +42,54 @@ def _sun(station, t):
     return sp.direction_enu, sp.zenith_deg
 
 
+_STATIC: dict = {}  # (camera and mask settings) → its static usable sky: the same for every pair of a session
+_SCALED: dict = {}  # (camera, width) → the camera at that width, its ray maps cached on its model
+
+
+def _key(cam) -> tuple:
+    return (cam.name, cam.model.width, cam.model.height, repr(cam.model.to_dict()),
+            np.asarray(cam.R_world_from_cam).tobytes(), str(cam.mask))
+
+
+def _scaled(cam, width: int):
+    """``cam`` at ``width`` px, one object per camera and width (a new one per pair recomputed its
+    ray map, 0.3 s at 1920 px, for every sun angle map)."""
+    key = (_key(cam), int(width))
+    if key not in _SCALED:
+        if len(_SCALED) >= 8:
+            _SCALED.clear()
+        _SCALED[key] = cam.scaled(width / cam.model.width)
+    return _SCALED[key]
+
+
+def _static_usable(cam, masks_cfg) -> np.ndarray:
+    """Camera ``cam``'s static usable sky (:func:`cbh.pipeline.masks.static_sky_mask`), computed
+    once per camera and settings (0.5 s at 1920 px: it was most of an export's time, per pair)."""
+    from cbh.pipeline.masks import static_sky_mask
+
+    key = (_key(cam), repr(masks_cfg))
+    if key not in _STATIC:
+        if len(_STATIC) >= 8:
+            _STATIC.clear()
+        m = static_sky_mask(cam, masks_cfg)
+        m.setflags(write=False)  # shared by every pair: never changed in place
+        _STATIC[key] = m
+    return _STATIC[key]
+
+
 def pair_ground(station, masks_cfg, result) -> PairGround:
     """Labels of camera 1's pixels (cloud per layer / clear / unknown) for one recorded result."""
-    from cbh.pipeline.masks import angle_map_deg, static_sky_mask
+    from cbh.pipeline.masks import angle_map_deg
 
     name = result.cameras[0]
     mask = result.cloud_masks.get(name)
     if mask is None:
         raise RecordingError(f"pair at {result.time_utc}: no cloud mask of {name!r} recorded")
     H, W = mask.shape
-    cam = station.camera(name)
-    cam = cam.scaled(W / cam.model.width)
+    cam = _scaled(station.camera(name), W)
     if (cam.model.height, cam.model.width) != (H, W):
         raise RecordingError(f"{name}: recorded mask {W}x{H} does not match the station's image shape")
-    usable = static_sky_mask(cam, masks_cfg)
+    usable = _static_usable(cam, masks_cfg)
     sun_dir, zen = _sun(station, result.time_utc)
     if masks_cfg.sun and zen < 90.0:
         usable = usable & (angle_map_deg(cam, sun_dir) > masks_cfg.sun_radius_deg)

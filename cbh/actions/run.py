@@ -89,11 +89,13 @@ class MotionChain:
         if s is None:  # a run's first pair: nothing known yet, or a recorded session's clock if recent
             st = self.start
             if st.offsets_s and st.time_utc is not None and time_utc is not None:
-                age = (time_utc - st.time_utc).total_seconds()
-                if not 0.0 <= age <= RESUME_MAX_AGE_S:
-                    _log.warning("the resumed clock offset is from %.1f h before the run's first pair: not used",
-                                 age / 3600.0)
-                    return PairState.start()
+                # either way in time: an archive reprocessed, or a simulated run, may start before it
+                age = abs((time_utc - st.time_utc).total_seconds())
+                if age > RESUME_MAX_AGE_S:
+                    _log.warning("the resumed clock offset was measured %.0f h from the run's first pair: not used "
+                                 "(a camera without NTP drifts seconds a day)", age / 3600.0)
+                    self.start = PairState.start()  # (said once)
+                    return self.start
             return replace(st, time_utc=None)
         if s.gray is None or time_utc is None or s.time_utc is None:
             return s
@@ -144,7 +146,7 @@ def resumed_clock(path, cameras: tuple[str, str], history: int):
     kept = tuple(offs[-history:])
     return kept, last, (f"clock offset {cameras[1]} - {cameras[0]} resumed from {path}: "
                         f"{float(np.median(kept)):+.1f} s ({len(kept)} pairs up to {last:%Y-%m-%dT%H:%M:%SZ}; "
-                        f"used if the run's first pair is within {RESUME_MAX_AGE_S / 3600:.0f} h after it)")
+                        f"used if the run's first pair is within {RESUME_MAX_AGE_S / 3600:.0f} h of it)")
 
 
 class RunSetup:

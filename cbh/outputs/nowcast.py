@@ -266,7 +266,9 @@ def read_pyranometer(path) -> tuple[list[datetime], np.ndarray]:
     low = [h.lower() for h in head]
     gcol = next((low.index(c) for c in ("ghi_wm2", "g_wm2", "ghi", "g") if c in low), None)
     if gcol is None:
-        raise InputError(f"{path}: no GHI column (ghi_wm2, G_wm2, ghi or G) in {', '.join(head)}")
+        seen = ", ".join(head)
+        seen = seen[:120] if seen.isprintable() and "\ufffd" not in seen else "a header that is not text: is it a CSV file?"
+        raise InputError(f"{path}: no GHI column (ghi_wm2, G_wm2, ghi or G) in {seen}")
     tcol = low.index("time_utc") if "time_utc" in low else None
     zcol = next((i for i, h in enumerate(low) if h.startswith("time_utc") and _ZONE.search(h[5:])), None)
     dcol = low.index("date") if "date" in low else None

@@ -547,8 +547,10 @@ class Pipeline:
     def _clock_explains(self, previous, mot: "MotionInput", sky: SkyClock, running_before: float) -> bool:
         """Whether a geometry mismatch may be the clock's, not yet measured: in a run (``previous``
         given) before any motion (a run's first pair: no offset can be measured, and one would look
-        the same; or one resumed from a recording, which cannot be taken out without motion), or when this pair's own offset from the sky maps is further from the running one than a jump
-        (:func:`~.motion.jump_threshold`) that compensated it (a clock that jumped; the next pair confirms it)."""
+        the same; or one resumed from a recording, which cannot be taken out without motion), or
+        when this pair's own offset from the sky maps is further from the running one than a jump
+        (:func:`~.motion.jump_threshold`) that compensated it (a clock that jumped; the next pair
+        confirms it)."""
         mcfg = self.config.motion
         if previous is None or not mcfg.clock_offset:
             return False
