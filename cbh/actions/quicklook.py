@@ -22,8 +22,8 @@ import numpy as np
 
 from cbh.errors import ConfigError, RecordingError
 from cbh.flags import INVALIDATING
-from cbh.fileio import atomic_write
-from cbh.outputs.export import ceiling_index, okta, session_records, write_error
+from cbh.outputs.export import ceiling_index, okta, session_records
+from cbh.outputs.figures import save_figure
 
 __all__ = ["quicklook", "draw_quicklook", "MARKERS"]
 
@@ -55,7 +55,7 @@ def draw_quicklook(records, info: dict, out, *, title: str | None = None, dpi: i
             _draw_ghi(axes[4], ghi)
             axes[3].set_xlabel("")
             axes[4].set_xlabel("time (UTC)")
-        _save(fig, out, dpi)
+        save_figure(fig, out, dpi)
     finally:
         plt.close(fig)
 
@@ -196,16 +196,6 @@ def _draw_ghi(ax, ghi: dict) -> None:
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left", fontsize=8, ncol=4)
     ax.grid(alpha=0.3)
-
-
-def _save(fig, out, dpi: int) -> None:
-    """Whole or not at all: a temporary file beside ``out``, renamed over it; errors name ``out``."""
-    fmt = Path(out).suffix[1:].lower() or "png"
-    try:
-        with atomic_write(out) as tmp:
-            fig.savefig(tmp, dpi=dpi, format=fmt)
-    except OSError as exc:
-        raise write_error(out, exc) from None
 
 
 def _break_gaps(times: np.ndarray, arrays: tuple, bad: np.ndarray):

@@ -90,3 +90,37 @@ def simulate_to_folder(out, *, station=None, scene="two-layers", frames: int = 1
         shot = sim.render(t0 + timedelta(seconds=i * cadence_s))
         write_shot(shot, out, sc.image.jpeg_quality)
         yield SimulatedFrame(shot, time.perf_counter() - tic)
+
+
+def simulate_drone_to_folder(out, *, station=None, positions: int = 20, cadence_s: float = 1.0,
+                             start_utc: datetime | None = None, size_px: int | None = None, log_offset_s: float = 3.0,
+                             seed: int = 0) -> Iterator[str]:
+    """Render a night drone flight (:mod:`cbh.sim.drone`) into ``out``: every camera's frames,
+    the log as CSV and DJI SRT, ``station.toml`` and ``truth.json``. A generator of progress lines."""
+    from cbh.fileio import refuse_inputs
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim.drone import DEFAULT_START, paper_plan, render_flight
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output folder is a file, not a directory: {out}")
+    st_file = station_path(station) if station else station_path()
+    refuse_inputs([out / "station.toml"], [st_file], "--out")
+    st = load_station(st_file)
+    if size_px is not None:
+        st = st.scaled(size_px)
+    tic = time.perf_counter()
+    gen = render_flight(st, out, paper_plan(positions), start_utc=start_utc or DEFAULT_START, cadence_s=cadence_s,
+                        log_offset_s=log_offset_s, seed=seed)
+    while True:
+        try:
+            i, n = next(gen)
+        except StopIteration as stop:
+            flight = stop.value
+            break
+        if i % 100 == 0 or i == n - 1:
+            yield f"frame {i + 1} of {n}  ({time.perf_counter() - tic:.1f} s)"
+    yield (f"wrote {flight.times_s.size} frames of {len(st.cameras)} cameras, {len(flight.plan.positions_m)} hover "
+           f"positions, the log {log_offset_s:+g} s off the cameras' clock: {out}/flight.csv, {out}/flight.SRT, "
+           f"{out}/truth.json")

@@ -136,9 +136,10 @@ def _save(fig, path: Path) -> None:
     """A figure written whole or not at all (a full disk leaves the older file)."""
     import matplotlib.pyplot as plt
 
+    from cbh.outputs.figures import save_figure
+
     try:
-        with atomic_write(path) as tmp:
-            fig.savefig(tmp, dpi=100, format="png")
+        save_figure(fig, path)
     finally:
         plt.close(fig)
 

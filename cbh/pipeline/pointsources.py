@@ -1,0 +1,148 @@
+"""Point sources in sky frames: a drone's light at night, a dark speck by day (``cbh validate --drone``).
+
+Two steps, both on one camera's frames:
+
+1. :func:`detect_points` finds compact sources in one frame: the frame's top-hat (black-hat
+   for a dark speck) over a 7 px disk, which keeps anything a few pixels wide and removes
+   clouds, the sky's gradient and airglow, local maxima above ``k_sigma`` times the residual's robust noise, and their
+   intensity-weighted centroids over 5 x 5 px (sub-pixel, unbiased for a symmetric spot).
+2. :func:`persistent_sources` marks what stays put: stars (which turn with the sky at the
+   sidereal rate, 0.25 deg/min at most) and hot pixels (which never move) are found at the same
+   place in most frames minutes apart; a drone hovering for a minute, an aircraft or a blinking
+   light is not.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["detect_points", "persistent_sources", "sidereal_px_per_s", "SIDEREAL_RAD_S"]
+
+SIDEREAL_RAD_S = 7.2921e-5  # the sky's rotation rate [rad/s]
+BACKGROUND_PX = 7  # the background's structuring element [px]; a source is at most a few px wide
+WINDOW = 5  # centroid window [px]
+
+
+def sidereal_px_per_s(model) -> float:
+    """The fastest a star can move in this camera's image [px/s] (sidereal rate times the lens's
+    largest radial or tangential scale)."""
+    th = np.radians(np.linspace(0.5, float(model.max_theta_deg), 200))
+    r = np.asarray(model.r_from_theta(th), np.float64)
+    ok = np.isfinite(r)
+    if ok.sum() < 3:
+        return 0.0
+    radial = np.abs(np.gradient(r[ok], th[ok]))
+    tangential = r[ok] / np.sin(th[ok])
+    return float(SIDEREAL_RAD_S * max(radial.max(), tangential.max()))
+
+
+def detect_points(gray: np.ndarray, valid: np.ndarray | None = None, polarity: str = "bright",
+                  k_sigma: float = 6.0, min_amplitude: float = 6.0, max_points: int = 400) -> np.ndarray:
+    """Compact sources in one frame.
+
+    Parameters
+    ----------
+    gray : ndarray, shape (H, W), uint8
+        The frame in grey.
+    valid : ndarray, shape (H, W), bool, optional
+        Where to look (the image circle, less any obstacle mask).
+    polarity : {"bright", "dark"}
+        A light at night, or a dark speck against a day sky.
+    k_sigma, min_amplitude : float
+        A source stands ``k_sigma`` robust standard deviations and ``min_amplitude`` grey
+        levels above its background.
+    max_points : int
+        Keep the strongest this many.
+
+    Returns
+    -------
+    ndarray, shape (N, 4), float64
+        ``x, y`` centroid [px], ``flux`` (sum over the window above the background), ``peak``
+        (the residual at the maximum), strongest first.
+    """
+    if polarity not in ("bright", "dark"):
+        raise ValueError(f"polarity: 'bright' or 'dark', got {polarity!r}")
+    g = np.ascontiguousarray(gray, dtype=np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (BACKGROUND_PX, BACKGROUND_PX))
+    res = cv2.morphologyEx(g, cv2.MORPH_TOPHAT if polarity == "bright" else cv2.MORPH_BLACKHAT, kernel).astype(np.float32)
+    inside = np.ones(g.shape, bool) if valid is None else np.asarray(valid, bool)
+    sample = res[inside][:: max(1, int(inside.sum()) // 200_000)]
+    if sample.size == 0:
+        return np.zeros((0, 4))
+    sigma = 1.4826 * float(np.median(np.abs(sample - np.median(sample)))) + 0.5  # +0.5: a quantisation floor
+    thr = max(k_sigma * sigma, min_amplitude)
+    peaks = (res >= cv2.dilate(res, np.ones((5, 5), np.uint8))) & (res > thr) & inside
+    ys, xs = np.nonzero(peaks)
+    if ys.size > max_points * 4:  # a flood of maxima (a cloud's edge): the strongest only
+        keep = np.argsort(res[ys, xs])[::-1][: max_points * 4]
+        ys, xs = ys[keep], xs[keep]
+    return _centroids(res, xs, ys, max_points)
+
+
+def _centroids(res: np.ndarray, xs: np.ndarray, ys: np.ndarray, max_points: int) -> np.ndarray:
+    h, w = res.shape
+    half = WINDOW // 2
+    ok = (xs >= half) & (ys >= half) & (xs < w - half) & (ys < h - half)
+    xs, ys = xs[ok], ys[ok]
+    if xs.size == 0:
+        return np.zeros((0, 4))
+    d = np.arange(-half, half + 1)
+    yy = ys[:, None, None] + d[None, :, None]
+    xx = xs[:, None, None] + d[None, None, :]
+    patch = np.clip(res[yy, xx], 0.0, None)
+    flux = patch.sum(axis=(1, 2))
+    cx = xs + (patch * d[None, None, :]).sum(axis=(1, 2)) / np.maximum(flux, 1e-9)
+    cy = ys + (patch * d[None, :, None]).sum(axis=(1, 2)) / np.maximum(flux, 1e-9)
+    out = np.stack([cx, cy, flux, res[ys, xs]], axis=1).astype(np.float64)
+    # two maxima of one flat (saturated) spot: keep the stronger
+    out = out[np.argsort(-out[:, 2])]
+    if len(out) > 1:
+        from scipy.spatial import cKDTree
+
+        drop = np.zeros(len(out), bool)
+        for i, j in sorted(cKDTree(out[:, :2]).query_pairs(float(WINDOW))):
+            if not drop[i]:
+                drop[j] = True
+        out = out[~drop]
+    return out[:max_points]
+
+
+def persistent_sources(times_s: np.ndarray, points: list[np.ndarray], px_per_s: float, window_s: float = 180.0,
+                       compare: int = 8, radius_px: float = 1.5, share: float = 0.75) -> list[np.ndarray]:
+    """Which sources stay put: stars and hot pixels (one bool array per frame).
+
+    A source of frame ``i`` is persistent when up to ``compare`` frames between 10 % and 100 % of
+    ``window_s`` away in time have a source within ``radius_px`` plus the sidereal drift
+    (``px_per_s`` times the time apart) of it in at least ``share`` of them. Frames with fewer
+    than three such frames to compare with keep all their sources (nothing can be told).
+
+    Parameters
+    ----------
+    times_s : ndarray, shape (F,)
+        Frame times [s].
+    points : list of F ndarrays, shape (N_i, >=2)
+        Each frame's sources (``x, y`` first).
+    """
+    from scipy.spatial import cKDTree
+
+    t = np.asarray(times_s, np.float64)
+    trees = [cKDTree(p[:, :2]) if len(p) else None for p in points]
+    out = []
+    for i, p in enumerate(points):
+        if not len(p):
+            out.append(np.zeros(0, bool))
+            continue
+        dt = np.abs(t - t[i])
+        cand = np.flatnonzero((dt >= 0.1 * window_s) & (dt <= window_s))
+        if cand.size < 3:
+            out.append(np.zeros(len(p), bool))
+            continue
+        pick = cand[np.unique(np.linspace(0, cand.size - 1, min(compare, cand.size)).round().astype(int))]
+        hits = np.zeros(len(p), int)
+        for j in pick:
+            if trees[j] is None:
+                continue
+            d, _ = trees[j].query(p[:, :2], k=1, distance_upper_bound=radius_px + px_per_s * dt[j])
+            hits += np.isfinite(d)
+        out.append(hits >= share * pick.size)
+    return out
