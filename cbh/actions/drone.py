@@ -74,32 +74,42 @@ def _valid_mask(cam) -> np.ndarray:
     return m
 
 
-def _detect_all(station, frames: dict) -> dict[str, _Camera]:
+def _detect_all(station, frames: dict, span: tuple[np.datetime64, np.datetime64]) -> dict[str, _Camera]:
+    """Each camera's sources in its frames within ``span`` (the log's, widened by the clock
+    search): a night's recording is read, but only the flight's frames are decoded."""
     import cv2
 
     from cbh.imageio import check_image_size, decode_image
     from cbh.pipeline.pointsources import detect_points
 
-    out = {}
+    out, skipped = {}, []
     for name, it in frames.items():
         cam = station.cameras[name]
         valid, polarity = _valid_mask(cam), None
         c = _Camera(cam, [], [])
         for f in it:
+            t = np.datetime64(f.time_utc.replace(tzinfo=None), "ns")
+            if not span[0] <= t <= span[1]:
+                skipped.append(t)
+                continue
             img = f.image if f.image is not None else decode_image(f.encoded, f"{name} frame {f.time_utc:%H:%M:%S}")
             check_image_size(img, cam.model, f"{name} frame {f.time_utc:%Y-%m-%dT%H:%M:%S}Z")
             g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
             if polarity is None:
                 polarity = "dark" if float(np.median(g[valid])) > DAY_LEVEL else "bright"
-            c.times.append(np.datetime64(f.time_utc.replace(tzinfo=None), "ns"))
+            c.times.append(t)
             c.points.append(detect_points(g, valid, polarity))
             c.stack = g.copy() if c.stack is None else (np.maximum(c.stack, g) if polarity == "bright" else np.minimum(c.stack, g))
             c.frames += 1
         if c.frames:
             out[name] = c
+    if not out and skipped:
+        raise InputError(f"no overlap: the frames span {_span(np.array(skipped))}, the flight log "
+                         f"{_span(np.array(span))} with the clock search (a DJI log stamps local time: --log-tz)")
     if len(out) < 2:
         have = ", ".join(out) or "none"
-        raise InputError(f"frames from fewer than two cameras (with frames: {have}): a drone check needs two")
+        raise InputError(f"frames from fewer than two cameras during the flight (with frames: {have}): a drone check "
+                         "needs two")
     return out
 
 
@@ -122,14 +132,6 @@ def _span(t: np.ndarray) -> str:
     return f"{t[0]}Z .. {t[-1]}Z"
 
 
-def _check_overlap(log, frame_times: np.ndarray, search_s: float) -> None:
-    lo, hi = frame_times.min(), frame_times.max()
-    pad = np.timedelta64(int(search_s * 1e9), "ns")
-    if log.time_utc[-1] < lo - pad or log.time_utc[0] > hi + pad:
-        raise InputError(f"no overlap: the frames span {_span(frame_times)}, the flight log {_span(log.time_utc)} "
-                         f"(clock offsets up to ±{search_s:g} s are looked for; a DJI log stamps local time: --log-tz)")
-
-
 def validate_drone(log_path, out, *, station_path=None, sources: dict | None = None, recordings: list | None = None,
                    opts: DroneOptions = DroneOptions()) -> tuple[dict, str]:
     """Run the drone check; write the per-position CSV ``out`` and its figure ``<stem>.png``.
@@ -148,10 +150,9 @@ def validate_drone(log_path, out, *, station_path=None, sources: dict | None = N
     refuse_inputs([out, png], [log_path, station_path, *(sources or {}).values(), *(recordings or [])], "--out")
     log = read_flight_log(log_path, parse_tz(opts.log_tz))
     enu, notes = log_enu(log, station, opts.takeoff)
-    cams = _detect_all(station, _frames(station, sources, recordings))
-    all_t = np.concatenate([np.array(c.times) for c in cams.values()])
-    _check_overlap(log, all_t, opts.search_s)
-    t0 = all_t.min()
+    pad = np.timedelta64(int(opts.search_s * 1e9), "ns")
+    cams = _detect_all(station, _frames(station, sources, recordings), (log.time_utc[0] - pad, log.time_utc[-1] + pad))
+    t0 = np.concatenate([np.array(c.times) for c in cams.values()]).min()
     tracks = _tracks(cams, t0)
     log_t = log.seconds(t0)
     hovers = find_hovers(log_t, enu, log.up_m)

@@ -1,6 +1,7 @@
 """``cbh simulate`` in library terms: a synthetic stereo sky sequence with exact truth, to a folder."""
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import dataclass
@@ -123,4 +124,4 @@ def simulate_drone_to_folder(out, *, station=None, positions: int = 20, cadence_
             yield f"frame {i + 1} of {n}  ({time.perf_counter() - tic:.1f} s)"
     yield (f"wrote {flight.times_s.size} frames of {len(st.cameras)} cameras, {len(flight.plan.positions_m)} hover "
            f"positions, the log {log_offset_s:+g} s off the cameras' clock: {out}/flight.csv, {out}/flight.SRT, "
-           f"{out}/truth.json")
+           f"{out}/truth.json; take-off: --takeoff={json.loads((out / 'truth.json').read_text())['takeoff_arg']}")

@@ -3,9 +3,9 @@
 Two steps, both on one camera's frames:
 
 1. :func:`detect_points` finds compact sources in one frame: the frame's top-hat (black-hat
-   for a dark speck) over a 7 px disk, which keeps anything a few pixels wide and removes
+   for a dark speck) over an 11 px disk, which keeps anything a few pixels wide and removes
    clouds, the sky's gradient and airglow, local maxima above ``k_sigma`` times the residual's robust noise, and their
-   intensity-weighted centroids over 5 x 5 px (sub-pixel, unbiased for a symmetric spot).
+   intensity-weighted centroids over 7 x 7 px (sub-pixel, unbiased for a symmetric spot).
 2. :func:`persistent_sources` marks what stays put: stars (which turn with the sky at the
    sidereal rate, 0.25 deg/min at most) and hot pixels (which never move) are found at the same
    place in most frames minutes apart; a drone hovering for a minute, an aircraft or a blinking
@@ -19,8 +19,8 @@ import numpy as np
 __all__ = ["detect_points", "persistent_sources", "sidereal_px_per_s", "SIDEREAL_RAD_S"]
 
 SIDEREAL_RAD_S = 7.2921e-5  # the sky's rotation rate [rad/s]
-BACKGROUND_PX = 7  # the background's structuring element [px]; a source is at most a few px wide
-WINDOW = 5  # centroid window [px]
+BACKGROUND_PX = 11  # the background's structuring element [px]: a source is at most a few px wide (sigma <= 2 px)
+WINDOW = 7  # centroid window [px] (+-3 px: +-3 sigma of a 1 px spot, +-1.5 sigma of a 2 px one)
 
 
 def sidereal_px_per_s(model) -> float:
@@ -66,7 +66,7 @@ def detect_points(gray: np.ndarray, valid: np.ndarray | None = None, polarity: s
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (BACKGROUND_PX, BACKGROUND_PX))
     res = cv2.morphologyEx(g, cv2.MORPH_TOPHAT if polarity == "bright" else cv2.MORPH_BLACKHAT, kernel).astype(np.float32)
     inside = np.ones(g.shape, bool) if valid is None else np.asarray(valid, bool)
-    sample = res[inside][:: max(1, int(inside.sum()) // 200_000)]
+    sample = res[inside][:: max(1, int(inside.sum()) // 40_000)]
     if sample.size == 0:
         return np.zeros((0, 4))
     sigma = 1.4826 * float(np.median(np.abs(sample - np.median(sample)))) + 0.5  # +0.5: a quantisation floor

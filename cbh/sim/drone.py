@@ -153,7 +153,7 @@ class _Sky:
         return self.plane_dir * 230.0 * (t_s - self.plane_t0) + side * self.plane_offset + np.array([0, 0, self.plane_h])
 
 
-def _frame(cam, sky: _Sky, t_s: float, drone_m: np.ndarray, rng, noise: float) -> np.ndarray:
+def _frame(cam, sky: _Sky, t_s: float, drone_m: np.ndarray, rng, noise: float, drone_spot=(1.0, 400.0)) -> np.ndarray:
     """One camera's BGR uint8 night frame at ``t_s``."""
     m = cam.model
     zen = cam.zenith_map()
@@ -169,7 +169,7 @@ def _frame(cam, sky: _Sky, t_s: float, drone_m: np.ndarray, rng, noise: float) -
     _add_spots(red, ppx, np.array([60.0]), 0.9)
     if (t_s % 1.3) < 0.45:  # the strobe
         _add_spots(grey, ppx, np.array([250.0]), 0.9)
-    _add_spots(grey, cam.world_to_pixel(drone_m[None]), np.array([400.0]), 1.0)
+    _add_spots(grey, cam.world_to_pixel(drone_m[None]), np.array([drone_spot[1]]), drone_spot[0], radius=max(3, int(3 * drone_spot[0])))
     hx, hy, hv = sky.hot[cam.name]
     grey[hy, hx] = np.maximum(grey[hy, hx], hv)
     g = np.clip(grey, 0, 255)
@@ -180,12 +180,13 @@ def _frame(cam, sky: _Sky, t_s: float, drone_m: np.ndarray, rng, noise: float) -
 
 def render_flight(station, out, plan: FlightPlan | None = None, *, start_utc: datetime = DEFAULT_START,
                   cadence_s: float = 1.0, log_offset_s: float = 3.0, seed: int = 0, n_stars: int = 400,
-                  noise: float = 1.5, jpeg_quality: int = 92, hidden_from=()):
+                  noise: float = 1.5, jpeg_quality: int = 92, hidden_from=(), drone_spot=(1.0, 400.0)):
     """Render every camera's frames of a flight and write its logs and truth into ``out``.
 
     A generator: yields (frame index, number of frames) as each time step is written; the
     :class:`Flight` is returned through StopIteration's value (``yield from``). The cameras
-    named in ``hidden_from`` never see the drone (a covered or misdirected camera).
+    named in ``hidden_from`` never see the drone (a covered or misdirected camera);
+    ``drone_spot`` is its light's (sigma [px], peak [grey levels]; the default clips).
     """
     from cbh.imageio import encode_jpeg
     from cbh.sim.io import image_path
@@ -209,7 +210,7 @@ def render_flight(station, out, plan: FlightPlan | None = None, *, start_utc: da
             path = image_path(out, name, stamp)
             path.parent.mkdir(parents=True, exist_ok=True)
             drone = np.full(3, np.nan) if name in hidden_from else p
-            path.write_bytes(encode_jpeg(_frame(cam, sky, float(t), drone, rng, noise), jpeg_quality))
+            path.write_bytes(encode_jpeg(_frame(cam, sky, float(t), drone, rng, noise, drone_spot), jpeg_quality))
         yield i, n
     _write_logs(station, flight, out)
     _write_truth(station, flight, sky, out)
