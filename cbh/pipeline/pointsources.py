@@ -89,7 +89,9 @@ def _centroids(res: np.ndarray, xs: np.ndarray, ys: np.ndarray, max_points: int)
     d = np.arange(-half, half + 1)
     yy = ys[:, None, None] + d[None, :, None]
     xx = xs[:, None, None] + d[None, None, :]
-    patch = np.clip(res[yy, xx], 0.0, None)
+    patch = res[yy, xx]
+    ring = np.concatenate([patch[:, 0, :], patch[:, -1, :], patch[:, 1:-1, 0], patch[:, 1:-1, -1]], axis=1)
+    patch = np.clip(patch - np.median(ring, axis=1)[:, None, None], 0.0, None)  # the window's pedestal off
     flux = patch.sum(axis=(1, 2))
     cx = xs + (patch * d[None, None, :]).sum(axis=(1, 2)) / np.maximum(flux, 1e-9)
     cy = ys + (patch * d[None, :, None]).sum(axis=(1, 2)) / np.maximum(flux, 1e-9)
