@@ -274,3 +274,21 @@ def test_paper_flight_twenty_positions_and_a_misoriented_camera(tmp_path):
     assert abs(turn["tilt_deg"] - 1.0) < 0.15 and abs(abs(turn["yaw_deg"]) - 0.5) < 0.15
     assert s["orientation"]["cam1"]["angle_deg"] < 0.1
     assert any("cam2 sees the drone" in a and "cbh calibrate" in a for a in s["advice"])
+
+
+@pytest.mark.slow
+def test_recordings_in_place_of_sources(tmp_path):
+    """`cbh run --record` over the flight's folders, then the check on the recording alone (its
+    station read from it): the same answer as on the folders."""
+    d = tmp_path / "f"
+    _render(d, 2, 320, cadence_s=1.0, log_offset_s=3.0, seed=2, n_stars=150, hover_s=8.0)
+    rec = tmp_path / "night.mcap"
+    r = _cbh("run", "--station", d / "station.toml", "--source", f"cam1={d / 'cam1'}", "--source",
+             f"cam2={d / 'cam2'}", "--record", rec, "--quiet")
+    assert r.returncode == 0, r.stderr
+    truth = json.loads((d / "truth.json").read_text())
+    r = _cbh("validate", rec, "--drone", d / "flight.csv", f"--takeoff={truth['takeoff_arg']}",
+             "--out", tmp_path / "rec.csv", "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)["summary"]
+    assert s["n_positions"] == 2 and s["mape_pct"] <= 1.0 and abs(s["clock_offset_s"] - 3.0) <= 0.5

@@ -62,7 +62,11 @@ def _frames(station, sources: dict | None, recordings: list | None):
         if len(sources) < 2:
             raise ConfigError("--source: give at least two cameras' frames (CAM=DIR for each)")
         return {n: _source_frames(station.cameras[n], s, base, None) for n, s in sources.items()}
-    return {n: itertools.chain.from_iterable(_recording_frames(n, Path(r)) for r in recordings) for n in station.cameras}
+    def recorded(name: str):
+        for r in recordings:
+            yield from _recording_frames(name, Path(r))
+
+    return {n: recorded(n) for n in station.cameras}
 
 
 def _valid_mask(cam) -> np.ndarray:
