@@ -110,6 +110,20 @@ def test_drone_seen_by_one_camera_only(tmp_path):
     assert r.stderr.startswith("cbh: error: the drone is seen by cam1 only") and r.stderr.count("\n") == 1
 
 
+def test_by_day_a_dark_speck(tmp_path):
+    """With the sun up the drone is looked for as a dark speck against the bright sky (an
+    aircraft's speck beside it); the same answer as at night."""
+    from datetime import datetime
+
+    out = tmp_path / "day"
+    _render(out, 3, 400, cadence_s=1.0, log_offset_s=-2.0, seed=4, hover_s=8.0, day=True, drone_spot=(1.0, 70.0),
+            start_utc=datetime(2022, 7, 15, 15, 0, tzinfo=timezone.utc))
+    r = _run(out, "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)["summary"]
+    assert s["n_positions"] == 3 and s["mape_pct"] <= 1.0 and abs(s["clock_offset_s"] + 2.0) <= 0.5
+
+
 def test_report_never_overwrites_the_log(flight):
     r = _run(flight, out=flight / "flight.csv")
     assert r.returncode == 2 and "own inputs" in r.stderr

@@ -30,7 +30,7 @@ from cbh.errors import ConfigError, InputError
 __all__ = ["DroneOptions", "validate_drone"]
 
 FIT_MAPE_PCT = 2.0  # above this MAPE [%] a station is not called fit for use (a GPS's 0.5 m at 90 m is 0.6 %)
-DAY_LEVEL = 60  # a frame whose median sky is brighter than this [grey level] is a day frame: dark speck
+DAY_LEVEL = 60  # in twilight, a frame whose median sky is brighter than this [grey level] is a day frame
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,17 @@ def _valid_mask(cam) -> np.ndarray:
     return m
 
 
+def _polarity(station, t, grey: np.ndarray, valid: np.ndarray) -> str:
+    """``bright`` (a light at night) or ``dark`` (a speck by day): by the sun (below -6 deg: night,
+    above +6 deg: day), in twilight by the frame's median sky."""
+    from cbh.geometry.sun import sun_position
+
+    elev = 90.0 - sun_position(station.latitude_deg, station.longitude_deg, station.altitude_m, t).zenith_deg
+    if elev < -6.0 or elev > 6.0:
+        return "bright" if elev < -6.0 else "dark"
+    return "dark" if float(np.median(grey[valid])) > DAY_LEVEL else "bright"
+
+
 def _detect_all(station, frames: dict, span: tuple[np.datetime64, np.datetime64]) -> dict[str, _Camera]:
     """Each camera's sources in its frames within ``span`` (the log's, widened by the clock
     search): a night's recording is read, but only the flight's frames are decoded."""
@@ -100,7 +111,7 @@ def _detect_all(station, frames: dict, span: tuple[np.datetime64, np.datetime64]
             check_image_size(img, cam.model, f"{name} frame {f.time_utc:%Y-%m-%dT%H:%M:%S}Z")
             g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
             if polarity is None:
-                polarity = "dark" if float(np.median(g[valid])) > DAY_LEVEL else "bright"
+                polarity = _polarity(station, f.time_utc, g, valid)
             c.times.append(t)
             c.points.append(detect_points(g, valid, polarity))
             c.stack = g.copy() if c.stack is None else (np.maximum(c.stack, g) if polarity == "bright" else np.minimum(c.stack, g))

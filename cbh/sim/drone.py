@@ -153,40 +153,48 @@ class _Sky:
         return self.plane_dir * 230.0 * (t_s - self.plane_t0) + side * self.plane_offset + np.array([0, 0, self.plane_h])
 
 
-def _frame(cam, sky: _Sky, t_s: float, drone_m: np.ndarray, rng, noise: float, drone_spot=(1.0, 400.0)) -> np.ndarray:
-    """One camera's BGR uint8 night frame at ``t_s``."""
+def _frame(cam, sky: _Sky, t_s: float, drone_m: np.ndarray, rng, noise: float, drone_spot=(1.0, 400.0),
+           day: bool = False) -> np.ndarray:
+    """One camera's BGR uint8 frame at ``t_s``: the night sky, or by ``day`` a bright sky (no stars)
+    on which the drone and the aircraft are dark specks."""
     m = cam.model
     zen = cam.zenith_map()
     inside = m.image_circle_mask()
-    base = 5.0 + 14.0 * np.clip(zen / 90.0, 0, 1) ** 3
+    base = 150.0 + 60.0 * np.clip(zen / 90.0, 0, 1) ** 2 if day else 5.0 + 14.0 * np.clip(zen / 90.0, 0, 1) ** 3
     grey = np.where(inside, base, 0.0).astype(np.float32) + rng.normal(0, noise, zen.shape).astype(np.float32)
-    d = sky.star_dirs(t_s)
-    up = d[:, 2] > 0.02
-    _add_spots(grey, cam.direction_to_pixel(d[up]), sky.star_amp[up] * np.clip(d[up, 2], 0, 1) ** 0.3, 0.8)
     red = np.zeros_like(grey)
-    pl = sky.plane(t_s)
-    ppx = cam.world_to_pixel(pl[None])
-    _add_spots(red, ppx, np.array([60.0]), 0.9)
-    if (t_s % 1.3) < 0.45:  # the strobe
-        _add_spots(grey, ppx, np.array([250.0]), 0.9)
-    _add_spots(grey, cam.world_to_pixel(drone_m[None]), np.array([drone_spot[1]]), drone_spot[0], radius=max(3, int(3 * drone_spot[0])))
+    ppx = cam.world_to_pixel(sky.plane(t_s)[None])
+    radius = max(3, int(3 * drone_spot[0]))
+    if day:
+        _add_spots(grey, ppx, np.array([-60.0]), 0.9)
+        _add_spots(grey, cam.world_to_pixel(drone_m[None]), np.array([-abs(drone_spot[1])]), drone_spot[0], radius)
+    else:
+        d = sky.star_dirs(t_s)
+        up = d[:, 2] > 0.02
+        _add_spots(grey, cam.direction_to_pixel(d[up]), sky.star_amp[up] * np.clip(d[up, 2], 0, 1) ** 0.3, 0.8)
+        _add_spots(red, ppx, np.array([60.0]), 0.9)
+        if (t_s % 1.3) < 0.45:  # the strobe
+            _add_spots(grey, ppx, np.array([250.0]), 0.9)
+        _add_spots(grey, cam.world_to_pixel(drone_m[None]), np.array([drone_spot[1]]), drone_spot[0], radius)
     hx, hy, hv = sky.hot[cam.name]
     grey[hy, hx] = np.maximum(grey[hy, hx], hv)
     g = np.clip(grey, 0, 255)
-    img = np.stack([g, g, np.clip(g + red, 0, 255)], axis=-1)
+    img = np.stack([np.clip(g * (1.15 if day else 1.0), 0, 255), g, np.clip(g * (0.8 if day else 1.0) + red, 0, 255)], axis=-1)
     img[~inside] = 0
     return img.round().astype(np.uint8)
 
 
 def render_flight(station, out, plan: FlightPlan | None = None, *, start_utc: datetime = DEFAULT_START,
                   cadence_s: float = 1.0, log_offset_s: float = 3.0, seed: int = 0, n_stars: int = 400,
-                  noise: float = 1.5, jpeg_quality: int = 92, hidden_from=(), drone_spot=(1.0, 400.0)):
+                  noise: float = 1.5, jpeg_quality: int = 92, hidden_from=(), drone_spot=(1.0, 400.0),
+                  day: bool = False):
     """Render every camera's frames of a flight and write its logs and truth into ``out``.
 
     A generator: yields (frame index, number of frames) as each time step is written; the
     :class:`Flight` is returned through StopIteration's value (``yield from``). The cameras
     named in ``hidden_from`` never see the drone (a covered or misdirected camera);
-    ``drone_spot`` is its light's (sigma [px], peak [grey levels]; the default clips).
+    ``drone_spot`` is its light's (sigma [px], peak [grey levels]; the default clips); by ``day``
+    (give a ``start_utc`` with the sun up) the drone is a dark speck of that depth on a bright sky.
     """
     from cbh.imageio import encode_jpeg
     from cbh.sim.io import image_path
@@ -210,7 +218,7 @@ def render_flight(station, out, plan: FlightPlan | None = None, *, start_utc: da
             path = image_path(out, name, stamp)
             path.parent.mkdir(parents=True, exist_ok=True)
             drone = np.full(3, np.nan) if name in hidden_from else p
-            path.write_bytes(encode_jpeg(_frame(cam, sky, float(t), drone, rng, noise, drone_spot), jpeg_quality))
+            path.write_bytes(encode_jpeg(_frame(cam, sky, float(t), drone, rng, noise, drone_spot, day), jpeg_quality))
         yield i, n
     _write_logs(station, flight, out)
     _write_truth(station, flight, sky, out)
