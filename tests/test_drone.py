@@ -306,3 +306,16 @@ def test_recordings_in_place_of_sources(tmp_path):
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)["summary"]
     assert s["n_positions"] == 2 and s["mape_pct"] <= 1.0 and abs(s["clock_offset_s"] - 3.0) <= 0.5
+
+
+def test_validate_needs_one_reference(tmp_path):
+    """--ceilometer or --drone, one of them; --drone with recordings or --source, one of them."""
+    log = tmp_path / "f.csv"
+    log.write_text("time_utc,latitude,longitude,altitude_m\n")
+    for args, said in ((["x.mcap"], "give either --ceilometer"),
+                       (["x.mcap", "--drone", log, "--ceilometer", log], "give either --ceilometer"),
+                       (["--drone", log], "--drone: give either recordings or --source"),
+                       (["--drone", log, "--source", "cam1=a", "--source", "cam2=b"], "--station: needed with --source")):
+        r = _cbh("validate", *args, cwd=tmp_path)
+        assert r.returncode == 2 and r.stderr.startswith("cbh: error: ") and said in r.stderr, (args, r.stderr)
+        assert r.stderr.count("\n") == 1
