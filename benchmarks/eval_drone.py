@@ -2,7 +2,7 @@
 
 Each flight draws: the image size (640-1920 px), the cadence (1-5 s), the log's clock offset
 (-10..+10 s), the drone's light (sigma 0.8-2 px, peak 30-400 grey levels: faint to clipped), the
-number of stars (200-2000), the seed of the aircraft and hot pixels, the log's format (CSV or
+number of stars (200-2000), the read noise (1-5 grey levels), the seed of the aircraft and hot pixels, the log's format (CSV or
 DJI SRT), the hover time (10-30 s), and one flight in four by day. Targets (issue 37): all
 positions reported, MAPE <= 1 %, the clock within 0.5 s.
 
@@ -30,7 +30,8 @@ def draw(rng) -> dict:
             "log_offset_s": float(np.round(rng.uniform(-10, 10), 2)), "sigma": float(np.round(rng.uniform(0.8, 2.0), 2)),
             "peak": float(np.round(rng.uniform(30, 400))), "stars": int(rng.integers(200, 2000)),
             "seed": int(rng.integers(0, 10_000)), "log": str(rng.choice(["flight.csv", "flight.SRT"])),
-            "hover_s": float(rng.choice([10.0, 20.0, 30.0])), "day": bool(rng.random() < 0.25)}
+            "hover_s": float(rng.choice([10.0, 20.0, 30.0])), "day": bool(rng.random() < 0.25),
+            "noise": float(np.round(rng.uniform(1.0, 5.0), 1))}
 
 
 def one(cfg: dict, positions: int, work: Path) -> dict:
@@ -42,7 +43,7 @@ def one(cfg: dict, positions: int, work: Path) -> dict:
     peak = min(cfg["peak"], 90.0) if cfg["day"] else cfg["peak"]
     gen = render_flight(st, work, paper_plan(positions, hover_s=cfg["hover_s"]), start_utc=start,
                         cadence_s=cfg["cadence_s"], log_offset_s=cfg["log_offset_s"], seed=cfg["seed"],
-                        n_stars=cfg["stars"], drone_spot=(cfg["sigma"], peak), day=cfg["day"])
+                        n_stars=cfg["stars"], drone_spot=(cfg["sigma"], peak), day=cfg["day"], noise=cfg["noise"])
     for _ in gen:
         pass
     truth = json.loads((work / "truth.json").read_text())
@@ -76,7 +77,7 @@ def main() -> None:
                 print(f"{i:2d} {json.dumps(cfg)}  ERROR {row['error']}", flush=True)
                 continue
             print(f"{i:2d} {cfg['size']:4d} px  cadence {cfg['cadence_s']:.0f} s  {'day  ' if cfg['day'] else 'night'}  "
-                  f"light s={cfg['sigma']:.1f} px peak {cfg['peak']:3.0f}  stars {cfg['stars']:4d}  {cfg['log']:10s}  "
+                  f"light s={cfg['sigma']:.1f} px peak {cfg['peak']:3.0f}  noise {cfg['noise']:.1f}  stars {cfg['stars']:4d}  {cfg['log']:10s}  "
                   f"found {row['positions']}/{row['of']}  MAPE {row['mape_pct']:.3f} %  clock {row['clock_error_s']:+.3f} s"
                   f"  ({row['seconds']:.0f} s)", flush=True)
     ok = [r for r in rows if "error" not in r]

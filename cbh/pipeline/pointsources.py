@@ -80,12 +80,27 @@ def detect_points(gray: np.ndarray, valid: np.ndarray | None = None, polarity: s
 
 
 def _centroids(res: np.ndarray, xs: np.ndarray, ys: np.ndarray, max_points: int) -> np.ndarray:
+    """Centroids, the window moved onto the last centroid twice: a clipped light is a plateau
+    whose first maximum may sit 2 px off its centre, and a window cut unevenly pulls toward it."""
     h, w = res.shape
     half = WINDOW // 2
-    ok = (xs >= half) & (ys >= half) & (xs < w - half) & (ys < h - half)
-    xs, ys = xs[ok], ys[ok]
-    if xs.size == 0:
-        return np.zeros((0, 4))
+    xs, ys = np.asarray(xs, int), np.asarray(ys, int)
+    peak = res[ys, xs]
+    for _ in range(3):
+        ok = (xs >= half) & (ys >= half) & (xs < w - half) & (ys < h - half)
+        xs, ys, peak = xs[ok], ys[ok], peak[ok]
+        if xs.size == 0:
+            return np.zeros((0, 4))
+        cx, cy, flux = _window_centroid(res, xs, ys, half)
+        nx, ny = np.round(cx).astype(int), np.round(cy).astype(int)
+        if np.array_equal(nx, xs) and np.array_equal(ny, ys):
+            break
+        xs, ys = nx, ny
+    out = np.stack([cx, cy, flux, peak], axis=1).astype(np.float64)
+    return _strongest_apart(out, max_points)
+
+
+def _window_centroid(res: np.ndarray, xs: np.ndarray, ys: np.ndarray, half: int):
     d = np.arange(-half, half + 1)
     yy = ys[:, None, None] + d[None, :, None]
     xx = xs[:, None, None] + d[None, None, :]
@@ -95,8 +110,11 @@ def _centroids(res: np.ndarray, xs: np.ndarray, ys: np.ndarray, max_points: int)
     flux = patch.sum(axis=(1, 2))
     cx = xs + (patch * d[None, None, :]).sum(axis=(1, 2)) / np.maximum(flux, 1e-9)
     cy = ys + (patch * d[None, :, None]).sum(axis=(1, 2)) / np.maximum(flux, 1e-9)
-    out = np.stack([cx, cy, flux, res[ys, xs]], axis=1).astype(np.float64)
-    # two maxima of one flat (saturated) spot: keep the stronger
+    return cx, cy, flux
+
+
+def _strongest_apart(out: np.ndarray, max_points: int) -> np.ndarray:
+    """Two maxima of one flat (clipped) spot: the stronger kept."""
     out = out[np.argsort(-out[:, 2])]
     if len(out) > 1:
         from scipy.spatial import cKDTree
