@@ -331,3 +331,24 @@ def test_validate_needs_one_reference(tmp_path):
         r = _cbh("validate", *args, cwd=tmp_path)
         assert r.returncode == 2 and r.stderr.startswith("cbh: error: ") and said in r.stderr, (args, r.stderr)
         assert r.stderr.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_three_camera_network_reports_every_pair(tmp_path):
+    """A network of three cameras (unb-lea-network: 50 m and 630 m baselines): every position
+    measured by each of the three pairs, MAPE <= 1 % on each."""
+    from cbh.sim.drone import paper_plan, render_flight
+
+    st = load_station(REPO / "configs" / "unb-lea-network.toml").scaled(480)
+    d = tmp_path / "f"
+    for _ in render_flight(st, d, paper_plan(3, hover_s=10.0), cadence_s=1.0, n_stars=200):
+        pass
+    truth = json.loads((d / "truth.json").read_text())
+    r = _cbh("validate", "--drone", d / "flight.csv", f"--takeoff={truth['takeoff_arg']}", "--station",
+             d / "station.toml", *[a for c in ("cam1", "cam2", "cam3") for a in ("--source", f"{c}={d / c}")],
+             "--out", tmp_path / "net.csv", "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)["summary"]
+    assert s["n_positions"] == 3 and s["n_comparisons"] == 9
+    assert set(s["by_pair"]) == {"cam1-cam2", "cam1-cam3", "cam2-cam3"}
+    assert all(m["n"] == 3 and m["mape_pct"] <= 1.0 for m in s["by_pair"].values())

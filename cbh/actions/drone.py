@@ -252,11 +252,10 @@ def _row(station, k: int, h, seen: dict, a: str, b: str) -> dict:
     from cbh.pipeline.dronetrack import sector_of
 
     ca, cb = station.cameras[a], station.cameras[b]
-    pos = np.array([c.position_m for c in station.cameras.values()])
-    centre = pos.mean(axis=0)
-    baseline = float(np.max(np.linalg.norm(pos - centre, axis=1))) * 2
+    centre = (ca.position_m + cb.position_m) / 2  # the pair's sectors: over it, and N, E, S, W of it
+    half = float(np.hypot(*(ca.position_m - cb.position_m)[:2])) / 2
     d = h.position_m - centre
-    row = {"position": k + 1, "cameras": f"{a}-{b}", "sector": sector_of(h.position_m, centre, max(40.0, baseline)),
+    row = {"position": k + 1, "cameras": f"{a}-{b}", "sector": sector_of(h.position_m, centre, max(40.0, half)),
            "logged_east_m": h.position_m[0], "logged_north_m": h.position_m[1], "logged_height_m": h.position_m[2],
            "off_zenith_deg": math.degrees(math.atan2(math.hypot(d[0], d[1]), d[2])),
            f"frames_{a}": seen[a]["n"], f"frames_{b}": seen[b]["n"]}
@@ -305,7 +304,8 @@ def _summary(rows: list[dict], names: list[str], clock: dict, turns: dict, n_hov
     sectors = np.array([r["sector"] for r in rows])
     levels = _levels(true)
     s = _metrics(meas, true)
-    s.update({"n_positions": int(np.isfinite(meas).sum()), "hover_positions": n_hovers,
+    s.update({"n_positions": len({r["position"] for r in rows if np.isfinite(r["measured_height_m"])}),
+              "n_comparisons": int(np.isfinite(meas).sum()), "hover_positions": n_hovers,
               "clock_offset_s": clock["offset_s"], "clock_offset_stderr_s": clock["stderr_s"],
               "clock_offset_spread_s": clock["spread_s"], "clock_moving_frames": clock["moving_frames"],
               "clock_convention": "the flight log's clock minus the cameras' [s]"})
@@ -412,7 +412,7 @@ def _fmt(name: str, m: dict) -> str:
 def _text(rep: dict, out: Path, png: Path) -> str:
     s = rep["summary"]
     lines = [f"drone check: {s['hover_positions']} hover positions in {Path(s['log']['file']).name} ({s['log']['kind']}, "
-             f"{s['log']['fixes']} fixes); {s['n_positions']} measured over {len(s['by_pair'])} camera pair(s)",
+             f"{s['log']['fixes']} fixes); {s['n_positions']} measured by {len(s['by_pair'])} camera pair(s)",
              f"log clock minus the cameras': {s['clock_offset_s']:+.2f} s (± {s['clock_offset_stderr_s']:.2f} s from "
              f"{s['clock_moving_frames']} frames of the drone moving)", *[f"note: {n}" for n in s["notes"]],
              "  pos  pair       sector  logged E, N, height [m]     measured [m]  error             miss"]
