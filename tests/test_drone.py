@@ -268,6 +268,10 @@ def test_clock_offset_from_tracks_without_images():
     assert len(hov) == 3 and all(abs(h.end_s - h.start_s - 10.0) < 1.5 for h in hov)
     assert np.allclose([h.position_m for h in hov], plan.positions_m, atol=1e-6)
     assert math.isfinite(c["stderr_s"])
+    # a GPS's fix-to-fix jitter (0.5 m horizontally, 0.17 m vertically, white at 10 Hz): still 3 hovers
+    noisy = enu + np.random.default_rng(0).normal(0, 1, enu.shape) * np.array([0.5, 0.5, 0.17])
+    hov = find_hovers(log_t, noisy, noisy[:, 2] - plan.takeoff_m[2])
+    assert len(hov) == 3 and np.allclose([h.position_m for h in hov], plan.positions_m, atol=0.2)
 
 
 @pytest.mark.slow

@@ -164,21 +164,35 @@ class Hover:
     position_m: np.ndarray
 
 
-def find_hovers(log_t, log_enu, up_m, max_speed_m_s: float = 0.5, min_s: float = 5.0, min_up_m: float = 5.0
-                ) -> list[Hover]:
-    """Hovers: speed (over 1 s) under ``max_speed_m_s`` for at least ``min_s`` s, ``min_up_m``
-    above the take-off point (the drone on the ground is not a position)."""
+def find_hovers(log_t, log_enu, up_m, max_speed_m_s: float = 0.5, min_s: float = 5.0, min_up_m: float = 5.0,
+                window_s: float = 4.0, join_m: float = 3.0) -> list[Hover]:
+    """Hovers: speed (the displacement over ``window_s``, which a GPS's fix-to-fix jitter of
+    half a metre does not reach) under ``max_speed_m_s`` for at least ``min_s`` s, ``min_up_m``
+    above the take-off point (the drone on the ground is not a position). Stretches closer than
+    ``join_m`` and a window apart are one hover (a gust, a jittery fix)."""
     t = np.asarray(log_t, np.float64)
-    p0 = interp_log(t, log_enu, np.clip(t - 0.5, t[0], t[-1]))
-    p1 = interp_log(t, log_enu, np.clip(t + 0.5, t[0], t[-1]))
-    span = np.clip(t + 0.5, t[0], t[-1]) - np.clip(t - 0.5, t[0], t[-1])
-    speed = np.linalg.norm(p1 - p0, axis=1) / np.maximum(span, 1e-6)
+    half = window_s / 2
+    lo, hi = np.clip(t - half, t[0], t[-1]), np.clip(t + half, t[0], t[-1])
+    speed = np.linalg.norm(interp_log(t, log_enu, hi) - interp_log(t, log_enu, lo), axis=1) / np.maximum(hi - lo, 1e-6)
     still = (speed < max_speed_m_s) & (np.asarray(up_m) >= min_up_m)
-    out = []
     edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(int), [0]])))
-    for a, b in zip(edges[::2], edges[1::2]):
-        if t[b - 1] - t[a] >= min_s:
-            out.append(Hover(float(t[a]), float(t[b - 1]), np.median(log_enu[a:b], axis=0)))
+    runs = [[a, b] for a, b in zip(edges[::2], edges[1::2])]
+    joined = []
+    for a, b in runs:
+        if joined:
+            pa, pb = joined[-1]
+            near = np.linalg.norm(np.median(log_enu[pa:pb], axis=0) - np.median(log_enu[a:b], axis=0)) < join_m
+            if near and t[a] - t[pb - 1] <= window_s:
+                joined[-1][1] = b
+                continue
+        joined.append([a, b])
+    grow = max(half - 0.5, 0.0)  # the window's own shrinking of each end, less half a second
+    out = []
+    for a, b in joined:
+        t0, t1 = t[a] - grow, t[b - 1] + grow
+        if t1 - t0 >= min_s:
+            sel = (t >= t0) & (t <= t1)
+            out.append(Hover(float(t0), float(t1), np.median(log_enu[sel], axis=0)))
     return out
 
 

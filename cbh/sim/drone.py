@@ -187,14 +187,16 @@ def _frame(cam, sky: _Sky, t_s: float, drone_m: np.ndarray, rng, noise: float, d
 def render_flight(station, out, plan: FlightPlan | None = None, *, start_utc: datetime = DEFAULT_START,
                   cadence_s: float = 1.0, log_offset_s: float = 3.0, seed: int = 0, n_stars: int = 400,
                   noise: float = 1.5, jpeg_quality: int = 92, hidden_from=(), drone_spot=(1.0, 400.0),
-                  day: bool = False):
+                  day: bool = False, gps_noise_m: float = 0.0):
     """Render every camera's frames of a flight and write its logs and truth into ``out``.
 
     A generator: yields (frame index, number of frames) as each time step is written; the
     :class:`Flight` is returned through StopIteration's value (``yield from``). The cameras
     named in ``hidden_from`` never see the drone (a covered or misdirected camera);
     ``drone_spot`` is its light's (sigma [px], peak [grey levels]; the default clips); by ``day``
-    (give a ``start_utc`` with the sun up) the drone is a dark speck of that depth on a bright sky.
+    (give a ``start_utc`` with the sun up) the drone is a dark speck of that depth on a bright sky;
+    ``gps_noise_m`` gives each logged fix a random error (that much horizontally [m], a third
+    vertically; the frames show the drone where it is).
     """
     from cbh.imageio import encode_jpeg
     from cbh.sim.io import image_path
@@ -220,16 +222,18 @@ def render_flight(station, out, plan: FlightPlan | None = None, *, start_utc: da
             drone = np.full(3, np.nan) if name in hidden_from else p
             path.write_bytes(encode_jpeg(_frame(cam, sky, float(t), drone, rng, noise, drone_spot, day), jpeg_quality))
         yield i, n
-    _write_logs(station, flight, out)
+    _write_logs(station, flight, out, gps_noise_m, seed)
     _write_truth(station, flight, sky, out)
     return flight
 
 
-def _log_fixes(station, flight: Flight, rate_hz: float = 10.0):
+def _log_fixes(station, flight: Flight, rate_hz: float = 10.0, gps_noise_m: float = 0.0, seed: int = 0):
     import pymap3d
 
     t = np.arange(0.0, flight.duration_s, 1.0 / rate_hz)
     p = flight.position(t)
+    if gps_noise_m > 0:  # each fix's own error: gps_noise_m horizontally, a third of it vertically
+        p = p + np.random.default_rng(seed + 2).normal(0.0, 1.0, p.shape) * np.array([1.0, 1.0, 1 / 3]) * gps_noise_m
     lat, lon, _ = pymap3d.enu2geodetic(p[:, 0], p[:, 1], p[:, 2], station.latitude_deg, station.longitude_deg,
                                        station.altitude_m)
     stamps = [flight.start_utc + timedelta(seconds=float(s) + flight.log_offset_s) for s in t]
@@ -258,8 +262,8 @@ def write_flight_log_srt(path, stamps, lat, lon, up) -> None:
     Path(path).write_text(srt.compose(subs, reindex=False))
 
 
-def _write_logs(station, flight: Flight, out: Path) -> None:
-    stamps, lat, lon, up = _log_fixes(station, flight)
+def _write_logs(station, flight: Flight, out: Path, gps_noise_m: float = 0.0, seed: int = 0) -> None:
+    stamps, lat, lon, up = _log_fixes(station, flight, gps_noise_m=gps_noise_m, seed=seed)
     write_flight_log_csv(out / "flight.csv", stamps, lat, lon, up)
     write_flight_log_srt(out / "flight.SRT", stamps, lat, lon, up)
 
