@@ -29,6 +29,7 @@ from cbh.errors import ConfigError, InputError
 
 __all__ = ["DroneOptions", "validate_drone"]
 
+WEAK_SNR = 4.0  # sources down to this signal-to-noise are kept, used only near the drone's known place
 FIT_MAPE_PCT = 2.0  # above this MAPE [%] a station is not called fit for use (a GPS's 0.5 m at 90 m is 0.6 %)
 DAY_LEVEL = 60  # in twilight, a frame whose median sky is brighter than this [grey level] is a day frame
 
@@ -113,7 +114,7 @@ def _detect_all(station, frames: dict, span: tuple[np.datetime64, np.datetime64]
             if polarity is None:
                 polarity = _polarity(station, f.time_utc, g, valid)
             c.times.append(t)
-            c.points.append(detect_points(g, valid, polarity))
+            c.points.append(detect_points(g, valid, polarity, k_sigma=WEAK_SNR))
             c.stack = g.copy() if c.stack is None else (np.maximum(c.stack, g) if polarity == "bright" else np.minimum(c.stack, g))
             c.frames += 1
         if c.frames:
@@ -128,16 +129,16 @@ def _detect_all(station, frames: dict, span: tuple[np.datetime64, np.datetime64]
     return out
 
 
-def _tracks(cams: dict[str, _Camera], t0: np.datetime64):
+def _tracks(cams: dict[str, _Camera], t0: np.datetime64, latitude_deg: float):
     from cbh.pipeline.dronetrack import CameraTrack
-    from cbh.pipeline.pointsources import persistent_sources, sidereal_px_per_s
+    from cbh.pipeline.pointsources import persistent_sources, sky_turn
 
     tracks = []
     for c in cams.values():
         order = np.argsort(np.array(c.times))
         t = (np.array(c.times)[order] - t0).astype("timedelta64[ns]").astype(np.float64) * 1e-9
         pts = [c.points[i] for i in order]
-        keep = persistent_sources(t, pts, sidereal_px_per_s(c.cam.model))
+        keep = persistent_sources(t, pts, sky_turn(c.cam, latitude_deg))
         tracks.append(CameraTrack(c.cam, t, [p[~k] for p, k in zip(pts, keep)]))
     return tracks
 
@@ -168,7 +169,7 @@ def validate_drone(log_path, out, *, station_path=None, sources: dict | None = N
     pad = np.timedelta64(int(opts.search_s * 1e9), "ns")
     cams = _detect_all(station, _frames(station, sources, recordings), (log.time_utc[0] - pad, log.time_utc[-1] + pad))
     t0 = np.concatenate([np.array(c.times) for c in cams.values()]).min()
-    tracks = _tracks(cams, t0)
+    tracks = _tracks(cams, t0, station.latitude_deg)
     log_t = log.seconds(t0)
     hovers = find_hovers(log_t, enu, log.up_m)
     if not hovers:
@@ -209,6 +210,7 @@ def _measure(station, tracks, hovers, log_t, enu, clock) -> dict:
         if _seen_count(again) >= _seen_count(seen):  # when it loses nothing (a log that is off is no turn)
             seen = again
             turns = {tr.camera.name: _turn(tr.camera, hovers, seen) for tr in tracks}
+    seen = _faint(tracks, hovers, log_t, enu, off, margin, fix, seen)
     for tr in tracks:
         never = all(s[tr.camera.name]["n"] == 0 for s in seen)
         if never:
@@ -218,6 +220,22 @@ def _measure(station, tracks, hovers, log_t, enu, clock) -> dict:
     names = [tr.camera.name for tr in tracks]
     rows = [_row(station, k, h, seen[k], a, b) for a, b in itertools.combinations(names, 2) for k, h in enumerate(hovers)]
     return {"rows": rows, "summary": _summary(rows, names, clock, turns, len(hovers))}
+
+
+def _faint(tracks, hovers, log_t, enu, off: float, margin: float, fix: dict, seen: list[dict]) -> list[dict]:
+    """Where a camera has no detection in a hover, its faint sources (down to WEAK_SNR) within
+    2 deg of where the log (and the camera's found turn) put the drone: a faint light over a few
+    frames, which a 6-sigma detection misses."""
+    from cbh.pipeline.dronetrack import measure_hovers
+
+    if all(v["n"] for s in seen for v in s.values()):
+        return seen
+    faint = measure_hovers(tracks, hovers, log_t, enu, off, margin, gate_deg=2.0, R_fix=fix or None, min_snr=WEAK_SNR)
+    for s, f in zip(seen, faint):
+        for name, v in s.items():
+            if not v["n"] and f[name]["n"]:
+                s[name] = {**f[name], "faint": True}
+    return seen
 
 
 def _seen_count(seen: list[dict]) -> int:

@@ -33,6 +33,7 @@ __all__ = ["CameraTrack", "Hover", "interp_log", "nearest_to_log", "clock_offset
 
 GATE_DEG = 4.0  # a detection farther than this from the log's direction is not the drone [deg]
 FINE_GATE_DEG = 1.5  # the offset's refinement [deg]
+STRONG_SNR = 6.0  # a source this far above the noise is a detection; fainter ones only where the drone must be
 
 
 @dataclass
@@ -45,7 +46,8 @@ class CameraTrack:
     times_s : ndarray, shape (F,)
         Frame times on the cameras' clock [s].
     points : list of F ndarrays, shape (N_i, >=2)
-        Each frame's sources that are not stars or hot pixels (``x, y`` [px] first).
+        Each frame's sources that are not stars or hot pixels (``x, y`` [px] first; a fifth
+        column, when there is one, is the source's signal-to-noise ratio).
     """
 
     camera: object
@@ -60,6 +62,9 @@ class CameraTrack:
         self.frame_of = np.concatenate([np.full(len(p), i) for i, p in enumerate(xy)] + [np.zeros(0, int)]).astype(int)
         allxy = np.concatenate(xy + [np.zeros((0, 2))])
         self.pixels = allxy
+        snr = [np.asarray(p, np.float64)[:, 4] if np.asarray(p).ndim == 2 and np.asarray(p).shape[1] > 4
+               else np.full(len(p), np.inf) for p in self.points]
+        self.snr = np.concatenate(snr + [np.zeros(0)])
         self.rays = self.camera.pixel_to_world(allxy) if len(allxy) else np.zeros((0, 3))
 
 
@@ -77,10 +82,11 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def nearest_to_log(track: CameraTrack, log_t, log_enu, offset_s: float, gate_deg: float = GATE_DEG,
-                   R_fix: np.ndarray | None = None):
-    """Per frame: the angle [rad] from the log's direction to the nearest source (NaN: none
-    within the gate or no log), that source's index into ``track.pixels`` (-1), and the log's
-    direction (F, 3). ``R_fix`` turns the log's directions first (a camera's found turn)."""
+                   R_fix: np.ndarray | None = None, min_snr: float = STRONG_SNR):
+    """Per frame: the angle [rad] from the log's direction to the nearest source of at least
+    ``min_snr`` (NaN: none within the gate or no log), that source's index into
+    ``track.pixels`` (-1), and the log's direction (F, 3). ``R_fix`` turns the log's directions
+    first (a camera's found turn)."""
     F = track.times_s.size
     pos = interp_log(log_t, log_enu, track.times_s + offset_s)
     pred = _unit(pos - track.camera.position_m)
@@ -91,7 +97,7 @@ def nearest_to_log(track: CameraTrack, log_t, log_enu, offset_s: float, gate_deg
     if len(track.rays):
         cosang = np.einsum("ij,ij->i", track.rays, pred[track.frame_of])
         a = np.arccos(np.clip(cosang, -1.0, 1.0))
-        a[~np.isfinite(a)] = np.inf
+        a[~np.isfinite(a) | (track.snr < min_snr)] = np.inf
         order = np.lexsort((a, track.frame_of))  # by frame, then angle: the first of each frame is its nearest
         first = order[np.concatenate([[True], np.diff(track.frame_of[order]) != 0])]
         ok = a[first] <= math.radians(gate_deg)
@@ -197,7 +203,7 @@ def find_hovers(log_t, log_enu, up_m, max_speed_m_s: float = 0.5, min_s: float =
 
 
 def measure_hovers(tracks, hovers, log_t, log_enu, offset_s: float, margin_s: float, gate_deg: float = GATE_DEG,
-                   R_fix: dict | None = None) -> list[dict]:
+                   R_fix: dict | None = None, min_snr: float = STRONG_SNR) -> list[dict]:
     """Per hover and camera: the median pixel of the drone over the hover's frames (shrunk by
     ``margin_s`` at each end), its ray, the pixels' spread and count. A list (one per hover) of
     {camera name: dict(pixel, ray, spread_px, n)}; a camera that did not see the drone: n = 0."""
@@ -206,7 +212,7 @@ def measure_hovers(tracks, hovers, log_t, log_enu, offset_s: float, margin_s: fl
         per = {}
         for tr in tracks:
             a, idx, _ = nearest_to_log(tr, log_t, log_enu, offset_s, gate_deg,
-                                       None if R_fix is None else R_fix.get(tr.camera.name))
+                                       None if R_fix is None else R_fix.get(tr.camera.name), min_snr)
             sel = (tr.times_s + offset_s >= h.start_s + margin_s) & (tr.times_s + offset_s <= h.end_s - margin_s)
             k = idx[sel & (idx >= 0)]
             n = int(k.size)

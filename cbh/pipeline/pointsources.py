@@ -6,34 +6,21 @@ Two steps, both on one camera's frames:
    for a dark speck) over an 11 px disk, which keeps anything a few pixels wide and removes
    clouds, the sky's gradient and airglow, local maxima above ``k_sigma`` times the residual's robust noise, and their
    intensity-weighted centroids over 7 x 7 px (sub-pixel, unbiased for a symmetric spot).
-2. :func:`persistent_sources` marks what stays put: stars (which turn with the sky at the
-   sidereal rate, 0.25 deg/min at most) and hot pixels (which never move) are found at the same
-   place in most frames minutes apart; a drone hovering for a minute, an aircraft or a blinking
-   light is not.
+2. :func:`persistent_sources` marks what stays put: stars (which turn with the sky about the
+   celestial pole at the sidereal rate, :func:`sky_turn`) and hot pixels (which never move) are
+   found where they should be in most frames minutes apart; a drone hovering for a minute, an
+   aircraft or a blinking light is not.
 """
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-__all__ = ["detect_points", "persistent_sources", "sidereal_px_per_s", "SIDEREAL_RAD_S"]
+__all__ = ["detect_points", "persistent_sources", "sky_turn", "SIDEREAL_RAD_S"]
 
 SIDEREAL_RAD_S = 7.2921e-5  # the sky's rotation rate [rad/s]
 BACKGROUND_PX = 11  # the background's structuring element [px]: a source is at most a few px wide (sigma <= 2 px)
 WINDOW = 7  # centroid window [px] (+-3 px: +-3 sigma of a 1 px spot, +-1.5 sigma of a 2 px one)
-
-
-def sidereal_px_per_s(model) -> float:
-    """The fastest a star can move in this camera's image [px/s] (sidereal rate times the lens's
-    largest radial or tangential scale)."""
-    th = np.radians(np.linspace(0.5, float(model.max_theta_deg), 200))
-    r = np.asarray(model.r_from_theta(th), np.float64)
-    ok = np.isfinite(r)
-    if ok.sum() < 3:
-        return 0.0
-    radial = np.abs(np.gradient(r[ok], th[ok]))
-    tangential = r[ok] / np.sin(th[ok])
-    return float(SIDEREAL_RAD_S * max(radial.max(), tangential.max()))
 
 
 def detect_points(gray: np.ndarray, valid: np.ndarray | None = None, polarity: str = "bright",
@@ -56,9 +43,10 @@ def detect_points(gray: np.ndarray, valid: np.ndarray | None = None, polarity: s
 
     Returns
     -------
-    ndarray, shape (N, 4), float64
+    ndarray, shape (N, 5), float64
         ``x, y`` centroid [px], ``flux`` (sum over the window above the background), ``peak``
-        (the residual at the maximum), strongest first.
+        (the residual at the maximum), ``snr`` (peak over the residual's robust noise),
+        strongest first.
     """
     if polarity not in ("bright", "dark"):
         raise ValueError(f"polarity: 'bright' or 'dark', got {polarity!r}")
@@ -68,7 +56,7 @@ def detect_points(gray: np.ndarray, valid: np.ndarray | None = None, polarity: s
     inside = np.ones(g.shape, bool) if valid is None else np.asarray(valid, bool)
     sample = res[inside][:: max(1, int(inside.sum()) // 40_000)]
     if sample.size == 0:
-        return np.zeros((0, 4))
+        return np.zeros((0, 5))
     sigma = 1.4826 * float(np.median(np.abs(sample - np.median(sample)))) + 0.5  # +0.5: a quantisation floor
     thr = max(k_sigma * sigma, min_amplitude)
     peaks = (res >= cv2.dilate(res, np.ones((5, 5), np.uint8))) & (res > thr) & inside
@@ -76,7 +64,8 @@ def detect_points(gray: np.ndarray, valid: np.ndarray | None = None, polarity: s
     if ys.size > max_points * 4:  # a flood of maxima (a cloud's edge): the strongest only
         keep = np.argsort(res[ys, xs])[::-1][: max_points * 4]
         ys, xs = ys[keep], xs[keep]
-    return _centroids(res, xs, ys, max_points)
+    out = _centroids(res, xs, ys, max_points)
+    return np.concatenate([out, out[:, 3:4] / sigma], axis=1)
 
 
 def _centroids(res: np.ndarray, xs: np.ndarray, ys: np.ndarray, max_points: int) -> np.ndarray:
@@ -127,14 +116,33 @@ def _strongest_apart(out: np.ndarray, max_points: int) -> np.ndarray:
     return out[:max_points]
 
 
-def persistent_sources(times_s: np.ndarray, points: list[np.ndarray], px_per_s: float, window_s: float = 180.0,
+def sky_turn(camera, latitude_deg: float):
+    """``move(xy (N, 2), dt_s) -> xy (N, 2)``: where a star seen at pixel ``xy`` is ``dt_s``
+    seconds later in this camera (its ray turned about the celestial pole at the sidereal rate;
+    NaN where it leaves the view)."""
+    lat = np.radians(latitude_deg)
+    k = np.array([0.0, np.cos(lat), np.sin(lat)])  # the celestial pole, ENU
+
+    def move(xy: np.ndarray, dt_s: float) -> np.ndarray:
+        v = camera.pixel_to_world(xy)
+        a = -SIDEREAL_RAD_S * dt_s  # the sky turns westward about the pole
+        w = v * np.cos(a) + np.cross(k, v) * np.sin(a) + np.outer(v @ k, k) * (1 - np.cos(a))
+        return camera.direction_to_pixel(w)
+
+    return move
+
+
+def persistent_sources(times_s: np.ndarray, points: list[np.ndarray], move=None, window_s: float = 180.0,
                        compare: int = 8, radius_px: float = 1.5, share: float = 0.75) -> list[np.ndarray]:
     """Which sources stay put: stars and hot pixels (one bool array per frame).
 
-    A source of frame ``i`` is persistent when up to ``compare`` frames between 10 % and 100 % of
-    ``window_s`` away in time have a source within ``radius_px`` plus the sidereal drift
-    (``px_per_s`` times the time apart) of it in at least ``share`` of them. Frames with fewer
-    than three such frames to compare with keep all their sources (nothing can be told).
+    A source of frame ``i`` is persistent when, in up to ``compare`` frames between 10 % and 100 %
+    of ``window_s`` away in time, a source lies within ``radius_px`` of where it would be had it
+    stayed put: at the same pixel (a hot pixel) or where the sky's turn carries it (a star,
+    ``move``: :func:`sky_turn`), in at least ``share`` of them. Frames with fewer than three
+    such frames to compare with keep all their sources (nothing can be told). A drone hovering
+    beside a star is not the star: the star's own place is predicted to the pixel, not allowed
+    for with a radius that grows with time.
 
     Parameters
     ----------
@@ -152,8 +160,8 @@ def persistent_sources(times_s: np.ndarray, points: list[np.ndarray], px_per_s: 
         if not len(p):
             out.append(np.zeros(0, bool))
             continue
-        dt = np.abs(t - t[i])
-        cand = np.flatnonzero((dt >= 0.1 * window_s) & (dt <= window_s))
+        dt = t - t[i]
+        cand = np.flatnonzero((np.abs(dt) >= 0.1 * window_s) & (np.abs(dt) <= window_s))
         if cand.size < 3:
             out.append(np.zeros(len(p), bool))
             continue
@@ -162,7 +170,15 @@ def persistent_sources(times_s: np.ndarray, points: list[np.ndarray], px_per_s: 
         for j in pick:
             if trees[j] is None:
                 continue
-            d, _ = trees[j].query(p[:, :2], k=1, distance_upper_bound=radius_px + px_per_s * dt[j])
-            hits += np.isfinite(d)
+            d, _ = trees[j].query(p[:, :2], k=1, distance_upper_bound=radius_px)
+            hit = np.isfinite(d)
+            if move is not None:
+                q = move(p[:, :2], float(dt[j]))
+                ok = np.all(np.isfinite(q), axis=1)
+                dq = np.full(len(p), np.inf)
+                if ok.any():
+                    dq[ok], _ = trees[j].query(q[ok], k=1, distance_upper_bound=radius_px)
+                hit |= np.isfinite(dq)
+            hits += hit
         out.append(hits >= share * pick.size)
     return out
