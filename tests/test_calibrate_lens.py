@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import math
+import re
 
 import cv2
 import numpy as np
@@ -126,6 +127,23 @@ def test_exact_corners_give_back_the_lens():
     assert err["max_px"] < 1e-5
     # the truth's d ≠ e: its rotational part is traded against the board poses (the one gauge)
     assert err["rotation_deg"] == pytest.approx(math.degrees((0.011512448365649075 + 0.010783396198865113) / 2), abs=0.01)
+
+
+@pytest.mark.parametrize("counts, order, says", [
+    ([48], 4, "at least 2 board views, got 1: add 1 more"),
+    ([48, 5], 4, "board view 1 has 5 corners; a view's pose needs at least 6: add 1 more"),
+    ([6, 6], 8, "12 corners in 2 views give 24 equations for 24 unknowns (order 8): add 1 more board view"),
+])
+def test_what_cannot_be_fitted_is_refused_with_how_many_more(counts, order, says):
+    with pytest.raises(L.CalibrationError, match=re.escape(says)):
+        L.check_determined(counts, order)
+
+
+def test_the_fewest_determined_views_still_fit():
+    L.check_determined([6, 6], 4)  # 24 equations, 20 unknowns
+    poses = [pose_facing(BOARD, *s) for s in SPECS[1:3]]
+    cal = L.calibrate(exact_views(TRUTH, poses), [BOARD.corners()] * 2, TRUTH.width, TRUTH.height)
+    assert L.error_stats(np.concatenate(cal.residuals))["rms_euclid_px"] < 1e-3
 
 
 def test_the_inverse_polynomial_is_findinvpoly():
@@ -245,8 +263,8 @@ def _write(path, img):
     ("sizes", "calibrate one camera (one image size) at a time"),
     ("unreadable", "corrupt or unsupported image data"),
     ("too_few_boards", "found in 3 of 4 images (none in blank.png); at least 4 board poses are needed: add 1 more"),
-    ("no_periphery", "the periphery of the field of view (beyond 60° from the axis) is covered by 0 boards (2 needed): add 2 more there"),
     ("bad_board", "expected COLSxROWS"),
+    ("tiny_board", "--board 2x2: a board needs at least 2 inner corners each way and 6 in all"),
 ])
 def test_bad_input_is_one_line_exit_2(case, says, rendered, tmp_path, capsys):
     _, paths, _ = rendered
@@ -264,8 +282,8 @@ def test_bad_input_is_one_line_exit_2(case, says, rendered, tmp_path, capsys):
         args = [*map(str, paths[:4]), str(bad)]
     elif case == "too_few_boards":
         args = [*map(str, paths[:3]), _write(tmp_path / "blank.png", blank)]
-    elif case == "no_periphery":
-        args = list(map(str, paths[:4]))  # centre and middle only
+    elif case == "tiny_board":
+        args, board = list(map(str, paths)), "2x2"
     else:
         args, board = list(map(str, paths)), "6by8"
     rc = main(["calibrate-lens", *args, "--board", board, "--square-mm", "32.5", "--out", str(tmp_path / "c.txt")])
@@ -273,6 +291,38 @@ def test_bad_input_is_one_line_exit_2(case, says, rendered, tmp_path, capsys):
     line = one_error_line(capsys.readouterr().err)
     assert says in line
     assert not (tmp_path / "c.txt").exists()
+
+
+def test_a_zone_without_boards_is_a_warning_not_a_refusal(rendered, tmp_path, capsys):
+    """Issue 34: boards in the centre and middle only still calibrate; the output, --json and the
+    coverage picture say that the periphery has no board and how far the model is extrapolated."""
+    _, paths, shots = rendered
+    out, report = tmp_path / "c.txt", tmp_path / "report"
+    args = ["calibrate-lens", *map(str, paths[:4]), "--board", "6x8", "--square-mm", "32.5", "--out", str(out),
+            "--no-held-out"]
+    assert main([*args, "--json", "--report", str(report)]) == 0
+    cov = json.loads(capsys.readouterr().out)["coverage"]
+    top = max(TRUTH.theta_of_pixel(s.corners_xy).max() for s in shots[:4])  # the outermost true corner
+    assert [(g["zone"], g["boards"], g["wanted"]) for g in cov["gaps"]] == [("periphery", 0, 2)]
+    x = cov["extrapolation"]
+    assert x["data_theta_deg"][1] == pytest.approx(top, abs=0.2)  # 0.2°: the fitted lens, not the true one
+    assert x["outward_deg"] == pytest.approx(x["frame_theta_deg"] - x["data_theta_deg"][1], abs=0.01)
+    assert x["outward_deg"] > 20  # the frame's corners reach far beyond 66°
+    assert cov["gaps"][0]["extrapolated_deg"] == [round(x["data_theta_deg"][1], 1), round(x["frame_theta_deg"], 1)]
+    assert cov["warnings"] and "periphery" in cov["warnings"][0] and "extrapolated" in cov["warnings"][0]
+    assert (report / "coverage.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert read_ocamcalib(out).poly[0] > 0  # the file is written
+    assert main(args) == 0  # the text output warns in one line per gap, and nothing goes to stderr
+    captured = capsys.readouterr()
+    warn = [ln for ln in captured.out.splitlines() if ln.startswith("warning: ")]
+    assert len(warn) == 1 and "the periphery of the field of view (beyond 60° from the axis)" in warn[0]
+    assert captured.err == ""
+
+
+def test_every_zone_covered_gives_no_warning(cli_run):
+    rep, _, _ = cli_run
+    assert rep["coverage"]["gaps"] == [] and rep["coverage"]["warnings"] == []
+    assert not any(ln.startswith("warning: ") for ln in rep["summary"])
 
 
 # --- slow: the real Fisheye1 set and a full-size synthetic set ------------------------------

@@ -1,10 +1,10 @@
 """``cbh calibrate-lens`` in library terms: a fisheye lens's OCamCalib model from chessboard images.
 
 Steps: read the images (one size), find the board's inner corners in each (OpenCV), calibrate
-(:mod:`cbh.geometry.lenscal`: linear start, centre search, bundle adjustment), check that the
-board poses cover the field of view, measure the held-out error, write ``calib_results.txt``
-as the toolbox does and read it back with cbh's reader, so that every number reported is the
-written file's.
+(:mod:`cbh.geometry.lenscal`: linear start, centre search, bundle adjustment), say where the
+board poses leave the field of view uncovered (warnings, not refusals), measure the held-out
+error, write ``calib_results.txt`` as the toolbox does and read it back with cbh's reader, so
+that every number reported is the written file's.
 
 Corners: ``findChessboardCornersSB`` (EXHAUSTIVE | ACCURACY) first, the classic detector as the
 fallback (see :func:`detect_corners`); both refined by ``cornerSubPix`` on the image blurred
@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from cbh.errors import CalibrationError, ImageError, InputError
+from cbh.geometry.lenscal import MIN_CORNERS
 
 __all__ = ["LensCalOptions", "parse_board", "detect_corners", "refine_corners", "calibrate_lens", "MIN_BOARDS"]
 
@@ -71,8 +72,9 @@ class LensCalOptions:
 
     def __post_init__(self):
         cols, rows = self.board
-        if cols < 2 or rows < 2:
-            raise InputError(f"--board {cols}x{rows}: a board needs at least 2 x 2 inner corners")
+        if cols < 2 or rows < 2 or cols * rows < MIN_CORNERS:
+            raise InputError(f"--board {cols}x{rows}: a board needs at least 2 inner corners each way and "
+                             f"{MIN_CORNERS} in all (e.g. 2x3) to fix its pose")
         if not (math.isfinite(self.square_mm) and SQUARE_MM_RANGE[0] <= self.square_mm <= SQUARE_MM_RANGE[1]):
             raise InputError(f"--square-mm: a board square's side in mm, {SQUARE_MM_RANGE[0]:g} to "
                              f"{SQUARE_MM_RANGE[1]:g}, got {self.square_mm:g}")
@@ -304,8 +306,10 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
     Raises
     ------
     CalibrationError, ImageError, InputError
-        Too few images or boards, no board anywhere, images of different sizes, an unreadable
-        file, a field of view left uncovered (the message says how many boards more, and where).
+        Too few images or boards to determine the model (the message says how many more), no
+        board anywhere, images of different sizes, an unreadable file. A zone of the field of
+        view without boards is not refused: the report's ``coverage`` names the gaps, where the
+        model is extrapolated, and ``summary`` warns.
     """
     from cbh.fileio import refuse_inputs
     from cbh.geometry import lenscal
@@ -326,10 +330,7 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
     t0 = time.perf_counter()
     calib = lenscal.calibrate(corners, boards, width, height, config)
     t_cal = time.perf_counter() - t0
-    cov = lenscal.coverage(calib.model, corners)
-    gaps = cov.shortfalls()
-    if gaps:
-        raise CalibrationError("too few board poses: " + "; ".join(gaps))
+    cov = lenscal.coverage(calib.model, corners)  # gaps are warnings in the report, never a refusal
     t0 = time.perf_counter()
     held = lenscal.held_out_residuals(corners, boards, calib, config) if opts.held_out else None
     t_held = time.perf_counter() - t0
@@ -380,7 +381,8 @@ def _report(paths, views: _Views, model, residuals, held, cov, opts: LensCalOpti
                   "affine_c_d_e": list(model.affine), "height": model.height, "width": model.width},
         "coverage": {"boards_per_zone": cov.boards_per_zone, "periphery_corners_by_side": cov.periphery_sides,
                      "max_corner_theta_deg": float(max(np.max(t) for t in cov.theta_deg)),
-                     "frame_theta_deg": cov.frame_theta_deg},
+                     "frame_theta_deg": cov.frame_theta_deg, "gaps": cov.gaps(),
+                     "extrapolation": cov.extrapolation(), "warnings": cov.warnings()},
     }
 
 
@@ -400,11 +402,13 @@ def _summary(rep: dict) -> list[str]:
     lines.append(f"centre (row, column) = ({m['center_row_col_0based'][0]:.2f}, {m['center_row_col_0based'][1]:.2f}) px, "
                  f"c d e = {m['affine_c_d_e'][0]:.5f} {m['affine_c_d_e'][1]:.5f} {m['affine_c_d_e'][2]:.5f}, "
                  f"invpol {len(m['invpol'])} terms")
-    z = c["boards_per_zone"]
-    lines.append(f"coverage: corners up to {c['max_corner_theta_deg']:.0f}° from the axis; boards: centre (<30°) "
-                 f"{z['centre']}, middle (30–60°) {z['middle']}, periphery (>60°) {z['periphery']}")
+    z, x = c["boards_per_zone"], c["extrapolation"]
+    lines.append(f"coverage: corners from {x['data_theta_deg'][0]:.0f}° to {x['data_theta_deg'][1]:.0f}° from the "
+                 f"axis (the frame reaches {x['frame_theta_deg']:.0f}°); boards: centre (<30°) {z['centre']}, "
+                 f"middle (30–60°) {z['middle']}, periphery (>60°) {z['periphery']}")
+    lines += [f"warning: {w}" for w in c["warnings"]]
     empty = [s for s, n in c["periphery_corners_by_side"].items() if n == 0]
-    if empty:
+    if empty and not any(g["zone"] == "periphery" for g in c["gaps"]):
         lines.append("note: no corners beyond 60° towards the image's " + ", ".join(empty))
     if rep.get("report_files"):
         lines.append("report: " + ", ".join(rep["report_files"]))

@@ -57,6 +57,8 @@ __all__ = [
     "ray_error_px",
     "Coverage",
     "coverage",
+    "check_determined",
+    "MIN_CORNERS",
 ]
 
 _P = np.polynomial.polynomial
@@ -623,6 +625,34 @@ def bundle_adjust(views_xy, boards_xy, width: int, height: int, center_xy, affin
     return np.array(centre), tuple(float(a) for a in affine), poly, lay.poses(res.x).copy(), int(res.nfev)
 
 
+MIN_CORNERS = 6
+"""Corners a board view needs: its linear start solves 6 unknowns up to scale, one equation per corner."""
+
+
+def check_determined(corners_per_view, order: int) -> None:
+    """Refuse what cannot be fitted: fewer than 2 views, a view with fewer than
+    :data:`MIN_CORNERS` corners, or fewer observations (2 per corner) than unknowns
+    (4 + ``order`` intrinsics, 6 per view). Each message says how many more are needed.
+
+    Raises
+    ------
+    CalibrationError
+    """
+    n = [int(k) for k in corners_per_view]
+    if len(n) < 2:
+        raise CalibrationError(f"lens calibration needs at least 2 board views, got {len(n)}: add {2 - len(n)} more")
+    few = [i for i, k in enumerate(n) if k < MIN_CORNERS]
+    if few:
+        raise CalibrationError(f"lens calibration: board view {few[0]} has {n[few[0]]} corners; a view's pose needs at "
+                               f"least {MIN_CORNERS}: add {MIN_CORNERS - n[few[0]]} more corners to it")
+    unknowns, obs = 4 + order + 6 * len(n), 2 * sum(n)
+    if obs <= unknowns:
+        per_view = 2 * max(n) - 6  # what one more view of the largest board adds
+        more = math.ceil((unknowns + 1 - obs) / per_view)
+        raise CalibrationError(f"lens calibration: {sum(n)} corners in {len(n)} views give {obs} equations for "
+                               f"{unknowns} unknowns (order {order}): add {more} more board view{'' if more == 1 else 's'}")
+
+
 def _check_monotone(poly: np.ndarray, r_obs_max: float) -> None:
     r = np.linspace(0.0, r_obs_max, 2001)
     if not poly[0] > 0 or np.any(np.diff(np.arctan2(r, _P.polyval(r, poly))) <= 0):
@@ -651,8 +681,7 @@ def calibrate(views_xy, boards_xy, width: int, height: int, config: LensCalConfi
     LensCalibration
         The model (with its inverse polynomial), the poses and the residuals [px].
     """
-    if len(views_xy) < 2:
-        raise CalibrationError(f"lens calibration needs at least 2 board views, got {len(views_xy)}")
+    check_determined([len(v) for v in views_xy], config.order)
     if config.centre_search:
         centre = find_centre(views_xy, boards_xy, width, height, config.order)
     else:
@@ -846,10 +875,12 @@ def model_from_params(poly, center_xy, affine, width: int, height: int, invpol: 
 
 # --- checks against a known lens ----------------------------------------------------------
 
-def ray_error_px(estimate: OCamModel, truth: OCamModel, max_theta_deg: float, step_px: float = 4.0) -> dict:
+def ray_error_px(estimate: OCamModel, truth: OCamModel, max_theta_deg: float, step_px: float = 4.0,
+                 min_theta_deg: float = 0.0) -> dict:
     """How far the estimated rays land from where the true lens images them [px].
 
-    Every ``step_px``-th pixel within ``max_theta_deg`` (true lens) is cast through
+    Every ``step_px``-th pixel between ``min_theta_deg`` and ``max_theta_deg`` (true lens; a
+    catadioptric camera's annulus has a blind centre) is cast through
     ``estimate``, turned about the optical axis by the single best angle (the one gauge a
     chessboard calibration cannot fix when the true affine has d ≠ e), and imaged through
     ``truth``.
@@ -861,7 +892,8 @@ def ray_error_px(estimate: OCamModel, truth: OCamModel, max_theta_deg: float, st
     """
     ys, xs = np.mgrid[0 : truth.height : step_px, 0 : truth.width : step_px]
     px = np.stack([xs.ravel(), ys.ravel()], axis=-1).astype(float)
-    px = px[truth.theta_of_pixel(px) <= max_theta_deg]
+    th = truth.theta_of_pixel(px)
+    px = px[(th <= max_theta_deg) & (th >= min_theta_deg)]
     a, b = estimate.pixel_to_ray(px), truth.pixel_to_ray(px)
     phi = math.atan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
     cs, sn = math.cos(phi), math.sin(phi)
@@ -874,21 +906,26 @@ def ray_error_px(estimate: OCamModel, truth: OCamModel, max_theta_deg: float, st
 # --- coverage of the field of view --------------------------------------------------------
 
 ZONES = (("centre", 0.0, 30.0, 1), ("middle", 30.0, 60.0, 1), ("periphery", 60.0, math.inf, 2))
-"""(name, from [deg], to [deg], boards needed): a board counts for a zone if a quarter of its corners lie there."""
+"""(name, from [deg], to [deg], boards wanted): a board counts for a zone if a quarter of its corners lie there."""
 
 SIDES = ("right", "bottom", "left", "top")  # image directions of the azimuth quadrants, x right, y down
 
 
 @dataclass(frozen=True)
 class Coverage:
-    """Where the corners fell in the field of view.
+    """Where the corners fell in the field of view, and where the model goes beyond them.
+
+    A zone with too few boards is a gap, not a failure: the polynomial is still fitted, but
+    between the axis and the innermost corner, and beyond the outermost one, it is
+    extrapolated (a catadioptric camera never sees its centre: the mirror shows the camera).
 
     Attributes
     ----------
     theta_deg : tuple of ndarray
         Angle from the optical axis of every corner, per view [deg].
     frame_theta_deg : float
-        Largest angle seen anywhere inside the image frame [deg].
+        Largest angle the model reaches inside the image frame, on the part of the image where
+        the angle still grows with the radius [deg].
     boards_per_zone : dict
         Zone name → number of boards with at least a quarter of their corners in it.
     periphery_sides : dict
@@ -900,24 +937,71 @@ class Coverage:
     boards_per_zone: dict
     periphery_sides: dict
 
-    def shortfalls(self) -> list[str]:
-        """One sentence per zone with too few boards: how many more, and where (empty if none)."""
+    @property
+    def data_theta_deg(self) -> tuple[float, float]:
+        """Smallest and largest angle of any corner from the axis [deg]."""
+        return (float(min(np.min(t) for t in self.theta_deg)), float(max(np.max(t) for t in self.theta_deg)))
+
+    def gaps(self) -> list[dict]:
+        """The zones the frame reaches that have too few boards.
+
+        Returns
+        -------
+        list of dict
+            ``zone``, ``from_deg``, ``to_deg`` (None: no outer limit), ``boards``, ``wanted``,
+            ``extrapolated_deg`` ([from, to] of the zone's angles no corner backs, [deg]) and
+            ``empty_sides`` (image sides without corners beyond 60°; periphery only).
+        """
+        lo_data, hi_data = self.data_theta_deg
         out = []
         for name, lo, hi, need in ZONES:
-            if self.frame_theta_deg < lo + 10.0:
-                continue  # the lens does not reach this zone within the frame
-            have = self.boards_per_zone[name]
-            if have >= need:
-                continue
-            span = f"beyond {lo:.0f}°" if math.isinf(hi) else f"between {lo:.0f}° and {hi:.0f}°"
-            where = "" if name != "periphery" else self._empty_sides()
-            out.append(f"the {name} of the field of view ({span} from the axis) is covered by {have} board"
-                       f"{'' if have == 1 else 's'} ({need} needed): add {need - have} more there{where}")
+            if self.frame_theta_deg < lo + 10.0 or self.boards_per_zone[name] >= need:
+                continue  # the lens does not reach this zone within the frame, or it is covered
+            top = min(hi, self.frame_theta_deg)
+            span = [lo, min(top, lo_data)] if lo < lo_data else [max(lo, hi_data), top] if top > hi_data else None
+            out.append({"zone": name, "from_deg": lo, "to_deg": None if math.isinf(hi) else hi,
+                        "boards": self.boards_per_zone[name], "wanted": need,
+                        "extrapolated_deg": None if span is None or span[1] <= span[0] else [round(span[0], 1), round(span[1], 1)],
+                        "empty_sides": [s for s in SIDES if self.periphery_sides[s] == 0] if name == "periphery" else []})
         return out
 
-    def _empty_sides(self) -> str:
-        empty = [s for s in SIDES if self.periphery_sides[s] == 0]
-        return f", towards the image's {', '.join(empty)}" if empty else ""
+    def extrapolation(self) -> dict:
+        """How far the model reaches beyond the corners that back it [deg].
+
+        Returns
+        -------
+        dict
+            ``data_theta_deg`` ([innermost, outermost] corner), ``frame_theta_deg``, ``inward_deg``
+            (from the axis to the innermost corner) and ``outward_deg`` (from the outermost corner
+            to the frame's reach; 0 if the corners reach it).
+        """
+        lo, hi = self.data_theta_deg
+        return {"data_theta_deg": [round(lo, 2), round(hi, 2)], "frame_theta_deg": round(self.frame_theta_deg, 2),
+                "inward_deg": round(lo, 2), "outward_deg": round(max(0.0, self.frame_theta_deg - hi), 2)}
+
+    def warnings(self) -> list[str]:
+        """One sentence per gap: which zone, where the model is extrapolated, what to add (empty if none)."""
+        out = []
+        for g in self.gaps():
+            span = (f"between {g['from_deg']:.0f}° and {g['to_deg']:.0f}°" if g["to_deg"] is not None
+                    else f"beyond {g['from_deg']:.0f}°")
+            have, need = g["boards"], g["wanted"]
+            text = (f"the {g['zone']} of the field of view ({span} from the axis) is covered by {have} board"
+                    f"{'' if have == 1 else 's'} ({need} wanted)")
+            if g["extrapolated_deg"] is not None:
+                a, b = g["extrapolated_deg"]
+                text += f": the model is extrapolated from {a:.0f}° to {b:.0f}° there"
+            text += f"; add {need - have} more there" + (f", towards the image's {', '.join(g['empty_sides'])}"
+                                                       if g["empty_sides"] else "")
+            out.append(text)
+        return out
+
+
+def _increasing_radius(poly, r_max: float) -> float:
+    """Largest r ≤ ``r_max`` [px] up to which θ(r) = atan2(r, f(r)) grows from the axis."""
+    r = np.linspace(0.0, r_max, 4001)
+    stop = np.flatnonzero(np.diff(np.arctan2(r, _P.polyval(r, np.asarray(poly, float)))) <= 0)
+    return float(r[stop[0]]) if stop.size else float(r_max)
 
 
 def coverage(model: OCamModel, views_xy) -> Coverage:
@@ -934,19 +1018,24 @@ def coverage(model: OCamModel, views_xy) -> Coverage:
     -------
     Coverage
         Angles of the corners [deg], boards per zone of :data:`ZONES`, corners beyond 60° per
-        image side; :meth:`Coverage.shortfalls` says what is missing.
+        image side; :meth:`Coverage.gaps` and :meth:`Coverage.warnings` say what is missing,
+        :meth:`Coverage.extrapolation` how far the model goes beyond the corners.
     """
     thetas = tuple(model.theta_of_pixel(np.asarray(v, float)) for v in views_xy)
     w, h = model.width, model.height
     frame = np.array([[x, y] for x in np.linspace(0, w - 1, 33) for y in np.linspace(0, h - 1, 25)])
-    frame_theta = float(np.max(model.theta_of_pixel(frame)))
+    c, d, e = model.affine
+    dx, dy = frame[:, 0] - model.center_xy[0], frame[:, 1] - model.center_xy[1]
+    r_frame = float(np.max(np.hypot((c * dx - e * dy) / (c - d * e), (dy - d * dx) / (c - d * e))))
+    r_top = _increasing_radius(model.poly, r_frame)
+    frame_theta = math.degrees(math.atan2(r_top, float(_P.polyval(r_top, np.asarray(model.poly)))))
     per_zone = {}
     for name, lo, hi, _ in ZONES:
         per_zone[name] = int(sum(np.mean((t >= lo) & (t < hi)) >= 0.25 for t in thetas))
     sides = dict.fromkeys(SIDES, 0)
     for v, t in zip(views_xy, thetas):
-        d = np.asarray(v, float)[t >= 60.0] - np.asarray(model.center_xy)
-        q = (np.round(np.arctan2(d[:, 1], d[:, 0]) / (math.pi / 2)).astype(int)) % 4
+        off = np.asarray(v, float)[t >= 60.0] - np.asarray(model.center_xy)
+        q = (np.round(np.arctan2(off[:, 1], off[:, 0]) / (math.pi / 2)).astype(int)) % 4
         for k in range(4):
             sides[SIDES[k]] += int(np.sum(q == k))
     return Coverage(theta_deg=thetas, frame_theta_deg=frame_theta, boards_per_zone=per_zone, periphery_sides=sides)

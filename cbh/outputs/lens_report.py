@@ -3,7 +3,8 @@
 Files: ``images.csv`` (errors per image), ``residuals.csv`` (every corner: pixel, angle from the
 axis, residual, held-out residual), ``residuals.png`` (per-image RMS, error against angle, the
 residual vectors over the frame) and ``coverage.png`` (the corners over the frame with circles
-at 30°, 60° and 90° from the axis: is the periphery that matters for the sky covered?).
+every 30° from the axis, the angles no corner backs hatched, where the model is extrapolated,
+and the coverage warnings below: is the periphery that matters for the sky covered?).
 """
 from __future__ import annotations
 
@@ -73,16 +74,31 @@ def _plot_residuals(path: Path, report: dict, model, corners, residuals) -> None
     plt.close(fig)
 
 
-def _plot_coverage(path: Path, model, corners, files) -> None:
+def _plot_coverage(path: Path, model, corners, files, cov: dict | None = None) -> None:
+    """The corners over the frame, circles every 30° from the axis; with the report's ``coverage``,
+    the angles no corner backs (where the model is extrapolated) hatched and the gaps written below."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 8 * model.height / model.width + 0.6))
+    notes = [] if cov is None else [f"warning: {w}" for w in cov["warnings"]]
+    wrapped = [textwrap.fill(n, 110) for n in notes]
+    n_lines = sum(w.count("\n") + 1 for w in wrapped)
+    fig, ax = plt.subplots(figsize=(8, 8 * model.height / model.width + 0.6 + 0.16 * n_lines))
     th = model.theta_map()
-    cs = ax.contour(th, levels=[30, 60, 90], colors=["0.6", "0.3", "k"], linewidths=1)
+    top = float(np.nanmax(th)) if cov is None else cov["frame_theta_deg"]
+    levels = [a for a in range(30, 180, 30) if a < top]
+    cs = ax.contour(th, levels=levels, colors=["0.3" if a != 90 else "k" for a in levels], linewidths=1)
     ax.clabel(cs, fmt="%d°", fontsize=8)
+    if cov is not None:
+        lo, hi = cov["extrapolation"]["data_theta_deg"]
+        out = np.ma.masked_where((th >= lo) & (th <= hi), np.ones_like(th))
+        ax.contourf(out, levels=[0.5, 1.5], colors="none", hatches=["////"], zorder=0)
+        ax.contour(th, levels=sorted({lo, hi}), colors="tab:red", linestyles="--", linewidths=1)
+        ax.plot([], [], color="tab:red", ls="--", label=f"corners {lo:.0f}°–{hi:.0f}°; hatched: extrapolated")
     for c, f in zip(corners, files):
         ax.plot(c[:, 0], c[:, 1], ".", ms=4, label=Path(f).stem)
     ax.set_xlim(-0.5, model.width - 0.5)
@@ -91,7 +107,9 @@ def _plot_coverage(path: Path, model, corners, files) -> None:
     ax.set_title("board corners over the field of view (circles: angle from the axis)")
     if len(files) <= 20:
         ax.legend(fontsize=6, loc="upper right", ncol=2)
-    fig.tight_layout()
+    if wrapped:
+        fig.text(0.01, 0.01, "\n".join(wrapped), fontsize=7, color="tab:red", va="bottom")
+    fig.tight_layout(rect=(0, 0.03 * n_lines, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -124,5 +142,5 @@ def write_lens_report(folder: Path, report: dict, model, corners, residuals, hel
     _write_images_csv(out[0], report)
     _write_residuals_csv(out[1], model, corners, residuals, held, files)
     _plot_residuals(out[2], report, model, corners, residuals)
-    _plot_coverage(out[3], model, corners, files)
+    _plot_coverage(out[3], model, corners, files, report.get("coverage"))
     return out
