@@ -2,7 +2,7 @@
 <= 30 s on the 2-core machine; <= 0.40 px per-point Euclidean RMS, Urban's BA reaches 0.401).
 
 Run: python benchmarks/bench_calibrate_lens.py [--data ../shared/data/chessboard-fisheye1]
-     [--repeat 1] [--no-held-out] [--loss huber]
+     [--repeat 1] [--no-held-out] [--loss huber] [--order auto|N] [--refine-on-board]
 
 Times the whole command in library terms (reading, corner detection, calibration, the
 leave-one-image-out error, writing and reading back calib_results.txt), wall and CPU seconds
@@ -42,13 +42,16 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--no-held-out", action="store_true")
     ap.add_argument("--loss", default="linear", choices=["linear", "huber"])
+    ap.add_argument("--order", default="auto", help="2 to 12, or auto (by the held-out error)")
+    ap.add_argument("--refine-on-board", action="store_true", help="corners refined again on the boards' planes")
     args = ap.parse_args()
 
-    from cbh.actions.calibrate_lens import LensCalOptions, calibrate_lens
+    from cbh.actions.calibrate_lens import LensCalOptions, calibrate_lens, parse_order
     from cbh.geometry.camera import read_ocamcalib
 
     images = sorted(args.data.glob("Fisheye1_*.jpg"), key=lambda p: int(p.stem.split("_")[1]))
-    opts = LensCalOptions(board=(6, 8), square_mm=32.5, loss=args.loss, held_out=not args.no_held_out)
+    opts = LensCalOptions(board=(6, 8), square_mm=32.5, loss=args.loss, order=parse_order(args.order), held_out=not args.no_held_out,
+                          board_refine=args.refine_on_board)
     out = Path(tempfile.mkdtemp()) / "calib_results.txt"
     for k in range(args.repeat):
         load0 = os.getloadavg()[0]

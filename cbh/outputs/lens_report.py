@@ -26,17 +26,21 @@ def _write_images_csv(path: Path, report: dict) -> None:
             w.writerow(row)
 
 
-def _write_residuals_csv(path: Path, model, corners, residuals, held, files) -> None:
+def _write_residuals_csv(path: Path, model, corners, residuals, held, files, ids, rejected) -> None:
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["file", "corner", "x_px", "y_px", "theta_deg", "dx_px", "dy_px", "err_px",
-                    "held_out_dx_px", "held_out_dy_px"])
+                    "held_out_dx_px", "held_out_dy_px", "outlier"])
         for k, (c, r) in enumerate(zip(corners, residuals)):
             th = model.theta_of_pixel(c)
             for j in range(len(c)):
                 h = ("", "") if held is None else (f"{held[k][j, 0]:.5f}", f"{held[k][j, 1]:.5f}")
-                w.writerow([Path(files[k]).name, j, f"{c[j, 0]:.4f}", f"{c[j, 1]:.4f}", f"{th[j]:.3f}",
-                            f"{r[j, 0]:.5f}", f"{r[j, 1]:.5f}", f"{np.hypot(*r[j]):.5f}", *h])
+                w.writerow([Path(files[k]).name, int(ids[k][j]), f"{c[j, 0]:.4f}", f"{c[j, 1]:.4f}", f"{th[j]:.3f}",
+                            f"{r[j, 0]:.5f}", f"{r[j, 1]:.5f}", f"{np.hypot(*r[j]):.5f}", *h, 0])
+        for b in rejected:  # left out of the fit: residual through the final lens, no held-out value
+            th = float(model.theta_of_pixel([[b["x_px"], b["y_px"]]])[0])
+            w.writerow([Path(b["file"]).name, b["corner"], f"{b['x_px']:.4f}", f"{b['y_px']:.4f}", f"{th:.3f}",
+                        f"{b['dx_px']:.5f}", f"{b['dy_px']:.5f}", f"{b['err_px']:.5f}", "", "", 1])
 
 
 def _plot_residuals(path: Path, report: dict, model, corners, residuals) -> None:
@@ -114,7 +118,7 @@ def _plot_coverage(path: Path, model, corners, files, cov: dict | None = None) -
     plt.close(fig)
 
 
-def write_lens_report(folder: Path, report: dict, model, corners, residuals, held, files) -> list[Path]:
+def write_lens_report(folder: Path, report: dict, model, corners, residuals, held, files, ids=None) -> list[Path]:
     """Write the report files of a lens calibration into ``folder`` (created if needed).
 
     Parameters
@@ -130,6 +134,9 @@ def write_lens_report(folder: Path, report: dict, model, corners, residuals, hel
         Held-out residuals [px], per image.
     files : sequence of Path
         The images with a board, in the same order.
+    ids : sequence of ndarray, each shape (N_i,), int, optional
+        Each corner's index on its board (default 0…N_i − 1); corners the fit left out as
+        outliers (the report's ``rejected_corners``) are written after the others, flagged.
 
     Returns
     -------
@@ -140,7 +147,8 @@ def write_lens_report(folder: Path, report: dict, model, corners, residuals, hel
     folder.mkdir(parents=True, exist_ok=True)
     out = [folder / "images.csv", folder / "residuals.csv", folder / "residuals.png", folder / "coverage.png"]
     _write_images_csv(out[0], report)
-    _write_residuals_csv(out[1], model, corners, residuals, held, files)
+    ids = [np.arange(len(c)) for c in corners] if ids is None else ids
+    _write_residuals_csv(out[1], model, corners, residuals, held, files, ids, report.get("rejected_corners", []))
     _plot_residuals(out[2], report, model, corners, residuals)
     _plot_coverage(out[3], model, corners, files, report.get("coverage"))
     return out
