@@ -412,7 +412,12 @@ def test_fisheye1_as_good_as_urbans_bundle_adjustment(shared, tmp_path, capsys):
     model = read_ocamcalib(out)
     res = [L.fit_pose(model, L.xy_from_ocam_rowcol(v["corners_row_col_1based"]), XY)[1]
            for v in meth["per_image"].values()]
-    assert L.error_stats(np.concatenate(res))["rms_euclid_px"] <= 1.05 * meth["recomputed"]["per_point_euclid_rms_px"]
+    # order 5, chosen by the held-out error, beats Urban's order-4 model on his own corners: measured 0.953x
+    assert L.error_stats(np.concatenate(res))["rms_euclid_px"] < 0.98 * meth["recomputed"]["per_point_euclid_rms_px"]
+    tab = {int(k): v for k, v in rep["order_selection"]["held_out_rms_euclid_px"].items()}
+    chosen = rep["config"]["order"]
+    assert tab[chosen] <= 1.01 * min(tab.values()) and tab[chosen] == pytest.approx(rep["held_out"]["rms_euclid_px"])
+    assert tab[3] > tab[4] > 1.02 * tab[chosen]  # measured 0.638, 0.430, 0.415 (order 5)
 
 
 @pytest.mark.slow
@@ -432,3 +437,26 @@ def test_full_size_boards_give_rays_within_005_px(tmp_path):
     assert rep["overall"]["n_images"] >= 11
     err = L.ray_error_px(read_ocamcalib(tmp_path / "c.txt"), URBAN, rep["coverage"]["max_corner_theta_deg"])
     assert err["rms_px"] < 0.05
+
+
+@pytest.mark.slow
+def test_catadioptric_boards_give_rays_within_005_px(tmp_path):
+    """Issue 34's target: boards rendered through a catadioptric model (1024 x 768, 220°, blind
+    below 30°), calibrated as a user would (`calibrate-lens` defaults), put every ray of the mirror's
+    annulus within 0.05 px of the truth, and invpol (world2cam) holds over the annulus."""
+    from cbh.actions.calibrate_lens import LensCalOptions, calibrate_lens
+
+    paths = []
+    for i, spec in enumerate(MIRROR_SPECS):
+        shot = render_board(MIRROR, BOARD, pose_facing(BOARD, *spec), rng=np.random.default_rng(300 + i),
+                            fov_deg=220, blind_deg=30)
+        paths.append(tmp_path / f"m{i}.png")
+        cv2.imwrite(str(paths[-1]), shot.image)
+    rep = calibrate_lens(paths, tmp_path / "c.txt", LensCalOptions(board=(6, 8), square_mm=32.5))
+    assert rep["overall"]["n_images"] == len(MIRROR_SPECS)
+    assert [g["zone"] for g in rep["coverage"]["gaps"]] == ["centre"]
+    model = read_ocamcalib(tmp_path / "c.txt")
+    err = L.ray_error_px(model, MIRROR, max_theta_deg=105.0, min_theta_deg=35.0)
+    assert err["rms_px"] < 0.05  # measured 0.032 px (2-DN noise, JPEG 90)
+    rays = annulus_rays(MIRROR, 35.0, 105.0)
+    assert np.max(np.hypot(*(world2cam_toolbox(model, rays) - L.project_model(model, rays)).T)) < 0.01

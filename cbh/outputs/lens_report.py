@@ -91,7 +91,7 @@ def _plot_coverage(path: Path, model, corners, files, cov: dict | None = None) -
     notes = [] if cov is None else [f"warning: {w}" for w in cov["warnings"]]
     wrapped = [textwrap.fill(n, 110) for n in notes]
     n_lines = sum(w.count("\n") + 1 for w in wrapped)
-    fig, ax = plt.subplots(figsize=(8, 8 * model.height / model.width + 0.6 + 0.16 * n_lines))
+    fig, ax = plt.subplots(figsize=(9.6, 8 * model.height / model.width + 0.6 + 0.16 * n_lines))
     th = model.theta_map()
     top = float(np.nanmax(th)) if cov is None else cov["frame_theta_deg"]
     levels = [a for a in range(30, 180, 30) if a < top]
@@ -102,15 +102,15 @@ def _plot_coverage(path: Path, model, corners, files, cov: dict | None = None) -
         out = np.ma.masked_where((th >= lo) & (th <= hi), np.ones_like(th))
         ax.contourf(out, levels=[0.5, 1.5], colors="none", hatches=["////"], zorder=0)
         ax.contour(th, levels=sorted({lo, hi}), colors="tab:red", linestyles="--", linewidths=1)
-        ax.plot([], [], color="tab:red", ls="--", label=f"corners {lo:.0f}°–{hi:.0f}°; hatched: extrapolated")
+        ax.plot([], [], color="tab:red", ls="--", label=f"corners {lo:.0f}°–{hi:.0f}°\nhatched: extrapolated")
     for c, f in zip(corners, files):
         ax.plot(c[:, 0], c[:, 1], ".", ms=4, label=Path(f).stem)
     ax.set_xlim(-0.5, model.width - 0.5)
     ax.set_ylim(model.height - 0.5, -0.5)
     ax.set_aspect("equal")
     ax.set_title("board corners over the field of view (circles: angle from the axis)")
-    if len(files) <= 20:
-        ax.legend(fontsize=6, loc="upper right", ncol=2)
+    if len(files) <= 20:  # beside the frame, not over its corners
+        ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     if wrapped:
         fig.text(0.01, 0.01, "\n".join(wrapped), fontsize=7, color="tab:red", va="bottom")
     fig.tight_layout(rect=(0, 0.03 * n_lines, 1, 1))
