@@ -61,9 +61,14 @@ class LensCalOptions:
         Also measure the leave-one-image-out error (one extra bundle adjustment per image).
     report_dir : Path or None
         Write per-image residuals (CSV, PNG) and the coverage picture here.
-    board_refine : bool
+    board_refine : bool or None
         After a first fit, refine every corner on its board's own plane (:func:`refine_on_board`)
-        and fit again (``--refine-on-board``).
+        and fit again; None: only where corners pass 90° from the axis in the first fit (a
+        catadioptric camera, a lens beyond 180°). Rays against the truth, boards rendered through
+        a catadioptric model (five sets of 11, ``benchmarks/bench_calibrate_lens.py
+        --catadioptric``): 0.028–0.057 px RMS without, 0.014–0.041 px with; through a fisheye
+        (two sets of 12 at 1032 × 778): 0.036 and 0.066 px without, 0.054 and 0.041 with, no
+        better; Fisheye1 on Urban's corners: 0.3825 px either way.
     """
 
     board: tuple[int, int]
@@ -74,7 +79,7 @@ class LensCalOptions:
     method: str = "auto"
     held_out: bool = True
     report_dir: Path | None = None
-    board_refine: bool = False
+    board_refine: bool | None = None
 
     def __post_init__(self):
         cols, rows = self.board
@@ -202,10 +207,13 @@ def refine_on_board(gray: np.ndarray, corners: np.ndarray, model, pose, cols: in
     from scipy.spatial.transform import Rotation
 
     spacing = _grid_spacing(np.asarray(corners, float), cols, rows)
-    sq_px = float(np.clip(np.max(spacing), 12.0, 96.0))
+    g = np.asarray(corners, float).reshape(rows, cols, 2)
+    longest = max(np.max(np.linalg.norm(np.diff(g, axis=a), axis=2)) for a in (0, 1))  # no square undersampled
+    sq_px = float(np.clip(np.round(longest), 12.0, 96.0))  # whole pixels per square
     step = square / sq_px  # board units per resampled pixel
-    x0 = y0 = -0.75 * square
-    w, h = int(np.ceil((cols - 1 + 1.5) * sq_px)), int(np.ceil((rows - 1 + 1.5) * sq_px))
+    pad = round(0.75 * sq_px)  # every corner on a resampled pixel's centre, whichever way the board is numbered
+    x0 = y0 = -pad * step
+    w, h = int((cols - 1) * sq_px) + 2 * pad + 1, int((rows - 1) * sq_px) + 2 * pad + 1
     gy, gx = np.mgrid[0:h, 0:w]
     R = Rotation.from_rotvec(np.asarray(pose[:3], float)).as_matrix()
 
@@ -411,10 +419,14 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
     corners = [views.corners[i] for i in views.found]
     boards = [lenscal.board_points(*opts.board, opts.square_mm)] * len(corners)
     t0 = time.perf_counter()
-    if opts.board_refine:  # a first lens and the board poses, to refine the corners on the boards' planes
+    board_refine = opts.board_refine
+    if board_refine is not False:  # a first lens and the board poses, to refine the corners on the boards' planes
         calib = lenscal.calibrate(corners, boards, width, height, config)
-        corners = [refine_on_board(views.grays[i], c, calib.model, pose, *opts.board, opts.square_mm)
-                   for i, c, pose in zip(views.found, corners, calib.poses)]
+        if board_refine is None:
+            board_refine = max(float(np.max(calib.model.theta_of_pixel(c))) for c in corners) > 90.0
+        if board_refine:
+            corners = [refine_on_board(views.grays[i], c, calib.model, pose, *opts.board, opts.square_mm)
+                       for i, c, pose in zip(views.found, corners, calib.poses)]
     held, orders = None, None
     if opts.order is None and opts.held_out:
         calib, config, held, orders = lenscal.select_order(corners, boards, width, height, config)
@@ -432,6 +444,7 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
     residuals = lenscal.residuals_of(stored, calib.poses, corners, boards)
     report = _report(paths, views, stored, residuals, held, cov, opts, Path(out))
     report["config"]["order"] = config.order
+    report["config"]["refined_on_board"] = bool(board_refine)
     report["order_selection"] = None if orders is None else {
         "criterion": "lowest order whose held-out per-point Euclidean RMS is within 1 % (or 0.002 px) of the best",
         "held_out_rms_euclid_px": {str(k): v for k, v in orders.items()}}

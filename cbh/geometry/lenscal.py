@@ -871,7 +871,7 @@ def select_order(views_xy, boards_xy, width: int, height: int, config: LensCalCo
 
     A degree too low leaves a systematic error in every image; one too high fits the corners of
     the images it has and strays between them, which the held-out error shows. On Fisheye1:
-    degree 3, 4, 5, 6 give 0.638, 0.430, 0.415, 0.414 px held out (per-point Euclidean RMS).
+    degree 3, 4, 5, 6 give 0.594, 0.430, 0.415, 0.414 px held out (per-point Euclidean RMS).
     Degrees that cannot be determined from the corners, or whose fit fails, are skipped.
 
     Returns

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -21,7 +22,7 @@ def calibrate_lens_cmd(
     huber_px: float = typer.Option(1.0, "--huber-px", help="Huber loss: residual where it turns linear [px]."),
     method: str = typer.Option("auto", "--method", help="lm (Levenberg-Marquardt, linear loss), trf (sparse trust region, any loss) or auto (lm unless --loss huber)."),
     no_held_out: bool = typer.Option(False, "--no-held-out", help="Skip the leave-one-image-out error."),
-    refine_on_board: bool = typer.Option(False, "--refine-on-board", help="After a first fit, refine the corners again on each board's own plane (curved edges of strongly distorted boards bias the refinement in the raw image) and fit again."),
+    refine_on_board: Optional[bool] = typer.Option(None, "--refine-on-board/--no-refine-on-board", help="After a first fit, refine the corners again on each board's own plane (curved edges of strongly distorted boards bias the refinement in the raw image) and fit again; by default only where corners pass 90° from the axis (mirrors, lenses beyond 180°)."),
     json_out: bool = typer.Option(False, "--json", help="Print the full report as JSON."),
     report: Path = typer.Option(None, "--report", help="Folder for residuals per image (CSV, PNG) and the coverage picture."),
 ) -> None:
