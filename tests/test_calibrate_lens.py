@@ -146,6 +146,48 @@ def test_the_fewest_determined_views_still_fit():
     assert L.error_stats(np.concatenate(cal.residuals))["rms_euclid_px"] < 1e-3
 
 
+def test_a_corner_far_off_is_left_out_and_the_lens_is_still_exact():
+    poses = [pose_facing(BOARD, *s) for s in SPECS]
+    views = [v.copy() for v in exact_views(TRUTH, poses)]
+    views[2][7] += (2.0, -1.5)  # one corner refined against the image's edge, 2.5 px off
+    cal = L.calibrate(views, [BOARD.corners()] * 6, TRUTH.width, TRUTH.height)
+    assert [np.flatnonzero(~k).tolist() for k in cal.inliers] == [[], [], [7], [], [], []]
+    assert L.ray_error_px(cal.model, TRUTH, max_theta_deg=80.0)["max_px"] < 1e-5
+    kept = L.calibrate(views, [BOARD.corners()] * 6, TRUTH.width, TRUTH.height, L.LensCalConfig(reject_sigma=0))
+    assert kept.inliers is None and L.ray_error_px(kept.model, TRUTH, max_theta_deg=80.0)["max_px"] > 0.01
+
+
+def test_the_order_is_chosen_by_the_held_out_error():
+    """Exact corners through a degree-4 lens: degree 3 cannot follow it, 4 can, 5 gains nothing."""
+    poses = [pose_facing(BOARD, *s) for s in SPECS]
+    cal, cfg, held, table = L.select_order(exact_views(TRUTH, poses), [BOARD.corners()] * 6, TRUTH.width,
+                                           TRUTH.height, orders=(3, 4, 5))
+    assert cfg.order == 4 and len(cal.model.poly) == 5
+    assert table[3] > 0.05 and table[4] < 1e-4 and table[5] < 1e-4
+    assert L.error_stats(np.concatenate(held))["rms_euclid_px"] == table[4]
+
+
+def test_refining_on_the_board_plane_removes_the_curvature_bias():
+    """Boards through a mirror, no noise: refined in the raw image the corners sit outwards on
+    average (their edges curve), refined on the board's plane they do not."""
+    from cbh.actions.calibrate_lens import detect_corners, refine_on_board
+
+    raw, flat = [], []
+    for i, spec in enumerate([MIRROR_SPECS[k] for k in (2, 5)]):
+        shot = render_board(MIRROR, BOARD, pose_facing(BOARD, *spec), rng=np.random.default_rng(i), noise_dn=0.0,
+                            jpeg_quality=None, fov_deg=220, blind_deg=30)
+        found, _ = detect_corners(shot.image, 6, 8)
+        out = shot.corners_xy - np.asarray(MIRROR.center_xy)
+        out /= np.linalg.norm(out, axis=1)[:, None]
+        truth = shot.corners_xy if np.linalg.norm(found[0] - shot.corners_xy[0]) < 5 else shot.corners_xy[::-1]
+        # the board's numbering as detected: the pose of the truth, turned 180° about its middle if reversed
+        pose = shot.pose if truth is shot.corners_xy else L.fit_pose(MIRROR, found, BOARD.corners())[0]
+        raw.append(np.sum((found - truth) * out, axis=1))
+        flat.append(np.sum((refine_on_board(shot.image, found, MIRROR, pose, 6, 8, 32.5) - truth) * out, axis=1))
+    assert np.mean(np.concatenate(raw)) > 0.02  # measured 0.035 px (0.037 over all eleven boards)
+    assert abs(np.mean(np.concatenate(flat))) < 0.01  # measured -0.0006 px
+
+
 def test_the_inverse_polynomial_is_findinvpoly():
     inv = L.inverse_polynomial(URBAN.poly, URBAN.width, URBAN.height)
     t = np.arange(-math.pi / 2, 1.2 + 1e-9, 0.01)
