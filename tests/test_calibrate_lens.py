@@ -395,7 +395,7 @@ def annulus_rays(model: OCamModel, lo_deg: float, hi_deg: float, n: int = 2000) 
     return np.stack([np.sin(th) * np.cos(az), np.sin(th) * np.sin(az), np.cos(th)], axis=-1)
 
 
-def test_catadioptric_exact_corners_give_back_the_mirror_lens():
+def test_catadioptric_exact_corners_give_back_the_mirror_lens(tmp_path):
     """Scaramuzza's model for a mirror: an annulus from 35° to 107°, past 180° of view, no corner in
     the middle. The linear start, the centre search and the adjustment find it to rounding, and
     invpol (the toolbox's world2cam) holds over the whole annulus, beyond 90° included."""
@@ -409,6 +409,13 @@ def test_catadioptric_exact_corners_give_back_the_mirror_lens():
     rays = annulus_rays(MIRROR, 30.0, 110.0)
     px = L.project_model(MIRROR, rays)
     assert np.max(np.hypot(*(world2cam_toolbox(cal.model, rays) - px).T)) < 0.01  # findinvpoly's 0.01 px
+    # the file as cbh reads it (its model stops at 90°) still fits a board's pose beyond 90° from scratch,
+    # as a user scoring the lens on other corners does
+    path = tmp_path / "mirror.txt"
+    path.write_text(format_ocamcalib(cal.model))
+    far = int(np.argmax([MIRROR.theta_of_pixel(v).max() for v in views]))
+    assert MIRROR.theta_of_pixel(views[far]).max() > 105
+    assert np.abs(L.fit_pose(read_ocamcalib(path), views[far], BOARD.corners())[1]).max() < 1e-3
     cov = L.coverage(cal.model, views)
     assert [g["zone"] for g in cov.gaps()] == ["centre"] and cov.gaps()[0]["extrapolated_deg"] == [0.0, 30.0]
     assert cov.frame_theta_deg > 110.0  # the frame reaches past 180° of view

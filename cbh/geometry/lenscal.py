@@ -815,9 +815,11 @@ def _pose_guess(model: OCamModel, view_xy: np.ndarray, board_xy: np.ndarray) -> 
     from scipy.spatial.transform import Rotation
 
     rays = model.pixel_to_ray(view_xy)
-    # sensor coordinates (u, v): the ray's direction about the axis at the radius of its angle
-    rho = np.maximum(np.hypot(rays[:, 0], rays[:, 1]), 1e-12)
-    uv = rays[:, :2] / rho[:, None] * model.r_from_theta(np.arctan2(rho, rays[:, 2]))[:, None]
+    # sensor coordinates (u, v): the pixel's offset from the centre through the inverse affine (exact
+    # at any angle; a model read from a file stops its angle-to-radius table at 90°)
+    c, d, e = model.affine
+    dx, dy = view_xy[:, 0] - model.center_xy[0], view_xy[:, 1] - model.center_xy[1]
+    uv = np.stack([(c * dx - e * dy) / (c - d * e), (dy - d * dx) / (c - d * e)], axis=-1)
     r1, r2, t12 = (a[0] for a in _views_extrinsics(uv[None], board_xy[None], np.ones((1, len(uv)))))
     R = np.column_stack([r1, r2, np.cross(r1, r2)])
     w = (R[:, :2] @ board_xy.T).T  # in-plane parts of P, (N, 3)
