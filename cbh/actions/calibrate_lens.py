@@ -29,8 +29,8 @@ import numpy as np
 from cbh.errors import CalibrationError, ImageError, InputError
 from cbh.geometry.lenscal import MIN_CORNERS
 
-__all__ = ["LensCalOptions", "parse_board", "parse_order", "detect_corners", "refine_corners", "refine_on_board", "calibrate_lens",
-           "MIN_BOARDS"]
+__all__ = ["LensCalOptions", "parse_board", "parse_order", "detect_corners", "refine_corners", "refine_on_board",
+           "calibrate_lens", "MIN_BOARDS"]
 
 log = logging.getLogger(__name__)
 
@@ -201,10 +201,9 @@ def refine_on_board(gray: np.ndarray, corners: np.ndarray, model, pose, cols: in
         Refined corners (x, y) [px].
     """
     import cv2
+    from scipy.spatial.transform import Rotation
 
     from cbh.geometry.lenscal import board_points, project_model
-
-    from scipy.spatial.transform import Rotation
 
     spacing = _grid_spacing(np.asarray(corners, float), cols, rows)
     g = np.asarray(corners, float).reshape(rows, cols, 2)
@@ -430,7 +429,7 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
     held, orders = None, None
     if opts.order is None and opts.held_out:
         calib, config, held, orders = lenscal.select_order(corners, boards, width, height, config)
-    else:
+    elif board_refine or opts.board_refine is False:  # else the first fit, on the same corners, is the fit
         calib = lenscal.calibrate(corners, boards, width, height, config)
     t_cal = time.perf_counter() - t0
     corners, boards, rejected, ids = _left_out(calib, corners, boards, [paths[i] for i in views.found])
@@ -447,7 +446,7 @@ def calibrate_lens(images, out, opts: LensCalOptions) -> dict:
     report["config"]["refined_on_board"] = bool(board_refine)
     report["order_selection"] = None if orders is None else {
         "criterion": "lowest order whose held-out per-point Euclidean RMS is within 1 % (or 0.002 px) of the best",
-        "held_out_rms_euclid_px": {str(k): v for k, v in orders.items()}}
+        "held_out_rms_euclid_px": {str(k): None if math.isnan(v) else v for k, v in orders.items()}}
     report["out_replaced"] = replaced
     report["rejected_corners"] = rejected
     report["timing_s"] = {"detect": round(views.seconds, 3), "calibrate": round(t_cal, 3),
@@ -520,7 +519,7 @@ def _summary(rep: dict) -> list[str]:
     if rep.get("order_selection"):
         tab = rep["order_selection"]["held_out_rms_euclid_px"]
         lines.append(f"order {rep['config']['order']} chosen by the held-out error (px: "
-                     + ", ".join(f"{k}: {v:.3f}" for k, v in tab.items()) + ")")
+                     + ", ".join(f"{k}: " + ("failed" if v is None else f"{v:.3f}") for k, v in tab.items()) + ")")
     if rep["no_board"]:
         lines.append("no board in: " + ", ".join(Path(p).name for p in rep["no_board"]))
     lines.append(f"reprojection error: {o['rms_euclid_px']:.3f} px per-point Euclidean RMS "
