@@ -30,7 +30,7 @@ import numpy as np
 from cbh.geometry.camera import OCamModel
 from cbh.geometry.lenscal import board_points, project_model
 
-__all__ = ["Chessboard", "BoardShot", "pose_facing", "hemisphere_poses", "render_board"]
+__all__ = ["Chessboard", "BoardShot", "pose_facing", "hemisphere_poses", "render_board", "catadioptric_model"]
 
 
 @dataclass(frozen=True)
@@ -146,6 +146,32 @@ def hemisphere_poses(board: Chessboard, n: int, rng: np.random.Generator, max_ze
     return poses
 
 
+def catadioptric_model(width: int = 1024, height: int = 768, fov_deg: float = 220.0, rim_frac: float = 0.48,
+                       center_offset_px: tuple[float, float] = (6.3, -4.1),
+                       affine: tuple[float, float, float] = (1.0008, 0.0004, 0.0004)) -> OCamModel:
+    """A catadioptric camera (a lens looking into a convex mirror) in Scaramuzza's model.
+
+    The mirror fills a circle of radius ``rim_frac`` × ``height`` about the centre, where the
+    view reaches ``fov_deg`` / 2 from the axis (beyond 90°: the field of view passes 180°);
+    f(r) = a0 + a2 r² + a4 r⁴ with a0 = half that radius and a4 = 0.15 a2 / R², which images
+    the angle from the axis nearly in proportion to the radius (about 31° at a quarter of the
+    height). The middle of the image sees the camera itself in the mirror: render boards with
+    ``blind_deg`` (e.g. 30°) to blank it.
+
+    Returns
+    -------
+    OCamModel
+        With ``max_theta_deg`` = ``fov_deg`` / 2.
+    """
+    rim = rim_frac * height
+    half = fov_deg / 2.0
+    a0 = 0.5 * rim
+    a2 = (-rim * math.tan(math.radians(half - 90.0)) - a0) / (rim**2 * 1.15)
+    return OCamModel(width=width, height=height,
+                     center_xy=((width - 1) / 2.0 + center_offset_px[0], (height - 1) / 2.0 + center_offset_px[1]),
+                     affine=affine, poly=(a0, 0.0, a2, 0.0, 0.15 * a2 / rim**2), max_theta_deg=half)
+
+
 def _lattice(n: int) -> np.ndarray:
     """``n`` sub-pixel offsets in [−½, ½)², a rank-1 lattice with generator round(n / φ).
 
@@ -206,7 +232,8 @@ def _board_bbox(model: OCamModel, board: Chessboard, pose: np.ndarray) -> tuple[
 
 def render_board(model: OCamModel, board: Chessboard, pose, rng: np.random.Generator | None = None,
                  samples: int = 34, blur_px: float = 0.7, noise_dn: float = 2.0, jpeg_quality: int | None = 90,
-                 levels: tuple[float, float, float] = (35.0, 215.0, 110.0), fov_deg: float = 190.0) -> BoardShot:
+                 levels: tuple[float, float, float] = (35.0, 215.0, 110.0), fov_deg: float = 190.0,
+                 blind_deg: float = 0.0) -> BoardShot:
     """Image a chessboard through ``model``.
 
     Parameters
@@ -231,6 +258,9 @@ def render_board(model: OCamModel, board: Chessboard, pose, rng: np.random.Gener
         Grey values of black squares, white paper and the background [0–255].
     fov_deg : float
         Full field of view of the lens [deg]; pixels beyond it are black.
+    blind_deg : float
+        Pixels within this angle of the axis are black too: a catadioptric camera sees itself
+        in the middle of its mirror [deg].
 
     Returns
     -------
@@ -249,7 +279,8 @@ def render_board(model: OCamModel, board: Chessboard, pose, rng: np.random.Gener
         xy, hit = _board_xy(model.pixel_to_ray(np.stack([sx, sy], axis=-1)), pose)
         grey = _shade(xy, hit, board, levels).reshape(y1 - y0, x1 - x0, samples)
         img[y0:y1, x0:x1] = grey.mean(axis=-1)
-    img[model.theta_map() > fov_deg / 2.0] = 0.0
+    theta = model.theta_map()
+    img[(theta > fov_deg / 2.0) | (theta < blind_deg)] = 0.0
     if blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     img = np.clip(np.round(img + rng.normal(0.0, noise_dn, img.shape)), 0, 255).astype(np.uint8)
