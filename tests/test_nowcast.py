@@ -76,6 +76,44 @@ def test_the_map_ends_where_the_camera_stops_seeing():
     assert math.isnan(p) and why == "night"
 
 
+def test_a_plant_is_the_share_of_its_points_in_shade(tmp_path):
+    """A plant (a polygon, a list of points, or a CSV's rows sharing a name) straddling a cloud's
+    shadow edge: its shade probability is the share of its area under the cloud (0.5 for a
+    rectangle half under it, within the grid's step), where a point inside the clear half says 0."""
+    import pymap3d
+
+    from cbh.errors import ConfigError
+    from cbh.geometry.station import load_station
+    from cbh.outputs.nowcast import parse_site, parse_sites, shade_at_site
+    from cbh.presets import station_path
+
+    st = load_station(station_path())
+    pg = _half_sky(-200.0)
+    zen = math.radians(40.0)
+    sun = np.array([0.0, -math.sin(zen), math.cos(zen)])
+
+    def ll(e, n):
+        lat, lon, _ = pymap3d.enu2geodetic(e, n, 0.0, st.latitude_deg, st.longitude_deg, st.altitude_m)
+        return f"{float(lat):.7f},{float(lon):.7f}"
+
+    rect = ";".join(ll(e, n) for e, n in ((-600, -100), (200, -100), (200, 100), (-600, 100)))
+    plant = parse_site(f"farm=polygon:{rect}", st)
+    assert plant.name == "farm" and 40 <= len(plant.points_m) <= 80
+    p, why, _ = shade_at_site(pg, plant, sun, 0.0)
+    assert why == "" and abs(p - 0.5) < 0.1, p
+    row = parse_site("row=" + ";".join(ll(e, 0) for e in (-500, -400, -300, 0, 100, 200)), st)
+    assert abs(shade_at_site(pg, row, sun, 0.0)[0] - 0.5) < 0.05
+    assert shade_at_site(pg, parse_site(ll(100, 0), st), sun, 0.0)[0] < 0.05
+    (tmp_path / "sites.csv").write_text("name,latitude,longitude\n" + "".join(
+        f"{n},{ll(e, 0)}\n" for n, e in (("a", -500), ("a", 100), ("b", 150))))
+    sites = parse_sites([f"@{tmp_path / 'sites.csv'}", "c=" + ll(0, 0)], st)
+    assert [x.name for x in sites] == ["a", "b", "c"] and len(sites[0].points_m) == 2 and sites[1].points_m is None
+    with pytest.raises(ConfigError, match="given twice"):
+        parse_sites(["a=" + ll(0, 0), "a=" + ll(10, 0)], st)
+    with pytest.raises(ConfigError, match="at least 3 corners"):
+        parse_site("p=polygon:" + ";".join(ll(e, 0) for e in (0, 10)), st)
+
+
 def test_irradiance_export_rows_and_dataset(tmp_path, capsys):
     """`cbh export --product irradiance`: one row per issue time, site and lead with the clear-sky
     GHI of pvlib; a NetCDF dataset on (time, lead_time, site); refused without a site."""

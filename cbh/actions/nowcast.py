@@ -47,7 +47,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
         st = s.station
         if station is None:
             station = st
-            places = [nc.parse_site(t, st, i) for i, t in enumerate(sites)]
+            places = nc.parse_sites(sites, st)
             levels = {p.name: nc.Levels() for p in places}
             if pyr is None and st.pyranometer is not None:  # the recorded station's [station] pyranometer
                 if Path(st.pyranometer).is_file():
@@ -74,7 +74,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
                     if bad:
                         p, why, wide = math.nan, "pair_invalid:" + "+".join(bad), False
                     else:
-                        p, why, wide = nc.shade_at(pg, site.enu_m, sp.direction_enu if sp.zenith_deg < 90 else None,
+                        p, why, wide = nc.shade_at_site(pg, site, sp.direction_enu if sp.zenith_deg < 90 else None,
                                                    float(lead))
                     key = (site.name, tv)
                     if wide and key in seen_clear:  # the sun's glare covers it now: as seen before it got there

@@ -75,39 +75,119 @@ _UNIT, _WEIGHT = _pattern()
 
 @dataclass(frozen=True)
 class Site:
-    """A ground site: its name, WGS 84 position and ENU position about the station [m]."""
+    """A ground site: its name, WGS 84 position (a plant's centroid) and ENU position about the
+    station [m]; a plant (a list of points or a polygon) has its points in ``points_m`` (K, 3),
+    whose shade is averaged (:func:`shade_at_site`)."""
 
     name: str
     latitude_deg: float
     longitude_deg: float
     altitude_m: float
     enu_m: np.ndarray = field(compare=False)
+    points_m: np.ndarray | None = field(default=None, compare=False)
+
+
+PLANT_POINTS = 64  # a polygon is sampled on a square grid of about this many points
+
+
+def _latlon(text: str, where: str) -> list[float]:
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"--site {where!r}: expected LAT,LON[,ALT_M] in degrees and metres") from None
+    if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
+        raise ConfigError(f"--site {where!r}: expected LAT,LON[,ALT_M] in degrees and metres")
+    return vals
+
+
+def _enu(lat: float, lon: float, alt: float, station, where: str) -> np.ndarray:
+    import pymap3d
+
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 360.0 and -500.0 <= alt <= 9000.0):
+        raise ConfigError(f"--site {where!r}: latitude -90..90, longitude -180..360, altitude -500..9000 m")
+    e, n, u = pymap3d.geodetic2enu(lat, lon, alt, station.latitude_deg, station.longitude_deg, station.altitude_m)
+    enu = np.array([float(e), float(n), float(u)])
+    if float(np.hypot(enu[0], enu[1])) > 50_000.0:
+        raise ConfigError(f"--site {where!r}: {np.hypot(enu[0], enu[1]) / 1000:.0f} km from the station; its "
+                          "cameras do not see the sky over it")
+    return enu
 
 
 def parse_site(text: str, station, index: int = 0) -> Site:
     """``LAT,LON[,ALT_M]`` or ``NAME=LAT,LON[,ALT_M]`` (ALT above sea level; default the
-    station's) → :class:`Site` in the station's ENU frame (pymap3d, WGS 84)."""
-    import pymap3d
-
+    station's) → :class:`Site` in the station's ENU frame (pymap3d, WGS 84). A plant:
+    ``NAME=LAT,LON;LAT,LON;…`` (its points, averaged) or ``NAME=polygon:LAT,LON;LAT,LON;…``
+    (the area inside, sampled on a grid of about :data:`PLANT_POINTS` points)."""
     name, sep, rest = str(text).partition("=")
     if not sep:
         name, rest = f"site{index + 1}", name
-    try:
-        vals = [float(v) for v in rest.split(",")]
-    except ValueError:
-        raise ConfigError(f"--site {text!r}: expected LAT,LON[,ALT_M] in degrees and metres") from None
-    if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
+    name = name.strip() or f"site{index + 1}"
+    polygon = rest.strip().lower().startswith("polygon:")
+    parts = [p for p in (rest.split(":", 1)[1] if polygon else rest).split(";") if p.strip()]
+    if not parts:
         raise ConfigError(f"--site {text!r}: expected LAT,LON[,ALT_M] in degrees and metres")
-    lat, lon = vals[0], vals[1]
-    alt = vals[2] if len(vals) == 3 else float(station.altitude_m)
-    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 360.0 and -500.0 <= alt <= 9000.0):
-        raise ConfigError(f"--site {text!r}: latitude -90..90, longitude -180..360, altitude -500..9000 m")
-    e, n, u = pymap3d.geodetic2enu(lat, lon, alt, station.latitude_deg, station.longitude_deg, station.altitude_m)
-    enu = np.array([float(e), float(n), float(u)])
-    if float(np.hypot(enu[0], enu[1])) > 50_000.0:
-        raise ConfigError(f"--site {text!r}: {np.hypot(enu[0], enu[1]) / 1000:.0f} km from the station; its "
-                          "cameras do not see the sky over it")
-    return Site(name.strip() or f"site{index + 1}", lat, lon, alt, enu)
+    vals = [_latlon(p, text) for p in parts]
+    alts = [v[2] if len(v) == 3 else float(station.altitude_m) for v in vals]
+    pts = np.array([_enu(v[0], v[1], a, station, text) for v, a in zip(vals, alts)])
+    if polygon:
+        if len(pts) < 3:
+            raise ConfigError(f"--site {text!r}: a polygon needs at least 3 corners")
+        pts = _inside(pts, text)
+    lat, lon = float(np.mean([v[0] for v in vals])), float(np.mean([v[1] for v in vals]))
+    centre = pts.mean(axis=0)
+    return Site(name, lat, lon, float(np.mean(alts)), centre, pts if len(pts) > 1 else None)
+
+
+def _inside(corners: np.ndarray, where: str) -> np.ndarray:
+    """Points of a square grid inside the polygon ``corners`` (ENU [m], (K, 3)), about
+    :data:`PLANT_POINTS` of them, at the corners' mean height."""
+    from matplotlib.path import Path as MplPath
+
+    xy = corners[:, :2]
+    area = 0.5 * abs(float(np.dot(xy[:, 0], np.roll(xy[:, 1], 1)) - np.dot(xy[:, 1], np.roll(xy[:, 0], 1))))
+    if area < 1.0:
+        raise ConfigError(f"--site {where!r}: the polygon encloses no area")
+    step = math.sqrt(area / PLANT_POINTS)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    gx, gy = np.meshgrid(np.arange(lo[0] + step / 2, hi[0], step), np.arange(lo[1] + step / 2, hi[1], step))
+    g = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    g = g[MplPath(xy).contains_points(g)]
+    if not len(g):
+        g = xy.mean(axis=0, keepdims=True)
+    return np.column_stack([g, np.full(len(g), float(corners[:, 2].mean()))])
+
+
+def read_sites(path, station) -> list[Site]:
+    """A CSV of sites: ``name, latitude, longitude[, altitude_m]``; rows sharing a name are one
+    plant's points (averaged)."""
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"sites file {path}: cannot read ({type(exc).__name__}: {exc})") from None
+    groups: dict[str, list[str]] = {}
+    for i, r in enumerate(rows, start=2):
+        r = {(k or "").strip().lower(): (v or "").strip() for k, v in r.items()}
+        if not {"name", "latitude", "longitude"} <= set(r):
+            raise InputError(f"sites file {path}: needs columns name, latitude, longitude[, altitude_m]")
+        alt = f",{r['altitude_m']}" if r.get("altitude_m") else ""
+        groups.setdefault(r["name"] or f"site{i - 1}", []).append(f"{r['latitude']},{r['longitude']}{alt}")
+    if not groups:
+        raise InputError(f"sites file {path}: no rows")
+    return [parse_site(f"{n}={';'.join(p)}", station, i) for i, (n, p) in enumerate(groups.items())]
+
+
+def parse_sites(texts: list[str], station) -> list[Site]:
+    """Every ``--site``: a site or plant (:func:`parse_site`), or ``@FILE.csv`` (:func:`read_sites`);
+    names must differ."""
+    out: list[Site] = []
+    for t in texts:
+        out += read_sites(t[1:], station) if str(t).startswith("@") else [parse_site(t, station, len(out))]
+    names = [s.name for s in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"--site: the name {dup[0]!r} is given twice")
+    return out
 
 
 def parse_leads(text: str | None) -> tuple[float, ...]:
@@ -168,6 +248,20 @@ def shade_probability(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead
     """:func:`shade_at` without its ``widened``."""
     p, why, _ = shade_at(pg, site_enu, sun_dir, lead_s)
     return p, why
+
+
+def shade_at_site(pg, site: Site, sun_dir: np.ndarray | None, lead_s: float) -> tuple[float, str, bool]:
+    """:func:`shade_at` of a site, or a plant's mean over its points (the share of the plant in
+    shade): known when at least half its points are, else NaN with the commonest reason."""
+    if site.points_m is None:
+        return shade_at(pg, site.enu_m, sun_dir, lead_s)
+    got = [shade_at(pg, p, sun_dir, lead_s) for p in site.points_m]
+    ok = [g[0] for g in got if math.isfinite(g[0])]
+    wide = any(g[2] for g in got)
+    if 2 * len(ok) < len(got):
+        whys = [g[1] for g in got if not math.isfinite(g[0])]
+        return math.nan, max(set(whys), key=whys.count), wide
+    return float(np.mean(ok)), "", wide
 
 
 def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float) -> tuple[float, str, bool]:

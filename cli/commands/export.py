@@ -18,7 +18,10 @@ def export_cmd(
     daily: bool = typer.Option(False, "--daily", help="One file per UTC day in the --out directory (layers)."),
     station: str = typer.Option(None, "--station", help="Station TOML whose [ground] grid the maps use (default: recorded)."),
     site: list[str] = typer.Option(None, "--site", metavar="[NAME=]LAT,LON[,ALT_M]",
-                                   help="Irradiance: a ground site (repeatable; ALT above sea level, default the station's)."),
+                                   help="Irradiance: a ground site (repeatable; ALT above sea level, default the station's); "
+                                        "a plant: NAME=LAT,LON;LAT,LON;… (points averaged) or NAME=polygon:LAT,LON;… "
+                                        "(the area inside); @FILE.csv: sites (name,latitude,longitude[,altitude_m]; "
+                                        "rows sharing a name are one plant)."),
     leads: str = typer.Option(None, "--leads", help="Irradiance: lead times in minutes, e.g. 0,1,5,10 or 0:20 (default 0:20)."),
     pyranometer: Path = typer.Option(None, "--pyranometer", help="Irradiance: a pyranometer's GHI record (CSV) to learn the sun and shade levels from."),
 ) -> None:
