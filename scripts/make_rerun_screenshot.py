@@ -1,6 +1,7 @@
 """Screenshot of cbh's default Rerun view (docs/rerun-default-view.jpg) from the sample recording.
 
     python scripts/make_rerun_screenshot.py [--recording recordings/sample-two-layers.mcap] [--out docs/rerun-default-view.jpg]
+        [--site NAME=LAT,LON …] [--pyranometer FILE]
 
 What it does, so that the README shows what a user sees:
 1. replays the recording into an .rrd with the default blueprint (``cbh replay … --rerun save=…``);
@@ -62,6 +63,8 @@ def main() -> None:
     ap.add_argument("--recording", default=str(REPO / "recordings" / "sample-two-layers.mcap"))
     ap.add_argument("--out", default=str(REPO / "docs" / "rerun-default-view.jpg"))
     ap.add_argument("--size", default="1600x1000", help="viewer window size (logical pixels)")
+    ap.add_argument("--site", action="append", default=[], help="passed to `cbh replay --site` (the nowcast panels)")
+    ap.add_argument("--pyranometer", default=None, help="passed to `cbh replay --pyranometer`")
     args = ap.parse_args()
     for tool in ("rerun", "cbh"):
         if not shutil.which(tool):
@@ -69,7 +72,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         rrd = Path(tmp) / "view.rrd"
         shot = Path(tmp) / "shot.png"
-        r = subprocess.run(["cbh", "replay", args.recording, "--rerun", f"save={rrd}"], capture_output=True, text=True)
+        extra = [a for site in args.site for a in ("--site", site)]
+        extra += ["--pyranometer", args.pyranometer] if args.pyranometer else []
+        r = subprocess.run(["cbh", "replay", args.recording, "--rerun", f"save={rrd}", *extra], capture_output=True,
+                           text=True)
         if r.returncode != 0:
             _fail(f"cbh replay failed: {r.stderr.strip()}")
         xvfb = None

@@ -39,6 +39,29 @@ def test_replay_sample_into_verified_rrd_on_the_capture_time_line(tmp_path, caps
 
 
 @needs_cli
+def test_replay_shows_the_nowcast_at_sites_beside_the_shadow_map(short_session, tmp_path, capsys):
+    """`cbh replay --site`: each site's GHI (clear sky, the nowcast 5 and 10 min ahead) as time
+    series, each pair's cloud shadow on the ground with the sites marked, both in the default
+    blueprint; the .rrd verifies. A site as a plant (a polygon) is shown by its centroid."""
+    from cbh.cli.main import main
+
+    rec = short_session[0]
+    out = tmp_path / "nowcast.rrd"
+    assert main(["replay", str(rec), "--rerun", "save", str(out), "--site", "plant=-15.762,-47.870",
+                 "--site", "farm=polygon:-15.7615,-47.8710;-15.7615,-47.8690;-15.7630,-47.8690"]) == 0
+    assert "replayed 2 pairs" in capsys.readouterr().out
+    assert rrd_verify(out).returncode == 0
+    summary = rrd_print(out)
+    for entity in ("/nowcast/plant/clear", "/nowcast/farm/nowcast_5_min_ahead", "/shadow_map/image",
+                   "/shadow_map/sites"):
+        assert f" - {entity} - " in summary, entity
+    blueprint = rrd_print(out, "-vvv")
+    assert "GHI at the sites" in blueprint and "cloud shadow on the ground" in blueprint
+    assert main(["replay", str(rec), "--rerun", "save", str(tmp_path / "x.rrd"), "--pyranometer", str(rec)]) == 2
+    assert "--pyranometer needs --site" in capsys.readouterr().err
+
+
+@needs_cli
 def test_rerun_mcap_loader_reads_the_recording(tmp_path):
     """Plain MCAP loading in Rerun (Foxglove protobuf schemas) also works on cbh recordings."""
     out = tmp_path / "conv.rrd"

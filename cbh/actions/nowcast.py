@@ -93,6 +93,33 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
     return rows, summary
 
 
+def ghi_series(sessions, sites: list[str], pyranometer=None, leads_s=(300.0, 600.0)) -> dict:
+    """Per site, its GHI series over the recording, each at its valid time: ``clear`` (pvlib's
+    clear sky), ``nowcast N min ahead`` for each of ``leads_s``, and ``measured`` (the
+    pyranometer, when given). {site: {name: (times datetime64[us] (T,), values [W/m²] (T,))}}."""
+    from cbh.outputs import nowcast as nc
+
+    rows, summary = nowcast_rows(sessions, sites, (0.0, *leads_s), pyranometer)
+    t64 = lambda ts: np.array([np.datetime64(x.replace(tzinfo=None), "us") for x in ts])  # noqa: E731
+    measured = nc.read_pyranometer(pyranometer) if pyranometer is not None else None
+    out = {}
+    for name in summary["sites"]:
+        mine = [r for r in rows if r["site"] == name]
+        series = {"clear": (t64([r["valid_time_utc"] for r in mine if r["lead_s"] == 0]),
+                            np.array([r["clear_sky_ghi_wm2"] for r in mine if r["lead_s"] == 0]))}
+        for lead in leads_s:
+            sel = [r for r in mine if r["lead_s"] == lead]
+            series[f"nowcast {lead / 60:.0f} min ahead"] = (t64([r["valid_time_utc"] for r in sel]),
+                                                            np.array([r["ghi_wm2"] for r in sel], np.float64))
+        if measured is not None:
+            times, g = measured
+            lo, hi = min(r["time_utc"] for r in mine), max(r["valid_time_utc"] for r in mine)
+            keep = [i for i, x in enumerate(times) if lo <= x <= hi]
+            series["measured"] = (t64([times[i] for i in keep]), np.asarray(g)[keep])
+        out[name] = series
+    return out
+
+
 def _learn(levels, pending: dict, site, pyr, now) -> None:
     """Every forecast of ``site`` valid by ``now`` (lead ≥ 1 min, seen clear of the sun's glare),
     with the clear-sky index the pyranometer measured at its valid time, into ``levels`` (one

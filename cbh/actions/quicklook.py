@@ -163,27 +163,12 @@ def _draw_motion(ax_speed, ax_dir, t: _Series) -> None:
 
 def _ghi_series(sessions, pyranometer) -> dict:
     """The GHI panel's series at the station (camera 1's site): measured, clear sky, and the
-    nowcast (:func:`cbh.actions.nowcast.nowcast_rows`) at 5 and 10 min, each at its valid time."""
-    from cbh.actions.nowcast import nowcast_rows
-    from cbh.outputs import nowcast as nc
+    nowcast at 5 and 10 min, each at its valid time (:func:`cbh.actions.nowcast.ghi_series`)."""
+    from cbh.actions.nowcast import ghi_series
     from cbh.outputs.record import open_session
 
     st = open_session(list(sessions)[0]).station
-    rows, _ = nowcast_rows(sessions, [f"{st.name}={st.latitude_deg},{st.longitude_deg}"], (0.0, 300.0, 600.0),
-                           pyranometer)
-    t64 = lambda ts: np.array([np.datetime64(x.replace(tzinfo=None), "us") for x in ts])  # noqa: E731
-    out = {"clear": (t64([r["valid_time_utc"] for r in rows if r["lead_s"] == 0]),
-                     np.array([r["clear_sky_ghi_wm2"] for r in rows if r["lead_s"] == 0]))}
-    for lead in (300.0, 600.0):
-        sel = [r for r in rows if r["lead_s"] == lead]
-        out[f"nowcast {lead / 60:.0f} min ahead"] = (t64([r["valid_time_utc"] for r in sel]),
-                                                     np.array([r["ghi_wm2"] for r in sel]))
-    if pyranometer is not None:
-        times, g = nc.read_pyranometer(pyranometer)
-        lo, hi = min(r["time_utc"] for r in rows), max(r["valid_time_utc"] for r in rows)
-        keep = [i for i, x in enumerate(times) if lo <= x <= hi]
-        out["measured"] = (t64([times[i] for i in keep]), g[keep])
-    return out
+    return ghi_series(sessions, [f"{st.name}={st.latitude_deg},{st.longitude_deg}"], pyranometer)[st.name]
 
 
 def _draw_ghi(ax, ghi: dict) -> None:

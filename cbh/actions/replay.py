@@ -14,6 +14,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from cbh.actions.run import RunSetup, check_writable, open_sink
 from cbh.errors import RecordingError
 from cbh.interfaces import ResultSink
@@ -38,7 +40,7 @@ class ReplayReport:
 
 def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), station=None, cameras=None,
            record=None, on_viewer=None, on_end=None, overwrite: bool = False, bind: str | None = None,
-           device: str = "cpu") -> ReplayReport:
+           device: str = "cpu", sites=None, pyranometer=None) -> ReplayReport:
     """Replay (``station`` None) or reprocess (``station`` given) a recorded session.
 
     Parameters
@@ -65,18 +67,26 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
         Address of ``serve`` (default 127.0.0.1).
     device : str
         Reprocess only: where the pipeline's dense work runs (``"cpu"``, ``"cuda"`` …).
+    sites : list of str, optional
+        Replay only: ground sites (``--site`` as in ``cbh export --product irradiance``) whose
+        GHI nowcast (5 and 10 min ahead), clear sky and, with ``pyranometer`` (or the recorded
+        ``[station] pyranometer``), measured GHI are shown over time beside each pair's cloud
+        shadow on the ground with the sites marked.
     """
     from cbh.fileio import refuse_inputs
     from cbh.outputs.record import open_session
 
-    refuse_inputs([rerun[1] if rerun and rerun[0] == "save" else None], [session, station], "--rerun save")
+    refuse_inputs([rerun[1] if rerun and rerun[0] == "save" else None], [session, station, pyranometer], "--rerun save")
+    if (sites or pyranometer is not None) and station is not None:
+        raise RecordingError("--site and --pyranometer show a recording's nowcast: not with --reprocess")
     # (--record onto the session: refused by _reprocess_setup, which says how)
     s = open_session(session)
     t0 = time.perf_counter()
     if station is None:
         if record is not None or cameras is not None:
             raise RecordingError("a new recording or camera pair needs reprocessing with a station")
-        n = _replay_recorded(s, rerun, Path(session).stem, on_viewer, bind, on_end)
+        nowcast = _Nowcast(session, s, sites, pyranometer) if sites and rerun is not None else None
+        n = _replay_recorded(s, rerun, Path(session).stem, on_viewer, bind, on_end, nowcast)
         return ReplayReport(n, False, rerun[0] if rerun else None, rerun[1] if rerun else None,
                             None, None, time.perf_counter() - t0)
     setup, viewer = _reprocess_setup(s, station, cameras, rerun, record, Path(session).stem, overwrite, bind, device)
@@ -100,7 +110,36 @@ def replay(session, *, rerun: tuple[str, str | None] | None = ("spawn", None), s
                         time.perf_counter() - t0, failed=stats.pairs_failed)
 
 
-def _replay_recorded(s, rerun, name: str, on_viewer, bind=None, on_end=None) -> int:
+class _Nowcast:
+    """A recording's nowcast at sites for the viewer: the GHI series and each pair's shadow map."""
+
+    def __init__(self, session, s, sites, pyranometer):
+        from cbh.actions.nowcast import ghi_series
+        from cbh.outputs.nowcast import parse_sites
+        from cbh.pipeline.config import PipelineConfig
+
+        st = s.station
+        if pyranometer is None and st.pyranometer is not None and Path(st.pyranometer).is_file():
+            pyranometer = st.pyranometer
+        self.series = ghi_series([session], list(sites), pyranometer)
+        self.station, self.grid = st, st.ground
+        self.masks = PipelineConfig.from_dict(s.config, where="recorded pipeline config").masks
+        places = parse_sites(list(sites), st)
+        cells = {p.name: self.grid.index(float(p.enu_m[0]), float(p.enu_m[1])) for p in places}
+        self.cells = {k: v for k, v in cells.items() if v is not None}
+
+    def log(self, sink, result) -> None:
+        from cbh.actions.pairground import pair_ground
+        from cbh.geometry import ground
+
+        pg = pair_ground(self.station, self.masks, result)
+        shade = (ground.shadow_map(pg.camera, pg.labels, pg.heights, pg.sun_dir, self.grid,
+                                   cloud_fraction=pg.cloud_fraction) if pg.valid else
+                 np.full((self.grid.n, self.grid.n), np.nan, np.float32))
+        sink.log_shadow(result.time_utc, shade, self.cells)
+
+
+def _replay_recorded(s, rerun, name: str, on_viewer, bind=None, on_end=None, nowcast: "_Nowcast | None" = None) -> int:
     from cbh.outputs.rerun_view import RerunSink
 
     if rerun is None:
@@ -110,11 +149,16 @@ def _replay_recorded(s, rerun, name: str, on_viewer, bind=None, on_end=None) -> 
     if rerun[0] == "save":
         check_writable(rerun[1])
     n = 0
-    with RerunSink(s.station, rerun[0], rerun[1], cameras=cams, recording_name=name, bind=bind) as sink:
+    with RerunSink(s.station, rerun[0], rerun[1], cameras=cams, recording_name=name, bind=bind,
+                   nowcast=nowcast is not None) as sink:
         if on_viewer is not None:
             on_viewer(sink)
+        if nowcast is not None:
+            sink.log_ghi(nowcast.series)
         for pair in s.pairs():
             sink.write_images({c: (im.data, im.format) for c, im in pair.images.items()}, pair.result)
+            if nowcast is not None and pair.result.time_utc is not None:
+                nowcast.log(sink, pair.result)
             n += 1
         for t, stats in s.statuses():
             sink.write_status(t, stats)

@@ -167,7 +167,7 @@ def cloud_outline(mask: np.ndarray, max_px: int = MAX_OUTLINE_PX) -> list[np.nda
     return out
 
 
-def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RANGE_M):
+def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RANGE_M, nowcast: bool = False):
     """The raw sky first: every camera's fisheye image with the cloud outline (matches, flow and
     the mask fill are there but hidden, one click away; a camera network's further cameras
     beside them), the 3D cloud base with motion arrows, the height map, the histogram, layer
@@ -187,6 +187,8 @@ def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RA
                 sky(cam2),
                 *(sky(c) for c in more),
                 rrb.Tabs(
+                    *([rrb.Spatial2DView(origin="/shadow_map", name="cloud shadow on the ground (north up)")]
+                      if nowcast else []),
                     rrb.Spatial3DView(origin="/world", name="cloud base (ENU, m)"),
                     rrb.Spatial2DView(origin="/height_map", name=f"height map ({cam1})"),
                 ),
@@ -195,6 +197,8 @@ def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RA
                 rrb.BarChartView(origin="/histogram", name="points per height [m]"),
                 rrb.TimeSeriesView(origin="/layers", name="layer base [m above ground]",
                                    axis_y=rrb.ScalarAxis(range=tuple(float(v) for v in height_range_m))),
+                *([rrb.TimeSeriesView(origin="/nowcast", name="GHI at the sites [W/m²]: measured, clear sky, "
+                                      "nowcast")] if nowcast else []),
                 rrb.Vertical(
                     rrb.TextDocumentView(origin="/flags", name="flags of this pair"),
                     rrb.TimeSeriesView(origin="/cloud_fraction", name="cloud fraction",
@@ -202,7 +206,7 @@ def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RA
                     rrb.Spatial2DView(origin="/legend", name="height colour scale"),
                     row_shares=[2, 2, 1],
                 ),
-                column_shares=[2, 3, 2],
+                column_shares=[2, 3, 3, 2] if nowcast else [2, 3, 2],
             ),
             row_shares=[3, 2],
         ),
@@ -317,6 +321,47 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
 FLAGGED_RGB = (150, 150, 150)  # a flagged pair's points and layers: grey, its layers as crosses
 
 
+GHI_COLOURS = {"measured": (20, 20, 20), "clear": (150, 150, 150), "nowcast 5 min ahead": (255, 140, 0),
+               "nowcast 10 min ahead": (214, 39, 40)}
+
+
+def _entity(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name.strip()) or "_"
+
+
+def log_ghi_series(rec, series: dict) -> None:
+    """Per site, its GHI series ({site: {name: (times datetime64 (T,), W/m² (T,))}}, as
+    :func:`cbh.actions.nowcast.ghi_series` gives them) as Scalars under
+    ``/nowcast/<site>/<name>`` on the ``capture_time`` line, each at its valid time."""
+    import rerun as rr
+
+    for site, named in series.items():
+        for name, (times, values) in named.items():
+            path = f"/nowcast/{_entity(site)}/{_entity(name)}"
+            rec.log(path, rr.SeriesLines(colors=[GHI_COLOURS.get(name, (31, 119, 180))], names=[f"{site}: {name}"]),
+                    static=True)
+            for t, v in zip(np.asarray(times), np.asarray(values, np.float64)):
+                if np.isfinite(v):
+                    rec.set_time(TIMELINE, timestamp=np.datetime64(t, "ns"))
+                    rec.log(path, rr.Scalars(float(v)))
+
+
+def log_shadow_map(rec, time_utc, shade: np.ndarray, sites: dict) -> None:
+    """The cloud shadow on the ground grid (1 shaded: dark, 0 sunlit: light, NaN unknown: mid
+    grey), north up, with each site ({name: (row, column)} of its cell) marked and named."""
+    import rerun as rr
+
+    rec.set_time(TIMELINE, timestamp=np.datetime64(to_ns(time_utc), "ns"))
+    sh = np.asarray(shade, np.float32)
+    img = np.where(np.isfinite(sh), 235.0 - 200.0 * np.clip(sh, 0, 1), 128.0).astype(np.uint8)[::-1]  # rows: north up
+    rec.log("/shadow_map/image", rr.Image(img, color_model="L", draw_order=0.0))
+    if sites:
+        n = sh.shape[0]
+        xy = [(c + 0.5, n - 1 - r + 0.5) for r, c in sites.values()]
+        rec.log("/shadow_map/sites", rr.Points2D(xy, labels=list(sites), radii=-4.0, colors=[(30, 144, 255)],
+                                                 show_labels=True, draw_order=2.0))
+
+
 def _flagged(n: int) -> np.ndarray:
     return np.tile(np.array(FLAGGED_RGB, np.uint8), (n, 1))
 
@@ -363,7 +408,8 @@ class RerunSink(ResultSink):
 
     def __init__(self, station, mode: str = "spawn", target: str | None = None, *,
                  cameras: tuple[str, str] | None = None, recording_name: str | None = None,
-                 height_range_m=HEIGHT_RANGE_M, grpc_port: int | None = None, bind: str | None = None):
+                 height_range_m=HEIGHT_RANGE_M, grpc_port: int | None = None, bind: str | None = None,
+                 nowcast: bool = False):
         import rerun as rr
 
         self.mode, self.target = parse_rerun_spec(mode, target)
@@ -382,7 +428,7 @@ class RerunSink(ResultSink):
         self.rec = rr.RecordingStream("cbh", recording_id=uuid.uuid4())
         if recording_name:
             self.rec.send_recording_name(recording_name)
-        bp = default_blueprint(*self.cameras, height_range_m=self.height_range_m)
+        bp = default_blueprint(*self.cameras, height_range_m=self.height_range_m, nowcast=nowcast)
         if self.mode == "save":
             out = Path(self.target)
             if not out.parent.is_dir():
@@ -414,6 +460,14 @@ class RerunSink(ResultSink):
     def write_images(self, images: dict[str, tuple[bytes, str]], result: PairResult) -> None:
         """Log one recorded pair: ``images`` maps camera → (encoded bytes, format)."""
         log_pair(self.rec, images, result, max_layers_styled=self._styled, height_range_m=self.height_range_m)
+
+    def log_ghi(self, series: dict) -> None:
+        """Each site's GHI series (:func:`log_ghi_series`)."""
+        log_ghi_series(self.rec, series)
+
+    def log_shadow(self, time_utc, shade: np.ndarray, sites: dict) -> None:
+        """The pair's cloud shadow on the ground grid with the sites on it (:func:`log_shadow_map`)."""
+        log_shadow_map(self.rec, time_utc, shade, sites)
 
     def log_status(self, time_utc, stats: dict) -> None:
         """Service counters as time series under ``/service/<name>``."""

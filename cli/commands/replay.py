@@ -26,6 +26,11 @@ def replay_cmd(
     bind: str = typer.Option(None, "--bind", metavar="ADDR",
                              help="Address of the --rerun serve server (default 127.0.0.1; 0.0.0.0: every interface)."),
     device: str = typer.Option("cpu", "--device", help="With --reprocess: where the dense work runs (cpu, or a torch device, e.g. cuda)."),
+    site: list[str] = typer.Option(None, "--site", metavar="[NAME=]LAT,LON[,ALT_M]", help="Show the GHI nowcast at this "
+                                   "site (repeatable; plants and @sites.csv as in `cbh export --product irradiance`) "
+                                   "beside each pair's cloud shadow on the ground."),
+    pyranometer: Path = typer.Option(None, "--pyranometer", help="With --site: the measured GHI (CSV) beside the nowcast "
+                                     "(default: the recorded [station] pyranometer)."),
 ) -> None:
     """Re-log a recorded session into Rerun with the default blueprint (images, cloud masks,
     matches, 3D points, histogram, layer heights over time).
@@ -40,8 +45,10 @@ def replay_cmd(
     from cbh.outputs.rerun_view import parse_rerun_spec
 
     spec = None if no_viewer else parse_rerun_spec(rerun, target)
+    if pyranometer is not None and not site:
+        raise ConfigError("--pyranometer needs --site (the place whose nowcast it is compared with)")
     r = replay(session, rerun=spec, station=station, cameras=cameras, record=record, overwrite=overwrite, bind=bind,
-               device=device,
+               device=device, sites=site or None, pyranometer=pyranometer,
                on_viewer=lambda s: s.url and print(f"serving on {s.url}: connect a viewer with `rerun --connect {s.url}`"),
                on_end=_serve_until_interrupted if spec is not None and spec[0] == "serve" else None)
     dest = {"save": f" into {r.target}", "connect": f" to {r.target or 'the local viewer'}"}.get(r.mode, "")
