@@ -26,7 +26,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree wi
 _EXPORTS = {
     "Pipeline": "cbh.pipeline",
     "PipelineConfig": "cbh.pipeline",
-    "load_station": "cbh.geometry.station",
+    "load_station": "cbh.actions.station",
     "Station": "cbh.geometry.station",
     "PairResult": "cbh.result",
     "Layer": "cbh.result",

@@ -185,13 +185,18 @@ def test_every_command_reads_a_station_file_the_same_way(command, table, says, r
                                                          monkeypatch):
     """`cbh pair` took an unknown [service] key that `cbh run` refused (issue 26): every command
     refuses the same station with the same line, before touching any other input."""
+    import cbh
+    from cbh.actions.station import load_station as load_station_checked
     from cbh.cli.main import main
 
     monkeypatch.chdir(tmp_path)
     st = tmp_path / "station.toml"
     st.write_text((repo / "configs" / "unb-lea.toml").read_text() + "\n" + table)
-    with pytest.raises(ConfigError, match=says):
-        load_station(st)
+    for read in (load_station_checked, cbh.load_station):  # the commands' reader and the library's
+        with pytest.raises(ConfigError, match=says):
+            read(st)
+    name = table.split("]")[0].lstrip("[")
+    assert name in load_station(st).sections  # the geometry layer keeps the table raw (its owner checks it)
     assert main([*command, "--station", str(st)]) == 2
     out, err = capsys.readouterr()
     assert err.startswith(f"cbh: error: {says}") and err.count("\n") == 1 and out == "", err

@@ -170,7 +170,7 @@ def calibrate(station_path: str | Path, sources: dict[str, str], out: str | Path
     ConfigError, ImageError, SourceError
         Bad station, missing/unknown cameras in ``sources``, unreadable images.
     """
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
 
     opt = options or CalibrateOptions()
     t_start = time.perf_counter()

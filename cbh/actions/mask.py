@@ -37,7 +37,7 @@ def obstacle_mask(source: str, camera: str, out, station=None, frames: int = 30,
 
     A live source is given up on after ``timeout_s`` [s]; corrupt frames are skipped.
     """
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
     from cbh.imageio import check_image_size
     from cbh.interfaces import EndOfStream
     from cbh.live.sources import open_source

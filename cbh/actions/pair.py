@@ -70,7 +70,7 @@ def process_pair(images, station, cameras: str | None = None, time_utc: datetime
         has cameras.
     """
     from cbh.errors import ConfigError, InputError
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
     from cbh.pipeline.network import StationPipeline
     from cbh.presets import station_path
 

@@ -189,7 +189,8 @@ class _Lent(ResultSink):
 def _reprocess_setup(s, station, cameras, rerun, record, name: str, overwrite: bool = False,
                      bind: str | None = None, device: str = "cpu"):
     """(RunSetup over the recording's frames, the RerunSink or None)."""
-    from cbh.geometry.station import Station, load_station
+    from cbh.actions.station import load_station
+    from cbh.geometry.station import Station
     from cbh.presets import station_path
     from cbh.imageio import check_image_size
     from cbh.outputs.record import McapRecorder, RecordingSource

@@ -152,7 +152,7 @@ def load_jobs(stations, sources=(), cameras: str | None = None) -> list[StationJ
     cameras : str or None
         ``"cam1,cam2"`` for every station given directly (default: every camera of the station; three or more are a camera network).
     """
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
     from cbh.presets import station_path
 
     if not stations:

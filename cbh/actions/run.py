@@ -226,7 +226,7 @@ def build_run(*, station=None, scene=None, sources=(), cameras=None, record=None
     where it records, if any; :func:`resumed_clock`).
     """
     from cbh.presets import station_path
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
 
     from cbh.fileio import refuse_inputs
 

@@ -186,7 +186,7 @@ def segment_files(paths: list[Path], out: Path, station_file: Path | None = None
 
     station = None
     if station_file is not None:
-        from cbh.geometry.station import load_station
+        from cbh.actions.station import load_station
         from cbh.presets import station_path
 
         station = load_station(station_path(str(station_file)))

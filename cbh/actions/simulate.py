@@ -58,7 +58,7 @@ def simulate_to_folder(out, *, station=None, scene="two-layers", frames: int = 1
         (overrides the scene's ``[[imperfections]]``; the truth JSON has every camera's real
         capture time).
     """
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
     from cbh.presets import scene_path, station_path
     from cbh.sim import SkySimulator, load_scene
     from cbh.sim.io import write_shot

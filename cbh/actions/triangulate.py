@@ -28,7 +28,7 @@ def triangulate_pixels(station, pixels, cameras: str | None = None) -> PixelTria
 
     Metrics (MAE, MAPE, RMSE; paper Table 3) use only rows that are valid and have a true height.
     """
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
     from cbh.geometry.validation import height_metrics, read_pixel_pairs, triangulate_pixel_pairs
 
     cam1, cam2 = load_station(station).pair(cameras)

@@ -53,7 +53,7 @@ from cbh.geometry.ground import GroundGrid, parse_ground
 from cbh.errors import CalibrationError, ConfigError
 from cbh.tomlio import check_keys, dumps_toml, number, read_toml, string, table, vector
 
-__all__ = ["Camera", "Station", "load_station", "parse_station", "check_sections", "rotation_from_angles", "angles_from_rotation", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
+__all__ = ["Camera", "Station", "load_station", "parse_station", "rotation_from_angles", "angles_from_rotation", "rot_x", "rot_y", "rot_z", "B_LEVEL_NORTH_UP"]
 
 #: The level camera whose image top faces north: columns are camera x → west, y → south, z → up.
 B_LEVEL_NORTH_UP = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -533,26 +533,11 @@ def _extra_sections(data: dict, lat: float, lon: float) -> dict[str, dict]:
 def load_station(path: str | Path) -> Station:
     """Read and validate a station TOML file. Raises :class:`ConfigError` naming the key.
 
-    The one way every command reads a station file: besides the station and its cameras, the
-    tables other modules own are validated here too (:func:`check_sections`), so a station
-    that one command refuses is refused by all.
+    Validates what this layer owns: ``[station]``, the cameras and ``[ground]``. The tables
+    higher layers own (``[pipeline]``, ``[service]``) are kept raw in :attr:`Station.sections`;
+    the commands read a station with :func:`cbh.actions.station.load_station` (also
+    ``cbh.load_station``), which validates those too, so a station that one command refuses is
+    refused by all.
     """
     path = Path(path)
-    station = parse_station(read_toml(path, "station"), base_dir=path.parent, path=path)
-    check_sections(station)
-    return station
-
-
-def check_sections(station: Station) -> None:
-    """Validate a station's ``[pipeline]`` (:class:`~cbh.pipeline.config.PipelineConfig`) and
-    ``[service]`` (:class:`~cbh.live.service.ServiceConfig`) tables as the commands that use
-    them do: unknown keys, types and ranges are a :class:`ConfigError` naming the key
-    (``[ground]`` is checked by :func:`parse_station`). Not applied to stations read back from
-    recordings, which stay readable whatever later versions accept."""
-    from cbh.live.service import ServiceConfig
-    from cbh.pipeline.config import PipelineConfig
-
-    if "pipeline" in station.sections:
-        PipelineConfig.from_dict(station.sections["pipeline"])
-    if "service" in station.sections:
-        ServiceConfig.from_dict(station.sections["service"])
+    return parse_station(read_toml(path, "station"), base_dir=path.parent, path=path)

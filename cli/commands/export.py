@@ -27,7 +27,7 @@ def export_cmd(
 ) -> None:
     """Layer heights per time step (height, cover, okta, ceiling, motion, flags), or ground maps."""
     from cbh.actions.export import export
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
 
     st = load_station(station) if station else None
     print(export(sessions, out, fmt, product=product, daily=daily, station=st, sites=site or (), leads=leads,
