@@ -1,0 +1,103 @@
+"""A long real baseline against a short simulated one, in one process (issue 36): the real
+Fehmarn station's pair (241 m, ../shared/data/fehmarn-2016-09-01) and the simulated 50 m pair
+(unb-lea, 1920 px), each processed warm, interleaved.
+
+    python benchmarks/bench_baselines.py [--repeat 5] [--scene two-layers] [--frame 10]
+
+Each pipeline first processes its pair once (builds the per-camera tables: the "first pair"),
+then the two pairs are timed in turn ``--repeat`` times, each on its own (no previous pair: the
+per-pair work, the plane sweep included, with no motion or clock-offset pass; camera FE4's
+≈ 30 s clock offset then goes uncompensated, so the real pair's layers are not scored here:
+``eval_fehmarn.py`` does that). Prints the median wall time of each, their ratio (the target:
+real ≤ 1.2 × simulated), the stage times, the sweep's steps and plane counts (coarse grid,
+fine planes) of each.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "fehmarn-2016-09-01"
+
+
+def _sweep_info(pipe, spy: dict) -> str:
+    from cbh.pipeline.sweep import coarse_planes, plane_range
+
+    cfg = pipe.config.matching.sweep
+    g = pipe.geometry
+    plan = coarse_planes(*plane_range(float(g.cam1.position_m[2]), cfg), g.planes.scale_px, cfg)
+    steps = ", ".join(f"{k} {v:.0f}" for k, v in spy.get("timing_ms", {}).items())
+    import numpy as np
+
+    base = float(np.linalg.norm(g.cam2.position_m - g.cam1.position_m))
+    return (f"baseline {base:.0f} m, parallax scale {g.planes.scale_px:.0f} px·m; coarse planes "
+            f"{len(plan.far)} + {len(plan.near)} (grid {len(plan.s)}), fine planes {len(spy.get('planes', ()))}; "
+            f"sweep steps [ms] {steps}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--scene", default="two-layers")
+    ap.add_argument("--frame", type=int, default=10, help="the Fehmarn pair timed (after its predecessors)")
+    ap.add_argument("--data", type=Path, default=DATA)
+    a = ap.parse_args()
+
+    import cbh.pipeline.sweep as sweep
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+    from cbh.presets import station_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.timeutil import time_from_name
+
+    spy: dict = {}
+    passes = sweep._sweep_passes
+
+    def keep_info(*args):  # the sweep's own steps and planes, as the pipeline ran them
+        out = passes(*args)
+        spy[id_now[0]] = args[-1]
+        return out
+
+    id_now = ["sim"]
+    sweep._sweep_passes = keep_info
+
+    sim = SkySimulator(load_station(station_path("unb-lea")), load_scene(a.scene), size_px=1920)
+    shot = sim.render()
+    sim_pipe = Pipeline(sim.station)
+    sim_args = (shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc)
+    real_pipe = Pipeline(load_station(a.data / "station.toml"))
+    f3, f4 = sorted((a.data / "fe3").glob("*.jpg")), sorted((a.data / "fe4").glob("*.jpg"))
+    from cbh.imageio import read_image
+
+    real_args = (read_image(f3[a.frame])[0], read_image(f4[a.frame])[0], time_from_name(f3[a.frame].name))
+    first = {}
+    for name, pipe, args in (("sim", sim_pipe, sim_args), ("real", real_pipe, real_args)):
+        id_now[0] = name
+        t0 = time.perf_counter()
+        pipe.process(*args, channels="bgr")
+        first[name] = time.perf_counter() - t0
+    times: dict[str, list[float]] = {"sim": [], "real": []}
+    results = {}
+    for _ in range(a.repeat):  # interleaved: load on a shared machine hits both alike
+        for name, pipe, args in (("sim", sim_pipe, sim_args), ("real", real_pipe, real_args)):
+            id_now[0] = name
+            t0 = time.perf_counter()
+            results[name] = pipe.process(*args, channels="bgr")
+            times[name].append(time.perf_counter() - t0)
+    sweep._sweep_passes = passes
+    med = {k: 1000 * statistics.median(v) for k, v in times.items()}
+    print(f"first pair (builds the tables): simulated {1000 * first['sim']:.0f} ms, real {1000 * first['real']:.0f} ms")
+    for name, pipe in (("sim", sim_pipe), ("real", real_pipe)):
+        r = results[name]
+        label = f"simulated 50 m ({a.scene})" if name == "sim" else f"real Fehmarn 241 m (pair {a.frame})"
+        print(f"{label}: {med[name]:.0f} ms (median of {a.repeat}), layers "
+              f"{'/'.join(f'{L.height_m:.0f}' for L in r.layers) or 'none'} m, flags {r.flags}")
+        print("   " + ", ".join(f"{k} {v:.0f}" for k, v in r.timing_ms.items() if k != "total"))
+        print("   " + _sweep_info(pipe, spy.get(name, {})))
+    print(f"ratio real / simulated: {med['real'] / med['sim']:.2f}  (target <= 1.2)")
+
+
+if __name__ == "__main__":
+    main()
