@@ -180,6 +180,8 @@ def test_station_with_multiline_metadata_and_odd_keys_round_trips(unb_station, t
     ["pair", "a.jpg", "b.jpg"], ["run", "--frames", "1"], ["triangulate", "--pixels", "p.csv"],
     ["segment", "x.png", "--out", "m.png"], ["simulate", "--out", "sim", "--frames", "1"],
     ["reprocess", "--out", "o"], ["mask", "frames", "--camera", "cam1", "--out", "m.png"],
+    ["validate", "--drone", "flight.csv", "--source", "cam1=f1", "--source", "cam2=f2"],
+    ["simulate", "--drone-flight", "--out", "sim"],
 ])
 def test_every_command_reads_a_station_file_the_same_way(command, table, says, repo, tmp_path, capsys,
                                                          monkeypatch):

@@ -187,7 +187,7 @@ def validate_drone(log_path, out, *, station_path=None, sources: dict | None = N
 
 
 def _station(station_path, recordings):
-    from cbh.geometry.station import load_station
+    from cbh.actions.station import load_station
     from cbh.outputs.record import open_session
 
     if station_path is not None:

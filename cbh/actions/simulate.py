@@ -98,8 +98,8 @@ def simulate_drone_to_folder(out, *, station=None, positions: int = 20, cadence_
                              seed: int = 0) -> Iterator[str]:
     """Render a night drone flight (:mod:`cbh.sim.drone`) into ``out``: every camera's frames,
     the log as CSV and DJI SRT, ``station.toml`` and ``truth.json``. A generator of progress lines."""
+    from cbh.actions.station import load_station
     from cbh.fileio import refuse_inputs
-    from cbh.geometry.station import load_station
     from cbh.presets import station_path
     from cbh.sim.drone import DEFAULT_START, paper_plan, render_flight
 
