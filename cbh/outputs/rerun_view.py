@@ -198,7 +198,9 @@ def default_blueprint(cam1: str, cam2: str, *more: str, height_range_m=HEIGHT_RA
                 rrb.TimeSeriesView(origin="/layers", name="layer base [m above ground]",
                                    axis_y=rrb.ScalarAxis(range=tuple(float(v) for v in height_range_m))),
                 *([rrb.TimeSeriesView(origin="/nowcast", name="GHI at the sites [W/m²]: measured, clear sky, "
-                                      "nowcast")] if nowcast else []),
+                                      "nowcast", axis_x=rrb.TimeAxis(view_range=rrb.TimeRange(
+                                          start=rrb.TimeRangeBoundary.infinite(),
+                                          end=rrb.TimeRangeBoundary.infinite())))] if nowcast else []),
                 rrb.Vertical(
                     rrb.TextDocumentView(origin="/flags", name="flags of this pair"),
                     rrb.TimeSeriesView(origin="/cloud_fraction", name="cloud fraction",
@@ -321,7 +323,7 @@ def log_pair(rec, images: dict[str, tuple[bytes, str]], result: PairResult, *, m
 FLAGGED_RGB = (150, 150, 150)  # a flagged pair's points and layers: grey, its layers as crosses
 
 
-GHI_COLOURS = {"measured": (20, 20, 20), "clear": (150, 150, 150), "nowcast 5 min ahead": (255, 140, 0),
+GHI_COLOURS = {"measured": (235, 235, 235), "clear": (120, 120, 120), "nowcast 5 min ahead": (255, 140, 0),
                "nowcast 10 min ahead": (214, 39, 40)}
 
 
