@@ -34,11 +34,12 @@ class Flag(enum.IntFlag):
     camera_mismatch = 1 << 15  # a network camera disagrees with the others' geometry and was left out (diagnostics mismatched_cameras); the others carry the result
     camera_missing = 1 << 16  # a network camera delivered no frame: the result is from the cameras present
     clock_unknown = 1 << 17  # the matches disagree with the geometry while the cameras' clock offset, which could explain it, is not known yet (a run's first pair): layers not valid
+    night = 1 << 18  # the sun more than 6 deg below the horizon and a camera's sky too dark to read: no cloud can be told, no layer reported, no geometry judged
 
 
 #: Flags whose layers must not be reported as valid (exported with the flag, left out of
 #: "latest layers").
-INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range", "clock_unknown"})
+INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range", "clock_unknown", "night"})
 
 
 _MEANING = {
@@ -60,6 +61,8 @@ _MEANING = {
     "underexposed": "a camera's sky is too dark for its colours to be read",
     "camera_mismatch": "a network camera disagrees with the others' geometry and was left out",
     "camera_missing": "a network camera delivered no frame",
+    "night": "the sun is more than 6° below the horizon and the sky too dark to read: cloud cannot be told from "
+             "clear sky, so no layer is reported and the geometry is not judged",
     "clock_unknown": "the matches disagree with the geometry while the cameras' clock offset, which could "
                      "explain it, is not known yet (or, resumed from a recording, not yet taken out: a run's "
                      "first pair has no motion to carry a camera with)",

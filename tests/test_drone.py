@@ -364,3 +364,21 @@ def test_three_camera_network_reports_every_pair(tmp_path):
     assert s["n_positions"] == 3 and s["n_comparisons"] == 9
     assert set(s["by_pair"]) == {"cam1-cam2", "cam1-cam3", "cam2-cam3"}
     assert all(m["n"] == 3 and m["mape_pct"] <= 1.0 for m in s["by_pair"].values())
+
+
+def test_a_night_pair_is_flagged_night_not_geometry():
+    """At night (the sun 50 deg below the horizon) the frames hold stars, a drone's light and
+    noise: the pipeline says `night` (layers not valid), never `geometry_mismatch`."""
+    from cbh.flags import INVALIDATING
+    from cbh.pipeline import Pipeline
+    from cbh.sim.drone import DEFAULT_START, _frame, _Sky
+
+    st = load_station(REPO / "configs" / "unb-lea.toml").scaled(320)
+    sky = _Sky(st, 3, 400, 600.0)
+    rng = np.random.default_rng(0)
+    pipe = Pipeline(st)
+    for t in (0.0, 10.0, 20.0):
+        imgs = [_frame(c, sky, t, np.array([25.0, 30.0, 150.0]), rng, 1.5) for c in st.cameras.values()]
+        r = pipe.process(imgs[0], imgs[1], DEFAULT_START + timedelta(seconds=t), channels="bgr")
+        assert "night" in r.flags and "geometry_mismatch" not in r.flags, r.flags
+        assert set(r.flags) & INVALIDATING

@@ -491,6 +491,7 @@ _INVALID_CAUSE = {
     "clock_unknown": "disagreed while the cameras' clock offset was not known yet (clock_unknown)",
     "below_range": "had cloud below the lowest height searched (below_range)",
     "identical_images": "had both cameras deliver the same image (identical_images)",
+    "night": "were taken at night, the sky too dark to tell cloud from clear sky (night)",
 }
 
 

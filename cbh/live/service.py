@@ -816,9 +816,13 @@ class Service:
         they are valid again; the same for a sun seen off its place. Returns the invalidating flags."""
         st = self.stats
         invalid = [f for f in result.flags if f in INVALIDATING]
-        geometric = [f for f in invalid if f not in ("below_range", "clock_unknown")]
+        geometric = [f for f in invalid if f not in ("below_range", "clock_unknown", "night")]
         if invalid and not st.last_invalid:  # one warning per change of state, not per pair
-            if not geometric and "clock_unknown" in invalid:
+            if invalid == ["night"]:
+                log.warning(f"pair at {f1.time_utc.isoformat()}: night: the sun is below the horizon and the sky too "
+                            "dark to tell cloud from clear sky; no layers are reported until it is light again",
+                            extra={"cbh_event": "night", "cbh_flags": invalid})
+            elif not geometric and "clock_unknown" in invalid:
                 own, run = (result.diagnostics.get(k, math.nan) for k in ("clock_offset_pair_s", "clock_offset_s"))
                 why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"
                        if math.isfinite(own) and math.isfinite(run) else "no motion yet to measure it")

@@ -85,6 +85,7 @@ log = logging.getLogger(__name__)
 
 _MAX_DISPLAY_MATCHES = 5000
 _FLOOR_LAYER_COVER = 0.05  # a layer at the sweep's floor counts for below_range from this cover up (see match.FLOOR_LAYER_RATIO)
+NIGHT_SUN_DEPRESSION_DEG = 6.0  # an underexposed pair with the sun this far below the horizon (civil twilight over) is night
 CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky (flag clear_sky; no geometry verdict)
 CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
 _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
@@ -906,6 +907,11 @@ class Pipeline:
         seen = [v for v in sky_dn if math.isfinite(v)]
         if seen and min(seen) < self.config.segmentation.min_sky_dn:
             ctx.flags.append("underexposed")
+            if ctx.time_utc is not None:  # at night: stars and noise, nothing the colours can call cloud
+                st = self.station
+                zen = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, ctx.time_utc).zenith_deg
+                if zen > 90.0 + NIGHT_SUN_DEPRESSION_DEG:
+                    ctx.flags.append("night")
 
     def _angle_map(self, i: int, sun_dir: np.ndarray) -> np.ndarray:
         cam = (self.cam1, self.cam2)[i]
@@ -1101,7 +1107,7 @@ class Pipeline:
         ctx.diagnostics["geometry_inlier_fraction"] = chk.inlier_fraction
         ctx.diagnostics["geometry_rotation_deg"] = chk.rotation_deg
         ctx.diagnostics["geometry_rotation_sigma_deg"] = chk.rotation_sigma_deg
-        if chk.mismatch:
+        if chk.mismatch and "night" not in ctx.flags:  # (at night the matches are of stars and noise: no verdict)
             ctx.flags.append("geometry_mismatch")
 
     def stage_height_map(self, seg: "Segmentation", corr: "Correspondences") -> HeightMap:
