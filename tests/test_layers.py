@@ -8,6 +8,7 @@ pipeline/config.py and live/service.py, a loop of five files)."""
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -70,6 +71,7 @@ def _sources() -> list[Path]:
     return sorted(p for p in [*CBH.rglob("*.py"), *CLI.rglob("*.py")] if "cli" not in p.relative_to(CBH.parent).parts[1:2])
 
 
+@functools.lru_cache(maxsize=None)
 def _known(module: str) -> bool:
     """A module of the repository (``module`` or, for ``from m import name``, its parent)."""
     for cand in (module, module.rpartition(".")[0]):
@@ -79,12 +81,18 @@ def _known(module: str) -> bool:
     return False
 
 
+@functools.lru_cache(maxsize=None)
+def _imports_on_disk(path: Path) -> tuple[tuple[int, str], ...]:
+    return tuple(imports_of(path))
+
+
 def layer_violations(texts: dict[Path, str] | None = None) -> list[str]:
     """Every import of a higher layer or of a sibling wing (``texts``: sources to read instead)."""
     bad = []
     for path in _sources():
         here = _layer(_module(path))
-        for line, target in imports_of(path, (texts or {}).get(path)):
+        text = (texts or {}).get(path)
+        for line, target in (_imports_on_disk(path) if text is None else imports_of(path, text)):
             if target == "cbh" or not _known(target):
                 continue
             there = _layer(target)
