@@ -5,10 +5,13 @@ arrive when the simulated cloud's shadow does?
 
 The simulator renders the scene every 10 s; the pipeline runs on the pairs as `cbh run` does
 (motion from pair to pair); each pair issues the shade probability (:func:`cbh.outputs.nowcast.shade_probability`)
-at nine sites within ±1 km of the station for leads 0–5 min. The truth at a site and time: the
-simulator's own camera-1 truth (each pixel's cloud-base height) where the sun ray from the site
-crosses each scene layer, then: shade when a layer has cloud there, sunlit when every layer is
-clear there, unknown when a lower layer hides it. A shadow edge is a change of the true state
+at nine sites within ±1 km of the station for leads 0–5 min. The truth at a site and time
+(``--truth scene``, the default): the scene's own shadow on the ground (:func:`cbh.sim.ground.ground_shade`:
+the sun ray from the site through every layer's full-resolution cloud field, an upper layer behind
+a lower one included). ``--truth camera`` (the older one): the simulator's camera-1 truth (each
+pixel's cloud-base height, at the camera's resolution) where the sun ray from the site crosses
+each scene layer; shade when a layer has cloud there, sunlit when every layer is clear there,
+unknown when a lower layer hides it. A shadow edge is a change of the true state
 between two frames; the forecast's edge is the nearest change of (probability ≥ ½) in the same
 direction; it counts when within 60 s. Printed per lead: edges, within 60 s, median |error|.
 """
@@ -65,7 +68,7 @@ def _edges(times: list, states: list) -> list[tuple[float, int]]:
     return out
 
 
-def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0) -> dict:
+def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, truth_kind: str = "scene") -> dict:
     from cbh.actions.pairground import pair_ground
     from cbh.geometry.station import load_station
     from cbh.geometry.sun import sun_position
@@ -74,6 +77,7 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0) 
     from cbh.pipeline.motion import PairState
     from cbh.presets import scene_path, station_path
     from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.ground import ground_shade
 
     sc = load_scene(scene_path(scene))
     sim = SkySimulator(load_station(station_path()), sc, size_px=size)
@@ -90,12 +94,15 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0) 
         t = t0 + timedelta(seconds=CADENCE_S * i)
         shot = sim.render(t)
         sp = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, t)
-        truth[CADENCE_S * i] = [truth_shade(shot.views[cam1], shot.layers, sp.direction_enu, s) for s in sites]
+        if truth_kind == "scene":
+            truth[CADENCE_S * i] = list(ground_shade(sim, t, np.array(sites))[0])
+        else:
+            truth[CADENCE_S * i] = [truth_shade(shot.views[cam1], shot.layers, sp.direction_enu, s) for s in sites]
         r = pipe.process(shot.views[cam1].image, shot.views[st.pair()[1].name].image, t, channels="bgr",
                          previous=state)
         state = r.state
         issued.append((CADENCE_S * i, pair_ground(st, pipe.config.masks, r)))
-    out = {"scene": scene, "size_px": size, "sites": len(sites), "leads": {}}
+    out = {"scene": scene, "size_px": size, "sites": len(sites), "truth": truth_kind, "leads": {}}
     for lead in LEADS_S:
         hits, errs, edges_n = 0, [], 0
         for k, site in enumerate(sites):
@@ -127,9 +134,10 @@ def main() -> None:
     ap.add_argument("--scene", default="two-layers")
     ap.add_argument("--size", type=int, default=480)
     ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--truth", choices=("scene", "camera"), default="scene")
     ap.add_argument("--json")
     a = ap.parse_args()
-    res = evaluate(a.scene, a.size, a.minutes)
+    res = evaluate(a.scene, a.size, a.minutes, a.truth)
     for lead, v in res["leads"].items():
         print(f"lead {lead:4d} s: {v['edges']:3d} shadow edges, {v['within_60s']:3d} within 60 s ({v['share']}), "
               f"median |error| {v['median_abs_error_s']} s")

@@ -89,8 +89,23 @@ def simulate_to_folder(out, *, station=None, scene="two-layers", frames: int = 1
     for i in range(frames):
         tic = time.perf_counter()
         shot = sim.render(t0 + timedelta(seconds=i * cadence_s))
-        write_shot(shot, out, sc.image.jpeg_quality)
+        write_shot(shot, out, sc.image.jpeg_quality, _ground_truth(sim, shot.time_utc))
         yield SimulatedFrame(shot, time.perf_counter() - tic)
+
+
+def _ground_truth(sim, time_utc) -> dict:
+    """The scene's own cloud shadow on the station's ground grid (:func:`cbh.sim.ground.ground_shade`)."""
+    import numpy as np
+
+    from cbh.sim.ground import ground_shade
+
+    grid = sim.station.ground
+    X, Y = np.meshgrid(grid.x_m, grid.y_m)
+    pts = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    shade, thick = ground_shade(sim, time_utc, pts)
+    return {"ground_shade": shade.reshape(X.shape).astype(np.float32),
+            "ground_thickness": thick.reshape(X.shape).astype(np.float32),
+            "ground_x_m": grid.x_m, "ground_y_m": grid.y_m}
 
 
 def simulate_drone_to_folder(out, *, station=None, positions: int = 20, cadence_s: float = 1.0,

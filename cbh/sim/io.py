@@ -5,7 +5,10 @@ Layout under ``out_dir``::
     <camera>/<camera>_<YYYYmmddTHHMMSS.fffZ>.jpg   each camera's frame, named by its time stamp
     truth/<YYYYmmddTHHMMSS.fffZ>.npz               <camera>_height_m (H, W) float32 [m above the
                                                    ENU origin, NaN = no cloud], <camera>_cloud_mask
-                                                   (H, W) bool, for every camera
+                                                   (H, W) bool, for every camera; ground_shade
+                                                   (n, n) float32 (1 shade, 0 sun, NaN night) and
+                                                   ground_thickness on the station's ground grid
+                                                   (ground_x_m, ground_y_m: cell centres, rows = y)
     truth/<YYYYmmddTHHMMSS.fffZ>.json              layers (advected), sun, per-camera capture times
 """
 from __future__ import annotations
@@ -30,11 +33,14 @@ def image_path(out_dir: str | Path, camera: str, t: datetime) -> Path:
     return Path(out_dir) / camera / f"{camera}_{time_tag(t)}.jpg"
 
 
-def write_shot(shot: SimShot, out_dir: str | Path, jpeg_quality: int = 92) -> dict[str, Path]:
+def write_shot(shot: SimShot, out_dir: str | Path, jpeg_quality: int = 92, ground: dict | None = None) -> dict[str, Path]:
     """Write a shot's JPEG images and its ground truth; returns the written paths by role.
 
     Images are stamped (named) with the nominal time: a camera with a clock offset captured
     later than its name says, as a real one would (the truth JSON has the real times).
+    ``ground``: arrays of the scene's own shadow on the ground (``ground_shade``,
+    ``ground_thickness`` on the station's ground grid, :func:`cbh.sim.ground.ground_shade`) and
+    the grid's ``ground_x_m``/``ground_y_m``, added to the truth NPZ.
     """
     from cbh.imageio import encode_jpeg
 
@@ -52,6 +58,7 @@ def write_shot(shot: SimShot, out_dir: str | Path, jpeg_quality: int = 92) -> di
     for name, view in shot.views.items():
         arrays[f"{name}_height_m"] = view.height_m.astype(np.float32)
         arrays[f"{name}_cloud_mask"] = view.cloud_mask.astype(bool)
+    arrays.update(ground or {})
     npz = truth_dir / f"{tag}.npz"
     np.savez_compressed(npz, **arrays)
     js = truth_dir / f"{tag}.json"
