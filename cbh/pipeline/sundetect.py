@@ -136,7 +136,10 @@ def detect_sun(image_bgr: np.ndarray, cam: Camera, expected_ray_cam: np.ndarray 
     d_eq = 2.0 * math.sqrt(stats[big, cv2.CC_STAT_AREA] / math.pi)
     k = int(round(d_eq / 3.0)) | 1
     if k >= 3:
-        sat = cv2.morphologyEx(sat, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        sat = cv2.morphologyEx(sat, cv2.MORPH_OPEN, disk)
+        if clip.smeared:  # a twice-encoded clip: its blocky, ragged edge closed (a cloud's cut is wider)
+            sat = cv2.morphologyEx(sat, cv2.MORPH_CLOSE, disk)
         n, lab, stats, _ = cv2.connectedComponentsWithStats(sat, connectivity=8)
         if n <= 1:
             return SunDetection(False, "absent")

@@ -249,7 +249,9 @@ class _CameraState:
             k = np.zeros(zen.shape, np.int32)
             k[look] = ids[row[look], col[look]]
             obst |= k > 0
-            colour = np.where((k > 0)[..., None], pal[k], colour)
+            haze = pal[k, 3:]  # a distant row's colour tends to the sky's behind it
+            sky_col = np.stack(self.sky_bgr, axis=-1)
+            colour = np.where((k > 0)[..., None], pal[k, :3] * (1.0 - haze) + sky_col * haze, colour)
         self.obstacle_idx = np.flatnonzero(obst)
         rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 0x0B5, index]))
         tex = rng.uniform(0.85, 1.15, size=(self.obstacle_idx.size, 1))

@@ -90,14 +90,15 @@ def obstacle_profile(obstacles: tuple[Obstacle, ...], bins_per_deg: int = 10) ->
     return elev.astype(np.float32), shade.astype(np.float32)
 
 
-def _paint(ids, pal, a0, a1, e0, e1, colour, rel_lo=0.0) -> None:
+def _paint(ids, pal, a0, a1, e0, e1, colour, rel_lo=0.0, haze=0.0) -> None:
     """Fill the raster cells of azimuths [a0, a1) (relative to the column ``rel_lo``, degrees
     from the obstacle's start, wrapped) and elevations [e0, e1) with a new palette colour
-    (``colour`` None: with sky, index 0)."""
+    (``colour`` None: with sky, index 0) seen through ``haze`` (the fraction of its light replaced
+    by the sky's: distant rows)."""
     n = RASTER_BINS_PER_DEG
     k = 0
     if colour is not None:
-        pal.append(np.asarray(colour, np.float64).clip(0.0, 255.0))
+        pal.append(np.append(np.asarray(colour, np.float64).clip(0.0, 255.0), haze))
         k = len(pal) - 1
     c0, c1 = int(round((rel_lo + a0) * n)), int(round((rel_lo + a1) * n))
     r0, r1 = max(int(round(e0 * n)), 0), min(int(round(e1 * n)), ids.shape[0])
@@ -121,9 +122,8 @@ def _skyline(rng, ids, pal, start, span, top, walls: bool) -> None:
                 col = np.array([205.0, 226.0, 242.0]) * rng.uniform(0.97, 1.12)
             else:
                 col = np.array([72.0, 76.0, 84.0]) * rng.uniform(0.6, 1.5)
-                if row == 0:  # the back row, seen through more air: paler
-                    col = 0.55 * col + 0.45 * np.array([190.0, 195.0, 200.0])
-            _paint(ids, pal, x, x + w, 0.0, h, col, start)
+            haze = rng.uniform(0.2, 0.6) if row == 0 and not walls else 0.0  # the back row: farther, hazier
+            _paint(ids, pal, x, x + w, 0.0, h, col, start, haze)
             for _ in range(int(rng.integers(0, 4))):  # notches cut into the roof line
                 nw, nd = rng.uniform(0.2, 1.0), rng.uniform(0.3, 2.0)
                 nx = x + rng.uniform(0.0, max(w - nw, 0.0))
@@ -174,7 +174,7 @@ def _treeline(rng, ids, pal, start, span, top) -> None:
             holes = rng.random(inside.shape) < rng.uniform(0.1, 0.35)  # sky between the branches …
             holes = cv2.dilate(holes.view(np.uint8), np.ones((int(rng.integers(2, 8)),) * 2, np.uint8)) > 0
             inside &= ~(holes & (u * u + v * v > rng.uniform(0.0, 0.3)))  # … the crown's core is denser
-            pal.append(col)
+            pal.append(np.append(col, 0.0))
             block = ids[rr[0]:rr[1], np.arange(cr[0], cr[1]) % ids.shape[1]]
             block[inside] = len(pal) - 1
             ids[rr[0]:rr[1], np.arange(cr[0], cr[1]) % ids.shape[1]] = block
@@ -189,12 +189,13 @@ def skyline_raster(obstacles: tuple[Obstacle, ...]) -> tuple[np.ndarray, np.ndar
     ids : ndarray, shape (RASTER_MAX_ELEVATION_DEG · n, 360 · n), int32
         Palette index of each cell (row = elevation from the horizon up, column = azimuth
         clockwise from north, ``n`` = :data:`RASTER_BINS_PER_DEG`); 0 = sky.
-    palette : ndarray, shape (K, 3), float32
-        BGR colour [DN] of each index (index 0 unused).
+    palette : ndarray, shape (K, 4), float32
+        BGR colour [DN] of each index (index 0 unused) and the fraction of its light replaced
+        by the sky's colour behind it (aerial perspective of a distant row), 0..1.
     """
     n = RASTER_BINS_PER_DEG
     ids = np.zeros((int(RASTER_MAX_ELEVATION_DEG * n), 360 * n), np.int32)
-    pal: list[np.ndarray] = [np.zeros(3)]
+    pal: list[np.ndarray] = [np.zeros(4)]
     for ob in obstacles:
         if ob.kind not in SKYLINE_KINDS:
             continue
