@@ -106,11 +106,13 @@ class FrameObstacleConfig:
     hue_drop: float = 0.1  # … or less blue than it by this in (B − R) / (B + R) [1]
     sky_fade_per_deg: float = 0.04  # … whose reference follows a darker or less blue sky below it by this per degree [1/deg]
     hue_fresh_deg: float = 3.0  # … judged on hue only this close below where that sky was seen [deg]
+    seed_span_deg: float = 10.0  # … within this of azimuth of a dark obstacle that stands on the horizon [deg]
     gap_deg: float = 1.0  # a column's obstacle may have gaps (sky between branches) this high and still stand [deg]
     ring_percentile: float = 90.0  # percentile of a zenith ring's brightness taken as its sky [%]
     horizon_band_deg: float = 4.0  # obstacles must reach within this of the horizon (zenith 90°) [deg]
     max_elevation_deg: float = 45.0  # nothing higher above the horizon is taken for an obstacle [deg]
     min_area_px: int = 12  # smaller dark specks are left to the segmentation [px]
+    hang_px: int = 0  # dark parts this close to an obstacle (above its thin trunk or mast) join it [px]
     dilate_px: int = 2  # safety margin grown around obstacles (their edges blend with the sky) [px]
 
 
@@ -165,7 +167,8 @@ def horizon_grid(cam: Camera, size: tuple[int, int], cfg: FrameObstacleConfig = 
     return HorizonGrid(mx, my, cell)
 
 
-def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig) -> np.ndarray:
+def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig,
+              seeds: np.ndarray | None = None) -> np.ndarray:
     """Pixels that stand on the ground. Walking each azimuth column of the horizon grid down from
     ``max_elevation_deg``, a cell is not sky when its brightest channel is below ``weak_ratio`` ×
     the sky last seen above it in the same column, or when it is less blue than that sky by
@@ -173,7 +176,9 @@ def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig
     keeps some of its own colour; the sky's brightness changes with azimuth round the sun and
     smoothly with elevation, so the reference is the column's own sky). A column's non-sky
     cells that reach down to the horizon (gaps up to ``gap_deg`` bridged; cells off the image
-    pass) are kept. (H, W) bool."""
+    pass) are kept, in the columns within ``seed_span_deg`` of azimuth of a ``seeds`` pixel (uint8:
+    dark obstacles standing on the horizon themselves; a dark sky's columns never stand on
+    anything). (H, W) bool."""
     polar = cv2.remap(cv2.blur(image_bgr, (3, 3)), grid.map_x, grid.map_y, cv2.INTER_NEAREST,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).astype(np.float32)
     off = cv2.remap(np.zeros(image_bgr.shape[:2], np.uint8), grid.map_x, grid.map_y, cv2.INTER_NEAREST,
@@ -202,6 +207,13 @@ def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig
     g = max(int(round(cfg.gap_deg / cfg.grid_deg)), 1)
     dark = cv2.morphologyEx(dark.view(np.uint8), cv2.MORPH_CLOSE, np.ones((2 * g + 1, 1), np.uint8)) > 0
     up = np.logical_and.accumulate(dark, axis=0) & ~off
+    if seeds is not None:
+        cols = cv2.remap(seeds, grid.map_x, grid.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0).any(axis=0)
+        k = int(round(cfg.seed_span_deg / cfg.grid_deg))
+        wrapped = np.concatenate([cols[-k:], cols, cols[:k]]).astype(np.uint8)[None, :]
+        near = cv2.dilate(wrapped, np.ones((1, 2 * k + 1), np.uint8))[0, k:k + cols.size] > 0
+        up &= near[None, :]
     up[:int(round(1.0 / cfg.grid_deg))] = False  # the lowest degree only carries: the circle's blurred rim is dark
     standing = np.zeros(grid.cell.shape, bool)
     inside = grid.cell >= 0
@@ -249,8 +261,14 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
     dark = (value < (cfg.dark_ratio * ref)[ring]) & look
     strong = cv2.morphologyEx(dark.view(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
     cand = strong
-    if grid is not None:  # paler parts that stand on the ground below them
-        cand = strong | (_standing(image_bgr, grid, cfg) & look).view(np.uint8)
+    if grid is not None:  # paler parts that stand on the ground below them, beside dark ones that do
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(strong, connectivity=8)
+        seed = np.zeros(n, bool)
+        seed[labels[band & (strong > 0)]] = True
+        seed &= stats[:, cv2.CC_STAT_AREA] >= cfg.min_area_px
+        seed[0] = False
+        if seed.any():
+            cand = strong | (_standing(image_bgr, grid, cfg, seed[labels].view(np.uint8)) & look).view(np.uint8)
     n, labels = cv2.connectedComponents(cand, connectivity=8)
     touching = np.zeros(n, bool)
     touching[labels[band & (cand > 0)]] = True
@@ -260,6 +278,14 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
     if not keep.any():
         return np.zeros(value.shape, bool)
     obstacle = keep[labels].view(np.uint8)
+    if cfg.hang_px > 0:  # dark parts hanging just above it (crowns on trunks too thin to be seen)
+        near = cv2.dilate(obstacle, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * cfg.hang_px + 1,) * 2))
+        m, lab_s, st_s, _ = cv2.connectedComponentsWithStats(strong, connectivity=8)
+        hang = np.zeros(m, bool)
+        hang[lab_s[(near > 0) & (strong > 0)]] = True
+        hang &= st_s[:, cv2.CC_STAT_AREA] >= cfg.min_area_px
+        hang[0] = False
+        obstacle |= hang[lab_s].view(np.uint8)
     if cfg.fill_px > 0:  # sky seen between branches and in thin gaps belongs to the obstacle
         k = 2 * cfg.fill_px + 1
         obstacle = cv2.morphologyEx(obstacle, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))

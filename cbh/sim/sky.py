@@ -163,8 +163,9 @@ def _treeline(rng, ids, pal, start, span, top) -> None:
         c = x + r * rng.uniform(0.3, 1.0)
         h = rng.uniform(0.45, 1.0) * top
         col = np.array([38.0, 62.0, 42.0]) * rng.uniform(0.7, 1.4)
-        cb = min(h * rng.uniform(0.2, 0.5), h - 0.5)  # crown base
-        _paint(ids, pal, c - 0.1, c + 0.1 + rng.uniform(0.0, 0.3), 0.0, max(cb, 0.0) + 0.3, 0.7 * col, start)
+        cb = min(h * rng.uniform(0.1, 0.35), h - 0.5)  # crown base (a trunk 2-5 m of a 10-20 m tree)
+        tw = rng.uniform(0.15, 0.5)  # trunk width (0.3-0.9 m at 100 m) [deg]
+        _paint(ids, pal, c - tw / 2, c + tw / 2, 0.0, max(cb, 0.0) + 0.3, 0.7 * col, start)
         cr = int(round((start + c - r) * n)), int(round((start + c + r) * n))
         rr = max(int(cb * n), 0), min(int(round(h * n)), ids.shape[0])
         if rr[1] > rr[0] and cr[1] > cr[0]:
