@@ -135,11 +135,18 @@ class HorizonGrid:
         Image pixel (column, row) of each cell's centre (``cv2.remap`` maps; −1 off the image).
     cell : ndarray, shape (H, W), int32
         Each image pixel's cell (row · n_az + column); −1 below the horizon or above the grid.
+    off : ndarray, shape (n_el, n_az), bool
+        Cells off the image.
+    pixels, cells : ndarray, shape (M,), int64
+        The flat indices of the pixels on the grid and of their cells.
     """
 
     map_x: np.ndarray
     map_y: np.ndarray
     cell: np.ndarray
+    off: np.ndarray
+    pixels: np.ndarray
+    cells: np.ndarray
 
 
 def horizon_grid(cam: Camera, size: tuple[int, int], cfg: FrameObstacleConfig = FrameObstacleConfig()) -> HorizonGrid:
@@ -164,7 +171,10 @@ def horizon_grid(cam: Camera, size: tuple[int, int], cfg: FrameObstacleConfig = 
     r, c = np.floor(e / cfg.grid_deg).astype(np.int64), np.floor(a / cfg.grid_deg).astype(np.int64) % n_az
     ok = np.isfinite(e) & (r >= 0) & (r < n_el)
     cell = np.where(ok, r * n_az + c, -1).reshape(size[1], size[0]).astype(np.int32)
-    return HorizonGrid(mx, my, cell)
+    off = cv2.remap(np.zeros((size[1], size[0]), np.uint8), mx, my, cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=1) > 0
+    pixels = np.flatnonzero(cell >= 0)
+    return HorizonGrid(mx, my, cell, off, pixels, cell.ravel()[pixels].astype(np.int64))
 
 
 def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig,
@@ -179,12 +189,25 @@ def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig
     pass) are kept, in the columns within ``seed_span_deg`` of azimuth of a ``seeds`` pixel (uint8:
     dark obstacles standing on the horizon themselves; a dark sky's columns never stand on
     anything). (H, W) bool."""
-    polar = cv2.remap(cv2.blur(image_bgr, (3, 3)), grid.map_x, grid.map_y, cv2.INTER_NEAREST,
-                      borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).astype(np.float32)
-    off = cv2.remap(np.zeros(image_bgr.shape[:2], np.uint8), grid.map_x, grid.map_y, cv2.INTER_NEAREST,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=1) > 0
-    pv = polar.max(axis=2)
-    nbr = (polar[..., 0] - polar[..., 2]) / (polar[..., 0] + polar[..., 2] + 1.0)
+    n_az = grid.off.shape[1]
+    if seeds is None:
+        cols = np.arange(n_az)
+    else:  # only the columns near a dark obstacle on the horizon
+        seen = cv2.remap(seeds, grid.map_x, grid.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0).any(axis=0)
+        k = int(round(cfg.seed_span_deg / cfg.grid_deg))
+        wrapped = np.concatenate([seen[-k:], seen, seen[:k]]).astype(np.uint8)[None, :]
+        cols = np.flatnonzero(cv2.dilate(wrapped, np.ones((1, 2 * k + 1), np.uint8))[0, k:k + n_az])
+    standing = np.zeros(grid.cell.shape, bool)
+    if cols.size == 0:
+        return standing
+    mx, my = np.ascontiguousarray(grid.map_x[:, cols]), np.ascontiguousarray(grid.map_y[:, cols])
+    polar = cv2.remap(cv2.blur(image_bgr, (3, 3)), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=(0, 0, 0))
+    pv = cv2.max(cv2.max(polar[..., 0], polar[..., 1]), polar[..., 2]).astype(np.float32)
+    b, rr = polar[..., 0].astype(np.float32), polar[..., 2].astype(np.float32)
+    nbr = (b - rr) / (b + rr + 1.0)
+    off = grid.off[:, cols]
     dark = np.zeros(pv.shape, bool)
     sky, sky_nbr = pv[-1].copy(), nbr[-1].copy()
     age = np.zeros(pv.shape[1], np.int32)  # cells walked since the sky reference was last seen
@@ -206,18 +229,10 @@ def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig
         age = np.where(like, 0, age + 1)
     g = max(int(round(cfg.gap_deg / cfg.grid_deg)), 1)
     dark = cv2.morphologyEx(dark.view(np.uint8), cv2.MORPH_CLOSE, np.ones((2 * g + 1, 1), np.uint8)) > 0
-    up = np.logical_and.accumulate(dark, axis=0) & ~off
-    if seeds is not None:
-        cols = cv2.remap(seeds, grid.map_x, grid.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=0).any(axis=0)
-        k = int(round(cfg.seed_span_deg / cfg.grid_deg))
-        wrapped = np.concatenate([cols[-k:], cols, cols[:k]]).astype(np.uint8)[None, :]
-        near = cv2.dilate(wrapped, np.ones((1, 2 * k + 1), np.uint8))[0, k:k + cols.size] > 0
-        up &= near[None, :]
+    up = np.zeros(grid.off.shape, bool)
+    up[:, cols] = np.logical_and.accumulate(dark, axis=0) & ~off
     up[:int(round(1.0 / cfg.grid_deg))] = False  # the lowest degree only carries: the circle's blurred rim is dark
-    standing = np.zeros(grid.cell.shape, bool)
-    inside = grid.cell >= 0
-    standing[inside] = up.ravel()[grid.cell[inside]]
+    standing.ravel()[grid.pixels] = up.ravel()[grid.cells]
     return standing
 
 
@@ -262,13 +277,14 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
     strong = cv2.morphologyEx(dark.view(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
     cand = strong
     if grid is not None:  # paler parts that stand on the ground below them, beside dark ones that do
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(strong, connectivity=8)
-        seed = np.zeros(n, bool)
-        seed[labels[band & (strong > 0)]] = True
-        seed &= stats[:, cv2.CC_STAT_AREA] >= cfg.min_area_px
+        s_n, s_labels, stats, _ = cv2.connectedComponentsWithStats(strong, connectivity=8)
+        s_area = stats[:, cv2.CC_STAT_AREA]
+        seed = np.zeros(s_n, bool)
+        seed[s_labels[band & (strong > 0)]] = True
+        seed &= s_area >= cfg.min_area_px
         seed[0] = False
         if seed.any():
-            cand = strong | (_standing(image_bgr, grid, cfg, seed[labels].view(np.uint8)) & look).view(np.uint8)
+            cand = strong | (_standing(image_bgr, grid, cfg, seed[s_labels].view(np.uint8)) & look).view(np.uint8)
     n, labels = cv2.connectedComponents(cand, connectivity=8)
     touching = np.zeros(n, bool)
     touching[labels[band & (cand > 0)]] = True
@@ -278,14 +294,13 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
     if not keep.any():
         return np.zeros(value.shape, bool)
     obstacle = keep[labels].view(np.uint8)
-    if cfg.hang_px > 0:  # dark parts hanging just above it (crowns on trunks too thin to be seen)
+    if cfg.hang_px > 0 and grid is not None:  # dark parts hanging just above it (crowns on trunks too thin to see)
         near = cv2.dilate(obstacle, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * cfg.hang_px + 1,) * 2))
-        m, lab_s, st_s, _ = cv2.connectedComponentsWithStats(strong, connectivity=8)
-        hang = np.zeros(m, bool)
-        hang[lab_s[(near > 0) & (strong > 0)]] = True
-        hang &= st_s[:, cv2.CC_STAT_AREA] >= cfg.min_area_px
+        hang = np.zeros(s_n, bool)
+        hang[s_labels[(near > 0) & (strong > 0)]] = True
+        hang &= s_area >= cfg.min_area_px
         hang[0] = False
-        obstacle |= hang[lab_s].view(np.uint8)
+        obstacle |= hang[s_labels].view(np.uint8)
     if cfg.fill_px > 0:  # sky seen between branches and in thin gaps belongs to the obstacle
         k = 2 * cfg.fill_px + 1
         obstacle = cv2.morphologyEx(obstacle, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
