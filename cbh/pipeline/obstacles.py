@@ -107,6 +107,8 @@ class FrameObstacleConfig:
     sky_fade_per_deg: float = 0.04  # … whose reference follows a darker or less blue sky below it by this per degree [1/deg]
     hue_fresh_deg: float = 3.0  # … judged on hue only this close below where that sky was seen [deg]
     seed_span_deg: float = 10.0  # … within this of azimuth of a dark obstacle that stands on the horizon [deg]
+    pale_rise_deg: float = 2.0  # … and rise at most this above the tallest of those within that span [deg]
+    pale_rise_ratio: float = 0.6  # … or this fraction of its height, if more (a taller row behind a lower one) [1]
     gap_deg: float = 1.0  # a column's obstacle may have gaps (sky between branches) this high and still stand [deg]
     ring_percentile: float = 90.0  # percentile of a zenith ring's brightness taken as its sky [%]
     horizon_band_deg: float = 4.0  # obstacles must reach within this of the horizon (zenith 90°) [deg]
@@ -188,16 +190,22 @@ def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig
     cells that reach down to the horizon (gaps up to ``gap_deg`` bridged; cells off the image
     pass) are kept, in the columns within ``seed_span_deg`` of azimuth of a ``seeds`` pixel (uint8:
     dark obstacles standing on the horizon themselves; a dark sky's columns never stand on
-    anything). (H, W) bool."""
+    anything) and at most ``pale_rise_deg`` or ``pale_rise_ratio`` of its height above the tallest
+    of them there (grey cloud that stands on a tree line is not walked up the sky). (H, W) bool."""
     n_az = grid.off.shape[1]
+    n_el = grid.off.shape[0]
+    top = np.full(n_az, n_el, np.int32)  # highest row a column's paler part may reach
     if seeds is None:
         cols = np.arange(n_az)
-    else:  # only the columns near a dark obstacle on the horizon
+    else:  # only the columns near a dark obstacle on the horizon, and not far above its top
         seen = cv2.remap(seeds, grid.map_x, grid.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=0).any(axis=0)
+                         borderValue=0) > 0
+        height = np.where(seen.any(axis=0), n_el - np.argmax(seen[::-1], axis=0), 0).astype(np.float32)
         k = int(round(cfg.seed_span_deg / cfg.grid_deg))
-        wrapped = np.concatenate([seen[-k:], seen, seen[:k]]).astype(np.uint8)[None, :]
-        cols = np.flatnonzero(cv2.dilate(wrapped, np.ones((1, 2 * k + 1), np.uint8))[0, k:k + n_az])
+        wrapped = np.concatenate([height[-k:], height, height[:k]])[None, :]
+        near = cv2.dilate(wrapped, np.ones((1, 2 * k + 1), np.uint8))[0, k:k + n_az]
+        cols = np.flatnonzero(near > 0)
+        top = (near + np.maximum(cfg.pale_rise_deg / cfg.grid_deg, cfg.pale_rise_ratio * near)).astype(np.int32)
     standing = np.zeros(grid.cell.shape, bool)
     if cols.size == 0:
         return standing
@@ -231,6 +239,7 @@ def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig
     dark = cv2.morphologyEx(dark.view(np.uint8), cv2.MORPH_CLOSE, np.ones((2 * g + 1, 1), np.uint8)) > 0
     up = np.zeros(grid.off.shape, bool)
     up[:, cols] = np.logical_and.accumulate(dark, axis=0) & ~off
+    up &= np.arange(n_el)[:, None] < top[None, :]
     up[:int(round(1.0 / cfg.grid_deg))] = False  # the lowest degree only carries: the circle's blurred rim is dark
     standing.ravel()[grid.pixels] = up.ravel()[grid.cells]
     return standing
