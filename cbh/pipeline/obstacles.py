@@ -269,11 +269,19 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
     its 1° zenith ring, it lies within ``max_elevation_deg`` of the horizon, and its dark
     component reaches the band within ``horizon_band_deg`` of the horizon.
 
+    With the camera's ``grid``, paler parts that stand on the ground beside such dark obstacles
+    join them (:func:`_standing`: hazy rows, blurred masts and trunks), and so do dark parts
+    within ``hang_px`` of them (crowns above trunks too thin to see); gaps up to about
+    2 × ``fill_px`` (sky between branches) are closed, and the whole is grown by ``dilate_px``.
+
     Parameters
     ----------
     image_bgr : ndarray, shape (H, W, 3), uint8
     ring, band : ndarray, shape (H, W)
         :func:`obstacle_rings` of the camera (uint8 ring index, bool horizon band).
+    cfg : FrameObstacleConfig
+    grid : HorizonGrid, optional
+        :func:`horizon_grid` of the camera at the image's size.
 
     Returns
     -------
