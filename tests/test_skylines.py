@@ -64,7 +64,7 @@ def _found(base, seed, options, cam="cam1"):
 def test_a_skyline_with_a_hazy_back_row_is_found_in_one_frame(base):
     """Seed 3: block rows (the back row hazed 20-60 % towards the sky's colour: as bright as 0.8 of
     the sky above it) and a tree line. Before, the back row and the crowns above thin trunks were
-    left in the sky (45 % of the obstacle in the analysed sky found); now ≥ 98 % (99.7 % measured),
+    left in the sky (45 % of the obstacle in the analysed sky found); now ≥ 98 % (99.1 % measured),
     and beyond 3 px of the silhouettes ≤ 0.5 % of the sky is taken (0.11 % measured)."""
     found, truth, usable = _found(base, 3, CLEAR)
     near = cv2.dilate(truth.view(np.uint8), np.ones((7, 7), np.uint8)) > 0
@@ -78,11 +78,31 @@ def test_a_cloudy_sky_beside_a_skyline_keeps_its_clouds(base):
     obstacles that stand on the horizon themselves. Seed 113 (three layers, dark bases, walls
     below the analysed sky): nothing taken (without that rule its dark clouds walked down to the
     grey horizon: 7 % of camera 1's sky at 960 px). Seed 108 (broken cumulus at 378 and 632 m
-    right above block rows): cloud standing on the buildings is taken with them, ≤ 4 % of the
-    sky beyond 3 px of the silhouettes (2.6 % measured): the price of the pale rows."""
+    right above block rows): cloud standing on the buildings is taken with them, ≤ 3 % of the
+    sky beyond 3 px of the silhouettes (1.1 % measured; 2.6 % before the paler parts' rise was
+    capped): the price of the pale rows."""
     found, truth, usable = _found(base, 113, SKYLINES)
     assert (found & usable & ~truth).sum() == 0
     found, truth, usable = _found(base, 108, SKYLINES)
     near = cv2.dilate(truth.view(np.uint8), np.ones((7, 7), np.uint8)) > 0
     sky = usable & ~truth
-    assert (found & ~near & sky).sum() <= 0.04 * sky.sum()
+    assert (found & ~near & sky).sum() <= 0.03 * sky.sum()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed,options", [
+    (4, CLEAR),  # one block skyline under a hazy band 0.7: cf 0.042, geometry_mismatch
+    (14, CLEAR),  # three block rows under a band 0.8: a layer at 290 m, geometry_mismatch
+    (22, CLEAR),  # tree line, block rows, masts: cf 0.034, geometry_mismatch
+    (104, SKYLINES),  # clear, one skyline: cf 0.051, geometry_mismatch
+    (128, SKYLINES),  # clear, rows, tree line, masts, band 0.7: cf 0.034, geometry_mismatch
+])
+def test_skyline_skies_at_960px(base, seed, options, tmp_path):
+    """Randomized skyline skies at 960 px that failed before issue 33's detection (the seeds of
+    ``eval_random.py --n 30 --size 960 --skylines --unmasked [--kind clear]``): no spurious
+    layer, no invalidating flag on the true station, a clear sky clear."""
+    case, r, score, _ = run_random_case(seed, base, 960, tmp_path, options=options)
+    if case.kind == "clear":
+        _assert_clear(r)
+    assert score.spurious_m == []
+    assert not set(r.flags) & INVALIDATING, r.flags
