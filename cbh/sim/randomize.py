@@ -22,7 +22,7 @@ before (its own draws come from a separate stream of the seed):
   the branches, sunlit walls brighter than the sky; 1–4 of them, up to 35° high), and half of
   all skies have a hazy horizon (a pale band 2–8° high);
 - ``unmasked``: every sky has obstacles, and the station never has a mask;
-- ``kind``: only skies of this kind (the other draws as the seed makes them);
+- ``kind``: only skies of this kind (its other draws then differ from the seed's unforced sky);
 - ``twice_encoded``: the frames are saved twice: the camera's output (limited-range video, or
   full range) as JPEG, then the recorder's second JPEG (4:2:0), the final clip level anywhere
   from 230 to 255 DN.
