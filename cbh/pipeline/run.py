@@ -90,7 +90,7 @@ CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky
 CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
 _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
 # the defaults' pixels at half size; crowns up to 2° (5 px at a 480 px lens radius) above what stands
-_HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1, fill_px=2, hang_px=5, grid_deg=0.5)
+_HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1, fill_px=1, hang_px=5, grid_deg=0.5)
 _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obstacles stay masked
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
