@@ -65,7 +65,7 @@ def test_a_skyline_with_a_hazy_back_row_is_found_in_one_frame(base):
     """Seed 3: block rows (the back row hazed 20-60 % towards the sky's colour: as bright as 0.8 of
     the sky above it) and a tree line. Before, the back row and the crowns above thin trunks were
     left in the sky (45 % of the obstacle in the analysed sky found); now ≥ 98 % (99.1 % measured),
-    and beyond 3 px of the silhouettes ≤ 0.5 % of the sky is taken (0.11 % measured)."""
+    and beyond 3 px of the silhouettes ≤ 0.5 % of the sky is taken (0.10 % measured)."""
     found, truth, usable = _found(base, 3, CLEAR)
     near = cv2.dilate(truth.view(np.uint8), np.ones((7, 7), np.uint8)) > 0
     sky = usable & ~truth
