@@ -1,12 +1,15 @@
 """Randomized-sky benchmark: layers found, spurious layers, clear skies with cloud, false alarms.
 
 Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--jobs 2] [--verbose]
+     [--skylines] [--unmasked] [--kind clear] [--twice-encoded]
 
 Each sky is :func:`cbh.sim.randomize.random_case` (seed S, S+1, …): clear, broken or overcast;
 1–3 layers 300 m – 10 km; baselines 20–200 m in any direction; winds 0–30 m/s; the sun 10–85°
 from the zenith; aureole strength; horizon obstacles with and without a mask; colour
 responses; white levels 235–255 and limited-range video; JPEG; noise. One pair per sky, the
-true orientation given. A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
+true orientation given. The options widen the distribution
+(:class:`cbh.sim.randomize.RandomOptions`): skyline obstacles and hazy horizons, obstacles in
+every sky without a mask, one kind of sky, twice-encoded frames. A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
 δθ = half a rendered pixel at the zenith (:func:`cbh.sim.evaluate.layer_tolerance`).
 """
 from __future__ import annotations
@@ -21,7 +24,7 @@ import numpy as np
 from cbh.flags import INVALIDATING
 from cbh.geometry.station import load_station
 from cbh.presets import station_path
-from cbh.sim.randomize import run_random_case
+from cbh.sim.randomize import RandomOptions, run_random_case
 
 BANDS = ((0, 1000), (1000, 3000), (3000, 6000), (6000, 10_001))
 
@@ -29,10 +32,10 @@ BANDS = ((0, 1000), (1000, 3000), (3000, 6000), (6000, 10_001))
 def one_sky(job):
     """One sky's summary (run in a worker): (seed, kind, expected, matched, spurious, missed,
     found, cloud fraction, layer count, flags, seconds)."""
-    seed, size = job
+    seed, size, options = job
     base = load_station(station_path())
     with tempfile.TemporaryDirectory() as folder:
-        case, r, sc, dt = run_random_case(seed, base, size, folder)
+        case, r, sc, dt = run_random_case(seed, base, size, folder, options=options)
     return dict(seed=seed, kind=case.kind, describe=case.describe(), expected=sc.expected_m, matched=sc.matched,
                 spurious=sc.spurious_m, missed=sc.missed_m, found=sc.found_m,
                 cf=max(r.cloud_fraction.values(), default=0.0), n_layers=len(r.layers), flags=list(r.flags), dt=dt)
@@ -83,12 +86,18 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--size", type=int, default=960)
     ap.add_argument("--jobs", type=int, default=1, help="skies run side by side (processes)")
     ap.add_argument("--verbose", action="store_true", help="one line per sky")
+    ap.add_argument("--skylines", action="store_true", help="skyline obstacles (blocks, masts, tree lines, walls), hazy horizons")
+    ap.add_argument("--unmasked", action="store_true", help="obstacles in every sky, never a mask")
+    ap.add_argument("--kind", choices=["clear", "broken", "overcast"], help="only skies of this kind")
+    ap.add_argument("--twice-encoded", action="store_true", help="camera JPEG then recorder JPEG, clip 230-255 DN")
     return ap
 
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    jobs = [(s, args.size) for s in range(args.seed, args.seed + args.n)]
+    options = RandomOptions(skylines=args.skylines, unmasked=args.unmasked, kind=args.kind,
+                            twice_encoded=args.twice_encoded)
+    jobs = [(s, args.size, options) for s in range(args.seed, args.seed + args.n)]
     if args.jobs > 1:
         import multiprocessing as mp
 

@@ -405,6 +405,93 @@ def test_sun_behind_clouds_preset_hides_the_sun(station):
         assert v.cloud_mask[int(round(y)), int(round(x))]
 
 
+# --- skylines, hazy horizons, twice-encoded frames (issue 33) -----------------------------------
+
+def _skyline_view(station, kind, **sky):
+    """Camera 1 of a clear sky with one ``kind`` of skyline over azimuths 0-120° (40° high), quiet."""
+    sc = parse_scene({"name": kind, "time_utc": "2024-06-21T14:00:00Z", "sky": sky,
+                      "obstacles": [{"kind": kind, "azimuth_deg": [0.0, 120.0], "max_elevation_deg": 40.0, "seed": 5}]})
+    sim = SkySimulator(station, quiet(sc), size_px=SIZE)
+    return sim, sim.view("cam1")
+
+
+def test_skyline_kinds_are_what_they_say(station):
+    """Skylines: rows of blocks with notches (sky between roof-top cells of one block), thin masts
+    (less than 1° of azimuth each), tree lines with sky between the branches (holes inside a crown's
+    outline), sunlit walls brighter than the sky at the same elevation. Their pixels have no height."""
+    from cbh.sim.sky import RASTER_BINS_PER_DEG as n, skyline_raster
+    from cbh.sim.scene import Obstacle
+
+    def raster(kind):
+        ids, pal = skyline_raster((Obstacle(kind=kind, azimuth_deg=(0.0, 120.0), max_elevation_deg=30.0, seed=5),))
+        return ids[:, :120 * n] > 0, pal
+
+    occ, pal = raster("masts")
+    cols = occ.any(axis=0)
+    runs = np.diff(np.flatnonzero(np.diff(np.r_[0, cols.astype(int), 0])))[::2]  # widths of the occupied runs
+    assert 1 <= len(runs) and np.median(runs) < 1.0 * n  # thin
+    occ, _ = raster("treeline")
+    top = np.array([np.flatnonzero(c).max() if c.any() else -1 for c in occ.T])
+    below = np.arange(occ.shape[0])[:, None] <= top[None, :]
+    assert (below & ~occ).sum() > 0.05 * occ.sum()  # sky seen through the crowns and between trunks
+    occ, pal = raster("skyline")
+    assert occ.sum() > 0 and pal.shape[1] == 4 and (pal[1:, 3] > 0).any()  # a hazier back row
+    sim, v = _skyline_view(station, "walls")
+    m = sim.obstacle_mask("cam1")
+    assert m.sum() > 500 and np.isnan(v.height_m[m]).all()
+    zen = sim.station.cameras["cam1"].zenith_map()
+    ring = (zen > 75) & (zen < 80)
+    wall, sky = v.image[ring & m].max(axis=1), v.image[ring & ~m].max(axis=1)
+    assert np.median(wall) > np.median(sky)  # sunlit: brighter than the sky
+
+
+def test_a_hazy_horizon_is_a_pale_band_above_it(station):
+    """haze_band whitens the clear sky towards the horizon: at 84-86° zenith its red rises by the
+    band's 0.8 · exp(−(4..6)/4) = 0.18-0.29 of the way from the sky's ~186 to the haze's 240 DN
+    (10-16 DN before vignetting and exposure: 5-15), at 30° zenith (exp(−60/4)) not at all."""
+    sim, plain = _skyline_view(station, "masts")
+    _, hazy = _skyline_view(station, "masts", haze_band=0.8, haze_band_deg=4.0)
+    zen = sim.station.cameras["cam1"].zenith_map()
+    free = ~sim.obstacle_mask("cam1")
+    for lo, hi, change in ((84, 86, True), (29, 31, False)):
+        sel = (zen > lo) & (zen < hi) & free
+        d = np.median(hazy.image[sel][:, 2].astype(float)) - np.median(plain.image[sel][:, 2].astype(float))
+        assert (5 <= d <= 15) if change else (d == 0), (lo, d)
+
+
+def test_reencode_adds_a_second_jpeg(station):
+    """reencode_quality: the delivered frame is the first JPEG's decoded pixels encoded again."""
+    sc = parse_scene({"name": "re", "time_utc": "2024-06-21T14:00:00Z", "layers": [{"height_m": 1500.0, "coverage": 0.5}],
+                      "image": {"jpeg_roundtrip": True, "jpeg_quality": 90}})
+    once = SkySimulator(station, sc, size_px=240).view("cam1").image
+    sc2 = dataclasses.replace(sc, image=dataclasses.replace(sc.image, reencode_quality=70))
+    twice = SkySimulator(station, sc2, size_px=240).view("cam1").image
+    from cbh.sim.render import reencode
+
+    assert np.array_equal(twice, reencode(once, 70)) and not np.array_equal(twice, once)
+
+
+def test_random_options_widen_without_changing_the_historical_seeds(station):
+    """RandomOptions off: the historical case of each seed; skylines: skyline kinds; unmasked:
+    obstacles in every sky and never a mask; kind: that kind; twice_encoded: a second JPEG and a
+    clip level 230-255 DN."""
+    from cbh.sim.randomize import RandomOptions, random_case
+    from cbh.sim.sky import SKYLINE_KINDS
+
+    base = station
+    for seed in range(6):
+        old = random_case(seed, base)
+        assert old.describe() == random_case(seed, base, RandomOptions()).describe()
+        wide = random_case(seed, base, RandomOptions(skylines=True, unmasked=True, kind="clear", twice_encoded=True))
+        assert wide.kind == "clear" and wide.scene.layers == () and not wide.mask_given
+        assert wide.scene.obstacles and all(o.kind in SKYLINE_KINDS for o in wide.scene.obstacles)
+        im = wide.scene.image
+        clip = 16 + im.white_level * 219 / 255 if im.limited_range else im.white_level
+        assert im.reencode_quality > 0 and im.jpeg_roundtrip and 229.5 <= clip <= 255
+    with pytest.raises(ValueError, match="kind"):
+        RandomOptions(kind="foggy")
+
+
 # --- bad input ---------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("text, key", [
@@ -420,6 +507,9 @@ def test_sun_behind_clouds_preset_hides_the_sun(station):
     ('[[imperfections]]\ncamera = "cam2"\nclock_offset = 2\n', "imperfections[0].clock_offset"),
     ('[[layers]]\nheight_m = "high"\ncoverage = 0.5\n', "layers[0].height_m"),
     ('[[layers]]\ncoverage = 0.5\n', "layers[0].height_m"),
+    ('[sky]\nhaze_band = 1.5\n', "sky.haze_band"),
+    ('[image]\nreencode_quality = 101\n', "image.reencode_quality"),
+    ('[[obstacles]]\nkind = "castle"\nazimuth_deg = [0, 30]\nmax_elevation_deg = 10\n', "obstacles[0].kind"),
 ])
 def test_bad_scene_files_name_the_key(tmp_path, text, key):
     from cbh.errors import ConfigError

@@ -63,7 +63,7 @@ from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
-from cbh.pipeline.obstacles import FrameObstacleConfig, obstacle_rings, obstacles_in_frame
+from cbh.pipeline.obstacles import FrameObstacleConfig, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
@@ -89,7 +89,8 @@ NIGHT_SUN_DEPRESSION_DEG = 6.0  # an underexposed pair with the sun this far bel
 CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky (flag clear_sky; no geometry verdict)
 CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
 _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
-_HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1)  # the defaults' pixels at half size
+# the defaults' pixels at half size; crowns up to 2° (5 px at a 480 px lens radius) above what stands
+_HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1, fill_px=1, hang_px=5, grid_deg=0.5)
 _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obstacles stay masked
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
@@ -270,9 +271,10 @@ class Pipeline:
         if i not in self._circles:
             z = cv2.resize(self.zenith(i), half, interpolation=cv2.INTER_NEAREST)
             circle = cv2.resize(cam.model.image_circle_mask().view(np.uint8), half, interpolation=cv2.INTER_NEAREST) > 0
-            self._circles[i] = obstacle_rings(z, circle)
-        small = obstacles_in_frame(cv2.resize(image, half, interpolation=cv2.INTER_AREA), *self._circles[i],
-                                   _HALF_SIZE_OBSTACLES)
+            self._circles[i] = (*obstacle_rings(z, circle), horizon_grid(cam, half, _HALF_SIZE_OBSTACLES))
+        ring, band, grid = self._circles[i]
+        small = obstacles_in_frame(cv2.resize(image, half, interpolation=cv2.INTER_AREA), ring, band,
+                                   _HALF_SIZE_OBSTACLES, grid)
         found = cv2.resize(small.view(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
         with self._obstacle_lock:  # process_batch runs pairs side by side on one Pipeline
             votes, n = self._obstacle_votes.get(i, (np.zeros(found.shape, np.uint16), 0))

@@ -14,7 +14,20 @@ few presets, so that the pipeline is judged on the class of inputs and not on on
 - per camera: colour response (gain, gamma, white balance), sensor noise, JPEG quality,
   vignetting, white level 235–255, and limited-range video (16–235) in 15 % of the skies.
 
-A case is a pure function of its seed.
+:class:`RandomOptions` widens the distribution (issue 33) without changing what a seed drew
+before (its own draws come from a separate stream of the seed):
+
+- ``skylines``: the obstacles of a sky that has them are skylines instead (rows of blocks of
+  different heights with notches and antennas, thin masts and poles, tree lines with sky between
+  the branches, sunlit walls brighter than the sky; 1–4 of them, up to 35° high), and half of
+  all skies have a hazy horizon (a pale band 2–8° high);
+- ``unmasked``: every sky has obstacles, and the station never has a mask;
+- ``kind``: only skies of this kind (its other draws then differ from the seed's unforced sky);
+- ``twice_encoded``: the frames are saved twice: the camera's output (limited-range video, or
+  full range) as JPEG, then the recorder's second JPEG (4:2:0), the final clip level anywhere
+  from 230 to 255 DN.
+
+A case is a pure function of its seed and options.
 """
 from __future__ import annotations
 
@@ -28,9 +41,24 @@ import numpy as np
 from cbh.geometry.station import Station, rotation_from_angles
 from cbh.sim.scene import CloudLayer, Imperfection, ImageSettings, Obstacle, Scene, Sky, Sun
 
-__all__ = ["RandomCase", "random_case", "random_network_case", "station_with_masks", "run_random_case", "SKY_KINDS"]
+__all__ = ["RandomCase", "RandomOptions", "random_case", "random_network_case", "station_with_masks", "run_random_case", "SKY_KINDS"]
 
 SKY_KINDS = ("clear", "broken", "overcast")
+
+
+@dataclass(frozen=True)
+class RandomOptions:
+    """Widenings of :func:`random_case`'s distribution (the module docstring); all off = the
+    historical distribution, seed for seed."""
+
+    skylines: bool = False  # skyline obstacles and hazy horizons
+    unmasked: bool = False  # every sky has obstacles, and no mask is given
+    kind: str | None = None  # "clear", "broken" or "overcast": only skies of this kind
+    twice_encoded: bool = False  # camera JPEG then the recorder's JPEG, clip level 230–255 DN
+
+    def __post_init__(self):
+        if self.kind is not None and self.kind not in SKY_KINDS:
+            raise ValueError(f"kind must be one of {', '.join(SKY_KINDS)}, got {self.kind!r}")
 
 
 @dataclass(frozen=True)
@@ -65,7 +93,10 @@ class RandomCase:
         return (f"seed {self.seed} {self.kind}: layers {ls}; B {self.baseline_m:.0f} m; sun z "
                 f"{self.scene.sun.zenith_deg:.0f}°; aureole {self.scene.sky.aureole:.1f}; obstacles "
                 f"{len(self.scene.obstacles)}{' (masked)' if self.mask_given else ''}; white "
-                f"{im.white_level}{' limited' if im.limited_range else ''}; jpeg {im.jpeg_quality}")
+                f"{im.white_level}{' limited' if im.limited_range else ''}; jpeg {im.jpeg_quality}"
+                f"{f' then {im.reencode_quality}' if im.reencode_quality else ''}"
+                f"{f'; haze band {self.scene.sky.haze_band:.1f}' if self.scene.sky.haze_band else ''}"
+                f"{'; ' + '/'.join(o.kind for o in self.scene.obstacles) if self.scene.obstacles else ''}")
 
 
 def _layers(rng: np.random.Generator, kind: str) -> tuple[CloudLayer, ...]:
@@ -113,6 +144,28 @@ def _obstacles(rng: np.random.Generator) -> tuple[Obstacle, ...]:
     return tuple(out)
 
 
+def _skylines(rng: np.random.Generator) -> tuple[Obstacle, ...]:
+    """1–4 skyline obstacles (:data:`cbh.sim.sky.SKYLINE_KINDS`), each 10–120° of azimuth."""
+    out = []
+    for _ in range(int(rng.integers(1, 5))):
+        a0 = float(rng.uniform(0.0, 360.0))
+        kind = str(rng.choice(["skyline", "masts", "treeline", "walls"], p=[0.35, 0.2, 0.3, 0.15]))
+        top = float(rng.uniform(4.0, 35.0)) if kind != "walls" else float(rng.uniform(3.0, 15.0))
+        out.append(Obstacle(kind=kind, azimuth_deg=(a0, (a0 + rng.uniform(10.0, 120.0)) % 360.0),
+                            max_elevation_deg=top, seed=int(rng.integers(0, 2**31))))
+    return tuple(out)
+
+
+def _twice_encoded(rng: np.random.Generator, image: ImageSettings) -> ImageSettings:
+    """The image settings of a twice-saved frame whose clip level is 230–255 DN: limited-range
+    video (white ≤ 235) or full range, the camera's JPEG then the recorder's."""
+    clip = int(rng.integers(230, 256))
+    limited = clip <= 235 and rng.random() < 0.8
+    white = int(round((clip - 16) * 255.0 / 219.0)) if limited else clip
+    return replace(image, white_level=min(white, 255), limited_range=limited, jpeg_roundtrip=True,
+                   jpeg_quality=int(rng.integers(70, 96)), reencode_quality=int(rng.integers(70, 96)))
+
+
 def _imperfection(rng: np.random.Generator, camera: str) -> Imperfection:
     return Imperfection(camera=camera, gain=float(rng.uniform(0.75, 1.3)), gamma=float(rng.uniform(0.8, 1.25)),
                         white_balance=(float(rng.uniform(0.9, 1.1)), float(rng.uniform(0.9, 1.1))))
@@ -142,25 +195,38 @@ def _place_and_time(rng: np.random.Generator, base: Station):
             return replace(base, latitude_deg=lat, longitude_deg=lon), t, float(sp.zenith_deg), float(sp.azimuth_deg)
 
 
-def random_case(seed: int, base: Station) -> RandomCase:
-    """The randomized sky of ``seed``, seen by ``base``'s first two cameras (intrinsics kept)."""
+def random_case(seed: int, base: Station, options: RandomOptions = RandomOptions()) -> RandomCase:
+    """The randomized sky of ``seed``, seen by ``base``'s first two cameras (intrinsics kept),
+    drawn as ``options`` say."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5]))
+    wide = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 33]))  # the options' own draws
     kind = str(rng.choice(SKY_KINDS, p=[0.2, 0.6, 0.2]))
+    if options.kind is not None:
+        kind = options.kind
     layers = _layers(rng, kind)
     sky = _sky(rng)
+    if options.skylines and wide.random() < 0.5:
+        sky = replace(sky, haze_band=float(wide.uniform(0.3, 0.9)), haze_band_deg=float(wide.uniform(2.0, 8.0)))
     base, time_utc, zen, azi = _place_and_time(rng, base)
     # the sun at its true position for the station's place and time (the pipeline predicts it
     # from the same place and time); zenith/azimuth kept for the description
     sun = Sun(position="true", zenith_deg=zen, azimuth_deg=azi)
     obstacles = _obstacles(rng)
+    if options.unmasked and not obstacles:
+        obstacles = _obstacles(wide) or _obstacles(wide) or _obstacles(wide) or (
+            Obstacle(kind="buildings", azimuth_deg=(0.0, 90.0), max_elevation_deg=15.0, seed=int(seed)),)
+    if options.skylines and obstacles:
+        obstacles = _skylines(wide)
     white = 255 if rng.random() < 0.5 else int(rng.integers(235, 256))
     image = ImageSettings(exposure=float(rng.uniform(0.8, 1.15)), vignetting=float(rng.uniform(0.0, 0.4)),
                           noise_dn=float(rng.uniform(0.5, 3.0)), jpeg_quality=int(rng.integers(60, 96)),
                           jpeg_roundtrip=True, white_level=white, limited_range=bool(rng.random() < 0.15))
+    if options.twice_encoded:
+        image = _twice_encoded(wide, image)
     station, b = _station(rng, base)
     names = list(station.cameras)[:2]
     imps = {n: _imperfection(rng, n) for n in names}
-    mask_given = bool(obstacles) and rng.random() < 0.5
+    mask_given = bool(obstacles) and rng.random() < 0.5 and not options.unmasked
     scene = Scene(layers=layers, time_utc=time_utc, sun=sun, sky=sky, image=image, obstacles=obstacles, imperfections=imps,
                   seed=int(rng.integers(0, 2**31)), name=f"random-{seed}")
     return RandomCase(seed=int(seed), kind=kind, scene=scene, station=station, mask_given=mask_given, baseline_m=b)
@@ -182,8 +248,10 @@ def station_with_masks(case: RandomCase, sim, folder: Path) -> Station:
     return replace(sim.station, cameras=cams)
 
 
-def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config=None):
-    """Render the randomized sky ``seed`` at ``size_px`` and run the pipeline on its pair.
+def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config=None,
+                    options: RandomOptions = RandomOptions()):
+    """Render the randomized sky ``seed`` (drawn as ``options`` say) at ``size_px`` and run the
+    pipeline on its pair.
 
     Returns
     -------
@@ -197,7 +265,7 @@ def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config
     from cbh.sim import SkySimulator
     from cbh.sim.evaluate import score_layers
 
-    case = random_case(seed, base)
+    case = random_case(seed, base, options)
     sim = SkySimulator(case.station, case.scene, size_px=size_px)
     shot = sim.render()
     pipe = Pipeline(station_with_masks(case, sim, folder), config=config)

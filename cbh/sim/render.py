@@ -28,7 +28,8 @@ from cbh.result import Frame, to_ns
 from cbh.geometry.station import Camera, Station, rot_x, rot_y, rot_z
 from cbh.sim.noise import FADE_ZERO_PX, FINEST_PX_PER_WAVELENGTH, TILE_PX, LayerTexture, fade_weight, sample_tile
 from cbh.sim.scene import CloudLayer, Scene
-from cbh.sim.sky import GROUND_BGR, SUN_BGR, SUN_RADIUS_DEG, obstacle_profile, sun_direction, sun_position
+from cbh.sim.sky import (GROUND_BGR, HAZE_BGR, RASTER_BINS_PER_DEG, SKYLINE_KINDS, SUN_BGR, SUN_RADIUS_DEG,
+                         obstacle_profile, skyline_raster, sun_direction, sun_position)
 
 __all__ = ["SkySimulator", "SimShot", "SimView"]
 
@@ -215,23 +216,49 @@ class _CameraState:
         self.vig = np.where(circle, vig, 0.0).astype(np.float32)
         z_bgr, h_bgr = np.array(scene.sky.zenith_bgr), np.array(scene.sky.horizon_bgr)
         self.sky_bgr = [(z_bgr[c] + (h_bgr[c] - z_bgr[c]) * blend).astype(np.float32) for c in range(3)]
-        # obstacles: silhouettes by azimuth, in the low-elevation band
-        self.obstacle_idx = np.zeros(0, np.int64)
-        self.obstacle_bgr = np.zeros((0, 3), np.float32)
-        if scene.obstacles:
-            prof, shade = obstacle_profile(scene.obstacles)
-            bins = prof.shape[0] / 360.0
-            az = np.degrees(np.arctan2(self.dirs[0], self.dirs[1])) % 360.0
-            b = np.minimum((az * bins).astype(np.int64), prof.shape[0] - 1)
-            obst = self.sky & ((90.0 - zen) < prof[b])
-            self.obstacle_idx = np.flatnonzero(obst)
-            rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 0x0B5, index]))
-            tex = rng.uniform(0.85, 1.15, size=(self.obstacle_idx.size, 1))
-            self.obstacle_bgr = (shade[b.ravel()[self.obstacle_idx]] * tex).astype(np.float32)
+        if scene.sky.haze_band > 0.0:  # a hazy horizon: the sky whitens in a band above it
+            band = scene.sky.haze_band * np.exp(-np.clip(90.0 - zen, 0.0, None) / scene.sky.haze_band_deg)
+            self.sky_bgr = [(s + (HAZE_BGR[c] - s) * band).astype(np.float32) for c, s in enumerate(self.sky_bgr)]
+        self._obstacles(scene, index, zen)
         self._haze: dict[int, np.ndarray] = {}
         self._boxes: dict[tuple, tuple | None] = {}
         self._sun_key = None
         self._sun_maps = None
+
+    def _obstacles(self, scene: Scene, index: int, zen: np.ndarray) -> None:
+        """Obstacle pixels and colours: silhouettes by azimuth ("buildings", "trees") and the
+        skyline kinds on an (azimuth, elevation) raster, whose edges are blurred as by a lens
+        (``obstacle_alpha``: coverage of each pixel, None without skyline kinds)."""
+        self.obstacle_idx = np.zeros(0, np.int64)
+        self.obstacle_bgr = np.zeros((0, 3), np.float32)
+        self.obstacle_alpha = None
+        if not scene.obstacles:
+            return
+        prof, shade = obstacle_profile(tuple(o for o in scene.obstacles if o.kind not in SKYLINE_KINDS))
+        bins = prof.shape[0] / 360.0
+        az = np.degrees(np.arctan2(self.dirs[0], self.dirs[1])) % 360.0
+        b = np.minimum((az * bins).astype(np.int64), prof.shape[0] - 1)
+        obst = self.sky & ((90.0 - zen) < prof[b])
+        colour = shade[b]
+        if any(o.kind in SKYLINE_KINDS for o in scene.obstacles):
+            ids, pal = skyline_raster(scene.obstacles)
+            n = RASTER_BINS_PER_DEG
+            row = np.clip((90.0 - zen) * n, -1, ids.shape[0]).astype(np.int64)
+            col = np.minimum((az * n).astype(np.int64), ids.shape[1] - 1)
+            look = self.sky & (row >= 0) & (row < ids.shape[0])
+            k = np.zeros(zen.shape, np.int32)
+            k[look] = ids[row[look], col[look]]
+            obst |= k > 0
+            haze = pal[k, 3:]  # a distant row's colour tends to the sky's behind it
+            sky_col = np.stack(self.sky_bgr, axis=-1)
+            colour = np.where((k > 0)[..., None], pal[k, :3] * (1.0 - haze) + sky_col * haze, colour)
+        self.obstacle_idx = np.flatnonzero(obst)
+        rng = np.random.default_rng(np.random.SeedSequence([scene.seed, 0x0B5, index]))
+        tex = rng.uniform(0.85, 1.15, size=(self.obstacle_idx.size, 1))
+        self.obstacle_bgr = (colour.reshape(-1, 3)[self.obstacle_idx] * tex).astype(np.float32)
+        if any(o.kind in SKYLINE_KINDS for o in scene.obstacles):
+            hit = obst.astype(np.float32)
+            self.obstacle_alpha = cv2.GaussianBlur(hit, (5, 5), 0.7)
 
     def octave_box(self, layer_index: int, octave: int, level: int, wavelength_over_dh: float):
         """(r0, r1, c0, c1) of the level-grid box where an octave has weight > 0, or None (cached)."""
@@ -564,7 +591,14 @@ class SkySimulator:
             image[cs.ground] = np.array(GROUND_BGR) * daylight
         if cs.obstacle_idx.size:
             flat = image.reshape(-1, 3)
-            flat[cs.obstacle_idx] = np.clip(cs.obstacle_bgr * daylight, 0, 255).astype(np.uint8)
+            if cs.obstacle_alpha is None:
+                flat[cs.obstacle_idx] = np.clip(cs.obstacle_bgr * daylight, 0, 255).astype(np.uint8)
+            else:  # the lens blurs the skyline's edges into the sky (and the sky into thin masts)
+                paint = np.zeros(flat.shape, np.float32)
+                paint[cs.obstacle_idx] = cs.obstacle_bgr * daylight
+                paint = cv2.GaussianBlur(paint.reshape(image.shape), (5, 5), 0.7)
+                a = cs.obstacle_alpha[..., None]
+                image = np.clip(image * (1.0 - a) + paint + 0.5, 0, 255).astype(np.uint8)
             height.reshape(-1)[cs.obstacle_idx] = np.nan
             mask.reshape(-1)[cs.obstacle_idx] = False
         if cs.colour_lut is not None:  # the camera's own gain, tone curve and white balance
@@ -574,6 +608,8 @@ class SkySimulator:
             from cbh.imageio import decode_image, encode_jpeg
 
             image = decode_image(encode_jpeg(image, scene.image.jpeg_quality), "simulated image")
+        if scene.image.reencode_quality > 0:
+            image = reencode(image, scene.image.reencode_quality)
         return image
 
     def _noise_views(self, cs: _CameraState, t: datetime):
@@ -614,6 +650,17 @@ def output_levels(image: np.ndarray, white_level: int = 255, limited_range: bool
     if limited_range:
         lut = 16.0 + lut * (219.0 / 255.0)
     return cv2.LUT(image, np.round(lut).astype(np.uint8))
+
+
+def reencode(image: np.ndarray, quality: int) -> np.ndarray:
+    """A frame saved again by a recorder: its decoded pixels re-encoded as JPEG of ``quality``
+    with 4:2:0 chroma subsampling (a second quantisation; ringing round sharp edges such as a
+    clipped sun disk lifts them above the clip level), and decoded."""
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality),
+                                           cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420])
+    if not ok:  # pragma: no cover - OpenCV always encodes uint8 BGR
+        raise ConfigError("JPEG re-encoding failed")
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)
 
 
 def _utc(t: datetime) -> datetime:

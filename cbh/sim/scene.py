@@ -29,6 +29,9 @@ The file format::
     aureole = 1.0                          # strength of the circumsolar aureole (whitish glow
                                            # around the sun, beyond the disk) relative to default
     aureole_width_deg = 8.0                # e-folding angle of the aureole's core [deg]
+    haze_band = 0.0                        # hazy horizon: the clear sky whitens towards a pale
+                                           # band at the horizon by this fraction, 0..1
+    haze_band_deg = 4.0                    # e-folding elevation of that band [deg]
 
     [image]
     exposure = 1.0                         # brightness factor of the whole image
@@ -38,6 +41,8 @@ The file format::
     jpeg_roundtrip = false                 # render() images also go through JPEG
     white_level = 255                      # sensor clip level [DN]: values above it read as it
     limited_range = false                  # video levels: 0..255 squeezed into 16..235 (RTSP/H.264)
+    reencode_quality = 0                   # 1..100: the recorder saves the (decoded) frame again as
+                                           # JPEG of this quality, chroma 4:2:0 (0: not re-encoded)
 
     [[layers]]                             # any number; listed in any order
     height_m = 1500.0                      # cloud base above the ENU origin [m], > 0
@@ -51,7 +56,10 @@ The file format::
     edge_softness = 1.0                    # width of the soft cloud edge, relative
 
     [[obstacles]]                          # horizon silhouettes; their pixels have no height
-    kind = "buildings"                     # "buildings" or "trees"
+    kind = "buildings"                     # "buildings", "trees", or a skyline: "skyline" (rows of
+                                           # blocks with notches and antennas), "masts" (thin poles),
+                                           # "treeline" (crowns with sky between the branches),
+                                           # "walls" (sunlit façades brighter than the sky)
     azimuth_deg = [30.0, 95.0]             # azimuth range, clockwise from north [deg]
     max_elevation_deg = 14.0               # tallest silhouette [deg above the horizon]
     seed = 3
@@ -85,7 +93,7 @@ __all__ = [
 DEFAULT_TIME_UTC = datetime(2024, 6, 21, 14, 0, 0, tzinfo=timezone.utc)
 
 SUN_POSITIONS = ("true", "fixed")
-OBSTACLE_KINDS = ("buildings", "trees")
+OBSTACLE_KINDS = ("buildings", "trees", "skyline", "masts", "treeline", "walls")
 
 
 @dataclass(frozen=True)
@@ -157,6 +165,8 @@ class Sky:
     visibility_m: float = 40_000.0  # clouds fade into haze over this range [m]
     aureole: float = 1.0  # circumsolar aureole strength relative to the default [1]
     aureole_width_deg: float = 8.0  # e-folding angle of the aureole's core [deg]
+    haze_band: float = 0.0  # hazy horizon: whitening of the clear sky at the horizon, 0..1 [1]
+    haze_band_deg: float = 4.0  # e-folding elevation of the hazy band [deg]
 
 
 @dataclass(frozen=True)
@@ -168,6 +178,7 @@ class ImageSettings:
     jpeg_roundtrip: bool = False  # render() images go through JPEG too
     white_level: int = 255  # sensor clip level [DN]
     limited_range: bool = False  # video levels 16..235 instead of 0..255
+    reencode_quality: int = 0  # the recorder's second JPEG (4:2:0) of the decoded frame, 1..100; 0 = none
 
 
 @dataclass(frozen=True)
@@ -319,6 +330,8 @@ def _parse_sky(d) -> Sky:
         aureole=_num("sky.aureole", sky_d.get("aureole", Sky.aureole), lo=0.0, hi=20.0),
         aureole_width_deg=_num("sky.aureole_width_deg", sky_d.get("aureole_width_deg", Sky.aureole_width_deg),
                                lo=0.5, hi=60.0),
+        haze_band=_num("sky.haze_band", sky_d.get("haze_band", Sky.haze_band), lo=0.0, hi=1.0),
+        haze_band_deg=_num("sky.haze_band_deg", sky_d.get("haze_band_deg", Sky.haze_band_deg), lo=0.2, hi=30.0),
     )
 
 
@@ -333,6 +346,7 @@ def _parse_image(d) -> ImageSettings:
         jpeg_roundtrip=_bool("image.jpeg_roundtrip", im_d.get("jpeg_roundtrip", False)),
         white_level=_int("image.white_level", im_d.get("white_level", 255), lo=128, hi=255),
         limited_range=_bool("image.limited_range", im_d.get("limited_range", False)),
+        reencode_quality=_int("image.reencode_quality", im_d.get("reencode_quality", 0), lo=0, hi=100),
     )
 
 
