@@ -554,7 +554,8 @@ def test_cli_writes_images_truth_and_station(tmp_path, capsys):
             img, data = read_image(out / cam / f"{cam}_{tag}.jpg")
             assert img.shape == (96, 96, 3)
         z = np.load(out / "truth" / f"{tag}.npz")
-        assert set(z.files) == {"cam1_height_m", "cam1_cloud_mask", "cam2_height_m", "cam2_cloud_mask"}
+        assert set(z.files) == {"cam1_height_m", "cam1_cloud_mask", "cam2_height_m", "cam2_cloud_mask",
+                                   "ground_shade", "ground_thickness", "ground_x_m", "ground_y_m"}
         assert z["cam1_height_m"].shape == (96, 96)
         np.testing.assert_array_equal(z["cam1_cloud_mask"], np.isfinite(z["cam1_height_m"]))
         import json
