@@ -122,6 +122,23 @@ def test_drone_seen_by_one_camera_only(tmp_path):
     assert r.stderr.startswith("cbh: error: the drone is seen by cam1 only") and r.stderr.count("\n") == 1
 
 
+def test_night_or_day_by_the_sun_and_in_twilight_by_the_sky():
+    """A light at night, a dark speck by day: chosen by the sun's elevation at the station, and in
+    twilight (within 6 deg of the horizon) by the frame's median sky."""
+    from datetime import datetime
+
+    from cbh.actions.drone import _polarity
+
+    st = load_station(REPO / "configs" / "unb-lea.toml")  # Brasilia: UTC-3
+    dark, bright = np.full((10, 10), 10, np.uint8), np.full((10, 10), 200, np.uint8)
+    valid = np.ones((10, 10), bool)
+    noon, midnight = datetime(2022, 7, 15, 15, tzinfo=timezone.utc), datetime(2022, 7, 15, 3, tzinfo=timezone.utc)
+    assert _polarity(st, noon, dark, valid) == "dark" and _polarity(st, midnight, bright, valid) == "bright"
+    dusk = datetime(2022, 7, 15, 21, 5, tzinfo=timezone.utc)  # the sun about 2 deg below the horizon
+    assert _polarity(st, dusk, bright, valid) == "dark" and _polarity(st, dusk, dark, valid) == "bright"
+
+
+@pytest.mark.slow
 def test_by_day_a_dark_speck(tmp_path):
     """With the sun up the drone is looked for as a dark speck against the bright sky (an
     aircraft's speck beside it); the same answer as at night."""
