@@ -184,6 +184,11 @@ def main() -> None:
     if truth is None:
         print(f"  layers: OpenCV {fmt(lay_ocv)} m, cbh {fmt(lay_cbh)} m (no truth for the real pair)")
         return
+    _accuracy(truth, cam1, pipe, ocv, h_ocv, r, lay_ocv, lay_cbh, fmt)
+
+
+def _accuracy(truth, cam1, pipe, ocv, h_ocv, r, lay_ocv, lay_cbh, fmt) -> None:
+    """Both routes' dense median error and coverage against the simulator's truth, and their layers."""
     th, tl = truth
     fov = cam1.zenith_map() <= pipe.config.masks.max_zenith_deg
     cloud = np.isfinite(th) & fov
