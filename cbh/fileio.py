@@ -85,3 +85,17 @@ def refuse_inputs(outputs, inputs, option: str = "--out") -> None:
                 kind = "folder" if q.is_dir() else "file"
                 raise ConfigError(f"{option} {out}: that is one of the command's own inputs ({kind} {q}); "
                                   "writing it would destroy it: give another path")
+
+
+def read_input(path: str | Path, what: str, error: type[Exception]) -> bytes:
+    """The bytes of an input file, or ``error`` with one line naming ``what`` (e.g. "image",
+    "station file", "flight log") and why: not found, a directory, or the OS's reason."""
+    path = Path(path)
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise error(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise error(f"{what} is a directory, not a file: {path}") from None
+    except OSError as exc:
+        raise error(f"cannot read {what} {path}: {exc.strerror}") from None

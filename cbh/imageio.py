@@ -98,15 +98,9 @@ def decode_image(data: bytes, what: str = "image") -> np.ndarray:
 
 def read_image(path: str | Path) -> tuple[np.ndarray, bytes]:
     """Read an image file: (BGR uint8 (H, W, 3) array, the file's bytes)."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ImageError(f"image not found: {path}") from None
-    except IsADirectoryError:
-        raise ImageError(f"not an image file (a directory): {path}") from None
-    except OSError as exc:
-        raise ImageError(f"cannot read image {path}: {exc.strerror}") from None
+    from cbh.fileio import read_input
+
+    data = read_input(path, "image", ImageError)
     return decode_image(data, what=str(path)), data
 
 

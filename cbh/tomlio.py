@@ -156,15 +156,10 @@ def dataclass_to_dict(obj) -> dict:
 
 def read_toml(path: str | Path, what: str) -> dict:
     """Parse a TOML file; :class:`ConfigError` naming ``what`` (e.g. "station") on any failure."""
+    from cbh.fileio import read_input
+
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{what} file not found: {path}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{what} path is a directory, not a TOML file: {path}") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read {what} file {path}: {exc.strerror}") from None
+    raw = read_input(path, f"{what} file", ConfigError)
     try:
         return tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:

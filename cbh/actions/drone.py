@@ -404,6 +404,7 @@ def _constant_offset(rows: list[dict]) -> list[str]:
 def _write(rep: dict, out: Path, png: Path, cams, tracks, log_t, enu, offset_s: float) -> None:
     from cbh.fileio import atomic_write
     from cbh.outputs.drone_figure import drone_figure
+    from cbh.outputs.export import write_error
 
     cols = list(dict.fromkeys(k for r in rep["rows"] for k in r))
     buf = io.StringIO()
@@ -412,8 +413,11 @@ def _write(rep: dict, out: Path, png: Path, cams, tracks, log_t, enu, offset_s: 
     for r in rep["rows"]:
         w.writerow({k: (f"{v:.3f}" if isinstance(v, float) and math.isfinite(v) else ("" if isinstance(v, float) else v))
                     for k, v in r.items()})
-    with atomic_write(out) as tmp:
-        tmp.write_text(buf.getvalue())
+    try:
+        with atomic_write(out) as tmp:
+            tmp.write_text(buf.getvalue())
+    except OSError as exc:
+        raise write_error(out, exc) from None
     stacks = {n: c.stack for n, c in cams.items()}
     drone_figure(png, rep, stacks, tracks, log_t, enu, offset_s)
     rep["summary"]["figure"] = str(png)

@@ -99,15 +99,10 @@ def parse_tz(text: str | None) -> timezone:
 
 def read_flight_log(path: str | Path, tz: timezone = timezone.utc) -> FlightLog:
     """Read a DJI SRT or a CSV flight log (by content, not by name); InputError when unreadable."""
+    from cbh.fileio import read_input
+
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"flight log not found: {path}") from None
-    except IsADirectoryError:
-        raise InputError(f"flight log is a directory: {path}") from None
-    except OSError as exc:
-        raise InputError(f"cannot read flight log {path}: {exc.strerror}") from None
+    raw = read_input(path, "flight log", InputError)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

@@ -26,18 +26,14 @@ class PixelPairs:
 
 def read_pixel_pairs(path: str | Path) -> PixelPairs:
     """Read a CSV with columns x1,y1,x2,y2[,true_height_m]. Errors name the row and column."""
+    import io
+
+    from cbh.fileio import read_input
+
     path = Path(path)
+    raw = read_input(path, "pixels file", InputError)
     try:
-        fh = path.open(newline="", encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"pixels file not found: {path}") from None
-    except IsADirectoryError:
-        raise InputError(f"pixels file is a directory: {path}") from None
-    except OSError as exc:
-        raise InputError(f"cannot read {path}: {exc.strerror}") from None
-    try:
-        with fh:
-            rows, has_truth = _read_rows(csv.DictReader(fh), path.name)
+        rows, has_truth = _read_rows(csv.DictReader(io.StringIO(raw.decode("utf-8"), newline="")), path.name)
     except UnicodeDecodeError as exc:
         raise InputError(f"{path.name}: not a UTF-8 text CSV file (undecodable byte at offset {exc.start})") from None
     except csv.Error as exc:
