@@ -4,8 +4,9 @@ arrive when the simulated cloud's shadow does?
     python benchmarks/eval_nowcast_sim.py [--scene two-layers] [--size 480] [--minutes 10] [--json OUT]
 
 The simulator renders the scene every 10 s; the pipeline runs on the pairs as `cbh run` does
-(motion from pair to pair); each pair issues the shade probability (:func:`cbh.outputs.nowcast.shade_probability`)
-at nine sites within ±1 km of the station for leads 0–5 min. The truth at a site and time
+(motion from pair to pair); each pair issues the shade probability as `cbh export --product irradiance` does
+(:func:`cbh.outputs.nowcast.lagged_shade`: the time-lagged ensemble of the last 10 min's pairs;
+``--single`` for the issue pair's own :func:`~cbh.outputs.nowcast.shade_probability` alone) at nine sites within ±1 km of the station for leads 0–5 min. The truth at a site and time
 (``--truth scene``, the default): the scene's own shadow on the ground (:func:`cbh.sim.ground.ground_shade`:
 the sun ray from the site through every layer's full-resolution cloud field, an upper layer behind
 a lower one included). ``--truth camera`` (the older one): the simulator's camera-1 truth (each
@@ -68,11 +69,13 @@ def _edges(times: list, states: list) -> list[tuple[float, int]]:
     return out
 
 
-def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, truth_kind: str = "scene") -> dict:
+def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, truth_kind: str = "scene",
+             single: bool = False) -> dict:
     from cbh.actions.pairground import pair_ground
     from cbh.geometry.station import load_station
     from cbh.geometry.sun import sun_position
-    from cbh.outputs.nowcast import shade_probability
+    from cbh.actions.nowcast import _ensemble
+    from cbh.outputs.nowcast import Site, lagged_shade, shade_probability
     from cbh.pipeline import Pipeline
     from cbh.pipeline.motion import PairState
     from cbh.presets import scene_path, station_path
@@ -88,7 +91,8 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
     z = float(st.cameras[cam1].position_m[2])
     sites = [np.array([x, y, z]) for x, y in SITES_M]
     truth: dict[float, list] = {}
-    issued = []  # (issue time [s], PairGround)
+    issued = []  # (issue time [s], PairGround, the ensemble's pairs up to it)
+    history: list = []
     t0 = sc.time_utc
     for i in range(n):
         t = t0 + timedelta(seconds=CADENCE_S * i)
@@ -101,20 +105,24 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
         r = pipe.process(shot.views[cam1].image, shot.views[st.pair()[1].name].image, t, channels="bgr",
                          previous=state)
         state = r.state
-        issued.append((CADENCE_S * i, pair_ground(st, pipe.config.masks, r)))
+        pg = pair_ground(st, pipe.config.masks, r)
+        history = _ensemble(history, pg) if pg.valid else history
+        issued.append((CADENCE_S * i, pg, list(history) if pg.valid else [pg]))
     out = {"scene": scene, "size_px": size, "sites": len(sites), "truth": truth_kind, "leads": {}}
+    places = [Site(f"s{k}", math.nan, math.nan, float(p[2]), p) for k, p in enumerate(sites)]
     for lead in LEADS_S:
         hits, errs, edges_n = 0, [], 0
         for k, site in enumerate(sites):
-            tt = [ti + lead for ti, _ in issued if ti + lead in truth]
+            tt = [ti + lead for ti, _, _ in issued if ti + lead in truth]
             true_s = [truth[t][k] for t in tt]
             fc = []
-            for ti, pg in issued:
+            for ti, pg, hist in issued:
                 if ti + lead not in truth:
                     continue
                 tv = t0 + timedelta(seconds=ti + lead)
                 sp = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, tv)
-                p, _ = shade_probability(pg, site, sp.direction_enu, lead)
+                p, _ = (shade_probability(pg, site, sp.direction_enu, lead) if single
+                        else lagged_shade(hist, places[k], sp.direction_enu, tv))
                 fc.append(float(p >= 0.5) if math.isfinite(p) else math.nan)
             te, fe = _edges(tt, true_s), _edges(tt, fc)
             for t_edge, sign in te:
@@ -135,9 +143,10 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=480)
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--truth", choices=("scene", "camera"), default="scene")
+    ap.add_argument("--single", action="store_true", help="the issue pair's own forecast, no lagged ensemble")
     ap.add_argument("--json")
     a = ap.parse_args()
-    res = evaluate(a.scene, a.size, a.minutes, a.truth)
+    res = evaluate(a.scene, a.size, a.minutes, a.truth, a.single)
     for lead, v in res["leads"].items():
         print(f"lead {lead:4d} s: {v['edges']:3d} shadow edges, {v['within_60s']:3d} within 60 s ({v['share']}), "
               f"median |error| {v['median_abs_error_s']} s")

@@ -15,9 +15,10 @@ SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
 FEHMARN = SHARED / "data" / "fehmarn-2016-09-01"
 
 
-def _half_sky(edge_east_m: float, height_m: float = 3000.0, size: int = 320):
+def _half_sky(edge_east_m: float, height_m: float = 3000.0, size: int = 320, sun=None, glare_deg: float = 0.0):
     """Camera 1 of the default station at ``size`` px, looking at one layer at ``height_m`` that is
-    cloud west of ``edge_east_m`` and clear east of it: its labels, as pair_ground makes them."""
+    cloud west of ``edge_east_m`` and clear east of it: its labels, as pair_ground makes them; with
+    ``glare_deg`` every pixel within that angle of ``sun`` reads clear (a mask fooled by the aureole)."""
     from cbh.geometry import ground
     from cbh.geometry.station import load_station
     from cbh.presets import station_path
@@ -33,8 +34,10 @@ def _half_sky(edge_east_m: float, height_m: float = 3000.0, size: int = 320):
     lab = np.full(H * W, ground.UNKNOWN, np.int16)
     lab[up & (x < edge_east_m)] = 0
     lab[up & (x >= edge_east_m)] = ground.CLEAR
+    if glare_deg:
+        lab[up & (rays @ np.asarray(sun) > math.cos(math.radians(glare_deg)))] = ground.CLEAR
     return SimpleNamespace(camera=cam, labels=lab.reshape(H, W), heights=[height_m + float(cam.position_m[2])],
-                           motions=[(10.0, 0.0)], cloud_fraction=0.5)
+                           motions=[(10.0, 0.0)], cloud_fraction=0.5, sun_dir=sun, valid=True)
 
 
 def test_the_shadow_edge_arrives_within_a_minute_of_the_truth():
@@ -62,6 +65,37 @@ def test_the_shadow_edge_arrives_within_a_minute_of_the_truth():
         else:
             assert np.nanmax(p) < 0.5, (edge, p)  # not yet: sunny throughout
     assert errors and all(e <= 60.0 for e in errors), errors
+
+
+def test_the_lagged_ensemble_reads_the_cloud_away_from_the_glare():
+    """A cloud deck moving east at 10 m/s will cover the sun ray of the site (the sun 40° from the
+    zenith in the south) 5 min from now, and does at the issue time, but the issue pair's mask
+    calls everything within 15° of the sun clear (the aureole, as on the real Fehmarn deck). Its own
+    lead-0 forecast says sun; the time-lagged ensemble uses the pair of 5 min before, which read
+    that cloud 37° from the sun, and says shade, seen earlier. Without the older pair it can only
+    repeat the issue pair's answer."""
+    from datetime import timedelta
+
+    from cbh.outputs.nowcast import Site, glare_angle_deg, lagged_shade, shade_probability
+
+    zen = math.radians(40.0)
+    sun = np.array([0.0, -math.sin(zen), math.cos(zen)])
+    t0 = datetime(2016, 9, 1, 9, 0, tzinfo=timezone.utc)
+    old = _half_sky(-1000.0, sun=sun)
+    now = _half_sky(2000.0, sun=sun, glare_deg=15.0)  # the same edge 300 s later, the glare called clear
+    old.time_utc, now.time_utc = t0, t0 + timedelta(seconds=300)
+    site_m = np.array([0.0, 0.0, float(now.camera.position_m[2])])
+    site = Site("s", math.nan, math.nan, float(site_m[2]), site_m)
+    assert shade_probability(now, site_m, sun, 0.0)[0] < 0.1  # fooled by the glare
+    assert glare_angle_deg(now, site_m, sun, 0.0) < 1.0 and 30.0 < glare_angle_deg(old, site_m, sun, 300.0) < 45.0
+    p, why = lagged_shade([old, now], site, sun, now.time_utc)
+    assert p > 0.9 and why == "seen_earlier", (p, why)
+    p, why = lagged_shade([now], site, sun, now.time_utc)
+    assert p < 0.1 and why == "", (p, why)
+    # 3 min on, both pairs read the deck outside the aureole (25° and 47°) and agree: shade, the
+    # issue pair's own forecast among those averaged
+    p, why = lagged_shade([old, now], site, sun, now.time_utc + timedelta(seconds=180))
+    assert p > 0.9 and why == "", (p, why)
 
 
 def test_the_map_ends_where_the_camera_stops_seeing():
@@ -162,8 +196,9 @@ def test_pyranometer_records_read_in_their_zone(tmp_path):
 @pytest.mark.skipif(not FEHMARN.is_dir(), reason="needs ../shared/data/fehmarn-2016-09-01")
 def test_the_real_pyranometer_half_hour(tmp_path):
     """The real hour's first half against its pyranometer (benchmarks/eval_irradiance.py): skill
-    against smart persistence above 0 at 5 and 10 min (the issue's target; measured +0.21 and
-    +0.12), and a forecast at every issue time for those leads."""
+    against smart persistence above 0 at 5 and 10 min, and at lead 0 an RMSE at most 0.8× the
+    clear-sky guess's (the issue's targets; measured +0.19, +0.24 and 0.77 with the time-lagged
+    ensemble), with a forecast at every issue time for those leads."""
     import sys
 
     sys.path.insert(0, str(REPO / "benchmarks"))
@@ -173,6 +208,7 @@ def test_the_real_pyranometer_half_hour(tmp_path):
     for lead in (5, 10):
         v = res["leads"][lead]
         assert v["skill_vs_persistence"] > 0.0 and v["n"] >= 28, v
+    assert res["leads"][0]["rmse_over_clear_sky"] <= 0.8 and res["leads"][0]["n"] >= 28, res["leads"][0]
 
 
 @pytest.mark.slow  # (4 real pairs through `cbh run`: 6 s)

@@ -40,8 +40,8 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
     pyr = nc.read_pyranometer(pyranometer) if pyranometer else None
     rows, seen, station, places = [], set(), None, None
     levels: dict[str, nc.Levels] = {}
-    seen_clear: dict[tuple, float] = {}  # (site, valid time) → the latest shade probability seen clear of the sun
     pending: dict[str, list] = {}  # site → (valid time, shade probability) of forecasts not yet verified
+    history: list = []  # the recent valid pairs on the ground (one per ENSEMBLE_STEP_S), oldest first
     for path in sessions:
         s = open_session(path)
         st = s.station
@@ -64,6 +64,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
             seen.add(res.time_utc)
             bad = sorted(set(res.flags) & INVALIDATING)
             pg = pair_ground(st, cfg.masks, res)
+            history = _ensemble(history, pg) if not bad else history
             for site in places:
                 if pyr is not None:  # the forecasts now verified (valid up to this issue time) teach the levels
                     _learn(levels[site.name], pending, site, pyr, res.time_utc)
@@ -72,15 +73,10 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
                     tv = res.time_utc + timedelta(seconds=float(lead))
                     sp = sun_position(site.latitude_deg, site.longitude_deg, site.altitude_m, tv)
                     if bad:
-                        p, why, wide = math.nan, "pair_invalid:" + "+".join(bad), False
+                        p, why = math.nan, "pair_invalid:" + "+".join(bad)
                     else:
-                        p, why, wide = nc.shade_at_site(pg, site, sp.direction_enu if sp.zenith_deg < 90 else None,
-                                                   float(lead))
-                    key = (site.name, tv)
-                    if wide and key in seen_clear:  # the sun's glare covers it now: as seen before it got there
-                        p, why = seen_clear[key], "seen_earlier"
-                    elif math.isfinite(p) and not wide and lead > 0:
-                        seen_clear[key] = p
+                        p, why = nc.lagged_shade(history, site, sp.direction_enu if sp.zenith_deg < 90 else None, tv)
+                    if math.isfinite(p) and lead > 0:
                         pending.setdefault(site.name, []).append((tv, p))
                     rows.append({"time_utc": res.time_utc, "site": site.name, "lead_s": float(lead), "valid_time_utc": tv,
                                  "shade_probability": p, "k_sun": ks, "k_shade": kd, "flags": why, "_site": site})
@@ -118,6 +114,19 @@ def ghi_series(sessions, sites: list[str], pyranometer=None, leads_s=(300.0, 600
             series["measured"] = (t64([times[i] for i in keep]), np.asarray(g)[keep])
         out[name] = series
     return out
+
+
+def _ensemble(history: list, pg) -> list:
+    """``history`` with ``pg`` (a valid pair) as its newest member: the older ones kept one per
+    ``ENSEMBLE_STEP_S`` and at most ``ENSEMBLE_S`` old (:func:`cbh.outputs.nowcast.lagged_shade`)."""
+    from cbh.outputs import nowcast as nc
+
+    kept = [h for h in history if 0 < (pg.time_utc - h.time_utc).total_seconds() <= nc.ENSEMBLE_S]
+    out: list = []
+    for h in kept:
+        if not out or (h.time_utc - out[-1].time_utc).total_seconds() >= nc.ENSEMBLE_STEP_S - 1.0:
+            out.append(h)
+    return [*out, pg]
 
 
 def _learn(levels, pending: dict, site, pyr, now) -> None:

@@ -18,10 +18,13 @@ For each recorded pair (the issue time t), each site and each lead time L:
    Where the point leaves the camera's view, or lies beyond ``MAX_ZENITH_DEG`` (low sun, long
    leads, fast wind), the lead has no forecast and says so (flag ``beyond_view``), as it does
    without the layer's motion (``motion_unknown``).
+   What is issued is a time-lagged ensemble (:func:`lagged_shade`): the pairs of the last
+   ``ENSEMBLE_S`` forecast the same valid time at their own leads, and those read outside the
+   sun's aureole (``GLARE_DEG``) are averaged.
 4. **GHI** = clear-sky GHI × the clear-sky index of the shade state:
    ``k = k_sun + (k_shade − k_sun)·p``. The two levels default to ``K_SUN`` and ``K_SHADE``; with
    a pyranometer they are learned online (:class:`Levels`): a least-squares line of the measured
-   index against the lead-0 shade probability over the issue times so far (never a later one),
+   index against the shade probability of the forecasts already verified (leads ≥ 1 min) (never a later one),
    drawn towards the defaults with the weight of ``PRIOR_WEIGHT`` observations.
 
 The measure of the field is skill against *smart persistence*: the clear-sky index measured at
@@ -41,7 +44,7 @@ import numpy as np
 from cbh.errors import ConfigError, InputError
 
 __all__ = ["Site", "parse_site", "parse_leads", "clear_sky_ghi", "shade_probability", "Levels", "read_pyranometer",
-           "LEADS_S", "K_SUN", "K_SHADE"]
+           "LEADS_S", "K_SUN", "K_SHADE", "lagged_shade", "glare_angle_deg"]
 
 #: Default lead times: 0 to 20 min every minute [s].
 LEADS_S = tuple(float(s) for s in range(0, 1201, 60))
@@ -53,6 +56,14 @@ EDGE_RANGE = 0.01  # ... plus this share of the slant range to the layer: the su
 MOTION_ERROR = (0.05, 0.2)  # a layer's motion is known to 5 % + 0.2 m/s: the disk grows by this × lead
 WIDEN = (2.0, 4.0, 8.0, 16.0)  # the disk widens by these factors until a third of it is known
 MIN_KNOWN = 0.3  # known share of the disk's weight needed for a probability
+#: A time-lagged ensemble (:func:`lagged_shade`): the forecasts for one valid time issued by the
+#: pairs of the last ``ENSEMBLE_S`` (one per ``ENSEMBLE_STEP_S``) are averaged ...
+ENSEMBLE_S = 600.0
+ENSEMBLE_STEP_S = 60.0
+#: ... leaving out those read within this angle of the sun [deg]: the aureole, where the camera
+#: saturates and the cloud mask is least certain (Fehmarn: 1–57 % of the pixels 10–20° from the
+#: sun saturated at every pair, 0–9 % at 20–35°).
+GLARE_DEG = 20.0
 #: The map ends here [deg from camera 1's zenith]: further out a layer is seen edge-on, its gaps
 #: close up in perspective and the cloud mask reads every sky overcast (on the real Fehmarn deck the
 #: shade probability went to 1 at 15–20 min leads, 20–24 km upwind, while the sun shone).
@@ -264,6 +275,29 @@ def shade_at_site(pg, site: Site, sun_dir: np.ndarray | None, lead_s: float) -> 
     return float(np.mean(ok)), "", wide
 
 
+def _layer_centre(pg, k: int, site_enu: np.ndarray, s: np.ndarray, lead_s: float):
+    """Where the cloud that will be on the sun ray from ``site_enu`` ``lead_s`` after the pair is
+    now on layer k: (centre (3,), the disk's σ [m]) or the reason it is not known
+    (``motion_unknown``, ``beyond_view``), or None when the layer is not above the site."""
+    h = float(pg.heights[k])
+    ve, vn = pg.motions[k]
+    if lead_s and not (math.isfinite(ve) and math.isfinite(vn)):
+        return "motion_unknown"
+    if not lead_s:
+        ve = vn = 0.0
+    t = (h - float(site_enu[2])) / s[2]
+    if t <= 0:
+        return None
+    centre = np.array([site_enu[0] + s[0] * t - ve * lead_s, site_enu[1] + s[1] * t - vn * lead_s, h])
+    rel = centre - np.asarray(pg.camera.position_m, np.float64)
+    if (math.degrees(math.atan2(math.hypot(rel[0], rel[1]), rel[2])) > MAX_ZENITH_DEG
+            or not _in_view(pg.camera, centre[None, :], pg.labels.shape)[0]):
+        return "beyond_view"
+    speed = math.hypot(ve, vn)
+    slant = float(np.linalg.norm(centre - np.asarray(site_enu, np.float64)))
+    return centre, EDGE_M + EDGE_RANGE * slant + (MOTION_ERROR[0] * speed + MOTION_ERROR[1]) * lead_s
+
+
 def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float) -> tuple[float, str, bool]:
     """Probability that the sun is behind cloud at ``site_enu`` ``lead_s`` after the pair ``pg``
     (:class:`cbh.actions.pairground.PairGround`), with ``sun_dir`` the unit vector to the sun at
@@ -276,26 +310,14 @@ def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float
         return ((0.0, "", False) if pg.cloud_fraction == 0 else (math.nan, "no_layer", False))
     s = np.asarray(sun_dir, np.float64)
     p_clear, unknown, widened = 1.0, "", False
-    for k, h in enumerate(pg.heights):
-        ve, vn = pg.motions[k]
-        if lead_s and not (math.isfinite(ve) and math.isfinite(vn)):
-            unknown = unknown or "motion_unknown"
+    for k in range(len(pg.heights)):
+        got = _layer_centre(pg, k, site_enu, s, lead_s)
+        if got is None:
             continue
-        if not lead_s:
-            ve = vn = 0.0
-        t = (float(h) - float(site_enu[2])) / s[2]
-        if t <= 0:
+        if isinstance(got, str):
+            unknown = unknown or got
             continue
-        centre = np.array([site_enu[0] + s[0] * t - ve * lead_s, site_enu[1] + s[1] * t - vn * lead_s, float(h)])
-        rel = centre - np.asarray(pg.camera.position_m, np.float64)
-        if (math.degrees(math.atan2(math.hypot(rel[0], rel[1]), rel[2])) > MAX_ZENITH_DEG
-                or not _in_view(pg.camera, centre[None, :], pg.labels.shape)[0]):
-            unknown = unknown or "beyond_view"
-            continue
-        speed = math.hypot(ve, vn)
-        slant = float(np.linalg.norm(centre - np.asarray(site_enu, np.float64)))
-        sigma = EDGE_M + EDGE_RANGE * slant + (MOTION_ERROR[0] * speed + MOTION_ERROR[1]) * lead_s
-        p, wide = _layer_share(pg, k, centre, sigma)
+        p, wide = _layer_share(pg, k, *got)
         widened |= wide
         if not math.isfinite(p):
             unknown = unknown or "beyond_view"
@@ -305,6 +327,49 @@ def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float
     if unknown and shade < 0.9:  # a known layer that shades it decides; otherwise it is not known
         return math.nan, unknown, widened
     return shade, "", widened
+
+
+def glare_angle_deg(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float) -> float:
+    """How far from the sun, as camera 1 saw it at the pair's time, the cloud map is read for this
+    forecast [deg]: the smallest angle over the layers between a layer's disk centre and the sun
+    (180 without a sun or a layer: nothing is read near the glare)."""
+    if sun_dir is None or pg.sun_dir is None or not pg.heights:
+        return 180.0
+    s, now = np.asarray(sun_dir, np.float64), np.asarray(pg.sun_dir, np.float64)
+    best = 180.0
+    for k in range(len(pg.heights)):
+        got = _layer_centre(pg, k, site_enu, s, lead_s)
+        if isinstance(got, tuple):
+            rel = got[0] - np.asarray(pg.camera.position_m, np.float64)
+            c = float(rel @ now) / float(np.linalg.norm(rel))
+            best = min(best, math.degrees(math.acos(max(-1.0, min(1.0, c)))))
+    return best
+
+
+def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time) -> tuple[float, str]:
+    """The shade probability at ``site`` at ``valid_time`` from a time-lagged ensemble: every pair
+    of ``pgs`` (oldest first; the last is the issue time's own, the others at most
+    ``ENSEMBLE_S`` older) forecasts that valid time at its own lead; the forecasts whose cloud map
+    is read at least ``GLARE_DEG`` from the sun as that pair saw it, and that did not have to widen
+    around the masked sun, are averaged. Without one, the freshest unwidened forecast, else the
+    issue pair's own. The reason is ``seen_earlier`` when the issue pair's own forecast is not
+    among those used, else :func:`shade_at`'s."""
+    own = pgs[-1]
+    lead = (valid_time - own.time_utc).total_seconds()
+    p0, why0, wide0 = shade_at_site(own, site, sun_dir, lead)
+    far, near = [], []
+    for j, pg in enumerate(reversed(pgs)):
+        lj = (valid_time - pg.time_utc).total_seconds()
+        if j and lj > lead + ENSEMBLE_S:
+            break
+        p, _, wide = (p0, why0, wide0) if j == 0 else shade_at_site(pg, site, sun_dir, lj)
+        if not math.isfinite(p) or wide:
+            continue
+        (far if glare_angle_deg(pg, site.enu_m, sun_dir, lj) >= GLARE_DEG else near).append((j, p))
+    use = far or near[:1]
+    if not use:
+        return p0, why0
+    return float(np.mean([p for _, p in use])), ("" if any(j == 0 for j, _ in use) else "seen_earlier")
 
 
 class Levels:
