@@ -30,7 +30,6 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
     and lead, in time order; and a summary (pairs, sites, the levels learned)."""
     from cbh.actions.pairground import pair_ground
     from cbh.flags import INVALIDATING
-    from cbh.geometry.sun import sun_position
     from cbh.outputs import nowcast as nc
     from cbh.outputs.record import open_session
     from cbh.pipeline.config import PipelineConfig
@@ -41,6 +40,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
     rows, seen, station, places = [], set(), None, None
     levels: dict[str, nc.Levels] = {}
     pending: dict[str, list] = {}  # site → (valid time, shade probability) of forecasts not yet verified
+    k_record: dict = {}  # site → the pyranometer's clear-sky index over its record
     history: list = []  # the recent valid pairs on the ground (one per ENSEMBLE_STEP_S), oldest first
     for path in sessions:
         s = open_session(path)
@@ -68,16 +68,14 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
             for site in places:
                 if pyr is not None:  # the forecasts now verified (valid up to this issue time) teach the levels
                     _learn(levels[site.name], pending, site, pyr, res.time_utc)
+                    _sunny_prior(levels[site.name], site, pyr, res.time_utc, k_record)
                 ks, kd = levels[site.name].levels()
-                for lead in leads_s:
-                    tv = res.time_utc + timedelta(seconds=float(lead))
-                    sp = sun_position(site.latitude_deg, site.longitude_deg, site.altitude_m, tv)
-                    if bad:
-                        p, why = math.nan, "pair_invalid:" + "+".join(bad)
-                    else:
-                        p, why = nc.lagged_shade(history, site, sp.direction_enu if sp.zenith_deg < 90 else None, tv)
-                    if math.isfinite(p) and lead > 0:
+                got = _forecasts(history, site, res.time_utc, leads_s, bad, learn=pyr is not None)
+                for lead, (tv, p, why) in got.items():
+                    if lead in LEARN_LEADS_S and math.isfinite(p):
                         pending.setdefault(site.name, []).append((tv, p))
+                for lead in leads_s:
+                    tv, p, why = got[float(lead)]
                     rows.append({"time_utc": res.time_utc, "site": site.name, "lead_s": float(lead), "valid_time_utc": tv,
                                  "shade_probability": p, "k_sun": ks, "k_shade": kd, "flags": why, "_site": site})
     if not rows:
@@ -116,6 +114,29 @@ def ghi_series(sessions, sites: list[str], pyranometer=None, leads_s=(300.0, 600
     return out
 
 
+#: The levels learn from the forecasts at these leads once verified, whichever leads are asked
+#: for (every minute over the ensemble's 10 min) [s].
+LEARN_LEADS_S = tuple(float(s) for s in range(0, 601, 60))
+
+
+def _forecasts(history: list, site, issue, leads_s, bad: list, learn: bool) -> dict:
+    """{lead [s]: (valid time, shade probability, reason)} of ``site`` at the asked ``leads_s``
+    and, when ``learn``, at :data:`LEARN_LEADS_S`: the time-lagged ensemble of ``history``
+    (:func:`cbh.outputs.nowcast.lagged_shade`); NaN with ``pair_invalid:…`` for an invalid pair."""
+    from cbh.geometry.sun import sun_position
+    from cbh.outputs import nowcast as nc
+
+    out = {}
+    for lead in sorted({float(x) for x in leads_s} | (set(LEARN_LEADS_S) if learn else set())):
+        tv = issue + timedelta(seconds=lead)
+        if bad:
+            out[lead] = (tv, math.nan, "pair_invalid:" + "+".join(bad))
+            continue
+        sp = sun_position(site.latitude_deg, site.longitude_deg, site.altitude_m, tv)
+        out[lead] = (tv, *nc.lagged_shade(history, site, sp.direction_enu if sp.zenith_deg < 90 else None, tv))
+    return out
+
+
 def _ensemble(history: list, pg) -> list:
     """``history`` with ``pg`` (a valid pair) as its newest member: the older ones kept one per
     ``ENSEMBLE_STEP_S`` and at most ``ENSEMBLE_S`` old (:func:`cbh.outputs.nowcast.lagged_shade`)."""
@@ -130,7 +151,7 @@ def _ensemble(history: list, pg) -> list:
 
 
 def _learn(levels, pending: dict, site, pyr, now) -> None:
-    """Every forecast of ``site`` valid by ``now`` (lead ≥ 1 min, seen clear of the sun's glare),
+    """Every forecast of ``site`` (at :data:`LEARN_LEADS_S`) valid by ``now``,
     with the clear-sky index the pyranometer measured at its valid time, into ``levels`` (one
     pvlib call for them all)."""
     due = [(tv, p) for tv, p in pending.get(site.name, []) if tv <= now]
@@ -140,11 +161,28 @@ def _learn(levels, pending: dict, site, pyr, now) -> None:
             levels.add(p, k)
 
 
-def _measured_index(pyr, site, times) -> np.ndarray:
-    """The clear-sky index the pyranometer measured at ``times`` (NaN: no record, or night)."""
+def _sunny_prior(levels, site, pyr, now, k_record: dict) -> None:
+    """The levels' prior from the pyranometer's last hour before ``now`` (its sunny level,
+    :func:`cbh.outputs.nowcast.sunny_level`; the shade level scaled with it); unchanged when the
+    record says too little. ``k_record`` caches each site's clear-sky index over the record."""
     from cbh.outputs import nowcast as nc
 
-    g = np.array([nc.measured_at(pyr[0], pyr[1], t) for t in times])
+    if site.name not in k_record:
+        ts = np.array([t.timestamp() for t in pyr[0]])
+        k_record[site.name] = (ts, _measured_index(pyr, site, list(pyr[0]), exact=True))
+    ts, k = k_record[site.name]
+    t = now.timestamp()
+    ks = nc.sunny_level(k[(ts < t) & (ts >= t - nc.SUNNY_HISTORY_S)])
+    if math.isfinite(ks):
+        levels.set_prior(ks, nc.K_SHADE / nc.K_SUN * ks)
+
+
+def _measured_index(pyr, site, times, exact: bool = False) -> np.ndarray:
+    """The clear-sky index the pyranometer measured at ``times`` (NaN: no record, or night);
+    ``exact``: ``times`` are the record's own."""
+    from cbh.outputs import nowcast as nc
+
+    g = np.asarray(pyr[1], np.float64) if exact else np.array([nc.measured_at(pyr[0], pyr[1], t) for t in times])
     cs = nc.clear_sky_ghi(site, times)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where((cs > 50.0) & np.isfinite(g), g / cs, np.nan)

@@ -51,6 +51,9 @@ LEADS_S = tuple(float(s) for s in range(0, 1201, 60))
 K_SUN = 1.0  # clear-sky index with the sun unobstructed (default level)
 K_SHADE = 0.45  # clear-sky index in a cloud's shadow (default level; thin altocumulus lets more through)
 PRIOR_WEIGHT = 3.0  # the default levels count as this many pyranometer observations
+#: With a pyranometer the prior's sunny level is its record's upper quantile (:func:`sunny_level`)
+#: over the last hour, and the shade level scales with it (``K_SHADE``/``K_SUN`` of it).
+SUNNY_QUANTILE, SUNNY_HISTORY_S, SUNNY_MIN = 0.9, 3600.0, 20
 EDGE_M = 10.0  # the shade disk's radius at lead 0 [m] ...
 EDGE_RANGE = 0.01  # ... plus this share of the slant range to the layer: the sun's width (0.5°) and a 1 % height error
 MOTION_ERROR = (0.05, 0.2)  # a layer's motion is known to 5 % + 0.2 m/s: the disk grows by this × lead
@@ -382,6 +385,11 @@ class Levels:
         self._p: list[float] = []
         self._k: list[float] = []
 
+    def set_prior(self, k_sun: float, k_shade: float) -> None:
+        """Move the prior's two points (the pyranometer's sunny level of the last hour:
+        :func:`sunny_level`)."""
+        self.prior = (float(k_sun), float(k_shade))
+
     def add(self, shade_p: float, k_measured: float) -> None:
         """A shade probability forecast for a time now past, and the clear-sky index measured then."""
         if math.isfinite(shade_p) and math.isfinite(k_measured) and 0.0 < k_measured < 2.0:
@@ -401,6 +409,20 @@ class Levels:
         X = np.column_stack([np.ones_like(p), p]) * np.sqrt(w)[:, None]
         a, b = np.linalg.lstsq(X, k * np.sqrt(w), rcond=None)[0]
         return float(np.clip(a, 0.7, 1.5)), float(np.clip(a + b, 0.05, 1.2))
+
+
+def sunny_level(k_recent) -> float:
+    """The clear-sky index in sun that a pyranometer's recent record says (NaN when it says too
+    little): the ``SUNNY_QUANTILE`` quantile of its clear-sky index over the last
+    ``SUNNY_HISTORY_S`` (at least ``SUNNY_MIN`` minutes), within 0.8–1.4. In sun the index is the
+    clear-sky model's own error for the place and day (Ineichen with a climatological turbidity:
+    Fehmarn's clean air reads 1.07–1.12 through a cloudless morning) and the cloud enhancement at
+    edges; cloud pulls the index down, rarely up, so an upper quantile is the sunny state."""
+    k = np.asarray(k_recent, np.float64)
+    k = k[np.isfinite(k) & (k > 0.0) & (k < 2.0)]
+    if len(k) < SUNNY_MIN:
+        return math.nan
+    return float(np.clip(np.quantile(k, SUNNY_QUANTILE), 0.8, 1.4))
 
 
 _ZONE = re.compile(r"utc(?:([pm])(\d{1,2}))?$", re.IGNORECASE)
