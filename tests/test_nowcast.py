@@ -215,8 +215,8 @@ def test_pyranometer_records_read_in_their_zone(tmp_path):
 def test_the_real_pyranometer_half_hour(tmp_path):
     """The real hour's first half against its pyranometer (benchmarks/eval_irradiance.py): skill
     against smart persistence above 0 at 5 and 10 min, and at lead 0 an RMSE at most 0.8× the
-    clear-sky guess's (the issue's targets; measured +0.18, +0.27 and 0.74 with the time-lagged
-    ensemble), with a forecast at every issue time for those leads. The levels learn from the same
+    clear-sky guess's (the issue's targets; measured +0.19, +0.28 and 0.78 with the layer-wise
+    time-lagged ensemble), with a forecast at every issue time for those leads. The levels learn from the same
     forecasts whichever leads are asked for: "0,5,10" gives what the benchmark's eight leads give."""
     import sys
 
@@ -259,16 +259,19 @@ def test_a_station_states_its_pyranometer(tmp_path, capsys):
 @pytest.mark.slow
 def test_shadow_edges_in_simulation_do_not_regress():
     """benchmarks/eval_nowcast_sim.py on 6 minutes of the two-layer scene: the share of true shadow
-    edges the forecast places within 60 s (measured 71 % at lead 0 and 63–69 % at 1–2 min; the
-    issue's target is 90 %, see docs/accuracy.md): kept from falling back."""
+    edges the forecast places within 60 s (measured with the layer-wise lagged ensemble 78 % at
+    lead 0 and 70 % at 1 min, against 73 % and 62 % from the issue pair alone; the issue's target
+    is 90 %, see docs/accuracy.md): kept from falling back, and the ensemble no worse than one pair."""
     import sys
 
     sys.path.insert(0, str(REPO / "benchmarks"))
     from eval_nowcast_sim import evaluate
 
     res = evaluate("two-layers", 480, 6.0)["leads"]
-    assert res[0]["edges"] >= 20 and res[0]["share"] >= 0.6, res
-    assert res[60]["share"] >= 0.5 and res[120]["share"] >= 0.5, res
+    one = evaluate("two-layers", 480, 6.0, single=True)["leads"]
+    assert res[0]["edges"] >= 50 and res[0]["share"] >= 0.75 and res[60]["share"] >= 0.65, res
+    assert res[120]["share"] >= 0.5, res
+    assert res[0]["share"] >= one[0]["share"] and res[60]["share"] >= one[60]["share"], (res, one)
 
 
 def test_the_simulators_ground_shadow_agrees_with_what_camera_1_sees(tmp_path):

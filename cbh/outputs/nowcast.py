@@ -67,6 +67,7 @@ ENSEMBLE_STEP_S = 60.0
 #: saturates and the cloud mask is least certain (Fehmarn: 1–57 % of the pixels 10–20° from the
 #: sun saturated at every pair, 0–9 % at 20–35°).
 GLARE_DEG = 20.0
+LAYER_MATCH = 0.15  # a member pair's layer is the issue pair's layer k within this share of its height
 #: The map ends here [deg from camera 1's zenith]: further out a layer is seen edge-on, its gaps
 #: close up in perspective and the cloud mask reads every sky overcast (on the real Fehmarn deck the
 #: shade probability went to 1 at 15–20 min leads, 20–24 km upwind, while the sun shone).
@@ -332,47 +333,103 @@ def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float
     return shade, "", widened
 
 
-def glare_angle_deg(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float) -> float:
-    """How far from the sun, as camera 1 saw it at the pair's time, the cloud map is read for this
-    forecast [deg]: the smallest angle over the layers between a layer's disk centre and the sun
-    (180 without a sun or a layer: nothing is read near the glare)."""
-    if sun_dir is None or pg.sun_dir is None or not pg.heights:
+def _sun_angle_deg(pg, centre: np.ndarray) -> float:
+    """Angle between ``centre`` seen from camera 1 and the sun as the pair saw it [deg]."""
+    if pg.sun_dir is None:
         return 180.0
-    s, now = np.asarray(sun_dir, np.float64), np.asarray(pg.sun_dir, np.float64)
-    best = 180.0
+    rel = centre - np.asarray(pg.camera.position_m, np.float64)
+    c = float(rel @ np.asarray(pg.sun_dir, np.float64)) / float(np.linalg.norm(rel))
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+def _layer_reads(pg, site_enu: np.ndarray, s: np.ndarray, lead_s: float) -> list:
+    """Per layer of ``pg``: (height [m], cloud share, widened, angle from the sun [deg], disk σ
+    [m]) of its read for ``site_enu`` ``lead_s`` ahead, or why it has none (a reason, or None when
+    the layer is not above the site)."""
+    out: list = []
     for k in range(len(pg.heights)):
         got = _layer_centre(pg, k, site_enu, s, lead_s)
-        if isinstance(got, tuple):
-            rel = got[0] - np.asarray(pg.camera.position_m, np.float64)
-            c = float(rel @ now) / float(np.linalg.norm(rel))
-            best = min(best, math.degrees(math.acos(max(-1.0, min(1.0, c)))))
-    return best
+        if got is None or isinstance(got, str):
+            out.append(got)
+            continue
+        p, wide = _layer_share(pg, k, *got)
+        out.append((float(pg.heights[k]), p, wide, _sun_angle_deg(pg, got[0]), got[1]) if math.isfinite(p)
+                   else "beyond_view")
+    return out
+
+
+def glare_angle_deg(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float) -> float:
+    """How near the sun, as camera 1 saw it at the pair's time, the cloud map is read for this
+    forecast: the smallest angle over the layers [deg] (180 without a sun or a layer)."""
+    if sun_dir is None or not pg.heights:
+        return 180.0
+    reads = _layer_reads(pg, site_enu, np.asarray(sun_dir, np.float64), lead_s)
+    return min([r[3] for r in reads if isinstance(r, tuple)], default=180.0)
+
+
+def _same_layer(heights, h: float) -> int | None:
+    """The issue pair's layer that a height belongs to: the nearest within ``LAYER_MATCH`` of it."""
+    d = [abs(h - float(x)) / max(float(x), 1.0) for x in heights]
+    k = int(np.argmin(d))
+    return k if d[k] <= LAYER_MATCH else None
+
+
+def _lagged_point(pgs: list, site_enu: np.ndarray, sun_dir: np.ndarray | None, valid_time) -> tuple[float, str]:
+    """:func:`lagged_shade` at one point."""
+    own = pgs[-1]
+    if sun_dir is None or float(sun_dir[2]) <= 0.02:
+        return math.nan, "night"
+    if not own.heights:
+        return (0.0, "") if own.cloud_fraction == 0 else (math.nan, "no_layer")
+    s = np.asarray(sun_dir, np.float64)
+    lead = (valid_time - own.time_utc).total_seconds()
+    mine = _layer_reads(own, site_enu, s, lead)
+    reads: list[list] = [[] for _ in own.heights]  # per issue-pair layer: (member, share, far, weight)
+    for j, pg in enumerate(reversed(pgs)):
+        lj = (valid_time - pg.time_utc).total_seconds()
+        if j and lj > lead + ENSEMBLE_S:
+            break
+        for r in (mine if j == 0 else _layer_reads(pg, site_enu, s, lj)):
+            k = _same_layer(own.heights, r[0]) if isinstance(r, tuple) and not r[2] else None
+            if k is not None:
+                reads[k].append((j, r[1], r[3] >= GLARE_DEG, 1.0 / r[4] ** 2))
+    p_clear, unknown, own_used = 1.0, "", False
+    for k, r_own in enumerate(mine):
+        use = [x for x in reads[k] if x[2]] or reads[k][:1]
+        if use:
+            p = sum(x[3] * x[1] for x in use) / sum(x[3] for x in use)
+            own_used |= any(x[0] == 0 for x in use)
+        elif isinstance(r_own, tuple):  # only the issue pair's read, widened around the masked sun
+            p, own_used = r_own[1], True
+        else:
+            unknown = unknown or (r_own or "")
+            continue
+        p_clear *= 1.0 - p
+    shade = 1.0 - p_clear
+    if unknown and shade < 0.9:  # a known layer that shades it decides; otherwise it is not known
+        return math.nan, unknown
+    return shade, ("" if own_used or not any(reads) else "seen_earlier")
 
 
 def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time) -> tuple[float, str]:
     """The shade probability at ``site`` at ``valid_time`` from a time-lagged ensemble: every pair
     of ``pgs`` (oldest first; the last is the issue time's own, the others at most
-    ``ENSEMBLE_S`` older) forecasts that valid time at its own lead; the forecasts whose cloud map
-    is read at least ``GLARE_DEG`` from the sun as that pair saw it, and that did not have to widen
-    around the masked sun, are averaged. Without one, the freshest unwidened forecast, else the
-    issue pair's own. The reason is ``seen_earlier`` when the issue pair's own forecast is not
-    among those used, else :func:`shade_at`'s."""
-    own = pgs[-1]
-    lead = (valid_time - own.time_utc).total_seconds()
-    p0, why0, wide0 = shade_at_site(own, site, sun_dir, lead)
-    far, near = [], []
-    for j, pg in enumerate(reversed(pgs)):
-        lj = (valid_time - pg.time_utc).total_seconds()
-        if j and lj > lead + ENSEMBLE_S:
-            break
-        p, _, wide = (p0, why0, wide0) if j == 0 else shade_at_site(pg, site, sun_dir, lj)
-        if not math.isfinite(p) or wide:
-            continue
-        (far if glare_angle_deg(pg, site.enu_m, sun_dir, lj) >= GLARE_DEG else near).append((j, p))
-    use = far or near[:1]
-    if not use:
-        return p0, why0
-    return float(np.mean([p for _, p in use])), ("" if any(j == 0 for j, _ in use) else "seen_earlier")
+    ``ENSEMBLE_S`` older) reads each layer's cloud for that valid time at its own lead. Per layer
+    of the issue pair (a member's layer within ``LAYER_MATCH`` of its height), the reads made at
+    least ``GLARE_DEG`` from the sun as that pair saw it, and not widened around the masked sun,
+    are averaged with weights 1/σ² (σ the read's disk: a fresh read outweighs an old one); without
+    one, the freshest unwidened read, else the issue pair's own; the layers combine as in
+    :func:`shade_at`. The reason is ``seen_earlier`` when no read of the issue pair's own is used,
+    else as :func:`shade_at`'s. A plant: the mean over its points, known when half of them are."""
+    if site.points_m is None:
+        return _lagged_point(pgs, site.enu_m, sun_dir, valid_time)
+    got = [_lagged_point(pgs, p, sun_dir, valid_time) for p in site.points_m]
+    ok = [g[0] for g in got if math.isfinite(g[0])]
+    if 2 * len(ok) < len(got):
+        whys = [g[1] for g in got if not math.isfinite(g[0])]
+        return math.nan, max(set(whys), key=whys.count)
+    whys = {g[1] for g in got if math.isfinite(g[0])}
+    return float(np.mean(ok)), ("seen_earlier" if whys == {"seen_earlier"} else "")
 
 
 class Levels:
