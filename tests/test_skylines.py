@@ -96,6 +96,8 @@ def test_a_cloudy_sky_beside_a_skyline_keeps_its_clouds(base):
     (22, CLEAR),  # tree line, block rows, masts: cf 0.034, geometry_mismatch
     (104, SKYLINES),  # clear, one skyline: cf 0.051, geometry_mismatch
     (128, SKYLINES),  # clear, rows, tree line, masts, band 0.7: cf 0.034, geometry_mismatch
+    (7008, CLEAR),  # masts, block rows, tree line, band 0.7: geometry_mismatch (matches at infinity as outliers)
+    (7017, CLEAR),  # a tree line under a band 0.8: geometry_mismatch (76 LK matches 73-79° out, all at infinity)
 ])
 def test_skyline_skies_at_960px(base, seed, options, tmp_path):
     """Randomized skyline skies at 960 px that failed before issue 33's detection (the seeds of
@@ -105,4 +107,21 @@ def test_skyline_skies_at_960px(base, seed, options, tmp_path):
     if case.kind == "clear":
         _assert_clear(r)
     assert score.spurious_m == []
+    assert not set(r.flags) & INVALIDATING, r.flags
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [
+    7000,  # block rows and a tree line, band 0.5: cf 0.064, geometry_mismatch
+    7020,  # block rows, tree line, white 248: cf 0.016/0.027, geometry_mismatch
+    7025,  # rows, tree lines, masts, white 245: cf 0.011/0.028, geometry_mismatch
+])
+def test_matches_at_infinity_over_a_skyline_are_no_mismatch(base, seed, tmp_path):
+    """Clear skies over a skyline at 960 px (``eval_random.py --n 30 --seed 7000 --size 960
+    --skylines --unmasked --kind clear``) whose only matches lie 64–79° from the zenith, 81–100 %
+    of them within 2 px of infinity (haze and far skylines: on their epipolar curves, no height):
+    counted as outliers they flagged the correct station ``geometry_mismatch``. No layer and no
+    invalidating flag (the haze band above the skyline still reads as 2–6 % cloud on these)."""
+    case, r, score, _ = run_random_case(seed, base, 960, tmp_path, options=CLEAR)
+    assert case.kind == "clear" and r.layers == [], r.layers
     assert not set(r.flags) & INVALIDATING, r.flags
