@@ -41,6 +41,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
     levels: dict[str, nc.Levels] = {}
     pending: dict[str, list] = {}  # site → (valid time, shade probability) of forecasts not yet verified
     k_record: dict = {}  # site → the pyranometer's clear-sky index over its record
+    reads: dict = {}  # the ensemble members' reads, each made once (nowcast.lagged_shade's cache)
     history: list = []  # the recent valid pairs on the ground (one per ENSEMBLE_STEP_S), oldest first
     for path in sessions:
         s = open_session(path)
@@ -65,12 +66,13 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
             bad = sorted(set(res.flags) & INVALIDATING)
             pg = pair_ground(st, cfg.masks, res)
             history = _ensemble(history, pg) if not bad else history
+            nc.prune_cache(reads, history)
             for site in places:
                 if pyr is not None:  # the forecasts now verified (valid up to this issue time) teach the levels
                     _learn(levels[site.name], pending, site, pyr, res.time_utc)
                     _sunny_prior(levels[site.name], site, pyr, res.time_utc, k_record)
                 ks, kd = levels[site.name].levels()
-                got = _forecasts(history, site, res.time_utc, leads_s, bad, learn=pyr is not None)
+                got = _forecasts(history, site, res.time_utc, leads_s, bad, pyr is not None, reads)
                 for lead, (tv, p, why) in got.items():
                     if lead in LEARN_LEADS_S and math.isfinite(p):
                         pending.setdefault(site.name, []).append((tv, p))
@@ -119,7 +121,7 @@ def ghi_series(sessions, sites: list[str], pyranometer=None, leads_s=(300.0, 600
 LEARN_LEADS_S = tuple(float(s) for s in range(0, 601, 60))
 
 
-def _forecasts(history: list, site, issue, leads_s, bad: list, learn: bool) -> dict:
+def _forecasts(history: list, site, issue, leads_s, bad: list, learn: bool, cache: dict | None = None) -> dict:
     """{lead [s]: (valid time, shade probability, reason)} of ``site`` at the asked ``leads_s``
     and, when ``learn``, at :data:`LEARN_LEADS_S`: the time-lagged ensemble of ``history``
     (:func:`cbh.outputs.nowcast.lagged_shade`); NaN with ``pair_invalid:…`` for an invalid pair."""
@@ -133,7 +135,7 @@ def _forecasts(history: list, site, issue, leads_s, bad: list, learn: bool) -> d
             out[lead] = (tv, math.nan, "pair_invalid:" + "+".join(bad))
             continue
         sp = sun_position(site.latitude_deg, site.longitude_deg, site.altitude_m, tv)
-        out[lead] = (tv, *nc.lagged_shade(history, site, sp.direction_enu if sp.zenith_deg < 90 else None, tv))
+        out[lead] = (tv, *nc.lagged_shade(history, site, sp.direction_enu if sp.zenith_deg < 90 else None, tv, cache))
     return out
 
 

@@ -374,7 +374,8 @@ def _same_layer(heights, h: float) -> int | None:
     return k if d[k] <= LAYER_MATCH else None
 
 
-def _lagged_point(pgs: list, site_enu: np.ndarray, sun_dir: np.ndarray | None, valid_time) -> tuple[float, str]:
+def _lagged_point(pgs: list, site_enu: np.ndarray, sun_dir: np.ndarray | None, valid_time,
+                  cache: dict | None = None) -> tuple[float, str]:
     """:func:`lagged_shade` at one point."""
     own = pgs[-1]
     if sun_dir is None or float(sun_dir[2]) <= 0.02:
@@ -389,7 +390,16 @@ def _lagged_point(pgs: list, site_enu: np.ndarray, sun_dir: np.ndarray | None, v
         lj = (valid_time - pg.time_utc).total_seconds()
         if j and lj > lead + ENSEMBLE_S:
             break
-        for r in (mine if j == 0 else _layer_reads(pg, site_enu, s, lj)):
+        if j == 0:
+            got = mine
+        elif cache is None:
+            got = _layer_reads(pg, site_enu, s, lj)
+        else:  # a member's read of one valid time is the same whichever later issue asks for it
+            key = (pg.time_utc, valid_time, np.asarray(site_enu, np.float64).tobytes())
+            if key not in cache:
+                cache[key] = _layer_reads(pg, site_enu, s, lj)
+            got = cache[key]
+        for r in got:
             k = _same_layer(own.heights, r[0]) if isinstance(r, tuple) and not r[2] else None
             if k is not None:
                 reads[k].append((j, r[1], r[3] >= GLARE_DEG, 1.0 / r[4] ** 2))
@@ -411,7 +421,8 @@ def _lagged_point(pgs: list, site_enu: np.ndarray, sun_dir: np.ndarray | None, v
     return shade, ("" if own_used or not any(reads) else "seen_earlier")
 
 
-def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time) -> tuple[float, str]:
+def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time,
+                 cache: dict | None = None) -> tuple[float, str]:
     """The shade probability at ``site`` at ``valid_time`` from a time-lagged ensemble: every pair
     of ``pgs`` (oldest first; the last is the issue time's own, the others at most
     ``ENSEMBLE_S`` older) reads each layer's cloud for that valid time at its own lead. Per layer
@@ -420,16 +431,25 @@ def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time) 
     are averaged with weights 1/σ² (σ the read's disk: a fresh read outweighs an old one); without
     one, the freshest unwidened read, else the issue pair's own; the layers combine as in
     :func:`shade_at`. The reason is ``seen_earlier`` when no read of the issue pair's own is used,
-    else as :func:`shade_at`'s. A plant: the mean over its points, known when half of them are."""
+    else as :func:`shade_at`'s. A plant: the mean over its points, known when half of them are.
+    ``cache``: a dict kept across issue times (:func:`prune_cache` drops pairs that left the
+    ensemble): each member's reads are made once per valid time."""
     if site.points_m is None:
-        return _lagged_point(pgs, site.enu_m, sun_dir, valid_time)
-    got = [_lagged_point(pgs, p, sun_dir, valid_time) for p in site.points_m]
+        return _lagged_point(pgs, site.enu_m, sun_dir, valid_time, cache)
+    got = [_lagged_point(pgs, p, sun_dir, valid_time, cache) for p in site.points_m]
     ok = [g[0] for g in got if math.isfinite(g[0])]
     if 2 * len(ok) < len(got):
         whys = [g[1] for g in got if not math.isfinite(g[0])]
         return math.nan, max(set(whys), key=whys.count)
     whys = {g[1] for g in got if math.isfinite(g[0])}
     return float(np.mean(ok)), ("seen_earlier" if whys == {"seen_earlier"} else "")
+
+
+def prune_cache(cache: dict, pgs: list) -> None:
+    """Drop from a :func:`lagged_shade` cache the reads of pairs no longer in ``pgs``."""
+    keep = {pg.time_utc for pg in pgs}
+    for key in [k for k in cache if k[0] not in keep]:
+        del cache[key]
 
 
 class Levels:
