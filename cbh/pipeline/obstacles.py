@@ -106,8 +106,9 @@ class FrameObstacleConfig:
     hue_drop: float = 0.1  # … or less blue than it by this in (B − R) / (B + R) [1]
     sky_fade_per_deg: float = 0.04  # … whose reference follows a darker or less blue sky below it by this per degree [1/deg]
     hue_fresh_deg: float = 3.0  # … judged on hue only this close below where that sky was seen [deg]
-    seed_span_deg: float = 30.0  # … within this of azimuth of a dark obstacle that stands on the horizon [deg] (a row of
-    # pale blocks runs on 10-30° from its nearest dark one: at 10°, 3 of 30 randomized clear skyline skies kept 2-6 % "cloud")
+    seed_span_deg: float = 10.0  # … within this of azimuth of a dark obstacle that stands on the horizon [deg] (30° took
+    # pale blocks 10-30° from their nearest dark one, but also walked up the whitened aureole of a sun low over tree
+    # lines: its ring then read as cloud, a layer at 335 m on a clear sky, randomized seed 5)
     pale_rise_deg: float = 2.0  # … and rise at most this above the tallest of those within that span [deg]
     pale_rise_ratio: float = 0.6  # … or this fraction of its height, if more (a taller row behind a lower one) [1]
     gap_deg: float = 1.0  # a column's obstacle may have gaps (sky between branches) this high and still stand [deg]
