@@ -23,6 +23,13 @@ costs weigh as they would on real archives). Then, in turn:
   actor with 2 workers, so the steady window holds three; smaller chunks cost no lead-in pairs,
   since an actor re-processes one only where it starts a new stretch of a station's chunks.
 
+Then **exactness and resumption** (:func:`resume_check`, on the 2-worker output): the 1- and
+2-worker day files hold identical rows; the same command again processes no pair (every day
+resumed: its wall time); a run stopped like a Ctrl-C once its first day is written, then the
+same command again, processes every pair exactly once between them apart from the days in
+flight when it stopped, and writes day files identical to the undisturbed run's. Each Ray run
+prints the load average (``uptime``) before it: this benchmark shares the machine.
+
 Where the CPU went during each measured window (Linux ``/proc``): the actors, this driver
 process, Ray's own processes (raylet, GCS, dashboard/agents, log monitor, idle workers), and
 the rest of the machine (other processes; and the hypervisor's steal time). When other load
@@ -251,15 +258,15 @@ def parallel_loops(root: Path, n: int) -> tuple[float, int, dict | None]:
 
 def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> dict:
     """One run as ``cbh reprocess`` does it: a private Ray with num_cpus=workers, run, stop."""
-    import ray
-
     from cbh.actions.reprocess import reprocess, start_ray
 
     out = root / f"out-{workers}-{device}"
     shutil.rmtree(out, ignore_errors=True)
+    print(f"    (ray {workers}: load average before {_loadavg()})", flush=True)
     t0 = time.perf_counter()
-    start_ray(workers=workers, device=device)
+    start_ray(workers=workers, device=device)  # before Ray is imported here: it sets Ray's environment first
     t_ray = time.perf_counter() - t0
+    import ray
     first_done: dict[int, float] = {}
     actor_pids: set[int] = set()
     n_after = [0]
@@ -292,7 +299,63 @@ def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> 
     assert s.failures == 0 and s.pairs_processed > 0
     return {"wall": t_end - t0, "steady": steady, "pairs": s.pairs_processed, "ray_start": t_ray,
             "cpu_per_pair": cpu["s"] / cpu["pairs"] if cpu["pairs"] else float("nan"), "lead": cpu["lead"],
-            "split": m.split(actor_pids)}
+            "split": m.split(actor_pids), "out": out}
+
+
+def _loadavg() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "n/a"
+
+
+def _day_tables(out: Path) -> dict:
+    """Day file name → its rows (the Parquet table's repr, so NaN equals NaN): what must not change."""
+    import pyarrow.parquet as pq
+
+    return {f.name: repr(pq.read_table(f).to_pydict()) for f in sorted(out.glob("*/*.parquet"))}
+
+
+def _timed_reprocess(root: Path, out: Path, workers: int, chunk_pairs: int, stop_after_day: bool = False):
+    """(wall s, Summary) of one reprocess run on a fresh private Ray; ``stop_after_day``: a
+    KeyboardInterrupt (as Ctrl-C) once the first day is written."""
+    from cbh.actions.reprocess import reprocess
+
+    def ev(e):
+        if stop_after_day and e["event"] == "day":
+            raise KeyboardInterrupt
+
+    t0 = time.perf_counter()
+    try:
+        _, s = reprocess([root / "station.toml"], [f"cam1={root / 'cam1'}", f"cam2={root / 'cam2'}"], out=out,
+                         workers=workers, chunk_pairs=chunk_pairs, on_event=ev)
+    finally:
+        import ray
+
+        ray.shutdown()
+    return time.perf_counter() - t0, s
+
+
+def resume_check(root: Path, runs: dict, chunk_pairs: int) -> None:
+    """Exactness (1 vs 2 workers) and resumption (a rerun; a stop after the first day + a rerun)."""
+    ref = _day_tables(runs[2]["out"])
+    same = ref == _day_tables(runs[1]["out"])
+    print(f"exact: day files of 1 and 2 workers identical: {'yes' if same else 'NO'} ({len(ref)} days)")
+    t, s = _timed_reprocess(root, runs[2]["out"], 2, chunk_pairs)
+    print(f"resume, nothing left: {s.pairs_processed} pairs processed, {s.days_resumed} days resumed, "
+          f"{t:.1f} s (plan + index; no Ray started)")
+    out = root / "out-stopped"
+    shutil.rmtree(out, ignore_errors=True)
+    t1, s1 = _timed_reprocess(root, out, 2, chunk_pairs, stop_after_day=True)
+    t2, s2 = _timed_reprocess(root, out, 2, chunk_pairs)
+    total = s1.pairs_total
+    kept = s1.days_written
+    redone = s1.pairs_processed + s2.pairs_processed - total
+    same = _day_tables(out) == ref
+    print(f"resume after a stop once the first day was written: run 1 {s1.pairs_processed} pairs in {t1:.1f} s "
+          f"({kept} day kept, interrupted={s1.interrupted}); run 2 {s2.pairs_processed} pairs in {t2:.1f} s "
+          f"({s2.days_resumed} resumed, {s2.days_written} written); {redone} pairs done twice (in flight at the "
+          f"stop); day files identical to the undisturbed run: {'yes' if same else 'NO'}")
 
 
 def main() -> None:
@@ -323,6 +386,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="cbh-bench-reprocess-") as tmp:
         t0 = time.perf_counter()
         root = make_archive(Path(tmp), a.pairs, a.size)
+        print(f"load average at the start: {_loadavg()}")
         print(f"archive: {a.pairs} pairs at {a.size} px over 2 days (rendered in {time.perf_counter() - t0:.0f} s); "
               f"{ncpu} CPUs; GPU: {'yes' if gpu else 'no'}; chunks of <= {a.chunk_pairs} pairs")
 
@@ -372,6 +436,7 @@ def main() -> None:
         print(f"overhead of 1 Ray worker vs the plain loop: {100 * (t_loop and (n / e2e[1] - t_loop) / t_loop):+.0f} % "
               f"end to end (actor start, pipeline build, lead-in pairs, output files), "
               f"{100 * (loop_steady / runs[1]['steady'] - 1):+.0f} % steady")
+        resume_check(root, runs, a.chunk_pairs)
         if gpu:
             r = ray_run(root, min(ncpu, 16), a.chunk_pairs, device="cuda")
             print(f"ray GPU actors ({min(ncpu, 16)} sharing the GPU): {r['pairs'] / r['wall']:.2f} pairs/s end to end, "
