@@ -1,7 +1,8 @@
 """`cbh reprocess` throughput on Ray: pairs/s for 1 and 2 workers (and 16 / GPU where available),
 against a plain loop over `Pipeline.process` on the same files, with where the CPU went.
 
-    python benchmarks/bench_reprocess.py [--pairs 64] [--size 960] [--chunk-pairs 8] [--repeat 1]
+    python benchmarks/bench_reprocess.py [--pairs 64] [--size 960] [--chunk-pairs 8] [--repeat 1] [--archive DIR]
+    python benchmarks/bench_reprocess.py --against OTHER_CHECKOUT [--repeat 3] [--archive DIR]
 
 A simulated two-day archive (one folder per camera per day) is rendered into a temporary
 folder (960 px by default: nearer the real 1920 px cost per pair than 480 px, so the fixed
@@ -29,6 +30,11 @@ resumed: its wall time); a run stopped like a Ctrl-C once its first day is writt
 same command again, processes every pair exactly once between them apart from the days in
 flight when it stopped, and writes day files identical to the undisturbed run's. Each Ray run
 prints the load average (``uptime``) before it: this benchmark shares the machine.
+
+``--against DIR`` measures only the Ray runs, of this checkout's cbh and of DIR's (another
+checkout: the commit before a change), alternately, each in a fresh process, so that both meet
+the same load on a shared machine (:func:`ab_runs`). Run the benchmark with ``PYTHONPATH`` set to
+the checkout to measure, where another cbh is installed.
 
 Where the CPU went during each measured window (Linux ``/proc``): the actors, this driver
 process, Ray's own processes (raylet, GCS, dashboard/agents, log monitor, idle workers), and
@@ -358,6 +364,62 @@ def resume_check(root: Path, runs: dict, chunk_pairs: int) -> None:
           f"stop); day files identical to the undisturbed run: {'yes' if same else 'NO'}")
 
 
+def one_ray(root: Path, workers: int, chunk_pairs: int) -> None:
+    """``--one-ray W``: one Ray run of the cbh this process imports; its numbers as a JSON line."""
+    import json
+
+    import cbh
+
+    load = _loadavg()
+    r = ray_run(root, workers, chunk_pairs)
+    acc = r["split"]
+    print(json.dumps({"wall": r["wall"], "steady": r["steady"], "pairs": r["pairs"], "lead": r["lead"],
+                      "load": load, "cbh": str(Path(cbh.__file__).parent),
+                      "other": acc["other"] / acc["capacity"] if acc else None}))
+
+
+def ab_runs(root: Path, against: Path, repeat: int, chunk_pairs: int) -> None:
+    """``--against DIR``: the 1- and 2-worker Ray runs of this checkout and of DIR's cbh (another
+    checkout, e.g. the commit before a change), alternately in fresh processes, so that both
+    meet the same load on a shared machine; 2 vs 1 is taken per round (consecutive runs)."""
+    import json
+    import subprocess
+    import sys
+
+    trees = {"this": Path(__file__).resolve().parents[1], "against": against.resolve()}
+    got: dict = {(t, w): [] for t in trees for w in (1, 2)}
+    for _ in range(repeat):
+        for t, d in trees.items():
+            for w in (1, 2):
+                p = subprocess.run([sys.executable, __file__, "--one-ray", str(w), "--archive", str(root),
+                                    "--chunk-pairs", str(chunk_pairs)], env=dict(os.environ, PYTHONPATH=str(d)),
+                                   capture_output=True, text=True)
+                if p.returncode:
+                    raise SystemExit(f"{t} ray {w} failed:\n{p.stderr[-3000:]}")
+                r = json.loads(p.stdout.strip().splitlines()[-1])
+                got[(t, w)].append(r)
+                print(f"  {t} ({r['cbh']}) ray {w}: {r['pairs'] / r['wall']:.2f} pairs/s end to end ({r['wall']:.1f} s), "
+                      f"steady {r['steady']:.2f}; {r['lead']} lead-in pairs; load average before {r['load']}, "
+                      f"other load {100 * (r['other'] or 0):.0f} % of the machine", flush=True)
+    for t, d in trees.items():
+        e2e = {w: [r["pairs"] / r["wall"] for r in got[(t, w)]] for w in (1, 2)}
+        steady = {w: [r["steady"] for r in got[(t, w)]] for w in (1, 2)}
+        rounds = ", ".join(f"{b / a:.2f}" for a, b in zip(e2e[1], e2e[2]))
+        print(f"{t} ({d}): best 1 worker {max(e2e[1]):.2f}, 2 workers {max(e2e[2]):.2f} pairs/s end to end "
+              f"({max(e2e[2]) / max(e2e[1]):.2f}x; steady {max(steady[2]) / max(steady[1]):.2f}x); "
+              f"2 vs 1 per round: {rounds}")
+
+
+def _archive(a, tmp: str) -> tuple[Path, float]:
+    """The archive to measure on: ``--archive`` if it holds one, else rendered (there, or in ``tmp``)."""
+    root = Path(a.archive) if a.archive else Path(tmp)
+    t0 = time.perf_counter()
+    if not (root / "station.toml").is_file():
+        root.mkdir(parents=True, exist_ok=True)
+        make_archive(root, a.pairs, a.size)
+    return root, time.perf_counter() - t0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=64)
@@ -366,7 +428,18 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1,
                     help="run each measurement this often (Ray runs interleaved 1, 2, 1, 2 …) and keep the fastest, "
                          "the least disturbed by other load")
+    ap.add_argument("--archive", help="render the archive into this folder and keep it, or reuse the one there")
+    ap.add_argument("--against", help="another checkout (its root folder): only the Ray runs, of both, alternately")
+    ap.add_argument("--one-ray", type=int, help=argparse.SUPPRESS)  # one Ray run with this many workers (--against)
     a = ap.parse_args()
+    if a.one_ray:
+        return one_ray(Path(a.archive), a.one_ray, a.chunk_pairs)
+    if a.against:
+        with tempfile.TemporaryDirectory(prefix="cbh-bench-reprocess-") as tmp:
+            root, t_render = _archive(a, tmp)
+            print(f"load average at the start: {_loadavg()}; archive: {a.pairs} pairs at {a.size} px "
+                  f"(rendered in {t_render:.0f} s); chunks of <= {a.chunk_pairs} pairs")
+            return ab_runs(root, Path(a.against), a.repeat, a.chunk_pairs)
 
     ncpu = os.cpu_count() or 1
     try:
@@ -384,10 +457,9 @@ def main() -> None:
 
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="cbh-bench-reprocess-") as tmp:
-        t0 = time.perf_counter()
-        root = make_archive(Path(tmp), a.pairs, a.size)
+        root, t_render = _archive(a, tmp)
         print(f"load average at the start: {_loadavg()}")
-        print(f"archive: {a.pairs} pairs at {a.size} px over 2 days (rendered in {time.perf_counter() - t0:.0f} s); "
+        print(f"archive: {a.pairs} pairs at {a.size} px over 2 days (rendered in {t_render:.0f} s); "
               f"{ncpu} CPUs; GPU: {'yes' if gpu else 'no'}; chunks of <= {a.chunk_pairs} pairs")
 
         best = f" (fastest of {a.repeat})" if a.repeat > 1 else ""
