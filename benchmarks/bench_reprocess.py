@@ -278,11 +278,15 @@ def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> 
     n_after = [0]
     cpu = {"s": 0.0, "pairs": 0, "lead": 0}  # after each actor's first chunk (imports, pipeline build)
 
+    spans: dict[int, list] = {}  # pid → [(start, end)] of its chunks (the actor's clock)
+
     def ev(e):
         if e["event"] == "workers":
             actor_pids.update(p for p in e["pids"] if p)
         elif e["event"] == "chunk":
             actor_pids.add(e["pid"])
+            end = e.get("finished_unix", float("nan"))  # not reported before issue 36
+            spans.setdefault(e["pid"], []).append((end - e["elapsed_s"], end))
             if e["pid"] in first_done:
                 cpu["s"] += e["cpu_s"]
                 cpu["pairs"] += e["pairs"] + e["lead_in"]
@@ -305,7 +309,17 @@ def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> 
     assert s.failures == 0 and s.pairs_processed > 0
     return {"wall": t_end - t0, "steady": steady, "pairs": s.pairs_processed, "ray_start": t_ray,
             "cpu_per_pair": cpu["s"] / cpu["pairs"] if cpu["pairs"] else float("nan"), "lead": cpu["lead"],
-            "split": m.split(actor_pids), "out": out}
+            "split": m.split(actor_pids), "out": out, "gap_ms": _gap_ms(spans)}
+
+
+def _gap_ms(spans: dict[int, list]) -> float:
+    """Mean time an actor waited between the end of one chunk and the start of its next [ms]
+    (what handing out chunks costs the actors; NaN where the cbh measured does not report it)."""
+    gaps = []
+    for s in spans.values():
+        s = sorted(s)
+        gaps.extend(b[0] - a[1] for a, b in zip(s, s[1:]))
+    return 1000 * sum(gaps) / len(gaps) if gaps else float("nan")
 
 
 def _loadavg() -> str:
@@ -373,7 +387,7 @@ def one_ray(root: Path, workers: int, chunk_pairs: int) -> None:
     load = _loadavg()
     r = ray_run(root, workers, chunk_pairs)
     acc = r["split"]
-    print(json.dumps({"wall": r["wall"], "steady": r["steady"], "pairs": r["pairs"], "lead": r["lead"],
+    print(json.dumps({"wall": r["wall"], "steady": r["steady"], "pairs": r["pairs"], "lead": r["lead"], "gap_ms": r["gap_ms"],
                       "load": load, "cbh": str(Path(cbh.__file__).parent),
                       "other": acc["other"] / acc["capacity"] if acc else None}))
 
@@ -399,7 +413,8 @@ def ab_runs(root: Path, against: Path, repeat: int, chunk_pairs: int) -> None:
                 r = json.loads(p.stdout.strip().splitlines()[-1])
                 got[(t, w)].append(r)
                 print(f"  {t} ({r['cbh']}) ray {w}: {r['pairs'] / r['wall']:.2f} pairs/s end to end ({r['wall']:.1f} s), "
-                      f"steady {r['steady']:.2f}; {r['lead']} lead-in pairs; load average before {r['load']}, "
+                      f"steady {r['steady']:.2f}; {r['lead']} lead-in pairs; actors wait {r['gap_ms']:.0f} ms between "
+                      f"chunks; load average before {r['load']}, "
                       f"other load {100 * (r['other'] or 0):.0f} % of the machine", flush=True)
     for t, d in trees.items():
         e2e = {w: [r["pairs"] / r["wall"] for r in got[(t, w)]] for w in (1, 2)}
@@ -492,7 +507,8 @@ def main() -> None:
                 "workers (single-threaded actors)"
             print(f"ray {w:>2} {what}{best}: {r['pairs'] / r['wall']:.2f} pairs/s end to end ({r['wall']:.1f} s), "
                   f"steady {r['steady']:.2f} pairs/s; actors {1000 * r['cpu_per_pair']:.0f} ms CPU/pair steady "
-                  f"({r['lead']} lead-in pairs in all); Ray start {r['ray_start']:.1f} s (apart)\n    {_cpu_line(r['split'])}"
+                  f"({r['lead']} lead-in pairs in all); actors wait {r['gap_ms']:.0f} ms between chunks; "
+                  f"Ray start {r['ray_start']:.1f} s (apart)\n    {_cpu_line(r['split'])}"
                   + (f"; actors running {100 * r['split']['workers'] / (w * r['wall']):.0f} % of the run (low with little "
                      "other load: actors waiting on the engine)" if r["split"] else ""))
         e2e = {w: runs[w]["pairs"] / runs[w]["wall"] for w in runs}

@@ -359,6 +359,7 @@ class ChunkResult:
     cpu_s: float = math.nan  # CPU time of the actor process over the chunk, all its threads [s]
     lead_in: int = 0  # pairs processed for their motion state only (0 or 1)
     restarted: bool = False  # the first chunk of an actor that Ray restarted (the chunk it retried)
+    finished_unix: float = math.nan  # when the actor finished the chunk (time.time(): how long actors wait between chunks)
     error: str | None = None  # a bug, not an input problem (e.g. the pipeline could not be built): the day is not written
 
 
@@ -432,6 +433,7 @@ class PairWorker:
                               error=f"{type(exc).__name__}: {last}")
         res.restarted = restarted
         res.elapsed_s, res.cpu_s = time.perf_counter() - t0, time.process_time() - c0
+        res.finished_unix = time.time()
         return res
 
     def _process(self, chunk: Chunk) -> ChunkResult:
@@ -777,9 +779,10 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     ``on_event(dict)`` is called on the driver with ``{"event": "start", "pairs", "days",
     "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "dispatch", "slot", "station",
     "day", "chunk", "pairs"}`` (a chunk handed to actor ``slot``), ``{"event": "chunk", "pairs",
-    "failures", "pid", "elapsed_s", "cpu_s", "lead_in", "restarted"}`` (the actor's wall and CPU
-    time for the chunk, whether it re-processed a lead-in pair, whether Ray had restarted the
-    actor and retried this chunk) and ``{"event": "day", …sidecar…}``.
+    "failures", "pid", "elapsed_s", "cpu_s", "finished_unix", "lead_in", "restarted"}`` (the
+    actor's wall and CPU time for the chunk and when it finished it, whether it re-processed a
+    lead-in pair, whether Ray had restarted the actor and retried this chunk) and
+    ``{"event": "day", …sidecar…}``.
     KeyboardInterrupt stops the run: finished days stay, the index is written, and the
     summary says ``interrupted``.
     """
@@ -947,7 +950,8 @@ class _Run:
                         extra={"cbh_station": res.station, "cbh_time": f["time_utc"]})
         self.emit({"event": "chunk", "station": res.station, "day": res.day.isoformat(),
                    "pairs": len(res.records) + len(res.failures), "failures": len(res.failures), "pid": res.pid,
-                   "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "lead_in": res.lead_in, "restarted": res.restarted})
+                   "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "finished_unix": res.finished_unix,
+                   "lead_in": res.lead_in, "restarted": res.restarted})
         if len(self.got[key]) == self.expected[key]:
             self.expected.pop(key)
             self._write_day(key)
