@@ -917,15 +917,16 @@ class _Run:
                 res: ChunkResult = pool.get_next_unordered(timeout=1.0)  # the timeout: Ctrl-C is seen
             except TimeoutError:
                 continue
-            except ray.exceptions.RayActorError as exc:  # Ray's restarts and retries used up
+            except ray.exceptions.RayError as exc:  # RayActorError: Ray's restarts and retries used up
                 self.summary.lost_chunks += 1
-                log.error("a worker died and Ray gave up restarting it (%s); its chunk's day is left for a rerun",
-                          type(exc).__name__)
+                log.error("a chunk was lost (%s: %s); its day is left for a rerun", type(exc).__name__,
+                          (str(exc).strip().splitlines() or [""])[-1])
                 continue
             self._chunk_done(res)
         for key in list(self.expected):  # days short of a chunk: its worker is gone
             self._day_failed(key, "a chunk was lost: its worker died and Ray had used up its "
-                                  f"{self.opts.actor_restarts} restarts (max_restarts)", "; the day is left for a rerun")
+                                  f"{self.opts.actor_restarts} restarts (max_restarts), or Ray lost its result",
+                             "; the day is left for a rerun")
 
     def _day_failed(self, key: tuple[str, date], reason: str, advice: str = "") -> None:
         self.failed[key] = reason
