@@ -778,8 +778,8 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
 
     ``on_event(dict)`` is called on the driver with ``{"event": "start", "pairs", "days",
     "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "dispatch", "slot", "station",
-    "day", "chunk", "pairs"}`` (a chunk handed to actor ``slot``), ``{"event": "chunk", "pairs",
-    "failures", "pid", "elapsed_s", "cpu_s", "finished_unix", "lead_in", "restarted"}`` (the
+    "day", "chunk", "pairs"}`` (a chunk handed to actor ``slot``), ``{"event": "chunk", "station",
+    "day", "chunk", "pairs", "failures", "pid", "elapsed_s", "cpu_s", "finished_unix", "lead_in", "restarted"}`` (the
     actor's wall and CPU time for the chunk and when it finished it, whether it re-processed a
     lead-in pair, whether Ray had restarted the actor and retried this chunk) and
     ``{"event": "day", …sidecar…}``.
@@ -949,7 +949,7 @@ class _Run:
         for f in res.failures:
             log.warning("pair failed: %s %s: %s", res.station, f["time_utc"], f["reason"],
                         extra={"cbh_station": res.station, "cbh_time": f["time_utc"]})
-        self.emit({"event": "chunk", "station": res.station, "day": res.day.isoformat(),
+        self.emit({"event": "chunk", "station": res.station, "day": res.day.isoformat(), "chunk": res.index,
                    "pairs": len(res.records) + len(res.failures), "failures": len(res.failures), "pid": res.pid,
                    "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "finished_unix": res.finished_unix,
                    "lead_in": res.lead_in, "restarted": res.restarted})
