@@ -10,7 +10,7 @@ costs weigh as they would on real archives). Then, in turn:
 
 - **plain loop**: this process, OpenCV and BLAS on one thread (as in a one-CPU actor),
   `Pipeline.process` over every pair in time order with the motion state handed on, as
-  reprocess does (reprocess also re-processes one lead-in pair per chunk; the loop does not).
+  reprocess does (reprocess also re-processes one lead-in pair per stretch of chunks; the loop does not).
 - **2 plain loops at once**: two processes, each the loop over half of the pairs (no Ray): the
   most two workers can give on this machine (two cores that are really two, the memory
   bandwidth and caches they share, other load).
