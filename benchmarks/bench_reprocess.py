@@ -1,7 +1,8 @@
 """`cbh reprocess` throughput on Ray: pairs/s for 1 and 2 workers (and 16 / GPU where available),
 against a plain loop over `Pipeline.process` on the same files, with where the CPU went.
 
-    python benchmarks/bench_reprocess.py [--pairs 64] [--size 960] [--chunk-pairs 8] [--repeat 1]
+    python benchmarks/bench_reprocess.py [--pairs 64] [--size 960] [--chunk-pairs 8] [--repeat 1] [--archive DIR]
+    python benchmarks/bench_reprocess.py --against OTHER_CHECKOUT [--repeat 3] [--archive DIR]
 
 A simulated two-day archive (one folder per camera per day) is rendered into a temporary
 folder (960 px by default: nearer the real 1920 px cost per pair than 480 px, so the fixed
@@ -9,7 +10,7 @@ costs weigh as they would on real archives). Then, in turn:
 
 - **plain loop**: this process, OpenCV and BLAS on one thread (as in a one-CPU actor),
   `Pipeline.process` over every pair in time order with the motion state handed on, as
-  reprocess does (reprocess also re-processes one lead-in pair per chunk; the loop does not).
+  reprocess does (reprocess also re-processes one lead-in pair per stretch of chunks; the loop does not).
 - **2 plain loops at once**: two processes, each the loop over half of the pairs (no Ray): the
   most two workers can give on this machine (two cores that are really two, the memory
   bandwidth and caches they share, other load).
@@ -22,6 +23,18 @@ costs weigh as they would on real archives). Then, in turn:
   pipeline build excluded). Chunks of 8 pairs by default (the command's default is 32): four per
   actor with 2 workers, so the steady window holds three; smaller chunks cost no lead-in pairs,
   since an actor re-processes one only where it starts a new stretch of a station's chunks.
+
+Then **exactness and resumption** (:func:`resume_check`, on the 2-worker output): the 1- and
+2-worker day files hold identical rows; the same command again processes no pair (every day
+resumed: its wall time); a run stopped like a Ctrl-C once its first day is written, then the
+same command again, processes every pair exactly once between them apart from the days in
+flight when it stopped, and writes day files identical to the undisturbed run's. Each Ray run
+prints the load average (``uptime``) before it: this benchmark shares the machine.
+
+``--against DIR`` measures only the Ray runs, of this checkout's cbh and of DIR's (another
+checkout: the commit before a change), alternately, each in a fresh process, so that both meet
+the same load on a shared machine (:func:`ab_runs`). Run the benchmark with ``PYTHONPATH`` set to
+the checkout to measure, where another cbh is installed.
 
 Where the CPU went during each measured window (Linux ``/proc``): the actors, this driver
 process, Ray's own processes (raylet, GCS, dashboard/agents, log monitor, idle workers), and
@@ -251,25 +264,29 @@ def parallel_loops(root: Path, n: int) -> tuple[float, int, dict | None]:
 
 def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> dict:
     """One run as ``cbh reprocess`` does it: a private Ray with num_cpus=workers, run, stop."""
-    import ray
-
     from cbh.actions.reprocess import reprocess, start_ray
 
     out = root / f"out-{workers}-{device}"
     shutil.rmtree(out, ignore_errors=True)
+    print(f"    (ray {workers}: load average before {_loadavg()})", flush=True)
     t0 = time.perf_counter()
-    start_ray(workers=workers, device=device)
+    start_ray(workers=workers, device=device)  # before Ray is imported here: it sets Ray's environment first
     t_ray = time.perf_counter() - t0
+    import ray
     first_done: dict[int, float] = {}
     actor_pids: set[int] = set()
     n_after = [0]
     cpu = {"s": 0.0, "pairs": 0, "lead": 0}  # after each actor's first chunk (imports, pipeline build)
+
+    spans: dict[int, list] = {}  # pid → [(start, end)] of its chunks (the actor's clock)
 
     def ev(e):
         if e["event"] == "workers":
             actor_pids.update(p for p in e["pids"] if p)
         elif e["event"] == "chunk":
             actor_pids.add(e["pid"])
+            end = e.get("finished_unix", float("nan"))  # not reported before issue 36
+            spans.setdefault(e["pid"], []).append((end - e["elapsed_s"], end))
             if e["pid"] in first_done:
                 cpu["s"] += e["cpu_s"]
                 cpu["pairs"] += e["pairs"] + e["lead_in"]
@@ -292,7 +309,130 @@ def ray_run(root: Path, workers: int, chunk_pairs: int, device: str = "cpu") -> 
     assert s.failures == 0 and s.pairs_processed > 0
     return {"wall": t_end - t0, "steady": steady, "pairs": s.pairs_processed, "ray_start": t_ray,
             "cpu_per_pair": cpu["s"] / cpu["pairs"] if cpu["pairs"] else float("nan"), "lead": cpu["lead"],
-            "split": m.split(actor_pids)}
+            "split": m.split(actor_pids), "out": out, "gap_ms": _gap_ms(spans)}
+
+
+def _gap_ms(spans: dict[int, list]) -> float:
+    """Mean time an actor waited between the end of one chunk and the start of its next [ms]
+    (what handing out chunks costs the actors; NaN where the cbh measured does not report it)."""
+    gaps = []
+    for s in spans.values():
+        s = sorted(s)
+        gaps.extend(b[0] - a[1] for a, b in zip(s, s[1:]))
+    return 1000 * sum(gaps) / len(gaps) if gaps else float("nan")
+
+
+def _loadavg() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "n/a"
+
+
+def _day_tables(out: Path) -> dict:
+    """Day file name → its rows (the Parquet table's repr, so NaN equals NaN): what must not change."""
+    import pyarrow.parquet as pq
+
+    return {f.name: repr(pq.read_table(f).to_pydict()) for f in sorted(out.glob("*/*.parquet"))}
+
+
+def _timed_reprocess(root: Path, out: Path, workers: int, chunk_pairs: int, stop_after_day: bool = False):
+    """(wall s, Summary) of one reprocess run on a fresh private Ray; ``stop_after_day``: a
+    KeyboardInterrupt (as Ctrl-C) once the first day is written."""
+    from cbh.actions.reprocess import reprocess
+
+    def ev(e):
+        if stop_after_day and e["event"] == "day":
+            raise KeyboardInterrupt
+
+    t0 = time.perf_counter()
+    try:
+        _, s = reprocess([root / "station.toml"], [f"cam1={root / 'cam1'}", f"cam2={root / 'cam2'}"], out=out,
+                         workers=workers, chunk_pairs=chunk_pairs, on_event=ev)
+    finally:
+        import ray
+
+        ray.shutdown()
+    return time.perf_counter() - t0, s
+
+
+def resume_check(root: Path, runs: dict, chunk_pairs: int) -> None:
+    """Exactness (1 vs 2 workers) and resumption (a rerun; a stop after the first day + a rerun)."""
+    ref = _day_tables(runs[2]["out"])
+    same = ref == _day_tables(runs[1]["out"])
+    print(f"exact: day files of 1 and 2 workers identical: {'yes' if same else 'NO'} ({len(ref)} days)")
+    t, s = _timed_reprocess(root, runs[2]["out"], 2, chunk_pairs)
+    print(f"resume, nothing left: {s.pairs_processed} pairs processed, {s.days_resumed} days resumed, "
+          f"{t:.1f} s (plan + index; no Ray started)")
+    out = root / "out-stopped"
+    shutil.rmtree(out, ignore_errors=True)
+    t1, s1 = _timed_reprocess(root, out, 2, chunk_pairs, stop_after_day=True)
+    t2, s2 = _timed_reprocess(root, out, 2, chunk_pairs)
+    total = s1.pairs_total
+    kept = s1.days_written
+    redone = s1.pairs_processed + s2.pairs_processed - total
+    same = _day_tables(out) == ref
+    print(f"resume after a stop once the first day was written: run 1 {s1.pairs_processed} pairs in {t1:.1f} s "
+          f"({kept} day kept, interrupted={s1.interrupted}); run 2 {s2.pairs_processed} pairs in {t2:.1f} s "
+          f"({s2.days_resumed} resumed, {s2.days_written} written); {redone} pairs done twice (in flight at the "
+          f"stop); day files identical to the undisturbed run: {'yes' if same else 'NO'}")
+
+
+def one_ray(root: Path, workers: int, chunk_pairs: int) -> None:
+    """``--one-ray W``: one Ray run of the cbh this process imports; its numbers as a JSON line."""
+    import json
+
+    import cbh
+
+    load = _loadavg()
+    r = ray_run(root, workers, chunk_pairs)
+    acc = r["split"]
+    print(json.dumps({"wall": r["wall"], "steady": r["steady"], "pairs": r["pairs"], "lead": r["lead"], "gap_ms": r["gap_ms"],
+                      "load": load, "cbh": str(Path(cbh.__file__).parent),
+                      "other": acc["other"] / acc["capacity"] if acc else None}))
+
+
+def ab_runs(root: Path, against: Path, repeat: int, chunk_pairs: int) -> None:
+    """``--against DIR``: the 1- and 2-worker Ray runs of this checkout and of DIR's cbh (another
+    checkout, e.g. the commit before a change), alternately in fresh processes, so that both
+    meet the same load on a shared machine; 2 vs 1 is taken per round (consecutive runs)."""
+    import json
+    import subprocess
+    import sys
+
+    trees = {"this": Path(__file__).resolve().parents[1], "against": against.resolve()}
+    got: dict = {(t, w): [] for t in trees for w in (1, 2)}
+    for _ in range(repeat):
+        for t, d in trees.items():
+            for w in (1, 2):
+                p = subprocess.run([sys.executable, __file__, "--one-ray", str(w), "--archive", str(root),
+                                    "--chunk-pairs", str(chunk_pairs)], env=dict(os.environ, PYTHONPATH=str(d)),
+                                   capture_output=True, text=True)
+                if p.returncode:
+                    raise SystemExit(f"{t} ray {w} failed:\n{p.stderr[-3000:]}")
+                r = json.loads(p.stdout.strip().splitlines()[-1])
+                got[(t, w)].append(r)
+                print(f"  {t} ({r['cbh']}) ray {w}: {r['pairs'] / r['wall']:.2f} pairs/s end to end ({r['wall']:.1f} s), "
+                      f"steady {r['steady']:.2f}; {r['lead']} lead-in pairs; actors wait {r['gap_ms']:.0f} ms between "
+                      f"chunks; load average before {r['load']}, "
+                      f"other load {100 * (r['other'] or 0):.0f} % of the machine", flush=True)
+    for t, d in trees.items():
+        e2e = {w: [r["pairs"] / r["wall"] for r in got[(t, w)]] for w in (1, 2)}
+        steady = {w: [r["steady"] for r in got[(t, w)]] for w in (1, 2)}
+        rounds = ", ".join(f"{b / a:.2f}" for a, b in zip(e2e[1], e2e[2]))
+        print(f"{t} ({d}): best 1 worker {max(e2e[1]):.2f}, 2 workers {max(e2e[2]):.2f} pairs/s end to end "
+              f"({max(e2e[2]) / max(e2e[1]):.2f}x; steady {max(steady[2]) / max(steady[1]):.2f}x); "
+              f"2 vs 1 per round: {rounds}")
+
+
+def _archive(a, tmp: str) -> tuple[Path, float]:
+    """The archive to measure on: ``--archive`` if it holds one, else rendered (there, or in ``tmp``)."""
+    root = Path(a.archive) if a.archive else Path(tmp)
+    t0 = time.perf_counter()
+    if not (root / "station.toml").is_file():
+        root.mkdir(parents=True, exist_ok=True)
+        make_archive(root, a.pairs, a.size)
+    return root, time.perf_counter() - t0
 
 
 def main() -> None:
@@ -303,7 +443,18 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1,
                     help="run each measurement this often (Ray runs interleaved 1, 2, 1, 2 …) and keep the fastest, "
                          "the least disturbed by other load")
+    ap.add_argument("--archive", help="render the archive into this folder and keep it, or reuse the one there")
+    ap.add_argument("--against", help="another checkout (its root folder): only the Ray runs, of both, alternately")
+    ap.add_argument("--one-ray", type=int, help=argparse.SUPPRESS)  # one Ray run with this many workers (--against)
     a = ap.parse_args()
+    if a.one_ray:
+        return one_ray(Path(a.archive), a.one_ray, a.chunk_pairs)
+    if a.against:
+        with tempfile.TemporaryDirectory(prefix="cbh-bench-reprocess-") as tmp:
+            root, t_render = _archive(a, tmp)
+            print(f"load average at the start: {_loadavg()}; archive: {a.pairs} pairs at {a.size} px "
+                  f"(rendered in {t_render:.0f} s); chunks of <= {a.chunk_pairs} pairs")
+            return ab_runs(root, Path(a.against), a.repeat, a.chunk_pairs)
 
     ncpu = os.cpu_count() or 1
     try:
@@ -321,9 +472,9 @@ def main() -> None:
 
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="cbh-bench-reprocess-") as tmp:
-        t0 = time.perf_counter()
-        root = make_archive(Path(tmp), a.pairs, a.size)
-        print(f"archive: {a.pairs} pairs at {a.size} px over 2 days (rendered in {time.perf_counter() - t0:.0f} s); "
+        root, t_render = _archive(a, tmp)
+        print(f"load average at the start: {_loadavg()}")
+        print(f"archive: {a.pairs} pairs at {a.size} px over 2 days (rendered in {t_render:.0f} s); "
               f"{ncpu} CPUs; GPU: {'yes' if gpu else 'no'}; chunks of <= {a.chunk_pairs} pairs")
 
         best = f" (fastest of {a.repeat})" if a.repeat > 1 else ""
@@ -356,7 +507,8 @@ def main() -> None:
                 "workers (single-threaded actors)"
             print(f"ray {w:>2} {what}{best}: {r['pairs'] / r['wall']:.2f} pairs/s end to end ({r['wall']:.1f} s), "
                   f"steady {r['steady']:.2f} pairs/s; actors {1000 * r['cpu_per_pair']:.0f} ms CPU/pair steady "
-                  f"({r['lead']} lead-in pairs in all); Ray start {r['ray_start']:.1f} s (apart)\n    {_cpu_line(r['split'])}"
+                  f"({r['lead']} lead-in pairs in all); actors wait {r['gap_ms']:.0f} ms between chunks; "
+                  f"Ray start {r['ray_start']:.1f} s (apart)\n    {_cpu_line(r['split'])}"
                   + (f"; actors running {100 * r['split']['workers'] / (w * r['wall']):.0f} % of the run (low with little "
                      "other load: actors waiting on the engine)" if r["split"] else ""))
         e2e = {w: runs[w]["pairs"] / runs[w]["wall"] for w in runs}
@@ -372,6 +524,7 @@ def main() -> None:
         print(f"overhead of 1 Ray worker vs the plain loop: {100 * (t_loop and (n / e2e[1] - t_loop) / t_loop):+.0f} % "
               f"end to end (actor start, pipeline build, lead-in pairs, output files), "
               f"{100 * (loop_steady / runs[1]['steady'] - 1):+.0f} % steady")
+        resume_check(root, runs, a.chunk_pairs)
         if gpu:
             r = ray_run(root, min(ncpu, 16), a.chunk_pairs, device="cuda")
             print(f"ray GPU actors ({min(ncpu, 16)} sharing the GPU): {r['pairs'] / r['wall']:.2f} pairs/s end to end, "

@@ -12,11 +12,15 @@ What happens
    a GPU with ``device="cuda"``) each build a station's :class:`~cbh.pipeline.Pipeline`
    once (heavy tables: remap, rays, masks) and keep it for every later chunk of that station.
    Days are cut into chunks of at most ``chunk_pairs`` pairs, of equal size within a day
-   (:func:`_chunk_bounds`), so that a few long days still keep every worker busy; an actor
-   keeps to one station while that station has work, and sends back only what the day files
-   need (a :class:`~cbh.outputs.export.PairRecord` per pair: no images, no height maps). A worker process
-   that dies is restarted by Ray and its chunk retried (``max_restarts``/``max_task_retries``);
-   if Ray gives up, a fresh actor takes the chunk (``max_attempts`` in all).
+   (:func:`_chunk_bounds`), so that a few long days still keep every worker busy. Ray's
+   :class:`~ray.util.ActorPool` streams the chunks to the actors, one in flight per actor
+   (back-pressure: a chunk is handed out when an actor is free); which chunk is decided then,
+   from that actor's stretch (:class:`_ChunkQueue`, below). An actor sends back only what the
+   day files need (a :class:`~cbh.outputs.export.PairRecord` per pair: no images, no height
+   maps). Fault tolerance is Ray's: an actor whose process dies is restarted (``max_restarts``)
+   and the chunk it was on retried (``max_task_retries``); once Ray gives up on an actor, it
+   leaves the pool, the others take over its work, and the day of its lost chunk is left
+   unwritten for a rerun (the resume below).
 3. **Output** (on the driver, as each day completes): per station and UTC day
    ``OUT/<station>/cbh_<station>_<YYYYMMDD>.nc`` (CF-1.8 NetCDF, the variables of
    ``cbh export``) and ``….parquet`` (the ``cbh export`` table), each written atomically
@@ -42,10 +46,15 @@ day's last) is processed again for its state only, so every pair gets its motion
 one sequential run. An actor that itself processed that pair last (it works through a
 contiguous stretch of chunks, :class:`_ChunkQueue`) skips the re-processing and starts from
 the state the lead-in would leave (:func:`_as_lead_in`: the same frames, no offset history),
-so the results do not depend on which actor took which chunk, and the extra pairs are one per
-stretch (about one per actor and station), not one per chunk. The running clock-offset
-estimate (a median over the last pairs) restarts at each chunk; where a clock offset is compensated, the heights
-of a chunk's first pairs can differ from a sequential run's within the 0.5 % the issue allows.
+so the results do not depend on which actor took which chunk, nor on an actor's restart (a
+restarted actor has no such state: its retried chunk re-processes the lead-in), and the extra
+pairs are one per stretch (about one per actor and station), not one per chunk. That affinity
+is why the chunks go through an actor pool that asks the queue at hand-out time, not through
+Ray Data: its ``map_batches`` over an actor pool gives a batch to whichever actor is free, so
+every chunk would re-process a lead-in pair (1/``chunk_pairs`` more work on 2 or more workers).
+The running clock-offset estimate (a median over the last pairs) restarts at each chunk; where
+a clock offset is compensated, the heights of a chunk's first pairs can differ from a
+sequential run's within the 0.5 % the issue allows.
 Where no temporal information is used the heights are identical to ``cbh pair``'s.
 """
 from __future__ import annotations
@@ -55,8 +64,9 @@ import json
 import logging
 import math
 import os
+import sys
 import time
-from collections import OrderedDict, defaultdict, deque
+from collections import OrderedDict, defaultdict
 from dataclasses import dataclass, field
 from datetime import date, datetime, timezone
 from pathlib import Path
@@ -208,8 +218,7 @@ class ReprocessOptions:
     formats: tuple[str, ...] = FORMATS
     chunk_pairs: int = 32  # at most this many pairs per task (a day is cut into equal chunks, _chunk_bounds)
     pair_tolerance_s: float | None = None  # None: the station's [service] pair_tolerance_s (default 0.5 s)
-    max_attempts: int = 3  # a chunk whose worker dies is given to a fresh actor at most this often
-    actor_restarts: int = 3  # Ray's max_restarts (and max_task_retries) of each actor
+    actor_restarts: int = 3  # Ray's max_restarts and max_task_retries of each actor (then its chunk's day is left for a rerun)
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -345,10 +354,13 @@ class ChunkResult:
     index: int
     records: list  # cbh.outputs.export.PairRecord, time order
     failures: list[dict]  # {"time_utc", "frames", "reason"}
-    pid: int  # the actor process (a new pid in a slot: Ray restarted the actor)
+    pid: int  # the actor process
     elapsed_s: float  # wall time of the chunk in the actor [s]
     cpu_s: float = math.nan  # CPU time of the actor process over the chunk, all its threads [s]
     lead_in: int = 0  # pairs processed for their motion state only (0 or 1)
+    restarted: bool = False  # the first chunk of an actor that Ray restarted (the chunk it retried)
+    finished_unix: float = math.nan  # when the actor finished the chunk (time.time(): how long actors wait between chunks)
+    error: str | None = None  # a bug, not an input problem (e.g. the pipeline could not be built): the day is not written
 
 
 class PairWorker:
@@ -379,8 +391,10 @@ class PairWorker:
         self.stations = {k: (parse_station(tomllib.loads(text)), tuple(cams)) for k, (text, cams) in stations.items()}
         self.device = device
         self._pipes: OrderedDict = OrderedDict()
-        # station → (the last pair this actor processed, the state a lead-in of that pair leaves)
+        # station → (the last pair this actor processed, the state a lead-in of that pair leaves);
+        # a restarted actor starts without it, so its retried chunk re-processes its lead-in pair
         self._last: dict[str, tuple[PairRef, object]] = {}
+        self._restarted = _restarted_by_ray()
 
     def pid(self) -> int:
         return os.getpid()
@@ -403,12 +417,30 @@ class PairWorker:
         return pipe
 
     def process(self, chunk: Chunk) -> ChunkResult:
-        """Every pair of the chunk: records of those processed, failures (with reasons) of the rest."""
+        """Every pair of the chunk: records of those processed, failures (with reasons) of the rest.
+
+        An exception outside the pairs (a bug; a pipeline that cannot be built) comes back as
+        ``error``, with the chunk it belongs to, rather than as Ray's task error: Ray does not
+        retry it (``retry_exceptions`` off: it would fail the same way again), and the driver
+        leaves the chunk's day unwritten."""
+        restarted, self._restarted = self._restarted, False
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            res = self._process(chunk)
+        except Exception as exc:
+            last = (str(exc).strip().splitlines() or [""])[-1]
+            res = ChunkResult(chunk.station, chunk.day, chunk.index, [], [], os.getpid(), 0.0,
+                              error=f"{type(exc).__name__}: {last}")
+        res.restarted = restarted
+        res.elapsed_s, res.cpu_s = time.perf_counter() - t0, time.process_time() - c0
+        res.finished_unix = time.time()
+        return res
+
+    def _process(self, chunk: Chunk) -> ChunkResult:
         from cbh.outputs.export import pair_record
 
         from cbh.actions.run import MotionChain
 
-        t0, c0 = time.perf_counter(), time.process_time()
         pipe = self.pipeline(chunk.station)
         st = self.stations[chunk.station][0]
         motion = MotionChain()  # the temporal state handed from pair to pair, as in `cbh run`
@@ -447,8 +479,18 @@ class PairWorker:
                              "reason": reason})
         if chunk.pairs:
             self._last[chunk.station] = (chunk.pairs[-1], _as_lead_in(motion.state))
-        return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(),
-                           time.perf_counter() - t0, time.process_time() - c0, len(lead))
+        return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(), 0.0,
+                           lead_in=len(lead))
+
+
+def _restarted_by_ray() -> bool:
+    """True in an actor that Ray restarted after its process died (Ray's runtime context says so)."""
+    try:
+        import ray
+
+        return bool(ray.is_initialized() and ray.get_runtime_context().was_current_actor_reconstructed)
+    except Exception:  # not in an actor (a plain PairWorker), or no Ray
+        return False
 
 
 def _as_lead_in(state):
@@ -483,13 +525,16 @@ def start_ray(workers: int | None = None, address: str | None = None, device: st
     cpus : int
         CPUs Ray offers (the default worker count).
     """
-    if address is None:
-        # must be set before ray is imported: Ray then binds 127.0.0.1 instead of the host's address
+    if address is None and "ray" not in sys.modules:
+        # Ray reads these when it is imported, so they are set only before that (set later, this
+        # process would keep Ray's defaults and the processes it starts would get these: a token
+        # that the driver does not send). This one: Ray binds 127.0.0.1, not the host's address
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
         # token authentication on, as Ray >= 2.59 does by default for a local instance, but said
         # explicitly: Ray's documented switch, which also keeps its notice ("Token authentication
         # is enabled for this Ray cluster …") off every run (a user's own setting wins)
         os.environ.setdefault("RAY_AUTH_MODE", "token")
+    if address is None:
         # local workers import the very cbh this process runs (Ray's worker processes do not
         # always see a virtual environment's site-packages, and another cbh may be installed
         # system-wide): its folder goes first on the path of every process Ray starts from here
@@ -544,8 +589,8 @@ class Summary:
     days_written: int = 0
     days_resumed: int = 0
     days_failed: int = 0  # days not finished (worker kept dying, interrupted): a rerun retries them
-    retried_chunks: int = 0  # chunks given to a fresh actor after Ray's restarts were used up
-    worker_restarts: int = 0  # actor processes Ray restarted (their tasks retried by Ray)
+    worker_restarts: int = 0  # actor processes Ray restarted (the chunk each was on retried by Ray)
+    lost_chunks: int = 0  # chunks whose actor Ray gave up on (restarts used up): their days are left for a rerun
     workers: int = 0
     elapsed_s: float = 0.0
     interrupted: bool = False
@@ -642,8 +687,8 @@ def _write_index(plan: Plan, sides: dict[tuple[str, date], dict], failed: dict[t
         "totals": {"pairs": summary.pairs_total, "processed": summary.pairs_processed,
                    "resumed": summary.pairs_resumed, "failures": summary.failures,
                    "days_written": summary.days_written, "days_resumed": summary.days_resumed,
-                   "days_not_finished": summary.days_failed, "retried_chunks": summary.retried_chunks,
-                   "worker_restarts": summary.worker_restarts,
+                   "days_not_finished": summary.days_failed, "worker_restarts": summary.worker_restarts,
+                   "lost_chunks": summary.lost_chunks,
                    "elapsed_s": round(summary.elapsed_s, 3)},
         "stations": stations,
     }
@@ -656,12 +701,13 @@ class _ChunkQueue:
     """Chunks waiting for an actor, handed out so that each actor works through a contiguous
     stretch of one station's chunks: the lead-in pair of its next chunk is then its own last
     pair, and :meth:`PairWorker.process` re-processes none (one lead-in per stretch, not per chunk).
+    This is what Ray's pool cannot know: which actor already holds the motion state a chunk needs.
 
     An actor without a stretch takes one on the station it was on while that station has work
     (else the station with the most chunks left per actor on it): an unclaimed stretch whole,
     else the larger half, the later in time, of that station's largest stretch (its owner keeps
     the earlier half). So every actor stays busy to the end, at the price of one lead-in per
-    split. Chunks to retry (their actor died) go first.
+    split; the stretch of an actor that Ray gave up on is taken over the same way.
 
     Parameters
     ----------
@@ -674,25 +720,19 @@ class _ChunkQueue:
         self._stretches = [[k, 0, len(v)] for k, v in self._chunks.items()]  # [station, next, end)
         self._mine: dict[int, list] = {}  # slot → its stretch
         self._station: dict[int, str] = {}  # slot → the station it is on
-        self._retry: deque = deque()
 
     def __len__(self) -> int:
-        return len(self._retry) + sum(hi - lo for _, lo, hi in self._stretches)
+        return sum(hi - lo for _, lo, hi in self._stretches)
 
-    def retry(self, chunk: Chunk, attempt: int) -> None:
-        self._retry.appendleft((chunk, attempt))
-
-    def next(self, slot: int) -> tuple[Chunk, int] | None:
-        """(chunk, attempt) for actor ``slot``; None when nothing is left."""
-        if self._retry:
-            return self._retry.popleft()
+    def next(self, slot: int) -> Chunk | None:
+        """The next chunk for actor ``slot``; None when nothing is left."""
         s = self._mine.get(slot)
         if s is None or s[1] >= s[2]:
             s = self._claim(slot)
             if s is None:
                 return None
         s[1] += 1
-        return self._chunks[s[0]][s[1] - 1], 1
+        return self._chunks[s[0]][s[1] - 1]
 
     def _claim(self, slot: int) -> list | None:
         self._stretches = [s for s in self._stretches if s[1] < s[2]]
@@ -737,9 +777,12 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     """Process every unfinished day of the plan on Ray; write the days as they finish and the index.
 
     ``on_event(dict)`` is called on the driver with ``{"event": "start", "pairs", "days",
-    "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "chunk", "pairs", "failures",
-    "pid", "elapsed_s", "cpu_s", "lead_in"}`` (the actor's wall and CPU time for the chunk, and
-    whether it re-processed a lead-in pair), ``{"event": "dispatch", "slot", …}``, ``{"event": "day", …sidecar…}`` and ``{"event": "retry", …}``.
+    "workers"}``, ``{"event": "workers", "pids"}``, ``{"event": "dispatch", "slot", "station",
+    "day", "chunk", "pairs"}`` (a chunk handed to actor ``slot``), ``{"event": "chunk", "station",
+    "day", "chunk", "pairs", "failures", "pid", "elapsed_s", "cpu_s", "finished_unix", "lead_in", "restarted"}`` (the
+    actor's wall and CPU time for the chunk and when it finished it, whether it re-processed a
+    lead-in pair, whether Ray had restarted the actor and retried this chunk) and
+    ``{"event": "day", …sidecar…}``.
     KeyboardInterrupt stops the run: finished days stay, the index is written, and the
     summary says ``interrupted``.
     """
@@ -751,9 +794,7 @@ def run_plan(plan: Plan, on_event: Callable[[dict], None] | None = None) -> Summ
     owned, cpus = start_ray(plan.options.workers, plan.options.address, plan.options.device)
     try:
         run.start_workers(cpus)
-        while run.inflight or len(run.queue):
-            run.dispatch()
-            run.collect()
+        run.stream()
     except KeyboardInterrupt:
         run.summary.interrupted = True
         log.warning("interrupted: finished days are kept; a rerun resumes the rest")
@@ -784,7 +825,7 @@ def _plan_chunks(plan: Plan) -> tuple[dict[str, list[Chunk]], dict[tuple[str, da
 
 
 class _Run:
-    """The driver's state of one :func:`run_plan`: chunks waiting and in flight, the actors,
+    """The driver's state of one :func:`run_plan`: the actors, the chunks still to hand out,
     the days' results so far, the summary; each step of the run is a method."""
 
     def __init__(self, plan: Plan, emit: Callable[[dict], None]):
@@ -804,14 +845,15 @@ class _Run:
         self.sides: dict[tuple[str, date], dict] = {}
         self.failed: dict[tuple[str, date], str] = {}
         self.actors: list = []
-        self.pids: list = []
-        self.inflight: dict = {}  # ObjectRef → (actor slot, chunk, attempt, actor handle)
-        self.load: list[int] = []
 
     # --- the workers ---------------------------------------------------------------------------
 
     def start_workers(self, cpus: int) -> None:
-        """One actor per worker (at most Ray's CPUs and the chunks to do), each asked its pid."""
+        """One actor per worker (at most Ray's CPUs and the chunks to do), each asked its pid.
+
+        Ray restarts an actor whose process dies (``max_restarts``) and retries the chunk it was
+        on (``max_task_retries``), up to ``actor_restarts`` times each; the restarted actor
+        rebuilds its pipeline from the same constructor arguments."""
         import ray
 
         opts, s = self.opts, self.summary
@@ -819,23 +861,17 @@ class _Run:
         if n > cpus:
             log.warning("%d workers asked, Ray offers %d CPUs: using %d", n, cpus, cpus)
             n = cpus
-        self.n_workers = s.workers = max(1, min(n, len(self.queue)))
+        n_workers = s.workers = max(1, min(n, len(self.queue)))
         gpu_share = 0.0
         if opts.device == "cuda":
-            gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / self.n_workers)
-        self.actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share,
-                                                        max_restarts=opts.actor_restarts,
-                                                        max_task_retries=opts.actor_restarts)
-        self.stations = {j.name: (j.station.to_toml(), j.cameras) for j in self.plan.jobs if j.name in self.by_station}
-        self.load = [0] * self.n_workers
+            gpu_share = min(1.0, float(ray.cluster_resources().get("GPU", 0)) / n_workers)
+        actor_cls = ray.remote(PairWorker).options(num_cpus=1, num_gpus=gpu_share, max_restarts=opts.actor_restarts,
+                                                   max_task_retries=opts.actor_restarts)
+        stations = {j.name: (j.station.to_toml(), j.cameras) for j in self.plan.jobs if j.name in self.by_station}
         self.emit({"event": "start", "pairs": sum(len(w.pairs) for w in self.todo), "days": len(self.todo),
-                   "workers": self.n_workers})
-        self.actors = [self._new_actor() for _ in range(self.n_workers)]
-        self.pids = ray.get([a.pid.remote() for a in self.actors])
-        self.emit({"event": "workers", "pids": list(self.pids)})
-
-    def _new_actor(self):
-        return self.actor_cls.remote(self.stations, self.opts.device)
+                   "workers": n_workers})
+        self.actors = [actor_cls.remote(stations, opts.device) for _ in range(n_workers)]
+        self.emit({"event": "workers", "pids": ray.get([a.pid.remote() for a in self.actors])})
 
     def stop_workers(self, owned: bool) -> None:
         """A private Ray instance is shut down (its actors with it); on a shared cluster this
@@ -853,84 +889,72 @@ class _Run:
 
     # --- chunks out and results in -------------------------------------------------------------
 
-    def dispatch(self) -> None:
-        """Breadth first: every actor gets one chunk before any gets a second (queued behind it)."""
-        for depth, slot in [(d, k) for d in (1, 2) for k in range(self.n_workers)]:
-            if self.load[slot] < depth:
-                item = self.queue.next(slot)
-                if item is None:
-                    break
-                chunk, attempt = item
-                self.inflight[self.actors[slot].process.remote(chunk)] = (slot, chunk, attempt, self.actors[slot])
-                self.load[slot] += 1
-                self.emit({"event": "dispatch", "slot": slot, "station": chunk.station,
-                           "day": chunk.day.isoformat(), "chunk": chunk.index, "pairs": len(chunk.pairs)})
-
-    def collect(self) -> None:
-        """Wait up to 1 s for a chunk; handle what came back (a result, a dead actor, a bug)."""
+    def stream(self) -> None:
+        """Every chunk through Ray's :class:`~ray.util.ActorPool`: a chunk goes to an actor when
+        that actor is free (one in flight per actor: back-pressure, nothing queues up in Ray), and
+        which chunk is decided then, from that actor's stretch (:class:`_ChunkQueue`). A result is
+        counted, and its day written once complete, as it arrives. An actor that Ray gave up on
+        (its restarts used up) leaves the pool, its chunk is lost and its day left for a rerun;
+        the others take over its stretch."""
         import ray
+        from ray.util import ActorPool
 
-        ready, _ = ray.wait(list(self.inflight), num_returns=1, timeout=1.0)
-        for ref in ready:
-            slot, chunk, attempt, actor = self.inflight.pop(ref)
-            self.load[slot] -= 1
+        pool = ActorPool(self.actors)
+        slots = {id(a): k for k, a in enumerate(self.actors)}
+
+        def submit(actor, _):
+            slot = slots[id(actor)]
+            chunk = self.queue.next(slot)  # not None: one submit per chunk
+            ref = actor.process.remote(chunk)
+            self.emit({"event": "dispatch", "slot": slot, "station": chunk.station, "day": chunk.day.isoformat(),
+                       "chunk": chunk.index, "pairs": len(chunk.pairs)})
+            return ref
+
+        for _ in range(len(self.queue)):
+            pool.submit(submit, None)  # an idle actor now, else queued in the pool until one is free
+        while pool.has_next():
             try:
-                res: ChunkResult = ray.get(ref)
-            except ray.exceptions.RayActorError as exc:  # Ray's restarts and retries used up
-                self._actor_died(slot, chunk, attempt, actor, exc)
+                res: ChunkResult = pool.get_next_unordered(timeout=1.0)  # the timeout: Ctrl-C is seen
+            except TimeoutError:
                 continue
-            except ray.exceptions.RayTaskError as exc:  # a bug, not an input problem: the day is not written
-                self._day_failed(chunk, f"error in worker: {str(exc).strip().splitlines()[-1]}")
+            except ray.exceptions.RayError as exc:  # RayActorError: Ray's restarts and retries used up
+                self.summary.lost_chunks += 1
+                log.error("a chunk was lost (%s: %s); its day is left for a rerun", type(exc).__name__,
+                          (str(exc).strip().splitlines() or [""])[-1])
                 continue
-            self._chunk_done(slot, chunk, res)
-
-    def _actor_died(self, slot: int, chunk: Chunk, attempt: int, actor, exc) -> None:
-        """A fresh actor replaces the dead one; the chunk is retried up to ``max_attempts``."""
-        import ray
-
-        self.summary.retried_chunks += 1
-        if self.actors[slot] is actor:  # not yet replaced (its other in-flight chunk may fail too)
-            try:
-                ray.kill(actor, no_restart=True)
-            except Exception:
-                pass
-            self.actors[slot] = self._new_actor()
-            self.pids[slot] = None
-        if attempt < self.opts.max_attempts:
-            self.queue.retry(chunk, attempt + 1)
-            log.warning("worker died on %s %s chunk %d; retrying on a fresh worker (%s)",
-                        chunk.station, chunk.day, chunk.index, type(exc).__name__)
-            self.emit({"event": "retry", "station": chunk.station, "day": chunk.day.isoformat(),
-                       "chunk": chunk.index, "attempt": attempt + 1})
-        else:
-            self._day_failed(chunk, f"worker died {attempt} times on chunk {chunk.index}",
+            self._chunk_done(res)
+        for key in list(self.expected):  # days short of a chunk: its worker is gone
+            self._day_failed(key, "a chunk was lost: its worker died and Ray had used up its "
+                                  f"{self.opts.actor_restarts} restarts (max_restarts), or Ray lost its result",
                              "; the day is left for a rerun")
 
-    def _day_failed(self, chunk: Chunk, reason: str, advice: str = "") -> None:
-        key = (chunk.station, chunk.day)
+    def _day_failed(self, key: tuple[str, date], reason: str, advice: str = "") -> None:
         self.failed[key] = reason
-        log.error("%s %s: %s%s", chunk.station, chunk.day, reason, advice)
+        log.error("%s %s: %s%s", key[0], key[1], reason, advice)
         self.got.pop(key, None)
         self.expected.pop(key, None)
 
-    def _chunk_done(self, slot: int, chunk: Chunk, res: ChunkResult) -> None:
+    def _chunk_done(self, res: ChunkResult) -> None:
         """Count a chunk's pairs and failures; write its day once all the day's chunks are in."""
-        s, key = self.summary, (chunk.station, chunk.day)
-        if self.pids[slot] is not None and res.pid != self.pids[slot]:
-            s.worker_restarts += 1  # Ray restarted this actor (its process died) and retried its tasks
-        self.pids[slot] = res.pid
+        s, key = self.summary, (res.station, res.day)
+        s.worker_restarts += res.restarted  # Ray restarted this actor (its process died) and retried this chunk
         if key not in self.expected:
             return  # the day already failed
+        if res.error is not None:  # a bug, not an input problem: the day is not written
+            self._day_failed(key, f"error in worker: {res.error}")
+            return
         self.got[key].append(res)
         s.pairs_processed += len(res.records) + len(res.failures)
         s.failures += len(res.failures)
         for f in res.failures:
-            log.warning("pair failed: %s %s: %s", chunk.station, f["time_utc"], f["reason"],
-                        extra={"cbh_station": chunk.station, "cbh_time": f["time_utc"]})
-        self.emit({"event": "chunk", "station": chunk.station, "day": chunk.day.isoformat(),
-                   "pairs": len(res.records) + len(res.failures), "failures": len(res.failures),
-                   "pid": res.pid, "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "lead_in": res.lead_in})
+            log.warning("pair failed: %s %s: %s", res.station, f["time_utc"], f["reason"],
+                        extra={"cbh_station": res.station, "cbh_time": f["time_utc"]})
+        self.emit({"event": "chunk", "station": res.station, "day": res.day.isoformat(), "chunk": res.index,
+                   "pairs": len(res.records) + len(res.failures), "failures": len(res.failures), "pid": res.pid,
+                   "elapsed_s": res.elapsed_s, "cpu_s": res.cpu_s, "finished_unix": res.finished_unix,
+                   "lead_in": res.lead_in, "restarted": res.restarted})
         if len(self.got[key]) == self.expected[key]:
+            self.expected.pop(key)
             self._write_day(key)
 
     def _write_day(self, key: tuple[str, date]) -> None:
