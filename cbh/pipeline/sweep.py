@@ -125,7 +125,7 @@ from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 __all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes",
            "coarse_votes", "coarse_regions", "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
-           "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
+           "label_pass", "refine_pass", "straddling", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
 _REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
@@ -133,6 +133,8 @@ _REGION_LOCK = threading.Lock()
 _SRC_SCALE = 64.0  # image 2 enters the sweep's remap as uint16 in 1/64 grey levels (see _HalfZncc)
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
+_REGION_APART_BINS = 3  # a region's layer is a new one beyond 1.5 plane steps from the image's [bins of half a step]
+_REGION_MIN_FILL = 0.25  # a region proposes layers when this share of its cells vote [1]
 
 
 @dataclass
@@ -744,6 +746,7 @@ class CoarseLayers:
     ds: float  # their spacing [1/m]
     ranges: list[tuple[int, int]]  # index range [lo, hi] of each hypothesis in ``s``
     layers_m: list[float]  # the hypotheses' heights above the ENU origin [m]
+    regional: list[tuple[int, int]] = field(default_factory=list)  # ranges of the regions' hypotheses, strongest first
 
 
 @dataclass
@@ -813,9 +816,20 @@ def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_
     cells), whichever correlates better, when that ZNCC is ≥ ``min_zncc``. A near plane's vote is
     spread 1/4, 1/2, 1/4 over grid planes q − 1, q, q + 1 (it stands for two grid steps), so the
     histogram stays uniform in s. Either tier may be None (no planes there). Returns (G,) float64."""
+    q, near_wins = coarse_cells(plan, cloud, j_far, c_far, j_near, c_near, min_zncc)
     n = len(plan.s)
-    votes = np.zeros(n)
+    votes = np.bincount(q[(q >= 0) & ~near_wins], minlength=n).astype(np.float64)
+    qn = q[(q >= 0) & near_wins]
+    for d, wt in ((-1, 0.25), (0, 0.5), (1, 0.25)):
+        votes += wt * np.bincount(np.clip(qn + d, 0, n - 1), minlength=n)
+    return votes
+
+
+def coarse_cells(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_near, min_zncc: float):
+    """Each coarse cell's vote (see :func:`coarse_votes`): (index into ``plan.s`` (h, w) int64, −1
+    = none; whether it is a near plane's (h, w) bool)."""
     h, w = cloud.shape
+    q = np.full((h, w), -1, np.int64)
     if j_near is not None:
         up = lambda a: np.repeat(np.repeat(a, 2, axis=0), 2, axis=1)[:h, :w]  # noqa: E731
         jn, cn = up(j_near), up(c_near)
@@ -825,12 +839,10 @@ def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_
         near_wins, best = np.zeros((h, w), bool), c_far
     good = cloud & (best >= min_zncc)
     if j_far is not None:
-        votes += np.bincount(plan.far[j_far[good & ~near_wins]], minlength=n)
+        q[good & ~near_wins] = plan.far[j_far[good & ~near_wins]]
     if j_near is not None:
-        q = plan.near[jn[good & near_wins]]
-        for d, wt in ((-1, 0.25), (0, 0.5), (1, 0.25)):
-            votes += wt * np.bincount(np.clip(q + d, 0, n - 1), minlength=n)
-    return votes
+        q[good & near_wins] = plan.near[jn[good & near_wins]]
+    return q, near_wins
 
 
 def coarse_regions(cloud1: np.ndarray, plan: CoarsePlanes, cfg):
@@ -877,18 +889,44 @@ def coarse_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s_min: 
         j_far, c_far = _best_plane(c1, c2, maps.downsampled(f) if f > 1 else maps, plan.s[plan.far], k, slc)
     if half is not None:
         j_near, c_near = _best_plane(_pool2(c1), c2.map(_pool2, 2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
-    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
-    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
+    return coarse_layers(plan, cl, j_far, c_far, j_near, c_near, o1z, cfg)
+
+
+def coarse_layers(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_near, o1z: float,
+                  cfg) -> CoarseLayers:
+    """The hypotheses of the coarse cells' best planes (:func:`coarse_votes`): the peaks of the
+    whole sky's votes, and of each region's (:func:`regional_peaks`, ``region_px`` at working
+    size: a deck seen through the gaps of a lower one; :func:`coarse_hypotheses`)."""
+    q, near = coarse_cells(plan, cloud, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    votes = coarse_votes(plan, cloud, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    # regions half as wide as the fine pass's: a hypothesis costs only planes (the fine pass
+    # decides), and a gap of a quarter of a fine region still fills much of a coarse one
+    side = int(cfg.region_px) // (4 * max(int(cfg.coarse_factor), 1))  # a cell: 2 coarse pixels
+    regional = []
+    if side >= 2:
+        # (no test against the whole sky's votes: a hypothesis only adds planes, the fine pass decides)
+        regional = regional_peaks(q, np.ones(q.shape), len(plan.s), side, cfg.region_share,
+                                  _REGION_MIN_FILL * side * side, cfg.valley_ratio)
+    return coarse_hypotheses(votes, float(cloud.sum()), plan.s, plan.ds, o1z, cfg, regional)
 
 
 def coarse_hypotheses(votes: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: float, o1z: float,
-                      cfg) -> CoarseLayers:
+                      cfg, regional=()) -> CoarseLayers:
     """Layer hypotheses from the coarse votes (G,) on the planes ``s`` (:func:`coarse_votes`) of
-    ``n_cloud`` cloud cells; peaks need ``min_vote_fraction`` of them."""
+    ``n_cloud`` cloud cells; peaks need ``min_vote_fraction`` of them. ``regional``: the peaks
+    of regions ((index, weight), :func:`coarse_layers`); each one above the lowest peak and
+    outside every peak's extent is a hypothesis too (its plane ± 1), swept as long as the fine
+    planes stay within ``max_planes`` (:func:`fine_planes`)."""
     votes = np.asarray(votes, np.float64)
     peaks = find_peaks(votes, cfg.min_vote_fraction * n_cloud, cfg.valley_ratio)
     ranges = [peak_extent(votes, p, cfg.extent_ratio) for p in peaks]
-    return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges])
+    extra: list[tuple[int, int]] = []
+    if peaks:
+        top = max(peaks) - 1
+        for b, _ in sorted(regional, key=lambda e: -e[1]):
+            if 0 < b < top and all(not lo - 1 <= b <= hi + 1 for lo, hi in ranges + extra):
+                extra.append((max(b - 1, 0), min(b + 1, len(s) - 1)))
+    return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges + extra], extra)
 
 
 def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: float, cfg) -> tuple[np.ndarray, float]:
@@ -900,16 +938,25 @@ def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: floa
     3575 and 3452 m with no plane at 3512 m, and every pixel snapped to 3452 m, −1.4 %).
     Returns (s (P,), nominal step ds)."""
     base = cfg.step_px / scale_px
-    for k in range(1, 1 << 12):
-        ds = base * k
+
+    def planes(ranges, ds):
         parts = [np.arange(0.0, min(cfg.far_px / scale_px, s_max) + 0.5 * ds, ds)]
-        for lo, hi in coarse.ranges:
+        for lo, hi in ranges:
             a = max(coarse.s[lo] - 1.5 * coarse.ds, s_min)
             b = min(coarse.s[hi] + 1.5 * coarse.ds, s_max)
             parts.append(np.arange(a, b + 0.5 * ds, ds))
-        s = np.unique(np.round(np.concatenate(parts) / ds) * ds)
+        return np.unique(np.round(np.concatenate(parts) / ds) * ds)
+
+    for k in range(1, 1 << 12):
+        ds = base * k
+        s = planes(coarse.ranges, ds)
         if len(s) <= cfg.max_planes:
             break
+    kept = list(coarse.ranges)
+    for r in coarse.regional:  # the regions' hypotheses, strongest first, while the step stays
+        more = planes(kept + [r], ds)
+        if len(more) <= cfg.max_planes:
+            kept, s = kept + [r], more
     return s, ds
 
 
@@ -944,7 +991,64 @@ def fine_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s: np.nda
     return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)))
 
 
-def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, total: float, cfg):
+def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, share: float, min_votes: float,
+                   valley_ratio: float, sigma: float = 1.0) -> list[tuple[int, float]]:
+    """The vote peaks of each region of a grid of votes: a deck seen only through the gaps of a
+    lower one holds a few per cent of the whole sky's votes, under the smear of the lower layer's
+    and of the windows that straddle both, but most of the votes of the regions where its gaps are.
+
+    Parameters
+    ----------
+    bins : ndarray, shape (h, w), int
+        Each cell's vote (a bin of a uniform grid, 0 … ``nb`` − 1; < 0: no vote).
+    weight : ndarray, shape (h, w), float
+        Each cell's vote weight.
+    side : int
+        Region side [cells]; the regions overlap by half (every ``side`` / 2 cells), so that a gap
+        is wholly inside at least one of them.
+    share, min_votes : float
+        A region votes when its votes weigh at least ``min_votes``; its peak needs ``share`` of
+        them, and a valley below ``valley_ratio`` × the lower peak to its neighbours
+        (:func:`~cbh.pipeline.peaks.find_peaks`, on the histogram smoothed by ``sigma`` bins).
+
+    Returns
+    -------
+    list of (bin, weight): every region's peaks (a bin once, with the largest regional weight
+    within ±1 bin of it), ascending.
+    """
+    h, w = bins.shape
+    c = max(int(side) // 2, 1)
+    ny, nx = -(-h // c), -(-w // c)
+    ok = (bins >= 0) & (bins < nb) & (weight > 0)
+    yy, xx = np.nonzero(ok)
+    cell = (yy // c) * nx + (xx // c)
+    hist = np.bincount(cell * nb + bins[ok], weights=weight[ok], minlength=ny * nx * nb).reshape(ny, nx, nb)
+    if ny > 1:
+        hist = hist[:-1] + hist[1:]
+    if nx > 1:
+        hist = hist[:, :-1] + hist[:, 1:]
+    tot = hist.sum(axis=-1)
+    found: dict[int, float] = {}
+    for i, j in zip(*np.nonzero(tot >= min_votes)):
+        v = smooth_gaussian(hist[i, j], sigma)
+        for p in find_peaks(v, share * tot[i, j], valley_ratio):
+            mass = float(v[max(p - 1, 0): p + 2].sum())
+            found[p] = max(found.get(p, 0.0), mass)
+    return sorted(found.items())
+
+
+def merge_peaks(peaks: list[int], extra: list[tuple[int, float]], min_apart: float) -> list[int]:
+    """``peaks`` and those of ``extra`` ((bin, weight), strongest first kept) that lie more than
+    ``min_apart`` bins from every peak kept, ascending."""
+    keep = list(peaks)
+    for b, _ in sorted(extra, key=lambda e: -e[1]):
+        if all(abs(b - p) > min_apart for p in keep):
+            keep.append(int(b))
+    return sorted(keep)
+
+
+def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, total: float, cfg,
+                regional=()):
     """The layers of the image from the wide-box winners' votes (see :func:`label_pass`).
 
     Parameters
@@ -957,6 +1061,9 @@ def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float
         Their nominal spacing [1/m].
     total : float
         Total weight of the accepted pixels (a layer needs ``min_vote_fraction`` of it).
+    regional : list of (bin, weight)
+        Further layers, in bins of half a plane step (:func:`own_plane_peaks`): each one more
+        than 1.5 plane steps from every peak of the whole image's votes is a layer too.
 
     Returns
     -------
@@ -969,6 +1076,9 @@ def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float
     votes = np.bincount(idx, weights=np.asarray(weight, np.float64), minlength=nb)
     smooth = smooth_gaussian(votes, _VOTE_SMOOTH_BINS)
     peaks = find_peaks(smooth, cfg.min_vote_fraction * total, cfg.valley_ratio)
+    if peaks:  # a region's layer above the image's lowest (a layer below it hides nothing: its own votes count)
+        top = max(peaks) - _REGION_APART_BINS
+        peaks = merge_peaks(peaks, [(int(b), w) for b, w in regional if b < top], _REGION_APART_BINS)
     cut_bins = valley_cuts(smooth, peaks)
     ranges = list(zip([0] + [c + 1 for c in cut_bins], cut_bins + [nb - 1])) if peaks else []
     cuts = np.array([bw * (c + 0.5) for c in cut_bins])
@@ -993,6 +1103,45 @@ def layer_box(lab: "LayerLabels", L: int, scale_px: float, cfg) -> int:
     return k2
 
 
+def own_plane_peaks(own: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, cfg) -> list[tuple[int, float]]:
+    """Layers proposed per region (``region_px`` at working size, :func:`regional_peaks`) by the
+    votes of each accepted block's own best plane ``own`` (h/2, w/2) (its ``window_px`` ZNCC, no
+    aggregation: a wide box that straddles a gap's edge takes the lower layer, whose texture is
+    coarser and stronger), weighted by ``weight`` (accepted fraction). The fine planes lie on a
+    lattice of ``ds`` (:func:`fine_planes`), so each plane is its own bin. Returns (bin, weight)
+    in bins of half a plane step (:func:`vote_layers`'), ascending."""
+    side = int(cfg.region_px) // 2
+    if side < 2 or not len(s):
+        return []
+    q = np.rint(np.asarray(s, np.float64) / ds).astype(np.int64)
+    nb = int(q[-1]) + 1
+    bins = np.where(weight > 0, q[own], -1)
+    found = regional_peaks(bins, weight, nb, side, cfg.region_share, _REGION_MIN_FILL * side * side, cfg.valley_ratio)
+    # a region's peak on the flank of a stronger one (the noise of a near layer's own planes, a
+    # few planes off) is no local maximum of the whole image's own votes; nor is a cloud beyond
+    # the sweep's highest plane (s = 0: no parallax, as glare or obstacles at infinity)
+    whole = smooth_gaussian(np.bincount(bins[bins >= 0], weight[bins >= 0], minlength=nb), 1.0)
+    keep = _true_peaks(found, whole, np.isin(np.arange(nb), q), int(np.ceil(1.0 / (cfg.max_height_m * ds))))
+    return [(2 * b, w) for b, w in keep]
+
+
+def _true_peaks(found: list[tuple[int, float]], whole: np.ndarray, swept: np.ndarray, first: int):
+    """The regional peaks ``found`` ((bin, weight)) that are peaks of the sky's layers: a local
+    maximum of the ``whole`` image's (smoothed) votes too (a region's peak on the flank of a
+    stronger one is the noise of a near layer's planes, a few planes off), inside the swept planes
+    (``swept`` (nb,) bool: a bin with a swept plane on either side; at the edge of a run of planes
+    the maximum is where the sweep stopped, not the layer), and at bin ``first`` or beyond (the
+    sweep's highest plane: s = 0, no parallax, is glare or an obstacle at infinity)."""
+    nb = len(whole)
+    out = []
+    for b, w in found:
+        if b < first or b <= 0 or b >= nb - 1 or not (swept[b - 1] and swept[b + 1]):
+            continue
+        if whole[b] >= whole[b - 1: b + 2].max():
+            out.append((b, w))
+    return out
+
+
 def label_pass(fine: FineCost, cfg) -> LayerLabels:
     """Pass 3: the layers of the image and each pixel's layer (half resolution).
 
@@ -1011,11 +1160,12 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     if cfg.vote_percentile > 0 and vote.any():
         mean_w = cw / np.maximum(_box(fine.textured, k2), 1e-6)
         vote &= mean_w >= np.percentile(mean_w[vote], cfg.vote_percentile)
+    own = _best3_map(lambda c: c, list(cost), neighbours=False)[0]
     votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote], fine.ok_frac[vote], s, ds,
-                                                       float(fine.ok_frac.sum()), cfg)
+                                                       float(fine.ok_frac.sum()), cfg,
+                                                       own_plane_peaks(own, fine.ok_frac, s, ds, cfg))
     hh, wh = cost.shape[1:]
     label = np.zeros((hh, wh), np.uint8)
-    own = np.zeros((hh, wh), np.int32)
     if len(ranges) > 1:
         def fold(qs, _start):  # each layer's best ``label_px`` box cost over its planes among qs
             best_l: list = [None] * len(ranges)
@@ -1030,8 +1180,20 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
         best_l = _pfold(fold, range(len(cost)), merge)
         label = _best3([b if b is not None else np.full((hh, wh), -np.inf, np.float32) for b in best_l],
                        neighbours=False)[0].astype(np.uint8)
-        own = _best3_map(lambda c: c, list(cost), neighbours=False)[0]
     return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
+
+
+def straddling(lab: LayerLabels, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels (``shape`` = (h, w), working size) kept out of every layer: those whose own best
+    plane (their ``window_px`` ZNCC) lies in another layer than the one their ``label_px`` box
+    chose. Such a window straddles a layer's edge (or is occluded in camera 2): its match is the
+    other layer's texture, and refined on the label's layer it would read a height of neither
+    (a deck seen through gaps read 5–20 % low). None with one layer."""
+    h, w = shape
+    if len(lab.vote_ranges) < 2:
+        return np.zeros((h, w), bool)
+    off = (np.asarray(lab.plane_layer)[lab.own_plane] != lab.label).astype(np.uint8)
+    return cv2.resize(off, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
 
 
 def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.ndarray:
@@ -1164,7 +1326,7 @@ def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepFiel
         lab = label_pass(fine, cfg)
         info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
-        region, ok, s_px = fine.region, fine.ok, refine_pass(fine, lab, maps.scale_px, cfg)
+        region, ok, s_px = fine.region, fine.ok & ~straddling(lab, fine.ok.shape), refine_pass(fine, lab, maps.scale_px, cfg)
         lap("refine")
     else:
         region, ok, s_px = _per_pixel(g1, g2, cloud1, maps, s_fine, ds, cfg)

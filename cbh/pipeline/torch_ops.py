@@ -50,6 +50,7 @@ Precision: float32 throughout, as the OpenCV path; ZNCC values agree with it to 
 (different summation order of the box filters), see tests/test_torch_parity.py.
 """
 from __future__ import annotations
+from dataclasses import replace
 
 
 import numpy as np
@@ -58,8 +59,8 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_hypotheses, coarse_planes,
-    coarse_regions, coarse_votes, fine_planes, layer_box, layer_planes, vote_layers, SweepField, field_points,
+    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_planes,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, straddling, vote_layers, SweepField, field_points,
 )
 
 __all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
@@ -267,8 +268,7 @@ def coarse_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm
         j_far, c_far = best(c1, c2, f, plan.s[plan.far], slc)
     if half is not None:
         j_near, c_near = best(pool2(c1[None, None])[0, 0], pool2(c2[None, None])[0, 0], 2 * f, plan.s[plan.near], half)
-    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
-    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
+    return coarse_layers(plan, cl, j_far, c_far, j_near, c_near, o1z, cfg)
 
 
 def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s: np.ndarray,
@@ -302,11 +302,12 @@ def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
     if cfg.vote_percentile > 0 and bool(vote.any()):
         mean_w = cw / box(fine.textured[None, None], k2)[0, 0].clamp_min(1e-6)
         vote &= mean_w >= torch.quantile(mean_w[vote].double(), cfg.vote_percentile / 100.0).float()
+    own = cost.argmax(0)
+    regional = own_plane_peaks(own.cpu().numpy(), fine.ok_frac.cpu().numpy(), s, ds, cfg)
     votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote].cpu().numpy(), fine.ok_frac[vote].cpu().numpy(),
-                                                       s, ds, float(fine.ok_frac.sum().item()), cfg)
+                                                       s, ds, float(fine.ok_frac.sum().item()), cfg, regional)
     hh, wh = cost.shape[1:]
     label = torch.zeros((hh, wh), dtype=torch.uint8, device=dev)
-    own = torch.zeros((hh, wh), dtype=torch.int64, device=dev)
     if len(ranges) > 1:
         b = box(cost[None], kl)[0] if kl > 1 else cost
         per_layer = torch.full((len(ranges), hh, wh), -torch.inf, device=dev)
@@ -315,7 +316,6 @@ def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
             if len(q):
                 per_layer[L] = b[torch.as_tensor(q, device=dev)].max(0).values
         label = per_layer.argmax(0).to(torch.uint8)
-        own = cost.argmax(0)
     return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
 
 
@@ -380,7 +380,8 @@ def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, 
     info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
     lap("layers")
     s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
-    out = SweepField(fine.region, fine.ok.cpu().numpy(), s_px.cpu().numpy(), info)
+    lab_np = replace(lab, own_plane=lab.own_plane.cpu().numpy(), label=lab.label.cpu().numpy())
+    out = SweepField(fine.region, fine.ok.cpu().numpy() & ~straddling(lab_np, tuple(fine.ok.shape)), s_px.cpu().numpy(), info)
     lap("refine")
     return out
 
