@@ -207,7 +207,8 @@ class LayersConfig:
     base_percentile: float = 10.0  # a layer's cloud-base height = this percentile of its points [%]
     noise_margin: float = 1.2  # the spread is "explained by noise" up to this × the predicted noise [1]
     min_points: int = 50  # a layer needs at least this many points [1]
-    min_fraction: float = 0.02  # … and this fraction of all points [1]
+    min_fraction: float = 0.04  # … and this fraction of all points [1]
+    min_fraction_resolved: float = 0.015  # … or this, where the plane sweep resolved a layer of its own [1]
     min_cover: float = 0.005  # … and this fraction of camera 1's usable sky [1]
     reject_aliases: bool = True  # drop a layer whose pixels correlate as well at a bigger layer's height (see cbh.pipeline.support) [1]
 
@@ -447,7 +448,7 @@ def _check_layers(ly, where: str, layer_methods) -> None:
     _choice(f"{where}.method", ly.method, tuple(layer_methods))
     for k in ("bin_log", "smooth_log", "min_separation_log"):
         _positive(f"{where}.{k}", getattr(ly, k))
-    for k in ("min_fraction", "min_cover"):
+    for k in ("min_fraction", "min_fraction_resolved", "min_cover"):
         if not 0 <= getattr(ly, k) < 1:
             raise ConfigError(f"{where}.{k}: must be in [0, 1), got {getattr(ly, k)}")
     if not ly.noise_margin >= 1.0:

@@ -238,7 +238,7 @@ class LayerSet:
 def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram,
                      intervals: list[tuple[float, float]], cloud: np.ndarray, usable: np.ndarray,
                      nearest_m: np.ndarray, cloud_fraction: float, cfg: LayersConfig,
-                     offsets: np.ndarray | None = None) -> LayerSet:
+                     offsets: np.ndarray | None = None, resolved_m=()) -> LayerSet:
     """Keep the candidate intervals with enough support (points, share of points, cover).
 
     Parameters
@@ -255,6 +255,10 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
         Camera 1's cloud fraction, 0..1.
     offsets : ndarray, shape (N, 2), optional
         The points' plane offsets from camera 1 (:func:`local_spread`).
+    resolved_m : sequence of float
+        Heights of the layers the plane sweep resolved on its own [m]: an interval holding one
+        needs only ``min_fraction_resolved`` of the points (a deck seen through the gaps of a
+        lower one holds a few per cent of them; a cluster of noise is no vote peak of the sweep).
     """
     label = np.full(len(heights_m), -1, np.int16)
     cover_of, unassigned = layer_covers(cloud, usable, nearest_m, intervals)
@@ -262,7 +266,8 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
     for k, (lo, hi) in enumerate(intervals):
         sel = (heights_m >= lo) & (heights_m < hi)
         n = int(sel.sum())
-        if n < cfg.min_points or n < cfg.min_fraction * len(heights_m) or cover_of[k] < cfg.min_cover:
+        frac = cfg.min_fraction_resolved if any(lo <= h < hi for h in resolved_m) else cfg.min_fraction
+        if n < cfg.min_points or n < frac * len(heights_m) or cover_of[k] < cfg.min_cover:
             unassigned += cover_of[k]  # cloud of an unsupported height interval: in no layer
             continue
         label[sel] = len(layers)

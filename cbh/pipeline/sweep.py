@@ -125,7 +125,7 @@ from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 __all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes",
            "coarse_votes", "coarse_regions", "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
-           "label_pass", "refine_pass", "straddling", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
+           "label_pass", "refine_pass", "straddling", "resolved_layers", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
 _REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
@@ -1196,6 +1196,22 @@ def straddling(lab: LayerLabels, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(off, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
 
 
+def resolved_layers(ok: np.ndarray, s_px: np.ndarray, label: np.ndarray, o1z: float) -> list[float]:
+    """The height [m] of each layer the sweep resolved (o1z + 1 / the median s of its accepted
+    pixels, on the half-resolution lattice of ``label`` (h/2, w/2)), ascending; a layer without
+    accepted pixels has none."""
+    okh, sh = ok[::2, ::2], s_px[::2, ::2]
+    n = min(okh.shape[0], label.shape[0]), min(okh.shape[1], label.shape[1])
+    okh, sh, lab = okh[:n[0], :n[1]], sh[:n[0], :n[1]], np.asarray(label)[:n[0], :n[1]]
+    out = []
+    for L in np.unique(lab[okh]):
+        v = sh[okh & (lab == L)]
+        med = float(np.median(v)) if v.size else 0.0
+        if med > 0:
+            out.append(o1z + 1.0 / med)
+    return sorted(out)
+
+
 def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.ndarray:
     """Pass 4: each pixel's s, refined (parabola through the three best planes) on its layer's cost
     summed over an ``aggregate_px`` box of that layer's pixels only — and of those only the ones
@@ -1327,6 +1343,7 @@ def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepFiel
         info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
         region, ok, s_px = fine.region, fine.ok & ~straddling(lab, fine.ok.shape), refine_pass(fine, lab, maps.scale_px, cfg)
+        info["resolved_m"] = resolved_layers(ok, s_px, lab.label, o1z)
         lap("refine")
     else:
         region, ok, s_px = _per_pixel(g1, g2, cloud1, maps, s_fine, ds, cfg)

@@ -60,7 +60,7 @@ from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
     CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_planes,
-    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, straddling, vote_layers, SweepField, field_points,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, straddling, vote_layers, SweepField, field_points,
 )
 
 __all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
@@ -382,6 +382,7 @@ def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, 
     s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
     lab_np = replace(lab, own_plane=lab.own_plane.cpu().numpy(), label=lab.label.cpu().numpy())
     out = SweepField(fine.region, fine.ok.cpu().numpy() & ~straddling(lab_np, tuple(fine.ok.shape)), s_px.cpu().numpy(), info)
+    info["resolved_m"] = resolved_layers(out.ok, out.s, lab_np.label, o1z)
     lap("refine")
     return out
 
