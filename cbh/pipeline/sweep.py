@@ -134,6 +134,7 @@ _SRC_SCALE = 64.0  # image 2 enters the sweep's remap as uint16 in 1/64 grey lev
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
 _REGION_APART_BINS = 3  # a region's layer is a new one beyond 1.5 plane steps from the image's [bins of half a step]
+_COARSE_SHARE = 2.5  # the coarse pass's regions are a quarter of the fine ones: their peak needs this × region_share
 _REGION_MIN_FILL = 0.25  # a region proposes layers when this share of its cells vote [1]
 
 
@@ -903,10 +904,21 @@ def coarse_layers(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c
     # decides), and a gap of a quarter of a fine region still fills much of a coarse one
     side = int(cfg.region_px) // (4 * max(int(cfg.coarse_factor), 1))  # a cell: 2 coarse pixels
     regional = []
-    if side >= 2:
-        # (no test against the whole sky's votes: a hypothesis only adds planes, the fine pass decides)
-        regional = regional_peaks(q, np.ones(q.shape), len(plan.s), side, cfg.region_share,
-                                  _REGION_MIN_FILL * side * side, cfg.valley_ratio)
+    peaks = find_peaks(votes, cfg.min_vote_fraction * float(cloud.sum()), cfg.valley_ratio)
+    if side >= 2 and peaks:
+        # wanted: above the lowest peak (a deck below it hides nothing: the whole sky's votes count
+        # it), outside every peak's extent, and beyond the far range (swept by the fine pass
+        # anyway); no test against the whole sky's votes: a hypothesis only adds planes, the fine
+        # pass decides
+        allowed = np.zeros(len(plan.s), bool)
+        allowed[1: max(peaks) - 1] = True
+        for lo, hi in (peak_extent(votes, p, cfg.extent_ratio) for p in peaks):
+            allowed[max(lo - 1, 0): hi + 2] = False
+        s_far = cfg.far_px * plan.ds / (float(cfg.coarse_step_px) * max(int(cfg.coarse_factor), 1))
+        allowed &= plan.s > s_far
+        if allowed.any():
+            regional = regional_peaks(q, np.ones(q.shape), len(plan.s), side, _COARSE_SHARE * cfg.region_share,
+                                      _REGION_MIN_FILL * side * side, cfg.valley_ratio, allowed)
     return coarse_hypotheses(votes, float(cloud.sum()), plan.s, plan.ds, o1z, cfg, regional)
 
 
@@ -992,7 +1004,7 @@ def fine_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s: np.nda
 
 
 def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, share: float, min_votes: float,
-                   valley_ratio: float, sigma: float = 1.0) -> list[tuple[int, float]]:
+                   valley_ratio: float, allowed: np.ndarray | None = None, sigma: float = 1.0) -> list[tuple[int, float]]:
     """The vote peaks of each region of a grid of votes: a deck seen only through the gaps of a
     lower one holds a few per cent of the whole sky's votes, under the smear of the lower layer's
     and of the windows that straddle both, but most of the votes of the regions where its gaps are.
@@ -1010,11 +1022,13 @@ def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, sha
         A region votes when its votes weigh at least ``min_votes``; its peak needs ``share`` of
         them, and a valley below ``valley_ratio`` × the lower peak to its neighbours
         (:func:`~cbh.pipeline.peaks.find_peaks`, on the histogram smoothed by ``sigma`` bins).
+    allowed : ndarray, shape (nb,), bool, optional
+        The bins wanted (None: all); only the regions with a candidate there are examined.
 
     Returns
     -------
-    list of (bin, weight): every region's peaks (a bin once, with the largest regional weight
-    within ±1 bin of it), ascending.
+    list of (bin, weight): every region's peaks in ``allowed`` (a bin once, with its largest
+    regional weight: the smoothed votes of the bin and its two neighbours), ascending.
     """
     h, w = bins.shape
     c = max(int(side) // 2, 1)
@@ -1028,12 +1042,24 @@ def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, sha
     if nx > 1:
         hist = hist[:, :-1] + hist[:, 1:]
     tot = hist.sum(axis=-1)
+    hist = hist[tot >= min_votes]  # (R, nb): the regions that vote
+    tot = tot[tot >= min_votes]
+    if not len(hist):
+        return []
+    r = int(4.0 * sigma + 0.5)  # the smoothing of smooth_gaussian, on every region at once
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    pad = np.pad(hist, ((0, 0), (r, r)))
+    sm = sum((k[d] / k.sum()) * pad[:, d: d + nb] for d in range(2 * r + 1))
+    left = np.pad(sm, ((0, 0), (1, 0)), constant_values=-np.inf)[:, :-1]
+    right = np.pad(sm, ((0, 0), (0, 1)), constant_values=-np.inf)[:, 1:]
+    cand = (sm > left) & (sm >= right) & (sm > 0) & (sm >= share * tot[:, None])  # find_peaks' candidates
+    want = cand if allowed is None else cand & np.asarray(allowed, bool)[None, :]
     found: dict[int, float] = {}
-    for i, j in zip(*np.nonzero(tot >= min_votes)):
-        v = smooth_gaussian(hist[i, j], sigma)
-        for p in find_peaks(v, share * tot[i, j], valley_ratio):
-            mass = float(v[max(p - 1, 0): p + 2].sum())
-            found[p] = max(found.get(p, 0.0), mass)
+    for i in np.flatnonzero(want.any(axis=1)):
+        peaks = np.flatnonzero(cand[i]) if cand[i].sum() == 1 else find_peaks(sm[i], share * tot[i], valley_ratio)
+        for p in peaks:
+            if allowed is None or allowed[p]:
+                found[int(p)] = max(found.get(int(p), 0.0), float(sm[i, max(p - 1, 0): p + 2].sum()))
     return sorted(found.items())
 
 
@@ -1061,9 +1087,10 @@ def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float
         Their nominal spacing [1/m].
     total : float
         Total weight of the accepted pixels (a layer needs ``min_vote_fraction`` of it).
-    regional : list of (bin, weight)
-        Further layers, in bins of half a plane step (:func:`own_plane_peaks`): each one more
-        than 1.5 plane steps from every peak of the whole image's votes is a layer too.
+    regional : list of (bin, weight), or a function of the image's peaks (bins) giving one
+        Further layers, in bins of half a plane step (:func:`own_plane_peaks`): each one above
+        the lowest peak of the whole image's votes and more than 1.5 plane steps from every one
+        is a layer too.
 
     Returns
     -------
@@ -1078,7 +1105,8 @@ def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float
     peaks = find_peaks(smooth, cfg.min_vote_fraction * total, cfg.valley_ratio)
     if peaks:  # a region's layer above the image's lowest (a layer below it hides nothing: its own votes count)
         top = max(peaks) - _REGION_APART_BINS
-        peaks = merge_peaks(peaks, [(int(b), w) for b, w in regional if b < top], _REGION_APART_BINS)
+        extra = regional(peaks) if callable(regional) else regional
+        peaks = merge_peaks(peaks, [(int(b), w) for b, w in extra if b < top], _REGION_APART_BINS)
     cut_bins = valley_cuts(smooth, peaks)
     ranges = list(zip([0] + [c + 1 for c in cut_bins], cut_bins + [nb - 1])) if peaks else []
     cuts = np.array([bw * (c + 0.5) for c in cut_bins])
@@ -1103,26 +1131,39 @@ def layer_box(lab: "LayerLabels", L: int, scale_px: float, cfg) -> int:
     return k2
 
 
-def own_plane_peaks(own: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, cfg) -> list[tuple[int, float]]:
+def own_plane_peaks(own: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, cfg,
+                    peaks=None) -> list[tuple[int, float]]:
     """Layers proposed per region (``region_px`` at working size, :func:`regional_peaks`) by the
     votes of each accepted block's own best plane ``own`` (h/2, w/2) (its ``window_px`` ZNCC, no
     aggregation: a wide box that straddles a gap's edge takes the lower layer, whose texture is
     coarser and stronger), weighted by ``weight`` (accepted fraction). The fine planes lie on a
-    lattice of ``ds`` (:func:`fine_planes`), so each plane is its own bin. Returns (bin, weight)
-    in bins of half a plane step (:func:`vote_layers`'), ascending."""
+    lattice of ``ds`` (:func:`fine_planes`), so each plane is its own bin. ``peaks``: the whole
+    image's layers (bins of half a plane step, :func:`vote_layers`), if known: only what could be
+    a further layer is looked for (above the lowest, 1.5 plane steps from every one). Returns
+    (bin, weight) in bins of half a plane step, ascending."""
     side = int(cfg.region_px) // 2
     if side < 2 or not len(s):
         return []
     q = np.rint(np.asarray(s, np.float64) / ds).astype(np.int64)
     nb = int(q[-1]) + 1
     bins = np.where(weight > 0, q[own], -1)
-    found = regional_peaks(bins, weight, nb, side, cfg.region_share, _REGION_MIN_FILL * side * side, cfg.valley_ratio)
     # a region's peak on the flank of a stronger one (the noise of a near layer's own planes, a
     # few planes off) is no local maximum of the whole image's own votes; nor is a cloud beyond
     # the sweep's highest plane (s = 0: no parallax, as glare or obstacles at infinity)
     whole = smooth_gaussian(np.bincount(bins[bins >= 0], weight[bins >= 0], minlength=nb), 1.0)
-    keep = _true_peaks(found, whole, np.isin(np.arange(nb), q), int(np.ceil(1.0 / (cfg.max_height_m * ds))))
-    return [(2 * b, w) for b, w in keep]
+    allowed = np.zeros(nb, bool)
+    allowed[[b for b, _ in _true_peaks([(i, 1.0) for i in range(nb)], whole, np.isin(np.arange(nb), q),
+                                       int(np.ceil(1.0 / (cfg.max_height_m * ds))))]] = True
+    if peaks is not None:
+        b2 = 2 * np.arange(nb)
+        allowed &= b2 < max(peaks, default=0) - _REGION_APART_BINS
+        for p in peaks:
+            allowed &= np.abs(b2 - p) > _REGION_APART_BINS
+    if not allowed.any():
+        return []
+    found = regional_peaks(bins, weight, nb, side, cfg.region_share, _REGION_MIN_FILL * side * side, cfg.valley_ratio,
+                           allowed)
+    return [(2 * b, w) for b, w in found]
 
 
 def _true_peaks(found: list[tuple[int, float]], whole: np.ndarray, swept: np.ndarray, first: int):
@@ -1163,7 +1204,7 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     own = _best3_map(lambda c: c, list(cost), neighbours=False)[0]
     votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote], fine.ok_frac[vote], s, ds,
                                                        float(fine.ok_frac.sum()), cfg,
-                                                       own_plane_peaks(own, fine.ok_frac, s, ds, cfg))
+                                                       lambda pk: own_plane_peaks(own, fine.ok_frac, s, ds, cfg, pk))
     hh, wh = cost.shape[1:]
     label = np.zeros((hh, wh), np.uint8)
     if len(ranges) > 1:

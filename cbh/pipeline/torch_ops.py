@@ -303,7 +303,10 @@ def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
         mean_w = cw / box(fine.textured[None, None], k2)[0, 0].clamp_min(1e-6)
         vote &= mean_w >= torch.quantile(mean_w[vote].double(), cfg.vote_percentile / 100.0).float()
     own = cost.argmax(0)
-    regional = own_plane_peaks(own.cpu().numpy(), fine.ok_frac.cpu().numpy(), s, ds, cfg)
+
+    def regional(peaks):
+        return own_plane_peaks(own.cpu().numpy(), fine.ok_frac.cpu().numpy(), s, ds, cfg, peaks)
+
     votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote].cpu().numpy(), fine.ok_frac[vote].cpu().numpy(),
                                                        s, ds, float(fine.ok_frac.sum().item()), cfg, regional)
     hh, wh = cost.shape[1:]
