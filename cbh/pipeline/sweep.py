@@ -44,7 +44,13 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    the extent of s around it where its votes stay above ``extent_ratio`` × peak. High layers
    (a few pixels of parallax) are not resolved at coarse size, so :func:`fine_planes` takes
    every plane of the *far range* (parallax ≤ ``far_px``, from infinity on) and the union of
-   the coarse extents (± 1.5 coarse steps), ``step_px`` apart.
+   the coarse extents (± 1.5 coarse steps), ``step_px`` apart. *Regions* (issue 33): a deck
+   seen only through the gaps of a lower one holds a few per cent of the whole sky's votes,
+   under the smear of the windows that straddle both, but most of the votes of the regions
+   where its gaps are; so each region (``region_px`` / 2 wide, overlapping by half) proposes
+   its own peaks (:func:`regional_peaks`, ≥ 2.5 × ``region_share`` of its votes) above the
+   lowest layer, beyond the far range and outside every peak's extent; their planes are swept
+   as long as they fit in ``max_planes`` without coarsening the step.
 2. :func:`fine_pass` → :class:`FineCost`. At working size, every fine plane's ZNCC; a cloud
    pixel is accepted if its window has texture (grey-level standard deviation ≥
    ``min_texture``) and its block's best ZNCC ≥ ``min_zncc``. The planes are streamed: only the
@@ -53,7 +59,15 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    cost vote, in bins of half a plane step, for the layers of the image (votes only from the
    boxes whose mean ZNCC is above the ``vote_percentile``: a box that straddles two layers
    correlates worse and would fill the valley between their peaks); each pixel is labelled
-   with the layer whose planes its ``label_px`` box cost prefers.
+   with the layer whose planes its ``label_px`` box cost prefers. The wide box that straddles a
+   gap's edge takes the lower deck (its texture is coarser and stronger), so each region of
+   ``region_px`` also votes with every block's *own* best plane (:func:`own_plane_peaks`): a
+   region's peak with ``region_share`` of its votes that is a local maximum of the whole
+   image's own votes too (not the flank of a near layer's noise), inside the swept planes, above
+   the image's lowest layer and more than 1.5 plane steps from every layer is a layer as well.
+   A pixel whose own best plane lies in another layer than its label's straddles the two (or is
+   occluded in camera 2): it is kept out of both (:func:`straddling`; before, such matches read
+   an upper deck seen through gaps 5–20 % low).
 4. :func:`refine_pass`. Each pixel's height is refined (parabola through the three best
    planes) on its layer's cost summed over that layer's pixels only — and of those, only the
    ones whose own best plane lies in the layer's range: a pixel labelled into the layer by
@@ -1035,18 +1049,23 @@ def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, sha
     ny, nx = -(-h // c), -(-w // c)
     ok = (bins >= 0) & (bins < nb) & (weight > 0)
     yy, xx = np.nonzero(ok)
-    cell = (yy // c) * nx + (xx // c)
-    hist = np.bincount(cell * nb + bins[ok], weights=weight[ok], minlength=ny * nx * nb).reshape(ny, nx, nb)
-    if ny > 1:
-        hist = hist[:-1] + hist[1:]
-    if nx > 1:
-        hist = hist[:, :-1] + hist[:, 1:]
-    tot = hist.sum(axis=-1)
-    hist = hist[tot >= min_votes]  # (R, nb): the regions that vote
-    tot = tot[tot >= min_votes]
-    if not len(hist):
+    cell, b_ok, w_ok = (yy // c) * nx + (xx // c), bins[ok], weight[ok]
+    r = int(4.0 * sigma + 0.5)  # the smoothing of smooth_gaussian
+
+    def regions(a):  # (ny, nx, ...) per cell → per region of 2 × 2 cells, flattened
+        a = a[:-1] + a[1:] if a.shape[0] > 1 else a
+        a = a[:, :-1] + a[:, 1:] if a.shape[1] > 1 else a
+        return a.reshape(-1, *a.shape[2:])
+
+    tot = regions(np.bincount(cell, weights=w_ok, minlength=ny * nx).reshape(ny, nx))
+    use = tot >= min_votes  # the regions that vote, and (a smoothed bin sums the bins within r)
+    if allowed is not None:  # could have a wanted peak with share of their votes
+        near = np.convolve(np.asarray(allowed, np.float64), np.ones(2 * r + 1), mode="same") > 0
+        use &= regions(np.bincount(cell, weights=w_ok * near[b_ok], minlength=ny * nx).reshape(ny, nx)) >= share * tot
+    if not use.any():
         return []
-    r = int(4.0 * sigma + 0.5)  # the smoothing of smooth_gaussian, on every region at once
+    hist = regions(np.bincount(cell * nb + b_ok, weights=w_ok, minlength=ny * nx * nb).reshape(ny, nx, nb))
+    hist, tot = hist[use], tot[use]  # (R, nb)
     k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
     pad = np.pad(hist, ((0, 0), (r, r)))
     sm = sum((k[d] / k.sum()) * pad[:, d: d + nb] for d in range(2 * r + 1))
@@ -1054,12 +1073,16 @@ def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, sha
     right = np.pad(sm, ((0, 0), (0, 1)), constant_values=-np.inf)[:, 1:]
     cand = (sm > left) & (sm >= right) & (sm > 0) & (sm >= share * tot[:, None])  # find_peaks' candidates
     want = cand if allowed is None else cand & np.asarray(allowed, bool)[None, :]
+    mass = sm + np.pad(sm, ((0, 0), (1, 0)))[:, :-1] + np.pad(sm, ((0, 0), (0, 1)))[:, 1:]  # bin and neighbours
+    n_cand, wanted = cand.sum(axis=1), want.any(axis=1)
     found: dict[int, float] = {}
-    for i in np.flatnonzero(want.any(axis=1)):
-        peaks = np.flatnonzero(cand[i]) if cand[i].sum() == 1 else find_peaks(sm[i], share * tot[i], valley_ratio)
-        for p in peaks:
+    one = np.flatnonzero(wanted & (n_cand == 1))  # a single candidate is the region's peak
+    for p, m in zip(np.argmax(cand[one], axis=1), mass[one, np.argmax(cand[one], axis=1)]):
+        found[int(p)] = max(found.get(int(p), 0.0), float(m))
+    for i in np.flatnonzero(wanted & (n_cand > 1)):
+        for p in find_peaks(sm[i], share * tot[i], valley_ratio):
             if allowed is None or allowed[p]:
-                found[int(p)] = max(found.get(int(p), 0.0), float(sm[i, max(p - 1, 0): p + 2].sum()))
+                found[int(p)] = max(found.get(int(p), 0.0), float(mass[i, p]))
     return sorted(found.items())
 
 
@@ -1239,11 +1262,12 @@ def straddling(lab: LayerLabels, shape: tuple[int, int]) -> np.ndarray:
 
 def resolved_layers(ok: np.ndarray, s_px: np.ndarray, label: np.ndarray, o1z: float) -> list[float]:
     """The height [m] of each layer the sweep resolved (o1z + 1 / the median s of its accepted
-    pixels, on the half-resolution lattice of ``label`` (h/2, w/2)), ascending; a layer without
-    accepted pixels has none."""
-    okh, sh = ok[::2, ::2], s_px[::2, ::2]
-    n = min(okh.shape[0], label.shape[0]), min(okh.shape[1], label.shape[1])
-    okh, sh, lab = okh[:n[0], :n[1]], sh[:n[0], :n[1]], np.asarray(label)[:n[0], :n[1]]
+    pixels, every second pixel of the half-resolution lattice of ``label`` (h/2, w/2)),
+    ascending; a layer without accepted pixels has none."""
+    okh, sh = ok[::4, ::4], s_px[::4, ::4]
+    lab = np.asarray(label)[::2, ::2]
+    n = min(okh.shape[0], lab.shape[0]), min(okh.shape[1], lab.shape[1])
+    okh, sh, lab = okh[:n[0], :n[1]], sh[:n[0], :n[1]], lab[:n[0], :n[1]]
     out = []
     for L in np.unique(lab[okh]):
         v = sh[okh & (lab == L)]
