@@ -75,6 +75,8 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    its sloped cost would pull the parabola towards the range's edge (−3 … −5 % bias on the far
    layer at B = 30 m before) — so it is sharp at layer boundaries; the half-resolution s is
    brought back to working size bilinearly (a box average varies smoothly inside a layer).
+   A pixel whose best plane is the last before a gap in the planes (a hypothesis's edge) is
+   not matched (:func:`truncated`: the maximum is where the sweep stopped).
    With ``aggregate_px`` = 1 each pixel keeps its own best plane (full-resolution ZNCC,
    :func:`zncc_planes`), refined by the parabola.
 
@@ -139,7 +141,7 @@ from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 __all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes",
            "coarse_votes", "coarse_regions", "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
-           "label_pass", "refine_pass", "straddling", "resolved_layers", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
+           "label_pass", "refine_pass", "straddling", "truncated", "resolved_layers", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
 _REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
@@ -1314,9 +1316,27 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
             mL = mL.astype(np.float32)
             ja, ca, la, ra = _best3_map(lambda q: _box(cv2.multiply(cost[q], mL), kL), list(sel))
             s_half = _refine(ja, ca, la, ra, s[sel], ds)
+            cut = truncated(sel[ja], s, ds)
+            if cut.any():  # (NaN there: not matched; bilinear on the neighbours' s as before)
+                s_half = np.where(cut, lab.s_wide, s_half)
+                here = here & ~cv2.resize(cut.view(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+                s_px[fine.ok & (lab_full == L) & ~here] = np.nan
         up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
         cv2.copyTo(up, here.view(np.uint8), s_px)
     return s_px
+
+
+def truncated(j: np.ndarray, s: np.ndarray, ds: float) -> np.ndarray:
+    """Where the best plane ``j`` (indices into the fine planes ``s``) is the last one of a run of
+    planes below a gap in the sweep (a hypothesis's edge, no plane one step lower): the maximum is
+    where the sweep stopped, not the match (an artefact of 3–5 % of the points piled on that plane,
+    a layer of its own once the straddling matches are left out). The sweep's floor (matched there:
+    ``below_range``) and infinity are the range's own ends, not a gap."""
+    gap = np.diff(s) > 1.01 * ds  # (P − 1,): no plane one step beyond plane i
+    edge = np.zeros(len(s), bool)
+    edge[:-1] |= gap  # the last plane before a gap (towards lower heights)
+    edge[1:] |= gap  # the first plane after it
+    return edge[j]
 
 
 def _per_pixel(g1, g2, cloud1, maps, s, ds, cfg):
@@ -1408,6 +1428,7 @@ def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepFiel
         info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
         region, ok, s_px = fine.region, fine.ok & ~straddling(lab, fine.ok.shape), refine_pass(fine, lab, maps.scale_px, cfg)
+        ok &= np.isfinite(s_px)
         info["resolved_m"] = resolved_layers(ok, s_px, lab.label, o1z)
         lap("refine")
     else:

@@ -60,7 +60,7 @@ from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
     CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_planes,
-    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, straddling, vote_layers, SweepField, field_points,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, straddling, truncated, vote_layers, SweepField, field_points,
 )
 
 __all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
@@ -347,6 +347,12 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
             agg = box((cost[torch.as_tensor(sel, device=dev)] * mL.float())[None], kL)[0]
             ja, ca, la, ra = _best3(agg)
             s_half = _refine(ja, ca, la, ra, s[sel], ds)
+            cut = torch.as_tensor(truncated(np.asarray(sel)[ja.cpu().numpy()], s, ds), device=dev)
+            if bool(cut.any()):  # as the OpenCV twin: not matched where the sweep stopped
+                s_half = torch.where(cut, lab.s_wide, s_half)
+                gone = fine.ok & (lab_full == L) & cut.repeat_interleave(2, 0).repeat_interleave(2, 1)[:h, :w]
+                here = here & ~gone
+                s_px = torch.where(gone, torch.full_like(s_px, float("nan")), s_px)
         up = F.interpolate(s_half[None, None], size=(h, w), mode="bilinear", align_corners=False)[0, 0]
         s_px = torch.where(here, up, s_px)
     return s_px
@@ -384,7 +390,9 @@ def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, 
     lap("layers")
     s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
     lab_np = replace(lab, own_plane=lab.own_plane.cpu().numpy(), label=lab.label.cpu().numpy())
-    out = SweepField(fine.region, fine.ok.cpu().numpy() & ~straddling(lab_np, tuple(fine.ok.shape)), s_px.cpu().numpy(), info)
+    s_np = s_px.cpu().numpy()
+    out = SweepField(fine.region, fine.ok.cpu().numpy() & ~straddling(lab_np, tuple(fine.ok.shape)) & np.isfinite(s_np),
+                     s_np, info)
     info["resolved_m"] = resolved_layers(out.ok, out.s, lab_np.label, o1z)
     lap("refine")
     return out
