@@ -81,7 +81,7 @@ def test_matches_straddling_two_layers_are_kept_out_of_both():
 
 def test_a_layer_the_sweep_resolved_needs_a_smaller_share_of_the_points():
     """2 % of the points at 4000 m: a layer when the sweep resolved one there, none otherwise
-    (the 4 % of a cluster of noise)."""
+    (a cluster of noise needs 4 %)."""
     cfg = LayersConfig()
     assert cfg.min_fraction_resolved < 0.02 < cfg.min_fraction
     h = np.r_[np.full(4900, 1000.0), np.full(100, 4000.0)] * (1 + 0.003 * np.random.default_rng(3).standard_normal(5000))
@@ -118,6 +118,7 @@ def test_dense_skies_widen_only_the_layers():
     101,  # 324/1526/5646 m: 5646 not found
     104,  # 495/1029/8085 m: 8085 not found
     115,  # 859/5036/9775 m: 9775 not found
+    116,  # 631 m (84 %) and 3860 m at B = 143 m: 3860 not found
 ])
 def test_dense_randomized_skies_regression(seed, tmp_path):
     """Dense skies of two or three layers at 960 px: every expected layer found within

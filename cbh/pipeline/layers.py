@@ -10,9 +10,10 @@ between the valleys on either side. A layer is reported only with enough support
 ``min_points`` points, ``min_fraction`` of all points and ``min_cover`` of the usable sky. Where
 the plane sweep resolved a layer of its own (a vote peak of the image or of a region, matched
 within its own planes, its straddling matches left out: :mod:`.sweep`), ``min_fraction_resolved``
-(1.5 %) of the points is enough: an upper deck seen through the gaps of a lower one holds 2–4 %
-of them in dense skies, while a cluster of noise (a pile of matches on the edge plane of the
-sweep, say) is no vote peak of the sweep and still needs 4 %.
+(0.5 %, the share of the sky that ``min_cover`` asks for) of the points is enough: an upper deck
+seen through the gaps of a lower one holds 0.8–4 % of them in dense skies, while a cluster of
+noise (a pile of matches on one plane of the sweep, say) is no layer of the sweep and still
+needs 4 %.
 
 Each layer's statistics (:func:`layer_stats`):
 
