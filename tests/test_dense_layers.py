@@ -91,6 +91,8 @@ def test_a_layer_the_sweep_resolved_needs_a_smaller_share_of_the_points():
             near, 1.0, cfg)
     assert [round(L.median_height_m, -2) for L in supported_layers(*args).layers] == [1000.0]
     assert [round(L.median_height_m, -2) for L in supported_layers(*args, resolved_m=(1000.0, 4010.0)).layers] == [1000.0, 4000.0]
+    # the sweep's lowest layer is hidden by nothing: 2 % of the points is no layer there
+    assert [round(L.median_height_m, -2) for L in supported_layers(*args, resolved_m=(4010.0,)).layers] == [1000.0]
 
 
 def test_dense_skies_widen_only_the_layers():
