@@ -1254,7 +1254,7 @@ def straddling(lab: LayerLabels, shape: tuple[int, int]) -> np.ndarray:
     plane (their ``window_px`` ZNCC) lies in another layer than the one their ``label_px`` box
     chose. Such a window straddles a layer's edge (or is occluded in camera 2): its match is the
     other layer's texture, and refined on the label's layer it would read a height of neither
-    (a deck seen through gaps read 5–20 % low). None with one layer."""
+    (a deck seen through gaps read 5–20 % low). None of them with one layer."""
     h, w = shape
     if len(lab.vote_ranges) < 2:
         return np.zeros((h, w), bool)
