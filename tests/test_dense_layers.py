@@ -2,9 +2,9 @@
 through the gaps of a lower one.
 
 The plane sweep proposes layers per region as well as from the whole sky's votes
-(:func:`cbh.pipeline.sweep.regional_peaks`), keeps the matches that straddle two layers out of
-both (:func:`cbh.pipeline.sweep.straddling`), and a layer it resolved on its own needs a smaller
-share of the points (``layers.min_fraction_resolved``). Dense randomized skies
+(:func:`cbh.pipeline.sweep.regional_peaks`), takes no match on the edge plane of a hypothesis
+(:func:`cbh.pipeline.sweep.truncated`), and a layer it resolved on its own above its lowest needs
+a smaller share of the points (``layers.min_fraction_resolved``). Dense randomized skies
 (``RandomOptions(dense=True)``) whose seed once failed stay as regression tests (slow tier).
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ from cbh.flags import INVALIDATING
 from cbh.geometry.station import load_station
 from cbh.pipeline.config import LayersConfig, SweepConfig
 from cbh.pipeline.layers import supported_layers
-from cbh.pipeline.sweep import LayerLabels, regional_peaks, straddling, vote_layers
+from cbh.pipeline.sweep import regional_peaks, truncated, vote_layers
 from cbh.presets import station_path
 from cbh.result import Histogram
 from cbh.sim.randomize import RandomOptions, random_case, run_random_case
@@ -66,17 +66,12 @@ def test_a_regional_layer_counts_above_the_lowest_layer_only():
     assert len(near[2]) == 1
 
 
-def test_matches_straddling_two_layers_are_kept_out_of_both():
-    """A pixel whose own best plane lies in another layer than its label's is dropped; with one
-    layer nothing is."""
-    label = np.array([[0, 0], [1, 1]], np.uint8)
-    own = np.array([[0, 3], [3, 0]], np.int32)  # planes 0, 1 are layer 0's; 2, 3 layer 1's
-    lab = LayerLabels(cuts_s=np.array([0.5]), votes=np.zeros(4), bin_s=1.0, vote_ranges=[(0, 1), (2, 3)],
-                      plane_layer=np.array([0, 0, 1, 1]), label=label, own_plane=own, s_wide=np.zeros((2, 2)))
-    off = straddling(lab, (4, 4))
-    assert off.tolist() == [[False, False, True, True]] * 4  # the right column's own planes are the other layer's
-    one = LayerLabels(np.zeros(0), np.zeros(4), 1.0, [(0, 3)], np.zeros(4, int), label * 0, own, np.zeros((2, 2)))
-    assert not straddling(one, (4, 4)).any()
+def test_no_match_where_the_sweep_stopped():
+    """The planes of two hypotheses with a gap between: the planes on either side of the gap are
+    truncated maxima; the far range's infinity (s = 0) and the sweep's floor are not."""
+    ds = 1.0
+    s = np.array([0.0, 1.0, 2.0, 3.0, 10.0, 11.0, 12.0])
+    assert truncated(np.arange(7), s, ds).tolist() == [False, False, False, True, True, False, False]
 
 
 def test_a_layer_the_sweep_resolved_needs_a_smaller_share_of_the_points():

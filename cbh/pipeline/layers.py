@@ -9,7 +9,7 @@ does not dip below ``valley_ratio`` × the lower peak. Each surviving peak owns 
 between the valleys on either side. A layer is reported only with enough support:
 ``min_points`` points, ``min_fraction`` of all points and ``min_cover`` of the usable sky. Where
 the plane sweep resolved a layer of its own above its lowest one (a vote peak of the image or of
-a region, matched within its own planes, its straddling matches left out: :mod:`.sweep`),
+a region, each pixel refined on that layer's planes and pixels alone: :mod:`.sweep`),
 ``min_fraction_resolved``
 (0.5 %, the share of the sky that ``min_cover`` asks for) of the points is enough: an upper deck
 seen through the gaps of a lower one holds 0.8–4 % of them in dense skies, while a cluster of

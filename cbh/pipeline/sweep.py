@@ -65,9 +65,10 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    region's peak with ``region_share`` of its votes that is a local maximum of the whole
    image's own votes too (not the flank of a near layer's noise), inside the swept planes, above
    the image's lowest layer and more than 1.5 plane steps from every layer is a layer as well.
-   A pixel whose own best plane lies in another layer than its label's straddles the two (or is
-   occluded in camera 2): it is kept out of both (:func:`straddling`; before, such matches read
-   an upper deck seen through gaps 5–20 % low).
+   (A pixel whose own best plane lies in another layer than its label's straddles the two: its
+   cost stays out of both layers' refinement, below. Dropping such pixels altogether was tried:
+   it gained nothing at 960 px, and on a clear sky without a capture time it left a cluster of
+   aureole matches that passed as a layer.)
 4. :func:`refine_pass`. Each pixel's height is refined (parabola through the three best
    planes) on its layer's cost summed over that layer's pixels only — and of those, only the
    ones whose own best plane lies in the layer's range: a pixel labelled into the layer by
@@ -141,7 +142,7 @@ from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 __all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes",
            "coarse_votes", "coarse_regions", "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
-           "label_pass", "refine_pass", "straddling", "truncated", "resolved_layers", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
+           "label_pass", "refine_pass", "truncated", "resolved_layers", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
 _REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
@@ -1249,19 +1250,6 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
 
 
-def straddling(lab: LayerLabels, shape: tuple[int, int]) -> np.ndarray:
-    """The pixels (``shape`` = (h, w), working size) kept out of every layer: those whose own best
-    plane (their ``window_px`` ZNCC) lies in another layer than the one their ``label_px`` box
-    chose. Such a window straddles a layer's edge (or is occluded in camera 2): its match is the
-    other layer's texture, and refined on the label's layer it would read a height of neither
-    (a deck seen through gaps read 5–20 % low). None of them with one layer."""
-    h, w = shape
-    if len(lab.vote_ranges) < 2:
-        return np.zeros((h, w), bool)
-    off = (np.asarray(lab.plane_layer)[lab.own_plane] != lab.label).astype(np.uint8)
-    return cv2.resize(off, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
-
-
 def resolved_layers(ok: np.ndarray, s_px: np.ndarray, label: np.ndarray, o1z: float) -> list[float]:
     """The height [m] of each layer the sweep resolved (o1z + 1 / the median s of its accepted
     pixels, every second pixel of the half-resolution lattice of ``label`` (h/2, w/2)),
@@ -1330,7 +1318,7 @@ def truncated(j: np.ndarray, s: np.ndarray, ds: float) -> np.ndarray:
     """Where the best plane ``j`` (indices into the fine planes ``s``) is the last one of a run of
     planes below a gap in the sweep (a hypothesis's edge, no plane one step lower): the maximum is
     where the sweep stopped, not the match (an artefact of 3–5 % of the points piled on that plane,
-    a layer of its own once the straddling matches are left out). The sweep's floor (matched there:
+    a layer of its own once the sweep proposes layers per region). The sweep's floor (matched there:
     ``below_range``) and infinity are the range's own ends, not a gap."""
     gap = np.diff(s) > 1.01 * ds  # (P − 1,): no plane one step beyond plane i
     edge = np.zeros(len(s), bool)
@@ -1427,7 +1415,7 @@ def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepFiel
         lab = label_pass(fine, cfg)
         info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
-        region, ok, s_px = fine.region, fine.ok & ~straddling(lab, fine.ok.shape), refine_pass(fine, lab, maps.scale_px, cfg)
+        region, ok, s_px = fine.region, fine.ok.copy(), refine_pass(fine, lab, maps.scale_px, cfg)
         ok &= np.isfinite(s_px)
         info["resolved_m"] = resolved_layers(ok, s_px, lab.label, o1z)
         lap("refine")

@@ -50,7 +50,6 @@ Precision: float32 throughout, as the OpenCV path; ZNCC values agree with it to 
 (different summation order of the box filters), see tests/test_torch_parity.py.
 """
 from __future__ import annotations
-from dataclasses import replace
 
 
 import numpy as np
@@ -60,7 +59,7 @@ from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
     CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_planes,
-    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, straddling, truncated, vote_layers, SweepField, field_points,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, truncated, vote_layers, SweepField, field_points,
 )
 
 __all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
@@ -389,11 +388,9 @@ def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, 
     info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
     lap("layers")
     s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
-    lab_np = replace(lab, own_plane=lab.own_plane.cpu().numpy(), label=lab.label.cpu().numpy())
     s_np = s_px.cpu().numpy()
-    out = SweepField(fine.region, fine.ok.cpu().numpy() & ~straddling(lab_np, tuple(fine.ok.shape)) & np.isfinite(s_np),
-                     s_np, info)
-    info["resolved_m"] = resolved_layers(out.ok, out.s, lab_np.label, o1z)
+    out = SweepField(fine.region, fine.ok.cpu().numpy() & np.isfinite(s_np), s_np, info)
+    info["resolved_m"] = resolved_layers(out.ok, out.s, lab.label.cpu().numpy(), o1z)
     lap("refine")
     return out
 
