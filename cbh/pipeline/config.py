@@ -208,7 +208,7 @@ class LayersConfig:
     noise_margin: float = 1.2  # the spread is "explained by noise" up to this × the predicted noise [1]
     min_points: int = 50  # a layer needs at least this many points [1]
     min_fraction: float = 0.04  # … and this fraction of all points [1]
-    min_fraction_resolved: float = 0.005  # … or this, where the plane sweep resolved a layer of its own [1]
+    min_fraction_resolved: float = 0.005  # … or this, where the plane sweep resolved a layer of its own above its lowest [1]
     min_cover: float = 0.005  # … and this fraction of camera 1's usable sky [1]
     reject_aliases: bool = True  # drop a layer whose pixels correlate as well at a bigger layer's height (see cbh.pipeline.support) [1]
 
