@@ -1,7 +1,7 @@
 """Randomized-sky benchmark: layers found, spurious layers, clear skies with cloud, false alarms.
 
 Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--jobs 2] [--verbose]
-     [--skylines] [--unmasked] [--kind clear] [--twice-encoded]
+     [--skylines] [--unmasked] [--kind clear] [--twice-encoded] [--dense]
 
 Each sky is :func:`cbh.sim.randomize.random_case` (seed S, S+1, …): clear, broken or overcast;
 1–3 layers 300 m – 10 km; baselines 20–200 m in any direction; winds 0–30 m/s; the sun 10–85°
@@ -9,7 +9,8 @@ from the zenith; aureole strength; horizon obstacles with and without a mask; co
 responses; white levels 235–255 and limited-range video; JPEG; noise. One pair per sky, the
 true orientation given. The options widen the distribution
 (:class:`cbh.sim.randomize.RandomOptions`): skyline obstacles and hazy horizons, obstacles in
-every sky without a mask, one kind of sky, twice-encoded frames. A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
+every sky without a mask, one kind of sky, twice-encoded frames, dense skies of two or three
+layers (upper decks seen through the gaps of the lowest). A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
 δθ = half a rendered pixel at the zenith (:func:`cbh.sim.evaluate.layer_tolerance`).
 """
 from __future__ import annotations
@@ -90,13 +91,14 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--unmasked", action="store_true", help="obstacles in every sky, never a mask")
     ap.add_argument("--kind", choices=["clear", "broken", "overcast"], help="only skies of this kind")
     ap.add_argument("--twice-encoded", action="store_true", help="camera JPEG then recorder JPEG, clip 230-255 DN")
+    ap.add_argument("--dense", action="store_true", help="broken skies of 2-3 layers, the lowest covering 0.55-0.85")
     return ap
 
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     options = RandomOptions(skylines=args.skylines, unmasked=args.unmasked, kind=args.kind,
-                            twice_encoded=args.twice_encoded)
+                            twice_encoded=args.twice_encoded, dense=args.dense)
     jobs = [(s, args.size, options) for s in range(args.seed, args.seed + args.n)]
     if args.jobs > 1:
         import multiprocessing as mp

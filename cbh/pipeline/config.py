@@ -159,6 +159,8 @@ class SweepConfig:
     label_px: int = 15  # box over which a pixel's cost decides its layer [px]
     far_aggregate_px: float = 8.0  # layers with less parallax than this get a box grown by this/parallax (≤ 4×); 0 = off [px]
     vote_percentile: float = 70.0  # fine layer votes: only pixels whose wide-box ZNCC is above this percentile [%]
+    region_px: int = 64  # layers are also proposed per region of this side (a deck seen only through gaps); 0 = off [px]
+    region_share: float = 0.1  # a region's layer needs this share of the region's votes [1]
     max_planes: int = 48  # fine planes at most (the step grows beyond) [1]
     map_cache_mb: float = 256.0  # remap tables of the planes used, kept for the next pairs (≈ 7 MB per fine plane at 960 px; per process); 0 = off [MB]
     point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
@@ -206,6 +208,7 @@ class LayersConfig:
     noise_margin: float = 1.2  # the spread is "explained by noise" up to this × the predicted noise [1]
     min_points: int = 50  # a layer needs at least this many points [1]
     min_fraction: float = 0.04  # … and this fraction of all points [1]
+    min_fraction_resolved: float = 0.005  # … or this, where the plane sweep resolved a layer of its own above its lowest [1]
     min_cover: float = 0.005  # … and this fraction of camera 1's usable sky [1]
     reject_aliases: bool = True  # drop a layer whose pixels correlate as well at a bigger layer's height (see cbh.pipeline.support) [1]
 
@@ -412,7 +415,8 @@ def _check_sweep(sw, where: str) -> None:
         raise ConfigError(f"{where}.min_height_m: must be < max_height_m")
     if not -1.0 <= sw.min_zncc < 1.0:
         raise ConfigError(f"{where}.min_zncc: must be in [-1, 1), got {sw.min_zncc}")
-    for k in ("min_vote_fraction", "extent_ratio", "valley_ratio"):
+    _positive(f"{where}.region_px", sw.region_px, strict=False)
+    for k in ("min_vote_fraction", "extent_ratio", "valley_ratio", "region_share"):
         if not 0 < getattr(sw, k) <= 1:
             raise ConfigError(f"{where}.{k}: must be in (0, 1], got {getattr(sw, k)}")
     _positive(f"{where}.min_texture", sw.min_texture, strict=False)
@@ -444,7 +448,7 @@ def _check_layers(ly, where: str, layer_methods) -> None:
     _choice(f"{where}.method", ly.method, tuple(layer_methods))
     for k in ("bin_log", "smooth_log", "min_separation_log"):
         _positive(f"{where}.{k}", getattr(ly, k))
-    for k in ("min_fraction", "min_cover"):
+    for k in ("min_fraction", "min_fraction_resolved", "min_cover"):
         if not 0 <= getattr(ly, k) < 1:
             raise ConfigError(f"{where}.{k}: must be in [0, 1), got {getattr(ly, k)}")
     if not ly.noise_margin >= 1.0:

@@ -7,7 +7,14 @@ layers. Two neighbouring candidates are merged (the higher survives) when they a
 ``min_separation_log`` (the expected height resolution) or when the histogram between them
 does not dip below ``valley_ratio`` × the lower peak. Each surviving peak owns the heights
 between the valleys on either side. A layer is reported only with enough support:
-``min_points`` points, ``min_fraction`` of all points and ``min_cover`` of the usable sky.
+``min_points`` points, ``min_fraction`` of all points and ``min_cover`` of the usable sky. Where
+the plane sweep resolved a layer of its own above its lowest one (a vote peak of the image or of
+a region, each pixel refined on that layer's planes and pixels alone: :mod:`.sweep`),
+``min_fraction_resolved``
+(0.5 %, the share of the sky that ``min_cover`` asks for) of the points is enough: an upper deck
+seen through the gaps of a lower one holds 0.8–4 % of them in dense skies, while a cluster of
+noise (a pile of matches on one plane of the sweep, say) is no layer of the sweep and still
+needs 4 %.
 
 Each layer's statistics (:func:`layer_stats`):
 
@@ -238,7 +245,7 @@ class LayerSet:
 def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram,
                      intervals: list[tuple[float, float]], cloud: np.ndarray, usable: np.ndarray,
                      nearest_m: np.ndarray, cloud_fraction: float, cfg: LayersConfig,
-                     offsets: np.ndarray | None = None) -> LayerSet:
+                     offsets: np.ndarray | None = None, resolved_m=()) -> LayerSet:
     """Keep the candidate intervals with enough support (points, share of points, cover).
 
     Parameters
@@ -255,14 +262,21 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
         Camera 1's cloud fraction, 0..1.
     offsets : ndarray, shape (N, 2), optional
         The points' plane offsets from camera 1 (:func:`local_spread`).
+    resolved_m : sequence of float
+        Heights of the layers the plane sweep resolved on its own [m]: an interval holding one
+        above the lowest needs only ``min_fraction_resolved`` of the points (a deck seen through
+        the gaps of a lower one holds a few per cent of them; a cluster of noise is no layer of
+        the sweep). The lowest is hidden by nothing: it needs ``min_fraction`` as any other.
     """
     label = np.full(len(heights_m), -1, np.int16)
     cover_of, unassigned = layer_covers(cloud, usable, nearest_m, intervals)
+    upper = sorted(resolved_m)[1:]  # the sweep's layers above its lowest: what a lower deck can hide
     layers = []
     for k, (lo, hi) in enumerate(intervals):
         sel = (heights_m >= lo) & (heights_m < hi)
         n = int(sel.sum())
-        if n < cfg.min_points or n < cfg.min_fraction * len(heights_m) or cover_of[k] < cfg.min_cover:
+        frac = cfg.min_fraction_resolved if any(lo <= h < hi for h in upper) else cfg.min_fraction
+        if n < cfg.min_points or n < frac * len(heights_m) or cover_of[k] < cfg.min_cover:
             unassigned += cover_of[k]  # cloud of an unsupported height interval: in no layer
             continue
         label[sel] = len(layers)

@@ -226,6 +226,7 @@ class DenseField:
     region: tuple  # (slice y, slice x)
     s: np.ndarray  # (h, w) float32: s = 1/(h − o1z) of the pixel's plane [1/m]; NaN = no match
     floor_fraction: float = 0.0  # share of the accepted pixels that sat on the lowest plane (dropped from s)
+    resolved_m: tuple = ()  # heights of the layers the sweep resolved, each matched within its own planes [m]
 
 
 def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
@@ -341,7 +342,8 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     s[~(cv2.remap(inp.usable2.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                    borderValue=0) > 0)] = np.nan
     field = DenseField(f.region, s, floor_fraction=_drop_floor(s, f.info.get("planes"), g.planes.scale_px, o1z,
-                                                                cfg.sweep))
+                                                                cfg.sweep),
+                       resolved_m=tuple(f.info.get("resolved_m", ())))
     # the point set: the same matches on the point lattice
     # (camera 2's pixels from the sweep's own s; their heights from the field's, exact beyond the tables)
     px1, px2, _ = field_points(replace(f, ok=np.isfinite(s)), g.planes, max(1, int(cfg.sweep.point_stride_px)))

@@ -1161,8 +1161,9 @@ class Pipeline:
             np.concatenate([tr.miss_m for tr in sparse] or [np.zeros(0)]),
             np.concatenate([np.linalg.norm(tr.point_m - self.cam1.position_m, axis=1) for tr in sparse] or [np.zeros(0)]))
         noise = height_noise(xyz, self.cam1.position_m, self.cam2.position_m, dtheta)
+        resolved = tuple(h for tr in corr.triangulated if tr.matches.field is not None for h in tr.matches.field.resolved_m)
         return Points(xyz_m=xyz, miss_m=miss, px1=p1, px2=p2, noise_m=noise,
-                      per_method=[(p[0], len(p[1])) for p in parts])
+                      per_method=[(p[0], len(p[1])) for p in parts], resolved_m=resolved)
 
     def stage_layers(self, pts: "Points", seg: "Segmentation", masks: "Masks", hmap: HeightMap,
                      ctx: "PairContext", gray=None, comp=None) -> LayerSet:
@@ -1176,7 +1177,8 @@ class Pipeline:
         with np.errstate(invalid="ignore", divide="ignore"):
             offsets = rel[:, :2] / rel[:, 2:3]
         lay = supported_layers(pts.xyz_m[:, 2], pts.noise_m, hist, intervals, seg.clouds[0], masks.usable[0],
-                               hmap.nearest_m, seg.fractions[self.cam1.name], self.config.layers, offsets)
+                               hmap.nearest_m, seg.fractions[self.cam1.name], self.config.layers, offsets,
+                               resolved_m=pts.resolved_m)
         if gray is not None and len(lay.layers) > 1 and self.config.layers.reject_aliases:
             g2 = gray[1] if comp is None else cv2.remap(gray[1], comp, None, cv2.INTER_LINEAR,
                                                         borderMode=cv2.BORDER_REPLICATE)
@@ -1370,6 +1372,7 @@ class Points:
     px2: np.ndarray  # (N, 2) camera 2 pixels (full size)
     noise_m: np.ndarray  # (N,) predicted height noise [m]
     per_method: list[tuple[str, int]]  # (method, count) in the order of the arrays
+    resolved_m: tuple = ()  # heights of the layers the plane sweep resolved on its own [m]
 
 
 def _sky_dn(image: np.ndarray, usable: np.ndarray) -> float:

@@ -44,7 +44,13 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    the extent of s around it where its votes stay above ``extent_ratio`` × peak. High layers
    (a few pixels of parallax) are not resolved at coarse size, so :func:`fine_planes` takes
    every plane of the *far range* (parallax ≤ ``far_px``, from infinity on) and the union of
-   the coarse extents (± 1.5 coarse steps), ``step_px`` apart.
+   the coarse extents (± 1.5 coarse steps), ``step_px`` apart. *Regions* (issue 33): a deck
+   seen only through the gaps of a lower one holds a few per cent of the whole sky's votes,
+   under the smear of the windows that straddle both, but most of the votes of the regions
+   where its gaps are; so each region (``region_px`` / 2 wide, overlapping by half) proposes
+   its own peaks (:func:`regional_peaks`, ≥ 2.5 × ``region_share`` of its votes) above the
+   lowest layer, beyond the far range and outside every peak's extent; their planes are swept
+   as long as they fit in ``max_planes`` without coarsening the step.
 2. :func:`fine_pass` → :class:`FineCost`. At working size, every fine plane's ZNCC; a cloud
    pixel is accepted if its window has texture (grey-level standard deviation ≥
    ``min_texture``) and its block's best ZNCC ≥ ``min_zncc``. The planes are streamed: only the
@@ -53,7 +59,16 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    cost vote, in bins of half a plane step, for the layers of the image (votes only from the
    boxes whose mean ZNCC is above the ``vote_percentile``: a box that straddles two layers
    correlates worse and would fill the valley between their peaks); each pixel is labelled
-   with the layer whose planes its ``label_px`` box cost prefers.
+   with the layer whose planes its ``label_px`` box cost prefers. The wide box that straddles a
+   gap's edge takes the lower deck (its texture is coarser and stronger), so each region of
+   ``region_px`` also votes with every block's *own* best plane (:func:`own_plane_peaks`): a
+   region's peak with ``region_share`` of its votes that is a local maximum of the whole
+   image's own votes too (not the flank of a near layer's noise), inside the swept planes, above
+   the image's lowest layer and more than 1.5 plane steps from every layer is a layer as well.
+   (A pixel whose own best plane lies in another layer than its label's straddles the two: its
+   cost stays out of both layers' refinement, below. Dropping such pixels altogether was tried:
+   it gained nothing at 960 px, and on a clear sky without a capture time it left a cluster of
+   aureole matches that passed as a layer.)
 4. :func:`refine_pass`. Each pixel's height is refined (parabola through the three best
    planes) on its layer's cost summed over that layer's pixels only — and of those, only the
    ones whose own best plane lies in the layer's range: a pixel labelled into the layer by
@@ -61,6 +76,8 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    its sloped cost would pull the parabola towards the range's edge (−3 … −5 % bias on the far
    layer at B = 30 m before) — so it is sharp at layer boundaries; the half-resolution s is
    brought back to working size bilinearly (a box average varies smoothly inside a layer).
+   A pixel whose best plane is the last before a gap in the planes (a hypothesis's edge) is
+   not matched (:func:`truncated`: the maximum is where the sweep stopped).
    With ``aggregate_px`` = 1 each pixel keeps its own best plane (full-resolution ZNCC,
    :func:`zncc_planes`), refined by the parabola.
 
@@ -125,7 +142,7 @@ from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 __all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes",
            "coarse_votes", "coarse_regions", "coarse_pass",
            "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
-           "label_pass", "refine_pass", "CoarseLayers", "FineCost", "LayerLabels"]
+           "label_pass", "refine_pass", "truncated", "resolved_layers", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
 _REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
@@ -133,6 +150,9 @@ _REGION_LOCK = threading.Lock()
 _SRC_SCALE = 64.0  # image 2 enters the sweep's remap as uint16 in 1/64 grey levels (see _HalfZncc)
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
+_REGION_APART_BINS = 3  # a region's layer is a new one beyond 1.5 plane steps from the image's [bins of half a step]
+_COARSE_SHARE = 2.5  # the coarse pass's regions are a quarter of the fine ones: their peak needs this × region_share
+_REGION_MIN_FILL = 0.25  # a region proposes layers when this share of its cells vote [1]
 
 
 @dataclass
@@ -744,6 +764,7 @@ class CoarseLayers:
     ds: float  # their spacing [1/m]
     ranges: list[tuple[int, int]]  # index range [lo, hi] of each hypothesis in ``s``
     layers_m: list[float]  # the hypotheses' heights above the ENU origin [m]
+    regional: list[tuple[int, int]] = field(default_factory=list)  # ranges of the regions' hypotheses, strongest first
 
 
 @dataclass
@@ -813,9 +834,20 @@ def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_
     cells), whichever correlates better, when that ZNCC is ≥ ``min_zncc``. A near plane's vote is
     spread 1/4, 1/2, 1/4 over grid planes q − 1, q, q + 1 (it stands for two grid steps), so the
     histogram stays uniform in s. Either tier may be None (no planes there). Returns (G,) float64."""
+    q, near_wins = coarse_cells(plan, cloud, j_far, c_far, j_near, c_near, min_zncc)
     n = len(plan.s)
-    votes = np.zeros(n)
+    votes = np.bincount(q[(q >= 0) & ~near_wins], minlength=n).astype(np.float64)
+    qn = q[(q >= 0) & near_wins]
+    for d, wt in ((-1, 0.25), (0, 0.5), (1, 0.25)):
+        votes += wt * np.bincount(np.clip(qn + d, 0, n - 1), minlength=n)
+    return votes
+
+
+def coarse_cells(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_near, min_zncc: float):
+    """Each coarse cell's vote (see :func:`coarse_votes`): (index into ``plan.s`` (h, w) int64, −1
+    = none; whether it is a near plane's (h, w) bool)."""
     h, w = cloud.shape
+    q = np.full((h, w), -1, np.int64)
     if j_near is not None:
         up = lambda a: np.repeat(np.repeat(a, 2, axis=0), 2, axis=1)[:h, :w]  # noqa: E731
         jn, cn = up(j_near), up(c_near)
@@ -825,12 +857,10 @@ def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_
         near_wins, best = np.zeros((h, w), bool), c_far
     good = cloud & (best >= min_zncc)
     if j_far is not None:
-        votes += np.bincount(plan.far[j_far[good & ~near_wins]], minlength=n)
+        q[good & ~near_wins] = plan.far[j_far[good & ~near_wins]]
     if j_near is not None:
-        q = plan.near[jn[good & near_wins]]
-        for d, wt in ((-1, 0.25), (0, 0.5), (1, 0.25)):
-            votes += wt * np.bincount(np.clip(q + d, 0, n - 1), minlength=n)
-    return votes
+        q[good & near_wins] = plan.near[jn[good & near_wins]]
+    return q, near_wins
 
 
 def coarse_regions(cloud1: np.ndarray, plan: CoarsePlanes, cfg):
@@ -877,18 +907,55 @@ def coarse_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s_min: 
         j_far, c_far = _best_plane(c1, c2, maps.downsampled(f) if f > 1 else maps, plan.s[plan.far], k, slc)
     if half is not None:
         j_near, c_near = _best_plane(_pool2(c1), c2.map(_pool2, 2), maps.downsampled(2 * f), plan.s[plan.near], k, half)
-    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
-    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
+    return coarse_layers(plan, cl, j_far, c_far, j_near, c_near, o1z, cfg)
+
+
+def coarse_layers(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_near, o1z: float,
+                  cfg) -> CoarseLayers:
+    """The hypotheses of the coarse cells' best planes (:func:`coarse_votes`): the peaks of the
+    whole sky's votes, and of each region's (:func:`regional_peaks`, ``region_px`` at working
+    size: a deck seen through the gaps of a lower one; :func:`coarse_hypotheses`)."""
+    q, near = coarse_cells(plan, cloud, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    votes = coarse_votes(plan, cloud, j_far, c_far, j_near, c_near, cfg.min_zncc)
+    # regions half as wide as the fine pass's: a hypothesis costs only planes (the fine pass
+    # decides), and a gap of a quarter of a fine region still fills much of a coarse one
+    side = int(cfg.region_px) // (4 * max(int(cfg.coarse_factor), 1))  # a cell: 2 coarse pixels
+    regional = []
+    peaks = find_peaks(votes, cfg.min_vote_fraction * float(cloud.sum()), cfg.valley_ratio)
+    if side >= 2 and peaks:
+        # wanted: above the lowest peak (a deck below it hides nothing: the whole sky's votes count
+        # it), outside every peak's extent, and beyond the far range (swept by the fine pass
+        # anyway); no test against the whole sky's votes: a hypothesis only adds planes, the fine
+        # pass decides
+        allowed = np.zeros(len(plan.s), bool)
+        allowed[1: max(peaks) - 1] = True
+        for lo, hi in (peak_extent(votes, p, cfg.extent_ratio) for p in peaks):
+            allowed[max(lo - 1, 0): hi + 2] = False
+        s_far = cfg.far_px * plan.ds / (float(cfg.coarse_step_px) * max(int(cfg.coarse_factor), 1))
+        allowed &= plan.s > s_far
+        if allowed.any():
+            regional = regional_peaks(q, np.ones(q.shape), len(plan.s), side, _COARSE_SHARE * cfg.region_share,
+                                      _REGION_MIN_FILL * side * side, cfg.valley_ratio, allowed)
+    return coarse_hypotheses(votes, float(cloud.sum()), plan.s, plan.ds, o1z, cfg, regional)
 
 
 def coarse_hypotheses(votes: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: float, o1z: float,
-                      cfg) -> CoarseLayers:
+                      cfg, regional=()) -> CoarseLayers:
     """Layer hypotheses from the coarse votes (G,) on the planes ``s`` (:func:`coarse_votes`) of
-    ``n_cloud`` cloud cells; peaks need ``min_vote_fraction`` of them."""
+    ``n_cloud`` cloud cells; peaks need ``min_vote_fraction`` of them. ``regional``: the peaks
+    of regions ((index, weight), :func:`coarse_layers`); each one above the lowest peak and
+    outside every peak's extent is a hypothesis too (its plane ± 1), swept as long as the fine
+    planes stay within ``max_planes`` (:func:`fine_planes`)."""
     votes = np.asarray(votes, np.float64)
     peaks = find_peaks(votes, cfg.min_vote_fraction * n_cloud, cfg.valley_ratio)
     ranges = [peak_extent(votes, p, cfg.extent_ratio) for p in peaks]
-    return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges])
+    extra: list[tuple[int, int]] = []
+    if peaks:
+        top = max(peaks) - 1
+        for b, _ in sorted(regional, key=lambda e: -e[1]):
+            if 0 < b < top and all(not lo - 1 <= b <= hi + 1 for lo, hi in ranges + extra):
+                extra.append((max(b - 1, 0), min(b + 1, len(s) - 1)))
+    return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges + extra], extra)
 
 
 def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: float, cfg) -> tuple[np.ndarray, float]:
@@ -900,16 +967,25 @@ def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: floa
     3575 and 3452 m with no plane at 3512 m, and every pixel snapped to 3452 m, −1.4 %).
     Returns (s (P,), nominal step ds)."""
     base = cfg.step_px / scale_px
-    for k in range(1, 1 << 12):
-        ds = base * k
+
+    def planes(ranges, ds):
         parts = [np.arange(0.0, min(cfg.far_px / scale_px, s_max) + 0.5 * ds, ds)]
-        for lo, hi in coarse.ranges:
+        for lo, hi in ranges:
             a = max(coarse.s[lo] - 1.5 * coarse.ds, s_min)
             b = min(coarse.s[hi] + 1.5 * coarse.ds, s_max)
             parts.append(np.arange(a, b + 0.5 * ds, ds))
-        s = np.unique(np.round(np.concatenate(parts) / ds) * ds)
+        return np.unique(np.round(np.concatenate(parts) / ds) * ds)
+
+    for k in range(1, 1 << 12):
+        ds = base * k
+        s = planes(coarse.ranges, ds)
         if len(s) <= cfg.max_planes:
             break
+    kept = list(coarse.ranges)
+    for r in coarse.regional:  # the regions' hypotheses, strongest first, while the step stays
+        more = planes(kept + [r], ds)
+        if len(more) <= cfg.max_planes:
+            kept, s = kept + [r], more
     return s, ds
 
 
@@ -944,7 +1020,87 @@ def fine_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s: np.nda
     return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)))
 
 
-def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, total: float, cfg):
+def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, share: float, min_votes: float,
+                   valley_ratio: float, allowed: np.ndarray | None = None, sigma: float = 1.0) -> list[tuple[int, float]]:
+    """The vote peaks of each region of a grid of votes: a deck seen only through the gaps of a
+    lower one holds a few per cent of the whole sky's votes, under the smear of the lower layer's
+    and of the windows that straddle both, but most of the votes of the regions where its gaps are.
+
+    Parameters
+    ----------
+    bins : ndarray, shape (h, w), int
+        Each cell's vote (a bin of a uniform grid, 0 … ``nb`` − 1; < 0: no vote).
+    weight : ndarray, shape (h, w), float
+        Each cell's vote weight.
+    side : int
+        Region side [cells]; the regions overlap by half (every ``side`` / 2 cells), so that a gap
+        is wholly inside at least one of them.
+    share, min_votes : float
+        A region votes when its votes weigh at least ``min_votes``; its peak needs ``share`` of
+        them, and a valley below ``valley_ratio`` × the lower peak to its neighbours
+        (:func:`~cbh.pipeline.peaks.find_peaks`, on the histogram smoothed by ``sigma`` bins).
+    allowed : ndarray, shape (nb,), bool, optional
+        The bins wanted (None: all); only the regions with a candidate there are examined.
+
+    Returns
+    -------
+    list of (bin, weight): every region's peaks in ``allowed`` (a bin once, with its largest
+    regional weight: the smoothed votes of the bin and its two neighbours), ascending.
+    """
+    h, w = bins.shape
+    c = max(int(side) // 2, 1)
+    ny, nx = -(-h // c), -(-w // c)
+    ok = (bins >= 0) & (bins < nb) & (weight > 0)
+    yy, xx = np.nonzero(ok)
+    cell, b_ok, w_ok = (yy // c) * nx + (xx // c), bins[ok], weight[ok]
+    r = int(4.0 * sigma + 0.5)  # the smoothing of smooth_gaussian
+
+    def regions(a):  # (ny, nx, ...) per cell → per region of 2 × 2 cells, flattened
+        a = a[:-1] + a[1:] if a.shape[0] > 1 else a
+        a = a[:, :-1] + a[:, 1:] if a.shape[1] > 1 else a
+        return a.reshape(-1, *a.shape[2:])
+
+    tot = regions(np.bincount(cell, weights=w_ok, minlength=ny * nx).reshape(ny, nx))
+    use = tot >= min_votes  # the regions that vote, and (a smoothed bin sums the bins within r)
+    if allowed is not None:  # could have a wanted peak with share of their votes
+        near = np.convolve(np.asarray(allowed, np.float64), np.ones(2 * r + 1), mode="same") > 0
+        use &= regions(np.bincount(cell, weights=w_ok * near[b_ok], minlength=ny * nx).reshape(ny, nx)) >= share * tot
+    if not use.any():
+        return []
+    hist = regions(np.bincount(cell * nb + b_ok, weights=w_ok, minlength=ny * nx * nb).reshape(ny, nx, nb))
+    hist, tot = hist[use], tot[use]  # (R, nb)
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    pad = np.pad(hist, ((0, 0), (r, r)))
+    sm = sum((k[d] / k.sum()) * pad[:, d: d + nb] for d in range(2 * r + 1))
+    left = np.pad(sm, ((0, 0), (1, 0)), constant_values=-np.inf)[:, :-1]
+    right = np.pad(sm, ((0, 0), (0, 1)), constant_values=-np.inf)[:, 1:]
+    cand = (sm > left) & (sm >= right) & (sm > 0) & (sm >= share * tot[:, None])  # find_peaks' candidates
+    want = cand if allowed is None else cand & np.asarray(allowed, bool)[None, :]
+    mass = sm + np.pad(sm, ((0, 0), (1, 0)))[:, :-1] + np.pad(sm, ((0, 0), (0, 1)))[:, 1:]  # bin and neighbours
+    n_cand, wanted = cand.sum(axis=1), want.any(axis=1)
+    found: dict[int, float] = {}
+    one = np.flatnonzero(wanted & (n_cand == 1))  # a single candidate is the region's peak
+    for p, m in zip(np.argmax(cand[one], axis=1), mass[one, np.argmax(cand[one], axis=1)]):
+        found[int(p)] = max(found.get(int(p), 0.0), float(m))
+    for i in np.flatnonzero(wanted & (n_cand > 1)):
+        for p in find_peaks(sm[i], share * tot[i], valley_ratio):
+            if allowed is None or allowed[p]:
+                found[int(p)] = max(found.get(int(p), 0.0), float(mass[i, p]))
+    return sorted(found.items())
+
+
+def merge_peaks(peaks: list[int], extra: list[tuple[int, float]], min_apart: float) -> list[int]:
+    """``peaks`` and those of ``extra`` ((bin, weight), strongest first kept) that lie more than
+    ``min_apart`` bins from every peak kept, ascending."""
+    keep = list(peaks)
+    for b, _ in sorted(extra, key=lambda e: -e[1]):
+        if all(abs(b - p) > min_apart for p in keep):
+            keep.append(int(b))
+    return sorted(keep)
+
+
+def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, total: float, cfg,
+                regional=()):
     """The layers of the image from the wide-box winners' votes (see :func:`label_pass`).
 
     Parameters
@@ -957,6 +1113,10 @@ def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float
         Their nominal spacing [1/m].
     total : float
         Total weight of the accepted pixels (a layer needs ``min_vote_fraction`` of it).
+    regional : list of (bin, weight), or a function of the image's peaks (bins) giving one
+        Further layers, in bins of half a plane step (:func:`own_plane_peaks`): each one above
+        the lowest peak of the whole image's votes and more than 1.5 plane steps from every one
+        is a layer too.
 
     Returns
     -------
@@ -969,6 +1129,10 @@ def vote_layers(s_vote: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float
     votes = np.bincount(idx, weights=np.asarray(weight, np.float64), minlength=nb)
     smooth = smooth_gaussian(votes, _VOTE_SMOOTH_BINS)
     peaks = find_peaks(smooth, cfg.min_vote_fraction * total, cfg.valley_ratio)
+    if peaks:  # a region's layer above the image's lowest (a layer below it hides nothing: its own votes count)
+        top = max(peaks) - _REGION_APART_BINS
+        extra = regional(peaks) if callable(regional) else regional
+        peaks = merge_peaks(peaks, [(int(b), w) for b, w in extra if b < top], _REGION_APART_BINS)
     cut_bins = valley_cuts(smooth, peaks)
     ranges = list(zip([0] + [c + 1 for c in cut_bins], cut_bins + [nb - 1])) if peaks else []
     cuts = np.array([bw * (c + 0.5) for c in cut_bins])
@@ -993,6 +1157,58 @@ def layer_box(lab: "LayerLabels", L: int, scale_px: float, cfg) -> int:
     return k2
 
 
+def own_plane_peaks(own: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: float, cfg,
+                    peaks=None) -> list[tuple[int, float]]:
+    """Layers proposed per region (``region_px`` at working size, :func:`regional_peaks`) by the
+    votes of each accepted block's own best plane ``own`` (h/2, w/2) (its ``window_px`` ZNCC, no
+    aggregation: a wide box that straddles a gap's edge takes the lower layer, whose texture is
+    coarser and stronger), weighted by ``weight`` (accepted fraction). The fine planes lie on a
+    lattice of ``ds`` (:func:`fine_planes`), so each plane is its own bin. ``peaks``: the whole
+    image's layers (bins of half a plane step, :func:`vote_layers`), if known: only what could be
+    a further layer is looked for (above the lowest, 1.5 plane steps from every one). Returns
+    (bin, weight) in bins of half a plane step, ascending."""
+    side = int(cfg.region_px) // 2
+    if side < 2 or not len(s):
+        return []
+    q = np.rint(np.asarray(s, np.float64) / ds).astype(np.int64)
+    nb = int(q[-1]) + 1
+    bins = np.where(weight > 0, q[own], -1)
+    # a region's peak on the flank of a stronger one (the noise of a near layer's own planes, a
+    # few planes off) is no local maximum of the whole image's own votes; nor is a cloud beyond
+    # the sweep's highest plane (s = 0: no parallax, as glare or obstacles at infinity)
+    whole = smooth_gaussian(np.bincount(bins[bins >= 0], weight[bins >= 0], minlength=nb), 1.0)
+    allowed = np.zeros(nb, bool)
+    allowed[[b for b, _ in _true_peaks([(i, 1.0) for i in range(nb)], whole, np.isin(np.arange(nb), q),
+                                       int(np.ceil(1.0 / (cfg.max_height_m * ds))))]] = True
+    if peaks is not None:
+        b2 = 2 * np.arange(nb)
+        allowed &= b2 < max(peaks, default=0) - _REGION_APART_BINS
+        for p in peaks:
+            allowed &= np.abs(b2 - p) > _REGION_APART_BINS
+    if not allowed.any():
+        return []
+    found = regional_peaks(bins, weight, nb, side, cfg.region_share, _REGION_MIN_FILL * side * side, cfg.valley_ratio,
+                           allowed)
+    return [(2 * b, w) for b, w in found]
+
+
+def _true_peaks(found: list[tuple[int, float]], whole: np.ndarray, swept: np.ndarray, first: int):
+    """The regional peaks ``found`` ((bin, weight)) that are peaks of the sky's layers: a local
+    maximum of the ``whole`` image's (smoothed) votes too (a region's peak on the flank of a
+    stronger one is the noise of a near layer's planes, a few planes off), inside the swept planes
+    (``swept`` (nb,) bool: a bin with a swept plane on either side; at the edge of a run of planes
+    the maximum is where the sweep stopped, not the layer), and at bin ``first`` or beyond (the
+    sweep's highest plane: s = 0, no parallax, is glare or an obstacle at infinity)."""
+    nb = len(whole)
+    out = []
+    for b, w in found:
+        if b < first or b <= 0 or b >= nb - 1 or not (swept[b - 1] and swept[b + 1]):
+            continue
+        if whole[b] >= whole[b - 1: b + 2].max():
+            out.append((b, w))
+    return out
+
+
 def label_pass(fine: FineCost, cfg) -> LayerLabels:
     """Pass 3: the layers of the image and each pixel's layer (half resolution).
 
@@ -1011,11 +1227,12 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     if cfg.vote_percentile > 0 and vote.any():
         mean_w = cw / np.maximum(_box(fine.textured, k2), 1e-6)
         vote &= mean_w >= np.percentile(mean_w[vote], cfg.vote_percentile)
+    own = _best3_map(lambda c: c, list(cost), neighbours=False)[0]
     votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote], fine.ok_frac[vote], s, ds,
-                                                       float(fine.ok_frac.sum()), cfg)
+                                                       float(fine.ok_frac.sum()), cfg,
+                                                       lambda pk: own_plane_peaks(own, fine.ok_frac, s, ds, cfg, pk))
     hh, wh = cost.shape[1:]
     label = np.zeros((hh, wh), np.uint8)
-    own = np.zeros((hh, wh), np.int32)
     if len(ranges) > 1:
         def fold(qs, _start):  # each layer's best ``label_px`` box cost over its planes among qs
             best_l: list = [None] * len(ranges)
@@ -1030,8 +1247,24 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
         best_l = _pfold(fold, range(len(cost)), merge)
         label = _best3([b if b is not None else np.full((hh, wh), -np.inf, np.float32) for b in best_l],
                        neighbours=False)[0].astype(np.uint8)
-        own = _best3_map(lambda c: c, list(cost), neighbours=False)[0]
     return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
+
+
+def resolved_layers(ok: np.ndarray, s_px: np.ndarray, label: np.ndarray, o1z: float) -> list[float]:
+    """The height [m] of each layer the sweep resolved (o1z + 1 / the median s of its accepted
+    pixels, every second pixel of the half-resolution lattice of ``label`` (h/2, w/2)),
+    ascending; a layer without accepted pixels has none."""
+    okh, sh = ok[::4, ::4], s_px[::4, ::4]
+    lab = np.asarray(label)[::2, ::2]
+    n = min(okh.shape[0], lab.shape[0]), min(okh.shape[1], lab.shape[1])
+    okh, sh, lab = okh[:n[0], :n[1]], sh[:n[0], :n[1]], lab[:n[0], :n[1]]
+    out = []
+    for L in np.unique(lab[okh]):
+        v = sh[okh & (lab == L)]
+        med = float(np.median(v)) if v.size else 0.0
+        if med > 0:
+            out.append(o1z + 1.0 / med)
+    return sorted(out)
 
 
 def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.ndarray:
@@ -1071,9 +1304,27 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
             mL = mL.astype(np.float32)
             ja, ca, la, ra = _best3_map(lambda q: _box(cv2.multiply(cost[q], mL), kL), list(sel))
             s_half = _refine(ja, ca, la, ra, s[sel], ds)
+            cut = truncated(sel[ja], s, ds)
+            if cut.any():  # (NaN there: not matched; bilinear on the neighbours' s as before)
+                s_half = np.where(cut, lab.s_wide, s_half)
+                here = here & ~cv2.resize(cut.view(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+                s_px[fine.ok & (lab_full == L) & ~here] = np.nan
         up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
         cv2.copyTo(up, here.view(np.uint8), s_px)
     return s_px
+
+
+def truncated(j: np.ndarray, s: np.ndarray, ds: float) -> np.ndarray:
+    """Where the best plane ``j`` (indices into the fine planes ``s``) is the last one of a run of
+    planes below a gap in the sweep (a hypothesis's edge, no plane one step lower): the maximum is
+    where the sweep stopped, not the match (an artefact of 3–5 % of the points piled on that plane,
+    a layer of its own once the sweep proposes layers per region). The sweep's floor (matched there:
+    ``below_range``) and infinity are the range's own ends, not a gap."""
+    gap = np.diff(s) > 1.01 * ds  # (P − 1,): no plane one step beyond plane i
+    edge = np.zeros(len(s), bool)
+    edge[:-1] |= gap  # the last plane before a gap (towards lower heights)
+    edge[1:] |= gap  # the first plane after it
+    return edge[j]
 
 
 def _per_pixel(g1, g2, cloud1, maps, s, ds, cfg):
@@ -1164,7 +1415,9 @@ def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepFiel
         lab = label_pass(fine, cfg)
         info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
         lap("layers")
-        region, ok, s_px = fine.region, fine.ok, refine_pass(fine, lab, maps.scale_px, cfg)
+        region, ok, s_px = fine.region, fine.ok.copy(), refine_pass(fine, lab, maps.scale_px, cfg)
+        ok &= np.isfinite(s_px)
+        info["resolved_m"] = resolved_layers(ok, s_px, lab.label, o1z)
         lap("refine")
     else:
         region, ok, s_px = _per_pixel(g1, g2, cloud1, maps, s_fine, ds, cfg)

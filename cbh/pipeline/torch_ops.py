@@ -58,8 +58,8 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_hypotheses, coarse_planes,
-    coarse_regions, coarse_votes, fine_planes, layer_box, layer_planes, vote_layers, SweepField, field_points,
+    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_planes,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, truncated, vote_layers, SweepField, field_points,
 )
 
 __all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
@@ -267,8 +267,7 @@ def coarse_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm
         j_far, c_far = best(c1, c2, f, plan.s[plan.far], slc)
     if half is not None:
         j_near, c_near = best(pool2(c1[None, None])[0, 0], pool2(c2[None, None])[0, 0], 2 * f, plan.s[plan.near], half)
-    votes = coarse_votes(plan, cl, j_far, c_far, j_near, c_near, cfg.min_zncc)
-    return coarse_hypotheses(votes, float(cl.sum()), plan.s, plan.ds, o1z, cfg)
+    return coarse_layers(plan, cl, j_far, c_far, j_near, c_near, o1z, cfg)
 
 
 def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: TorchPlaneMaps, s: np.ndarray,
@@ -302,11 +301,15 @@ def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
     if cfg.vote_percentile > 0 and bool(vote.any()):
         mean_w = cw / box(fine.textured[None, None], k2)[0, 0].clamp_min(1e-6)
         vote &= mean_w >= torch.quantile(mean_w[vote].double(), cfg.vote_percentile / 100.0).float()
+    own = cost.argmax(0)
+
+    def regional(peaks):
+        return own_plane_peaks(own.cpu().numpy(), fine.ok_frac.cpu().numpy(), s, ds, cfg, peaks)
+
     votes, bw, ranges, cuts, plane_layer = vote_layers(s_w[vote].cpu().numpy(), fine.ok_frac[vote].cpu().numpy(),
-                                                       s, ds, float(fine.ok_frac.sum().item()), cfg)
+                                                       s, ds, float(fine.ok_frac.sum().item()), cfg, regional)
     hh, wh = cost.shape[1:]
     label = torch.zeros((hh, wh), dtype=torch.uint8, device=dev)
-    own = torch.zeros((hh, wh), dtype=torch.int64, device=dev)
     if len(ranges) > 1:
         b = box(cost[None], kl)[0] if kl > 1 else cost
         per_layer = torch.full((len(ranges), hh, wh), -torch.inf, device=dev)
@@ -315,7 +318,6 @@ def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
             if len(q):
                 per_layer[L] = b[torch.as_tensor(q, device=dev)].max(0).values
         label = per_layer.argmax(0).to(torch.uint8)
-        own = cost.argmax(0)
     return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
 
 
@@ -344,6 +346,12 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
             agg = box((cost[torch.as_tensor(sel, device=dev)] * mL.float())[None], kL)[0]
             ja, ca, la, ra = _best3(agg)
             s_half = _refine(ja, ca, la, ra, s[sel], ds)
+            cut = torch.as_tensor(truncated(np.asarray(sel)[ja.cpu().numpy()], s, ds), device=dev)
+            if bool(cut.any()):  # as the OpenCV twin: not matched where the sweep stopped
+                s_half = torch.where(cut, lab.s_wide, s_half)
+                gone = fine.ok & (lab_full == L) & cut.repeat_interleave(2, 0).repeat_interleave(2, 1)[:h, :w]
+                here = here & ~gone
+                s_px = torch.where(gone, torch.full_like(s_px, float("nan")), s_px)
         up = F.interpolate(s_half[None, None], size=(h, w), mode="bilinear", align_corners=False)[0, 0]
         s_px = torch.where(here, up, s_px)
     return s_px
@@ -380,7 +388,9 @@ def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, 
     info.update(votes=lab.votes, vote_bin_s=lab.bin_s, cuts_s=lab.cuts_s)
     lap("layers")
     s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
-    out = SweepField(fine.region, fine.ok.cpu().numpy(), s_px.cpu().numpy(), info)
+    s_np = s_px.cpu().numpy()
+    out = SweepField(fine.region, fine.ok.cpu().numpy() & np.isfinite(s_np), s_np, info)
+    info["resolved_m"] = resolved_layers(out.ok, out.s, lab.label.cpu().numpy(), o1z)
     lap("refine")
     return out
 

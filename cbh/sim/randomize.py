@@ -25,7 +25,10 @@ before (its own draws come from a separate stream of the seed):
 - ``kind``: only skies of this kind (its other draws then differ from the seed's unforced sky);
 - ``twice_encoded``: the frames are saved twice: the camera's output (limited-range video, or
   full range) as JPEG, then the recorder's second JPEG (4:2:0), the final clip level anywhere
-  from 230 to 255 DN.
+  from 230 to 255 DN;
+- ``dense``: broken skies of two or three layers (15 % of them closer than the historical 35 %:
+  18–35 % apart), the lowest covering 0.55–0.85 of the sky and the upper ones 0.3–0.7, so that an
+  upper deck is seen mostly through the gaps of the lower ones.
 
 A case is a pure function of its seed and options.
 """
@@ -55,6 +58,7 @@ class RandomOptions:
     unmasked: bool = False  # every sky has obstacles, and no mask is given
     kind: str | None = None  # "clear", "broken" or "overcast": only skies of this kind
     twice_encoded: bool = False  # camera JPEG then the recorder's JPEG, clip level 230–255 DN
+    dense: bool = False  # broken skies of 2–3 layers, the lowest covering 0.55–0.85 (upper decks seen through gaps)
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in SKY_KINDS:
@@ -113,6 +117,30 @@ def _layers(rng: np.random.Generator, kind: str) -> tuple[CloudLayer, ...]:
     for i, h in enumerate(heights):
         speed, wdir = rng.uniform(0.0, 30.0), rng.uniform(0.0, 2 * math.pi)
         cover = 1.0 if (kind == "overcast" and i == 0) else float(rng.uniform(0.15, 0.7))
+        layers.append(CloudLayer(
+            height_m=round(h, 1), coverage=cover, texture_scale_m=float(rng.uniform(300.0, 3000.0)),
+            wind_ms=(speed * math.sin(wdir), speed * math.cos(wdir)), seed=int(rng.integers(0, 2**31)),
+            offset_m=(float(rng.uniform(-5e3, 5e3)), float(rng.uniform(-5e3, 5e3))),
+            brightness=float(rng.uniform(0.6, 1.1)), contrast=float(rng.uniform(0.6, 1.4)),
+            edge_softness=float(rng.uniform(0.5, 2.0))))
+    return tuple(layers)
+
+
+def _dense_layers(rng: np.random.Generator) -> tuple[CloudLayer, ...]:
+    """2–3 layers 300 m – 10 km, 18–35 % apart in 15 % of the skies (else ≥ 35 %), the lowest
+    covering 0.55–0.85 of the sky and the upper ones 0.3–0.7."""
+    n = int(rng.integers(2, 4))
+    sep = math.log(1.18) if rng.random() < 0.15 else math.log(1.35)
+    heights: list[float] = []
+    while len(heights) < n:
+        h = float(math.exp(rng.uniform(math.log(300.0), math.log(10_000.0))))
+        if all(abs(math.log(h / o)) > sep for o in heights):
+            heights.append(h)
+    heights.sort()
+    layers = []
+    for i, h in enumerate(heights):
+        speed, wdir = rng.uniform(0.0, 30.0), rng.uniform(0.0, 2 * math.pi)
+        cover = float(rng.uniform(0.55, 0.85)) if i == 0 else float(rng.uniform(0.3, 0.7))
         layers.append(CloudLayer(
             height_m=round(h, 1), coverage=cover, texture_scale_m=float(rng.uniform(300.0, 3000.0)),
             wind_ms=(speed * math.sin(wdir), speed * math.cos(wdir)), seed=int(rng.integers(0, 2**31)),
@@ -204,6 +232,8 @@ def random_case(seed: int, base: Station, options: RandomOptions = RandomOptions
     if options.kind is not None:
         kind = options.kind
     layers = _layers(rng, kind)
+    if options.dense:  # after the historical draws, so the rest of the sky is the seed's own
+        kind, layers = "broken", _dense_layers(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 34])))
     sky = _sky(rng)
     if options.skylines and wide.random() < 0.5:
         sky = replace(sky, haze_band=float(wide.uniform(0.3, 0.9)), haze_band_deg=float(wide.uniform(2.0, 8.0)))
