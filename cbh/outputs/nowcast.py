@@ -24,8 +24,10 @@ For each recorded pair (the issue time t), each site and each lead time L:
 4. **GHI** = clear-sky GHI × the clear-sky index of the shade state:
    ``k = k_sun + (k_shade − k_sun)·p``. The two levels default to ``K_SUN`` and ``K_SHADE``; with
    a pyranometer they are learned online (:class:`Levels`): a least-squares line of the measured
-   index against the shade probability of the forecasts already verified (leads ≥ 1 min) (never a later one),
-   drawn towards the defaults with the weight of ``PRIOR_WEIGHT`` observations.
+   index against the shade probability of the forecasts already verified (every minute of lead
+   from 0 to 10 min, whichever leads are asked for; never a later one), drawn towards a prior with
+   the weight of ``PRIOR_WEIGHT`` observations: the defaults, or with a pyranometer record of the
+   hour before, its sunny level (:func:`sunny_level`) and the shade level scaled with it.
 
 The measure of the field is skill against *smart persistence*: the clear-sky index measured at
 the issue time, carried forward (``benchmarks/eval_irradiance.py``).
@@ -271,12 +273,19 @@ def shade_at_site(pg, site: Site, sun_dir: np.ndarray | None, lead_s: float) -> 
     if site.points_m is None:
         return shade_at(pg, site.enu_m, sun_dir, lead_s)
     got = [shade_at(pg, p, sun_dir, lead_s) for p in site.points_m]
+    return (*_plant_mean([g[:2] for g in got]), any(g[2] for g in got))
+
+
+def _plant_mean(got: list) -> tuple[float, str]:
+    """A plant's shade from its points' (probability, reason): the mean, known when at least half
+    of them are (the reason ``seen_earlier`` when it is every known point's), else NaN with the
+    commonest reason."""
     ok = [g[0] for g in got if math.isfinite(g[0])]
-    wide = any(g[2] for g in got)
     if 2 * len(ok) < len(got):
         whys = [g[1] for g in got if not math.isfinite(g[0])]
-        return math.nan, max(set(whys), key=whys.count), wide
-    return float(np.mean(ok)), "", wide
+        return math.nan, max(set(whys), key=whys.count)
+    whys = {g[1] for g in got if math.isfinite(g[0])}
+    return float(np.mean(ok)), ("seen_earlier" if whys == {"seen_earlier"} else "")
 
 
 def _layer_centre(pg, k: int, site_enu: np.ndarray, s: np.ndarray, lead_s: float):
@@ -436,13 +445,7 @@ def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time,
     ensemble): each member's reads are made once per valid time."""
     if site.points_m is None:
         return _lagged_point(pgs, site.enu_m, sun_dir, valid_time, cache)
-    got = [_lagged_point(pgs, p, sun_dir, valid_time, cache) for p in site.points_m]
-    ok = [g[0] for g in got if math.isfinite(g[0])]
-    if 2 * len(ok) < len(got):
-        whys = [g[1] for g in got if not math.isfinite(g[0])]
-        return math.nan, max(set(whys), key=whys.count)
-    whys = {g[1] for g in got if math.isfinite(g[0])}
-    return float(np.mean(ok)), ("seen_earlier" if whys == {"seen_earlier"} else "")
+    return _plant_mean([_lagged_point(pgs, p, sun_dir, valid_time, cache) for p in site.points_m])
 
 
 def prune_cache(cache: dict, pgs: list) -> None:

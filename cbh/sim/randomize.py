@@ -107,23 +107,8 @@ def _layers(rng: np.random.Generator, kind: str) -> tuple[CloudLayer, ...]:
     if kind == "clear":
         return ()
     n = 1 if kind == "overcast" and rng.random() < 0.6 else int(rng.integers(1, 4))
-    heights: list[float] = []
-    while len(heights) < n:
-        h = float(math.exp(rng.uniform(math.log(300.0), math.log(10_000.0))))
-        if all(abs(math.log(h / o)) > math.log(1.35) for o in heights):
-            heights.append(h)
-    heights.sort()
-    layers = []
-    for i, h in enumerate(heights):
-        speed, wdir = rng.uniform(0.0, 30.0), rng.uniform(0.0, 2 * math.pi)
-        cover = 1.0 if (kind == "overcast" and i == 0) else float(rng.uniform(0.15, 0.7))
-        layers.append(CloudLayer(
-            height_m=round(h, 1), coverage=cover, texture_scale_m=float(rng.uniform(300.0, 3000.0)),
-            wind_ms=(speed * math.sin(wdir), speed * math.cos(wdir)), seed=int(rng.integers(0, 2**31)),
-            offset_m=(float(rng.uniform(-5e3, 5e3)), float(rng.uniform(-5e3, 5e3))),
-            brightness=float(rng.uniform(0.6, 1.1)), contrast=float(rng.uniform(0.6, 1.4)),
-            edge_softness=float(rng.uniform(0.5, 2.0))))
-    return tuple(layers)
+    return _layer_stack(rng, n, math.log(1.35),
+                        lambda i: 1.0 if (kind == "overcast" and i == 0) else float(rng.uniform(0.15, 0.7)))
 
 
 def _dense_layers(rng: np.random.Generator) -> tuple[CloudLayer, ...]:
@@ -131,6 +116,12 @@ def _dense_layers(rng: np.random.Generator) -> tuple[CloudLayer, ...]:
     covering 0.55–0.85 of the sky and the upper ones 0.3–0.7."""
     n = int(rng.integers(2, 4))
     sep = math.log(1.18) if rng.random() < 0.15 else math.log(1.35)
+    return _layer_stack(rng, n, sep, lambda i: float(rng.uniform(0.55, 0.85)) if i == 0 else float(rng.uniform(0.3, 0.7)))
+
+
+def _layer_stack(rng: np.random.Generator, n: int, sep: float, cover) -> tuple[CloudLayer, ...]:
+    """``n`` layers 300 m – 10 km (log-uniform, at least ``sep`` apart in log height), each with
+    its wind, texture and look drawn, its coverage ``cover(i)`` (i from the lowest)."""
     heights: list[float] = []
     while len(heights) < n:
         h = float(math.exp(rng.uniform(math.log(300.0), math.log(10_000.0))))
@@ -140,9 +131,8 @@ def _dense_layers(rng: np.random.Generator) -> tuple[CloudLayer, ...]:
     layers = []
     for i, h in enumerate(heights):
         speed, wdir = rng.uniform(0.0, 30.0), rng.uniform(0.0, 2 * math.pi)
-        cover = float(rng.uniform(0.55, 0.85)) if i == 0 else float(rng.uniform(0.3, 0.7))
         layers.append(CloudLayer(
-            height_m=round(h, 1), coverage=cover, texture_scale_m=float(rng.uniform(300.0, 3000.0)),
+            height_m=round(h, 1), coverage=cover(i), texture_scale_m=float(rng.uniform(300.0, 3000.0)),
             wind_ms=(speed * math.sin(wdir), speed * math.cos(wdir)), seed=int(rng.integers(0, 2**31)),
             offset_m=(float(rng.uniform(-5e3, 5e3)), float(rng.uniform(-5e3, 5e3))),
             brightness=float(rng.uniform(0.6, 1.1)), contrast=float(rng.uniform(0.6, 1.4)),
