@@ -123,3 +123,31 @@ def test_kept_plane_tables_give_the_same_result_within_their_budget(small_sky, m
         held.append(keys_of(small))
     assert held[0] == set() and held[1] and len(held[1]) < len(kept)
     assert held[1] == held[2] == held[3]
+
+
+@pytest.mark.parametrize("baseline_m", [50.0, 241.0])
+def test_near_coarse_planes_are_spaced_by_their_parallax(baseline_m):
+    """Issue 36: the near coarse planes lie one pixel of the half coarse size apart (two grid steps)
+    up to 133 px of parallax and ``coarse_near_rel`` (3 %) of their parallax beyond, so a long
+    baseline's planes grow with the logarithm of its parallax range (the real 241 m station: 192
+    near planes before, 93 now; 50 m: the 32 of before, unchanged), and each near plane's vote
+    spreads over the grid planes to its neighbours with weight 1/2 at its own (the peak heights of
+    before) and a hat that tiles the grid (each grid plane between near planes gets 1/2 in all)."""
+    from cbh.pipeline.config import SweepConfig
+    from cbh.pipeline.sweep import coarse_planes, plane_range
+
+    cfg = SweepConfig()
+    scale = 15779.0 * baseline_m / 50.0  # px·m at 960 px working size (bench_baselines: 15779 at 50 m)
+    plan = coarse_planes(*plane_range(0.0, cfg), scale, cfg)
+    p = plan.s[plan.near] * scale  # parallax of each near plane [working px]
+    gaps = np.diff(p)
+    assert np.all(gaps >= 4.0 - 1e-6)  # one pixel at a quarter of the working size, at least
+    assert np.all(gaps <= np.maximum(4.0, cfg.coarse_near_rel * p[:-1]) + 4.0 + 1e-6)  # (a grid step of rounding)
+    every_second = len(range(int(plan.near[0]), len(plan.s), 2))  # the near planes of before
+    assert len(plan.near) == every_second if baseline_m == 50.0 else len(plan.near) < 0.6 * every_second
+    total = np.zeros(len(plan.s))
+    for g, w in plan.near_weights():
+        assert w.max() == 0.5 and np.all(w > 0)
+        total[g] += w
+    inner = slice(int(plan.near[0]), int(plan.near[-1]) + 1)
+    assert np.allclose(total[inner], 0.5)

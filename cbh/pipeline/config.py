@@ -145,6 +145,7 @@ class SweepConfig:
     coarse_window_px: int = 7  # ZNCC window side, coarse pass, at coarse size [px]
     coarse_step_px: float = 1.0  # largest image shift between coarse planes, at coarse size [px]
     coarse_near_px: float = 32.0  # coarse planes with more parallax than this (working size) run at half the coarse size; 0 = off [px]
+    coarse_near_rel: float = 0.03  # … and lie at most this share of their parallax apart (≥ one pixel at that size); 0 = one pixel [1]
     step_px: float = 1.0  # largest image shift between fine planes, at working size [px]
     far_px: float = 6.0  # the fine pass sweeps every plane up to this parallax from infinity [px]
     min_height_m: float = 100.0  # lowest plane, above the ENU origin [m]; filtering's floor: lower clouds pinned to the
@@ -409,6 +410,7 @@ def _check_sweep(sw, where: str) -> None:
     _in_range(f"{where}.coarse_factor", sw.coarse_factor, 1, 8, "1..8")
     _positive(f"{where}.far_px", sw.far_px, strict=False)
     _positive(f"{where}.coarse_near_px", sw.coarse_near_px, strict=False)
+    _in_range(f"{where}.coarse_near_rel", sw.coarse_near_rel, 0.0, 0.25, "0..0.25")
     for k in ("coarse_step_px", "step_px", "min_height_m", "max_planes", "point_stride_px"):
         _positive(f"{where}.{k}", getattr(sw, k))
     if not sw.min_height_m < sw.max_height_m:

@@ -799,12 +799,27 @@ class CoarsePlanes:
     """The coarse pass's planes: a uniform vote grid ``s`` (``ds`` apart: one pixel of shift at
     1/``coarse_factor`` size) of which the ``far`` ones (parallax up to ``coarse_near_px`` at
     working size) are swept at 1/``coarse_factor`` size and the ``near`` ones (every second grid
-    plane beyond) at 1/(2·``coarse_factor``) size."""
+    plane beyond, farther apart where ``coarse_near_rel`` of their parallax is more) at
+    1/(2·``coarse_factor``) size."""
 
     s: np.ndarray  # (G,) float64 [1/m], ascending
     ds: float  # [1/m]
     far: np.ndarray  # (Pf,) int: indices into s
-    near: np.ndarray  # (Pn,) int: indices into s; each stands for grid planes q − 1 … q + 1
+    near: np.ndarray  # (Pn,) int: indices into s, ascending; each stands for the grid planes to its neighbours
+
+    def near_weights(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each near plane's vote on the grid: (grid indices, weights), a hat from its plane (1/2)
+        down to 0 at its neighbouring near planes (the first and last: two grid steps out), so the
+        histogram stays uniform in s; with every second grid plane (two steps apart) 1/4, 1/2, 1/4."""
+        q = np.asarray(self.near, np.int64)
+        out = []
+        for i, c in enumerate(q):
+            lo = int(q[i - 1]) if i > 0 else int(c) - 2
+            hi = int(q[i + 1]) if i + 1 < len(q) else int(c) + 2
+            g = np.arange(max(lo + 1, 0), min(hi - 1, len(self.s) - 1) + 1)
+            w = np.where(g <= c, (g - lo) / (c - lo), (hi - g) / (hi - c))
+            out.append((g, 0.5 * w))
+        return out
 
 
 def coarse_planes(s_min: float, s_max: float, scale_px: float, cfg) -> CoarsePlanes:
@@ -816,6 +831,15 @@ def coarse_planes(s_min: float, s_max: float, scale_px: float, cfg) -> CoarsePla
     parallax is large (32 … 150 px at working size), so one pixel of shift at half the coarse
     size is still a few per cent of its height, which is all a hypothesis needs (the fine pass
     refines it at working size); each such plane costs a quarter, and half as many are needed.
+
+    Why farther apart beyond: the parallax range grows with the baseline (the 100 m floor: 158 px
+    at 50 m, 800 px at the real 241 m station), and one pixel at half the coarse size is 0.5 %
+    of the height at 800 px, far finer than a hypothesis needs. So the near planes lie
+    ``coarse_near_rel`` (3 %) of their parallax apart where that is more than one such pixel
+    (beyond 133 px at 960 px working size): their count grows with the logarithm of the parallax
+    range instead of with it (241 m: 192 → 93 near planes; 50 m unchanged). A cell's ZNCC peak
+    is then sampled more coarsely there; its vote still goes to the nearest plane, spread to the
+    neighbouring planes (:meth:`CoarsePlanes.near_weights`), and the fine pass sweeps that extent.
     """
     f = max(int(cfg.coarse_factor), 1)
     ds = float(cfg.coarse_step_px) * f / scale_px
@@ -824,7 +848,12 @@ def coarse_planes(s_min: float, s_max: float, scale_px: float, cfg) -> CoarsePla
     if cfg.coarse_near_px <= 0:
         return CoarsePlanes(s, ds, idx, idx[:0])
     k = int(np.searchsorted(s, cfg.coarse_near_px / scale_px, side="right"))
-    return CoarsePlanes(s, ds, idx[:k], idx[k + 1::2])
+    near, q = [], k + 1
+    grid_px = float(cfg.coarse_step_px) * f  # one grid step at working size [px]
+    while q < len(s):
+        near.append(q)
+        q += max(2, int(cfg.coarse_near_rel * s[q] * scale_px / grid_px))
+    return CoarsePlanes(s, ds, idx[:k], np.asarray(near, np.int64))
 
 
 def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_near, min_zncc: float) -> np.ndarray:
@@ -832,14 +861,18 @@ def coarse_votes(plan: CoarsePlanes, cloud: np.ndarray, j_far, c_far, j_near, c_
     votes for its best plane, far (``j_far``, ``c_far``: index into ``plan.far`` and ZNCC, (h, w))
     or near (``j_near``, ``c_near``: into ``plan.near``, (h/2, w/2), one cell per 2 × 2 far
     cells), whichever correlates better, when that ZNCC is ≥ ``min_zncc``. A near plane's vote is
-    spread 1/4, 1/2, 1/4 over grid planes q − 1, q, q + 1 (it stands for two grid steps), so the
-    histogram stays uniform in s. Either tier may be None (no planes there). Returns (G,) float64."""
+    spread over the grid planes it stands for (:meth:`CoarsePlanes.near_weights`: 1/4, 1/2, 1/4
+    over q − 1, q, q + 1 where the near planes are two grid steps apart), so the histogram stays
+    uniform in s. Either tier may be None (no planes there). Returns (G,) float64."""
     q, near_wins = coarse_cells(plan, cloud, j_far, c_far, j_near, c_near, min_zncc)
     n = len(plan.s)
     votes = np.bincount(q[(q >= 0) & ~near_wins], minlength=n).astype(np.float64)
     qn = q[(q >= 0) & near_wins]
-    for d, wt in ((-1, 0.25), (0, 0.5), (1, 0.25)):
-        votes += wt * np.bincount(np.clip(qn + d, 0, n - 1), minlength=n)
+    if qn.size:
+        counts = np.bincount(np.searchsorted(plan.near, qn), minlength=len(plan.near))
+        for c, (g, w) in zip(counts, plan.near_weights()):
+            if c:
+                np.add.at(votes, g, c * w)
     return votes
 
 
