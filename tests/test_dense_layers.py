@@ -179,15 +179,17 @@ def test_a_layers_band_is_what_the_pair_cannot_tell_apart():
     assert parallax_px(zenith, o1, o2, 315.4)[0] == pytest.approx(315.4 * 30.0 / 5000.0, rel=1e-9)  # 1.89 px
     rng = np.random.default_rng(0)
     h = 1000.0 + rng.normal(0.0, 10.0, 2000)  # a low layer, 30 px of parallax: the histogram's 18 % rules
-    lo, hi = layer_band(h, np.full(h.size, 30.0), 0.0, cfg, 15000.0)
-    med = float(np.median(h))
+    pct = tuple(np.percentile(h, [10.0, 50.0, 90.0]))
+    lo, hi = layer_band(pct, np.full(h.size, 30.0), 0.0, cfg, 15000.0)
+    med = pct[1]
     assert lo == pytest.approx(med * np.exp(-0.18)) and hi == pytest.approx(med * np.exp(0.18))
     h = 3000.0 + rng.normal(0.0, 30.0, 2000)  # 4 px of parallax: [h·4/6, h·4/2]
-    lo, hi = layer_band(h, np.full(h.size, 4.0), 0.0, cfg, 15000.0)
-    med = float(np.median(h))
+    pct = tuple(np.percentile(h, [10.0, 50.0, 90.0]))
+    lo, hi = layer_band(pct, np.full(h.size, 4.0), 0.0, cfg, 15000.0)
+    med = pct[1]
     assert lo == pytest.approx(med * 4 / 6) and hi == pytest.approx(med * 2)
-    lo, hi = layer_band(h + 100.0, np.full(h.size, 4.0), 100.0, cfg, 15000.0)  # above camera 1, not the origin
+    lo, hi = layer_band(tuple(v + 100.0 for v in pct), np.full(h.size, 4.0), 100.0, cfg, 15000.0)  # above camera 1, not the origin
     assert lo == pytest.approx(100.0 + med * 4 / 6) and hi == pytest.approx(100.0 + med * 2)
-    lo, hi = layer_band(h, np.full(h.size, 1.5), 0.0, cfg, 15000.0)  # 1.5 px: no height above is told apart
+    lo, hi = layer_band(pct, np.full(h.size, 1.5), 0.0, cfg, 15000.0)  # 1.5 px: no height above is told apart
     assert lo == pytest.approx(med * 1.5 / 3.5) and hi == 15000.0
-    assert layer_band(h, None, 0.0, cfg, 15000.0) == pytest.approx((med * np.exp(-0.18), med * np.exp(0.18)), rel=1e-3)
+    assert layer_band(pct, None, 0.0, cfg, 15000.0) == pytest.approx((med * np.exp(-0.18), med * np.exp(0.18)), rel=1e-3)

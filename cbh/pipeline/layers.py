@@ -118,27 +118,29 @@ def height_noise(xyz_m: np.ndarray, o1: np.ndarray, o2: np.ndarray, dtheta_rad: 
 def parallax_px(xyz_m: np.ndarray, o1: np.ndarray, o2: np.ndarray, px_per_rad: float) -> np.ndarray:
     """Each point's stereo parallax [px]: the angle B⊥ / R between its two rays (R the range from
     camera 1, B⊥ the baseline across the ray) at the lens scale ``px_per_rad`` (working size)."""
-    xyz_m = np.asarray(xyz_m, np.float64).reshape(-1, 3)
-    v = xyz_m - np.asarray(o1, np.float64)
-    r = np.linalg.norm(v, axis=1)
-    d = v / np.maximum(r, 1e-9)[:, None]
+    v = np.asarray(xyz_m, np.float64).reshape(-1, 3) - np.asarray(o1, np.float64)
     b = np.asarray(o2, np.float64) - np.asarray(o1, np.float64)
-    b_perp = np.linalg.norm(b[None, :] - (d @ b)[:, None] * d, axis=1)
-    return px_per_rad * b_perp / np.maximum(r, 1e-9)
+    r2 = np.maximum(np.einsum("ij,ij->i", v, v), 1e-18)
+    vb = v @ b
+    # |B⊥|² / R² = (|B|² − (v·B)² / R²) / R²
+    return px_per_rad * np.sqrt(np.maximum(float(b @ b) - vb * vb / r2, 0.0) / r2)
 
 
-def layer_band(h: np.ndarray, parallax: np.ndarray | None, camera_z_m: float, cfg: LayersConfig,
+_BAND_SAMPLES = 4096  # a layer's parallax percentile from at most about this many of its points (a regular stride)
+
+
+def layer_band(h_pct: tuple[float, float, float], parallax: np.ndarray | None, camera_z_m: float, cfg: LayersConfig,
                max_height_m: float = math.inf) -> tuple[float, float]:
-    """The heights [m] a layer of points ``h`` stands for (``height_lo_m``, ``height_hi_m``; see
-    module doc): its points' 10–90 % range, widened to what this pair cannot tell apart from
-    its median: ``min_separation_log`` either side, and the heights whose parallax is within
-    ``resolve_px`` of the layer's (the 90th percentile of its points' ``parallax`` [px], None =
-    unknown: its best-placed points, those nearest the zenith, are what could split it)."""
-    med = float(np.median(h))
-    p10, p90 = (float(v) for v in np.percentile(h, [10.0, 90.0]))
+    """The heights [m] a layer stands for (``height_lo_m``, ``height_hi_m``; see module doc): its
+    points' 10–90 % range (``h_pct`` = their 10th, 50th and 90th percentile heights), widened to
+    what this pair cannot tell apart from its median: ``min_separation_log`` either side, and
+    the heights whose parallax is within ``resolve_px`` of the layer's (the 90th percentile of
+    its points' ``parallax`` [px], None = unknown: its best-placed points, those nearest the
+    zenith, are what could split it)."""
+    p10, med, p90 = h_pct
     lo, hi = min(p10, med * math.exp(-cfg.min_separation_log)), max(p90, med * math.exp(cfg.min_separation_log))
     if parallax is not None and len(parallax) and cfg.resolve_px > 0:
-        p = float(np.percentile(parallax, 90.0))
+        p = float(np.percentile(parallax[:: max(1, len(parallax) // _BAND_SAMPLES)], 90.0))
         rel = med - camera_z_m  # along a ray, parallax ∝ 1 / (height above camera 1)
         if p > 0 and rel > 0:
             lo = min(lo, camera_z_m + rel * p / (p + cfg.resolve_px))
@@ -256,7 +258,8 @@ def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndar
     """
     from statistics import NormalDist
 
-    med = float(np.median(h))
+    pct = tuple(float(v) for v in np.percentile(h, [10.0, 50.0, 90.0]))
+    med = pct[1]
     spread = 1.4826 * float(np.median(np.abs(h - med)))
     local = local_spread(h, offsets)
     sig_n = float(np.median(noise_m)) if noise_m is not None and len(noise_m) else 0.0
@@ -266,7 +269,7 @@ def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndar
     n = int(h.size)
     conf = (1 - math.exp(-n / (4.0 * max(cfg.min_points, 1)))) * math.exp(-(spread / med) / 0.15)
     conf *= min(1.0, cover / (4.0 * cfg.min_cover)) if cfg.min_cover > 0 else 1.0
-    lo, hi = layer_band(h, parallax, camera_z_m, cfg, max_height_m)
+    lo, hi = layer_band(pct, parallax, camera_z_m, cfg, max_height_m)
     return Layer(
         height_m=med - z * sig_t,
         median_height_m=med,
