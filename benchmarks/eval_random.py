@@ -12,6 +12,15 @@ true orientation given. The options widen the distribution
 every sky without a mask, one kind of sky, twice-encoded frames, dense skies of two or three
 layers (upper decks seen through the gaps of the lowest). A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
 δθ = half a rendered pixel at the zenith (:func:`cbh.sim.evaluate.layer_tolerance`).
+
+Two true layers closer than the pair resolves are found *reported as one* (counted found, listed
+as ``as one``, left out of the height errors) when both lie in one reported layer's band
+(``Layer.height_lo_m`` … ``height_hi_m``, each within its max(5 %, H·δθ/B) of the band): the
+heights whose parallax is within ``layers.resolve_px`` (2 px at working size, what the plane
+sweep tells apart) of the layer's, or within ``layers.min_separation_log`` (18 %) of its median,
+or in its points' 10–90 % range. That reported layer is then not spurious. A band holding one
+true layer changes nothing: it is scored by the rule above alone, and no other rule is looser
+(:class:`cbh.sim.evaluate.LayerScore`).
 """
 from __future__ import annotations
 
@@ -38,6 +47,7 @@ def one_sky(job):
     with tempfile.TemporaryDirectory() as folder:
         case, r, sc, dt = run_random_case(seed, base, size, folder, options=options)
     return dict(seed=seed, kind=case.kind, describe=case.describe(), expected=sc.expected_m, matched=sc.matched,
+                merged=sc.merged,
                 spurious=sc.spurious_m, missed=sc.missed_m, found=sc.found_m,
                 cf=max(r.cloud_fraction.values(), default=0.0), n_layers=len(r.layers), flags=list(r.flags), dt=dt)
 
@@ -50,7 +60,7 @@ def report(rows, args) -> None:
     fmt = lambda hs: "/".join(f"{h:.0f}" for h in hs) or "-"  # noqa: E731
     for row in rows:
         expected += len(row["expected"])
-        found += len(row["matched"])
+        found += len(row["matched"]) + len(row.get("merged", ()))
         spurious += len(row["spurious"])
         inval = sorted(set(row["flags"]) & INVALIDATING)
         alarms += bool(inval)
@@ -66,10 +76,13 @@ def report(rows, args) -> None:
             bad_seeds.append(row["seed"])
         if args.verbose or bad:
             print(f"{'BAD ' if bad else 'ok  '}{row['describe']}\n     expected {fmt(row['expected'])} found "
-                  f"{fmt(row['found'])} missed {fmt(row['missed'])} spurious {fmt(row['spurious'])} cf {row['cf']:.3f} "
+                  f"{fmt(row['found'])} missed {fmt(row['missed'])} spurious {fmt(row['spurious'])}"
+                  + (f" as one {fmt(row['merged'])}" if row.get("merged") else "") + f" cf {row['cf']:.3f} "
                   f"flags {','.join(row['flags']) or '-'} {row['dt']:.2f} s", flush=True)
     print(f"\nskies {args.n} (seeds {args.seed}..{args.seed + args.n - 1}, {args.size} px)")
-    print(f"layers found {found}/{expected} ({100 * found / max(expected, 1):.1f} %)")
+    as_one = sum(len(row.get("merged", ())) for row in rows)
+    print(f"layers found {found}/{expected} ({100 * found / max(expected, 1):.1f} %; {as_one} of them reported as one "
+          f"with another, closer than the pair resolves)")
     print(f"spurious layers {spurious}")
     print(f"clear skies with cloud > 0.02 or a layer: {clear_bad}/{clear_n}")
     print(f"skies with an invalidating flag (false alarms on a correct station): {alarms}")

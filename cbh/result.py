@@ -93,6 +93,11 @@ class Layer:
     # a camera network's layer (cbh.pipeline.network): each pair's part, as (pair "a+b", points,
     # height_m, weight share 0..1); () for a pair's own layer
     support: tuple = ()
+    # the heights this layer stands for [m]: its points' 10–90 % range widened to what the pair
+    # cannot tell apart from it (cbh.pipeline.layers.layer_band): a second layer in this band is
+    # reported as part of this one; NaN = unknown
+    height_lo_m: float = math.nan
+    height_hi_m: float = math.nan
 
     def to_dict(self) -> dict:
         """JSON-ready: floats, with None where a value is unknown (NaN)."""
@@ -101,6 +106,8 @@ class Layer:
             "altitude_m": _num(self.altitude_m),
             "median_height_m": _num(self.median_height_m),
             "spread_m": _num(self.spread_m),
+            "height_lo_m": _num(self.height_lo_m),
+            "height_hi_m": _num(self.height_hi_m),
             "cover": _num(self.cover),
             "points": int(self.points),
             "confidence": _num(self.confidence),

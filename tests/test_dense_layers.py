@@ -15,10 +15,11 @@ import pytest
 from cbh.flags import INVALIDATING
 from cbh.geometry.station import load_station
 from cbh.pipeline.config import LayersConfig, SweepConfig
-from cbh.pipeline.layers import supported_layers
+from cbh.pipeline.layers import layer_band, parallax_px, supported_layers
 from cbh.pipeline.sweep import regional_peaks, truncated, vote_layers
 from cbh.presets import station_path
-from cbh.result import Histogram
+from cbh.result import Histogram, Layer
+from cbh.sim.evaluate import score_layers
 from cbh.sim.randomize import RandomOptions, random_case, run_random_case
 
 DENSE = RandomOptions(dense=True)
@@ -116,6 +117,8 @@ def test_dense_skies_widen_only_the_layers():
     104,  # 495/1029/8085 m: 8085 not found
     115,  # 859/5036/9775 m: 9775 not found
     116,  # 631 m (84 %) and 3860 m at B = 143 m: 3860 not found
+    7,    # 434/4031/5820 m at B = 51 m: 4031 (and the sliver at 5820) read as one 4652 m layer, "spurious"
+    113,  # 707/4695/9738 m at B = 30 m: 9738, 1 px of parallax from 4695, read with it as one 4813 m layer
 ])
 def test_dense_randomized_skies_regression(seed, tmp_path):
     """Dense skies of two or three layers at 960 px: every expected layer found within
@@ -124,3 +127,69 @@ def test_dense_randomized_skies_regression(seed, tmp_path):
     assert score.missed_m == [], (case.describe(), score.found_m)
     assert score.spurious_m == []
     assert not set(r.flags) & INVALIDATING
+
+
+def _one_layer_result(h, lo, hi):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(layers=[Layer(h, h, 0.04 * h, 0.1, 5000, 0.8, height_lo_m=lo, height_hi_m=hi)])
+
+
+_PIX = 1.0 / 315.4  # rad per rendered pixel at the zenith (Table 1 lens at 960 px)
+
+
+def _truth(*heights):
+    """A 100 × 100 truth map: the given layers in equal shares."""
+    t = np.full((100, 100), np.nan, np.float32)
+    for i, h in enumerate(heights):
+        t[i * 100 // len(heights):(i + 1) * 100 // len(heights)] = h
+    return t, np.ones((100, 100), bool)
+
+
+def test_a_pair_of_layers_closer_than_the_pair_resolves_is_found_as_one():
+    """Seed 113's sky: 4695 m and 9738 m (1 px of parallax apart at B = 30 m) reported as one
+    4813 m layer whose band (2052–15141 m) holds both: both found, nothing spurious. Without the
+    band (unknown), the 9738 m deck is missed, as before."""
+    truth, fov = _truth(4695.5, 9738.5)
+    sc = score_layers(_one_layer_result(4813.0, 2052.0, 15141.0), truth, fov, 30.3, _PIX)
+    assert sc.missed_m == [] and sc.spurious_m == [] and sc.matched == {4695.5: 4813.0}
+    assert set(sc.merged) == {9738.5}
+    sc = score_layers(_one_layer_result(4813.0, float("nan"), float("nan")), truth, fov, 30.3, _PIX)
+    assert sc.missed_m == [9738.5] and sc.merged == {}
+
+
+def test_a_band_loosens_nothing_for_a_single_layer_or_a_layer_outside_it():
+    """One true layer in a wide band is scored by the tolerance alone (4652 m against 3700 m: 26 %
+    off, over max(5 %, H·δθ/B) = 11.5 % at B = 51 m): missed and spurious. A second true layer
+    above the band stays missed (seed 114: 7401 m is 3 px of parallax from 1796 m at B = 24 m)."""
+    truth, fov = _truth(3700.0)
+    sc = score_layers(_one_layer_result(4652.0, 2307.0, 15141.0), truth, fov, 51.0, _PIX)
+    assert sc.missed_m == [3700.0] and sc.spurious_m == [4652.0] and sc.merged == {}
+    truth, fov = _truth(1773.0, 7401.25)
+    sc = score_layers(_one_layer_result(1796.0, 1180.0, 3751.0), truth, fov, 24.1, _PIX)
+    assert sc.missed_m == [7401.25] and sc.merged == {}
+
+
+def test_a_layers_band_is_what_the_pair_cannot_tell_apart():
+    """The band: parallax within ``resolve_px`` of the layer's (h·p / (p ± 2 px)), at least
+    ``min_separation_log`` either side, and open to the top of the range where p ≤ 2 px."""
+    cfg = LayersConfig()
+    o1, o2 = np.zeros(3), np.array([30.0, 0.0, 0.0])
+    zenith = np.array([[0.0, 0.0, 5000.0]])
+    assert parallax_px(zenith, o1, o2, 315.4)[0] == pytest.approx(315.4 * 30.0 / 5000.0, rel=1e-9)  # 1.89 px
+    rng = np.random.default_rng(0)
+    h = 1000.0 + rng.normal(0.0, 10.0, 2000)  # a low layer, 30 px of parallax: the histogram's 18 % rules
+    pct = tuple(np.percentile(h, [10.0, 50.0, 90.0]))
+    lo, hi = layer_band(pct, np.full(h.size, 30.0), 0.0, cfg, 15000.0)
+    med = pct[1]
+    assert lo == pytest.approx(med * np.exp(-0.18)) and hi == pytest.approx(med * np.exp(0.18))
+    h = 3000.0 + rng.normal(0.0, 30.0, 2000)  # 4 px of parallax: [h·4/6, h·4/2]
+    pct = tuple(np.percentile(h, [10.0, 50.0, 90.0]))
+    lo, hi = layer_band(pct, np.full(h.size, 4.0), 0.0, cfg, 15000.0)
+    med = pct[1]
+    assert lo == pytest.approx(med * 4 / 6) and hi == pytest.approx(med * 2)
+    lo, hi = layer_band(tuple(v + 100.0 for v in pct), np.full(h.size, 4.0), 100.0, cfg, 15000.0)  # above camera 1, not the origin
+    assert lo == pytest.approx(100.0 + med * 4 / 6) and hi == pytest.approx(100.0 + med * 2)
+    lo, hi = layer_band(pct, np.full(h.size, 1.5), 0.0, cfg, 15000.0)  # 1.5 px: no height above is told apart
+    assert lo == pytest.approx(med * 1.5 / 3.5) and hi == 15000.0
+    assert layer_band(pct, None, 0.0, cfg, 15000.0) == pytest.approx((med * np.exp(-0.18), med * np.exp(0.18)), rel=1e-3)

@@ -296,6 +296,26 @@ def test_motion_quality_goes_through_mcap_and_tables(tmp_path, station):
     assert list(df.motion_spread_ms) == [0.25, 0.5] and list(df.motion_tracks) == [40, 41]
 
 
+def test_a_layers_band_goes_through_mcap_and_tables(tmp_path, station):
+    """``height_lo_m`` / ``height_hi_m`` (the heights a layer stands for) read back from MCAP and
+    reach the tables; a band unknown (NaN) stays unknown (absent, empty), never 0 m."""
+    import pandas as pd
+
+    from cbh.outputs.export import export_sessions
+    from cbh.outputs.record import open_session
+    frames, res = synthetic_pair(station, 1)
+    bands = [(2052.0, 15141.0), (math.nan, math.nan)]
+    res = replace(res, layers=[replace(l, height_lo_m=b[0], height_hi_m=b[1]) for l, b in zip(res.layers, bands)])
+    _write(tmp_path / "b.mcap", station, [(frames, res)])
+    got = next(open_session(tmp_path / "b.mcap").pairs(layers_only=True)).result.layers
+    assert (got[0].height_lo_m, got[0].height_hi_m) == (2052.0, 15141.0)
+    assert math.isnan(got[1].height_lo_m) and math.isnan(got[1].height_hi_m)
+    export_sessions([tmp_path / "b.mcap"], "parquet", tmp_path / "b.parquet")
+    df = pd.read_parquet(tmp_path / "b.parquet")
+    assert list(df.height_lo_m)[0] == 2052.0 and df.height_hi_m.isna().tolist() == [False, True]
+    assert got[0].to_dict()["height_hi_m"] == 15141.0 and got[1].to_dict()["height_lo_m"] is None
+
+
 def test_npz_drives_pysteps_extrapolation(tmp_path, moving):
     """The NPZ is what pysteps takes: its semi-Lagrangian extrapolation moves the field by the
     exported motion (east = columns, north = rows, cells per time step)."""

@@ -11,6 +11,10 @@ numbered from 1 (the lowest) in every output: table, NetCDF ``layer`` coordinate
 ``cloud_base_altitude_m``  the same above mean sea level (+ station altitude) [m]
 ``median_height_m``        median height of the layer's points [m]
 ``spread_m``               robust spread (1.4826 MAD) of the layer's heights [m]
+``height_lo_m``            lowest height the layer stands for [m]: its band (its points' 10–90 %,
+                           widened to what the pair cannot tell apart from it: a second layer in
+                           ``height_lo_m`` … ``height_hi_m`` is reported as this one); empty = unknown
+``height_hi_m``            highest height the layer stands for [m] (the band's top); empty = unknown
 ``cover``                  fraction of the reference camera's sky covered by the layer, 0..1
 ``cover_okta``             the layer's cover in okta, 0..8 (:func:`okta`)
 ``motion_east_ms``         layer motion over the ground, east component [m/s]; empty = unknown
@@ -72,7 +76,7 @@ __all__ = ["LayerExporter", "COLUMNS", "PairRecord", "pair_record", "session_rec
 log = logging.getLogger(__name__)
 
 COLUMNS = ("time_utc", "layer", "cloud_base_height_m", "cloud_base_altitude_m", "median_height_m", "spread_m",
-           "cover", "cover_okta", "motion_east_ms", "motion_north_ms", "motion_spread_ms",
+           "height_lo_m", "height_hi_m", "cover", "cover_okta", "motion_east_ms", "motion_north_ms", "motion_spread_ms",
            "motion_tracks", "points", "confidence", "cloud_fraction",
            "total_okta", "ceiling_m", "n_layers", "quality_flag", "flags")
 FORMATS = ("csv", "parquet", "netcdf")
@@ -142,6 +146,8 @@ class PairRecord:
     motion_spread_ms: list[float] = field(default_factory=list)
     motion_tracks: list[int] = field(default_factory=list)
     diagnostics: dict[str, float] = field(default_factory=dict)
+    height_lo_m: list[float] = field(default_factory=list)  # each layer's band [m] (Layer.height_lo_m), NaN = unknown
+    height_hi_m: list[float] = field(default_factory=list)
 
     @property
     def ceiling(self) -> int | None:
@@ -171,6 +177,8 @@ def pair_record(result: PairResult, station_altitude_m: float, altitude_m: list[
         motion_spread_ms=[float(getattr(l, "motion_spread_ms", math.nan)) for l in L],
         motion_tracks=[int(getattr(l, "motion_tracks", 0)) for l in L],
         diagnostics=numeric_diagnostics(result.diagnostics),
+        height_lo_m=[float(getattr(l, "height_lo_m", math.nan)) for l in L],
+        height_hi_m=[float(getattr(l, "height_hi_m", math.nan)) for l in L],
     )
 
 
@@ -184,7 +192,7 @@ def record_rows(r: PairRecord, diagnostics: tuple[str, ...] = ()) -> list[dict]:
     common.update({k: float(r.diagnostics.get(k, nan)) for k in diagnostics})
     if not r.height_m:
         return [dict(common, layer=0, cloud_base_height_m=nan, cloud_base_altitude_m=nan, median_height_m=nan,
-                     spread_m=nan, cover=0.0, cover_okta=0, motion_east_ms=nan, motion_north_ms=nan,
+                     spread_m=nan, height_lo_m=nan, height_hi_m=nan, cover=0.0, cover_okta=0, motion_east_ms=nan, motion_north_ms=nan,
                      motion_spread_ms=nan, motion_tracks=0, points=0,
                      confidence=nan)]
     n = len(r.height_m)
@@ -192,8 +200,10 @@ def record_rows(r: PairRecord, diagnostics: tuple[str, ...] = ()) -> list[dict]:
     mn = r.motion_north_ms or [nan] * n
     ms = r.motion_spread_ms or [nan] * n
     mt = r.motion_tracks or [0] * n
+    lo, hi = r.height_lo_m or [nan] * n, r.height_hi_m or [nan] * n
     return [dict(common, layer=i + 1, cloud_base_height_m=r.height_m[i], cloud_base_altitude_m=r.altitude_m[i],
-                 median_height_m=r.median_height_m[i], spread_m=r.spread_m[i], cover=r.cover[i],
+                 median_height_m=r.median_height_m[i], spread_m=r.spread_m[i], height_lo_m=lo[i],
+                 height_hi_m=hi[i], cover=r.cover[i],
                  cover_okta=okta(r.cover[i]), motion_east_ms=me[i], motion_north_ms=mn[i],
                  motion_spread_ms=ms[i], motion_tracks=mt[i], points=r.points[i],
                  confidence=r.confidence[i]) for i in range(n)]
@@ -232,7 +242,7 @@ def _arrow_schema(diagnostics: tuple[str, ...] = ()):
     return pa.schema([
         ("time_utc", pa.timestamp("us", tz="UTC")), ("layer", pa.int32()),
         ("cloud_base_height_m", f64), ("cloud_base_altitude_m", f64),
-        ("median_height_m", f64), ("spread_m", f64), ("cover", f64), ("cover_okta", pa.int8()),
+        ("median_height_m", f64), ("spread_m", f64), ("height_lo_m", f64), ("height_hi_m", f64), ("cover", f64), ("cover_okta", pa.int8()),
         ("motion_east_ms", f64), ("motion_north_ms", f64), ("motion_spread_ms", f64), ("motion_tracks", pa.int32()),
         ("points", pa.int64()), ("confidence", f64), ("cloud_fraction", f64), ("total_okta", pa.int8()),
         ("ceiling_m", f64), ("n_layers", pa.int32()), ("quality_flag", pa.int64()), ("flags", pa.string()),
@@ -692,6 +702,11 @@ def _layer_vars(g: _RecordArrays) -> dict:
                                          long_name="median height of the layer's points above ground", units="m"),
         "cloud_base_height_spread": _var(TL, g.grid("spread_m"),
                                          long_name="robust spread (1.4826 MAD) of the layer's point heights", units="m"),
+        "cloud_base_height_band_low": _var(TL, g.grid("height_lo_m"),
+                                           long_name="lowest height above ground the layer stands for: its band, what "
+                                                     "the pair cannot tell apart from it", units="m"),
+        "cloud_base_height_band_high": _var(TL, g.grid("height_hi_m"),
+                                            long_name="highest height above ground the layer stands for", units="m"),
         "cloud_layer_cover": _var(TL, g.grid("cover"),
                                   long_name="fraction of the reference camera's sky covered by the layer", units="1",
                                   valid_range=np.array([0.0, 1.0])),

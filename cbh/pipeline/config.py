@@ -204,6 +204,7 @@ class LayersConfig:
     bin_log: float = 0.01  # histogram bin width in ln(height) (≈1 %) [1]
     smooth_log: float = 0.04  # Gaussian smoothing of the histogram in ln(height) [1]
     min_separation_log: float = 0.18  # peaks closer than this in ln(height) are one layer [1]
+    resolve_px: float = 2.0  # layers closer than this in parallax (working size) are one to the sweep: a layer's band [px]
     valley_ratio: float = 0.5  # two peaks are separate only if the valley is below this × the lower peak [1]
     base_percentile: float = 10.0  # a layer's cloud-base height = this percentile of its points [%]
     noise_margin: float = 1.2  # the spread is "explained by noise" up to this × the predicted noise [1]

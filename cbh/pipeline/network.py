@@ -502,11 +502,15 @@ def _fused_layer(g: list[tuple[PairPlan, Layer]], w: np.ndarray, reference: str)
                       motion_spread_ms=sum(x * L.motion_spread_ms for x, L in moving) / mw,
                       motion_tracks=int(sum(L.motion_tracks for _, L in moving)))
     height = avg("height_m")
+    # the band: what the best-resolving pair cannot tell apart (a layer that one pair splits is two groups)
+    los = [L.height_lo_m for _, L in g if math.isfinite(L.height_lo_m)]
+    his = [L.height_hi_m for _, L in g if math.isfinite(L.height_hi_m)]
+    band = dict(height_lo_m=min(max(los), height), height_hi_m=max(min(his), height)) if los and his else {}
     alt = avg("altitude_m") - avg("height_m") if all(math.isfinite(L.altitude_m) for _, L in g) else math.nan
     return Layer(height_m=height, median_height_m=avg("median_height_m"), spread_m=avg("spread_m"), cover=cover,
                  points=int(sum(L.points for _, L in g)), confidence=avg("confidence"), altitude_m=height + alt,
                  support=tuple((p.name, int(L.points), float(L.height_m), float(x)) for x, (p, L) in zip(wn, g)),
-                 **motion)
+                 **band, **motion)
 
 
 def fused_height_map(pairs: list[tuple[PairPlan, PairResult]], reference: str):

@@ -61,7 +61,7 @@ from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identical, seeded_matches
 from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
-from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, supported_layers
+from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, parallax_px, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.obstacles import FrameObstacleConfig, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
@@ -1163,7 +1163,8 @@ class Pipeline:
         noise = height_noise(xyz, self.cam1.position_m, self.cam2.position_m, dtheta)
         resolved = tuple(h for tr in corr.triangulated if tr.matches.field is not None for h in tr.matches.field.resolved_m)
         return Points(xyz_m=xyz, miss_m=miss, px1=p1, px2=p2, noise_m=noise,
-                      per_method=[(p[0], len(p[1])) for p in parts], resolved_m=resolved)
+                      per_method=[(p[0], len(p[1])) for p in parts], resolved_m=resolved,
+                      parallax_px=parallax_px(xyz, self.cam1.position_m, self.cam2.position_m, self._px_per_rad2()))
 
     def stage_layers(self, pts: "Points", seg: "Segmentation", masks: "Masks", hmap: HeightMap,
                      ctx: "PairContext", gray=None, comp=None) -> LayerSet:
@@ -1178,7 +1179,8 @@ class Pipeline:
             offsets = rel[:, :2] / rel[:, 2:3]
         lay = supported_layers(pts.xyz_m[:, 2], pts.noise_m, hist, intervals, seg.clouds[0], masks.usable[0],
                                hmap.nearest_m, seg.fractions[self.cam1.name], self.config.layers, offsets,
-                               resolved_m=pts.resolved_m)
+                               resolved_m=pts.resolved_m, parallax=pts.parallax_px,
+                               camera_z_m=float(self.cam1.position_m[2]))
         if gray is not None and len(lay.layers) > 1 and self.config.layers.reject_aliases:
             g2 = gray[1] if comp is None else cv2.remap(gray[1], comp, None, cv2.INTER_LINEAR,
                                                         borderMode=cv2.BORDER_REPLICATE)
@@ -1373,6 +1375,7 @@ class Points:
     noise_m: np.ndarray  # (N,) predicted height noise [m]
     per_method: list[tuple[str, int]]  # (method, count) in the order of the arrays
     resolved_m: tuple = ()  # heights of the layers the plane sweep resolved on its own [m]
+    parallax_px: np.ndarray | None = None  # (N,) stereo parallax at working size [px] (None = unknown)
 
 
 def _sky_dn(image: np.ndarray, usable: np.ndarray) -> float:

@@ -6,7 +6,8 @@ that are cloud in truth *inside the analysed field of view* (zenith ≤ the pipe
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -67,6 +68,12 @@ class LayerScore:
     camera 1's analysed field, *optional* when on ``optional_share`` … ``expect_share`` (a
     sliver: found or not, it is no error). A reported layer matches a true one when within
     ``tolerance(h)`` of it; an unmatched reported layer is *spurious*.
+
+    *Reported as one* (``merged``): where two or more true layers (expected or optional) lie in
+    one reported layer's band (``Layer.height_lo_m`` … ``height_hi_m``: the heights the pair
+    cannot tell apart from it; each true layer within its ``tolerance(h)`` of the band), those
+    of them that no other reported layer is within tolerance of are found as that one layer,
+    which is then not spurious. A single true layer in a band is scored by the rule above alone.
     """
 
     expected_m: list[float]
@@ -74,10 +81,11 @@ class LayerScore:
     matched: dict[float, float]  # expected height → reported height
     spurious_m: list[float]
     tolerance: dict[float, float]  # expected height → relative tolerance
+    merged: dict[float, float] = field(default_factory=dict)  # expected height → the layer it was reported as one with
 
     @property
     def missed_m(self) -> list[float]:
-        return [h for h in self.expected_m if h not in self.matched]
+        return [h for h in self.expected_m if h not in self.matched and h not in self.merged]
 
 
 def layer_tolerance(height_m: float, baseline_m: float, pixel_rad: float, floor: float = 0.05,
@@ -108,5 +116,18 @@ def score_layers(result: PairResult, truth_height_m: np.ndarray, fov: np.ndarray
             matched[h] = min(f, matched[h], key=lambda x: abs(x - h))
         elif h in expected:
             matched[h] = f
+    merged: dict[float, float] = {}
+    for L in result.layers:  # true layers closer than the pair resolves, reported as one (see LayerScore)
+        lo, hi, f = float(L.height_lo_m), float(L.height_hi_m), float(L.height_m)
+        if not (math.isfinite(lo) and lo <= f <= hi):
+            continue
+        inside = [h for h in expected + optional if lo * (1 - tol[h]) <= h <= hi * (1 + tol[h])]
+        # the true layers in the band that no other reported layer accounts for
+        free = [h for h in inside if not any(abs(g - h) / h <= tol[h] for g in found if g != f)]
+        if len(inside) < 2 or not free:
+            continue
+        merged.update({h: f for h in free if h in expected and h not in matched and h not in merged})
+        if f in spurious:
+            spurious.remove(f)
     return LayerScore(expected_m=expected, found_m=found, matched=matched, spurious_m=spurious,
-                      tolerance={h: tol[h] for h in expected})
+                      tolerance={h: tol[h] for h in expected}, merged=merged)

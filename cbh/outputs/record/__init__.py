@@ -25,7 +25,9 @@ Topics
 ``/pair/layers``               cbh.PairLayers            layers (height_m, altitude_m, cover, points,
                                                          confidence, motion_east_ms/motion_north_ms/
                                                          motion_spread_ms [m/s, absent = unknown],
-                                                         motion_tracks …), cloud fraction,
+                                                         motion_tracks, height_lo_m/height_hi_m
+                                                         (the band) [m, absent = unknown] …),
+                                                         cloud fraction,
                                                          flags (names) and flag_bits (cbh.flags.Flag),
                                                          diagnostics (name, value), timing;
                                                          written last: a pair is complete once it is there

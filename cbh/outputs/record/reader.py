@@ -149,6 +149,8 @@ def build_pair(index: int, msgs: dict[str, object], what: str) -> RecordedPair:
                     altitude_m=l.altitude_m,
                     motion_east_ms=l.motion_east_ms if l.HasField("motion_east_ms") else nan,
                     motion_north_ms=l.motion_north_ms if l.HasField("motion_north_ms") else nan,
+                    height_lo_m=l.height_lo_m if l.HasField("height_lo_m") else nan,
+                    height_hi_m=l.height_hi_m if l.HasField("height_hi_m") else nan,
                     **({"motion_spread_ms": l.motion_spread_ms if l.HasField("motion_spread_ms") else nan,
                         "motion_tracks": int(l.motion_tracks)} if has_quality else {}))
               for l in pl.layers]

@@ -34,6 +34,9 @@ _MESSAGES: list[tuple[str, list[tuple]]] = [
         ("motion_north_ms", 9, _D, _OPT, None),  # layer motion over the ground, north [m/s]
         ("motion_spread_ms", 10, _D, _OPT, None),  # robust spread of the track velocities [m/s]
         ("motion_tracks", 11, _U32, False, None),  # feature tracks behind the motion (0 = none)
+        # the layer's band (Layer.height_lo_m / height_hi_m) [m]; absent = unknown (NaN)
+        ("height_lo_m", 12, _D, _OPT, None),
+        ("height_hi_m", 13, _D, _OPT, None),
     ]),
     ("Diagnostic", [("name", 1, _S, False, None), ("value", 2, _D, False, None)]),  # PairResult.diagnostics
     ("CloudFraction", [("camera", 1, _S, False, None), ("fraction", 2, _D, False, None)]),

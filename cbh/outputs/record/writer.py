@@ -445,7 +445,7 @@ class McapRecorder(ResultSink):
                               confidence=float(layer.confidence),
                               altitude_m=a if math.isfinite(a) else float(layer.height_m) + alt)
             m.motion_tracks = int(getattr(layer, "motion_tracks", 0))
-            for name in ("motion_east_ms", "motion_north_ms", "motion_spread_ms"):  # unknown (NaN): left absent
+            for name in ("motion_east_ms", "motion_north_ms", "motion_spread_ms", "height_lo_m", "height_hi_m"):  # unknown (NaN): left absent
                 v = float(getattr(layer, name, math.nan))
                 if math.isfinite(v):
                     setattr(m, name, v)
