@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from datetime import datetime, timezone
+from functools import lru_cache
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,11 +16,10 @@ SAMPLE = REPO / "recordings" / "sample-two-layers.mcap"
 FEHMARN = SHARED / "data" / "fehmarn-2016-09-01"
 
 
-def _half_sky(edge_east_m: float, height_m: float = 3000.0, size: int = 320, sun=None, glare_deg: float = 0.0):
-    """Camera 1 of the default station at ``size`` px, looking at one layer at ``height_m`` that is
-    cloud west of ``edge_east_m`` and clear east of it: its labels, as pair_ground makes them; with
-    ``glare_deg`` every pixel within that angle of ``sun`` reads clear (a mask fooled by the aureole)."""
-    from cbh.geometry import ground
+@lru_cache(maxsize=4)
+def _sky_rays(height_m: float, size: int):
+    """Camera 1 of the default station at ``size`` px; its pixels' rays, which of them look up, and
+    the east coordinate where each meets a layer at ``height_m``."""
     from cbh.geometry.station import load_station
     from cbh.presets import station_path
 
@@ -30,7 +30,17 @@ def _half_sky(edge_east_m: float, height_m: float = 3000.0, size: int = 320, sun
     rays = cam.pixel_to_world(np.column_stack([xx.ravel(), yy.ravel()]).astype(np.float64))
     up = rays[:, 2] > 0.05
     t = np.where(up, (height_m - cam.position_m[2]) / np.where(up, rays[:, 2], 1.0), np.nan)
-    x = cam.position_m[0] + rays[:, 0] * t
+    return cam, rays, up, cam.position_m[0] + rays[:, 0] * t
+
+
+def _half_sky(edge_east_m: float, height_m: float = 3000.0, size: int = 320, sun=None, glare_deg: float = 0.0):
+    """Camera 1 of the default station at ``size`` px, looking at one layer at ``height_m`` that is
+    cloud west of ``edge_east_m`` and clear east of it: its labels, as pair_ground makes them; with
+    ``glare_deg`` every pixel within that angle of ``sun`` reads clear (a mask fooled by the aureole)."""
+    from cbh.geometry import ground
+
+    cam, rays, up, x = _sky_rays(float(height_m), int(size))
+    H, W = cam.model.height, cam.model.width
     lab = np.full(H * W, ground.UNKNOWN, np.int16)
     lab[up & (x < edge_east_m)] = 0
     lab[up & (x >= edge_east_m)] = ground.CLEAR
@@ -96,6 +106,45 @@ def test_the_lagged_ensemble_reads_the_cloud_away_from_the_glare():
     # issue pair's own forecast among those averaged
     p, why = lagged_shade([old, now], site, sun, now.time_utc + timedelta(seconds=180))
     assert p > 0.9 and why == "", (p, why)
+
+
+def test_the_disk_grows_with_the_motions_measured_error():
+    """A 300 m cloud 3.2 km upwind of the sun ray of the site (the sun 40° from the zenith in the
+    south) on a 3000 m layer moving east at 10 m/s shades the site from 300 to 330 s ahead. Three
+    pairs a minute apart measured the motion within 0.1 m/s: the disk at 5 min then has σ ≈ 80 m
+    (10 m + 1 % of the 3.9 km slant + 0.1 m/s × 315 s) and the strip's shade probability
+    1/2 < p (erf(150/(80·√2)) ≈ 0.94 for one read). The prior alone (5 % + 0.2 m/s: 0.7 m/s, σ ≈ 270 m)
+    blurs it below 1/2 (≈ 0.42): the shadow would be missed. The measured error is the members' scatter
+    (sample standard deviation, the RMS of both axes), at least 1 % of the speed, unknown from one motion."""
+    from datetime import timedelta
+
+    from cbh.actions.nowcast import _ensemble
+    from cbh.geometry import ground
+    from cbh.outputs.nowcast import Site, lagged_shade, motion_errors
+
+    zen = math.radians(40.0)
+    sun = np.array([0.0, -math.sin(zen), math.cos(zen)])
+    t0 = datetime(2016, 9, 1, 9, 0, tzinfo=timezone.utc)
+    history, winds = [], [(9.9, -0.1), (10.1, 0.1), (10.0, 0.0)]
+    for i, wind in enumerate(winds):  # the strip 600 m further west a minute earlier
+        back = 600.0 * (len(winds) - 1 - i)
+        pg, west = _half_sky(-3000.0 - back, sun=sun), _half_sky(-3300.0 - back, sun=sun)
+        pg.labels[west.labels == 0] = ground.CLEAR
+        pg.motions, pg.time_utc = [wind], t0 + timedelta(seconds=60.0 * i)
+        history = _ensemble(history, pg)
+    err = history[-1].motion_errors[0]
+    assert err == pytest.approx(math.sqrt(np.mean(np.var(np.array(winds), axis=0, ddof=1))))  # 0.1 m/s
+    assert motion_errors(history[-1:]) == [pytest.approx(math.nan, nan_ok=True)]
+    steady = [SimpleNamespace(heights=[3000.0], motions=[(10.0, 0.0)])] * 3
+    assert motion_errors(steady) == [pytest.approx(0.1)]  # the floor: 1 % of 10 m/s
+    site_m = np.array([0.0, 0.0, float(pg.camera.position_m[2])])
+    site = Site("s", math.nan, math.nan, float(site_m[2]), site_m)
+    tv = pg.time_utc + timedelta(seconds=315.0)
+    p, _ = lagged_shade(history, site, sun, tv)
+    assert p > 0.8, p
+    pg.motion_errors = None  # the prior
+    p, _ = lagged_shade([pg], site, sun, tv)
+    assert 0.2 < p < 0.5, p
 
 
 def test_the_sunny_level_is_the_pyranometers_upper_quantile():

@@ -141,7 +141,8 @@ def _forecasts(history: list, site, issue, leads_s, bad: list, learn: bool, cach
 
 def _ensemble(history: list, pg) -> list:
     """``history`` with ``pg`` (a valid pair) as its newest member: the older ones kept one per
-    ``ENSEMBLE_STEP_S`` and at most ``ENSEMBLE_S`` old (:func:`cbh.outputs.nowcast.lagged_shade`)."""
+    ``ENSEMBLE_STEP_S`` and at most ``ENSEMBLE_S`` old (:func:`cbh.outputs.nowcast.lagged_shade`);
+    ``pg`` gets its layers' motion errors measured over them (:func:`cbh.outputs.nowcast.motion_errors`)."""
     from cbh.outputs import nowcast as nc
 
     kept = [h for h in history if 0 < (pg.time_utc - h.time_utc).total_seconds() <= nc.ENSEMBLE_S]
@@ -149,6 +150,7 @@ def _ensemble(history: list, pg) -> list:
     for h in kept:
         if not out or (h.time_utc - out[-1].time_utc).total_seconds() >= nc.ENSEMBLE_STEP_S - 1.0:
             out.append(h)
+    pg.motion_errors = nc.motion_errors([*out, pg])
     return [*out, pg]
 
 

@@ -32,6 +32,9 @@ class PairGround:
     cloud_fraction: float  # camera 1's, 0..1
     time_utc: object  # datetime
     valid: bool  # False when the pair carries an invalidating flag
+    #: per layer, its motion's error [m/s] measured over the lagged ensemble
+    #: (:func:`cbh.outputs.nowcast.motion_errors`, set as the pair joins it); None: the prior
+    motion_errors: list | None = None
 
 
 def _sun(station, t):

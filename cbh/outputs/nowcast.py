@@ -10,8 +10,9 @@ For each recorded pair (the issue time t), each site and each lead time L:
    carried by the layer's motion v_k; ``s`` the sun direction at ``t + L``). Camera 1's layer labels
    (:func:`cbh.geometry.ground.layer_labels`: each cloud pixel on its layer, clear sky, unknown)
    are read on a disk around that point, Gaussian-weighted with a radius that grows with the lead
-   (the motion's error, ``MOTION_ERROR``, times L, plus ``EDGE_M`` and ``EDGE_RANGE`` of the slant
-   range: the sun's width and a 1 % height error): the weighted cloud share of
+   (the motion's error times L: measured as the scatter of the layer's motion over the lagged
+   ensemble's pairs, :func:`motion_errors`, else the prior ``MOTION_ERROR``; plus ``EDGE_M`` and
+   ``EDGE_RANGE`` of the slant range: the sun's width and a 1 % height error): the weighted cloud share of
    the known samples is the layer's probability of shading the site, and the layers combine as
    independent screens, ``1 − Π(1 − p_k)``. Where the disk is mostly unknown (the masked sun
    itself at short leads), it widens (``WIDEN``) to the nearest sky the camera sees around it.
@@ -46,7 +47,7 @@ import numpy as np
 from cbh.errors import ConfigError, InputError
 
 __all__ = ["Site", "parse_site", "parse_leads", "clear_sky_ghi", "shade_probability", "Levels", "read_pyranometer",
-           "LEADS_S", "K_SUN", "K_SHADE", "lagged_shade", "glare_angle_deg"]
+           "LEADS_S", "K_SUN", "K_SHADE", "lagged_shade", "glare_angle_deg", "motion_errors"]
 
 #: Default lead times: 0 to 20 min every minute [s].
 LEADS_S = tuple(float(s) for s in range(0, 1201, 60))
@@ -58,7 +59,13 @@ PRIOR_WEIGHT = 3.0  # the default levels count as this many pyranometer observat
 SUNNY_QUANTILE, SUNNY_HISTORY_S, SUNNY_MIN = 0.9, 3600.0, 20
 EDGE_M = 10.0  # the shade disk's radius at lead 0 [m] ...
 EDGE_RANGE = 0.01  # ... plus this share of the slant range to the layer: the sun's width (0.5°) and a 1 % height error
-MOTION_ERROR = (0.05, 0.2)  # a layer's motion is known to 5 % + 0.2 m/s: the disk grows by this × lead
+#: A layer's motion error [m/s, per axis]: the disk grows by it × lead. Measured where the lagged
+#: ensemble has the layer's motion from ``MOTION_MEMBERS`` pairs or more (:func:`motion_errors`: their
+#: scatter, at least ``MOTION_FLOOR`` of the speed: the 1 % height error of ``EDGE_RANGE``, as the
+#: motion over the ground scales with the height); else this prior, 5 % of the speed + 0.2 m/s.
+MOTION_ERROR = (0.05, 0.2)
+MOTION_MEMBERS = 2
+MOTION_FLOOR = 0.01
 WIDEN = (2.0, 4.0, 8.0, 16.0)  # the disk widens by these factors until a third of it is known
 MIN_KNOWN = 0.3  # known share of the disk's weight needed for a probability
 #: A time-lagged ensemble (:func:`lagged_shade`): the forecasts for one valid time issued by the
@@ -308,7 +315,9 @@ def _layer_centre(pg, k: int, site_enu: np.ndarray, s: np.ndarray, lead_s: float
         return "beyond_view"
     speed = math.hypot(ve, vn)
     slant = float(np.linalg.norm(centre - np.asarray(site_enu, np.float64)))
-    return centre, EDGE_M + EDGE_RANGE * slant + (MOTION_ERROR[0] * speed + MOTION_ERROR[1]) * lead_s
+    errs = getattr(pg, "motion_errors", None)
+    err = errs[k] if errs and math.isfinite(errs[k]) else MOTION_ERROR[0] * speed + MOTION_ERROR[1]
+    return centre, EDGE_M + EDGE_RANGE * slant + err * lead_s
 
 
 def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float) -> tuple[float, str, bool]:
@@ -381,6 +390,26 @@ def _same_layer(heights, h: float) -> int | None:
     d = [abs(h - float(x)) / max(float(x), 1.0) for x in heights]
     k = int(np.argmin(d))
     return k if d[k] <= LAYER_MATCH else None
+
+
+def motion_errors(pgs: list) -> list[float]:
+    """Per layer of the newest pair of ``pgs`` (the lagged ensemble, oldest first): its motion's
+    error [m/s, per axis], measured as the scatter of that layer's motion over the members (a
+    member's layer within ``LAYER_MATCH`` of its height): the RMS over both axes of the sample
+    standard deviation, at least ``MOTION_FLOOR`` of the speed; NaN (the prior ``MOTION_ERROR``)
+    with fewer than ``MOTION_MEMBERS`` motions. The scatter holds what each pair's motion gets wrong
+    (its tracks, its height) and what the wind itself changed over the ensemble's 10 min."""
+    own = pgs[-1]
+    out = []
+    for k, h in enumerate(own.heights):
+        v = [m for pg in pgs for hj, m in zip(pg.heights, pg.motions)
+             if abs(float(hj) - float(h)) <= LAYER_MATCH * max(float(h), 1.0) and all(map(math.isfinite, m))]
+        if len(v) < MOTION_MEMBERS or not all(map(math.isfinite, own.motions[k])):
+            out.append(math.nan)
+            continue
+        sd = np.std(np.asarray(v, np.float64), axis=0, ddof=1)
+        out.append(max(float(np.sqrt(np.mean(sd ** 2))), MOTION_FLOOR * math.hypot(*own.motions[k])))
+    return out
 
 
 def _lagged_point(pgs: list, site_enu: np.ndarray, sun_dir: np.ndarray | None, valid_time,
