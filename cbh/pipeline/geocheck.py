@@ -65,10 +65,20 @@ __all__ = ["GeometryCheck", "check_geometry", "relative_rotation", "images_ident
 
 #: Matching methods whose correspondences can disagree with the geometry (2-D search).
 CHECK_METHODS = ("lk", "orb", "dis", "skyflow")
-#: The fitted rotation is tolerated up to this share of the matches' median parallax (a 2 % height
-#: error, the bar for a single low layer; near cloud at 130 m, 480 px, fitted 0.17° ± 0.05°), when that is
-#: more than ``max_rotation_px`` (the height error a turn causes is its shift over the parallax).
+#: The share of a match's parallax that cbh tolerates, when it is more than the pixel tolerances:
+#: a 2 % height error, the bar for a single low layer. A turn of camera 2 moves a layer's height by
+#: its shift over the layer's parallax, so the fitted rotation is tolerated up to this share of the
+#: matches' median parallax (near cloud at 130 m, 480 px, fitted 0.17° ± 0.05°); and each match's
+#: distance from its curve up to this share of its own parallax: the two cameras see a cloud at
+#: height h from directions B/h apart, so its texture is sheared between them by about that much
+#: and LK's matches scatter across the curve with it (a 350 m cumulus at B = 241 m: 75–200 px of
+#: parallax, median distance 1.3 px on a correct station, flagged), while a distance across the curve
+#: moves no height at all (heights come from the parallax along it).
 _ROTATION_PARALLAX = 0.02
+#: The rotation fit weighs each match by 1 / (1 + (shear / _SHEAR_SCALE)²), its views' shear being
+#: its parallax in radians: LK on a sheared patch is biased, not only noisy (a 300 m deck at B = 241 m,
+#: 44 px of parallax, pulled a correct station's fit to 0.08°), while a turn moves every match alike.
+_SHEAR_SCALE = 0.05
 #: Methods whose camera-2 rays are carried to camera 1's time by each pixel's own motion (the sky
 #: maps', :mod:`.skyclock`): judged on tile medians (:func:`_tile_verdict`), tiles of this size
 #: [px, working size].
@@ -91,7 +101,7 @@ class GeometryCheck:
 
 
 def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
-                      iterations: int = 4) -> tuple[np.ndarray, float]:
+                      iterations: int = 4, prior: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The small rotation ω (3,) [rad, ENU rotation vector] of camera 2's rays that best puts them
     on the epipolar planes of camera 1's rays: ``d2 → d2 + ω × d2`` (robust least squares).
 
@@ -106,6 +116,9 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     n · (ω × d2) = ω · (d2 × n); iteratively reweighted (Huber, then Tukey's biweight, scale
     1.4826 · MAD) so that mismatches do not pull it.
 
+    ``prior`` (N,): each match's weight before the robust ones (how much its own position is
+    trusted; None: all alike).
+
     Returns (ω, σ): σ [rad] is the standard deviation of |ω| along ω's direction, from the
     weighted normal equations and the residuals' robust scale. Where the lens models are off
     (residuals of degrees), the turn that moves matches *along* their epipolar curves is barely
@@ -118,7 +131,8 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     J = np.cross(d2, n)  # (N, 3): ∂e/∂ω
     e0 = np.einsum("ij,ij->i", d2, n)  # sin e ≈ e for the small angles that matter
-    w = np.ones(len(e0))
+    w0 = np.ones(len(e0)) if prior is None else np.asarray(prior, np.float64)
+    w = w0.copy()
     omega = np.zeros(3)
     for it in range(2 * iterations):
         A = J * w[:, None]
@@ -128,9 +142,9 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
         a = np.abs(r)
         if it < iterations:  # Huber from the start, then Tukey's biweight: a mismatch far off
             k = 1.345 * scale   # its curve (LK on near cloud) gets no weight at all
-            w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
+            w = w0 * np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
         else:
-            w = np.clip(1.0 - (a / (4.685 * scale)) ** 2, 0.0, None) ** 2
+            w = w0 * np.clip(1.0 - (a / (4.685 * scale)) ** 2, 0.0, None) ** 2
     N = (J * w[:, None]).T @ J
     cov = np.linalg.pinv(N) * scale ** 2 * len(e0) / max(float(w.sum()), 1.0)
     u = omega / max(float(np.linalg.norm(omega)), 1e-300)
@@ -192,9 +206,11 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # resolves) on its curve agrees with the geometry and has no height: an inlier, not an outlier
     # (counted as outliers, 6 of 30 randomized clear skies whose only matches were 64-79° from the
     # zenith, 81-100 % of them within 2 px of infinity, were flagged geometry_mismatch)
+    par = np.linalg.norm(px2 - geom.infinity(px1), axis=1)  # each match's parallax [px]
     with np.errstate(invalid="ignore"):
-        agrees = finite | (np.linalg.norm(px2 - geom.infinity(px1), axis=1) <= 2.0 * tol_px)
-    near = dist <= 2.0 * tol_px
+        agrees = finite | (par <= 2.0 * tol_px)
+        tol_i = np.maximum(tol_px, _ROTATION_PARALLAX * np.nan_to_num(par, nan=0.0))  # (sheared views, above)
+    near = dist <= 2.0 * tol_i
     # the rotation is fitted on the matches with a height, the cloud's, when they are most of those
     # that agree; on every agreeing one when most are at infinity (a clear sky's haze and skyline:
     # the few "heights" among them are the matcher's strays, and a turn fitted on them alone,
@@ -203,22 +219,26 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     if 2 * int(inl.sum()) < int((agrees & near).sum()):
         inl = agrees & near
     med = float(np.median(dist))
+    over = float(np.median(dist / tol_i)) > 1.0  # each match against its own tolerance
     frac = float((agrees & near).mean())
     if use and all(m.method in CARRIED_METHODS for m in use):
         med, frac = _tile_verdict(px1, np.sign(e) * dist, agrees, tol_px)
+        over = med > tol_px
     # fitted on the inliers (within 2 tolerances of their curves), robustly: LK's mismatches on
     # near cloud (24 % of them at 105–150 m, 100 px of parallax) pulled a fit over every match to
     # 0.4–4.6° on a correct station. A turn large enough to push most matches out of the gate is
     # flagged by the median already; its fitted size then comes out low (0.37° for a 0.5° pitch)
     fit = inl if inl.sum() >= cfg.min_matches else np.zeros(n, bool)
-    omega, sigma = relative_rotation(d1[fit], d2[fit], t) if fit.any() else (np.zeros(3), math.inf)
+    shear = np.nan_to_num(par, nan=0.0) / ppr  # [rad] (see _SHEAR_SCALE)
+    omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2))
+                    if fit.any() else (np.zeros(3), math.inf))
     rot = math.degrees(float(np.linalg.norm(omega)))
     # tolerance: a shift of max_rotation_px, or _ROTATION_PARALLAX (2 %) of the matches' median
     # parallax if more (a turn that moves a near layer's 100 px of parallax by 1 px moves its
     # height by 1 %: harmless, and near cloud's fits scatter by 0.04–0.12°); not judged where
     # the station states an expected miss: its lens models leave rays that far apart, and a
     # rotation fitted against them absorbs their error (see relative_rotation)
-    parallax = float(np.median(np.linalg.norm(px2[fit] - geom.infinity(px1[fit]), axis=1))) if fit.any() else 0.0
+    parallax = float(np.median(par[fit])) if fit.any() else 0.0
     tol_rot_px = max(cfg.max_rotation_px, _ROTATION_PARALLAX * parallax)
     tol_rot = math.degrees(tol_rot_px / ppr) if cfg.expected_miss_ratio <= 0 else math.inf
     # size and significance, separately: above the tolerance *and* beyond 3 σ of the fit. Matches
@@ -227,7 +247,7 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # whole sky σ is 0.002–0.007°, so the tolerance decides (subtracting 3 σ from the size instead
     # let a −0.05° roll through that moved a 3500 m layer by −8 %)
     rotated = rot > tol_rot and rot > 3.0 * math.degrees(sigma)
-    return GeometryCheck(med, frac, tol_px, n, med > tol_px or frac < cfg.min_inlier_fraction or rotated,
+    return GeometryCheck(med, frac, tol_px, n, over or frac < cfg.min_inlier_fraction or rotated,
                          rot, tol_rot, math.degrees(sigma))
 
 
