@@ -151,3 +151,35 @@ def test_near_coarse_planes_are_spaced_by_their_parallax(baseline_m):
         total[g] += w
     inner = slice(int(plan.near[0]), int(plan.near[-1]) + 1)
     assert np.allclose(total[inner], 0.5)
+
+
+def test_fine_planes_are_spaced_by_their_parallax():
+    """Issue 36 (``sweep.PlaneLattice``): fine planes one pixel of shift apart up to 20 px of
+    parallax (``step_px`` / ``step_rel``), 5 % of their parallax from there to 30 px, 1.5 px
+    beyond; evenly spaced in the lattice coordinate u, whose inverse gives s back."""
+    from cbh.pipeline.config import SweepConfig
+    from cbh.pipeline.sweep import CoarseLayers, fine_planes, plane_lattice
+
+    cfg = SweepConfig()
+    scale = 80081.0  # the real 241 m station at 960 px [px·m]
+    lat = plane_lattice(scale, cfg)
+    s = np.linspace(0.0, 0.01, 2001)
+    np.testing.assert_allclose(lat.s(lat.u(s)), s, rtol=1e-12, atol=1e-15)
+    assert np.all(np.diff(lat.u(s)) > 0)
+    grid = np.arange(0.0, 50.0 / scale, 1e-6)  # a hypothesis from 0 to 50 px (41 planes: within max_planes)
+    coarse = CoarseLayers(grid, 1e-6, [(0, len(grid) - 1)], [1000.0], [])
+    planes, du = fine_planes(coarse, scale, 0.0, 0.01, cfg)
+    p = planes * scale
+    np.testing.assert_allclose(np.diff(lat.u(planes)), du, rtol=1e-9)
+    gaps = np.diff(p)
+    low, mid, high = p[:-1] < 19.99, (p[:-1] > 20.01) & (p[1:] < 29.99), p[:-1] > 30.01
+    np.testing.assert_allclose(gaps[low], 1.0, rtol=1e-9)
+    np.testing.assert_allclose(gaps[mid] / p[:-1][mid], 0.05, rtol=0.03)
+    np.testing.assert_allclose(gaps[high], 1.5, rtol=1e-9)
+    assert plane_lattice(scale, replace_cfg(cfg, step_rel=0.0)) is None  # off: planes uniform in s
+
+
+def replace_cfg(cfg, **kw):
+    import dataclasses
+
+    return dataclasses.replace(cfg, **kw)

@@ -147,6 +147,7 @@ class SweepConfig:
     coarse_near_px: float = 32.0  # coarse planes with more parallax than this (working size) run at half the coarse size; 0 = off [px]
     coarse_near_rel: float = 0.03  # … and lie at most this share of their parallax apart (≥ one pixel at that size); 0 = one pixel [1]
     step_px: float = 1.0  # largest image shift between fine planes, at working size [px]
+    step_rel: float = 0.05  # … or this share of their parallax, where that is more (a log lattice beyond step_px / step_rel); 0 = off [1]
     far_px: float = 6.0  # the fine pass sweeps every plane up to this parallax from infinity [px]
     min_height_m: float = 100.0  # lowest plane, above the ENU origin [m]; filtering's floor: lower clouds pinned to the
     #                             lowest plane were reported there with confidence 1 (a 200 m layer as 302 m)
@@ -163,7 +164,7 @@ class SweepConfig:
     region_px: int = 64  # layers are also proposed per region of this side (a deck seen only through gaps); 0 = off [px]
     region_share: float = 0.1  # a region's layer needs this share of the region's votes [1]
     max_planes: int = 48  # fine planes at most (the step grows beyond) [1]
-    map_cache_mb: float = 256.0  # remap tables of the planes used, kept for the next pairs (≈ 7 MB per fine plane at 960 px; per process); 0 = off [MB]
+    map_cache_mb: float = 512.0  # remap tables of the planes used, kept for the next pairs (≈ 7 MB per fine plane at 960 px; per process); 0 = off [MB]
     point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
 
 
@@ -412,6 +413,7 @@ def _check_sweep(sw, where: str) -> None:
     _positive(f"{where}.far_px", sw.far_px, strict=False)
     _positive(f"{where}.coarse_near_px", sw.coarse_near_px, strict=False)
     _in_range(f"{where}.coarse_near_rel", sw.coarse_near_rel, 0.0, 0.25, "0..0.25")
+    _in_range(f"{where}.step_rel", sw.step_rel, 0.0, 0.25, "0..0.25")
     for k in ("coarse_step_px", "step_px", "min_height_m", "max_planes", "point_stride_px"):
         _positive(f"{where}.{k}", getattr(sw, k))
     if not sw.min_height_m < sw.max_height_m:

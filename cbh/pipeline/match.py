@@ -398,6 +398,8 @@ def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg) -> floa
         return 0.0
     s_max = plane_range(o1z, cfg)[1]
     ds = cfg.step_px / scale_px
+    if len(planes) > 1:  # the planes' own step there (wider than step_px on a log lattice, sweep.PlaneLattice)
+        ds = max(ds, float(planes[-1] - planes[-2]))
     if planes[-1] < s_max - ds:  # the fine planes stop short of the floor: nothing can sit on it
         return 0.0
     with np.errstate(invalid="ignore"):

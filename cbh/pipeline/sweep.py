@@ -128,6 +128,7 @@ measurement of matching quality; the sparse ``lk`` matches carry that).
 from __future__ import annotations
 
 import itertools
+import math
 import threading
 import time
 from collections import OrderedDict
@@ -141,7 +142,7 @@ from cbh.pipeline.threads import pfold as _pfold, pmap as _pmap
 
 __all__ = ["PlaneMaps", "PlaneViews", "zncc_map", "plane_maps", "sweep_matches", "zncc_planes", "coarse_planes",
            "coarse_votes", "coarse_regions", "coarse_pass",
-           "fine_planes", "fine_pass", "SweepField", "sweep_field", "field_points",
+           "fine_planes", "fine_pass", "SweepField", "PlaneLattice", "plane_lattice", "sweep_field", "field_points",
            "label_pass", "refine_pass", "truncated", "resolved_layers", "regional_peaks", "coarse_layers", "CoarseLayers", "FineCost", "LayerLabels"]
 
 _OUTSIDE = -1.0e5
@@ -151,6 +152,7 @@ _SRC_SCALE = 64.0  # image 2 enters the sweep's remap as uint16 in 1/64 grey lev
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
 _REGION_APART_BINS = 3  # a region's layer is a new one beyond 1.5 plane steps from the image's [bins of half a step]
+_MAX_STEP = 1.5  # PlaneLattice: fine planes at most this × step_px apart (see there)
 _COARSE_SHARE = 2.5  # the coarse pass's regions are a quarter of the fine ones: their peak needs this × region_share
 _REGION_MIN_FILL = 0.25  # a region proposes layers when this share of its cells vote [1]
 
@@ -773,25 +775,35 @@ class FineCost:
 
     region: tuple  # (slice y, slice x) of the working-size image (even start and size)
     s: np.ndarray  # (P,) float64: the fine planes [1/m], ascending
-    ds: float  # nominal spacing [1/m]
+    ds: float  # their spacing in the lattice coordinate u [1/m] (:class:`PlaneLattice`)
     cost: np.ndarray  # (P, h/2, w/2) float32: ZNCC × textured-cloud fraction of each 2 × 2 block
     textured: np.ndarray  # (h/2, w/2) float32: textured-cloud fraction of each 2 × 2 block
     ok: np.ndarray  # (h, w) bool: accepted pixels (textured cloud whose best ZNCC ≥ min_zncc)
     ok_frac: np.ndarray  # (h/2, w/2) float32: accepted fraction of each 2 × 2 block
+    lattice: "PlaneLattice | None" = None  # u(s) of the planes (None: u = s)
+
+    @property
+    def u(self) -> np.ndarray:
+        """(P,) float64: the planes' lattice coordinate [1/m], ``ds`` apart where they run on."""
+        return self.s if self.lattice is None else self.lattice.u(self.s)
+
+    def to_s(self, u):
+        """Lattice coordinate → s (arrays or tensors; NaN stays NaN, 0 stays 0)."""
+        return u if self.lattice is None else self.lattice.s(u)
 
 
 @dataclass
 class LayerLabels:
     """Pass 3: the layers of the image in s, and the layer of every half-resolution pixel."""
 
-    cuts_s: np.ndarray  # (L − 1,) s of the boundaries between neighbouring layers [1/m]
-    votes: np.ndarray  # (B,) vote histogram over s (bins of ``bin_s``)
-    bin_s: float  # [1/m]
+    cuts_s: np.ndarray  # (L − 1,) the boundaries between neighbouring layers, in the planes' lattice coordinate u [1/m]
+    votes: np.ndarray  # (B,) vote histogram over u (bins of ``bin_s``)
+    bin_s: float  # [1/m of u]
     vote_ranges: list[tuple[int, int]]  # bins [lo, hi] of each layer (they tile the histogram)
     plane_layer: np.ndarray  # (P,) int: the layer of each fine plane
     label: np.ndarray  # (h/2, w/2) uint8: each pixel's layer
     own_plane: np.ndarray  # (h/2, w/2) int32: each pixel's own best plane (no aggregation)
-    s_wide: np.ndarray  # (h/2, w/2) float32: s of the wide-box winner, refined [1/m]
+    s_wide: np.ndarray  # (h/2, w/2) float32: u of the wide-box winner, refined [1/m of u]
 
 
 @dataclass
@@ -991,6 +1003,65 @@ def coarse_hypotheses(votes: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: fl
     return CoarseLayers(s, ds_c, ranges, [float(o1z + 1.0 / s[(lo + hi) // 2]) for lo, hi in ranges + extra], extra)
 
 
+@dataclass(frozen=True)
+class PlaneLattice:
+    """The fine planes' lattice coordinate u(s) [1/m]: s itself up to ``s0``, logarithmic from
+    ``s0`` to m·``s0`` (u = s0 · (1 + ln(s / s0))), linear with slope 1/m beyond (m =
+    ``_MAX_STEP``, 1.5); continuous with its slope. Planes ``ds`` apart in u are ``step_px`` of
+    parallax apart up to p0 = ``step_px`` / ``step_rel`` (20 px by default), ``step_rel`` of their
+    parallax from p0 to m·p0 (a height step of 5 %, which the parabola through three planes
+    refines), and m·``step_px`` beyond: never wider. A flat layer's pixels all sit at one phase
+    between two planes, so the parabola's pixel locking does not average out over the layer: with
+    planes 2 px apart a 1500 m deck at B = 241 m (53 px) read 1479 m (−1.4 %, dense MdAPE 0.66 →
+    1.76 %), with 1.5 px 1497 m (0.67 %); a 9 px window's ZNCC falls to half its peak within 1–2
+    px of shift on cloud texture.
+
+    Why (issue 36): a plane one pixel of shift from the next is 1/p of the height apart, so near
+    layers and long baselines (large parallax p) were swept finer than their heights need (the
+    real 241 m station's 2300 m deck, 30–40 px: 2.5–3.3 % per plane, 11 planes, now 7; the 50 m
+    pair's 1200 m deck, 13 px: 7.7 % per plane, unchanged) and a long baseline cost more planes
+    per pair. Everything that needs evenly spaced planes (the refinement's parabola, the layer
+    votes' bins, the regions' plane lattice, the gaps of :func:`truncated`) works in u."""
+
+    s0: float  # [1/m]; inf: u = s everywhere
+
+    def u(self, s):
+        s = np.asarray(s, np.float64)
+        if not np.isfinite(self.s0):
+            return s
+        m = _MAX_STEP
+        s0, s1 = self.s0, m * self.s0
+        u1 = s0 * (1.0 + math.log(m))
+        log = s0 * (1.0 + np.log(np.clip(s, s0, s1) / s0))
+        return np.where(s <= s0, s, np.where(s <= s1, log, u1 + (s - s1) / m))
+
+    def s(self, u):
+        """The inverse of :meth:`u` (numpy arrays keep their dtype; torch tensors go through torch)."""
+        if not np.isfinite(self.s0):
+            return u
+        m = _MAX_STEP
+        s0, s1 = self.s0, m * self.s0
+        u1 = s0 * (1.0 + math.log(m))
+        if type(u).__module__.startswith("torch"):  # a tensor
+            import torch
+
+            log = s0 * torch.exp(torch.clamp(u, s0, u1) / s0 - 1.0)
+            return torch.where(u <= s0, u, torch.where(u <= u1, log, s1 + m * (u - u1)))
+        u = np.asarray(u)
+        with np.errstate(invalid="ignore"):
+            log = s0 * np.exp(np.clip(u, s0, u1) / s0 - 1.0)
+            return np.where(u <= s0, u, np.where(u <= u1, log, s1 + m * (u - u1))).astype(u.dtype, copy=False)
+
+
+def plane_lattice(scale_px: float, cfg) -> PlaneLattice | None:
+    """The :class:`PlaneLattice` of a pair (working-size parallax scale ``scale_px`` [px·m]), or
+    None where ``step_rel`` is 0 (planes uniform in s)."""
+    rel = float(getattr(cfg, "step_rel", 0.0))
+    if rel <= 0 or scale_px <= 0:
+        return None
+    return PlaneLattice(float(cfg.step_px) / (rel * scale_px))
+
+
 def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: float, cfg) -> tuple[np.ndarray, float]:
     """The fine planes (ascending s, ``step_px`` apart): the far range from infinity up to
     ``far_px`` of parallax, and each coarse hypothesis's extent ± 1.5 coarse steps; at most
@@ -998,16 +1069,19 @@ def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: floa
     that the planes stay evenly spaced — the refinement's parabola needs a pixel's neighbouring
     planes one step away (thinning by index left gaps: a 630 m pair's 3500 m layer fell between
     3575 and 3452 m with no plane at 3512 m, and every pixel snapped to 3452 m, −1.4 %).
-    Returns (s (P,), nominal step ds)."""
+    The planes are evenly spaced in the lattice coordinate u (:class:`PlaneLattice`): ``step_px``
+    apart up to ``step_px`` / ``step_rel`` of parallax, ``step_rel`` of their parallax beyond.
+    Returns (s (P,), step ds in u)."""
     base = cfg.step_px / scale_px
+    lat = plane_lattice(scale_px, cfg) or PlaneLattice(np.inf)
 
     def planes(ranges, ds):
-        parts = [np.arange(0.0, min(cfg.far_px / scale_px, s_max) + 0.5 * ds, ds)]
+        parts = [np.arange(0.0, float(lat.u(min(cfg.far_px / scale_px, s_max))) + 0.5 * ds, ds)]
         for lo, hi in ranges:
-            a = max(coarse.s[lo] - 1.5 * coarse.ds, s_min)
-            b = min(coarse.s[hi] + 1.5 * coarse.ds, s_max)
+            a = float(lat.u(max(coarse.s[lo] - 1.5 * coarse.ds, s_min)))
+            b = float(lat.u(min(coarse.s[hi] + 1.5 * coarse.ds, s_max)))
             parts.append(np.arange(a, b + 0.5 * ds, ds))
-        return np.unique(np.round(np.concatenate(parts) / ds) * ds)
+        return lat.s(np.unique(np.round(np.concatenate(parts) / ds) * ds))
 
     for k in range(1, 1 << 12):
         ds = base * k
@@ -1050,7 +1124,7 @@ def fine_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s: np.nda
 
     best = _pfold(fold, range(len(s)), lambda a, b: cv2.max(a, b, dst=a))
     ok = m0 & (cv2.resize(best, (w, h), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
-    return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)))
+    return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)), plane_lattice(maps.scale_px, cfg))
 
 
 def regional_peaks(bins: np.ndarray, weight: np.ndarray, nb: int, side: int, share: float, min_votes: float,
@@ -1178,13 +1252,15 @@ def layer_planes(lab: "LayerLabels", L: int, s: np.ndarray, ds: float) -> np.nda
     return np.flatnonzero((s >= edges[L] - 1.01 * ds) & (s <= edges[L + 1] + 1.01 * ds))
 
 
-def layer_box(lab: "LayerLabels", L: int, scale_px: float, cfg) -> int:
+def layer_box(lab: "LayerLabels", L: int, scale_px: float, cfg, lattice: "PlaneLattice | None" = None) -> int:
     """Aggregation box [half-resolution px] of layer ``L``: ``aggregate_px`` / 2, grown like
-    1/parallax for far layers (``far_aggregate_px``, at most ``_MAX_GROW`` ×)."""
+    1/parallax for far layers (``far_aggregate_px``, at most ``_MAX_GROW`` ×). ``lattice``: the
+    planes' (the votes' bins are in its coordinate)."""
     k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
     if cfg.far_aggregate_px > 0 and lab.vote_ranges:
         lo_b, hi_b = lab.vote_ranges[L]
-        p_l = lab.bin_s * (lo_b + int(np.argmax(lab.votes[lo_b: hi_b + 1]))) * scale_px
+        u_l = lab.bin_s * (lo_b + int(np.argmax(lab.votes[lo_b: hi_b + 1])))
+        p_l = float(lattice.s(np.float64(u_l)) if lattice is not None else u_l) * scale_px
         grow = min(max(cfg.far_aggregate_px / max(p_l, 1e-6), 1.0), _MAX_GROW)
         return max(3, int(round(k2 * grow)) | 1)
     return k2
@@ -1251,7 +1327,7 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     histogram's peaks, split at the valleys, are the layers; each pixel takes the layer whose
     planes its ``label_px`` box cost prefers.
     """
-    s, ds, cost = fine.s, fine.ds, fine.cost
+    s, ds, cost = fine.u, fine.ds, fine.cost  # (the planes' lattice coordinate: evenly spaced)
     k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
     kl = max(1, (int(cfg.label_px) // 2) | 1)
     jw, cw, lw, rw = _best3_map(lambda c: _box(c, k2), list(cost))
@@ -1315,7 +1391,7 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
     ndarray, shape (h, w), float32
         s [1/m] of every pixel of the region (meaningful where ``fine.ok``).
     """
-    s, ds, cost = fine.s, fine.ds, fine.cost
+    s, ds, cost = fine.u, fine.ds, fine.cost  # (the planes' lattice coordinate: evenly spaced)
     h, w = fine.ok.shape
     n_layers = max(len(lab.vote_ranges), 1)
     lab_full = cv2.resize(lab.label, (w, h), interpolation=cv2.INTER_NEAREST)
@@ -1325,7 +1401,7 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
         if not here.any():
             continue
         sel = layer_planes(lab, L, s, ds)
-        kL = layer_box(lab, L, scale_px, cfg)
+        kL = layer_box(lab, L, scale_px, cfg, fine.lattice)
         k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
         if len(sel) < 3 or (n_layers == 1 and kL == k2 and len(sel) == len(s)):
             # (one layer on its own box over every plane: exactly the wide-box winner of pass 3)
@@ -1344,7 +1420,7 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
                 s_px[fine.ok & (lab_full == L) & ~here] = np.nan
         up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
         cv2.copyTo(up, here.view(np.uint8), s_px)
-    return s_px
+    return fine.to_s(s_px)
 
 
 def truncated(j: np.ndarray, s: np.ndarray, ds: float) -> np.ndarray:
@@ -1367,7 +1443,10 @@ def _per_pixel(g1, g2, cloud1, maps, s, ds, cfg):
     sf, std1 = zncc_planes(g1, g2, maps, s, cfg.window_px, sl)
     j, c0, cm1, cp1 = _best3(sf)
     ok = cloud1[sl] & (std1 >= cfg.min_texture) & (c0 >= cfg.min_zncc)
-    return sl, ok, _refine(j, c0, cm1, cp1, s, ds)
+    lat = plane_lattice(maps.scale_px, cfg)  # (the parabola in the lattice coordinate: planes evenly spaced)
+    if lat is None:
+        return sl, ok, _refine(j, c0, cm1, cp1, s, ds)
+    return sl, ok, lat.s(_refine(j, c0, cm1, cp1, lat.u(s), ds))
 
 
 def plane_range(o1z: float, cfg) -> tuple[float, float]:

@@ -58,7 +58,7 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_range, coarse_planes,
+    CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_lattice, plane_range, coarse_planes,
     coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, truncated, vote_layers, SweepField, field_points,
 )
 
@@ -286,12 +286,13 @@ def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: 
     best = sc.max(0).values
     up = best.repeat_interleave(2, 0).repeat_interleave(2, 1)
     ok = m0 & (up >= cfg.min_zncc)
-    return FineCost(sl, s, ds, sc * textured, textured, ok, pool2(ok.float()[None, None])[0, 0])
+    return FineCost(sl, s, ds, sc * textured, textured, ok, pool2(ok.float()[None, None])[0, 0],
+                    plane_lattice(tm.scale_px, cfg))
 
 
 def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
     """Pass 3 on the device (see :func:`cbh.pipeline.sweep.label_pass`)."""
-    s, ds, cost = fine.s, fine.ds, fine.cost
+    s, ds, cost = fine.u, fine.ds, fine.cost  # (the planes' lattice coordinate: evenly spaced)
     dev = cost.device
     k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
     kl = max(1, (int(cfg.label_px) // 2) | 1)
@@ -323,7 +324,7 @@ def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
 
 def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> torch.Tensor:
     """Pass 4 on the device (see :func:`cbh.pipeline.sweep.refine_pass`); (h, w) float32 tensor."""
-    s, ds, cost = fine.s, fine.ds, fine.cost
+    s, ds, cost = fine.u, fine.ds, fine.cost  # (the planes' lattice coordinate: evenly spaced)
     dev = cost.device
     h, w = fine.ok.shape
     n_layers = max(len(lab.vote_ranges), 1)
@@ -335,7 +336,7 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
         if not bool(here.any()):
             continue
         sel = layer_planes(lab, L, s, ds)
-        kL = layer_box(lab, L, scale_px, cfg)
+        kL = layer_box(lab, L, scale_px, cfg, fine.lattice)
         k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
         if len(sel) < 3 or (n_layers == 1 and kL == k2 and len(sel) == len(s)):
             s_half = lab.s_wide  # as the OpenCV twin: the wide-box winner itself
@@ -354,7 +355,7 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
                 s_px = torch.where(gone, torch.full_like(s_px, float("nan")), s_px)
         up = F.interpolate(s_half[None, None], size=(h, w), mode="bilinear", align_corners=False)[0, 0]
         s_px = torch.where(here, up, s_px)
-    return s_px
+    return fine.to_s(s_px)
 
 
 def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, tm: TorchPlaneMaps, o1z: float,
