@@ -119,6 +119,28 @@ def test_li_threshold_splits_two_modes():
     assert li_threshold(np.full(10, 0.2)) == pytest.approx(0.2, abs=1e-3)
 
 
+def _sky(bgr, noise_dn, seed=0):
+    rng = np.random.default_rng(seed)
+    im = np.asarray(bgr, np.float32) + noise_dn * rng.standard_normal((96, 96, 1)).astype(np.float32)
+    return np.clip(im, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("cam1, cam2, clear", [
+    (((200, 185, 165), 1.0), ((220, 170, 143), 1.0), True),  # pale camera (NBR 0.096), blue one (0.21): seed 8025
+    (((200, 185, 165), 1.0), ((200, 190, 160), 1.0), False),  # both pale: as grey cloud under a bluish cast (0.11)
+    (((200, 185, 165), 1.0), ((220, 170, 143), 25.0), False),  # blue but textured in one camera: cloud
+    (((150, 150, 150), 1.0), ((160, 158, 150), 1.0), False),  # a smooth grey overcast
+])
+def test_one_class_pair_is_clear_from_the_images_as_taken(cam1, cam2, clear):
+    """Both cameras called one cloud: a clear sky when it is smooth in both and blue (median NBR
+    ≥ ``fixed_threshold``) as taken in either (issue 33, seed 8025)."""
+    from cbh.pipeline.segment import one_class_pair_is_clear
+
+    images = [_sky(bgr, n, seed) for seed, (bgr, n) in enumerate((cam1, cam2))]
+    usable = np.ones((96, 96), bool)
+    assert one_class_pair_is_clear(images, (usable, usable), SegmentationConfig()) is clear
+
+
 @pytest.mark.parametrize("make", [
     lambda: np.full((20, 20), 128, np.uint8),  # 2-D
     lambda: np.dstack([np.arange(400, dtype=np.uint8).reshape(20, 20)] * 3),  # three identical channels

@@ -126,3 +126,16 @@ def test_matches_at_infinity_over_a_skyline_are_no_mismatch(base, seed, tmp_path
     case, r, score, _ = run_random_case(seed, base, 960, tmp_path, options=CLEAR)
     assert case.kind == "clear" and r.layers == [], r.layers
     assert not set(r.flags) & INVALIDATING, r.flags
+
+
+@pytest.mark.slow
+def test_a_pale_clear_sky_is_clear_in_both_cameras(base, tmp_path):
+    """Seed 8025 (``eval_random.py --n 1 --seed 8025 --size 960 --skylines --unmasked``): a clear
+    sky that camera 1's colour response makes pale (raw median NBR 0.096, chroma 0.17), camera 2
+    blue (NBR 0.21); the photometric step maps camera 2 onto camera 1, both then read one grey
+    class, overcast: cf 1.0, layers at 104–151, 1092, 3673 m and ``below_range``. Camera 2's
+    sky as taken is blue and both are smooth: clear."""
+    case, r, score, _ = run_random_case(8025, base, 960, tmp_path, options=SKYLINES)
+    assert case.kind == "clear"
+    _assert_clear(r)
+    assert score.spurious_m == []

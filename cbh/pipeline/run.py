@@ -75,7 +75,7 @@ from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compen
                                  jump_threshold)
 from cbh.pipeline.skyclock import SkyClock, sky_clock, sky_grid
 from cbh.pipeline.photometric import estimate_response
-from cbh.pipeline.segment import chroma, sample_lattice, segment
+from cbh.pipeline.segment import chroma, one_class_pair_is_clear, sample_lattice, segment
 from cbh.pipeline.threads import pmap
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Prepared", "Masks", "Segmentation", "Correspondences",
@@ -402,10 +402,10 @@ class Pipeline:
             self.stage_sun_check(work, masks, ctx)
         received = (image1, image2)  # as the cameras delivered them, full size (the identical-image check)
         with _timed(ctx, "photometric"):
-            work1 = work[0]
+            taken = work
             work = self.stage_photometric(work, masks, ctx)
         with _timed(ctx, "segmentation"):
-            seg = self.stage_segment(work, masks, as_received1=work[0] is work1)
+            seg = self.stage_segment(work, masks, as_received1=work[0] is taken[0], taken=taken)
             gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
         return Prepared(ctx=ctx, t_all=t_all, first=first, work=work, masks=masks, seg=seg, gray=gray, received=received,
                         prepare_ms=_ms(t_all))
@@ -947,11 +947,12 @@ class Pipeline:
             return (cv2.LUT(work[0], lut12), work[1])
         return (work[0], cv2.LUT(work[1], lut21))
 
-    def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks", as_received1: bool = False
-                      ) -> "Segmentation":
+    def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks", as_received1: bool = False,
+                      taken: tuple[np.ndarray, np.ndarray] | None = None) -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky (``as_received1``: camera 1's
         image is as delivered, not mapped onto camera 2's response: its mask is its own, and a
-        network's pairs share it)."""
+        network's pairs share it; ``taken``: the working images before the photometric step,
+        None = ``work``)."""
         cams = (self.cam1, self.cam2)
 
         def one(i):
@@ -965,11 +966,11 @@ class Pipeline:
 
         (c1, f1), (c2, f2) = pmap(lambda i: self._camera1_once(i, "segment", lambda: one(i)) if as_received1 else one(i),
                                   (0, 1), pool="stages")
-        if self._clear_pair((f1, f2), work, masks):
+        if self._clear_pair((f1, f2), work, masks, work if taken is None else taken):
             c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
-    def _clear_pair(self, fractions: tuple[float, float], work, masks: "Masks") -> bool:
+    def _clear_pair(self, fractions: tuple[float, float], work, masks: "Masks", taken) -> bool:
         """Whether the pair sees a clear sky although one camera's mask says otherwise.
 
         Both cameras look at one sky, so cloud over 1 % of it is in both: when one camera finds
@@ -977,8 +978,12 @@ class Pipeline:
         the second calls cloud is its aureole, glare or noise. And when one camera calls the
         whole sky one cloud (overcast) while the other finds it clear *and* its sky has a
         clear sky's colour (median chroma ≥ ``segmentation.clear_chroma``), the overcast one is
-        a pale or colour-cast camera: grey cloud does not turn blue in the other camera."""
+        a pale or colour-cast camera: grey cloud does not turn blue in the other camera. When both
+        call it one cloud, the images as ``taken`` (before the photometric step made the bluer
+        one as pale as the other) decide (:func:`.segment.one_class_pair_is_clear`)."""
         lo, hi = min(fractions), max(fractions)
+        if lo >= _OVERCAST_FRACTION:
+            return one_class_pair_is_clear(taken, masks.usable, self.config.segmentation)
         if lo >= CLEAR_SKY_FRACTION:
             return False
         if hi < CLEAR_PAIR_MAX_FRACTION:

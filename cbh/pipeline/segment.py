@@ -423,6 +423,32 @@ def one_class_is_clear(nbr_s: np.ndarray, contrast_s, cfg: SegmentationConfig, c
     return contrast_s is None or float(np.median(contrast_s())) < cfg.texture_cv
 
 
+def one_class_pair_is_clear(taken, usables, cfg: SegmentationConfig) -> bool:
+    """Both cameras of a pair call their sky one cloud: whether it is a clear sky all the same.
+
+    ``taken``: the two images as the cameras took them, before the photometric step maps one
+    onto the other's response; ``usables``: their usable sky. A camera's colour response can
+    make a clear sky pale (red up, blue down, gamma: raw median NBR ≈ 0.1, like grey cloud
+    under a bluish cast), and mapping the bluer camera onto the paler one makes both pale. The
+    response does not make grey cloud blue: white-balance casts of ±10 % and gammas 0.8–1.25
+    lift it to NBR ≈ (1.1/0.9)^1.25 → 0.125 (randomized overcasts: at most 0.118), so a sky
+    whose median NBR reaches ``fixed_threshold`` (0.15) *as taken* in either camera is blue
+    sky; chroma is no cue here (grey cloud under a bluish cast reaches 0.21). And both cameras
+    must see it smooth (median local contrast < ``texture_cv``; a textured sky is cloud,
+    whatever its colour): a thin uniform overcast is smooth too, so colour decides.
+    """
+    samples = []
+    for image, usable in zip(taken, usables):
+        sl = sample_lattice(np.count_nonzero(usable))
+        u = usable[sl]
+        if not u.any():
+            return False
+        samples.append((image, sl, u))
+    if max(float(np.median(normalized_blue_red(im[sl])[u])) for im, sl, u in samples) < cfg.fixed_threshold:
+        return False
+    return all(float(np.median(local_contrast(im)[sl][u])) < cfg.texture_cv for im, sl, u in samples)
+
+
 _AUREOLE_MAX_DEG = 40.0  # the circumsolar aureole's profile is followed out to this angle from the sun [deg]
 _AUREOLE_STEP_DEG = 1.5  # ring width of the aureole profile [deg]
 _AUREOLE_MIN_RING = 30  # a ring needs this many sampled pixels for its own value
