@@ -155,7 +155,7 @@ def test_near_coarse_planes_are_spaced_by_their_parallax(baseline_m):
 
 def test_fine_planes_are_spaced_by_their_parallax():
     """Issue 36 (``sweep.PlaneLattice``): fine planes one pixel of shift apart up to 20 px of
-    parallax (``step_px`` / ``step_rel``), 5 % of their parallax from there to 30 px, 1.5 px
+    parallax (``step_px`` / ``step_rel``), 5 % of their parallax from there to 25 px, 1.25 px
     beyond; evenly spaced in the lattice coordinate u, whose inverse gives s back."""
     from cbh.pipeline.config import SweepConfig
     from cbh.pipeline.sweep import CoarseLayers, fine_planes, plane_lattice
@@ -172,10 +172,10 @@ def test_fine_planes_are_spaced_by_their_parallax():
     p = planes * scale
     np.testing.assert_allclose(np.diff(lat.u(planes)), du, rtol=1e-9)
     gaps = np.diff(p)
-    low, mid, high = p[:-1] < 19.99, (p[:-1] > 20.01) & (p[1:] < 29.99), p[:-1] > 30.01
+    low, mid, high = p[:-1] < 19.99, (p[:-1] > 20.01) & (p[1:] < 24.99), p[:-1] > 25.01
     np.testing.assert_allclose(gaps[low], 1.0, rtol=1e-9)
     np.testing.assert_allclose(gaps[mid] / p[:-1][mid], 0.05, rtol=0.03)
-    np.testing.assert_allclose(gaps[high], 1.5, rtol=1e-9)
+    np.testing.assert_allclose(gaps[high], 1.25, rtol=1e-9)
     assert plane_lattice(scale, replace_cfg(cfg, step_rel=0.0)) is None  # off: planes uniform in s
 
 

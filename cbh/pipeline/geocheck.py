@@ -73,14 +73,19 @@ CHECK_METHODS = ("lk", "orb", "dis", "skyflow")
 #: height h from directions B/h apart, so its texture is sheared between them by about that much
 #: and LK's matches scatter across the curve with it (a 350 m cumulus at B = 241 m: 75–200 px of
 #: parallax, median distance 1.3 px on a correct station, flagged), while a distance across the curve
-#: moves no height at all (heights come from the parallax along it).
+#: moves no height at all (heights come from the parallax along it); up to ``_SHEAR_TOL``.
 _ROTATION_PARALLAX = 0.02
 #: A fitted turn is significant beyond this many of its σ. It is the length of a 3-vector: with no
 #: turn, |ω|/σ follows a χ distribution with 3 degrees of freedom, which exceeds 3 in 2.9 % of
-#: pairs (a false alarm every 35 correct pairs from the fit's own scatter, before any bias: dense
-#: randomized seed 11, 68 LK matches, 0.17° ± 0.05° on a correct station; seed 8017, 0.053° ±
-#: 0.017°) and 4 in 0.1 %. A real turn of 0.05–0.25° over the sky is 10–100 σ.
+#: pairs (a false alarm every 35 correct pairs from the fit's own scatter alone) and 4 in 0.1 %.
+#: A real turn of 0.05–0.25° over the sky is 10–100 σ. (Not a cure for biased matches: dense
+#: randomized seed 11, 0.17° ± 0.024° from 68 LK matches over three decks, and skyline seed 8017,
+#: 0.053° ± 0.009°, still flag their correct stations.)
 _SIGNIFICANCE = 4.0
+#: … but at most this × the pair's tolerance: LK's scatter on sheared views stays within its window
+#: (median 1.3 px at views 20–40° apart), while a camera 2° off level moves every match by 10 px;
+#: without the cap a 630 m pair's low cloud (hundreds of px of parallax) let that pass.
+_SHEAR_TOL = 2.0
 #: The rotation fit weighs each match by 1 / (1 + (shear / _SHEAR_SCALE)²), its views' shear being
 #: its parallax in radians: LK on a sheared patch is biased, not only noisy (a 300 m deck at B = 241 m,
 #: 44 px of parallax, pulled a correct station's fit to 0.08°), while a turn moves every match alike.
@@ -138,6 +143,7 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     J = np.cross(d2, n)  # (N, 3): ∂e/∂ω
     e0 = np.einsum("ij,ij->i", d2, n)  # sin e ≈ e for the small angles that matter
     w0 = np.ones(len(e0)) if prior is None else np.asarray(prior, np.float64)
+    w0 = w0 / max(float(w0.mean()), 1e-300) if len(w0) else w0  # relative: σ's scale stays the residuals'
     w = w0.copy()
     omega = np.zeros(3)
     for it in range(2 * iterations):
@@ -215,7 +221,7 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     par = np.linalg.norm(px2 - geom.infinity(px1), axis=1)  # each match's parallax [px]
     with np.errstate(invalid="ignore"):
         agrees = finite | (par <= 2.0 * tol_px)
-        tol_i = np.maximum(tol_px, _ROTATION_PARALLAX * np.nan_to_num(par, nan=0.0))  # (sheared views, above)
+        tol_i = np.maximum(tol_px, np.minimum(_ROTATION_PARALLAX * np.nan_to_num(par, nan=0.0), _SHEAR_TOL * tol_px))
     near = dist <= 2.0 * tol_i
     # the rotation is fitted on the matches with a height, the cloud's, when they are most of those
     # that agree; on every agreeing one when most are at infinity (a clear sky's haze and skyline:

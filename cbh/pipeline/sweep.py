@@ -152,7 +152,7 @@ _SRC_SCALE = 64.0  # image 2 enters the sweep's remap as uint16 in 1/64 grey lev
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
 _REGION_APART_BINS = 3  # a region's layer is a new one beyond 1.5 plane steps from the image's [bins of half a step]
-_MAX_STEP = 1.5  # PlaneLattice: fine planes at most this × step_px apart (see there)
+_MAX_STEP = 1.25  # PlaneLattice: fine planes at most this × step_px apart (see there)
 _COARSE_SHARE = 2.5  # the coarse pass's regions are a quarter of the fine ones: their peak needs this × region_share
 _REGION_MIN_FILL = 0.25  # a region proposes layers when this share of its cells vote [1]
 
@@ -1007,18 +1007,20 @@ def coarse_hypotheses(votes: np.ndarray, n_cloud: float, s: np.ndarray, ds_c: fl
 class PlaneLattice:
     """The fine planes' lattice coordinate u(s) [1/m]: s itself up to ``s0``, logarithmic from
     ``s0`` to m·``s0`` (u = s0 · (1 + ln(s / s0))), linear with slope 1/m beyond (m =
-    ``_MAX_STEP``, 1.5); continuous with its slope. Planes ``ds`` apart in u are ``step_px`` of
+    ``_MAX_STEP``, 1.25); continuous with its slope. Planes ``ds`` apart in u are ``step_px`` of
     parallax apart up to p0 = ``step_px`` / ``step_rel`` (20 px by default), ``step_rel`` of their
     parallax from p0 to m·p0 (a height step of 5 %, which the parabola through three planes
-    refines), and m·``step_px`` beyond: never wider. A flat layer's pixels all sit at one phase
-    between two planes, so the parabola's pixel locking does not average out over the layer: with
-    planes 2 px apart a 1500 m deck at B = 241 m (53 px) read 1479 m (−1.4 %, dense MdAPE 0.66 →
-    1.76 %), with 1.5 px 1497 m (0.67 %); a 9 px window's ZNCC falls to half its peak within 1–2
-    px of shift on cloud texture.
+    refines), and m·``step_px`` beyond: never wider. Why so narrow a cap: a pixel's cost is
+    sampled up to half a step off its peak, which lowers the true plane's score against chance
+    matches elsewhere, and a flat layer's pixels all sit at one phase between two planes, so the
+    parabola's pixel locking does not average out over the layer. Measured: with planes 2 px apart
+    a 1500 m deck at B = 241 m (53 px) read 1479 m (−1.4 %); with 1.5 px, 1497 m, but a 480 px
+    network's 630 m pairs took a spurious 8.6 km layer (94 points, confidence 0.19) from their
+    2500 m deck's pixels; with 1.25 px, 1497 m and no such layer.
 
     Why (issue 36): a plane one pixel of shift from the next is 1/p of the height apart, so near
     layers and long baselines (large parallax p) were swept finer than their heights need (the
-    real 241 m station's 2300 m deck, 30–40 px: 2.5–3.3 % per plane, 11 planes, now 7; the 50 m
+    real 241 m station's 2300 m deck, 30–40 px: 2.5–3.3 % per plane, 11 planes, now 9; the 50 m
     pair's 1200 m deck, 13 px: 7.7 % per plane, unchanged) and a long baseline cost more planes
     per pair. Everything that needs evenly spaced planes (the refinement's parabola, the layer
     votes' bins, the regions' plane lattice, the gaps of :func:`truncated`) works in u."""
