@@ -118,9 +118,8 @@ def _network(photo, height_m: float, b3_m: float):
     return StationPipeline(station).process(imgs, T, channels="bgr")
 
 
-@pytest.mark.parametrize("height_m,b3_m", [(8000.0, 630.0), pytest.param(1500.0, 630.0, marks=pytest.mark.slow),
-                                           pytest.param(4000.0, 630.0, marks=pytest.mark.slow),
-                                           pytest.param(1500.0, 300.0, marks=pytest.mark.slow)])
+@pytest.mark.slow  # (2.4 s each; networks run by default in tests/test_network.py)
+@pytest.mark.parametrize("height_m,b3_m", [(8000.0, 630.0), (1500.0, 630.0), (4000.0, 630.0), (1500.0, 300.0)])
 def test_a_camera_network_on_real_texture(photo, height_m, b3_m):
     """Real WAHRSIS texture on a plane, three cameras (issue 24). At 8000 m the 50 m pair has
     2.1 px of parallax at the zenith (p ≈ 260 px/rad · B/h) and misses by −0.45 % (measured); the
