@@ -110,3 +110,32 @@ def test_sky_map_heights_unbiased_by_the_flow_smoothing(offset_s):
         assert abs(np.median(est.heights_m[near]) / h - 1) <= 0.03
         rate = np.median(est.rates2[near], axis=0) * h  # ≈ v (camera 2 at the camera-1 height)
         assert np.allclose(rate, v, atol=0.2), rate
+
+
+def test_a_mismatch_that_the_offset_disagreement_explains_is_the_clocks():
+    """``Pipeline._carry_explains``: carried matches 2.18 px off their curves against 1.60 px
+    allowed (the real 241 m station re-paired one frame later, pair 09:22) are the clock's when
+    this pair's own offset left the one that carried camera 2 far enough: |rate| · Δ at the lens
+    scale covers the 0.58 px excess; not when Δ is too small, not with nothing carried (NaN), and
+    not when the median is within its tolerance (a fitted turn flagged it: the geometry's)."""
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.run import PairContext
+    from cbh.pipeline.skyclock import SkyClock
+    from cbh.presets import station_path
+
+    pipe = Pipeline(load_station(station_path()))
+    rate = 15.0 / 8000.0  # an 8 km deck at 15 m/s [rad/s]
+    sky = SkyClock(offset_s=32.3, error_s=0.3, tiles=20, heights_m=np.zeros(0), rates2=np.zeros((0, 2)),
+                   rate=np.tile([rate, 0.0], (50, 1)))
+    need_s = 0.58 / (rate * pipe._px_per_rad2())  # the Δ whose carry covers the excess
+
+    def ctx(res, tol):
+        c = PairContext(time_utc=None)
+        c.diagnostics["geometry_residual_px"], c.geometry_tolerance_px = res, tol
+        return c
+
+    assert pipe._carry_explains(sky, 32.3 - 1.1 * need_s, ctx(2.18, 1.60))
+    assert not pipe._carry_explains(sky, 32.3 - 0.9 * need_s, ctx(2.18, 1.60))
+    assert not pipe._carry_explains(sky, float("nan"), ctx(2.18, 1.60))
+    assert not pipe._carry_explains(sky, 29.0, ctx(0.40, 1.60))

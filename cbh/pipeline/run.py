@@ -482,7 +482,7 @@ class Pipeline:
         offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
         running = running_offset(offsets)
         if "geometry_mismatch" in ctx.flags and (self._clock_explains(previous, mot, sky, before)
-                                                 or self._carry_explains(sky, before, ctx)):
+                                                 or self._carry_explains(sky, used, ctx)):
             ctx.flags[ctx.flags.index("geometry_mismatch")] = "clock_unknown"
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
                                clock_offset_error_s=sky.error_s)
@@ -565,20 +565,22 @@ class Pipeline:
 
     def _carry_explains(self, sky: SkyClock, used_s: float, ctx: "PairContext") -> bool:
         """Whether a geometry mismatch of a pair matched on the sky maps (camera 2 carried to camera
-        1's time by each pixel's motion, :mod:`.skyclock`) is the clock's: this pair's own offset
-        disagrees with the running one ``used_s`` that carried it by Δ, so the carried matches sit
-        |rate| · Δ off (a deck at 8 km moving 15 m/s: 0.35° for Δ = 3.3 s), and that is at least the
-        median distance's excess over its tolerance. Seen on the real Fehmarn hour re-paired one
-        frame later (pair 22: its own offset 32.3 s against the running 29.0 s, the carried matches
-        2.18 px off their curves against 1.60 px allowed): a clock that wavered, not a geometry."""
+        1's time by each pixel's motion, :mod:`.skyclock`, or compensated by it) is the clock's:
+        this pair's own offset disagrees with the one ``used_s`` that carried camera 2 (NaN: none
+        was) by Δ, so the matches sit |rate| · Δ off (a deck at 8 km moving 15 m/s: 0.35° for
+        Δ = 3.3 s), and that is at least the median distance's excess over its tolerance. Only a
+        median over its tolerance is explained so: a fitted turn or too few inliers with the median
+        within it stay the geometry's. Seen on the real Fehmarn hour re-paired one frame later
+        (pair 22: its own offset 32.3 s against the running 29.0 s, the carried matches 2.18 px off
+        their curves against 1.60 px allowed): a clock that wavered, not a geometry."""
         if not (len(sky.rate) and math.isfinite(sky.offset_s) and math.isfinite(used_s)):
             return False
-        res = ctx.diagnostics.get("geometry_residual_px", math.nan)
-        if not (math.isfinite(res) and math.isfinite(ctx.geometry_tolerance_px)):
+        res, tol = ctx.diagnostics.get("geometry_residual_px", math.nan), ctx.geometry_tolerance_px
+        if not (math.isfinite(res) and math.isfinite(tol) and res > tol):
             return False
         rate = float(np.median(np.linalg.norm(np.asarray(sky.rate, np.float64), axis=1)))  # [rad/s]
         carry_px = abs(sky.offset_s - used_s) * rate * self._px_per_rad2()
-        return carry_px >= res - ctx.geometry_tolerance_px
+        return carry_px >= res - tol
 
     def _next_sky_check(self, mot: "MotionInput", sky: SkyClock, sky_mode: bool, running: float, flags) -> int:
         """Pairs until the sky maps estimate the offset again. Every pair while the offset is
