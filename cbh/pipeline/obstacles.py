@@ -26,7 +26,7 @@ from cbh.geometry.station import Camera
 from cbh.errors import ImageError, InputError
 
 __all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames", "FrameObstacleConfig", "obstacle_rings", "obstacles_in_frame",
-           "HorizonGrid", "horizon_grid"]
+           "HorizonGrid", "horizon_grid", "darkest_of_four"]
 
 
 @dataclass(frozen=True)
@@ -247,6 +247,17 @@ def _standing(image_bgr: np.ndarray, grid: HorizonGrid, cfg: FrameObstacleConfig
     return standing
 
 
+def darkest_of_four(image_bgr: np.ndarray) -> np.ndarray:
+    """The brightest channel of ``image_bgr`` (H, W, 3) at half size, ((H + 1) // 2, (W + 1) // 2),
+    each pixel the darkest of the 2 × 2 it stands for (uint8): a mast or trunk one pixel wide keeps
+    its darkness, where the area average halves its contrast."""
+    v = cv2.max(cv2.max(image_bgr[..., 0], image_bgr[..., 1]), image_bgr[..., 2])
+    H, W = v.shape
+    if H % 2 or W % 2:
+        v = cv2.copyMakeBorder(v, 0, H % 2, 0, W % 2, cv2.BORDER_REPLICATE)
+    return cv2.min(cv2.min(v[0::2, 0::2], v[0::2, 1::2]), cv2.min(v[1::2, 0::2], v[1::2, 1::2]))
+
+
 def _ring_percentile(value: np.ndarray, ring: np.ndarray, q: float) -> np.ndarray:
     """The ``q``-th percentile (nearest rank) of uint8 ``value`` in each ring 0..90, (256,) float32
     (0 for rings without pixels and for the 255 "not looked at" ring): one 2-D histogram."""
@@ -261,7 +272,8 @@ def _ring_percentile(value: np.ndarray, ring: np.ndarray, q: float) -> np.ndarra
 
 
 def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray,
-                       cfg: FrameObstacleConfig = FrameObstacleConfig(), grid: HorizonGrid | None = None) -> np.ndarray:
+                       cfg: FrameObstacleConfig = FrameObstacleConfig(), grid: HorizonGrid | None = None,
+                       darkest: np.ndarray | None = None) -> np.ndarray:
     """Horizon obstacles (buildings, trees, masts) of ONE frame, for a camera without a mask.
 
     Ground objects are dark against the sky of the same zenith angle (they are lit from above
@@ -284,6 +296,11 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
     cfg : FrameObstacleConfig
     grid : HorizonGrid, optional
         :func:`horizon_grid` of the camera at the image's size.
+    darkest : ndarray, shape (H, W), uint8, optional
+        The brightest channel with each pixel the darkest of the full-size pixels it stands for
+        (:func:`darkest_of_four` when ``image_bgr`` is the half-size frame): masts and trunks one
+        full-size pixel wide are dark in it, where the area average halves their contrast. They
+        join the obstacles (and reach the crowns that ``hang_px`` joins), not the walk's seeds.
 
     Returns
     -------
@@ -292,18 +309,25 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
     value = cv2.max(cv2.max(image_bgr[..., 0], image_bgr[..., 1]), image_bgr[..., 2])
     ref = _ring_percentile(value, ring, cfg.ring_percentile)
     look = ring != 255
-    dark = (value < (cfg.dark_ratio * ref)[ring]) & look
-    strong = cv2.morphologyEx(dark.view(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
+    thr = (cfg.dark_ratio * ref)[ring]
+    wide = cv2.morphologyEx(((value < thr) & look).view(np.uint8), cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
+    strong = wide
+    if darkest is not None:  # masts and trunks one full-size pixel wide
+        strong = wide | ((darkest < thr) & look).view(np.uint8)
     cand = strong
     if grid is not None:  # paler parts that stand on the ground below them, beside dark ones that do
         s_n, s_labels, stats, _ = cv2.connectedComponentsWithStats(strong, connectivity=8)
         s_area = stats[:, cv2.CC_STAT_AREA]
-        seed = np.zeros(s_n, bool)
-        seed[s_labels[band & (strong > 0)]] = True
-        seed &= s_area >= cfg.min_area_px
+        # the walk's seeds (and the heights that cap it) from what is dark at this size only: a thin
+        # mast's cables and tip would lift the cap on the cloud beside it (the real WAHRSIS pair)
+        w_n, w_labels, w_stats, _ = (s_n, s_labels, stats, None) if strong is wide else \
+            cv2.connectedComponentsWithStats(wide, connectivity=8)
+        seed = np.zeros(w_n, bool)
+        seed[w_labels[band & (wide > 0)]] = True
+        seed &= w_stats[:, cv2.CC_STAT_AREA] >= cfg.min_area_px
         seed[0] = False
         if seed.any():
-            cand = strong | (_standing(image_bgr, grid, cfg, seed[s_labels].view(np.uint8)) & look).view(np.uint8)
+            cand = strong | (_standing(image_bgr, grid, cfg, seed[w_labels].view(np.uint8)) & look).view(np.uint8)
     n, labels = cv2.connectedComponents(cand, connectivity=8)
     touching = np.zeros(n, bool)
     touching[labels[band & (cand > 0)]] = True

@@ -63,7 +63,7 @@ from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, parallax_px, supported_layers
 from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
-from cbh.pipeline.obstacles import FrameObstacleConfig, horizon_grid, obstacle_rings, obstacles_in_frame
+from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
@@ -89,8 +89,9 @@ NIGHT_SUN_DEPRESSION_DEG = 6.0  # an underexposed pair with the sun this far bel
 CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky (flag clear_sky; no geometry verdict)
 CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
 _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
-# the defaults' pixels at half size; crowns up to 2° (5 px at a 480 px lens radius) above what stands
-_HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1, fill_px=1, hang_px=5, grid_deg=0.5)
+# the defaults' pixels at half size; crowns up to 4° (10 px at a 480 px lens radius) above what stands (a trunk
+# thinner than a pixel is not seen below its crown: randomized clear skyline seeds 7020, 7025)
+_HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1, fill_px=1, hang_px=10, grid_deg=0.5)
 _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obstacles stay masked
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
@@ -274,7 +275,7 @@ class Pipeline:
             self._circles[i] = (*obstacle_rings(z, circle), horizon_grid(cam, half, _HALF_SIZE_OBSTACLES))
         ring, band, grid = self._circles[i]
         small = obstacles_in_frame(cv2.resize(image, half, interpolation=cv2.INTER_AREA), ring, band,
-                                   _HALF_SIZE_OBSTACLES, grid)
+                                   _HALF_SIZE_OBSTACLES, grid, darkest_of_four(image))
         found = cv2.resize(small.view(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
         with self._obstacle_lock:  # process_batch runs pairs side by side on one Pipeline
             votes, n = self._obstacle_votes.get(i, (np.zeros(found.shape, np.uint16), 0))
