@@ -123,8 +123,8 @@ def test_matches_at_infinity_over_a_skyline_are_no_mismatch(base, seed, tmp_path
     --skylines --unmasked --kind clear``) whose only matches lie 64–79° from the zenith, 81–100 %
     of them within 2 px of infinity (haze and far skylines: on their epipolar curves, no height):
     counted as outliers they flagged the correct station ``geometry_mismatch``. No layer and no
-    invalidating flag (7000's pale sunlit blocks still read as 3–6 % cloud; 7020 and 7025 are
-    clear since crowns on thin trunks are found: :func:`test_crowns_above_thin_trunks_are_no_cloud`)."""
+    invalidating flag (all three are clear since: :func:`test_crowns_above_thin_trunks_are_no_cloud`,
+    :func:`test_pale_sunlit_blocks_over_a_clear_sky_are_no_cloud`)."""
     case, r, score, _ = run_random_case(seed, base, 960, tmp_path, options=CLEAR)
     assert case.kind == "clear" and r.layers == [], r.layers
     assert not set(r.flags) & INVALIDATING, r.flags
@@ -156,6 +156,45 @@ def test_crowns_above_thin_trunks_are_no_cloud(base, seed, tmp_path):
     (2-3 %). Masts and trunks are now searched in the darkest of each 2 × 2, and crowns join what
     stands within 10 half-size pixels: cf 0.014/0.016 and 0.0 measured."""
     case, r, score, _ = run_random_case(seed, base, 960, tmp_path, options=CLEAR)
+    assert case.kind == "clear"
+    _assert_clear(r)
+
+
+def test_cloud_only_on_the_skylines_of_a_pair_without_a_layer_is_no_cloud():
+    """:func:`cbh.pipeline.run._only_on_skylines`: a pair without a layer whose cloud (under 15 %
+    in each camera) lies in components touching the obstacles found in its frames is a clear sky
+    over a skyline; one free-standing cloud, an obstacle-free camera or a station mask (no
+    obstacles found) says otherwise."""
+    from cbh.pipeline.run import Masks, Segmentation, _only_on_skylines
+
+    obst = np.zeros((60, 60), bool)
+    obst[45:, :30] = True  # a block row
+    on = np.zeros((60, 60), bool)
+    on[38:45, 5:20] = True  # a pale block on it, 3 % of the frame
+    free = np.zeros((60, 60), bool)
+    free[5:12, 35:50] = True  # a cloud standing free
+    usable = np.ones((60, 60), bool)
+
+    def pair(c1, c2, o=(obst, obst)):
+        f = {"a": float(c1.mean()), "b": float(c2.mean())}
+        return Segmentation(clouds=(c1, c2), fractions=f), Masks(usable=(usable, usable), sun_angle=(None, None),
+                                                                  sun_dir_enu=None, obstacles=o)
+
+    assert _only_on_skylines(*pair(on, on))
+    assert _only_on_skylines(*pair(on, np.zeros_like(on)))
+    assert not _only_on_skylines(*pair(on, on | free))
+    assert not _only_on_skylines(*pair(on, on, (obst, None)))
+    assert not _only_on_skylines(*pair(np.zeros_like(on), np.zeros_like(on)))  # nothing to clear
+
+
+@pytest.mark.slow
+def test_pale_sunlit_blocks_over_a_clear_sky_are_no_cloud(base, tmp_path):
+    """Seed 7000 (``eval_random.py --n 30 --seed 7000 --size 960 --skylines --unmasked --kind
+    clear``): pale grey sunlit blocks as bright as the sky above them (brightest channel 140-151
+    against 148-159, (B - R)/(B + R) 0.05-0.10 against 0.20), more than 10° of azimuth from any
+    block dark enough to seed the skyline walk, read as cloud: cf 0.064/0.048, unmatched. No layer,
+    and all that cloud stands on the skylines found: a clear sky (cf 0.0 measured)."""
+    case, r, score, _ = run_random_case(7000, base, 960, tmp_path, options=CLEAR)
     assert case.kind == "clear"
     _assert_clear(r)
 

@@ -92,6 +92,7 @@ _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its
 # the defaults' pixels at half size; crowns up to 4° (10 px at a 480 px lens radius) above what stands (a trunk
 # thinner than a pixel is not seen below its crown: randomized clear skyline seeds 7020, 7025)
 _HALF_SIZE_OBSTACLES = FrameObstacleConfig(min_area_px=3, dilate_px=1, fill_px=1, hang_px=10, grid_deg=0.5)
+_SKYLINE_CLOUD_SHARE = 0.9  # a pair without a layer whose cloud is this much on its skylines is clear (_only_on_skylines)
 _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obstacles stay masked
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
@@ -475,6 +476,8 @@ class Pipeline:
                 break
             used, profile = new, est.profile
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
+        if not lay.layers and _only_on_skylines(seg, masks):
+            seg = Segmentation(clouds=tuple(np.zeros_like(c) for c in seg.clouds), fractions=dict.fromkeys(seg.fractions, 0.0))
         self._quality_flags(pts, seg, ctx, hmap, lay)
         if "geometry_mismatch" in ctx.flags and not math.isfinite(sky.offset_s):  # not checked this pair: now
             sky = self._sky_clock(gray, masks, replace(mot, sky_check_in=0), ctx)
@@ -882,14 +885,15 @@ class Pipeline:
                     sat &= ang <= cfg.masks.glare_radius_deg
                 if sat.any():
                     u, glare = u & ~sat, True
-            return u, ang, glare, _sky_dn(work[i], u)
+            return u, ang, glare, _sky_dn(work[i], u), obst
 
-        (u1, a1, glare1, dn1), (u2, a2, _, dn2) = pmap(lambda i: self._camera1_once(i, "masks", lambda: one(i)),
+        (u1, a1, glare1, dn1, o1), (u2, a2, _, dn2, o2) = pmap(lambda i: self._camera1_once(i, "masks", lambda: one(i)),
                                                         (0, 1), pool="stages")
         if glare1:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
-        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known)  # (the sun check: a known time only)
+        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known,  # (the sun check: a known time only)
+                     obstacles=(o1, o2))
 
     def _sun_from_image(self, image_bgr: np.ndarray) -> np.ndarray | None:
         """The sun's ENU direction from camera 1's image when the capture time is unknown: the
@@ -1374,6 +1378,7 @@ class Masks:
     usable: tuple[np.ndarray, np.ndarray]  # (H, W) bool each
     sun_angle: tuple[np.ndarray | None, np.ndarray | None]  # (H, W) float32 [deg] angle to the sun, None = unknown
     sun_dir_enu: np.ndarray | None  # (3,) unit vector to the sun in ENU, None = unknown or below the horizon
+    obstacles: tuple = (None, None)  # (H, W) bool horizon obstacles found in the frame, None = the station's mask
 
 
 @dataclass(frozen=True)
@@ -1404,6 +1409,31 @@ class Points:
     per_method: list[tuple[str, int]]  # (method, count) in the order of the arrays
     resolved_m: tuple = ()  # heights of the layers the plane sweep resolved on its own [m]
     parallax_px: np.ndarray | None = None  # (N,) stereo parallax at working size [px] (None = unknown)
+
+
+def _only_on_skylines(seg: "Segmentation", masks: "Masks") -> bool:
+    """Whether all the cloud of a pair without a layer stands on the skylines found in its frames:
+    every camera under ``CLEAR_PAIR_MAX_FRACTION``, and at least ``_SKYLINE_CLOUD_SHARE`` of each
+    one's cloud pixels in components that touch an obstacle it found (a pale sunlit block, a wall
+    or the hazy rim above a row, unmatched because it is no cloud at any height). Such a pair is a
+    clear sky over a skyline. Cloud above the horizon stands free of the skyline somewhere; cloud
+    only low over the skyline that gave no layer loses only its fraction."""
+    fr = list(seg.fractions.values())
+    if max(fr) >= CLEAR_PAIR_MAX_FRACTION or max(fr) < CLEAR_SKY_FRACTION:
+        return False
+    for cloud, obst in zip(seg.clouds, masks.obstacles):
+        if not cloud.any():
+            continue
+        if obst is None or not obst.any():
+            return False
+        n, labels = cv2.connectedComponents(cloud.view(np.uint8), connectivity=8)
+        near = cv2.dilate(obst.view(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        touching = np.zeros(n, bool)
+        touching[labels[near & cloud]] = True
+        touching[0] = False
+        if np.count_nonzero(touching[labels]) < _SKYLINE_CLOUD_SHARE * np.count_nonzero(cloud):
+            return False
+    return True
 
 
 def _sky_dn(image: np.ndarray, usable: np.ndarray) -> float:
