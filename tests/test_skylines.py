@@ -200,6 +200,18 @@ def test_pale_sunlit_blocks_over_a_clear_sky_are_no_cloud(base, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_clear_sky_over_block_rows_has_no_verdict_on_its_skyline(base, tmp_path):
+    """Seed 112 (``eval_random.py --n 30 --seed 100 --size 960 --skylines --unmasked``): a clear
+    sky over three block rows, the back row hazed to within 10 % of the sky: cf 0.081 and the
+    correct station flagged ``geometry_mismatch`` by the skyline's matches. All that cloud stands
+    on the skylines found and gives no layer: a clear sky, and, as for any clear pair, no
+    geometry verdict (cf 0.0, ``sun_glare,clear_sky`` measured)."""
+    case, r, score, _ = run_random_case(112, base, 960, tmp_path, options=SKYLINES)
+    assert case.kind == "clear"
+    _assert_clear(r)
+
+
+@pytest.mark.slow
 def test_a_pale_clear_sky_is_clear_in_both_cameras(base, tmp_path):
     """Seed 8025 (``eval_random.py --n 1 --seed 8025 --size 960 --skylines --unmasked``): a clear
     sky that camera 1's colour response makes pale (raw median NBR 0.096, chroma 0.17), camera 2

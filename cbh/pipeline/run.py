@@ -475,9 +475,10 @@ class Pipeline:
                     or not math.isfinite(new)):
                 break
             used, profile = new, est.profile
-        self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
-        if not lay.layers and _only_on_skylines(seg, masks):
+        if not lay.layers and _only_on_skylines(seg, masks):  # a clear sky: nothing real to judge either
             seg = Segmentation(clouds=tuple(np.zeros_like(c) for c in seg.clouds), fractions=dict.fromkeys(seg.fractions, 0.0))
+            geo = geo and (geo[0], check_geometry(self.geometry, [], self.config.filtering, self.config.geometry_check))
+        self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
         self._quality_flags(pts, seg, ctx, hmap, lay)
         if "geometry_mismatch" in ctx.flags and not math.isfinite(sky.offset_s):  # not checked this pair: now
             sky = self._sky_clock(gray, masks, replace(mot, sky_check_in=0), ctx)
