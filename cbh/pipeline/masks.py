@@ -123,18 +123,30 @@ def glare_mask(image_bgr: np.ndarray, cfg: MasksConfig, sun_angle_deg: np.ndarra
     if sun_angle_deg is None or not cfg.sun:
         sat = saturation_mask(image_bgr, cfg, clip)
         return sat if sun_angle_deg is None or cfg.glare_radius_deg >= 180.0 else sat & (sun_angle_deg <= cfg.glare_radius_deg)
-    sat = saturation_mask(image_bgr, replace(cfg, saturation_grow_px=0), clip)  # blobs apart before they grow
-    if not sat.any():
-        return sat
+    sat = saturation_mask(image_bgr, replace(cfg, saturation_grow_px=0), clip).view(np.uint8)  # blobs apart before they grow
+    if not cv2.countNonZero(sat):
+        return sat.view(bool)
     ang = np.asarray(sun_angle_deg, np.float32)
-    n, lab = cv2.connectedComponents(sat.view(np.uint8), connectivity=8)
-    reach = np.zeros(n, bool)
-    reach[np.unique(lab[sat & (ang <= cfg.sun_radius_deg)])] = True
-    reach[0] = False
-    sat = reach[lab]
-    g = max(int(cfg.saturation_grow_px), 0)
-    if g > 0 and sat.any():
-        sat = cv2.dilate(sat.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))) > 0
+    seeds = cv2.findNonZero(cv2.bitwise_and(sat, cv2.compare(ang, float(cfg.sun_radius_deg), cv2.CMP_LE)))
+    x0 = y0 = 1 << 30
+    x1 = y1 = -1
+    seeds = seeds.reshape(-1, 2) if seeds is not None else np.zeros((0, 2), np.int32)
+    while len(seeds):  # fill each blob that reaches the disk with 2 (one fill per blob)
+        x, y = seeds[0]
+        _, _, _, (rx, ry, rw, rh) = cv2.floodFill(sat, None, (int(x), int(y)), 2, 0, 0, 8)
+        x0, y0, x1, y1 = min(x0, rx), min(y0, ry), max(x1, rx + rw), max(y1, ry + rh)
+        seeds = seeds[sat[seeds[:, 1], seeds[:, 0]] == 1]
+    out = np.zeros(sat.shape, bool)
+    if x1 < 0:
+        return out
+    g = max(int(cfg.saturation_grow_px), 0)  # grown as saturation_mask grows, within the glare's box
+    H, W = sat.shape
+    ya, yb, xa, xb = max(y0 - g, 0), min(y1 + g, H), max(x0 - g, 0), min(x1 + g, W)
+    blob = cv2.compare(sat[ya:yb, xa:xb], 2, cv2.CMP_EQ)
+    if g > 0:
+        blob = cv2.dilate(blob, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1)),
+                          borderType=cv2.BORDER_CONSTANT, borderValue=0)
     if cfg.glare_radius_deg < 180.0:
-        sat &= ang <= cfg.glare_radius_deg
-    return sat
+        blob = cv2.bitwise_and(blob, cv2.compare(ang[ya:yb, xa:xb], float(cfg.glare_radius_deg), cv2.CMP_LE))
+    out[ya:yb, xa:xb] = blob > 0
+    return out
