@@ -62,7 +62,7 @@ from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identica
 from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, parallax_px, supported_layers
-from cbh.pipeline.masks import angle_map_deg, glare_mask, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.obstacles import FrameObstacleConfig, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
@@ -416,12 +416,13 @@ class Pipeline:
         ctx, first, work, masks, seg, gray, received = (prep.ctx, prep.first, prep.work, prep.masks, prep.seg, prep.gray,
                                                          prep.received)
         t_all = time.perf_counter() - prep.prepare_ms / 1000.0  # total: both halves' own time, not a wait between
+        mmasks, mseg = masks.for_matching(seg)  # what the matchers see: no saturated contours
         time_utc = ctx.time_utc
         mot = self._motion_input(previous, time_utc, gray)
         mcfg = self.config.motion
         if not mot.offsets_s and math.isfinite(self._stated_offset()) and mcfg.clock_offset:
             mot = replace(mot, offsets_s=(self._stated_offset(),))  # the station states the clocks
-        sky = self._sky_clock(gray, masks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
+        sky = self._sky_clock(gray, mmasks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
         history = update_offsets(mot.offsets_s, sky.offset_s, mcfg.offset_history, mcfg.offset_jump_s)
         used = running_offset(history) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
         profile = mot.profile  # (the tracks' of the pair before; the sky maps' where there is none yet)
@@ -435,9 +436,9 @@ class Pipeline:
             del ctx.flags[n_flags:]
             sky_mode = self._sky_mode(sky, used, profile)
             if sky_mode:  # camera 2 carried to camera 1's time pixel by pixel (.skyclock)
-                corr, comp = self._sky_correspondences(sky, used, seg, ctx), None
+                corr, comp = self._sky_correspondences(sky, used, mseg, ctx), None
             else:
-                corr, comp = self._match_compensated(work, masks, seg, ctx, gray, mot, used, profile)
+                corr, comp = self._match_compensated(work, mmasks, mseg, ctx, gray, mot, used, profile)
 
             def height_map():
                 with _timed(ctx, "height_map"):
@@ -449,7 +450,7 @@ class Pipeline:
 
             def geometry():
                 with _timed(ctx, "geometry_check"):
-                    return self.geometry_findings(received, corr, seg, sky.carry_noise_rad if sky_mode else 0.0)
+                    return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0)
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -458,8 +459,8 @@ class Pipeline:
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
                     est = (self._sky_tracks(corr, sky, mot) if sky_mode else
-                           self._stereo_tracks(corr, gray, masks, seg, mot, comp))
-                    lay = self.stage_motion(lay, hmap, est, seg.clouds[0])
+                           self._stereo_tracks(corr, gray, mmasks, mseg, mot, comp))
+                    lay = self.stage_motion(lay, hmap, est, mseg.clouds[0])
             if not sky_mode:  # a short carry: the compensated stereo tracks refine the sky maps' start
                 pair_s = est.pair_offset_s if math.isfinite(est.pair_offset_s) else pair_s
             new = running_offset(update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s))
@@ -476,7 +477,7 @@ class Pipeline:
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
         self._quality_flags(pts, seg, ctx, hmap, lay)
         if "geometry_mismatch" in ctx.flags and not math.isfinite(sky.offset_s):  # not checked this pair: now
-            sky = self._sky_clock(gray, masks, replace(mot, sky_check_in=0), ctx)
+            sky = self._sky_clock(gray, mmasks, replace(mot, sky_check_in=0), ctx)
             pair_s = sky.offset_s if math.isfinite(sky.offset_s) else pair_s
         before = running_offset(mot.offsets_s)
         offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
@@ -870,21 +871,22 @@ class Pipeline:
             if obst is not None:
                 u = u & ~obst
             ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
-            glare = False
+            glare, sunlit = False, None
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
             if cfg.masks.saturation:  # the sun's glare; other saturation is over-exposed cloud
-                sat = glare_mask(work[i], cfg.masks, ang)
+                sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang)
                 if sat.any():
                     u, glare = u & ~sat, True
-            return u, ang, glare, _sky_dn(work[i], u)
+            return u, ang, glare, _sky_dn(work[i], u), sunlit
 
-        (u1, a1, glare1, dn1), (u2, a2, _, dn2) = pmap(lambda i: self._camera1_once(i, "masks", lambda: one(i)),
-                                                        (0, 1), pool="stages")
+        (u1, a1, glare1, dn1, s1), (u2, a2, _, dn2, s2) = pmap(lambda i: self._camera1_once(i, "masks", lambda: one(i)),
+                                                                (0, 1), pool="stages")
         if glare1:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
-        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known)  # (the sun check: a known time only)
+        return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known,  # (the sun check: a known time only)
+                     sunlit=(s1, s2))
 
     def _sun_from_image(self, image_bgr: np.ndarray) -> np.ndarray | None:
         """The sun's ENU direction from camera 1's image when the capture time is unknown: the
@@ -1369,6 +1371,18 @@ class Masks:
     usable: tuple[np.ndarray, np.ndarray]  # (H, W) bool each
     sun_angle: tuple[np.ndarray | None, np.ndarray | None]  # (H, W) float32 [deg] angle to the sun, None = unknown
     sun_dir_enu: np.ndarray | None  # (3,) unit vector to the sun in ENU, None = unknown or below the horizon
+    #: saturated cloud near the sun (masks.glare_and_sunlit), per camera or None: usable sky that
+    #: segments as cloud, but not for matching (its contour is where each camera's exposure clips)
+    sunlit: tuple = (None, None)
+
+    def for_matching(self, seg: "Segmentation") -> tuple["Masks", "Segmentation"]:
+        """These masks and ``seg`` without the sunlit saturated cloud (themselves when there is none)."""
+        if all(s is None for s in self.sunlit):
+            return self, seg
+        keep = [None if s is None else ~s for s in self.sunlit]
+        usable = tuple(u if k is None else u & k for u, k in zip(self.usable, keep))
+        clouds = tuple(c if k is None else c & k for c, k in zip(seg.clouds, keep))
+        return replace(self, usable=usable, sunlit=(None, None)), replace(seg, clouds=clouds)
 
 
 @dataclass(frozen=True)
