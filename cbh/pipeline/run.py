@@ -475,6 +475,8 @@ class Pipeline:
                 break
             used, profile = new, est.profile
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
+        if not sky_mode and self._uncarried(used, profile, comp):
+            ctx.flags.append("clock_too_far")
         self._quality_flags(pts, seg, ctx, hmap, lay)
         if "geometry_mismatch" in ctx.flags and not math.isfinite(sky.offset_s):  # not checked this pair: now
             sky = self._sky_clock(gray, mmasks, replace(mot, sky_check_in=0), ctx)
@@ -533,20 +535,21 @@ class Pipeline:
         if mot.sky_check_in > 0 and math.isfinite(running_offset(mot.offsets_s)):
             return SkyClock.unknown()
         with _timed(ctx, "clock"):
-            return self.sky_offset(gray, masks.usable, mot.prev_gray, mot.dt_s)
+            return self.sky_offset(gray, masks.usable, mot.prev_gray, mot.dt_s, running_offset(mot.offsets_s))
 
-    def sky_offset(self, gray, usable, prev_gray, dt_s: float) -> SkyClock:
+    def sky_offset(self, gray, usable, prev_gray, dt_s: float, known_offset_s: float = math.nan) -> SkyClock:
         """Camera 2's clock offset on the sky maps (:func:`~.skyclock.sky_clock`) from this pair's
         working-size grey frames ``gray`` and usable masks and the pair ``dt_s`` [s] before
-        (``prev_gray``); unknown beyond ``max_offset_s``. (Also what `cbh calibrate` reports.)"""
+        (``prev_gray``); unknown beyond ``max_offset_s``; with ``known_offset_s`` (the running
+        offset), the maps' matches carried by it when this pair's own estimate fails. (Also what
+        `cbh calibrate` reports.)"""
         if self._sky_grid is None:
             self._sky_grid = sky_grid((self.cam1, self.cam2))
         c1, c2 = self.cam1.position_m, self.cam2.position_m
         filt = self.config.filtering
         sc = sky_clock(self._sky_grid, gray, prev_gray, usable, np.asarray(c2 - c1, np.float64)[:2],
-                       float(c2[2] - c1[2]), dt_s, height_range_m=(filt.min_height_m, filt.max_height_m))
-        if math.isfinite(sc.offset_s) and abs(sc.offset_s) > self.config.motion.max_offset_s:
-            return SkyClock.unknown(sc.tiles)
+                       float(c2[2] - c1[2]), dt_s, height_range_m=(filt.min_height_m, filt.max_height_m),
+                       known_offset_s=known_offset_s, max_offset_s=self.config.motion.max_offset_s)
         return sc
 
     def _clock_explains(self, previous, mot: "MotionInput", sky: SkyClock, running_before: float) -> bool:
@@ -608,11 +611,28 @@ class Pipeline:
         motion per height node; the motion within a layer varies by 10–20 %, so its error is that
         share of the carry, and past ≈ 8 px it is more than a pixel. Below, it is the better
         matcher (every method, the whole sky, layers seen through gaps)."""
+        return bool(self.config.motion.sky_matching and len(sky.a1) and self._long_carry(used_s, profile))
+
+    def _uncarried(self, used_s: float, profile: MotionProfile, comp) -> bool:
+        """Whether a pair matched on the raw images (not on the sky maps) could not be carried to
+        camera 1's time: a long carry (:meth:`_long_carry`) that the sky maps could not match, or a
+        known offset of at least ``compensate_min_s`` left in (``comp`` None) because no motion was
+        known to carry camera 2 with. Such a pair's matches mix the clock into the parallax: on the
+        real Fehmarn hour re-paired to 150–210 s, one pair in three gave layers at 1.5–2.3 km under
+        an 8 km deck, with no flag (flag ``clock_too_far``)."""
         mcfg = self.config.motion
-        if not (mcfg.sky_matching and len(sky.a1) and math.isfinite(used_s) and len(profile)):
+        if mcfg.sky_matching and self._long_carry(used_s, profile):
+            return True
+        return comp is None and math.isfinite(used_s) and abs(used_s) >= mcfg.compensate_min_s and not len(profile)
+
+    def _long_carry(self, used_s: float, profile: MotionProfile) -> bool:
+        """Whether carrying camera 2 by ``used_s`` moves the fastest layer of ``profile`` by at least
+        ``sky_matching_min_px`` (working size, near the zenith): past it the raw-image compensation's
+        error is more than a pixel, and the pair is matched on the sky maps or not at all."""
+        if not (math.isfinite(used_s) and len(profile)):
             return False
         carry_px = abs(used_s) * float(np.linalg.norm(profile.rates, axis=1).max()) * self._px_per_rad2()
-        return carry_px >= mcfg.sky_matching_min_px
+        return carry_px >= self.config.motion.sky_matching_min_px
 
     def _sky_correspondences(self, sky: SkyClock, used_s: float, seg: "Segmentation",
                              ctx: "PairContext") -> "Correspondences":
