@@ -237,7 +237,7 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
         est, err, tiles = _tile_median(d_px, np.where(moving, nw ** 2, 0.0), tile_px, min_tiles)
     own = math.isfinite(est) and err <= max_error_s and abs(est) <= max_offset_s  # (beyond: not believed)
     if not own:
-        if not math.isfinite(known_offset_s):
+        if not (math.isfinite(known_offset_s) and ok.any()):
             return SkyClock.unknown(tiles)
         est = float(known_offset_s)  # carried by the running offset; this pair's own is unknown
     # the carry's noise: the two cameras measure one rate; half their difference is the noise of
