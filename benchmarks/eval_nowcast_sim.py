@@ -14,7 +14,11 @@ pixel's cloud-base height, at the camera's resolution) where the sun ray from th
 each scene layer; shade when a layer has cloud there, sunlit when every layer is clear there,
 unknown when a lower layer hides it. A shadow edge is a change of the true state
 between two frames; the forecast's edge is the nearest change of (probability ≥ ½) in the same
-direction; it counts when within 60 s. Printed per lead: edges, within 60 s, median |error|.
+direction; it counts when within 60 s. Printed per lead: edges, within 60 s, median |error|, and the
+same over the edges where a forecast was issued on both sides (the nowcast says ``beyond_view``
+rather than guess where the upwind cloud has left the map, and ``motion_unknown`` before the first
+motion). ``--spinup S``: issue times before S seconds are not scored (a station that just started
+has no motion and no lagged ensemble yet).
 """
 from __future__ import annotations
 
@@ -70,7 +74,7 @@ def _edges(times: list, states: list) -> list[tuple[float, int]]:
 
 
 def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, truth_kind: str = "scene",
-             single: bool = False) -> dict:
+             single: bool = False, spinup_s: float = 0.0) -> dict:
     from cbh.actions.pairground import pair_ground
     from cbh.geometry.station import load_station
     from cbh.geometry.sun import sun_position
@@ -111,13 +115,13 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
     out = {"scene": scene, "size_px": size, "sites": len(sites), "truth": truth_kind, "leads": {}}
     places = [Site(f"s{k}", math.nan, math.nan, float(p[2]), p) for k, p in enumerate(sites)]
     for lead in LEADS_S:
-        hits, errs, edges_n = 0, [], 0
+        hits, errs, edges_n, covered, covered_hits = 0, [], 0, 0, 0
         for k, site in enumerate(sites):
-            tt = [ti + lead for ti, _, _ in issued if ti + lead in truth]
+            tt = [ti + lead for ti, _, _ in issued if ti + lead in truth and ti >= spinup_s]
             true_s = [truth[t][k] for t in tt]
             fc = []
             for ti, pg, hist in issued:
-                if ti + lead not in truth:
+                if ti + lead not in truth or ti < spinup_s:
                     continue
                 tv = t0 + timedelta(seconds=ti + lead)
                 sp = sun_position(st.latitude_deg, st.longitude_deg, st.altitude_m, tv)
@@ -125,14 +129,21 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
                         else lagged_shade(hist, places[k], sp.direction_enu, tv))
                 fc.append(float(p >= 0.5) if math.isfinite(p) else math.nan)
             te, fe = _edges(tt, true_s), _edges(tt, fc)
+            known = {t for t, f in zip(tt, fc) if math.isfinite(f)}
             for t_edge, sign in te:
                 edges_n += 1
                 cands = [abs(tf - t_edge) for tf, sf in fe if sf == sign]
                 e = min(cands) if cands else math.inf
                 errs.append(e)
                 hits += e <= 60.0
+                # the forecast was issued on both sides of the edge (not beyond_view / motion_unknown)
+                if {t_edge - CADENCE_S / 2, t_edge + CADENCE_S / 2} <= known:
+                    covered += 1
+                    covered_hits += e <= 60.0
         out["leads"][int(lead)] = {"edges": edges_n, "within_60s": hits,
                                    "share": round(hits / edges_n, 3) if edges_n else None,
+                                   "with_forecast": covered, "with_forecast_within_60s": covered_hits,
+                                   "share_with_forecast": round(covered_hits / covered, 3) if covered else None,
                                    "median_abs_error_s": float(np.median(errs)) if errs else None}
     return out
 
@@ -144,12 +155,14 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--truth", choices=("scene", "camera"), default="scene")
     ap.add_argument("--single", action="store_true", help="the issue pair's own forecast, no lagged ensemble")
+    ap.add_argument("--spinup", type=float, default=0.0, help="issue times before this [s] are not scored (a station just started)")
     ap.add_argument("--json")
     a = ap.parse_args()
-    res = evaluate(a.scene, a.size, a.minutes, a.truth, a.single)
+    res = evaluate(a.scene, a.size, a.minutes, a.truth, a.single, a.spinup)
     for lead, v in res["leads"].items():
         print(f"lead {lead:4d} s: {v['edges']:3d} shadow edges, {v['within_60s']:3d} within 60 s ({v['share']}), "
-              f"median |error| {v['median_abs_error_s']} s")
+              f"median |error| {v['median_abs_error_s']} s; with a forecast issued: {v['with_forecast_within_60s']}"
+              f"/{v['with_forecast']} ({v['share_with_forecast']})")
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(res, fh, indent=1)

@@ -34,12 +34,14 @@ class Flag(enum.IntFlag):
     camera_mismatch = 1 << 15  # a network camera disagrees with the others' geometry and was left out (diagnostics mismatched_cameras); the others carry the result
     camera_missing = 1 << 16  # a network camera delivered no frame: the result is from the cameras present
     clock_unknown = 1 << 17  # the matches disagree with the geometry while the cameras' clock offset, which could explain it, is not known yet (a run's first pair): layers not valid
+    clock_too_far = 1 << 19  # the cameras' clocks differ by more than the sky's motion could be carried over on this pair (the sky maps found no match at the running offset): layers not valid
     night = 1 << 18  # the sun more than 6 deg below the horizon and a camera's sky too dark to read: no cloud can be told, no layer reported, no geometry judged
 
 
 #: Flags whose layers must not be reported as valid (exported with the flag, left out of
 #: "latest layers").
-INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range", "clock_unknown", "night"})
+INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range", "clock_unknown", "clock_too_far",
+                          "night"})
 
 
 _MEANING = {
@@ -63,6 +65,9 @@ _MEANING = {
     "camera_missing": "a network camera delivered no frame",
     "night": "the sun is more than 6° below the horizon and the sky too dark to read: cloud cannot be told from "
              "clear sky, so no layer is reported and the geometry is not judged",
+    "clock_too_far": "the cameras' clocks differ by more than the sky's motion could be carried over on this pair: "
+                     "the clouds moved too far between the two captures for camera 2's view to be matched at camera "
+                     "1's time (the sky maps found no match at the running offset), so no layer is valid",
     "clock_unknown": "the matches disagree with the geometry while the cameras' clock offset, which could "
                      "explain it, is not known yet (or, resumed from a recording, not yet taken out: a run's "
                      "first pair has no motion to carry a camera with)",

@@ -290,3 +290,48 @@ def test_calibrate_a_twice_encoded_limited_range_day(repo, tmp_path, capsys):
         i2, _ = read_image(tmp_path / "cam2" / f"cam2_{tag}.jpg")
         r = pipe.process(i1, i2, t, channels="bgr")
         assert abs(max(r.layers, key=lambda l: l.cover).height_m - 2000.0) <= 20.0
+
+
+def test_saturation_apart_from_the_sun_is_cloud_not_glare():
+    """Clear sky saturates only in the aureole that spreads from the sun's disk: a saturated blob
+    reaching the masked disk is glare (grown by ``saturation_grow_px``), one apart from it, even
+    within ``glare_radius_deg``, is sunlit cloud and stays usable; without a sun, both are glare."""
+    from cbh.pipeline.config import MasksConfig
+    from cbh.pipeline.masks import glare_mask
+
+    cfg = MasksConfig()
+    img = np.full((200, 200, 3), (200, 150, 90), np.uint8)  # blue sky
+    yy, xx = np.mgrid[0:200, 0:200]
+    ang = (np.hypot(xx - 60.0, yy - 100.0) * 0.5).astype(np.float32)  # 0.5° per px from a sun at (60, 100)
+    cv2.circle(img, (60, 100), 24, (255, 255, 255), -1)  # the sun and its aureole: out to 12°
+    cv2.circle(img, (110, 100), 8, (255, 255, 255), -1)  # a sunlit cloud 21-29° from the sun
+    cv2.circle(img, (60, 170), 6, (255, 255, 255), -1)  # one 32-38° away: beyond glare_radius_deg
+    g = glare_mask(img, cfg, ang)
+    assert g[100, 60] and g[100, 60 + 24 + cfg.saturation_grow_px - 1]  # the sun's blob, grown
+    assert not g[100, 110] and not g[170, 60] and not g[100, 100]
+    g0 = glare_mask(img, cfg, None)
+    assert g0[100, 110] and g0[170, 60] and g0[100, 60]
+
+
+def test_sunlit_saturated_cloud_is_cloud_but_not_matched():
+    """The saturated cloud apart from the glare (``glare_and_sunlit``'s second mask) is in the cloud
+    mask but not in what the matchers get (``Masks.for_matching``): its contour is where each
+    camera's exposure clips, not the cloud's texture."""
+    from cbh.pipeline.config import MasksConfig
+    from cbh.pipeline.masks import glare_and_sunlit
+    from cbh.pipeline.run import Masks, Segmentation
+
+    img = np.full((200, 200, 3), (200, 150, 90), np.uint8)
+    yy, xx = np.mgrid[0:200, 0:200]
+    ang = (np.hypot(xx - 60.0, yy - 100.0) * 0.5).astype(np.float32)
+    cv2.circle(img, (60, 100), 24, (255, 255, 255), -1)
+    cv2.circle(img, (110, 100), 8, (255, 255, 255), -1)
+    glare, sunlit = glare_and_sunlit(img, MasksConfig(), ang)
+    assert sunlit[100, 110] and sunlit[100, 110 + 8 + 5] and not sunlit[100, 60] and not glare[100, 110]
+    usable = ~glare
+    cloud = sunlit | (np.hypot(xx - 150.0, yy - 40.0) < 10)
+    masks = Masks(usable=(usable, usable), sun_angle=(ang, ang), sun_dir_enu=None, sunlit=(sunlit, None))
+    m2, s2 = masks.for_matching(Segmentation(clouds=(cloud, cloud), fractions={}))
+    assert not s2.clouds[0][100, 110] and s2.clouds[0][40, 150] and not m2.usable[0][100, 110]
+    assert s2.clouds[1][100, 110] and m2.usable[1][100, 110]  # camera 2 had none
+    assert glare_and_sunlit(img, MasksConfig(), None)[1] is None

@@ -139,3 +139,26 @@ def test_a_mismatch_that_the_offset_disagreement_explains_is_the_clocks():
     assert not pipe._carry_explains(sky, 32.3 - 0.9 * need_s, ctx(2.18, 1.60))
     assert not pipe._carry_explains(sky, float("nan"), ctx(2.18, 1.60))
     assert not pipe._carry_explains(sky, 29.0, ctx(0.40, 1.60))
+
+
+def test_a_carry_the_raw_images_cannot_make_invalidates_the_pair():
+    """``Pipeline._uncarried``: matched on the raw images (not on the sky maps), a pair is not
+    carried to camera 1's time when the carry is long (the fastest layer moves ≥
+    ``sky_matching_min_px``: the maps should have matched it) or a known offset was left in for
+    want of a motion to carry with; then it is flagged ``clock_too_far``, an invalidating flag."""
+    from cbh.flags import INVALIDATING
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.motion import MotionProfile
+    from cbh.presets import station_path
+
+    pipe = Pipeline(load_station(station_path()))
+    rate = 15.0 / 8000.0  # an 8 km deck at 15 m/s [rad/s]
+    prof = MotionProfile(heights_m=np.array([8000.0]), rates=np.array([[rate, 0.0]]))
+    long_s = 1.2 * pipe.config.motion.sky_matching_min_px / (rate * pipe._px_per_rad2())
+    assert pipe._uncarried(long_s, prof, comp=np.zeros((2, 2, 2)))
+    assert not pipe._uncarried(0.5 * long_s, prof, comp=np.zeros((2, 2, 2)))  # compensated on the images
+    assert pipe._uncarried(30.0, MotionProfile.empty(), comp=None)  # known, but nothing to carry with
+    assert not pipe._uncarried(0.1, MotionProfile.empty(), comp=None)  # below compensate_min_s
+    assert not pipe._uncarried(float("nan"), MotionProfile.empty(), comp=None)
+    assert "clock_too_far" in INVALIDATING

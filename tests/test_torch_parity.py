@@ -55,8 +55,8 @@ def scene():
     im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image
     r = pipe.process(im1, im2, shot.time_utc, channels="bgr")
     g1, g2 = (cv2.cvtColor(pipe.to_working(i, im), cv2.COLOR_BGR2GRAY).astype(np.float32) for i, im in ((0, im1), (1, im2)))
-    cloud = cv2.resize(r.cloud_masks["cam1"].view(np.uint8), (g1.shape[1], g1.shape[0]),
-                       interpolation=cv2.INTER_NEAREST) > 0
+    prep = pipe.prepare(im1, im2, shot.time_utc, channels="bgr")
+    cloud = prep.masks.for_matching(prep.seg)[1].clouds[0]  # what the sweep gets: no saturated cloud
     tm = T.TorchPlaneMaps(pipe.geometry.planes, (g2.shape[1], g2.shape[0]), torch.device("cpu"))
     return dict(sim=sim, shot=shot, pipe=pipe, result=r, g1=g1, g2=g2, cloud=cloud, tm=tm,
                 cfg=pipe.config.matching.sweep, maps=pipe.geometry.planes)

@@ -336,7 +336,7 @@ class _Session:
         pipe = self.pipes[other]
         work = (fa.image, fb.image)
         masks = pipe.stage_masks(work, PairContext(time_utc=fa.time_utc))
-        seg = pipe.stage_segment(work, masks)
+        masks, seg = masks.for_matching(pipe.stage_segment(work, masks))  # (no saturated contours)
         if not seg.clouds[0].any():
             return
         inp = MatchInput(geometry=pipe.geometry, gray1=cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY),

@@ -71,7 +71,7 @@ def segment_image(image: np.ndarray, station=None, camera: str | None = None, ti
 
     from cbh.imageio import check_image_size
     from cbh.geometry.sun import sun_position
-    from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
+    from cbh.pipeline.masks import angle_map_deg, glare_mask, load_obstacle_mask, static_sky_mask
     from cbh.pipeline.run import working_factor
 
     cfg = config or PipelineConfig.from_dict(station.sections.get("pipeline", {}))
@@ -94,10 +94,7 @@ def segment_image(image: np.ndarray, station=None, camera: str | None = None, ti
             if cfg.masks.sun:
                 usable &= sun_angle > cfg.masks.sun_radius_deg
     if cfg.masks.saturation:  # as the pipeline: with a known sun, only saturation near it is glare
-        sat = saturation_mask(work, cfg.masks)
-        if sun_angle is not None and cfg.masks.glare_radius_deg < 180.0:
-            sat &= sun_angle <= cfg.masks.glare_radius_deg
-        usable &= ~sat
+        usable &= ~glare_mask(work, cfg.masks, sun_angle)
     zenith = np.asarray(cam.zenith_map(), np.float32)
     cloud, frac = segment(work, usable, zenith, sun_angle, cfg.segmentation, what=what)
     usable &= _bright(work, cfg)

@@ -816,12 +816,18 @@ class Service:
         they are valid again; the same for a sun seen off its place. Returns the invalidating flags."""
         st = self.stats
         invalid = [f for f in result.flags if f in INVALIDATING]
-        geometric = [f for f in invalid if f not in ("below_range", "clock_unknown", "night")]
+        geometric = [f for f in invalid if f not in ("below_range", "clock_unknown", "clock_too_far", "night")]
         if invalid and not st.last_invalid:  # one warning per change of state, not per pair
             if invalid == ["night"]:
                 log.warning(f"pair at {f1.time_utc.isoformat()}: night: the sun is below the horizon and the sky too "
                             "dark to tell cloud from clear sky; no layers are reported until it is light again",
                             extra={"cbh_event": "night", "cbh_flags": invalid})
+            elif not geometric and "clock_too_far" in invalid:
+                log.warning(f"pair at {f1.time_utc.isoformat()}: clock_too_far: the cameras' clocks differ by "
+                            f"{result.diagnostics.get('clock_offset_s', math.nan):.0f} s and the clouds moved too far "
+                            "between the two captures for this pair to be matched at one time; layers are not "
+                            "reported as valid until a pair is (set the cameras' clocks: NTP)",
+                            extra={"cbh_event": "clock_too_far", "cbh_flags": invalid})
             elif not geometric and "clock_unknown" in invalid:
                 own, run = (result.diagnostics.get(k, math.nan) for k in ("clock_offset_pair_s", "clock_offset_s"))
                 why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"

@@ -234,7 +234,7 @@ class MotionConfig:
     offset_tolerance_s: float = 0.5  # flag ``clock_offset`` above this |offset| (cbh run: the pairing tolerance) [s]
     compensate_min_s: float = 0.2  # compensate camera 2 only above this |offset|: the estimate's systematic error reaches ≈ 0.15 s [s]
     rematch_s: float = 0.2  # match again in the same pair when the offset estimate moved by more [s]
-    max_offset_s: float = 150.0  # a pair's offset estimate beyond this is not believed (real IP cameras: ±120 s) [s]
+    max_offset_s: float = 300.0  # a pair's offset estimate beyond this is not believed (real IP cameras: ±120 s; the real Fehmarn sky was matched at 150 s, a third of its pairs at 210 s) [s]
     offset_jump_s: float = 3.0  # two pairs in a row this far from the running offset (and agreeing): the clock jumped, start again [s]
     sky_check_pairs: int = 10  # with a known offset followed by the stereo tracks, the sky maps check it every this many pairs [1]
     sky_matching: bool = True  # with a long carry, match on the sky maps, each pixel carried by its own motion (.skyclock)

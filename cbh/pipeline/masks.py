@@ -7,6 +7,7 @@ within a few DN of the image's own clip level (:mod:`cbh.pipeline.clip`).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,7 +18,7 @@ from cbh.geometry.station import Camera
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, ClipLevel, saturated_pixels
 from cbh.pipeline.config import MasksConfig
 
-__all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask"]
+__all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask", "glare_mask", "glare_and_sunlit"]
 
 
 def load_obstacle_mask(path: Path, width: int, height: int) -> np.ndarray:
@@ -103,3 +104,67 @@ def saturation_mask(image_bgr: np.ndarray, cfg: MasksConfig, clip: ClipLevel | N
                           borderType=cv2.BORDER_CONSTANT, borderValue=0)
     out[y0:y1, x0:x1] = blob > 0
     return out
+
+
+def glare_mask(image_bgr: np.ndarray, cfg: MasksConfig, sun_angle_deg: np.ndarray | None,
+               clip: ClipLevel | None = None) -> np.ndarray:
+    """The saturated pixels that are the sun's glare, not over-exposed cloud, (H, W) bool
+    (:func:`glare_and_sunlit`'s first)."""
+    return glare_and_sunlit(image_bgr, cfg, sun_angle_deg, clip)[0]
+
+
+def glare_and_sunlit(image_bgr: np.ndarray, cfg: MasksConfig, sun_angle_deg: np.ndarray | None,
+                     clip: ClipLevel | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The saturated pixels that are the sun's glare, not over-exposed cloud, (H, W) bool; and the
+    saturated cloud within ``glare_radius_deg`` of the sun, grown as the glare is (None: none).
+
+    Clear sky saturates all three channels only in the aureole that spreads from the sun's own
+    disk, so with a known sun (``sun_angle_deg``) a saturated blob (:func:`saturation_mask`,
+    grown) is glare when it reaches the masked sun disk (``sun_radius_deg``) and lies within
+    ``glare_radius_deg`` of the sun. A blob apart from the disk is sunlit cloud (a thin edge
+    lit by forward scattering saturates 10–30° from the sun), and so is saturation farther out
+    than ``glare_radius_deg``: both stay usable sky and segment as cloud (in simulation, 22 of
+    23 saturated blobs 8–30° from the sun were cloud throughout; before, they were left out of
+    the cloud mask and the irradiance nowcast read them as clear sky). Without a sun every
+    saturated blob is glare.
+
+    The second mask is that sunlit cloud: it segments as cloud, but its saturation contour is not
+    the cloud's texture (it lies where each camera's exposure clips), so the matchers leave it out.
+    """
+    if sun_angle_deg is None or not cfg.sun:
+        sat = saturation_mask(image_bgr, cfg, clip)
+        if sun_angle_deg is None or cfg.glare_radius_deg >= 180.0:
+            return sat, None
+        return sat & (sun_angle_deg <= cfg.glare_radius_deg), None
+    sat = saturation_mask(image_bgr, replace(cfg, saturation_grow_px=0), clip).view(np.uint8)  # blobs apart before they grow
+    if not cv2.countNonZero(sat):
+        return sat.view(bool), None
+    ang = np.asarray(sun_angle_deg, np.float32)
+    seeds = cv2.findNonZero(cv2.bitwise_and(sat, cv2.compare(ang, float(cfg.sun_radius_deg), cv2.CMP_LE)))
+    x0 = y0 = 1 << 30
+    x1 = y1 = -1
+    seeds = seeds.reshape(-1, 2) if seeds is not None else np.zeros((0, 2), np.int32)
+    while len(seeds):  # fill each blob that reaches the disk with 2 (one fill per blob)
+        x, y = seeds[0]
+        _, _, _, (rx, ry, rw, rh) = cv2.floodFill(sat, None, (int(x), int(y)), 2, 0, 0, 8)
+        x0, y0, x1, y1 = min(x0, rx), min(y0, ry), max(x1, rx + rw), max(y1, ry + rh)
+        seeds = seeds[sat[seeds[:, 1], seeds[:, 0]] == 1]
+    g = max(int(cfg.saturation_grow_px), 0)  # grown as saturation_mask grows
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))
+    near = cv2.compare(ang, float(cfg.glare_radius_deg), cv2.CMP_LE) if cfg.glare_radius_deg < 180.0 else None
+    sunlit = cv2.compare(sat, 1, cv2.CMP_EQ)  # the blobs that do not reach the disk
+    if near is not None:
+        sunlit = cv2.bitwise_and(sunlit, near)
+    sunlit = (cv2.dilate(sunlit, kernel) > 0 if g > 0 else sunlit > 0) if cv2.countNonZero(sunlit) else None
+    out = np.zeros(sat.shape, bool)
+    if x1 < 0:
+        return out, sunlit
+    H, W = sat.shape
+    ya, yb, xa, xb = max(y0 - g, 0), min(y1 + g, H), max(x0 - g, 0), min(x1 + g, W)
+    blob = cv2.compare(sat[ya:yb, xa:xb], 2, cv2.CMP_EQ)
+    if g > 0:
+        blob = cv2.dilate(blob, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    if near is not None:
+        blob = cv2.bitwise_and(blob, near[ya:yb, xa:xb])
+    out[ya:yb, xa:xb] = blob > 0
+    return out, sunlit

@@ -62,7 +62,7 @@ from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identica
 from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, parallax_px, supported_layers
-from cbh.pipeline.masks import angle_map_deg, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
@@ -418,12 +418,13 @@ class Pipeline:
         ctx, first, work, masks, seg, gray, received = (prep.ctx, prep.first, prep.work, prep.masks, prep.seg, prep.gray,
                                                          prep.received)
         t_all = time.perf_counter() - prep.prepare_ms / 1000.0  # total: both halves' own time, not a wait between
+        mmasks, mseg = masks.for_matching(seg)  # what the matchers see: no saturated contours
         time_utc = ctx.time_utc
         mot = self._motion_input(previous, time_utc, gray)
         mcfg = self.config.motion
         if not mot.offsets_s and math.isfinite(self._stated_offset()) and mcfg.clock_offset:
             mot = replace(mot, offsets_s=(self._stated_offset(),))  # the station states the clocks
-        sky = self._sky_clock(gray, masks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
+        sky = self._sky_clock(gray, mmasks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
         history = update_offsets(mot.offsets_s, sky.offset_s, mcfg.offset_history, mcfg.offset_jump_s)
         used = running_offset(history) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
         profile = mot.profile  # (the tracks' of the pair before; the sky maps' where there is none yet)
@@ -437,9 +438,9 @@ class Pipeline:
             del ctx.flags[n_flags:]
             sky_mode = self._sky_mode(sky, used, profile)
             if sky_mode:  # camera 2 carried to camera 1's time pixel by pixel (.skyclock)
-                corr, comp = self._sky_correspondences(sky, used, seg, ctx), None
+                corr, comp = self._sky_correspondences(sky, used, mseg, ctx), None
             else:
-                corr, comp = self._match_compensated(work, masks, seg, ctx, gray, mot, used, profile)
+                corr, comp = self._match_compensated(work, mmasks, mseg, ctx, gray, mot, used, profile)
 
             def height_map():
                 with _timed(ctx, "height_map"):
@@ -451,7 +452,7 @@ class Pipeline:
 
             def geometry():
                 with _timed(ctx, "geometry_check"):
-                    return self.geometry_findings(received, corr, seg, sky.carry_noise_rad if sky_mode else 0.0)
+                    return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0)
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -460,8 +461,8 @@ class Pipeline:
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
                     est = (self._sky_tracks(corr, sky, mot) if sky_mode else
-                           self._stereo_tracks(corr, gray, masks, seg, mot, comp))
-                    lay = self.stage_motion(lay, hmap, est, seg.clouds[0])
+                           self._stereo_tracks(corr, gray, mmasks, mseg, mot, comp))
+                    lay = self.stage_motion(lay, hmap, est, mseg.clouds[0])
             if not sky_mode:  # a short carry: the compensated stereo tracks refine the sky maps' start
                 pair_s = est.pair_offset_s if math.isfinite(est.pair_offset_s) else pair_s
             new = running_offset(update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s))
@@ -479,9 +480,11 @@ class Pipeline:
             seg = Segmentation(clouds=tuple(np.zeros_like(c) for c in seg.clouds), fractions=dict.fromkeys(seg.fractions, 0.0))
             geo = geo and (geo[0], check_geometry(self.geometry, [], self.config.filtering, self.config.geometry_check))
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
+        if not sky_mode and self._uncarried(used, profile, comp):
+            ctx.flags.append("clock_too_far")
         self._quality_flags(pts, seg, ctx, hmap, lay)
         if "geometry_mismatch" in ctx.flags and not math.isfinite(sky.offset_s):  # not checked this pair: now
-            sky = self._sky_clock(gray, masks, replace(mot, sky_check_in=0), ctx)
+            sky = self._sky_clock(gray, mmasks, replace(mot, sky_check_in=0), ctx)
             pair_s = sky.offset_s if math.isfinite(sky.offset_s) else pair_s
         before = running_offset(mot.offsets_s)
         offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
@@ -537,20 +540,21 @@ class Pipeline:
         if mot.sky_check_in > 0 and math.isfinite(running_offset(mot.offsets_s)):
             return SkyClock.unknown()
         with _timed(ctx, "clock"):
-            return self.sky_offset(gray, masks.usable, mot.prev_gray, mot.dt_s)
+            return self.sky_offset(gray, masks.usable, mot.prev_gray, mot.dt_s, running_offset(mot.offsets_s))
 
-    def sky_offset(self, gray, usable, prev_gray, dt_s: float) -> SkyClock:
+    def sky_offset(self, gray, usable, prev_gray, dt_s: float, known_offset_s: float = math.nan) -> SkyClock:
         """Camera 2's clock offset on the sky maps (:func:`~.skyclock.sky_clock`) from this pair's
         working-size grey frames ``gray`` and usable masks and the pair ``dt_s`` [s] before
-        (``prev_gray``); unknown beyond ``max_offset_s``. (Also what `cbh calibrate` reports.)"""
+        (``prev_gray``); unknown beyond ``max_offset_s``; with ``known_offset_s`` (the running
+        offset), the maps' matches carried by it when this pair's own estimate fails. (Also what
+        `cbh calibrate` reports.)"""
         if self._sky_grid is None:
             self._sky_grid = sky_grid((self.cam1, self.cam2))
         c1, c2 = self.cam1.position_m, self.cam2.position_m
         filt = self.config.filtering
         sc = sky_clock(self._sky_grid, gray, prev_gray, usable, np.asarray(c2 - c1, np.float64)[:2],
-                       float(c2[2] - c1[2]), dt_s, height_range_m=(filt.min_height_m, filt.max_height_m))
-        if math.isfinite(sc.offset_s) and abs(sc.offset_s) > self.config.motion.max_offset_s:
-            return SkyClock.unknown(sc.tiles)
+                       float(c2[2] - c1[2]), dt_s, height_range_m=(filt.min_height_m, filt.max_height_m),
+                       known_offset_s=known_offset_s, max_offset_s=self.config.motion.max_offset_s)
         return sc
 
     def _clock_explains(self, previous, mot: "MotionInput", sky: SkyClock, running_before: float) -> bool:
@@ -612,11 +616,28 @@ class Pipeline:
         motion per height node; the motion within a layer varies by 10–20 %, so its error is that
         share of the carry, and past ≈ 8 px it is more than a pixel. Below, it is the better
         matcher (every method, the whole sky, layers seen through gaps)."""
+        return bool(self.config.motion.sky_matching and len(sky.a1) and self._long_carry(used_s, profile))
+
+    def _uncarried(self, used_s: float, profile: MotionProfile, comp) -> bool:
+        """Whether a pair matched on the raw images (not on the sky maps) could not be carried to
+        camera 1's time: a long carry (:meth:`_long_carry`) that the sky maps could not match, or a
+        known offset of at least ``compensate_min_s`` left in (``comp`` None) because no motion was
+        known to carry camera 2 with. Such a pair's matches mix the clock into the parallax: on the
+        real Fehmarn hour re-paired to 150–210 s, one pair in three gave layers at 1.5–2.3 km under
+        an 8 km deck, with no flag (flag ``clock_too_far``)."""
         mcfg = self.config.motion
-        if not (mcfg.sky_matching and len(sky.a1) and math.isfinite(used_s) and len(profile)):
+        if mcfg.sky_matching and self._long_carry(used_s, profile):
+            return True
+        return comp is None and math.isfinite(used_s) and abs(used_s) >= mcfg.compensate_min_s and not len(profile)
+
+    def _long_carry(self, used_s: float, profile: MotionProfile) -> bool:
+        """Whether carrying camera 2 by ``used_s`` moves the fastest layer of ``profile`` by at least
+        ``sky_matching_min_px`` (working size, near the zenith): past it the raw-image compensation's
+        error is more than a pixel, and the pair is matched on the sky maps or not at all."""
+        if not (math.isfinite(used_s) and len(profile)):
             return False
         carry_px = abs(used_s) * float(np.linalg.norm(profile.rates, axis=1).max()) * self._px_per_rad2()
-        return carry_px >= mcfg.sky_matching_min_px
+        return carry_px >= self.config.motion.sky_matching_min_px
 
     def _sky_correspondences(self, sky: SkyClock, used_s: float, seg: "Segmentation",
                              ctx: "PairContext") -> "Correspondences":
@@ -875,26 +896,22 @@ class Pipeline:
             if obst is not None:
                 u = u & ~obst
             ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
-            glare = False
+            glare, sunlit = False, None
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
-            if cfg.masks.saturation:
-                sat = saturation_mask(work[i], cfg.masks)
-                if ang is not None and cfg.masks.glare_radius_deg < 180.0:
-                    # saturated far from the sun: over-exposed cloud (clear sky never saturates
-                    # all three channels), which stays usable sky and segments as cloud
-                    sat &= ang <= cfg.masks.glare_radius_deg
+            if cfg.masks.saturation:  # the sun's glare; other saturation is over-exposed cloud
+                sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang)
                 if sat.any():
                     u, glare = u & ~sat, True
-            return u, ang, glare, _sky_dn(work[i], u), obst
+            return u, ang, glare, _sky_dn(work[i], u), sunlit, obst
 
-        (u1, a1, glare1, dn1, o1), (u2, a2, _, dn2, o2) = pmap(lambda i: self._camera1_once(i, "masks", lambda: one(i)),
-                                                        (0, 1), pool="stages")
+        (u1, a1, glare1, dn1, s1, o1), (u2, a2, _, dn2, s2, o2) = pmap(
+            lambda i: self._camera1_once(i, "masks", lambda: one(i)), (0, 1), pool="stages")
         if glare1:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
         return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known,  # (the sun check: a known time only)
-                     obstacles=(o1, o2))
+                     sunlit=(s1, s2), obstacles=(o1, o2))
 
     def _sun_from_image(self, image_bgr: np.ndarray) -> np.ndarray | None:
         """The sun's ENU direction from camera 1's image when the capture time is unknown: the
@@ -1380,6 +1397,18 @@ class Masks:
     sun_angle: tuple[np.ndarray | None, np.ndarray | None]  # (H, W) float32 [deg] angle to the sun, None = unknown
     sun_dir_enu: np.ndarray | None  # (3,) unit vector to the sun in ENU, None = unknown or below the horizon
     obstacles: tuple = (None, None)  # (H, W) bool horizon obstacles found in the frame, None = the station's mask
+    #: saturated cloud near the sun (masks.glare_and_sunlit), per camera or None: usable sky that
+    #: segments as cloud, but not for matching (its contour is where each camera's exposure clips)
+    sunlit: tuple = (None, None)
+
+    def for_matching(self, seg: "Segmentation") -> tuple["Masks", "Segmentation"]:
+        """These masks and ``seg`` without the sunlit saturated cloud (themselves when there is none)."""
+        if all(s is None for s in self.sunlit):
+            return self, seg
+        keep = [None if s is None else ~s for s in self.sunlit]
+        usable = tuple(u if k is None else u & k for u, k in zip(self.usable, keep))
+        clouds = tuple(c if k is None else c & k for c, k in zip(seg.clouds, keep))
+        return replace(self, usable=usable, sunlit=(None, None)), replace(seg, clouds=clouds)
 
 
 @dataclass(frozen=True)

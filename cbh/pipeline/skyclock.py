@@ -184,8 +184,17 @@ def _sample(field: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m: np.ndarray, dz_m: float,
               dt_s: float, *, tile_px: int = 24, min_tiles: int = 6, min_motion_px: float = 0.5,
               fb_max_px: float = 0.5, max_error_s: float = 2.0, height_range_m=(50.0, 20000.0),
-              max_miss_deg: float = 2.0, lattice: int = 2, min_share: float = 0.25) -> SkyClock:
+              max_miss_deg: float = 2.0, lattice: int = 2, min_share: float = 0.25,
+              known_offset_s: float = math.nan, max_offset_s: float = math.inf) -> SkyClock:
     """Camera 2's clock offset from one pair and the pair before (see the module docstring).
+
+    With ``known_offset_s`` (the running offset of the pairs before), a pair whose own estimate
+    fails (too few tiles moving across the baseline, or a spread over ``max_error_s``) still gives
+    its maps' matches carried by that offset (``offset_s`` and ``error_s`` NaN; so does an estimate
+    beyond ``max_offset_s``, which is not believed): on the real
+    Fehmarn hour re-paired 3 frames later (149 s) one pair in three lost its own estimate, and the
+    raw-image compensation, whose error grows with the carry, then reported layers at 1.5–2.3 km
+    under a deck at 8 km.
 
     Parameters
     ----------
@@ -221,13 +230,16 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     # n·w at the flow's noise, a few pixels pass by chance, and the ratio of two noises has a median
     # near 0 with a small spread (−0.7 s "± 0.1" for a wind along a 50 m baseline: a confident number)
     drifting = ok & (np.hypot(w[..., 0], w[..., 1]) * dt_s >= min_motion_px * grid.res)
-    if moving.sum() < min_share * max(int(drifting.sum()), 1):
-        return SkyClock.unknown()
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d_px = np.where(moving, nf / nw, np.nan)
-    est, err, tiles = _tile_median(d_px, np.where(moving, nw ** 2, 0.0), tile_px, min_tiles)
-    if not math.isfinite(est) or err > max_error_s:
-        return SkyClock.unknown(tiles)
+    est, err, tiles = math.nan, math.nan, 0
+    if moving.sum() >= min_share * max(int(drifting.sum()), 1):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d_px = np.where(moving, nf / nw, np.nan)
+        est, err, tiles = _tile_median(d_px, np.where(moving, nw ** 2, 0.0), tile_px, min_tiles)
+    own = math.isfinite(est) and err <= max_error_s and abs(est) <= max_offset_s  # (beyond: not believed)
+    if not own:
+        if not (math.isfinite(known_offset_s) and ok.any()):
+            return SkyClock.unknown(tiles)
+        est = float(known_offset_s)  # carried by the running offset; this pair's own is unknown
     # the carry's noise: the two cameras measure one rate; half their difference is the noise of
     # the mean (each one's is the difference / √2, the mean's that / √2), times |δ|
     carry = 0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s * abs(est)
@@ -250,7 +262,8 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     sel &= sub
     hh = h[sel]
     w2 = w[sel] * ((hh / (hh - dz_m)))[:, None]  # camera 2's rate: v / (h − z2), heights above camera 1
-    return SkyClock(offset_s=est, error_s=err, tiles=tiles, heights_m=hh, rates2=w2, a1=a1m, flow=f[good],
+    return SkyClock(offset_s=est if own else math.nan, error_s=err if own else math.nan, tiles=tiles, heights_m=hh,
+                    rates2=w2, a1=a1m, flow=f[good],
                     rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res * lattice)
 
 
