@@ -167,6 +167,7 @@ def test_the_order_is_chosen_by_the_held_out_error():
     assert L.error_stats(np.concatenate(held))["rms_euclid_px"] == table[4]
 
 
+@pytest.mark.slow  # (the default suite's time; refine_on_board runs by default in the catadioptric set's calibration)
 def test_refining_on_the_board_plane_removes_the_curvature_bias():
     """Boards through a mirror, no noise: refined in the raw image the corners sit outwards on
     average (their edges curve), refined on the board's plane they do not."""

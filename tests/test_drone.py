@@ -114,6 +114,7 @@ def test_unreadable_log_is_one_line(flight, tmp_path):
     assert not (tmp_path / "x.csv").exists()
 
 
+@pytest.mark.slow  # (the default suite's time; the flight end to end runs by default)
 def test_drone_seen_by_one_camera_only(tmp_path):
     out = tmp_path / "f"
     _render(out, 1, 240, cadence_s=1.0, n_stars=100, hidden_from=("cam2",), hover_s=8.0)

@@ -86,7 +86,7 @@ def test_agreeing_clocks_stay_quiet_and_the_maps_are_not_run_every_pair():
         assert {round(L.height_m / 100) for L in r.layers} == {12, 35}
 
 
-@pytest.mark.parametrize("offset_s", [20.0, -20.0])
+@pytest.mark.parametrize("offset_s", [20.0, pytest.param(-20.0, marks=pytest.mark.slow)])  # (−20 s: slow, for the suite's time)
 def test_sky_map_heights_unbiased_by_the_flow_smoothing(offset_s):
     """The maps' own heights (before any matching) of both simulated layers within 3 %: the dense
     flow's smoothing across the layers' edges read the 1200 m layer 8 % high and its motion 4 % slow

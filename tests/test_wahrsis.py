@@ -110,6 +110,7 @@ def _check_combo(result, med_med):
     assert not {"cloud_unmatched", "below_range"} & set(result.flags)
 
 
+@pytest.mark.slow  # (the default suite's time; every combination below is slow too, the photometric step is tested by default in test_photometric.py)
 def test_mixed_exposure_pair_low_med(wahrsis, result):
     pipe, image = wahrsis
     r = pipe.process(image("wahrsis3", "low"), image("wahrsis4", "med"), T, channels="bgr")

@@ -151,10 +151,10 @@ def glare_and_sunlit(image_bgr: np.ndarray, cfg: MasksConfig, sun_angle_deg: np.
         seeds = seeds[sat[seeds[:, 1], seeds[:, 0]] == 1]
     g = max(int(cfg.saturation_grow_px), 0)  # grown as saturation_mask grows
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))
-    near = cv2.compare(ang, float(cfg.glare_radius_deg), cv2.CMP_LE) if cfg.glare_radius_deg < 180.0 else None
+    limited = cfg.glare_radius_deg < 180.0
     sunlit = cv2.compare(sat, 1, cv2.CMP_EQ)  # the blobs that do not reach the disk
-    if near is not None:
-        sunlit = cv2.bitwise_and(sunlit, near)
+    if limited and cv2.countNonZero(sunlit):
+        sunlit = cv2.bitwise_and(sunlit, cv2.compare(ang, float(cfg.glare_radius_deg), cv2.CMP_LE))
     sunlit = (cv2.dilate(sunlit, kernel) > 0 if g > 0 else sunlit > 0) if cv2.countNonZero(sunlit) else None
     out = np.zeros(sat.shape, bool)
     if x1 < 0:
@@ -164,7 +164,7 @@ def glare_and_sunlit(image_bgr: np.ndarray, cfg: MasksConfig, sun_angle_deg: np.
     blob = cv2.compare(sat[ya:yb, xa:xb], 2, cv2.CMP_EQ)
     if g > 0:
         blob = cv2.dilate(blob, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
-    if near is not None:
-        blob = cv2.bitwise_and(blob, near[ya:yb, xa:xb])
+    if limited:
+        blob = cv2.bitwise_and(blob, cv2.compare(ang[ya:yb, xa:xb], float(cfg.glare_radius_deg), cv2.CMP_LE))
     out[ya:yb, xa:xb] = blob > 0
     return out, sunlit

@@ -251,11 +251,14 @@ def darkest_of_four(image_bgr: np.ndarray) -> np.ndarray:
     """The brightest channel of ``image_bgr`` (H, W, 3) at half size, ((H + 1) // 2, (W + 1) // 2),
     each pixel the darkest of the 2 × 2 it stands for (uint8): a mast or trunk one pixel wide keeps
     its darkness, where the area average halves its contrast."""
-    v = cv2.max(cv2.max(image_bgr[..., 0], image_bgr[..., 1]), image_bgr[..., 2])
+    b, g, r = cv2.split(image_bgr)
+    v = cv2.max(cv2.max(b, g), r)
     H, W = v.shape
     if H % 2 or W % 2:
         v = cv2.copyMakeBorder(v, 0, H % 2, 0, W % 2, cv2.BORDER_REPLICATE)
-    return cv2.min(cv2.min(v[0::2, 0::2], v[0::2, 1::2]), cv2.min(v[1::2, 0::2], v[1::2, 1::2]))
+    # each pixel the least of itself and its right, lower and lower-right neighbours; every second kept
+    low = cv2.erode(v, np.ones((2, 2), np.uint8), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+    return np.ascontiguousarray(low[0::2, 0::2])
 
 
 def _ring_percentile(value: np.ndarray, ring: np.ndarray, q: float) -> np.ndarray:
