@@ -117,6 +117,7 @@ class FrameObstacleConfig:
     max_elevation_deg: float = 45.0  # nothing higher above the horizon is taken for an obstacle [deg]
     min_area_px: int = 12  # smaller dark specks are left to the segmentation [px]
     hang_px: int = 0  # dark parts this close to an obstacle (above its thin trunk or mast) join it [px]
+    hang_max_px: int = 0  # … when no larger than this (a crown, not a cloud base darkening towards the horizon; 0: any) [px]
     dilate_px: int = 2  # safety margin grown around obstacles (their edges blend with the sky) [px]
 
 
@@ -344,7 +345,7 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
         near = cv2.dilate(obstacle, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * cfg.hang_px + 1,) * 2))
         hang = np.zeros(s_n, bool)
         hang[s_labels[(near > 0) & (strong > 0)]] = True
-        hang &= s_area >= cfg.min_area_px
+        hang &= (s_area >= cfg.min_area_px) & ((s_area <= cfg.hang_max_px) if cfg.hang_max_px > 0 else True)
         hang[0] = False
         obstacle |= hang[s_labels].view(np.uint8)
     if cfg.fill_px > 0:  # sky seen between branches and in thin gaps belongs to the obstacle
