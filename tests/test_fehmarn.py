@@ -109,6 +109,7 @@ def test_the_half_hour_meets_the_bar(shift):
     assert sc["geometry_mismatch"] == 0, sc
 
 
+@pytest.mark.slow  # (the default suite's time; the offset as recorded runs by default above)
 def test_re_paired_one_frame_later_the_offset_moves_by_the_cadence(station, as_recorded):
     """FE4's next frame paired with FE3's: the same cameras, 60 s more offset. Beyond the ±30 s
     that the previous estimator allowed, and found from the second pair all the same."""
