@@ -128,22 +128,26 @@ def test_re_paired_at_minus_ninety_seconds(station, as_recorded):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("shift, low, phantom", [(3, 0.7, 0.15), (-2, 0.55, 0.1), (4, 0.1, 0.35)])
+@pytest.mark.parametrize("shift, low, phantom", [(3, 0.7, 0.2), (-2, 0.55, 0.12), (4, 0.1, 0.35)])
 def test_re_paired_minutes_apart_no_unflagged_phantom_decks(shift, low, phantom):
     """Re-paired 3, −2 and 4 frames (+149, −151, +210 s). Before: the estimate beyond 150 s was not
     believed (−2: never found), and a pair whose own sky-map estimate failed was matched on the raw
     images with the carry left to the compensation, which at these carries gave layers at 1.5–2.3 km
     under the 8 km deck with no flag (+3: 69 % valid, 54 % led by a phantom; −2: 30 %, 56 %, 3
     mismatches; +4: 32 %, 68 %). Now such a pair is carried on its maps by the running offset, or,
-    when they do not match either, flagged ``clock_too_far`` (not valid). The floors are what this
-    code gives (+3: 77 %/12 %, −2: 63 %/7 %, +4: 16 %/32 %): at 210 s the sky itself has changed too
-    much between the captures for most pairs."""
+    when they do not match either, flagged ``clock_too_far`` (not valid). From the third pair no
+    valid pair is led by such a low phantom deck; what the shares still count as phantoms is the
+    8 km deck read 15–30 % off (+3: 81 % valid, 15 % phantom-led; −2: 67 %, 7 %; +4: 24 %, 28 %:
+    at 210 s the sky itself has changed too much between the captures for most pairs)."""
     from eval_fehmarn import evaluate
 
-    sc = evaluate(DATA, shift, verbose=False)["score"]
+    res = evaluate(DATA, shift, verbose=False)
+    sc = res["score"]
     assert sc["valid_with_reference_layer"] >= low, sc
     assert sc["phantom_led"] <= phantom, sc
     assert sc["geometry_mismatch"] == 0, sc
+    low_decks = [r for r in res["rows"][2:] if r["phantom_lead"] and max(r["layers"], key=lambda L: L[1])[0] < 3000]
+    assert not low_decks, low_decks
 
 
 def test_a_stated_offset_is_used_from_the_first_pair(station, tmp_path):
