@@ -37,7 +37,8 @@ and stays at 0.001–0.028° on correct simulated stations
 ``max_rotation_px`` (0.25 px at 45° off axis: 0.047° at the default working size, under 5 % of
 the parallax of a layer up to 2.9 km at B = 50 m; in pixels, like the matching noise, so that it
 holds at any image size) and is more than 4 σ of the fit (matches from one patch of sky fit
-poorly) flags the pair; not for a
+poorly; σ also from how far the fits without each patch of sky scatter, since each deck's LK
+matches share a bias of their own) flags the pair; not for a
 station that states ``expected_miss_ratio`` (its lens models leave rays apart by that much, and
 the fitted rotation absorbs their error: 4.7° for the WAHRSIS pair). `cbh calibrate` fits the
 relative rotation to 0.001° over a day.
@@ -78,10 +79,15 @@ _ROTATION_PARALLAX = 0.02
 #: A fitted turn is significant beyond this many of its σ. It is the length of a 3-vector: with no
 #: turn, |ω|/σ follows a χ distribution with 3 degrees of freedom, which exceeds 3 in 2.9 % of
 #: pairs (a false alarm every 35 correct pairs from the fit's own scatter alone) and 4 in 0.1 %.
-#: A real turn of 0.05–0.25° over the sky is 10–100 σ. (Not a cure for biased matches: dense
-#: randomized seed 11, 0.17° ± 0.024° from 68 LK matches over three decks, and skyline seed 8017,
-#: 0.053° ± 0.009°, still flag their correct stations.)
+#: A real turn of 0.05–0.25° over the sky is 10–100 σ. (Not by itself a cure for biased matches:
+#: dense randomized seed 11, 0.17° ± 0.024° from 68 LK matches over three decks, flagged its
+#: correct station until σ also came from the patches' agreement, ± 0.118°: :func:`_jackknife_sigma`.)
 _SIGNIFICANCE = 4.0
+#: The rotation's σ is also taken from the agreement of patches of sky (:func:`_jackknife_sigma`),
+#: squares of this side [px, working size] of camera 1's pixels, when the matches lie in at least
+#: ``_MIN_GROUPS`` of them (fewer: the normal equations' σ alone).
+_GROUP_PX = 160.0
+_MIN_GROUPS = 4
 #: … but at most this × the pair's tolerance: LK's scatter on sheared views stays within its window
 #: (median 1.3 px at views 20–40° apart), while a camera 2° off level moves every match by 10 px;
 #: without the cap a 630 m pair's low cloud (hundreds of px of parallax) let that pass.
@@ -112,7 +118,8 @@ class GeometryCheck:
 
 
 def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
-                      iterations: int = 4, prior: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                      iterations: int = 4, prior: np.ndarray | None = None,
+                      groups: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The small rotation ω (3,) [rad, ENU rotation vector] of camera 2's rays that best puts them
     on the epipolar planes of camera 1's rays: ``d2 → d2 + ω × d2`` (robust least squares).
 
@@ -128,10 +135,13 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     1.4826 · MAD) so that mismatches do not pull it.
 
     ``prior`` (N,): each match's weight before the robust ones (how much its own position is
-    trusted; None: all alike).
+    trusted; None: all alike). ``groups`` (N,) int: the patch of sky each match lies in; with at
+    least ``_MIN_GROUPS`` of them, σ is also taken from the scatter of the fits that leave one
+    patch out (:func:`_jackknife_sigma`), and the larger σ stands.
 
     Returns (ω, σ): σ [rad] is the standard deviation of |ω| along ω's direction, from the
-    weighted normal equations and the residuals' robust scale. Where the lens models are off
+    weighted normal equations and the residuals' robust scale (and, with ``groups``, from the
+    patches' agreement). Where the lens models are off
     (residuals of degrees), the turn that moves matches *along* their epipolar curves is barely
     constrained and ω can come out large with a large σ: the real WAHRSIS pair, whose ideal
     lens models leave 3 % ray misses, asks for 4.7°.
@@ -144,6 +154,16 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     e0 = np.einsum("ij,ij->i", d2, n)  # sin e ≈ e for the small angles that matter
     w0 = np.ones(len(e0)) if prior is None else np.asarray(prior, np.float64)
     w0 = w0 / max(float(w0.mean()), 1e-300) if len(w0) else w0  # relative: σ's scale stays the residuals'
+    omega, sigma = _robust_turn(J, e0, w0, iterations)
+    if groups is not None and len(np.unique(groups)) >= _MIN_GROUPS:
+        u = omega / max(float(np.linalg.norm(omega)), 1e-300)
+        sigma = max(sigma, _jackknife_sigma(J, e0, w0, iterations, np.asarray(groups), u))
+    return omega, sigma
+
+
+def _robust_turn(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: int) -> tuple[np.ndarray, float]:
+    """:func:`relative_rotation`'s fit: (ω, σ along ω) from the Jacobian ``J`` (N, 3), the
+    epipolar angles ``e0`` (N,) and the prior weights ``w0`` (N,)."""
     w = w0.copy()
     omega = np.zeros(3)
     for it in range(2 * iterations):
@@ -161,6 +181,39 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     cov = np.linalg.pinv(N) * scale ** 2 * len(e0) / max(float(w.sum()), 1.0)
     u = omega / max(float(np.linalg.norm(omega)), 1e-300)
     return omega, math.sqrt(max(float(u @ cov @ u), 0.0))
+
+
+def _jackknife_sigma(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: int, groups: np.ndarray,
+                     u: np.ndarray) -> float:
+    """Delete-a-patch jackknife σ [rad] of the fitted turn along ``u``: the fit again without each
+    patch of sky in turn; σ² = (G − 1)/G · Σ (ω₋g·u − mean)².
+
+    Why: the normal equations' σ treats every match's error as independent. LK's errors are not:
+    on one deck they share a bias (its views sheared alike, windows straddling a gap's edge), so
+    the decks of a sky ask for different turns and the formal σ, shrinking with the number of
+    matches, calls their average significant (randomized dense seed 11: 0.17° ± 0.024° from 68
+    matches whose decks asked for 0.32° ± 0.13° and 1.05° ± 0.11°; seed 4028: 0.048° ± 0.011°,
+    decks 0.04–0.10°). A real turn of camera 2 moves every patch's matches alike: the patches agree
+    and the jackknife's σ stays the formal one's size.
+    """
+    ids = np.unique(groups)
+    proj = []
+    for g in ids:
+        keep = groups != g
+        if int(keep.sum()) < 3:
+            continue
+        om, _ = _robust_turn(J[keep], e0[keep], w0[keep], iterations)
+        proj.append(float(om @ u))
+    if len(proj) < 2:
+        return 0.0
+    p = np.asarray(proj)
+    return math.sqrt((len(p) - 1) / len(p) * float(((p - p.mean()) ** 2).sum()))
+
+
+def _patches(px: np.ndarray) -> np.ndarray:
+    """Each pixel's patch of sky for :func:`_jackknife_sigma`: squares of ``_GROUP_PX``, (N,) int."""
+    q = np.floor(np.asarray(px, np.float64) / _GROUP_PX).astype(np.int64)
+    return q[:, 0] * 100_003 + q[:, 1]
 
 
 def _px_per_rad(geom: PairGeometry) -> float:
@@ -242,7 +295,8 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # flagged by the median already; its fitted size then comes out low (0.37° for a 0.5° pitch)
     fit = inl if inl.sum() >= cfg.min_matches else np.zeros(n, bool)
     shear = np.nan_to_num(par, nan=0.0) / ppr  # [rad] (see _SHEAR_SCALE)
-    omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2))
+    omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
+                                      groups=_patches(px1[fit]))
                     if fit.any() else (np.zeros(3), math.inf))
     rot = math.degrees(float(np.linalg.norm(omega)))
     # tolerance: a shift of max_rotation_px, or _ROTATION_PARALLAX (2 %) of the matches' median
