@@ -3,7 +3,7 @@ Fehmarn pyranometer (slow)."""
 from __future__ import annotations
 
 import math
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from functools import lru_cache
 from types import SimpleNamespace
 
@@ -163,6 +163,30 @@ def test_the_sunny_level_is_the_pyranometers_upper_quantile():
     lv = Levels()
     lv.set_prior(1.1, 0.5)
     assert lv.levels() == pytest.approx((1.1, 0.5))
+
+
+def test_the_levels_follow_the_cloud_that_is_there_now():
+    """The shade level is the cloud's optical depth, and the cloud changes: 30 min of a thin deck
+    (0.85 of the clear sky in shade) then a thick one (0.5). Observations age (their weight halves
+    every 10 min), so 30 min into the thick deck the shade level is within 0.06 of 0.5 (equal
+    weights for all would still say 0.68), while the sunny level stays; and a station that runs
+    for months keeps only the last 8 half-lives of them."""
+    from cbh.outputs.nowcast import LEVELS_HALF_LIFE_S, Levels
+
+    t0 = datetime(2016, 9, 1, 9, 0, tzinfo=timezone.utc)
+    aged, equal = Levels(), Levels(half_life_s=math.inf)
+    for minute in range(60):
+        k_shade = 0.85 if minute < 30 else 0.5
+        for i in range(11):  # one verified forecast per lead 0 … 10 min, alternately shade and sun
+            p, k = (1.0, k_shade) if i % 2 else (0.0, 1.2)
+            for lv in (aged, equal):
+                lv.add(p, k, t0 + timedelta(minutes=minute, seconds=i))
+    ks, kd = aged.levels()
+    assert abs(kd - 0.5) < 0.06 and abs(ks - 1.2) < 0.02, (ks, kd)
+    assert equal.levels()[1] > 0.65
+    for minute in range(60, 300):  # four more hours
+        aged.add(0.0, 1.2, t0 + timedelta(minutes=minute))
+    assert aged.n <= 8 * LEVELS_HALF_LIFE_S / 60.0 + 1
 
 
 def test_the_map_ends_where_the_camera_stops_seeing():

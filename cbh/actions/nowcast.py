@@ -162,7 +162,7 @@ def _learn(levels, pending: dict, site, pyr, now) -> None:
     pending[site.name] = [(tv, p) for tv, p in pending.get(site.name, []) if tv > now]
     if due:
         for (tv, p), k in zip(due, _measured_index(pyr, site, [tv for tv, _ in due])):
-            levels.add(p, k)
+            levels.add(p, k, tv)
 
 
 def _sunny_prior(levels, site, pyr, now, k_record: dict) -> None:

@@ -28,7 +28,10 @@ For each recorded pair (the issue time t), each site and each lead time L:
    index against the shade probability of the forecasts already verified (every minute of lead
    from 0 to 10 min, whichever leads are asked for; never a later one), drawn towards a prior with
    the weight of ``PRIOR_WEIGHT`` observations: the defaults, or with a pyranometer record of the
-   hour before, its sunny level (:func:`sunny_level`) and the shade level scaled with it.
+   hour before, its sunny level (:func:`sunny_level`) and the shade level scaled with it. An
+   observation's weight halves every ``LEVELS_HALF_LIFE_S`` of its age: the shade level is the
+   cloud's optical depth, which changes with the cloud (a thin altocumulus deck lets 0.85 of the
+   clear sky through, the thick deck that followed it at Fehmarn half an hour later 0.5).
 
 The measure of the field is skill against *smart persistence*: the clear-sky index measured at
 the issue time, carried forward (``benchmarks/eval_irradiance.py``).
@@ -54,6 +57,7 @@ LEADS_S = tuple(float(s) for s in range(0, 1201, 60))
 K_SUN = 1.0  # clear-sky index with the sun unobstructed (default level)
 K_SHADE = 0.45  # clear-sky index in a cloud's shadow (default level; thin altocumulus lets more through)
 PRIOR_WEIGHT = 3.0  # the default levels count as this many pyranometer observations
+LEVELS_HALF_LIFE_S = 600.0  # an observation's weight in the levels halves with each this much age [s]
 #: With a pyranometer the prior's sunny level is its record's upper quantile (:func:`sunny_level`)
 #: over the last hour, and the shade level scales with it (``K_SHADE``/``K_SUN`` of it).
 SUNNY_QUANTILE, SUNNY_HISTORY_S, SUNNY_MIN = 0.9, 3600.0, 20
@@ -486,35 +490,54 @@ def prune_cache(cache: dict, pgs: list) -> None:
 
 class Levels:
     """The clear-sky index in sun and in shade, learned online from a pyranometer (see the module
-    docstring); the defaults without one."""
+    docstring); the defaults without one. Observations older than 8 half-lives (weight < 0.4 %)
+    are dropped, so a station that runs for months keeps a bounded memory."""
 
-    def __init__(self, k_sun: float = K_SUN, k_shade: float = K_SHADE, prior_weight: float = PRIOR_WEIGHT):
+    def __init__(self, k_sun: float = K_SUN, k_shade: float = K_SHADE, prior_weight: float = PRIOR_WEIGHT,
+                 half_life_s: float = LEVELS_HALF_LIFE_S):
         self.prior = (float(k_sun), float(k_shade))
         self.w0 = float(prior_weight)
+        self.half_life_s = float(half_life_s)
         self._p: list[float] = []
         self._k: list[float] = []
+        self._t: list[float] = []  # each observation's time [s since the epoch]
+        self._now = -math.inf
 
     def set_prior(self, k_sun: float, k_shade: float) -> None:
         """Move the prior's two points (the pyranometer's sunny level of the last hour:
         :func:`sunny_level`)."""
         self.prior = (float(k_sun), float(k_shade))
 
-    def add(self, shade_p: float, k_measured: float) -> None:
-        """A shade probability forecast for a time now past, and the clear-sky index measured then."""
+    def add(self, shade_p: float, k_measured: float, when: datetime | None = None) -> None:
+        """A shade probability forecast for a time now past (``when``, its valid time; None: now,
+        i.e. the latest time seen), and the clear-sky index measured then."""
         if math.isfinite(shade_p) and math.isfinite(k_measured) and 0.0 < k_measured < 2.0:
+            t = self._now if when is None else when.timestamp()
+            self._now = max(self._now, t)
             self._p.append(float(shade_p))
             self._k.append(float(k_measured))
+            self._t.append(t)
+            self._forget()
+
+    def _forget(self) -> None:
+        if not math.isfinite(self.half_life_s) or not self._t or self._now - self._t[0] <= 8.0 * self.half_life_s:
+            return
+        keep = [i for i, t in enumerate(self._t) if self._now - t <= 8.0 * self.half_life_s]
+        self._p, self._k, self._t = ([x[i] for i in keep] for x in (self._p, self._k, self._t))
 
     @property
     def n(self) -> int:
         return len(self._k)
 
     def levels(self) -> tuple[float, float]:
-        """(k_sun, k_shade): the prior's two points and the observations, one weighted line."""
+        """(k_sun, k_shade): the prior's two points and the observations (each weighted by its age
+        against the newest: halved every ``half_life_s``), one weighted line."""
         ks, kd = self.prior
         p = np.concatenate([[0.0, 1.0], self._p])
         k = np.concatenate([[ks, kd], self._k])
-        w = np.concatenate([[self.w0, self.w0], np.ones(len(self._p))])
+        age = self._now - np.asarray(self._t, np.float64)
+        decay = np.exp2(-age / self.half_life_s) if math.isfinite(self.half_life_s) else np.ones(len(age))
+        w = np.concatenate([[self.w0, self.w0], decay])
         X = np.column_stack([np.ones_like(p), p]) * np.sqrt(w)[:, None]
         a, b = np.linalg.lstsq(X, k * np.sqrt(w), rcond=None)[0]
         return float(np.clip(a, 0.7, 1.5)), float(np.clip(a + b, 0.05, 1.2))
