@@ -81,13 +81,13 @@ _ROTATION_PARALLAX = 0.02
 #: pairs (a false alarm every 35 correct pairs from the fit's own scatter alone) and 4 in 0.1 %.
 #: A real turn of 0.05–0.25° over the sky is 10–100 σ. (Not by itself a cure for biased matches:
 #: dense randomized seed 11, 0.17° ± 0.024° from 68 LK matches over three decks, flagged its
-#: correct station until σ also came from the patches' agreement, ± 0.118°: :func:`_jackknife_sigma`.)
+#: correct station until σ also came from the patches' agreement, ± 0.062°: :func:`_jackknife_sigma`.)
 _SIGNIFICANCE = 4.0
 #: The rotation's σ is also taken from the agreement of patches of sky (:func:`_jackknife_sigma`),
 #: squares of this side [px, working size] of camera 1's pixels, when the matches lie in at least
 #: ``_MIN_GROUPS`` of them (fewer: the normal equations' σ alone).
 _GROUP_PX = 160.0
-_MIN_GROUPS = 4
+_MIN_GROUPS = 6
 #: … but at most this × the pair's tolerance: LK's scatter on sheared views stays within its window
 #: (median 1.3 px at views 20–40° apart), while a camera 2° off level moves every match by 10 px;
 #: without the cap a 630 m pair's low cloud (hundreds of px of parallax) let that pass.
@@ -154,16 +154,16 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     e0 = np.einsum("ij,ij->i", d2, n)  # sin e ≈ e for the small angles that matter
     w0 = np.ones(len(e0)) if prior is None else np.asarray(prior, np.float64)
     w0 = w0 / max(float(w0.mean()), 1e-300) if len(w0) else w0  # relative: σ's scale stays the residuals'
-    omega, sigma = _robust_turn(J, e0, w0, iterations)
+    omega, sigma, w = _robust_turn(J, e0, w0, iterations)
     if groups is not None and len(np.unique(groups)) >= _MIN_GROUPS:
         u = omega / max(float(np.linalg.norm(omega)), 1e-300)
-        sigma = max(sigma, _jackknife_sigma(J, e0, w0, iterations, np.asarray(groups), u))
+        sigma = max(sigma, _jackknife_sigma(J, e0, w, np.asarray(groups), u))
     return omega, sigma
 
 
-def _robust_turn(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: int) -> tuple[np.ndarray, float]:
-    """:func:`relative_rotation`'s fit: (ω, σ along ω) from the Jacobian ``J`` (N, 3), the
-    epipolar angles ``e0`` (N,) and the prior weights ``w0`` (N,)."""
+def _robust_turn(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: int) -> tuple[np.ndarray, float, np.ndarray]:
+    """:func:`relative_rotation`'s fit: (ω, σ along ω, the final weights (N,)) from the Jacobian
+    ``J`` (N, 3), the epipolar angles ``e0`` (N,) and the prior weights ``w0`` (N,)."""
     w = w0.copy()
     omega = np.zeros(3)
     for it in range(2 * iterations):
@@ -180,13 +180,13 @@ def _robust_turn(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: int)
     N = (J * w[:, None]).T @ J
     cov = np.linalg.pinv(N) * scale ** 2 * len(e0) / max(float(w.sum()), 1.0)
     u = omega / max(float(np.linalg.norm(omega)), 1e-300)
-    return omega, math.sqrt(max(float(u @ cov @ u), 0.0))
+    return omega, math.sqrt(max(float(u @ cov @ u), 0.0)), w
 
 
-def _jackknife_sigma(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: int, groups: np.ndarray,
-                     u: np.ndarray) -> float:
-    """Delete-a-patch jackknife σ [rad] of the fitted turn along ``u``: the fit again without each
-    patch of sky in turn; σ² = (G − 1)/G · Σ (ω₋g·u − mean)².
+def _jackknife_sigma(J: np.ndarray, e0: np.ndarray, w: np.ndarray, groups: np.ndarray, u: np.ndarray) -> float:
+    """Delete-a-patch jackknife σ [rad] of the fitted turn along ``u``: the weighted least squares
+    again without each patch of sky in turn (the robust fit's final weights ``w`` kept: each
+    patch's share of the normal equations taken out), σ² = (G − 1)/G · Σ (ω₋g·u − mean)².
 
     Why: the normal equations' σ treats every match's error as independent. LK's errors are not:
     on one deck they share a bias (its views sheared alike, windows straddling a gap's edge), so
@@ -195,19 +195,36 @@ def _jackknife_sigma(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: 
     matches whose decks asked for 0.32° ± 0.13° and 1.05° ± 0.11°; seed 4028: 0.048° ± 0.011°,
     decks 0.04–0.10°). A real turn of camera 2 moves every patch's matches alike: the patches agree
     and the jackknife's σ stays the formal one's size.
+
+    A σ taken from G patches is itself uncertain (G − 1 degrees of freedom): it is widened by
+    Student's t quantile over the normal one at the 0.1 % level (:func:`_t_widening`: 1.43× for
+    10 patches, 1.14× for 24), so that ``_SIGNIFICANCE`` σ means the same false-alarm rate.
     """
-    ids = np.unique(groups)
+    ids, g = np.unique(groups, return_inverse=True)
+    A = J * w[:, None]
+    outer = (A[:, :, None] * J[:, None, :]).reshape(len(J), 9)
+    Ng = np.stack([np.bincount(g, outer[:, i], len(ids)) for i in range(9)], 1).reshape(len(ids), 3, 3)
+    bg = np.stack([np.bincount(g, A[:, i] * e0, len(ids)) for i in range(3)], 1)
+    N, b = Ng.sum(0), bg.sum(0)
     proj = []
-    for g in ids:
-        keep = groups != g
-        if int(keep.sum()) < 3:
+    for k in range(len(ids)):
+        Nk = N - Ng[k]
+        if np.linalg.cond(Nk) > 1e12:  # the others alone do not fix all three angles
             continue
-        om, _ = _robust_turn(J[keep], e0[keep], w0[keep], iterations)
-        proj.append(float(om @ u))
+        proj.append(float(-np.linalg.solve(Nk, b - bg[k]) @ u))
     if len(proj) < 2:
         return 0.0
     p = np.asarray(proj)
-    return math.sqrt((len(p) - 1) / len(p) * float(((p - p.mean()) ** 2).sum()))
+    return _t_widening(len(p) - 1) * math.sqrt((len(p) - 1) / len(p) * float(((p - p.mean()) ** 2).sum()))
+
+
+def _t_widening(dof: int, z: float = 3.2905) -> float:
+    """Student's t quantile over the normal's ``z`` (3.29: 0.05 % each side) for ``dof`` degrees
+    of freedom, by the Cornish–Fisher expansion (within 2 % of the exact quantile from 9 dof on, 9 % at 5:
+    4.69 against 4.78)."""
+    v = max(float(dof), 1.0)
+    t = z + (z ** 3 + z) / (4 * v) + (5 * z ** 5 + 16 * z ** 3 + 3 * z) / (96 * v * v)
+    return t / z
 
 
 def _patches(px: np.ndarray) -> np.ndarray:
