@@ -37,8 +37,9 @@ and stays at 0.001–0.028° on correct simulated stations
 ``max_rotation_px`` (0.25 px at 45° off axis: 0.047° at the default working size, under 5 % of
 the parallax of a layer up to 2.9 km at B = 50 m; in pixels, like the matching noise, so that it
 holds at any image size) and is more than 4 σ of the fit (matches from one patch of sky fit
-poorly; σ also from how far the fits without each patch of sky scatter, since each deck's LK
-matches share a bias of their own) flags the pair; not for a
+poorly; where the turn explains little of the matches' scatter, σ also from how far the fits
+without each patch of sky scatter, since each deck's LK matches share a bias of their own)
+flags the pair; not for a
 station that states ``expected_miss_ratio`` (its lens models leave rays apart by that much, and
 the fitted rotation absorbs their error: 4.7° for the WAHRSIS pair). `cbh calibrate` fits the
 relative rotation to 0.001° over a day.
@@ -88,6 +89,12 @@ _SIGNIFICANCE = 4.0
 #: ``_MIN_GROUPS`` of them (fewer: the normal equations' σ alone).
 _GROUP_PX = 160.0
 _MIN_GROUPS = 6
+#: … but only where the turn explains little: a real turn moves every match, and fitted it takes
+#: at least this share off their residuals' robust scale (simulated turns of 0.05–0.1°: 10–48 %;
+#: a camera 2° off level seen 630 m away, 90 seeded matches in 12 patches whose gate kept a biased
+#: few per patch: 36 %), while the compromise of decks that ask for different turns takes little
+#: or nothing off (randomized seed 4028: 6 %; dense seed 11: −38 %).
+_EXPLAINS = 0.1
 #: … but at most this × the pair's tolerance: LK's scatter on sheared views stays within its window
 #: (median 1.3 px at views 20–40° apart), while a camera 2° off level moves every match by 10 px;
 #: without the cap a 630 m pair's low cloud (hundreds of px of parallax) let that pass.
@@ -136,8 +143,9 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
 
     ``prior`` (N,): each match's weight before the robust ones (how much its own position is
     trusted; None: all alike). ``groups`` (N,) int: the patch of sky each match lies in; with at
-    least ``_MIN_GROUPS`` of them, σ is also taken from the scatter of the fits that leave one
-    patch out (:func:`_jackknife_sigma`), and the larger σ stands.
+    least ``_MIN_GROUPS`` of them, and a turn that takes less than ``_EXPLAINS`` off the
+    residuals' robust scale, σ is also taken from the scatter of the fits that leave one patch
+    out (:func:`_jackknife_sigma`), and the larger σ stands.
 
     Returns (ω, σ): σ [rad] is the standard deviation of |ω| along ω's direction, from the
     weighted normal equations and the residuals' robust scale (and, with ``groups``, from the
@@ -155,10 +163,17 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     w0 = np.ones(len(e0)) if prior is None else np.asarray(prior, np.float64)
     w0 = w0 / max(float(w0.mean()), 1e-300) if len(w0) else w0  # relative: σ's scale stays the residuals'
     omega, sigma, w = _robust_turn(J, e0, w0, iterations)
-    if groups is not None and len(np.unique(groups)) >= _MIN_GROUPS:
+    if groups is not None and len(np.unique(groups)) >= _MIN_GROUPS and _explained(e0, e0 + J @ omega) < _EXPLAINS:
         u = omega / max(float(np.linalg.norm(omega)), 1e-300)
         sigma = max(sigma, _jackknife_sigma(J, e0, w, np.asarray(groups), u))
     return omega, sigma
+
+
+def _explained(before: np.ndarray, after: np.ndarray) -> float:
+    """The share of the residuals' robust scale (1.4826 · MAD) that the fitted turn takes away."""
+    mad = lambda r: float(np.median(np.abs(r - np.median(r)))) if len(r) else 0.0  # noqa: E731
+    m0 = mad(before)
+    return 1.0 - mad(after) / m0 if m0 > 0 else 0.0
 
 
 def _robust_turn(J: np.ndarray, e0: np.ndarray, w0: np.ndarray, iterations: int) -> tuple[np.ndarray, float, np.ndarray]:
