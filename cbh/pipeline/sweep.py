@@ -1304,18 +1304,24 @@ def own_plane_peaks(own: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: floa
 
 
 def _true_peaks(found: list[tuple[int, float]], whole: np.ndarray, swept: np.ndarray, first: int):
-    """The regional peaks ``found`` ((bin, weight)) that are peaks of the sky's layers: a local
-    maximum of the ``whole`` image's (smoothed) votes too (a region's peak on the flank of a
-    stronger one is the noise of a near layer's planes, a few planes off), inside the swept planes
-    (``swept`` (nb,) bool: a bin with a swept plane on either side; at the edge of a run of planes
-    the maximum is where the sweep stopped, not the layer), and at bin ``first`` or beyond (the
-    sweep's highest plane: s = 0, no parallax, is glare or an obstacle at infinity)."""
+    """The regional peaks ``found`` ((bin, weight)) that are peaks of the sky's layers: within one
+    plane of a local maximum of the ``whole`` image's (smoothed) votes (a region's peak on the
+    flank of a stronger one is the noise of a near layer's planes, a few planes off, with no
+    maximum beside it; a deck seen through gaps whose parallax lies between two planes peaks on
+    either, the region on one and the whole image on the other: seed 106's 6069 m at 4.45 px),
+    inside the swept planes (``swept`` (nb,) bool: a bin with a swept plane on either side; at the
+    edge of a run of planes the maximum is where the sweep stopped, not the layer), and at bin
+    ``first`` or beyond (the sweep's highest plane: s = 0, no parallax, is glare or an obstacle at
+    infinity)."""
     nb = len(whole)
+    pad = np.pad(np.asarray(whole, np.float64), 1, constant_values=-np.inf)
+    top = (pad[1:-1] > 0) & (pad[1:-1] >= np.maximum(pad[:-2], pad[2:]))  # (nb,) local maxima
+    near_top = top | np.r_[top[1:], False] | np.r_[False, top[:-1]]
     out = []
     for b, w in found:
         if b < first or b <= 0 or b >= nb - 1 or not (swept[b - 1] and swept[b + 1]):
             continue
-        if whole[b] >= whole[b - 1: b + 2].max():
+        if near_top[b]:
             out.append((b, w))
     return out
 
@@ -1361,11 +1367,14 @@ def label_pass(fine: FineCost, cfg) -> LayerLabels:
     return LayerLabels(cuts, votes, bw, ranges, plane_layer, label, own, s_w)
 
 
-def resolved_layers(ok: np.ndarray, s_px: np.ndarray, label: np.ndarray, o1z: float) -> list[float]:
+def resolved_layers(ok: np.ndarray, s_px: np.ndarray, label: np.ndarray, o1z: float, s_min: float = 0.0) -> list[float]:
     """The height [m] of each layer the sweep resolved (o1z + 1 / the median s of its accepted
     pixels, every second pixel of the half-resolution lattice of ``label`` (h/2, w/2)),
-    ascending; a layer without accepted pixels has none."""
-    okh, sh = ok[::4, ::4], s_px[::4, ::4]
+    ascending; a layer without accepted pixels has none. Only pixels at ``s_min`` or more (the
+    sweep's height range, :func:`plane_range`) count: beyond it (glare and aureole at infinity,
+    which the far range's planes match too) is no height of a layer, and the triangulation drops
+    it; a far deck seen through gaps shares its label with such pixels (seed 106: 164 of 268)."""
+    okh, sh = ok[::4, ::4] & (s_px[::4, ::4] >= s_min), s_px[::4, ::4]
     lab = np.asarray(label)[::2, ::2]
     n = min(okh.shape[0], lab.shape[0]), min(okh.shape[1], lab.shape[1])
     okh, sh, lab = okh[:n[0], :n[1]], sh[:n[0], :n[1]], lab[:n[0], :n[1]]
@@ -1531,7 +1540,7 @@ def _sweep_passes(gray1, gray2, cloud1, maps, o1z, cfg, info: dict) -> SweepFiel
         lap("layers")
         region, ok, s_px = fine.region, fine.ok.copy(), refine_pass(fine, lab, maps.scale_px, cfg)
         ok &= np.isfinite(s_px)
-        info["resolved_m"] = resolved_layers(ok, s_px, lab.label, o1z)
+        info["resolved_m"] = resolved_layers(ok, s_px, lab.label, o1z, s_min)
         lap("refine")
     else:
         region, ok, s_px = _per_pixel(g1, g2, cloud1, maps, s_fine, ds, cfg)
