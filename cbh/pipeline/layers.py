@@ -334,7 +334,10 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
         sel = (heights_m >= lo) & (heights_m < hi)
         n = int(sel.sum())
         frac = cfg.min_fraction_resolved if any(lo <= h < hi for h in upper) else cfg.min_fraction
-        if n < cfg.min_points or n < frac * len(heights_m) or cover_of[k] < cfg.min_cover:
+        # a deck seen through gaps is measured in their interiors only (a window on a gap's edge
+        # takes the lower deck): its cover is short by as much as its share of the points
+        cover = cfg.min_cover * frac / cfg.min_fraction if cfg.min_fraction > 0 else cfg.min_cover
+        if n < cfg.min_points or n < frac * len(heights_m) or cover_of[k] < cover:
             unassigned += cover_of[k]  # cloud of an unsupported height interval: in no layer
             continue
         label[sel] = len(layers)
