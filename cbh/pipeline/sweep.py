@@ -62,9 +62,13 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    with the layer whose planes its ``label_px`` box cost prefers. The wide box that straddles a
    gap's edge takes the lower deck (its texture is coarser and stronger), so each region of
    ``region_px`` also votes with every block's *own* best plane (:func:`own_plane_peaks`): a
-   region's peak with ``region_share`` of its votes that is a local maximum of the whole
-   image's own votes too (not the flank of a near layer's noise), inside the swept planes, above
-   the image's lowest layer and more than 1.5 plane steps from every layer is a layer as well.
+   region's peak with ``region_share`` of its votes (its votes smoothed over half a plane: a
+   deck three planes from one with five times its votes is no flank of it) that lies within one
+   plane of a local maximum of the whole image's own votes over the swept planes (not the flank
+   of a near layer's noise; unsmoothed), inside the swept planes, above the image's lowest layer
+   and more than 1.5 plane steps from every layer is a layer as well. A layer's height
+   (:func:`resolved_layers`) counts its pixels inside the height range only: the far range's
+   planes match glare at infinity too, in the label of a far deck seen through gaps.
    (A pixel whose own best plane lies in another layer than its label's straddles the two: its
    cost stays out of both layers' refinement, below. Dropping such pixels altogether was tried:
    it gained nothing at 960 px, and on a clear sky without a capture time it left a cluster of
