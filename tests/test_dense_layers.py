@@ -15,8 +15,8 @@ import pytest
 from cbh.flags import INVALIDATING
 from cbh.geometry.station import load_station
 from cbh.pipeline.config import LayersConfig, SweepConfig
-from cbh.pipeline.layers import layer_band, parallax_px, supported_layers
-from cbh.pipeline.sweep import regional_peaks, truncated, vote_layers
+from cbh.pipeline.layers import layer_band, layer_stats, parallax_px, supported_layers
+from cbh.pipeline.sweep import own_plane_peaks, regional_peaks, resolved_layers, truncated, vote_layers
 from cbh.presets import station_path
 from cbh.result import Histogram, Layer
 from cbh.sim.evaluate import score_layers
@@ -67,6 +67,65 @@ def test_a_regional_layer_counts_above_the_lowest_layer_only():
     assert len(near[2]) == 1
 
 
+def _own_planes(rng, gaps: bool):
+    """192 × 192 half-resolution blocks whose own best plane is plane 4 of nine (a deck at 4 px of
+    parallax; 20 % of them one plane off, 3 % two), and with ``gaps`` 9 gaps of 14 × 14 blocks in
+    which 85 % take plane 1 (an upper deck at 1 px, three planes from the lower: 4 % of the sky,
+    15 % of the votes of a region around a gap, as in seed 114)."""
+    own = 4 + rng.choice([-2, -1, 0, 1, 2], (192, 192), p=[0.015, 0.1, 0.77, 0.1, 0.015])
+    if gaps:
+        for y in range(24, 192, 64):
+            for x in range(24, 192, 64):
+                g = rng.random((14, 14)) < 0.85
+                own[y:y + 14, x:x + 14][g] = 1
+    return own
+
+
+def test_a_deck_three_planes_from_a_dominant_one_is_a_regional_layer():
+    """Seed 114 (7401 m through the gaps of 1773 m at B = 24 m: 1.0 and 4.3 px): a region's own
+    votes are 143 on plane 1 beside 742 on plane 4; smoothed over a whole plane the upper deck is
+    the lower one's flank. Smoothed over half a plane it is a layer (half-plane bin 2), and the
+    lower deck's own noise alone is none."""
+    ds = 1e-4
+    s, cfg = np.arange(9) * ds, SweepConfig()
+    rng = np.random.default_rng(4)
+    found = own_plane_peaks(_own_planes(rng, True), np.ones((192, 192)), s, ds, cfg, [8])
+    assert [b for b, _ in found] == [2]
+    assert own_plane_peaks(_own_planes(rng, False), np.ones((192, 192)), s, ds, cfg, [8]) == []
+
+
+def test_a_resolved_layers_height_counts_no_match_at_infinity():
+    """Seed 106: the far range's planes match the glare at infinity (s = 0) too, in the label of a
+    6069 m deck seen through gaps (164 of its 268 pixels): its height is that of the pixels in the
+    sweep's height range, not none."""
+    ok = np.ones((40, 40), bool)
+    s_px = np.full((40, 40), 1.0 / 6000.0, np.float32)
+    s_px[:, :24] = 0.0  # 60 % of the layer's pixels at infinity
+    label = np.zeros((20, 20), np.uint8)
+    assert resolved_layers(ok, s_px, label, 0.0) == []  # (the median s is 0: no height)
+    assert resolved_layers(ok, s_px, label, 0.0, 1.0 / 15000.0) == pytest.approx([6000.0], rel=1e-6)
+
+
+def test_a_layer_s_base_comes_from_its_better_measured_half():
+    """Seed 109's 400 m layer at B = 52 m: 40 % of its points, nearer the zenith (parallax × height
+    ∝ B⊥ cos z 2–4 times the others', predicted noise 1.5–3 m), at 400 ± 2 m; the other 60 % (near
+    the horizon, predicted 3–8 m) spread over the planes swept there, 288–420 m. From the spread of
+    all points the base is 6 % low; the spread of the better-measured half is nil: the base is the
+    median of all points, which the horizon's half pulls down by 1 %. The median and spread
+    reported still say what all its points say; without the points' parallax, as before."""
+    rng = np.random.default_rng(5)
+    h = np.r_[400.0 + rng.normal(0.0, 2.0, 800), rng.uniform(288.0, 420.0, 1200)]
+    noise = np.r_[rng.uniform(1.5, 3.0, 800), rng.uniform(3.0, 8.0, 1200)]
+    geo = np.r_[rng.uniform(2.0, 4.0, 800), rng.uniform(0.5, 1.0, 1200)]  # B⊥ cos z [relative]
+    parallax = 30.0 * geo * 400.0 / h
+    cfg = LayersConfig()
+    L = layer_stats(h, 0.3, cfg, noise, parallax=parallax)
+    assert 0.98 * 400.0 < L.height_m <= L.median_height_m < L.height_m + 0.005 * 400.0
+    before = layer_stats(h, 0.3, cfg, noise)
+    assert before.height_m < 0.95 * 400.0
+    assert (L.median_height_m, L.spread_m) == (before.median_height_m, before.spread_m)
+
+
 def test_no_match_where_the_sweep_stopped():
     """The planes of two hypotheses with a gap between: the planes on either side of the gap are
     truncated maxima; the far range's infinity (s = 0) and the sweep's floor are not."""
@@ -89,6 +148,12 @@ def test_a_layer_the_sweep_resolved_needs_a_smaller_share_of_the_points():
     assert [round(L.median_height_m, -2) for L in supported_layers(*args, resolved_m=(1000.0, 4010.0)).layers] == [1000.0, 4000.0]
     # the sweep's lowest layer is hidden by nothing: 2 % of the points is no layer there
     assert [round(L.median_height_m, -2) for L in supported_layers(*args, resolved_m=(4010.0,)).layers] == [1000.0]
+    # seed 114: a deck seen through gaps is measured in their interiors only, its cover (0.3 % of the
+    # sky here) short by as much as its share of the points: enough for a layer the sweep resolved
+    near = np.where(np.arange(10000).reshape(100, 100) < 9970, 1000.0, 4000.0).astype(np.float32)
+    args = args[:6] + (near,) + args[7:]
+    assert [round(L.median_height_m, -2) for L in supported_layers(*args).layers] == [1000.0]
+    assert [round(L.median_height_m, -2) for L in supported_layers(*args, resolved_m=(1000.0, 4010.0)).layers] == [1000.0, 4000.0]
 
 
 def test_dense_skies_widen_only_the_layers():
@@ -119,6 +184,9 @@ def test_dense_skies_widen_only_the_layers():
     116,  # 631 m (84 %) and 3860 m at B = 143 m: 3860 not found
     7,    # 434/4031/5820 m at B = 51 m: 4031 (and the sliver at 5820) read as one 4652 m layer, "spurious"
     113,  # 707/4695/9738 m at B = 30 m: 9738, 1 px of parallax from 4695, read with it as one 4813 m layer
+    106,  # 1233/2001/6069 m at B = 86 m: 6069 seen through 7 % of the sky, between two planes, not found
+    109,  # 400/700/6970 m at B = 52 m: 400 read 370 (its horizon matches spread over the swept planes)
+    114,  # 1773 m (65 %) and 7401 m at B = 24 m, 3 planes apart: 7401 not found
 ])
 def test_dense_randomized_skies_regression(seed, tmp_path):
     """Dense skies of two or three layers at 960 px: every expected layer found within

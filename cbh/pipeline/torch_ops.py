@@ -391,7 +391,7 @@ def sweep_field_torch(gray1: np.ndarray, gray2: np.ndarray, cloud1: np.ndarray, 
     s_px = refine_pass_torch(fine, lab, tm.scale_px, cfg)
     s_np = s_px.cpu().numpy()
     out = SweepField(fine.region, fine.ok.cpu().numpy() & np.isfinite(s_np), s_np, info)
-    info["resolved_m"] = resolved_layers(out.ok, out.s, lab.label.cpu().numpy(), o1z)
+    info["resolved_m"] = resolved_layers(out.ok, out.s, lab.label.cpu().numpy(), o1z, s_min)
     lap("refine")
     return out
 
