@@ -109,12 +109,13 @@ def test_the_lagged_ensemble_reads_the_cloud_away_from_the_glare():
 
 
 def test_the_disk_grows_with_the_motions_measured_error():
-    """A 300 m cloud 3.2 km upwind of the sun ray of the site (the sun 40° from the zenith in the
-    south) on a 3000 m layer moving east at 10 m/s shades the site from 300 to 330 s ahead. Three
-    pairs a minute apart measured the motion within 0.1 m/s: the disk at 5 min then has σ ≈ 80 m
-    (10 m + 1 % of the 3.9 km slant + 0.1 m/s × 315 s) and the strip's shade probability
-    1/2 < p (erf(150/(80·√2)) ≈ 0.94 for one read). The prior alone (5 % + 0.2 m/s: 0.7 m/s, σ ≈ 270 m)
-    blurs it below 1/2 (≈ 0.42): the shadow would be missed. The measured error is the members' scatter
+    """A 200 m cloud 3.1 km upwind of the sun ray of the site (the sun 40° from the zenith in the
+    south) on a 3000 m layer moving east at 10 m/s shades the site from 300 to 320 s ahead. Three
+    pairs a minute apart measured the motion within 0.1 m/s: the disk at 310 s then has σ ≈ 34 m
+    (10 m, 8.5 m of the sun's disk over the 3.9 km ray, 0.1 m/s × 310 s, in quadrature; the site
+    at the camera: no height term) and the strip's shade probability 1/2 < p (erf(100/(34·√2)) ≈ 1
+    for one read). The prior alone (5 % + 0.2 m/s: 0.7 m/s, σ ≈ 220 m) blurs it below 1/2
+    (erf(100/(220·√2)) ≈ 0.35): the shadow would be missed. The measured error is the members' scatter
     (sample standard deviation, the RMS of both axes), at least 1 % of the speed, unknown from one motion."""
     from datetime import timedelta
 
@@ -128,7 +129,7 @@ def test_the_disk_grows_with_the_motions_measured_error():
     history, winds = [], [(9.9, -0.1), (10.1, 0.1), (10.0, 0.0)]
     for i, wind in enumerate(winds):  # the strip 600 m further west a minute earlier
         back = 600.0 * (len(winds) - 1 - i)
-        pg, west = _half_sky(-3000.0 - back, sun=sun), _half_sky(-3300.0 - back, sun=sun)
+        pg, west = _half_sky(-3000.0 - back, sun=sun), _half_sky(-3200.0 - back, sun=sun)
         pg.labels[west.labels == 0] = ground.CLEAR
         pg.motions, pg.time_utc = [wind], t0 + timedelta(seconds=60.0 * i)
         history = _ensemble(history, pg)
@@ -139,7 +140,7 @@ def test_the_disk_grows_with_the_motions_measured_error():
     assert motion_errors(steady) == [pytest.approx(0.1)]  # the floor: 1 % of 10 m/s
     site_m = np.array([0.0, 0.0, float(pg.camera.position_m[2])])
     site = Site("s", math.nan, math.nan, float(site_m[2]), site_m)
-    tv = pg.time_utc + timedelta(seconds=315.0)
+    tv = pg.time_utc + timedelta(seconds=310.0)
     p, _ = lagged_shade(history, site, sun, tv)
     assert p > 0.8, p
     pg.motion_errors = None  # the prior
