@@ -77,6 +77,29 @@ def test_the_shadow_edge_arrives_within_a_minute_of_the_truth():
     assert errors and all(e <= 60.0 for e in errors), errors
 
 
+def test_a_height_error_moves_the_shadow_by_its_share_of_the_sites_distance_from_the_camera():
+    """A deck measured 10 % too high (3300 m for 3000 m) is also measured 10 % too fast (11 m/s for
+    10 m/s): both come from camera 1's pixels scaled by the height. The errors cancel at the camera:
+    the straight cloud edge's shadow still arrives at the camera's site when it does (within 5 s: the
+    2 s lead step and a pixel of the 320 px map, 30–40 m there). At a site 2 km east (downwind) the read lands 10 % × 2 km = 200 m upwind of the truth:
+    the shadow is forecast 200 m / 11 m/s ≈ 18 s early, whatever the lead (here 120 s and 240 s). This
+    is why the read disk's height term is ``HEIGHT_ERROR`` × the site's distance from camera 1
+    (:func:`cbh.outputs.nowcast.read_sigma_m`), not a share of the lead or the slant range."""
+    from cbh.outputs.nowcast import shade_probability
+
+    zen = math.radians(40.0)
+    sun = np.array([0.0, -math.sin(zen), math.cos(zen)])  # due south: the ray point's east = the site's
+    for east_m, arrive_s in ((0.0, 120.0), (0.0, 240.0), (2000.0, 120.0), (2000.0, 240.0)):
+        pg = _half_sky(east_m - 10.0 * arrive_s, height_m=3000.0, sun=sun)  # the true deck at 3000 m
+        pg.heights, pg.motions = [3300.0], [(11.0, 0.0)]  # as measured: 10 % high, 10 % fast
+        site = np.array([east_m, 0.0, 0.0])
+        leads = np.arange(arrive_s - 40.0, arrive_s + 41.0, 2.0)
+        p = np.array([shade_probability(pg, site, sun, lead)[0] for lead in leads])
+        forecast = leads[np.flatnonzero(p >= 0.5)[0]]
+        early = 0.1 * east_m / 11.0
+        assert abs(arrive_s - forecast - early) <= 5.0, (east_m, arrive_s, forecast)
+
+
 def test_the_lagged_ensemble_reads_the_cloud_away_from_the_glare():
     """A cloud deck moving east at 10 m/s will cover the sun ray of the site (the sun 40° from the
     zenith in the south) 5 min from now, and does at the issue time, but the issue pair's mask
