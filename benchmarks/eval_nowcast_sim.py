@@ -97,6 +97,7 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
     truth: dict[float, list] = {}
     issued = []  # (issue time [s], PairGround, the ensemble's pairs up to it)
     history: list = []
+    recent: list = []  # every valid pair's motions of the last 10 min (the motion errors)
     t0 = sc.time_utc
     for i in range(n):
         t = t0 + timedelta(seconds=CADENCE_S * i)
@@ -110,7 +111,7 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
                          previous=state)
         state = r.state
         pg = pair_ground(st, pipe.config.masks, r)
-        history = _ensemble(history, pg) if pg.valid else history
+        history = _ensemble(history, pg, recent) if pg.valid else history
         issued.append((CADENCE_S * i, pg, list(history) if pg.valid else [pg]))
     out = {"scene": scene, "size_px": size, "sites": len(sites), "truth": truth_kind, "leads": {}}
     places = [Site(f"s{k}", math.nan, math.nan, float(p[2]), p) for k, p in enumerate(sites)]

@@ -149,18 +149,26 @@ def test_the_disk_grows_with_the_motions_measured_error():
     zen = math.radians(40.0)
     sun = np.array([0.0, -math.sin(zen), math.cos(zen)])
     t0 = datetime(2016, 9, 1, 9, 0, tzinfo=timezone.utc)
-    history, winds = [], [(9.9, -0.1), (10.1, 0.1), (10.0, 0.0)]
+    history, recent, winds = [], [], [(9.9, -0.1), (10.1, 0.1), (10.0, 0.0)]
     for i, wind in enumerate(winds):  # the strip 600 m further west a minute earlier
         back = 600.0 * (len(winds) - 1 - i)
         pg, west = _half_sky(-3000.0 - back, sun=sun), _half_sky(-3200.0 - back, sun=sun)
         pg.labels[west.labels == 0] = ground.CLEAR
         pg.motions, pg.time_utc = [wind], t0 + timedelta(seconds=60.0 * i)
-        history = _ensemble(history, pg)
+        history = _ensemble(history, pg, recent)
     err = history[-1].motion_errors[0]
     assert err == pytest.approx(math.sqrt(np.mean(np.var(np.array(winds), axis=0, ddof=1))))  # 0.1 m/s
     assert motion_errors(history[-1:]) == [pytest.approx(math.nan, nan_ok=True)]
     steady = [SimpleNamespace(heights=[3000.0], motions=[(10.0, 0.0)])] * 3
     assert motion_errors(steady) == [pytest.approx(0.1)]  # the floor: 1 % of 10 m/s
+    # pairs 10 s apart, the first without a motion (a station's first pair): the ensemble keeps one
+    # member a minute (the first and the newest), but the error is measured from the second motion on
+    quick, recent = [], []
+    for i, wind in enumerate([(math.nan, math.nan), *winds[:2]]):
+        q = SimpleNamespace(heights=[3000.0], motions=[wind], time_utc=t0 + timedelta(seconds=10.0 * i))
+        quick = _ensemble(quick, q, recent)
+    assert [m.time_utc.second for m in quick] == [0, 20]
+    assert quick[-1].motion_errors == [pytest.approx(0.1 * math.sqrt(2.0))]  # the two motions' scatter
     site_m = np.array([0.0, 0.0, float(pg.camera.position_m[2])])
     site = Site("s", math.nan, math.nan, float(site_m[2]), site_m)
     tv = pg.time_utc + timedelta(seconds=310.0)

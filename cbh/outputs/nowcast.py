@@ -419,9 +419,10 @@ def _same_layer(heights, h: float) -> int | None:
 
 
 def motion_errors(pgs: list) -> list[float]:
-    """Per layer of the newest pair of ``pgs`` (the lagged ensemble, oldest first): its motion's
-    error [m/s, per axis], measured as the scatter of that layer's motion over the members (a
-    member's layer within ``LAYER_MATCH`` of its height): the RMS over both axes of the sample
+    """Per layer of the newest pair of ``pgs`` (the recent valid pairs, oldest first: anything with
+    ``heights`` and ``motions``; the export takes every pair of the last ``ENSEMBLE_S``): its motion's
+    error [m/s, per axis], measured as the scatter of that layer's motion over the pairs (a
+    pair's layer within ``LAYER_MATCH`` of its height): the RMS over both axes of the sample
     standard deviation, at least ``MOTION_FLOOR`` of the speed; NaN (the prior ``MOTION_ERROR``)
     with fewer than ``MOTION_MEMBERS`` motions. The scatter holds what each pair's motion gets wrong
     (its tracks, its height) and what the wind itself changed over the ensemble's 10 min."""
