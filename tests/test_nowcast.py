@@ -337,21 +337,26 @@ def test_a_station_states_its_pyranometer(tmp_path, capsys):
     assert "levels site1: k_sun" in out and "measurements" in out, out
 
 
-@pytest.mark.slow
-def test_shadow_edges_in_simulation_do_not_regress():
-    """benchmarks/eval_nowcast_sim.py on 6 minutes of the two-layer scene: the share of true shadow
-    edges the forecast places within 60 s (measured with the layer-wise lagged ensemble 78 % at
-    lead 0 and 70 % at 1 min, against 73 % and 62 % from the issue pair alone; the issue's target
-    is 90 %, see docs/accuracy.md): kept from falling back, and the ensemble no worse than one pair."""
+@pytest.mark.slow  # (two 10 min runs of the scene: about 50 s)
+def test_shadow_edges_in_simulation_meet_the_target():
+    """benchmarks/eval_nowcast_sim.py as run by default (the two-layer scene at 480 px, 10 min):
+    the issue's target, the forecast shade within 60 s of ≥ 90 % of the true shadow edges, met at
+    every lead up to 3 min (measured 94 %, 93 %, 94 %, 94 %); at 5 min ≥ 90 % of the edges where a
+    forecast was issued (measured 98 %: 42 of 43) and ≥ 85 % of all (88 %: the other edges' sun rays
+    meet the lower deck's upwind cloud beyond the map, ``beyond_view``, or before the first motion).
+    The ensemble no worse than the issue pair alone at 0 and 1 min (where the masked sun hides the
+    issue pair's own read)."""
     import sys
 
     sys.path.insert(0, str(REPO / "benchmarks"))
     from eval_nowcast_sim import evaluate
 
-    res = evaluate("two-layers", 480, 6.0)["leads"]
-    one = evaluate("two-layers", 480, 6.0, single=True)["leads"]
-    assert res[0]["edges"] >= 50 and res[0]["share"] >= 0.75 and res[60]["share"] >= 0.65, res
-    assert res[120]["share"] >= 0.5, res
+    res = evaluate("two-layers", 480, 10.0)["leads"]
+    one = evaluate("two-layers", 480, 10.0, single=True)["leads"]
+    assert res[0]["edges"] >= 90, res
+    for lead in (0, 60, 120, 180):
+        assert res[lead]["share"] >= 0.9, (lead, res[lead])
+    assert res[300]["share_with_forecast"] >= 0.9 and res[300]["share"] >= 0.85, res[300]
     assert res[0]["share"] >= one[0]["share"] and res[60]["share"] >= one[60]["share"], (res, one)
 
 

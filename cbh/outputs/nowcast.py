@@ -77,11 +77,12 @@ MOTION_ERROR = (0.05, 0.2)
 MOTION_MEMBERS = 2
 MOTION_FLOOR = 0.01
 WIDEN = (2.0, 4.0, 8.0, 16.0)  # the disk widens by these factors until a third of it is known ...
-#: ... of its σ, or of this [m] when σ is smaller: widening looks for the nearest sky the camera
-#: sees across what hides the layer (the masked sun, a lower cloud: hundreds of metres to
-#: kilometres), which a precise read's small σ says nothing about (the simulated 8 km deck behind
-#: cumulus, low-and-high: with the σ alone, 16 % fewer lead-0 forecasts)
-WIDEN_FROM_M = 100.0
+#: ... of its σ, or of this share of the range from camera 1 when σ is smaller [rad]: widening looks
+#: for the nearest sky the camera sees across what hides the layer (the masked sun, a lower cloud:
+#: patches of the camera's view, 16 steps of 0.01 rad reach 9°), which a precise read's small σ
+#: says nothing about (with the σ alone the simulated 8 km deck behind cumulus, low-and-high, had
+#: 16 % fewer lead-0 forecasts, and the real Fehmarn deck 2 of 29)
+WIDEN_FROM = 0.01
 MIN_KNOWN = 0.3  # known share of the disk's weight needed for a probability
 #: A time-lagged ensemble (:func:`lagged_shade`): the forecasts for one valid time issued by the
 #: pairs of the last ``ENSEMBLE_S`` (one per ``ENSEMBLE_STEP_S``) are averaged ...
@@ -270,12 +271,14 @@ def _in_view(camera, pts: np.ndarray, shape) -> np.ndarray:
 
 def _layer_share(pg, k: int, centre: np.ndarray, sigma_m: float) -> tuple[float, bool]:
     """Layer k's weighted cloud share on a disk about ``centre`` (3,) on the layer, widened
-    (``WIDEN`` × max(σ, ``WIDEN_FROM_M``)) until ``MIN_KNOWN`` of it is known (NaN when never);
+    (``WIDEN`` × max(σ, ``WIDEN_FROM`` × its range from camera 1)) until ``MIN_KNOWN`` of it is
+    known (NaN when never);
     and whether it had to widen."""
     from cbh.geometry.ground import lookup_layer
 
+    reach = WIDEN_FROM * float(np.linalg.norm(centre - np.asarray(pg.camera.position_m, np.float64)))
     for f in (1.0, *WIDEN):
-        r = sigma_m if f == 1.0 else max(sigma_m, WIDEN_FROM_M) * f
+        r = sigma_m if f == 1.0 else max(sigma_m, reach) * f
         pts = np.column_stack([centre[0] + _UNIT[:, 0] * r, centre[1] + _UNIT[:, 1] * r,
                                np.full(len(_UNIT), centre[2])])
         v = lookup_layer(pg.camera, pg.labels, k, pts)
