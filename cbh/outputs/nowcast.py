@@ -13,11 +13,12 @@ For each recorded pair (the issue time t), each site and each lead time L:
    (:func:`read_sigma_m`: independent errors added in quadrature: the map's own ``EDGE_M``, the
    sun's disk, the height error, which moves the read by ``HEIGHT_ERROR`` of the site's distance
    from camera 1 whatever the lead, and the motion's error times L, measured as the scatter of the
-   layer's motion over the lagged ensemble's pairs, :func:`motion_errors`, else the prior
-   ``MOTION_ERROR``): the weighted cloud share of
+   layer's motion over every valid pair of the last ``ENSEMBLE_S``, :func:`motion_errors`, else
+   the prior ``MOTION_ERROR``): the weighted cloud share of
    the known samples is the layer's probability of shading the site, and the layers combine as
    independent screens, ``1 − Π(1 − p_k)``. Where the disk is mostly unknown (the masked sun
-   itself at short leads), it widens (``WIDEN``) to the nearest sky the camera sees around it.
+   itself at short leads), it widens (``WIDEN``, ``WIDEN_FROM``) to the nearest sky the camera
+   sees around it.
    Where the point leaves the camera's view, or lies beyond ``MAX_ZENITH_DEG`` (low sun, long
    leads, fast wind), the lead has no forecast and says so (flag ``beyond_view``), as it does
    without the layer's motion (``motion_unknown``).
