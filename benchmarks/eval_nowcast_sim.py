@@ -168,7 +168,7 @@ def main() -> None:
     ap.add_argument("--truth", choices=("scene", "camera"), default="scene")
     ap.add_argument("--single", action="store_true", help="the issue pair's own forecast, no lagged ensemble")
     ap.add_argument("--spinup", type=float, default=0.0, help="issue times before this [s] are not scored (a station just started)")
-    ap.add_argument("--seed", type=int, help="another draw of the scene: its seed N, layer k's texture seed 10 N + k")
+    ap.add_argument("--seed", type=int, help="another draw of the scene: its seed N, layer k's seed 10 N + k")
     ap.add_argument("--json")
     a = ap.parse_args()
     res = evaluate(a.scene, a.size, a.minutes, a.truth, a.single, a.spinup, a.seed)

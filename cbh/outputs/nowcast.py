@@ -70,10 +70,10 @@ SUN_SIGMA = math.tan(math.radians(0.25)) / 2.0
 #: camera 1's pixels, so a height off by ε moves the read against the truth by ε × the site's
 #: horizontal distance from camera 1, at every lead (nothing at the camera itself) ...
 HEIGHT_ERROR = 0.01
-#: ... and a layer's motion error [m/s, per axis] × lead. Measured where the lagged ensemble has
-#: the layer's motion from ``MOTION_MEMBERS`` pairs or more (:func:`motion_errors`: their scatter,
-#: at least ``MOTION_FLOOR`` of the speed, as a few members can agree by chance); else this prior,
-#: 5 % of the speed + 0.2 m/s.
+#: ... and a layer's motion error [m/s, per axis] × lead. Measured where the valid pairs of the last
+#: ``ENSEMBLE_S`` have the layer's motion from ``MOTION_MEMBERS`` pairs or more (:func:`motion_errors`:
+#: their scatter, at least ``MOTION_FLOOR`` of the speed, as a few pairs can agree by chance); else
+#: this prior, 5 % of the speed + 0.2 m/s.
 MOTION_ERROR = (0.05, 0.2)
 MOTION_MEMBERS = 2
 MOTION_FLOOR = 0.01
@@ -273,8 +273,7 @@ def _in_view(camera, pts: np.ndarray, shape) -> np.ndarray:
 def _layer_share(pg, k: int, centre: np.ndarray, sigma_m: float) -> tuple[float, bool]:
     """Layer k's weighted cloud share on a disk about ``centre`` (3,) on the layer, widened
     (``WIDEN`` × max(σ, ``WIDEN_FROM`` × its range from camera 1)) until ``MIN_KNOWN`` of it is
-    known (NaN when never);
-    and whether it had to widen."""
+    known (NaN when never); and whether it had to widen."""
     from cbh.geometry.ground import lookup_layer
 
     reach = WIDEN_FROM * float(np.linalg.norm(centre - np.asarray(pg.camera.position_m, np.float64)))
