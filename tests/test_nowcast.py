@@ -93,7 +93,7 @@ def test_a_height_error_moves_the_shadow_by_its_share_of_the_sites_distance_from
         pg = _half_sky(east_m - 10.0 * arrive_s, height_m=3000.0, sun=sun)  # the true deck at 3000 m
         pg.heights, pg.motions = [3300.0], [(11.0, 0.0)]  # as measured: 10 % high, 10 % fast
         site = np.array([east_m, 0.0, 0.0])
-        leads = np.arange(arrive_s - 40.0, arrive_s + 41.0, 2.0)
+        leads = np.arange(arrive_s - 30.0, arrive_s + 31.0, 2.0)
         p = np.array([shade_probability(pg, site, sun, lead)[0] for lead in leads])
         forecast = leads[np.flatnonzero(p >= 0.5)[0]]
         early = 0.1 * east_m / 11.0
@@ -296,8 +296,8 @@ def test_pyranometer_records_read_in_their_zone(tmp_path):
 def test_the_real_pyranometer_half_hour(tmp_path):
     """The real hour's first half against its pyranometer (benchmarks/eval_irradiance.py): skill
     against smart persistence above 0 at 5 and 10 min, and at lead 0 an RMSE at most 0.8× the
-    clear-sky guess's (the issue's targets; measured +0.19, +0.28 and 0.78 with the layer-wise
-    time-lagged ensemble), with a forecast at every issue time for those leads. The levels learn from the same
+    clear-sky guess's (the issue's targets; measured +0.20, +0.28 and 0.76 with the layer-wise
+    time-lagged ensemble and the read disk's σ in quadrature), with a forecast at every issue time for those leads. The levels learn from the same
     forecasts whichever leads are asked for: "0,5,10" gives what the benchmark's eight leads give."""
     import sys
 
