@@ -1,7 +1,7 @@
 """The irradiance nowcast's shade in simulation (issue 35): does the predicted shade at a site
 arrive when the simulated cloud's shadow does?
 
-    python benchmarks/eval_nowcast_sim.py [--scene two-layers] [--size 480] [--minutes 10] [--json OUT]
+    python benchmarks/eval_nowcast_sim.py [--scene two-layers] [--size 480] [--minutes 10] [--seed N] [--json OUT]
 
 The simulator renders the scene every 10 s; the pipeline runs on the pairs as `cbh run` does
 (motion from pair to pair); each pair issues the shade probability as `cbh export --product irradiance` does
@@ -18,7 +18,8 @@ direction; it counts when within 60 s. Printed per lead: edges, within 60 s, med
 same over the edges where a forecast was issued on both sides (the nowcast says ``beyond_view``
 rather than guess where the upwind cloud has left the map, and ``motion_unknown`` before the first
 motion). ``--spinup S``: issue times before S seconds are not scored (a station that just started
-has no motion and no lagged ensemble yet).
+has no motion and no lagged ensemble yet). ``--seed N``: another draw of the same scene (the scene's
+seed N, layer k's texture seed 10·N + k, from 1 upwards; the heights, covers and winds as they are).
 """
 from __future__ import annotations
 
@@ -73,8 +74,18 @@ def _edges(times: list, states: list) -> list[tuple[float, int]]:
     return out
 
 
+def reseeded(sc, seed: int | None):
+    """The scene ``sc`` drawn anew (see the module docstring), or itself when ``seed`` is None."""
+    from dataclasses import replace
+
+    if seed is None:
+        return sc
+    return replace(sc, seed=int(seed), layers=tuple(replace(l, seed=10 * int(seed) + k + 1)
+                                                    for k, l in enumerate(sc.layers)))
+
+
 def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, truth_kind: str = "scene",
-             single: bool = False, spinup_s: float = 0.0) -> dict:
+             single: bool = False, spinup_s: float = 0.0, seed: int | None = None) -> dict:
     from cbh.actions.pairground import pair_ground
     from cbh.geometry.station import load_station
     from cbh.geometry.sun import sun_position
@@ -86,7 +97,7 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
     from cbh.sim import SkySimulator, load_scene
     from cbh.sim.ground import ground_shade
 
-    sc = load_scene(scene_path(scene))
+    sc = reseeded(load_scene(scene_path(scene)), seed)
     sim = SkySimulator(load_station(station_path()), sc, size_px=size)
     st = sim.station
     pipe, state = Pipeline(st), PairState.start()
@@ -97,6 +108,7 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
     truth: dict[float, list] = {}
     issued = []  # (issue time [s], PairGround, the ensemble's pairs up to it)
     history: list = []
+    recent: list = []  # every valid pair's motions of the last 10 min (the motion errors)
     t0 = sc.time_utc
     for i in range(n):
         t = t0 + timedelta(seconds=CADENCE_S * i)
@@ -110,9 +122,9 @@ def evaluate(scene: str = "two-layers", size: int = 480, minutes: float = 10.0, 
                          previous=state)
         state = r.state
         pg = pair_ground(st, pipe.config.masks, r)
-        history = _ensemble(history, pg) if pg.valid else history
+        history = _ensemble(history, pg, recent) if pg.valid else history
         issued.append((CADENCE_S * i, pg, list(history) if pg.valid else [pg]))
-    out = {"scene": scene, "size_px": size, "sites": len(sites), "truth": truth_kind, "leads": {}}
+    out = {"scene": scene, "seed": seed, "size_px": size, "sites": len(sites), "truth": truth_kind, "leads": {}}
     places = [Site(f"s{k}", math.nan, math.nan, float(p[2]), p) for k, p in enumerate(sites)]
     for lead in LEADS_S:
         hits, errs, edges_n, covered, covered_hits = 0, [], 0, 0, 0
@@ -156,9 +168,10 @@ def main() -> None:
     ap.add_argument("--truth", choices=("scene", "camera"), default="scene")
     ap.add_argument("--single", action="store_true", help="the issue pair's own forecast, no lagged ensemble")
     ap.add_argument("--spinup", type=float, default=0.0, help="issue times before this [s] are not scored (a station just started)")
+    ap.add_argument("--seed", type=int, help="another draw of the scene: its seed N, layer k's seed 10 N + k")
     ap.add_argument("--json")
     a = ap.parse_args()
-    res = evaluate(a.scene, a.size, a.minutes, a.truth, a.single, a.spinup)
+    res = evaluate(a.scene, a.size, a.minutes, a.truth, a.single, a.spinup, a.seed)
     for lead, v in res["leads"].items():
         print(f"lead {lead:4d} s: {v['edges']:3d} shadow edges, {v['within_60s']:3d} within 60 s ({v['share']}), "
               f"median |error| {v['median_abs_error_s']} s; with a forecast issued: {v['with_forecast_within_60s']}"

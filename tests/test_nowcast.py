@@ -77,6 +77,29 @@ def test_the_shadow_edge_arrives_within_a_minute_of_the_truth():
     assert errors and all(e <= 60.0 for e in errors), errors
 
 
+def test_a_height_error_moves_the_shadow_by_its_share_of_the_sites_distance_from_the_camera():
+    """A deck measured 10 % too high (3300 m for 3000 m) is also measured 10 % too fast (11 m/s for
+    10 m/s): both come from camera 1's pixels scaled by the height. The errors cancel at the camera:
+    the straight cloud edge's shadow still arrives at the camera's site when it does (within 5 s: the
+    2 s lead step and a pixel of the 320 px map, 30–40 m there). At a site 2 km east (downwind) the read lands 10 % × 2 km = 200 m upwind of the truth:
+    the shadow is forecast 200 m / 11 m/s ≈ 18 s early, whatever the lead (here 120 s and 240 s). This
+    is why the read disk's height term is ``HEIGHT_ERROR`` × the site's distance from camera 1
+    (:func:`cbh.outputs.nowcast.read_sigma_m`), not a share of the lead or the slant range."""
+    from cbh.outputs.nowcast import shade_probability
+
+    zen = math.radians(40.0)
+    sun = np.array([0.0, -math.sin(zen), math.cos(zen)])  # due south: the ray point's east = the site's
+    for east_m, arrive_s in ((0.0, 120.0), (0.0, 240.0), (2000.0, 120.0), (2000.0, 240.0)):
+        pg = _half_sky(east_m - 10.0 * arrive_s, height_m=3000.0, sun=sun)  # the true deck at 3000 m
+        pg.heights, pg.motions = [3300.0], [(11.0, 0.0)]  # as measured: 10 % high, 10 % fast
+        site = np.array([east_m, 0.0, 0.0])
+        leads = np.arange(arrive_s - 30.0, arrive_s + 31.0, 2.0)
+        p = np.array([shade_probability(pg, site, sun, lead)[0] for lead in leads])
+        forecast = leads[np.flatnonzero(p >= 0.5)[0]]
+        early = 0.1 * east_m / 11.0
+        assert abs(arrive_s - forecast - early) <= 5.0, (east_m, arrive_s, forecast)
+
+
 def test_the_lagged_ensemble_reads_the_cloud_away_from_the_glare():
     """A cloud deck moving east at 10 m/s will cover the sun ray of the site (the sun 40° from the
     zenith in the south) 5 min from now, and does at the issue time, but the issue pair's mask
@@ -109,12 +132,13 @@ def test_the_lagged_ensemble_reads_the_cloud_away_from_the_glare():
 
 
 def test_the_disk_grows_with_the_motions_measured_error():
-    """A 300 m cloud 3.2 km upwind of the sun ray of the site (the sun 40° from the zenith in the
-    south) on a 3000 m layer moving east at 10 m/s shades the site from 300 to 330 s ahead. Three
-    pairs a minute apart measured the motion within 0.1 m/s: the disk at 5 min then has σ ≈ 80 m
-    (10 m + 1 % of the 3.9 km slant + 0.1 m/s × 315 s) and the strip's shade probability
-    1/2 < p (erf(150/(80·√2)) ≈ 0.94 for one read). The prior alone (5 % + 0.2 m/s: 0.7 m/s, σ ≈ 270 m)
-    blurs it below 1/2 (≈ 0.42): the shadow would be missed. The measured error is the members' scatter
+    """A 200 m cloud 3.1 km upwind of the sun ray of the site (the sun 40° from the zenith in the
+    south) on a 3000 m layer moving east at 10 m/s shades the site from 300 to 320 s ahead. Three
+    pairs a minute apart measured the motion within 0.1 m/s: the disk at 310 s then has σ ≈ 34 m
+    (10 m, 8.5 m of the sun's disk over the 3.9 km ray, 0.1 m/s × 310 s, in quadrature; the site
+    at the camera: no height term) and the strip's shade probability 1/2 < p (erf(100/(34·√2)) ≈ 1
+    for one read). The prior alone (5 % + 0.2 m/s: 0.7 m/s, σ ≈ 220 m) blurs it below 1/2
+    (erf(100/(220·√2)) ≈ 0.35): the shadow would be missed. The measured error is the members' scatter
     (sample standard deviation, the RMS of both axes), at least 1 % of the speed, unknown from one motion."""
     from datetime import timedelta
 
@@ -125,21 +149,29 @@ def test_the_disk_grows_with_the_motions_measured_error():
     zen = math.radians(40.0)
     sun = np.array([0.0, -math.sin(zen), math.cos(zen)])
     t0 = datetime(2016, 9, 1, 9, 0, tzinfo=timezone.utc)
-    history, winds = [], [(9.9, -0.1), (10.1, 0.1), (10.0, 0.0)]
+    history, recent, winds = [], [], [(9.9, -0.1), (10.1, 0.1), (10.0, 0.0)]
     for i, wind in enumerate(winds):  # the strip 600 m further west a minute earlier
         back = 600.0 * (len(winds) - 1 - i)
-        pg, west = _half_sky(-3000.0 - back, sun=sun), _half_sky(-3300.0 - back, sun=sun)
+        pg, west = _half_sky(-3000.0 - back, sun=sun), _half_sky(-3200.0 - back, sun=sun)
         pg.labels[west.labels == 0] = ground.CLEAR
         pg.motions, pg.time_utc = [wind], t0 + timedelta(seconds=60.0 * i)
-        history = _ensemble(history, pg)
+        history = _ensemble(history, pg, recent)
     err = history[-1].motion_errors[0]
     assert err == pytest.approx(math.sqrt(np.mean(np.var(np.array(winds), axis=0, ddof=1))))  # 0.1 m/s
     assert motion_errors(history[-1:]) == [pytest.approx(math.nan, nan_ok=True)]
     steady = [SimpleNamespace(heights=[3000.0], motions=[(10.0, 0.0)])] * 3
     assert motion_errors(steady) == [pytest.approx(0.1)]  # the floor: 1 % of 10 m/s
+    # pairs 10 s apart, the first without a motion (a station's first pair): the ensemble keeps one
+    # member a minute (the first and the newest), but the error is measured from the second motion on
+    quick, recent = [], []
+    for i, wind in enumerate([(math.nan, math.nan), *winds[:2]]):
+        q = SimpleNamespace(heights=[3000.0], motions=[wind], time_utc=t0 + timedelta(seconds=10.0 * i))
+        quick = _ensemble(quick, q, recent)
+    assert [m.time_utc.second for m in quick] == [0, 20]
+    assert quick[-1].motion_errors == [pytest.approx(0.1 * math.sqrt(2.0))]  # the two motions' scatter
     site_m = np.array([0.0, 0.0, float(pg.camera.position_m[2])])
     site = Site("s", math.nan, math.nan, float(site_m[2]), site_m)
-    tv = pg.time_utc + timedelta(seconds=315.0)
+    tv = pg.time_utc + timedelta(seconds=310.0)
     p, _ = lagged_shade(history, site, sun, tv)
     assert p > 0.8, p
     pg.motion_errors = None  # the prior
@@ -288,8 +320,8 @@ def test_pyranometer_records_read_in_their_zone(tmp_path):
 def test_the_real_pyranometer_half_hour(tmp_path):
     """The real hour's first half against its pyranometer (benchmarks/eval_irradiance.py): skill
     against smart persistence above 0 at 5 and 10 min, and at lead 0 an RMSE at most 0.8× the
-    clear-sky guess's (the issue's targets; measured +0.19, +0.28 and 0.78 with the layer-wise
-    time-lagged ensemble), with a forecast at every issue time for those leads. The levels learn from the same
+    clear-sky guess's (the issue's targets; measured +0.20, +0.28 and 0.76 with the layer-wise
+    time-lagged ensemble and the read disk's σ in quadrature), with a forecast at every issue time for those leads. The levels learn from the same
     forecasts whichever leads are asked for: "0,5,10" gives what the benchmark's eight leads give."""
     import sys
 
@@ -329,21 +361,26 @@ def test_a_station_states_its_pyranometer(tmp_path, capsys):
     assert "levels site1: k_sun" in out and "measurements" in out, out
 
 
-@pytest.mark.slow
-def test_shadow_edges_in_simulation_do_not_regress():
-    """benchmarks/eval_nowcast_sim.py on 6 minutes of the two-layer scene: the share of true shadow
-    edges the forecast places within 60 s (measured with the layer-wise lagged ensemble 78 % at
-    lead 0 and 70 % at 1 min, against 73 % and 62 % from the issue pair alone; the issue's target
-    is 90 %, see docs/accuracy.md): kept from falling back, and the ensemble no worse than one pair."""
+@pytest.mark.slow  # (two 10 min runs of the scene: about 50 s)
+def test_shadow_edges_in_simulation_meet_the_target():
+    """benchmarks/eval_nowcast_sim.py as run by default (the two-layer scene at 480 px, 10 min):
+    the issue's target, the forecast shade within 60 s of ≥ 90 % of the true shadow edges, met at
+    every lead up to 3 min (measured 94 %, 93 %, 94 %, 94 %); at 5 min ≥ 90 % of the edges where a
+    forecast was issued (measured 98 %: 42 of 43) and ≥ 85 % of all (88 %: the other edges' sun rays
+    meet the lower deck's upwind cloud beyond the map, ``beyond_view``, or before the first motion).
+    The ensemble no worse than the issue pair alone at 0 and 1 min (where the masked sun hides the
+    issue pair's own read)."""
     import sys
 
     sys.path.insert(0, str(REPO / "benchmarks"))
     from eval_nowcast_sim import evaluate
 
-    res = evaluate("two-layers", 480, 6.0)["leads"]
-    one = evaluate("two-layers", 480, 6.0, single=True)["leads"]
-    assert res[0]["edges"] >= 50 and res[0]["share"] >= 0.75 and res[60]["share"] >= 0.65, res
-    assert res[120]["share"] >= 0.5, res
+    res = evaluate("two-layers", 480, 10.0)["leads"]
+    one = evaluate("two-layers", 480, 10.0, single=True)["leads"]
+    assert res[0]["edges"] >= 90, res
+    for lead in (0, 60, 120, 180):
+        assert res[lead]["share"] >= 0.9, (lead, res[lead])
+    assert res[300]["share_with_forecast"] >= 0.9 and res[300]["share"] >= 0.85, res[300]
     assert res[0]["share"] >= one[0]["share"] and res[60]["share"] >= one[60]["share"], (res, one)
 
 

@@ -7,6 +7,7 @@ import logging
 import math
 from datetime import timedelta
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -43,6 +44,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
     k_record: dict = {}  # site → the pyranometer's clear-sky index over its record
     reads: dict = {}  # the ensemble members' reads, each made once (nowcast.lagged_shade's cache)
     history: list = []  # the recent valid pairs on the ground (one per ENSEMBLE_STEP_S), oldest first
+    recent: list = []  # every valid pair's layer motions of the last ENSEMBLE_S (the motion errors)
     for path in sessions:
         s = open_session(path)
         st = s.station
@@ -65,7 +67,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
             seen.add(res.time_utc)
             bad = sorted(set(res.flags) & INVALIDATING)
             pg = pair_ground(st, cfg.masks, res)
-            history = _ensemble(history, pg) if not bad else history
+            history = _ensemble(history, pg, recent) if not bad else history
             nc.prune_cache(reads, history)
             for site in places:
                 if pyr is not None:  # the forecasts now verified (valid up to this issue time) teach the levels
@@ -139,18 +141,23 @@ def _forecasts(history: list, site, issue, leads_s, bad: list, learn: bool, cach
     return out
 
 
-def _ensemble(history: list, pg) -> list:
+def _ensemble(history: list, pg, recent: list) -> list:
     """``history`` with ``pg`` (a valid pair) as its newest member: the older ones kept one per
-    ``ENSEMBLE_STEP_S`` and at most ``ENSEMBLE_S`` old (:func:`cbh.outputs.nowcast.lagged_shade`);
-    ``pg`` gets its layers' motion errors measured over them (:func:`cbh.outputs.nowcast.motion_errors`)."""
+    ``ENSEMBLE_STEP_S`` and at most ``ENSEMBLE_S`` old (:func:`cbh.outputs.nowcast.lagged_shade`).
+    ``recent`` (updated in place: ``pg``'s layers join, those older than ``ENSEMBLE_S`` leave) holds
+    every valid pair's layer heights and motions, not only the members': ``pg`` gets its layers'
+    motion errors measured over them (:func:`cbh.outputs.nowcast.motion_errors`), from the second
+    motion on rather than after a minute of pairs at a cadence under ``ENSEMBLE_STEP_S``."""
     from cbh.outputs import nowcast as nc
 
+    recent[:] = [r for r in recent if 0 < (pg.time_utc - r.time_utc).total_seconds() <= nc.ENSEMBLE_S]
+    recent.append(SimpleNamespace(time_utc=pg.time_utc, heights=list(pg.heights), motions=list(pg.motions)))
+    pg.motion_errors = nc.motion_errors(recent)
     kept = [h for h in history if 0 < (pg.time_utc - h.time_utc).total_seconds() <= nc.ENSEMBLE_S]
     out: list = []
     for h in kept:
         if not out or (h.time_utc - out[-1].time_utc).total_seconds() >= nc.ENSEMBLE_STEP_S - 1.0:
             out.append(h)
-    pg.motion_errors = nc.motion_errors([*out, pg])
     return [*out, pg]
 
 

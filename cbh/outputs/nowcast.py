@@ -9,13 +9,16 @@ For each recorded pair (the issue time t), each site and each lead time L:
    ``t + L`` is, now, on each layer k at ``site + s_xy·(h_k − z_site)/s_z − v_k·L`` (frozen cloud
    carried by the layer's motion v_k; ``s`` the sun direction at ``t + L``). Camera 1's layer labels
    (:func:`cbh.geometry.ground.layer_labels`: each cloud pixel on its layer, clear sky, unknown)
-   are read on a disk around that point, Gaussian-weighted with a radius that grows with the lead
-   (the motion's error times L: measured as the scatter of the layer's motion over the lagged
-   ensemble's pairs, :func:`motion_errors`, else the prior ``MOTION_ERROR``; plus ``EDGE_M`` and
-   ``EDGE_RANGE`` of the slant range: the sun's width and a 1 % height error): the weighted cloud share of
+   are read on a disk around that point, Gaussian-weighted with a σ that grows with the lead
+   (:func:`read_sigma_m`: independent errors added in quadrature: the map's own ``EDGE_M``, the
+   sun's disk, the height error, which moves the read by ``HEIGHT_ERROR`` of the site's distance
+   from camera 1 whatever the lead, and the motion's error times L, measured as the scatter of the
+   layer's motion over every valid pair of the last ``ENSEMBLE_S``, :func:`motion_errors`, else
+   the prior ``MOTION_ERROR``): the weighted cloud share of
    the known samples is the layer's probability of shading the site, and the layers combine as
    independent screens, ``1 − Π(1 − p_k)``. Where the disk is mostly unknown (the masked sun
-   itself at short leads), it widens (``WIDEN``) to the nearest sky the camera sees around it.
+   itself at short leads), it widens (``WIDEN``, ``WIDEN_FROM``) to the nearest sky the camera
+   sees around it.
    Where the point leaves the camera's view, or lies beyond ``MAX_ZENITH_DEG`` (low sun, long
    leads, fast wind), the lead has no forecast and says so (flag ``beyond_view``), as it does
    without the layer's motion (``motion_unknown``).
@@ -50,7 +53,8 @@ import numpy as np
 from cbh.errors import ConfigError, InputError
 
 __all__ = ["Site", "parse_site", "parse_leads", "clear_sky_ghi", "shade_probability", "Levels", "read_pyranometer",
-           "LEADS_S", "K_SUN", "K_SHADE", "lagged_shade", "glare_angle_deg", "motion_errors"]
+           "LEADS_S", "K_SUN", "K_SHADE", "lagged_shade", "glare_angle_deg", "motion_errors",
+           "read_sigma_m"]
 
 #: Default lead times: 0 to 20 min every minute [s].
 LEADS_S = tuple(float(s) for s in range(0, 1201, 60))
@@ -61,16 +65,29 @@ LEVELS_HALF_LIFE_S = 600.0  # an observation's weight in the levels halves with 
 #: With a pyranometer the prior's sunny level is its record's upper quantile (:func:`sunny_level`)
 #: over the last hour, and the shade level scales with it (``K_SHADE``/``K_SUN`` of it).
 SUNNY_QUANTILE, SUNNY_HISTORY_S, SUNNY_MIN = 0.9, 3600.0, 20
-EDGE_M = 10.0  # the shade disk's radius at lead 0 [m] ...
-EDGE_RANGE = 0.01  # ... plus this share of the slant range to the layer: the sun's width (0.5°) and a 1 % height error
-#: A layer's motion error [m/s, per axis]: the disk grows by it × lead. Measured where the lagged
-#: ensemble has the layer's motion from ``MOTION_MEMBERS`` pairs or more (:func:`motion_errors`: their
-#: scatter, at least ``MOTION_FLOOR`` of the speed: the 1 % height error of ``EDGE_RANGE``, as the
-#: motion over the ground scales with the height); else this prior, 5 % of the speed + 0.2 m/s.
+#: The read disk's σ (:func:`read_sigma_m`), its independent parts added in quadrature:
+EDGE_M = 10.0  # the map's own error at lead 0 [m]: a pixel's footprint and the mask's edge ...
+#: ... the sun's disk (radius 0.25°) along the sun ray to the layer, as a Gaussian of the same
+#: second moment (σ = radius / 2) [per metre of the ray] ...
+SUN_SIGMA = math.tan(math.radians(0.25)) / 2.0
+#: ... a relative height error [1]: the map and the motion are both scaled by the height from
+#: camera 1's pixels, so a height off by ε moves the read against the truth by ε × the site's
+#: horizontal distance from camera 1, at every lead (nothing at the camera itself) ...
+HEIGHT_ERROR = 0.01
+#: ... and a layer's motion error [m/s, per axis] × lead. Measured where the valid pairs of the last
+#: ``ENSEMBLE_S`` have the layer's motion from ``MOTION_MEMBERS`` pairs or more (:func:`motion_errors`:
+#: their scatter, at least ``MOTION_FLOOR`` of the speed, as a few pairs can agree by chance); else
+#: this prior, 5 % of the speed + 0.2 m/s.
 MOTION_ERROR = (0.05, 0.2)
 MOTION_MEMBERS = 2
 MOTION_FLOOR = 0.01
-WIDEN = (2.0, 4.0, 8.0, 16.0)  # the disk widens by these factors until a third of it is known
+WIDEN = (2.0, 4.0, 8.0, 16.0)  # the disk widens by these factors until a third of it is known ...
+#: ... of its σ, or of this share of the range from camera 1 when σ is smaller [rad]: widening looks
+#: for the nearest sky the camera sees across what hides the layer (the masked sun, a lower cloud:
+#: patches of the camera's view, 16 steps of 0.01 rad reach 9°), which a precise read's small σ
+#: says nothing about (with the σ alone the simulated 8 km deck behind cumulus, low-and-high, had
+#: 16 % fewer lead-0 forecasts, and the real Fehmarn deck 2 of 29)
+WIDEN_FROM = 0.01
 MIN_KNOWN = 0.3  # known share of the disk's weight needed for a probability
 #: A time-lagged ensemble (:func:`lagged_shade`): the forecasts for one valid time issued by the
 #: pairs of the last ``ENSEMBLE_S`` (one per ``ENSEMBLE_STEP_S``) are averaged ...
@@ -258,12 +275,15 @@ def _in_view(camera, pts: np.ndarray, shape) -> np.ndarray:
 
 
 def _layer_share(pg, k: int, centre: np.ndarray, sigma_m: float) -> tuple[float, bool]:
-    """Layer k's weighted cloud share on a disk about ``centre`` (3,) on the layer, widened until
-    ``MIN_KNOWN`` of it is known (NaN when never); and whether it had to widen."""
+    """Layer k's weighted cloud share on a disk about ``centre`` (3,) on the layer, widened
+    (``WIDEN`` × max(σ, ``WIDEN_FROM`` × its range from camera 1)) until ``MIN_KNOWN`` of it is
+    known (NaN when never); and whether it had to widen."""
     from cbh.geometry.ground import lookup_layer
 
+    reach = WIDEN_FROM * float(np.linalg.norm(centre - np.asarray(pg.camera.position_m, np.float64)))
     for f in (1.0, *WIDEN):
-        pts = np.column_stack([centre[0] + _UNIT[:, 0] * sigma_m * f, centre[1] + _UNIT[:, 1] * sigma_m * f,
+        r = sigma_m if f == 1.0 else max(sigma_m, reach) * f
+        pts = np.column_stack([centre[0] + _UNIT[:, 0] * r, centre[1] + _UNIT[:, 1] * r,
                                np.full(len(_UNIT), centre[2])])
         v = lookup_layer(pg.camera, pg.labels, k, pts)
         known = np.isfinite(v)
@@ -317,11 +337,20 @@ def _layer_centre(pg, k: int, site_enu: np.ndarray, s: np.ndarray, lead_s: float
     if (math.degrees(math.atan2(math.hypot(rel[0], rel[1]), rel[2])) > MAX_ZENITH_DEG
             or not _in_view(pg.camera, centre[None, :], pg.labels.shape)[0]):
         return "beyond_view"
-    speed = math.hypot(ve, vn)
-    slant = float(np.linalg.norm(centre - np.asarray(site_enu, np.float64)))
     errs = getattr(pg, "motion_errors", None)
-    err = errs[k] if errs and math.isfinite(errs[k]) else MOTION_ERROR[0] * speed + MOTION_ERROR[1]
-    return centre, EDGE_M + EDGE_RANGE * slant + err * lead_s
+    err = errs[k] if errs and math.isfinite(errs[k]) else MOTION_ERROR[0] * math.hypot(ve, vn) + MOTION_ERROR[1]
+    d_cam = math.hypot(float(site_enu[0] - pg.camera.position_m[0]), float(site_enu[1] - pg.camera.position_m[1]))
+    return centre, read_sigma_m(t, d_cam, err, lead_s)
+
+
+def read_sigma_m(ray_m: float, site_from_camera_m: float, motion_error_ms: float, lead_s: float) -> float:
+    """σ of a layer's read disk [m]: the map's ``EDGE_M``, the sun's disk over the sun ray
+    (``SUN_SIGMA`` × ``ray_m``, the ray's length from the site to the layer [m]), the height error
+    (``HEIGHT_ERROR`` × ``site_from_camera_m``, the site's horizontal distance from camera 1 [m])
+    and the motion's (``motion_error_ms`` [m/s] × ``lead_s`` [s]): independent errors, added in
+    quadrature."""
+    return math.sqrt(EDGE_M ** 2 + (SUN_SIGMA * ray_m) ** 2 + (HEIGHT_ERROR * site_from_camera_m) ** 2
+                     + (motion_error_ms * lead_s) ** 2)
 
 
 def shade_at(pg, site_enu: np.ndarray, sun_dir: np.ndarray | None, lead_s: float) -> tuple[float, str, bool]:
@@ -397,9 +426,10 @@ def _same_layer(heights, h: float) -> int | None:
 
 
 def motion_errors(pgs: list) -> list[float]:
-    """Per layer of the newest pair of ``pgs`` (the lagged ensemble, oldest first): its motion's
-    error [m/s, per axis], measured as the scatter of that layer's motion over the members (a
-    member's layer within ``LAYER_MATCH`` of its height): the RMS over both axes of the sample
+    """Per layer of the newest pair of ``pgs`` (the recent valid pairs, oldest first: anything with
+    ``heights`` and ``motions``; the export takes every pair of the last ``ENSEMBLE_S``): its motion's
+    error [m/s, per axis], measured as the scatter of that layer's motion over the pairs (a
+    pair's layer within ``LAYER_MATCH`` of its height): the RMS over both axes of the sample
     standard deviation, at least ``MOTION_FLOOR`` of the speed; NaN (the prior ``MOTION_ERROR``)
     with fewer than ``MOTION_MEMBERS`` motions. The scatter holds what each pair's motion gets wrong
     (its tracks, its height) and what the wind itself changed over the ensemble's 10 min."""
