@@ -261,3 +261,30 @@ def test_a_layers_band_is_what_the_pair_cannot_tell_apart():
     lo, hi = layer_band(pct, np.full(h.size, 1.5), 0.0, cfg, 15000.0)  # 1.5 px: no height above is told apart
     assert lo == pytest.approx(med * 1.5 / 3.5) and hi == 15000.0
     assert layer_band(pct, None, 0.0, cfg, 15000.0) == pytest.approx((med * np.exp(-0.18), med * np.exp(0.18)), rel=1e-3)
+
+
+def test_a_regional_peak_must_be_a_maximum_of_the_whole_images_votes():
+    """_true_peaks, on the whole image's own-plane votes of three randomized skies: a deck three
+    planes from a dominant one is a maximum of the planes' votes as they are (dense seed 114); a
+    deck between two planes is within one plane of the smoothed maximum (a toy); a plane beside
+    a maximum of the raw votes of an overcast's tail, near none smoothed, is no deck
+    (twice-encoded seed 5025 took one at 909 m over its 722 m deck)."""
+    from cbh.pipeline.sweep import _true_peaks
+
+    everything = lambda n: [(b, 1.0) for b in range(n)]  # noqa: E731
+    seed114 = np.array([991.5, 1807.0, 1417.2, 3567.0, 55779.8, 13931.8, 1839.5, 848.8, 1089.0])
+    allowed = [b for b, _ in _true_peaks(everything(9), seed114, np.ones(9, bool), 1)]
+    assert 1 in allowed and 2 not in allowed and 4 in allowed, allowed
+    between = np.zeros(12)
+    between[[4, 5, 6, 7]] = [5, 30, 34, 6]  # a far deck between planes 5 and 6
+    assert [b for b, _ in _true_peaks([(5, 1.0)], between, np.ones(12, bool), 1)] == [5]
+    seed5025 = np.zeros(70)
+    seed5025[:7] = [196, 85, 61, 39, 46, 80, 163]
+    seed5025[45:54] = [387, 187, 207, 228.5, 201, 231, 276, 252, 815.2]
+    seed5025[58:70] = [1545.5, 1058, 1146, 1400, 2247.2, 57072.5, 16152.8, 1891.8, 1425, 1243, 1135.2, 2182]
+    swept = np.zeros(70, bool)
+    swept[[*range(7), *range(45, 54), *range(58, 70)]] = True
+    allowed = [b for b, _ in _true_peaks(everything(70), seed5025, swept, 4)]
+    # the region's peak was plane 59: a plane from the raw maximum at 58 (where a run of planes
+    # starts), no maximum itself, and none smoothed there
+    assert 63 in allowed and 59 not in allowed, allowed

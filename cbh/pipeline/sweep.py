@@ -63,10 +63,11 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    gap's edge takes the lower deck (its texture is coarser and stronger), so each region of
    ``region_px`` also votes with every block's *own* best plane (:func:`own_plane_peaks`): a
    region's peak with ``region_share`` of its votes (its votes smoothed over half a plane: a
-   deck three planes from one with five times its votes is no flank of it) that lies within one
-   plane of a local maximum of the whole image's own votes over the swept planes (not the flank
-   of a near layer's noise; unsmoothed), inside the swept planes, above the image's lowest layer
-   and more than 1.5 plane steps from every layer is a layer as well. A layer's height
+   deck three planes from one with five times its votes is no flank of it) that is a local
+   maximum of the whole image's own votes too, as they are or within one plane of one of them
+   smoothed over a plane (not the flank of a near layer's noise; :func:`_true_peaks`), inside the
+   swept planes, above the image's lowest layer and more than 1.5 plane steps from every layer is
+   a layer as well. A layer's height
    (:func:`resolved_layers`) counts its pixels inside the height range only: the far range's
    planes match glare at infinity too, in the label of a far deck seen through gaps.
    (A pixel whose own best plane lies in another layer than its label's straddles the two: its
@@ -1313,29 +1314,38 @@ def own_plane_peaks(own: np.ndarray, weight: np.ndarray, s: np.ndarray, ds: floa
 
 
 def _true_peaks(found: list[tuple[int, float]], whole: np.ndarray, swept: np.ndarray, first: int):
-    """The regional peaks ``found`` ((bin, weight)) that are peaks of the sky's layers: within one
-    swept plane of a local maximum of the ``whole`` image's own votes over the swept planes (a
-    region's peak on the flank of a stronger one is the noise of a near layer's planes, a few
-    planes off, with no maximum beside it; a deck seen through gaps whose parallax lies between
-    two planes peaks on either, the region on one and the whole image on the other: seed 106's
-    6069 m at 4.45 px), inside the swept planes (``swept`` (nb,) bool: a bin with a swept plane
-    on either side; at the edge of a run of planes the maximum is where the sweep stopped, not
-    the layer), and at bin ``first`` or beyond (the sweep's highest plane: s = 0, no parallax, is
-    glare or an obstacle at infinity). ``whole`` is not smoothed: a deck three planes from one
-    that holds 70 % of the votes (seed 114: 7401 m and 1773 m at B = 24 m, 2 % and 69 %) is a
-    maximum of the planes' votes, but drowns in that deck's tail once smoothed over a plane."""
+    """The regional peaks ``found`` ((bin, weight)) that are peaks of the sky's layers: a local
+    maximum of the ``whole`` image's own votes (a region's peak on the flank of a stronger one is
+    the noise of a near layer's planes, a few planes off), inside the swept planes (``swept``
+    (nb,) bool: a bin with a swept plane on either side; at the edge of a run of planes the
+    maximum is where the sweep stopped, not the layer), and at bin ``first`` or beyond (the
+    sweep's highest plane: s = 0, no parallax, is glare or an obstacle at infinity).
+
+    A local maximum either way: of the votes as they are, on its own plane (a deck three planes
+    from one that holds 70 % of the votes, seed 114: 7401 m and 1773 m at B = 24 m, 1807 votes
+    beside 991 and 1417 and three planes from 55 780, is a maximum of the planes' votes but drowns
+    in that deck's tail once smoothed over a plane);
+    or within one swept plane of a maximum of the votes smoothed over a plane (a deck whose
+    parallax lies between two planes peaks on either, the region on one and the whole image on
+    the other: seed 106's 6069 m at 4.45 px). Not within one plane of a maximum of the votes as
+    they are: those have a maximum a plane from nearly every bin, and an overcast's noise near the
+    horizon passed as a deck above it (twice-encoded random seeds 5024, 5025: 6796 m over 1967 m,
+    909 m over 722 m). Gaps in the run of planes are skipped (no valley; at either end of a run a
+    missing neighbour counts as 0)."""
     nb = len(whole)
     on = np.flatnonzero(swept)  # the swept bins in order: a gap in the planes is no valley
-    v = np.pad(np.asarray(whole, np.float64)[on], 1, constant_values=-np.inf)
-    top = (v[1:-1] > 0) & (v[1:-1] > v[:-2]) & (v[1:-1] >= v[2:])  # local maxima among them
-    near = top | np.r_[top[1:], False] | np.r_[False, top[:-1]]
-    near_top = np.zeros(nb, bool)
-    near_top[on[near]] = True
+    raw = np.asarray(whole, np.float64)
+    ok = np.zeros(nb, bool)
+    v = np.pad(raw[on], 1, constant_values=0.0)  # a maximum of the votes as they are
+    ok[on[(v[1:-1] > 0) & (v[1:-1] >= np.maximum(v[:-2], v[2:]))]] = True
+    v = np.pad(smooth_gaussian(raw, 1.0)[on], 1, constant_values=-np.inf)
+    top = (v[1:-1] > 0) & (v[1:-1] > v[:-2]) & (v[1:-1] >= v[2:])  # smoothed: its maxima, ± 1 plane
+    ok[on[top | np.r_[top[1:], False] | np.r_[False, top[:-1]]]] = True
     out = []
     for b, w in found:
         if b < first or b <= 0 or b >= nb - 1 or not (swept[b - 1] and swept[b + 1]):
             continue
-        if near_top[b]:
+        if ok[b]:
             out.append((b, w))
     return out
 
