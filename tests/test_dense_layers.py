@@ -197,6 +197,23 @@ def test_dense_randomized_skies_regression(seed, tmp_path):
     assert not set(r.flags) & INVALIDATING
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [
+    5024,  # an overcast at 1967 m, B = 105 m: a spurious 6796 m from its tail's own votes
+    5025,  # an overcast at 722 m, B = 168 m: a spurious 909 m (the region's peak a plane from a raw maximum)
+    5020,  # 905/3576/6028 m at B = 113 m: 6028 seen through 6 % of the sky, not found
+    5026,  # 1609/2548/4867 m at B = 50 m: the smooth 2548 m deck read with 1609 as one layer
+])
+def test_twice_encoded_randomized_skies_regression(seed, tmp_path):
+    """Randomized skies in twice-encoded video (the historical distribution otherwise) at 960 px:
+    every expected layer found, none spurious, no invalidating flag on the true station."""
+    case, r, score, _ = run_random_case(seed, load_station(station_path()), 960, tmp_path,
+                                        options=RandomOptions(twice_encoded=True))
+    assert score.missed_m == [], (case.describe(), score.found_m)
+    assert score.spurious_m == [], (case.describe(), score.found_m)
+    assert not set(r.flags) & INVALIDATING
+
+
 def _one_layer_result(h, lo, hi):
     from types import SimpleNamespace
 
