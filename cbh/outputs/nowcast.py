@@ -542,7 +542,7 @@ class Levels:
         """A shade probability forecast for a time now past (``when``, its valid time; None: now,
         i.e. the latest time seen), and the clear-sky index measured then."""
         if math.isfinite(shade_p) and math.isfinite(k_measured) and 0.0 < k_measured < 2.0:
-            t = self._now if when is None else when.timestamp()
+            t = (self._now if math.isfinite(self._now) else 0.0) if when is None else when.timestamp()
             self._now = max(self._now, t)
             self._p.append(float(shade_p))
             self._k.append(float(k_measured))
