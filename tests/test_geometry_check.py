@@ -195,6 +195,19 @@ def test_patches_that_disagree_make_no_significant_turn():
     assert np.linalg.norm(om_t) > 10 * sig_t
 
 
+def test_the_jackknifes_widening_is_students_t():
+    """The patch jackknife's σ from G patches is widened by t(0.9995, G − 1) / z(0.9995): the
+    table to 29 degrees of freedom and the Cornish–Fisher expansion beyond meet (within 0.1 %),
+    and the widening falls towards 1 with more patches (exact values: scipy.stats.t.ppf)."""
+    from cbh.pipeline.geocheck import _t_widening
+
+    assert _t_widening(5) == pytest.approx(6.8688 / 3.2905, rel=1e-4)
+    assert _t_widening(9) == pytest.approx(4.7809 / 3.2905, rel=1e-4)
+    assert _t_widening(30) == pytest.approx(3.6460 / 3.2905, rel=2e-3)
+    w = [_t_widening(d) for d in range(5, 200)]
+    assert all(a > b for a, b in zip(w, w[1:])) and 1.0 < w[-1] < 1.02
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("scene, heights_m", [("single-cumulus", (350.0,)), ("three-layers", (300.0, 900.0, 4000.0))])
 def test_low_cloud_at_a_long_baseline_is_no_mismatch(unb, scene, heights_m):

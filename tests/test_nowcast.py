@@ -218,7 +218,9 @@ def test_the_levels_follow_the_cloud_that_is_there_now():
     assert equal.levels()[1] > 0.65
     for minute in range(60, 300):  # four more hours
         aged.add(0.0, 1.2, t0 + timedelta(minutes=minute))
-    assert aged.n <= 8 * LEVELS_HALF_LIFE_S / 60.0 + 1
+    assert 60 <= aged.n <= 8 * LEVELS_HALF_LIFE_S / 60.0 + 1
+    overnight = t0 + timedelta(hours=20)  # the next morning's first issue time: yesterday is gone
+    assert aged.levels(overnight) == pytest.approx(aged.prior, abs=1e-6) and aged.n == 0
 
 
 def test_the_map_ends_where_the_camera_stops_seeing():

@@ -73,7 +73,7 @@ def nowcast_rows(sessions, sites: list[str], leads_s, pyranometer=None) -> tuple
                 if pyr is not None:  # the forecasts now verified (valid up to this issue time) teach the levels
                     _learn(levels[site.name], pending, site, pyr, res.time_utc)
                     _sunny_prior(levels[site.name], site, pyr, res.time_utc, k_record)
-                ks, kd = levels[site.name].levels()
+                ks, kd = levels[site.name].levels(res.time_utc)
                 got = _forecasts(history, site, res.time_utc, leads_s, bad, pyr is not None, reads)
                 for lead, (tv, p, why) in got.items():
                     if lead in LEARN_LEADS_S and math.isfinite(p):

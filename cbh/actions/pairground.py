@@ -32,7 +32,7 @@ class PairGround:
     cloud_fraction: float  # camera 1's, 0..1
     time_utc: object  # datetime
     valid: bool  # False when the pair carries an invalidating flag
-    #: per layer, its motion's error [m/s] measured over the lagged ensemble
+    #: per layer, its motion's error [m/s] measured over the valid pairs of the last ENSEMBLE_S
     #: (:func:`cbh.outputs.nowcast.motion_errors`, set as the pair joins it); None: the prior
     motion_errors: list | None = None
 

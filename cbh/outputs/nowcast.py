@@ -84,7 +84,7 @@ MOTION_FLOOR = 0.01
 WIDEN = (2.0, 4.0, 8.0, 16.0)  # the disk widens by these factors until a third of it is known ...
 #: ... of its σ, or of this share of the range from camera 1 when σ is smaller [rad]: widening looks
 #: for the nearest sky the camera sees across what hides the layer (the masked sun, a lower cloud:
-#: patches of the camera's view, 16 steps of 0.01 rad reach 9°), which a precise read's small σ
+#: patches of the camera's view: the widest, 16 × 0.01 rad with the pattern's outer ring at 2 σ, reaches about 18°), which a precise read's small σ
 #: says nothing about (with the σ alone the simulated 8 km deck behind cumulus, low-and-high, had
 #: 16 % fewer lead-0 forecasts, and the real Fehmarn deck 2 of 29)
 WIDEN_FROM = 0.01
@@ -550,7 +550,7 @@ class Levels:
             self._forget()
 
     def _forget(self) -> None:
-        if not math.isfinite(self.half_life_s) or not self._t or self._now - self._t[0] <= 8.0 * self.half_life_s:
+        if not math.isfinite(self.half_life_s) or not self._t or self._now - min(self._t) <= 8.0 * self.half_life_s:
             return
         keep = [i for i, t in enumerate(self._t) if self._now - t <= 8.0 * self.half_life_s]
         self._p, self._k, self._t = ([x[i] for i in keep] for x in (self._p, self._k, self._t))
@@ -559,9 +559,14 @@ class Levels:
     def n(self) -> int:
         return len(self._k)
 
-    def levels(self) -> tuple[float, float]:
+    def levels(self, now: datetime | None = None) -> tuple[float, float]:
         """(k_sun, k_shade): the prior's two points and the observations (each weighted by its age
-        against the newest: halved every ``half_life_s``), one weighted line."""
+        at ``now``, the issue time, or at the newest observation if later or None: halved every
+        ``half_life_s``; so after a gap in the record, a night or a new session, the old ones
+        count little against the prior), one weighted line."""
+        if now is not None and now.timestamp() > self._now:
+            self._now = now.timestamp()
+            self._forget()
         ks, kd = self.prior
         p = np.concatenate([[0.0, 1.0], self._p])
         k = np.concatenate([[ks, kd], self._k])

@@ -1330,8 +1330,9 @@ def _true_peaks(found: list[tuple[int, float]], whole: np.ndarray, swept: np.nda
     the other: seed 106's 6069 m at 4.45 px). Not within one plane of a maximum of the votes as
     they are: those have a maximum a plane from nearly every bin, and an overcast's noise near the
     horizon passed as a deck above it (twice-encoded random seeds 5024, 5025: 6796 m over 1967 m,
-    909 m over 722 m). Gaps in the run of planes are skipped (no valley; at either end of a run a
-    missing neighbour counts as 0)."""
+    909 m over 722 m). Gaps in the run of planes are skipped in the comparisons (no valley; at
+    either end of a run a missing neighbour counts as 0); the smoothing runs over every bin, so a
+    gap's empty bins lower the smoothed votes of the planes beside it."""
     nb = len(whole)
     on = np.flatnonzero(swept)  # the swept bins in order: a gap in the planes is no valley
     raw = np.asarray(whole, np.float64)
