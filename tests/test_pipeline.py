@@ -562,3 +562,24 @@ def test_the_trend_fit_is_the_least_squares_fit(line):
     got, want = local_spread(h, a), _spread_by_lstsq(h, a)
     assert got == pytest.approx(want, rel=1e-6)
     assert 0.02 * 3000.0 < got < 0.04 * 3000.0  # the injected 3 % about the trend, not the trend
+
+
+def test_a_layers_two_spreads_share_one_trend_fit():
+    """``layer_stats`` asks for the spread of all points and of the better-measured half: the
+    trend is fitted once (:func:`~cbh.pipeline.layers.trend_residuals`) and both spreads are what
+    separate fits give, bit for bit (issue 36: the fit was made twice per layer)."""
+    from cbh.pipeline.layers import local_spread, trend_residuals
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    a = rng.normal(0.0, 0.4, (n, 2))
+    a[rng.random(n) < 0.05] = np.nan  # points without an offset are left out of the fit
+    h = 8000.0 * np.exp(0.1 * np.nan_to_num(a[:, 0]) + 0.03 * rng.standard_normal(n)
+                        + (rng.random(n) < 0.1) * rng.normal(0.0, 0.5, n))
+    keep = rng.random(n) < 0.5
+    fit = trend_residuals(h, a)
+    assert fit is not None
+    for k in (None, keep):
+        assert local_spread(h, a, k, fit) == local_spread(h, a, k)
+    assert local_spread(h, a, keep) != local_spread(h, a)  # the half is not the whole
+    assert trend_residuals(h[:40], a[:40]) is None  # too few points for a trend

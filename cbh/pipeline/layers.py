@@ -224,11 +224,13 @@ _TREND_MIN_POINTS = 60  # a layer's large-scale trend is fitted (6 terms) only o
 _TREND_MIN_EXTENT = 0.15  # ... spread over this much of the sky (plane offsets' standard deviation, ≈ 9°)
 
 
-def local_spread(h: np.ndarray, offsets: np.ndarray | None, keep: np.ndarray | None = None) -> float:
+def local_spread(h: np.ndarray, offsets: np.ndarray | None, keep: np.ndarray | None = None,
+                 trend: "tuple | None" = None) -> float:
     """A layer's height spread about its own large-scale trend [m] (1.4826 · MAD, relative to
     the median height): what a cloud base's vertical extent can be. ``keep`` (N,) bool: the
     spread of these points only (the trend is fitted on all: a subset near the zenith spans too
-    little sky to tell a trend from extent); None = all.
+    little sky to tell a trend from extent); None = all. ``trend``: :func:`trend_residuals` of
+    the same ``h`` and ``offsets``, when already fitted (a layer asks for two spreads of one fit).
 
     A trend across the sky, ln h quadratic in the points' plane offsets (6 terms, fitted
     robustly: least squares, then again without the residuals beyond 3 σ), is a tilted deck or a
@@ -239,14 +241,34 @@ def local_spread(h: np.ndarray, offsets: np.ndarray | None, keep: np.ndarray | N
     hk = h if keep is None else h[keep]
     med = float(np.median(hk))
     plain = 1.4826 * float(np.median(np.abs(hk - med)))
-    if offsets is None or len(h) < _TREND_MIN_POINTS:
+    fit = trend_residuals(h, offsets) if trend is None else trend
+    if fit is None:
         return plain
+    ok, r, (kept, fitted) = fit
+    if keep is not None:
+        sel = np.asarray(keep, bool)[ok] & kept
+        if sel.any():
+            return min(plain, med * _trend_sigma(r, sel))
+    return min(plain, med * _trend_sigma(r, fitted))
+
+
+def _trend_sigma(r: np.ndarray, use: np.ndarray) -> float:
+    """1.4826 · MAD of the trend's residuals ``r`` [ln m] over the points ``use`` of the last fit."""
+    ru = r[use]
+    return 1.4826 * float(np.median(np.abs(ru - np.median(ru))))
+
+
+def trend_residuals(h: np.ndarray, offsets: np.ndarray | None) -> "tuple | None":
+    """The robust 6-term trend of ln h over the points' plane offsets (:func:`local_spread`):
+    (the points with an offset (N,) bool; their residuals [ln m]; (those within 3 σ of the last
+    fit, those the last fit was made on)), or None with too few points or too little sky."""
+    if offsets is None or len(h) < _TREND_MIN_POINTS:
+        return None
     a = np.asarray(offsets, np.float64)
     ok = np.isfinite(a).all(1) & (h > 0)
     if ok.sum() < _TREND_MIN_POINTS or float(np.sqrt(np.linalg.eigvalsh(np.cov(a[ok].T)).max())) < _TREND_MIN_EXTENT:
-        return plain
-    kk = np.ones(len(h), bool) if keep is None else np.asarray(keep, bool)
-    a, y, kk = a[ok], np.log(h[ok]), kk[ok]
+        return None
+    a, y = a[ok], np.log(h[ok])
     X = np.column_stack([np.ones(len(a)), a, a ** 2, a[:, 0] * a[:, 1]])
     use = np.ones(len(y), bool)
     for _ in range(2):
@@ -257,12 +279,9 @@ def local_spread(h: np.ndarray, offsets: np.ndarray | None, keep: np.ndarray | N
         Xu = X[use]
         coef = np.linalg.lstsq(Xu.T @ Xu, Xu.T @ y[use], rcond=None)[0]
         r = y - X @ coef
-        sig = 1.4826 * float(np.median(np.abs(r[use] - np.median(r[use]))))
-        use = np.abs(r - np.median(r[use])) <= 3.0 * max(sig, 1e-9)
-    if keep is not None and (kk & use).any():
-        rk = r[kk & use]
-        sig = 1.4826 * float(np.median(np.abs(rk - np.median(rk))))
-    return min(plain, med * sig)
+        sig = _trend_sigma(r, use)
+        use, fitted = np.abs(r - np.median(r[use])) <= 3.0 * max(sig, 1e-9), use
+    return ok, r, (use, fitted)
 
 
 def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndarray | None = None,
@@ -282,7 +301,8 @@ def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndar
     med = pct[1]
     spread = 1.4826 * float(np.median(np.abs(h - med)))
     n = int(h.size)
-    local = local_spread(h, offsets)
+    trend = trend_residuals(h, offsets)
+    local = local_spread(h, offsets, trend=trend)
     sig_n = float(np.median(noise_m)) if noise_m is not None and len(noise_m) else 0.0
     sig_e = cfg.noise_margin * sig_n  # the noise the spread is tested against (model uncertainty)
     sig_t = math.sqrt(max(local * local - sig_e * sig_e, 0.0))
@@ -293,7 +313,7 @@ def layer_stats(h: np.ndarray, cover: float, cfg: LayersConfig, noise_m: np.ndar
         # B = 52 m, 75–80° from the zenith, 10–90 % at −28 … +54 %) far beyond their predicted noise
         geo = np.asarray(parallax, np.float64) * (h - camera_z_m)  # ∝ B⊥ cos z: the geometry's, not the height's
         keep = geo >= np.median(geo)
-        loc_k, sig_k = local_spread(h, offsets, keep), cfg.noise_margin * float(np.median(noise_m[keep]))
+        loc_k, sig_k = local_spread(h, offsets, keep, trend), cfg.noise_margin * float(np.median(noise_m[keep]))
         sig_t = min(sig_t, math.sqrt(max(loc_k * loc_k - sig_k * sig_k, 0.0)))
     z = -NormalDist().inv_cdf(min(max(cfg.base_percentile, 1e-6), 50.0) / 100.0)
     conf = (1 - math.exp(-n / (4.0 * max(cfg.min_points, 1)))) * math.exp(-(spread / med) / 0.15)
