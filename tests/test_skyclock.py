@@ -162,3 +162,26 @@ def test_a_carry_the_raw_images_cannot_make_invalidates_the_pair():
     assert not pipe._uncarried(0.1, MotionProfile.empty(), comp=None)  # below compensate_min_s
     assert not pipe._uncarried(float("nan"), MotionProfile.empty(), comp=None)
     assert "clock_too_far" in INVALIDATING
+
+
+def test_refining_only_the_usable_lattice_points_changes_none_of_them():
+    """Issue 36: the sky clock refines only the lattice points that can still be usable; each
+    point is tracked on its own, so those points get exactly what refining all of them gave, and
+    the others are left unrefined (NaN, not converged)."""
+    import cv2
+
+    from cbh.pipeline.skyclock import _refine
+
+    rng = np.random.default_rng(3)
+    a = cv2.GaussianBlur(rng.integers(0, 255, (120, 120)).astype(np.uint8), (0, 0), 2.0)
+    b = np.roll(a, (1, 2), axis=(0, 1))
+    yy, xx = np.mgrid[0:120:2, 0:120:2].astype(np.float32)
+    p0 = np.stack([xx, yy], -1)
+    flow0 = np.full(p0.shape, 1.5, np.float32)
+    where = rng.random(p0.shape[:-1]) < 0.4
+    full, ok_full = _refine(a, b, p0, flow0)
+    part, ok_part = _refine(a, b, p0, flow0, where)
+    assert ok_part.sum() > 0.3 * where.sum()  # most selected points converge (to the 2, 1 px shift)
+    np.testing.assert_array_equal(ok_part, ok_full & where)
+    np.testing.assert_array_equal(part[where], full[where])
+    assert np.isnan(part[~where]).all()
