@@ -151,17 +151,29 @@ class SkyClock:
         return cls(math.nan, math.nan, tiles, np.zeros(0), np.zeros((0, 2)))
 
 
-def _texture(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def _texture(img: np.ndarray, valid: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     """Grey sky map → uint8 with its large-scale brightness removed (clouds' texture, not the sky's
-    gradient or vignetting), invalid pixels at the mean."""
+    gradient or vignetting), invalid pixels at the mean. ``weight``: :func:`_texture_weight` of
+    ``valid``, when already made (a camera's two frames share their usable mask)."""
     f = img.astype(np.float32)
     v = valid.astype(np.float32)
     k = (0, 0)
-    s = max(3.0, img.shape[0] / 40.0)
-    mean = cv2.GaussianBlur(f * v, k, s) / np.maximum(cv2.GaussianBlur(v, k, s), 1e-3)
+    s = _texture_sigma(img.shape[0])
+    mean = cv2.GaussianBlur(f * v, k, s) / (_texture_weight(valid) if weight is None else weight)
     hp = np.where(valid, f - mean, 0.0)
     sd = float(np.std(hp[valid])) if valid.any() else 1.0
     return np.clip(128.0 + hp * (40.0 / max(sd, 1e-3)), 0, 255).astype(np.uint8)
+
+
+def _texture_sigma(n: int) -> float:
+    """The σ of :func:`_texture`'s large-scale brightness [map px] for an n px map."""
+    return max(3.0, n / 40.0)
+
+
+def _texture_weight(valid: np.ndarray) -> np.ndarray:
+    """:func:`_texture`'s normaliser: the valid mask blurred like the map, at least 1e-3."""
+    s = _texture_sigma(valid.shape[0])
+    return np.maximum(cv2.GaussianBlur(valid.astype(np.float32), (0, 0), s), 1e-3)
 
 
 def _dominant_shift(s1: np.ndarray, s2: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -214,7 +226,8 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     if not (dt_s > 0):
         return SkyClock.unknown()
     u = [grid.sample(k, usable[k].astype(np.uint8), cv2.INTER_NEAREST) > 0 for k in (0, 1)]
-    maps = list(pmap(lambda ik: _texture(grid.sample(ik[1], ik[0][ik[1]]), u[ik[1]]),
+    wts = list(pmap(_texture_weight, u))  # both frames of a camera are read through its usable mask now
+    maps = list(pmap(lambda ik: _texture(grid.sample(ik[1], ik[0][ik[1]]), u[ik[1]], wts[ik[1]]),
                      [(img, k) for img in (now, prev) for k in (0, 1)]))
     f12, g1, g2_at, ok, disagree = _lattice_flows(*maps, u, fb_max_px, lattice)
     ae, an = (a[::lattice, ::lattice] for a in grid.offsets())
