@@ -596,7 +596,7 @@ def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time,
     within ``MAX_ZENITH_DEG`` only; the issue pair's own read reaches to :func:`map_reach_deg`
     (see ``REACH_STEP_DEG``). The edges found have no timing bias to correct (simulated two-layer
     scene, seeds 3, 5, 7, 11 and the default, leads 0–5 min: the mean signed error of the edges
-    within 60 s −4 to +3 s, the median |error| 0–10 s, the 10 s cadence)."""
+    within 60 s −4 to +4 s, the median |error| 0–10 s, the 10 s cadence)."""
     if site.points_m is None:
         return _lagged_point(pgs, site.enu_m, sun_dir, valid_time, cache)
     return _plant_mean([_lagged_point(pgs, p, sun_dir, valid_time, cache) for p in site.points_m])
