@@ -235,6 +235,62 @@ def test_the_map_ends_where_the_camera_stops_seeing():
     assert math.isnan(p) and why == "night"
 
 
+def _checker_sky(height_m: float = 1000.0, size: int = 320, cell_m: float = 800.0, far_deg: float = 90.0,
+                 far_label: int | None = None):
+    """Camera 1 looking at one layer at ``height_m`` that is a checkerboard of ``cell_m`` cloud and
+    clear squares (cloud where the east and north cell indices add up to an even number: half the
+    layer, and half of every ring about the camera); beyond ``far_deg`` from the zenith every
+    pixel reads ``far_label`` when one is given (the real deck read overcast there: 0; haze read
+    clear: ground.CLEAR)."""
+    from cbh.geometry import ground
+
+    cam, rays, up, x = _sky_rays(float(height_m), int(size))
+    t = np.where(up, (height_m - cam.position_m[2]) / np.where(up, rays[:, 2], 1.0), np.nan)
+    y = cam.position_m[1] + rays[:, 1] * t
+    with np.errstate(invalid="ignore"):
+        cloud = (np.floor(x / cell_m) + np.floor(y / cell_m)) % 2 == 0
+    lab = np.full(rays.shape[0], ground.UNKNOWN, np.int16)
+    lab[up & cloud] = 0
+    lab[up & ~cloud] = ground.CLEAR
+    if far_label is not None:
+        lab[up & (rays[:, 2] < math.cos(math.radians(far_deg)))] = far_label
+    H, W = cam.model.height, cam.model.width
+    return SimpleNamespace(camera=cam, labels=lab.reshape(H, W), heights=[float(height_m)], motions=[(0.0, 0.0)],
+                           cloud_fraction=0.5, sun_dir=None, valid=True)
+
+
+def test_the_map_reaches_past_65_degrees_where_it_agrees_with_itself_overhead():
+    """A 1000 m layer read 70–72° from camera 1's zenith (the sun 68° from the zenith in the east,
+    two sites whose sun rays meet a clear and a cloud square of a checkerboard, 2.8 km out): the
+    map reads the same half cloud there as overhead, so it reaches on (``map_reach_deg``: to
+    ``MAX_REACH_DEG``) and both sites get the right shade. Where the far map reads the sky
+    overcast beyond 65° (the real Fehmarn deck's failure) or clear beyond 67.5° (distant cloud
+    lost in the haze, as in the simulator), its cloud share there leaves the overhead share's
+    tolerance and the map ends: ``beyond_view``, as with the fixed 65° before."""
+    from cbh.geometry import ground
+    from cbh.outputs.nowcast import MAX_REACH_DEG, MAX_ZENITH_DEG, map_reach_deg, shade_probability
+
+    zen = math.radians(68.0)
+    sun = np.array([math.sin(zen), 0.0, math.cos(zen)])  # towards the east
+    pg = _checker_sky()
+    z = float(pg.camera.position_m[2])
+    # the sun ray meets the layer 2475 m east of the site: square (3, 0) is clear, (3, 1) cloud
+    clear_site, cloud_site = np.array([325.0, 400.0, z]), np.array([325.0, 1200.0, z])
+    assert map_reach_deg(pg) == [MAX_REACH_DEG]
+    p, why = shade_probability(pg, clear_site, sun, 0.0)
+    assert p < 0.1 and why == "", (p, why)
+    p, why = shade_probability(pg, cloud_site, sun, 0.0)
+    assert p > 0.9 and why == "", (p, why)
+    overcast = _checker_sky(far_deg=MAX_ZENITH_DEG, far_label=0)
+    assert map_reach_deg(overcast) == [MAX_ZENITH_DEG]
+    p, why = shade_probability(overcast, clear_site, sun, 0.0)
+    assert math.isnan(p) and why == "beyond_view"
+    hazy = _checker_sky(far_deg=67.5, far_label=ground.CLEAR)
+    assert map_reach_deg(hazy) == [67.5]
+    p, why = shade_probability(hazy, cloud_site, sun, 0.0)
+    assert math.isnan(p) and why == "beyond_view"
+
+
 def test_a_plant_is_the_share_of_its_points_in_shade(tmp_path):
     """A plant (a polygon, a list of points, or a CSV's rows sharing a name) straddling a cloud's
     shadow edge: its shade probability is the share of its area under the cloud (0.5 for a
@@ -367,9 +423,9 @@ def test_a_station_states_its_pyranometer(tmp_path, capsys):
 def test_shadow_edges_in_simulation_meet_the_target():
     """benchmarks/eval_nowcast_sim.py as run by default (the two-layer scene at 480 px, 10 min):
     the issue's target, the forecast shade within 60 s of ≥ 90 % of the true shadow edges, met at
-    every lead up to 3 min (measured 94 %, 93 %, 94 %, 94 %); at 5 min ≥ 90 % of the edges where a
-    forecast was issued (measured 98 %: 42 of 43) and ≥ 85 % of all (88 %: the other edges' sun rays
-    meet the lower deck's upwind cloud beyond the map, ``beyond_view``, or before the first motion).
+    every lead up to 5 min over all edges, abstentions counted as misses (measured 94 %, 93 %, 94 %,
+    94 %, 94 %: 46 of 49 at 5 min; 88 % while the map ended at 65° from the zenith whatever it
+    showed, the site whose lower deck's upwind cloud lay at 65–70° saying ``beyond_view``).
     The ensemble no worse than the issue pair alone at 0 and 1 min (where the masked sun hides the
     issue pair's own read)."""
     import sys
@@ -382,7 +438,7 @@ def test_shadow_edges_in_simulation_meet_the_target():
     assert res[0]["edges"] >= 90, res
     for lead in (0, 60, 120, 180):
         assert res[lead]["share"] >= 0.9, (lead, res[lead])
-    assert res[300]["share_with_forecast"] >= 0.9 and res[300]["share"] >= 0.85, res[300]
+    assert res[300]["share"] >= 0.9 and res[300]["share_with_forecast"] >= 0.9, res[300]
     assert res[0]["share"] >= one[0]["share"] and res[60]["share"] >= one[60]["share"], (res, one)
 
 

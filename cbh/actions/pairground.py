@@ -35,6 +35,9 @@ class PairGround:
     #: per layer, its motion's error [m/s] measured over the valid pairs of the last ENSEMBLE_S
     #: (:func:`cbh.outputs.nowcast.motion_errors`, set as the pair joins it); None: the prior
     motion_errors: list | None = None
+    #: per layer, how far from camera 1's zenith its map is read [deg]
+    #: (:func:`cbh.outputs.nowcast.map_reach_deg`, measured at the pair's first read); None: not yet
+    map_reach_deg: list | None = None
 
 
 def _sun(station, t):

@@ -19,9 +19,12 @@ For each recorded pair (the issue time t), each site and each lead time L:
    independent screens, ``1 − Π(1 − p_k)``. Where the disk is mostly unknown (the masked sun
    itself at short leads), it widens (``WIDEN``, ``WIDEN_FROM``) to the nearest sky the camera
    sees around it.
-   Where the point leaves the camera's view, or lies beyond ``MAX_ZENITH_DEG`` (low sun, long
-   leads, fast wind), the lead has no forecast and says so (flag ``beyond_view``), as it does
-   without the layer's motion (``motion_unknown``).
+   Where the point leaves the camera's view, or lies beyond the layer's map (``MAX_ZENITH_DEG``
+   from camera 1's zenith, or further where the pair's map of the layer reads the same cloud share
+   there as overhead, :func:`map_reach_deg`; low sun, long leads, fast wind), the lead has no
+   forecast and says so (flag ``beyond_view``), as it does without the layer's motion
+   (``motion_unknown``: a station's first pair has no motion, and one pair's cloud field holds none;
+   no forecast is made up for it).
    What is issued is a time-lagged ensemble (:func:`lagged_shade`): the pairs of the last
    ``ENSEMBLE_S`` forecast the same valid time at their own leads, and those read outside the
    sun's aureole (``GLARE_DEG``) are averaged.
@@ -54,7 +57,7 @@ from cbh.errors import ConfigError, InputError
 
 __all__ = ["Site", "parse_site", "parse_leads", "clear_sky_ghi", "shade_probability", "Levels", "read_pyranometer",
            "LEADS_S", "K_SUN", "K_SHADE", "lagged_shade", "glare_angle_deg", "motion_errors",
-           "read_sigma_m"]
+           "read_sigma_m", "map_reach_deg"]
 
 #: Default lead times: 0 to 20 min every minute [s].
 LEADS_S = tuple(float(s) for s in range(0, 1201, 60))
@@ -98,10 +101,35 @@ ENSEMBLE_STEP_S = 60.0
 #: sun saturated at every pair, 0–9 % at 20–35°).
 GLARE_DEG = 20.0
 LAYER_MATCH = 0.15  # a member pair's layer is the issue pair's layer k within this share of its height
-#: The map ends here [deg from camera 1's zenith]: further out a layer is seen edge-on, its gaps
-#: close up in perspective and the cloud mask reads every sky overcast (on the real Fehmarn deck the
-#: shade probability went to 1 at 15–20 min leads, 20–24 km upwind, while the sun shone).
+#: The map is read out to this angle from camera 1's zenith [deg] whatever it shows: further out a
+#: layer is seen ever more edge-on and through ever more air, and its map can go wrong either way.
+#: On the real Fehmarn deck (7.7 km) the gaps closed up in perspective and the cloud mask read the
+#: sky overcast (the layer's cloud share 0.72–0.85 at 65–75° against 0.40–0.45 within 60° at 09:03
+#: and 09:09; the shade probability went to 1 at 15–20 min leads, 20–24 km upwind, while the sun
+#: shone); in the simulator distant cloud fades into the haze and reads clear (the two-layer
+#: scene's 1200 m deck: 0.28–0.33 at 70–75° against 0.42 within 60°).
 MAX_ZENITH_DEG = 65.0
+#: Beyond it, each pair's map of each layer reaches as far as it still agrees with itself overhead
+#: (:func:`map_reach_deg`): band by band of ``REACH_STEP_DEG``, up to ``MAX_REACH_DEG``, while the
+#: layer's cloud share in the band is within ``REACH_TOLERANCE`` of its share within
+#: ``REACH_INNER_DEG`` of the zenith (with at least ``REACH_MIN_PX`` known pixels in the band).
+#: Both failures above change the share the map reads with the angle, which a layer's own cloud
+#: does not (a cloud field is no cloudier for being seen from further off); the first band that
+#: disagrees, and every band beyond it, is off the map. The tolerance is the share's scatter from
+#: band to band within 60° in the simulated decks (0.05–0.1). Measured reach: the simulated 1200 m
+#: deck 70–75°, its 3500 m deck 65–72.5° (seed 5); the real Fehmarn deck 65° in 15 of its 31 pairs
+#: (09:01–09:12 among them, where it read the sky overcast far out), 70–75° in the others.
+#: Only the issue pair's own read reaches past ``MAX_ZENITH_DEG``; the older members of the lagged
+#: ensemble stop there (:func:`lagged_shade`): their reads at 60–70° of the simulated low deck,
+#: made 3–6 min before for the same valid time, read 0.02–0.24 cloud where the issue pair read 0.55
+#: and the shadow came (faded or coarse far cloud), and letting them reach on lost 5 of 106 edges at
+#: 2 min and 6 of 72 at 3 min in the simulation while gaining none; the issue pair's own far read is
+#: the one that a forecast with no other read needs (5 min leads upwind of a site 1.4 km out).
+REACH_STEP_DEG = 2.5
+MAX_REACH_DEG = 75.0
+REACH_INNER_DEG = 60.0
+REACH_TOLERANCE = 0.1
+REACH_MIN_PX = 200
 _RINGS = ((0.0, 1), (0.5, 6), (1.0, 12), (1.5, 18), (2.0, 24))  # (radius in σ, points): 61 samples
 
 
@@ -319,10 +347,11 @@ def _plant_mean(got: list) -> tuple[float, str]:
     return float(np.mean(ok)), ("seen_earlier" if whys == {"seen_earlier"} else "")
 
 
-def _layer_centre(pg, k: int, site_enu: np.ndarray, s: np.ndarray, lead_s: float):
+def _layer_centre(pg, k: int, site_enu: np.ndarray, s: np.ndarray, lead_s: float, reach: bool = True):
     """Where the cloud that will be on the sun ray from ``site_enu`` ``lead_s`` after the pair is
     now on layer k: (centre (3,), the disk's σ [m]) or the reason it is not known
-    (``motion_unknown``, ``beyond_view``), or None when the layer is not above the site."""
+    (``motion_unknown``, ``beyond_view``), or None when the layer is not above the site. The map
+    ends at the layer's :func:`map_reach_deg`, or at ``MAX_ZENITH_DEG`` without ``reach``."""
     h = float(pg.heights[k])
     ve, vn = pg.motions[k]
     if lead_s and not (math.isfinite(ve) and math.isfinite(vn)):
@@ -334,13 +363,71 @@ def _layer_centre(pg, k: int, site_enu: np.ndarray, s: np.ndarray, lead_s: float
         return None
     centre = np.array([site_enu[0] + s[0] * t - ve * lead_s, site_enu[1] + s[1] * t - vn * lead_s, h])
     rel = centre - np.asarray(pg.camera.position_m, np.float64)
-    if (math.degrees(math.atan2(math.hypot(rel[0], rel[1]), rel[2])) > MAX_ZENITH_DEG
+    if (math.degrees(math.atan2(math.hypot(rel[0], rel[1]), rel[2])) > (_reach_deg(pg, k) if reach else MAX_ZENITH_DEG)
             or not _in_view(pg.camera, centre[None, :], pg.labels.shape)[0]):
         return "beyond_view"
     errs = getattr(pg, "motion_errors", None)
     err = errs[k] if errs and math.isfinite(errs[k]) else MOTION_ERROR[0] * math.hypot(ve, vn) + MOTION_ERROR[1]
     d_cam = math.hypot(float(site_enu[0] - pg.camera.position_m[0]), float(site_enu[1] - pg.camera.position_m[1]))
     return centre, read_sigma_m(t, d_cam, err, lead_s)
+
+
+_ZENITH_BANDS: dict = {}  # (camera, label size) → each pixel's band of REACH_STEP_DEG from the zenith
+
+
+def _zenith_bands(camera, shape) -> np.ndarray:
+    """Each of camera 1's pixels' band of ``REACH_STEP_DEG`` from the zenith (0: 0 to one step, …),
+    -1 for a ray below the horizon or none, (H, W) int16; computed once per camera and size."""
+    H, W = shape
+    key = (camera.name, H, W, np.asarray(camera.R_world_from_cam, np.float64).tobytes(), repr(camera.model.to_dict()))
+    if key not in _ZENITH_BANDS:
+        if len(_ZENITH_BANDS) >= 4:
+            _ZENITH_BANDS.clear()
+        yy, xx = np.mgrid[0:H, 0:W]
+        up = camera.pixel_to_world(np.column_stack([xx.ravel(), yy.ravel()]).astype(np.float64))[:, 2]
+        with np.errstate(invalid="ignore"):
+            zen = np.degrees(np.arccos(np.clip(up, -1.0, 1.0)))
+            band = np.where(np.isfinite(zen) & (zen < 90.0), np.floor(zen / REACH_STEP_DEG), -1)
+        _ZENITH_BANDS[key] = band.astype(np.int16).reshape(H, W)
+    return _ZENITH_BANDS[key]
+
+
+def map_reach_deg(pg) -> list[float]:
+    """Per layer of the pair ``pg`` (anything with ``camera``, ``labels`` and ``heights``): how far
+    from camera 1's zenith its map is read [deg], at least ``MAX_ZENITH_DEG``: out to the last band
+    of ``REACH_STEP_DEG`` (up to ``MAX_REACH_DEG``) before the first whose cloud share of the layer
+    (its cloud against clear sky or a higher layer, as :func:`cbh.geometry.ground.lookup_layer`
+    reads it) differs by more than ``REACH_TOLERANCE`` from the share within ``REACH_INNER_DEG``, or
+    has fewer than ``REACH_MIN_PX`` such pixels (see ``MAX_ZENITH_DEG``)."""
+    from cbh.geometry.ground import CLEAR
+
+    band = _zenith_bands(pg.camera, pg.labels.shape)
+    lab = pg.labels
+    nb = int(round(90.0 / REACH_STEP_DEG)) + 1
+    inner = int(round(REACH_INNER_DEG / REACH_STEP_DEG))
+    first, last = int(round(MAX_ZENITH_DEG / REACH_STEP_DEG)), int(round(MAX_REACH_DEG / REACH_STEP_DEG))
+    up = band >= 0
+    out = []
+    for k in range(len(pg.heights)):
+        cloud = np.bincount(band[up & (lab == k)], minlength=nb)
+        known = cloud + np.bincount(band[up & ((lab == CLEAR) | (lab > k))], minlength=nb)
+        reach = MAX_ZENITH_DEG
+        if known[:inner].sum() >= REACH_MIN_PX:
+            share0 = cloud[:inner].sum() / known[:inner].sum()
+            for b in range(first, last):
+                if known[b] < REACH_MIN_PX or abs(cloud[b] / known[b] - share0) > REACH_TOLERANCE:
+                    break
+                reach = (b + 1) * REACH_STEP_DEG
+        out.append(float(reach))
+    return out
+
+
+def _reach_deg(pg, k: int) -> float:
+    """Layer k's :func:`map_reach_deg` of ``pg``, measured at its first read and kept on it
+    (``PairGround.map_reach_deg``)."""
+    if getattr(pg, "map_reach_deg", None) is None:
+        pg.map_reach_deg = map_reach_deg(pg)
+    return pg.map_reach_deg[k]
 
 
 def read_sigma_m(ray_m: float, site_from_camera_m: float, motion_error_ms: float, lead_s: float) -> float:
@@ -393,13 +480,13 @@ def _sun_angle_deg(pg, centre: np.ndarray) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, c))))
 
 
-def _layer_reads(pg, site_enu: np.ndarray, s: np.ndarray, lead_s: float) -> list:
+def _layer_reads(pg, site_enu: np.ndarray, s: np.ndarray, lead_s: float, reach: bool = True) -> list:
     """Per layer of ``pg``: (height [m], cloud share, widened, angle from the sun [deg], disk σ
     [m]) of its read for ``site_enu`` ``lead_s`` ahead, or why it has none (a reason, or None when
-    the layer is not above the site)."""
+    the layer is not above the site); ``reach`` as :func:`_layer_centre`'s."""
     out: list = []
     for k in range(len(pg.heights)):
-        got = _layer_centre(pg, k, site_enu, s, lead_s)
+        got = _layer_centre(pg, k, site_enu, s, lead_s, reach)
         if got is None or isinstance(got, str):
             out.append(got)
             continue
@@ -464,12 +551,12 @@ def _lagged_point(pgs: list, site_enu: np.ndarray, sun_dir: np.ndarray | None, v
             break
         if j == 0:
             got = mine
-        elif cache is None:
-            got = _layer_reads(pg, site_enu, s, lj)
+        elif cache is None:  # an older member reads its map within MAX_ZENITH_DEG only (see lagged_shade)
+            got = _layer_reads(pg, site_enu, s, lj, reach=False)
         else:  # a member's read of one valid time is the same whichever later issue asks for it
             key = (pg.time_utc, valid_time, np.asarray(site_enu, np.float64).tobytes())
             if key not in cache:
-                cache[key] = _layer_reads(pg, site_enu, s, lj)
+                cache[key] = _layer_reads(pg, site_enu, s, lj, reach=False)
             got = cache[key]
         for r in got:
             k = _same_layer(own.heights, r[0]) if isinstance(r, tuple) and not r[2] else None
@@ -505,7 +592,11 @@ def lagged_shade(pgs: list, site: Site, sun_dir: np.ndarray | None, valid_time,
     :func:`shade_at`. The reason is ``seen_earlier`` when no read of the issue pair's own is used,
     else as :func:`shade_at`'s. A plant: the mean over its points, known when half of them are.
     ``cache``: a dict kept across issue times (:func:`prune_cache` drops pairs that left the
-    ensemble): each member's reads are made once per valid time."""
+    ensemble): each member's reads are made once per valid time. An older member reads its map
+    within ``MAX_ZENITH_DEG`` only; the issue pair's own read reaches to :func:`map_reach_deg`
+    (see ``REACH_STEP_DEG``). The edges found have no timing bias to correct (simulated two-layer
+    scene, seeds 3, 5, 7, 11 and the default, leads 0–5 min: the mean signed error of the edges
+    within 60 s −4 to +4 s, the median |error| 0–10 s, the 10 s cadence)."""
     if site.points_m is None:
         return _lagged_point(pgs, site.enu_m, sun_dir, valid_time, cache)
     return _plant_mean([_lagged_point(pgs, p, sun_dir, valid_time, cache) for p in site.points_m])
