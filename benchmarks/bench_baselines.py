@@ -53,7 +53,8 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--cpu-time", action="store_true", help="CPU time on one thread, minimum of the runs")
     ap.add_argument("--as-run", type=int, default=0, metavar="N",
-                    help="time N consecutive pairs of each, each with the pair before (motion, clock offset)")
+                    help="time N consecutive pairs of each, each with the pair before (motion, clock offset); "
+                         "--frame and --repeat are then not used")
     ap.add_argument("--cadence", type=float, default=60.0, help="--as-run: the simulated pairs' spacing [s]")
     a = ap.parse_args()
     clock, pick, what = time.perf_counter, statistics.median, "median"
@@ -65,6 +66,9 @@ def main() -> None:
         torch.set_num_threads(1)
         clock, pick, what = time.process_time, min, "CPU time on one thread, minimum"
     if a.as_run:
+        frames = len(list((a.data / "fe3").glob("*.jpg")))
+        if not 1 <= a.as_run <= frames - 2:
+            ap.error(f"--as-run takes 1 to {frames - 2} pairs (the record has {frames}, 2 of them the run's start-up)")
         as_run(a, clock)
         return
 

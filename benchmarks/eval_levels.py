@@ -60,7 +60,10 @@ def run(t, k, cs, shade, half_life_s: float, start: datetime, end: datetime) -> 
     pers = {5: [], 10: []}
     now = _utc("08:00")
     while now <= end:
-        i = at[now]
+        i = at.get(now)
+        if i is None:  # a minute missing from the record: no issue then
+            now += timedelta(minutes=1)
+            continue
         for tv, p in [x for x in pending if x[0] <= now]:
             lv.add(p, float(k[at[tv]]), tv)
         pending = [x for x in pending if x[0] > now]
@@ -71,8 +74,8 @@ def run(t, k, cs, shade, half_life_s: float, start: datetime, end: datetime) -> 
         pending += [(now + timedelta(minutes=m), float(shade[at[now + timedelta(minutes=m)]]))
                     for m in range(11) if now + timedelta(minutes=m) in at]
         for lead in (5, 10) if now >= start else ():
-            j = i + lead
-            if j < len(k):
+            j = at.get(now + timedelta(minutes=lead))
+            if j is not None:
                 err[lead].append((a + (b - a) * shade[j] - k[j]) * cs[j])
                 pers[lead].append((k[i] - k[j]) * cs[j])
         now += timedelta(minutes=1)

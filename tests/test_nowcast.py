@@ -291,6 +291,29 @@ def test_the_map_reaches_past_65_degrees_where_it_agrees_with_itself_overhead():
     assert math.isnan(p) and why == "beyond_view"
 
 
+def test_only_the_issue_pairs_own_read_reaches_past_65_degrees():
+    """The lagged ensemble: a pair issued a minute earlier whose map of the same deck reads the
+    opposite there (its far read 70–72° from the zenith) is left out, as its map stops at
+    ``MAX_ZENITH_DEG``; only the issue pair's own map reaches on (simulated: older members' far
+    reads of the low deck, 3–6 min old, read cloud where the shadow did not come). The clear site
+    then reads clear (with the older read averaged in it would read half) and the cloud one cloud."""
+    from cbh.geometry import ground
+    from cbh.outputs.nowcast import Site, lagged_shade
+
+    zen = math.radians(68.0)
+    sun = np.array([math.sin(zen), 0.0, math.cos(zen)])
+    t0 = datetime(2016, 9, 1, 9, 0, tzinfo=timezone.utc)
+    issue = _checker_sky()
+    older = _checker_sky()
+    older.labels = np.where(older.labels == 0, ground.CLEAR, np.where(older.labels == ground.CLEAR, 0, older.labels))
+    older.time_utc, issue.time_utc = t0, t0 + timedelta(minutes=1)
+    z = float(issue.camera.position_m[2])
+    for (e, n), want in (((325.0, 400.0), 0.0), ((325.0, 1200.0), 1.0)):
+        site = Site("s", math.nan, math.nan, z, np.array([e, n, z]))
+        p, why = lagged_shade([older, issue], site, sun, issue.time_utc)
+        assert abs(p - want) < 0.1 and why == "", (e, n, p, why)
+
+
 def test_a_plant_is_the_share_of_its_points_in_shade(tmp_path):
     """A plant (a polygon, a list of points, or a CSV's rows sharing a name) straddling a cloud's
     shadow edge: its shade probability is the share of its area under the cloud (0.5 for a

@@ -390,16 +390,19 @@ def _zenith_bands(camera, shape) -> np.ndarray:
     -1 for a ray below the horizon or none, (H, W) int16; computed once per camera and size."""
     H, W = shape
     key = (camera.name, H, W, np.asarray(camera.R_world_from_cam, np.float64).tobytes(), repr(camera.model.to_dict()))
-    if key not in _ZENITH_BANDS:
-        if len(_ZENITH_BANDS) >= 4:
-            _ZENITH_BANDS.clear()
+    got = _ZENITH_BANDS.get(key)
+    if got is None:  # (made and returned locally: another thread may clear the cache meanwhile)
         yy, xx = np.mgrid[0:H, 0:W]
         up = camera.pixel_to_world(np.column_stack([xx.ravel(), yy.ravel()]).astype(np.float64))[:, 2]
         with np.errstate(invalid="ignore"):
             zen = np.degrees(np.arccos(np.clip(up, -1.0, 1.0)))
             band = np.where(np.isfinite(zen) & (zen < 90.0), np.floor(zen / REACH_STEP_DEG), -1)
-        _ZENITH_BANDS[key] = band.astype(np.int16).reshape(H, W)
-    return _ZENITH_BANDS[key]
+        got = band.astype(np.int16).reshape(H, W)
+        got.setflags(write=False)  # shared by every caller
+        if len(_ZENITH_BANDS) >= 4:
+            _ZENITH_BANDS.clear()
+        _ZENITH_BANDS[key] = got
+    return got
 
 
 def map_reach_deg(pg) -> list[float]:

@@ -131,11 +131,13 @@ class SkyClock:
     rate: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     carry_noise_rad: float = 0.0  # the carry's own noise near the zenith: |δ| × the rate's noise [rad] (see sky_clock)
-    rate_map: np.ndarray | None = None  # (S, S, 2) each map pixel's rate [1/s] (NaN: none)
+    rate_map: np.ndarray | None = None  # (S, S, 2) each lattice point's rate [1/s]; NaN where none: only the
+    # points that could be usable are refined (their matches' a1 among them), the rest are NaN
     res: float = math.nan  # the map's step [m/m]
 
     def rate_at(self, a: np.ndarray) -> np.ndarray:
-        """The measured rate (N, 2) [1/s] at plane offsets a (N, 2) (the nearest map pixel's)."""
+        """The measured rate (N, 2) [1/s] at plane offsets a (N, 2) (the nearest map pixel's): meant
+        for the matches' own offsets ``a1``; NaN at a lattice point that was not refined."""
         n = self.rate_map.shape[0]
         c = np.clip(np.round(a[:, 0] / self.res + (n - 1) / 2.0).astype(np.int64), 0, n - 1)
         r = np.clip(np.round(-a[:, 1] / self.res + (n - 1) / 2.0).astype(np.int64), 0, n - 1)
