@@ -35,3 +35,6 @@ run $py -c "import torch, cv2, ray; print('torch', torch.__version__, 'cuda', to
 run timeout 120 $py -m pytest -q -m gpu -p no:cacheprovider tests/test_torch_parity.py
 run timeout 300 $py benchmarks/bench_gpu.py --pairs 240 --distinct 48 ${out:+--json "$out/bench_gpu.json"}
 run timeout 60 $py benchmarks/bench_vs_opencv.py --device cuda --repeat 5
+# the real 241 m station's pairs as a run processes them (its clock offset carried on the sky maps),
+# against the simulated 50 m pair, on this machine's CPU cores (issue 36's real / simulated bar)
+run timeout 120 $py benchmarks/bench_baselines.py --as-run 6
