@@ -97,16 +97,22 @@ def test_reprocess_reruns_the_pipeline_and_records(tmp_path, short_session, caps
     from cbh.cli.main import main
 
     sess, st = short_session
-    out, rrd = tmp_path / "new.mcap", tmp_path / "new.rrd"
+    out, rrd, again = tmp_path / "new.mcap", tmp_path / "new.rrd", tmp_path / "again.mcap"
     rc = main(["replay", str(sess), "--rerun", str(rrd), "--reprocess", "--station", str(st), "--record", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    rc = main(["replay", str(sess), "--rerun", str(tmp_path / "again.rrd"), "--reprocess", "--station", str(st),
+               "--record", str(again)])
     assert rc == 0, capsys.readouterr().err
     old = list(open_session(sess).pairs())
     new = list(open_session(out).pairs())
     assert [p.time_utc for p in new] == [p.time_utc for p in old]
-    for a, b in zip(old, new):
+    for a, b, c in zip(old, new, open_session(again).pairs()):
         assert a.images["cam1"].data == b.images["cam1"].data  # the images as received are carried over
-        # same images, same station, same config: the pipeline is deterministic on CPU
-        assert [l.height_m for l in b.result.layers] == pytest.approx([l.height_m for l in a.result.layers], abs=1e-6)
+        # same images, same station, same config: the pipeline is deterministic on CPU ...
+        assert [l.height_m for l in c.result.layers] == [l.height_m for l in b.result.layers]
+        # ... and the recording's own pipeline (an older cbh's, as a station's archive is) found the
+        # same layers: the repository's sample predates later changes that moved them by < 0.1 %
+        assert [l.height_m for l in b.result.layers] == pytest.approx([l.height_m for l in a.result.layers], rel=2e-3)
     assert rrd_verify(rrd).returncode == 0
 
 
