@@ -530,6 +530,7 @@ def test_every_pair_failing_is_an_error(archive, ray_session, tmp_path, capsys):
     assert "cbh: error: every pair failed (4 of 4" in err
 
 
+@pytest.mark.slow  # slow: a three-camera network on Ray (4.9 s with its teardown); one station's reprocess stays in the default suite
 def test_a_camera_network_is_reprocessed_from_its_folders(ray_session, tmp_path):
     """Three cameras' folders (unb-lea-network, 480 px, 1500 m and 8000 m): frame sets grouped
     within the tolerance, the station pipeline on Ray, one row per layer. 480 px: a working
