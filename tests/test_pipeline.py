@@ -531,17 +531,25 @@ def test_a_tilt_across_the_sky_is_not_read_as_depth_of_the_base():
     assert few.height_m == pytest.approx(layer_stats(tilted[:40], 0.5, LayersConfig(), np.full(40, 160.0)).height_m)
 
 
-def _spread_by_lstsq(h: np.ndarray, a: np.ndarray) -> float:
-    """The local spread as first written (LAPACK lstsq on the (N, 6) design matrix): the reference."""
-    med = float(np.median(h))
-    plain = 1.4826 * float(np.median(np.abs(h - med)))
+def _spread_by_lstsq(h: np.ndarray, a: np.ndarray, keep=None) -> float:
+    """The local spread as first written (LAPACK lstsq on the (N, 6) design matrix, each call its
+    own fit; points without an offset left out; ``keep``: the spread of those points): the reference."""
+    hk = h if keep is None else h[keep]
+    med = float(np.median(hk))
+    plain = 1.4826 * float(np.median(np.abs(hk - med)))
+    ok = np.isfinite(a).all(1) & (h > 0)
+    kk = (np.ones(len(h), bool) if keep is None else np.asarray(keep, bool))[ok]
+    a, y = a[ok], np.log(h[ok])
     X = np.column_stack([np.ones(len(a)), a, a ** 2, a[:, 0] * a[:, 1]])
-    y, use = np.log(h), np.ones(len(h), bool)
+    use = np.ones(len(y), bool)
     for _ in range(2):
         coef = np.linalg.lstsq(X[use], y[use], rcond=None)[0]
         r = y - X @ coef
         sig = 1.4826 * float(np.median(np.abs(r[use] - np.median(r[use]))))
         use = np.abs(r - np.median(r[use])) <= 3.0 * max(sig, 1e-9)
+    if keep is not None and (kk & use).any():
+        rk = r[kk & use]
+        sig = 1.4826 * float(np.median(np.abs(rk - np.median(rk))))
     return min(plain, med * sig)
 
 
@@ -581,29 +589,7 @@ def test_a_layers_two_spreads_share_one_trend_fit():
     assert fit is not None
     for k in (None, keep):
         assert local_spread(h, a, k, fit) == local_spread(h, a, k)
-        assert local_spread(h, a, k) == pytest.approx(_spread_as_two_fits(h, a, k), rel=1e-9)
+        assert local_spread(h, a, k) == pytest.approx(_spread_by_lstsq(h, a, k), rel=1e-6)
     assert local_spread(h, a, keep) != local_spread(h, a)  # the half is not the whole
     assert trend_residuals(h[:40], a[:40]) is None  # too few points for a trend
 
-
-def _spread_as_two_fits(h: np.ndarray, a: np.ndarray, keep) -> float:
-    """``local_spread`` as it was before the shared fit (each call its own robust fit, by the normal
-    equations): the reference, ``keep`` branch included."""
-    hk = h if keep is None else h[keep]
-    med = float(np.median(hk))
-    plain = 1.4826 * float(np.median(np.abs(hk - med)))
-    ok = np.isfinite(a).all(1) & (h > 0)
-    kk = np.ones(len(h), bool) if keep is None else np.asarray(keep, bool)
-    a, y, kk = a[ok], np.log(h[ok]), kk[ok]
-    X = np.column_stack([np.ones(len(a)), a, a ** 2, a[:, 0] * a[:, 1]])
-    use = np.ones(len(y), bool)
-    for _ in range(2):
-        Xu = X[use]
-        coef = np.linalg.lstsq(Xu.T @ Xu, Xu.T @ y[use], rcond=None)[0]
-        r = y - X @ coef
-        sig = 1.4826 * float(np.median(np.abs(r[use] - np.median(r[use]))))
-        use = np.abs(r - np.median(r[use])) <= 3.0 * max(sig, 1e-9)
-    if keep is not None and (kk & use).any():
-        rk = r[kk & use]
-        sig = 1.4826 * float(np.median(np.abs(rk - np.median(rk))))
-    return min(plain, med * sig)
