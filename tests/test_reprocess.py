@@ -140,6 +140,26 @@ def test_chunks_are_handed_out_in_contiguous_stretches():
     assert [(c.station, c.index) for c in got] == [("a", 0), ("b", 0)]
 
 
+def test_a_lead_pair_beyond_the_motion_gap_is_not_reprocessed():
+    """A chunk's lead pair is re-processed only for the state it hands on; more than
+    ``motion.max_gap_s`` before the chunk's first pair (a day's first chunk after the night) it
+    hands on nothing the pipeline uses, so it is skipped, and the actor that processed it last
+    does not hand its state on either: which actor takes the chunk changes nothing."""
+    from datetime import date, datetime, timezone
+
+    from cbh.actions.archive import PairRef
+    from cbh.actions.reprocess import Chunk, _lead_in_reach
+
+    t = datetime(2024, 6, 21, 14, tzinfo=timezone.utc)
+    pairs = tuple(PairRef(t + timedelta(seconds=30 * k), None, None) for k in range(3))
+    for gap_s, reach in ((30.0, True), (120.0, True), (120.5, False), (86400.0, False)):
+        lead = PairRef(t - timedelta(seconds=gap_s), None, None)
+        assert _lead_in_reach(Chunk("a", date(2024, 6, 21), 1, pairs, lead), 120.0) is reach, gap_s
+    assert not _lead_in_reach(Chunk("a", date(2024, 6, 21), 0, pairs, None), 120.0)  # a station's first chunk
+    untimed = PairRef(None, None, None)  # no capture time: kept (the pipeline decides)
+    assert _lead_in_reach(Chunk("a", date(2024, 6, 21), 1, pairs, untimed), 120.0)
+
+
 def test_an_error_outside_the_pairs_comes_back_with_its_chunk():
     """A bug or a pipeline that cannot be built is not a Ray task error (which Ray's pool could
     not tie to its chunk) but a result naming the chunk and the error: its day is left unwritten."""
@@ -167,8 +187,10 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     # chunks of at most 2 (chunk_pairs), even within a day: day 1's 4 pairs as 2 + 2, day 2's 3 as 1 + 2;
     # an actor works through a contiguous stretch (usually one actor day 1, the other day 2; an
     # actor done early takes over the other's next chunk): a chunk re-processes its lead-in pair
-    # exactly where its actor did not process the chunk before it just before (the motion check
-    # below holds either way); each chunk reports the actor's CPU time
+    # exactly where its actor did not process the chunk before it just before and that chunk is
+    # the same day's (day 2's first pair lies a day after day 1's last: beyond motion.max_gap_s,
+    # nothing to hand on); the motion check below holds either way; each chunk reports the
+    # actor's CPU time
     done = [e for e in events if e["event"] == "chunk"]
     chunks = sorted((e["day"], e["chunk"], e["pairs"]) for e in done)
     assert [(d, n) for d, _, n in chunks] == [("2024-06-21", 2), ("2024-06-21", 2), ("2024-06-22", 1), ("2024-06-22", 2)]
@@ -176,9 +198,10 @@ def test_agrees_with_cbh_pair_then_resumes(archive, baseline, capsys):
     last: dict = {}  # pid → the chunk it processed last
     for e in done:  # per actor in the order it processed them
         me = (e["day"], e["chunk"])
-        assert e["lead_in"] == (me in before and last.get(e["pid"]) != before[me]), (e, last)
+        same_day = me in before and before[me][0] == me[0]
+        assert e["lead_in"] == (same_day and last.get(e["pid"]) != before[me]), (e, last)
         last[e["pid"]] = me
-    assert 1 <= sum(e["lead_in"] for e in done) <= 2 and len(last) == 2
+    assert sum(e["lead_in"] for e in done) <= 1 and len(last) == 2
     assert all(e["cpu_s"] > 0 and e["elapsed_s"] > 0 for e in done)
     inv = plan.inventories["unb-lea"]
     assert inv.frames == {"cam1": 7, "cam2": 8} and inv.unpaired == {"cam1": 0, "cam2": 1}

@@ -445,11 +445,12 @@ class PairWorker:
         st = self.stations[chunk.station][0]
         motion = MotionChain()  # the temporal state handed from pair to pair, as in `cbh run`
         last = self._last.pop(chunk.station, None)
-        if chunk.lead is not None and last is not None and last[0] == chunk.lead:
+        lead_pair = chunk.lead if _lead_in_reach(chunk, pipe.config.motion.max_gap_s) else None
+        if lead_pair is not None and last is not None and last[0] == lead_pair:
             lead = ()  # this actor's previous chunk ended with the lead pair: its state, no re-processing
             motion.state = last[1]
         else:
-            lead = (chunk.lead,) if chunk.lead is not None else ()
+            lead = (lead_pair,) if lead_pair is not None else ()
         images = load_images([f for p in lead + chunk.pairs for f in p.present])
         records, failures = [], []
         for k, p in enumerate(lead + chunk.pairs):
@@ -481,6 +482,18 @@ class PairWorker:
             self._last[chunk.station] = (chunk.pairs[-1], _as_lead_in(motion.state))
         return ChunkResult(chunk.station, chunk.day, chunk.index, records, failures, os.getpid(), 0.0,
                            lead_in=len(lead))
+
+
+def _lead_in_reach(chunk: Chunk, max_gap_s: float) -> bool:
+    """Whether the chunk's lead pair can hand its first pair anything: it lies at most the
+    pipeline's ``motion.max_gap_s`` before it (beyond, the pipeline takes no motion from it, and
+    the lead-in's clock offsets are dropped anyway, :func:`_as_lead_in`). A day's first chunk
+    after a night's gap then starts fresh, whichever actor takes it, without re-processing the
+    previous evening's last pair; so does the chunk an actor continues into after such a gap."""
+    lead, first = chunk.lead, (chunk.pairs[0] if chunk.pairs else None)
+    if lead is None or first is None or lead.time_utc is None or first.time_utc is None:
+        return lead is not None
+    return (first.time_utc - lead.time_utc).total_seconds() <= max_gap_s
 
 
 def _restarted_by_ray() -> bool:
