@@ -49,7 +49,8 @@ def one_sky(job):
     return dict(seed=seed, kind=case.kind, describe=case.describe(), expected=sc.expected_m, matched=sc.matched,
                 merged=sc.merged,
                 spurious=sc.spurious_m, missed=sc.missed_m, found=sc.found_m,
-                cf=max(r.cloud_fraction.values(), default=0.0), n_layers=len(r.layers), flags=list(r.flags), dt=dt)
+                cf=max(r.cloud_fraction.values(), default=0.0), n_layers=len(r.layers), flags=list(r.flags), dt=dt,
+                measured=r.diagnostics.get("measured_fraction", float("nan")))
 
 
 def report(rows, args) -> None:
@@ -78,6 +79,7 @@ def report(rows, args) -> None:
             print(f"{'BAD ' if bad else 'ok  '}{row['describe']}\n     expected {fmt(row['expected'])} found "
                   f"{fmt(row['found'])} missed {fmt(row['missed'])} spurious {fmt(row['spurious'])}"
                   + (f" as one {fmt(row['merged'])}" if row.get("merged") else "") + f" cf {row['cf']:.3f} "
+                  f"measured {row.get('measured', float('nan')):.3f} "
                   f"flags {','.join(row['flags']) or '-'} {row['dt']:.2f} s", flush=True)
     print(f"\nskies {args.n} (seeds {args.seed}..{args.seed + args.n - 1}, {args.size} px)")
     as_one = sum(len(row.get("merged", ())) for row in rows)

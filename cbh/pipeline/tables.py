@@ -7,7 +7,7 @@ one-shot ``cbh pair`` (the pair itself is a few hundred ms).
 They depend only on the two cameras (lens models, poses, obstacle mask file), the working size
 and the mask settings, so they are stored once in ``$CBH_CACHE_DIR`` (default
 ``$XDG_CACHE_HOME/cbh`` or ``~/.cache/cbh``; ``CBH_CACHE_DIR=off`` disables the cache) and read
-back (18–100 MB, one read of a flat file: ≈ 30 ms for 100 MB) by every later process with
+back (18–100 MB, a flat file mapped into memory: ≈ 20 ms) by every later process with
 the same cameras.
 
 The key hashes everything the tables depend on, including the source text of the modules
