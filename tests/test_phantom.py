@@ -199,3 +199,33 @@ def test_randomized_skies_without_a_capture_time(tmp_path):
         spurious += len(sc.spurious_m)
         clear_bad += case.kind == "clear" and (r.cloud_fraction[cams[0]] > 0.02 or bool(r.layers))
     assert spurious <= 2 and clear_bad <= 1, (spurious, clear_bad)
+
+
+def test_a_featureless_sky_one_camera_overexposes_has_no_layer(base, tmp_path):
+    """Seed 9339 (``eval_random.py --skylines --unmasked --twice-encoded``): a hazy clear sky that
+    camera 1 over-exposes (218 / 245 / 249 DN under a 249 DN clip) and camera 2's pale response
+    shows grey: both read it as one overcast cloud. Its few windows of noise and JPEG blocks
+    matched some plane by chance (2 % of the cloud at 480 px, 0.1 % at 960, in patches of under
+    two matching windows): a layer at 374 m (893 m at 960 px) on a clear sky. Now no layer, and
+    the flags say why: the camera is over-exposed, and the sky has no texture to match."""
+    from cbh.sim.randomize import RandomOptions
+
+    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True)
+    case, r, score, _ = run_random_case(9339, base, SIZE, tmp_path, options=opts)
+    assert case.kind == "clear" and r.layers == [] and score.spurious_m == []
+    assert {"overexposed", "overcast_no_texture", "cloud_unmatched"} <= set(r.flags), r.flags
+    assert not set(r.flags) & INVALIDATING
+
+
+@pytest.mark.parametrize("seed", [9310, 9312, 9314])
+def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_path):
+    """One channel at the clip over most of the sky (the blue of a clear sky at a camera's white
+    level: 71–100 % of it in these three) leaves the other two apart: the colour is read, the sky
+    is clear, and ``overexposed`` (two channels at white over half the sky) is not raised."""
+    from cbh.sim.randomize import RandomOptions
+
+    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True)
+    case, r, score, _ = run_random_case(seed, base, SIZE, tmp_path, options=opts)
+    assert case.kind == "clear"
+    _assert_clear(r)
+    assert "overexposed" not in r.flags

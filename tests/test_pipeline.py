@@ -593,3 +593,17 @@ def test_a_layers_two_spreads_share_one_trend_fit():
     assert local_spread(h, a, keep) != local_spread(h, a)  # the half is not the whole
     assert trend_residuals(h[:40], a[:40]) is None  # too few points for a trend
 
+
+
+def test_the_largest_measured_patch_of_a_height_map():
+    """:meth:`HeightMap.largest_patch_px`: the biggest 8-connected patch of measured cloud pixels
+    (the layers' chance-match test); pixels touching at a corner are one patch, apart they are two."""
+    from cbh.pipeline.heightmap import HeightMap
+
+    m = np.zeros((40, 40), bool)
+    m[2:12, 2:12] = True  # 100 px
+    m[12, 12] = True  # touches the corner: 101
+    m[30:35, 30:35] = True  # 25 px apart
+    hm = HeightMap(np.zeros((40, 40), np.float32), np.zeros((40, 40), np.float32), (40, 40), 0.1, m)
+    assert hm.largest_patch_px() == 101
+    assert HeightMap(hm.working_m, hm.nearest_m, (40, 40)).largest_patch_px() == 0

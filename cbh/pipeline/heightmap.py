@@ -34,10 +34,19 @@ class HeightMap:
     nearest_m: np.ndarray  # (h, w) float32: height of each pixel's nearest measured pixel [m]
     full_size: tuple[int, int]  # camera 1's full (width, height) [px]: :meth:`full` is the map there
     measured_fraction: float = float("nan")  # share of the cloud mask's pixels measured (before the fill)
+    measured: np.ndarray | None = None  # (h, w) bool: the cloud pixels measured (before the fill)
 
     def full(self) -> Enlarged:
         """The working map standing for camera 1's full-size one (enlarged only when read)."""
         return Enlarged(self.working_m, *self.full_size)
+
+    def largest_patch_px(self) -> int:
+        """Area of the largest 8-connected patch of measured cloud pixels, at working size [px]
+        (0: none measured, or no mask kept)."""
+        if self.measured is None or not self.measured.any():
+            return 0
+        _, _, stats, _ = cv2.connectedComponentsWithStats(self.measured.view(np.uint8), connectivity=8)
+        return int(stats[1:, cv2.CC_STAT_AREA].max())
 
 
 def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray, cloud: np.ndarray,
@@ -81,7 +90,7 @@ def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarra
         hmap = hmap.copy()
         hmap[fill] = nearest[fill]
     return HeightMap(working_m=hmap, nearest_m=nearest, full_size=(int(full_size[0]), int(full_size[1])),
-                     measured_fraction=measured)
+                     measured_fraction=measured, measured=known & cloud)
 
 
 def rasterize_heights(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray) -> np.ndarray:

@@ -63,6 +63,7 @@ from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, parallax_px, supported_layers
 from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import alias_layers, without_aliases
 from cbh.geometry.sun import sun_position
@@ -87,6 +88,15 @@ _MAX_DISPLAY_MATCHES = 5000
 _FLOOR_LAYER_COVER = 0.05  # a layer at the sweep's floor counts for below_range from this cover up (see match.FLOOR_LAYER_RATIO)
 NIGHT_SUN_DEPRESSION_DEG = 6.0  # an underexposed pair with the sun this far below the horizon (civil twilight over) is night
 CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky (flag clear_sky; no geometry verdict)
+#: A barely matched sky (under ``UNMATCHED_FRACTION`` of camera 1's cloud measured) whose largest
+#: patch of measured pixels spans fewer than this many matching windows (``sweep.window_px``²)
+#: holds chance matches only: no layer. On a featureless sky (a hazy clear sky one camera
+#: over-exposes, read as overcast) the few windows whose noise and JPEG blocks reach the sweep's
+#: ``min_texture`` match some plane by chance, in patches of at most 1.5–1.7 windows (118–140 px
+#: at 9 px windows; randomized sky 9339 at 480 and 960 px: 2.0 and 0.1 % of the cloud measured,
+#: a layer at 374 or 893 m on a clear sky). Real texture is measured in patches of ≥ 15 windows
+#: even where little of the cloud is (randomized dense skies with 6–7 % measured: 1205–1276 px).
+CHANCE_PATCH_WINDOWS = 4
 CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
 _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
 # the defaults' pixels at half size; crowns up to 3° (8 px at a 480 px lens radius) above what stands (a trunk
@@ -901,11 +911,12 @@ class Pipeline:
             glare, sunlit = False, None
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
+            clip = clip_level(work[i])  # (the glare mask's, and the sky's over-exposure)
             if cfg.masks.saturation:  # the sun's glare; other saturation is over-exposed cloud
-                sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang)
+                sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang, clip)
                 if sat.any():
                     u, glare = u & ~sat, True
-            return u, ang, glare, _sky_dn(work[i], u), sunlit, obst
+            return u, ang, glare, SkyExposure(*_sky_dn(work[i], u), clip), sunlit, obst
 
         (u1, a1, glare1, dn1, s1, o1), (u2, a2, _, dn2, s2, o2) = pmap(
             lambda i: self._camera1_once(i, "masks", lambda: one(i)), (0, 1), pool="stages")
@@ -942,16 +953,27 @@ class Pipeline:
         d /= np.linalg.norm(d)
         return d if d[2] > 0.05 else None
 
-    def _exposure_check(self, sky_dn: tuple[float, float], ctx: "PairContext") -> None:
+    def _exposure_check(self, sky: tuple["SkyExposure", "SkyExposure"], ctx: "PairContext") -> None:
         """``sky_cam1_dn``, ``sky_cam2_dn``: median brightest channel of each camera's usable sky (as
         received, before the photometric correction: :func:`_sky_dn`); flag ``underexposed`` below
         ``segmentation.min_sky_dn``. Clear sky is told from cloud by a blue-red difference of a
         few DN there (≈ 4 DN at 26 DN on the real WAHRSIS low exposure), which 1–2 DN of sensor and
         JPEG noise swamp: that exposure's mask agrees with the medium one's on 85 % of the sky
-        (the high one's: 96 %), and a simulated clear sky at 24 DN reads as a textured overcast."""
-        for role, dn in zip(("cam1", "cam2"), sky_dn):
-            ctx.diagnostics[f"sky_{role}_dn"] = dn
-        seen = [v for v in sky_dn if math.isfinite(v)]
+        (the high one's: 96 %), and a simulated clear sky at 24 DN reads as a textured overcast.
+
+        Flag ``overexposed`` where the median *second*-brightest channel reaches the camera's own
+        clip level (:func:`~.clip.clip_level` of the image, found in it) less the saturation
+        margin (``255 − masks.saturation_level``): over half the sky has two channels at white,
+        and its colour is gone (randomized sky 9339: a hazy clear sky at 218 / 245 / 249 DN under
+        a 249 DN clip, 59 % of it two channels clipped, read as one overcast cloud). One clipped channel is common and harmless: the blue of a clear sky at
+        a camera's white, the other two still apart (in 8 other skies of the same 40, ≤ 30 % of
+        the sky had two channels clipped, and every clear one was read clear)."""
+        margin = FULL_RANGE_WHITE_DN - int(self.config.masks.saturation_level)
+        for role, e in zip(("cam1", "cam2"), sky):
+            ctx.diagnostics[f"sky_{role}_dn"] = e.bright_dn
+        if any(e.clip is not None and e.clip.found and e.second_dn >= e.clip.level_dn - margin for e in sky):
+            ctx.flags.append("overexposed")  # (NaN compares False: no usable sky)
+        seen = [e.bright_dn for e in sky if math.isfinite(e.bright_dn)]
         if seen and min(seen) < self.config.segmentation.min_sky_dn:
             ctx.flags.append("underexposed")
             if ctx.time_utc is not None:  # at night: stars and noise, nothing the colours can call cloud
@@ -1223,8 +1245,8 @@ class Pipeline:
         aliases of other layers (:mod:`.support`; with the working grey images ``gray`` and
         camera 2's clock compensation ``comp``, as matched). A clear sky has no layer."""
         hist, intervals = self._layers(pts.xyz_m[:, 2], self.config.layers, self.config.filtering)
-        if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION:
-            intervals = []  # whatever matched on a clear sky is not cloud
+        if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION or self._chance_matches_only(hmap):
+            intervals = []  # whatever matched on a clear sky is not cloud, nor chance matches on a featureless one
         rel = pts.xyz_m - np.asarray(self.cam1.position_m, np.float64)[None, :]
         with np.errstate(invalid="ignore", divide="ignore"):
             offsets = rel[:, :2] / rel[:, 2:3]
@@ -1246,6 +1268,13 @@ class Pipeline:
         alt = self.station.altitude_m
         return replace(lay, layers=[replace(L, altitude_m=L.height_m + alt) for L in lay.layers])
 
+    def _chance_matches_only(self, hmap: HeightMap) -> bool:
+        """Whether a dense method's matches are chance ones (:data:`CHANCE_PATCH_WINDOWS`)."""
+        m = hmap.measured_fraction
+        if not (math.isfinite(m) and m < UNMATCHED_FRACTION):
+            return False
+        return hmap.largest_patch_px() < CHANCE_PATCH_WINDOWS * self.config.matching.sweep.window_px ** 2
+
     def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext", hmap: HeightMap,
                        lay: LayerSet) -> None:
         n = len(pts.xyz_m)
@@ -1266,7 +1295,8 @@ class Pipeline:
             ctx.flags.append("clear_sky")  # (and not few_points: a clear sky has nothing to match)
         elif n < self.config.layers.min_points:
             ctx.flags.append("few_points")
-        if frac1 > 0.9 and n < self.config.layers.min_points:
+        barely = math.isfinite(measured) and measured < UNMATCHED_FRACTION and not lay.layers  # chance matches only
+        if frac1 > 0.9 and (n < self.config.layers.min_points or barely):
             ctx.flags.append("overcast_no_texture")
 
     def _assemble(self, ctx: "PairContext", seg: "Segmentation", hmap: HeightMap, pts: "Points",
@@ -1468,11 +1498,24 @@ def _only_on_skylines(seg: "Segmentation", masks: "Masks") -> bool:
     return True
 
 
-def _sky_dn(image: np.ndarray, usable: np.ndarray) -> float:
-    """Median brightest channel [DN] of an image's usable sky, on the sampling lattice (NaN: none)."""
+@dataclass(frozen=True)
+class SkyExposure:
+    """How bright a camera's usable sky is (:func:`_sky_dn`), against its own white level."""
+
+    bright_dn: float  # median brightest channel [DN] (NaN: no usable sky)
+    second_dn: float  # median second-brightest channel [DN]
+    clip: object = None  # cbh.pipeline.clip.ClipLevel of the image
+
+
+def _sky_dn(image: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
+    """Median brightest and median second-brightest channel [DN] of an image's usable sky, on the
+    sampling lattice (NaN: none)."""
     sl = sample_lattice(np.count_nonzero(usable))
     u = usable[sl]
-    return float(np.median(image[sl][u].max(axis=1))) if u.any() else math.nan
+    if not u.any():
+        return math.nan, math.nan
+    ch = np.sort(image[sl][u], axis=1)
+    return float(np.median(ch[:, -1])), float(np.median(ch[:, -2]))
 
 
 @contextmanager
