@@ -229,3 +229,18 @@ def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_p
     assert case.kind == "clear"
     _assert_clear(r)
     assert "overexposed" not in r.flags
+
+
+def test_a_textured_warm_cast_overcast_is_all_cloud(base, tmp_path):
+    """Seed 9570 (``eval_random.py --size 480 --skylines --unmasked --twice-encoded``): a textured
+    overcast at 2207 m under a warm colour cast. The hybrid split is relative (each region's bluest
+    pixels are its clear reference), and it called the bluer shade of the cloud clear: 5 % cloud,
+    no layer. Its "clear" class was redder than blue (median NBR −0.07) and textured (local
+    contrast 0.06), which no clear sky is: now all cloud, and the deck is found."""
+    from cbh.sim.randomize import RandomOptions
+
+    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True)
+    case, r, score, _ = run_random_case(9570, base, SIZE, tmp_path, options=opts)
+    assert case.kind == "overcast" and min(r.cloud_fraction.values()) >= 0.9, r.cloud_fraction
+    assert score.missed_m == [] and score.spurious_m == [], (score.found_m, score.expected_m)
+    assert not set(r.flags) & INVALIDATING

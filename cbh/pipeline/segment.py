@@ -459,6 +459,13 @@ _TEXTURE_BOX_PX = 9  # … its RMS over boxes of this side [px]
 _TEXTURED = 4.0  # a ring whose clearest pixels have this × the image's noise floor of fine texture is cloud (simulated: aureole ≤ 3.7, fog around the sun ≥ 4.3)
 
 
+#: Clear sky is bluer than it is red (Rayleigh scattering: NBR 0.2–0.3 on a neutral camera) in
+#: any camera whose white balance is off by less than ±10 %: the warmest clear sky of the
+#: labelled simulated set (a warm over-exposed camera) reads 0.07; grey cloud under such a warm
+#: cast reads down to −0.125, the mirror of a bluish cast's +0.125 (:func:`one_class_pair_is_clear`).
+CLEAR_MIN_NBR = 0.0
+
+
 def fine_texture(image_bgr: np.ndarray) -> np.ndarray:
     """RMS of the grey image's fine detail (less its σ = 1.5 px blur) in 9 px boxes, (H, W) float32 [DN].
 
@@ -616,7 +623,27 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
             dv = cv2.absdiff(dv, 0.0)
             score = cv2.addWeighted(score, 1.0, dv, cfg.brightness_weight / math.log(1.5), 0.0)
             cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
-    return cloud & usable
+    cloud &= usable
+    if gap is not None and not _clear_class_is_sky(cloud, usable, nbr, chroma, image_bgr, sub, cfg):
+        return usable.copy()
+    return cloud
+
+
+def _clear_class_is_sky(cloud, usable, nbr, chroma, image_bgr, sub, cfg: SegmentationConfig) -> bool:
+    """Whether what a two-class split left clear can be clear sky: bluer than red (median NBR at
+    least :data:`CLEAR_MIN_NBR`) or smooth (median local contrast under ``texture_cv``).
+
+    The split is relative (each region's bluest pixels are its clear-sky reference), so on an
+    overcast whose cloud comes in two shades it calls the bluer shade clear. A clear class that
+    is redder than blue *and* textured is cloud, and so is the whole sky (randomized sky 9570 at
+    480 px: a textured warm-cast overcast whose "clear" class sat at median NBR −0.07 and local
+    contrast 0.06, read 5 % cloud). Texture alone does not tell (the clear gaps of a broken sky
+    lie near cloud edges: median contrast 0.03–0.06 in the labelled simulated set), nor does
+    chroma (0.13 for both that overcast and a warm over-exposed camera's clear sky)."""
+    clear = (usable & ~cloud)[sub]
+    if image_bgr is None or not clear.any() or float(np.median(nbr[sub][clear])) >= CLEAR_MIN_NBR:
+        return True
+    return float(np.median(local_contrast(image_bgr)[sub][clear])) < cfg.texture_cv
 
 
 SEGMENTERS = {"hybrid": _hybrid, "nbr": _nbr, "nbr_adaptive": _nbr_adaptive, "otsu": _otsu}
