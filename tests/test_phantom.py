@@ -235,8 +235,10 @@ def test_a_textured_warm_cast_overcast_is_all_cloud(base, tmp_path):
     """Seed 9570 (``eval_random.py --size 480 --skylines --unmasked --twice-encoded``): a textured
     overcast at 2207 m under a warm colour cast. The hybrid split is relative (each region's bluest
     pixels are its clear reference), and it called the bluer shade of the cloud clear: 5 % cloud,
-    no layer. Its "clear" class was redder than blue (median NBR −0.07) and textured (local
-    contrast 0.06), which no clear sky is: now all cloud, and the deck is found."""
+    no layer. No part of its "clear" class was bluer than red (its bluest tenth at NBR −0.02)
+    and it was textured (local contrast 0.06), which no clear sky is: now all cloud, and the
+    deck is found. Seed 9564, a broken sky whose clear class mixes blue gaps with a shade of
+    cloud (median NBR −0.003, bluest tenth 0.37), keeps its gaps."""
     from cbh.sim.randomize import RandomOptions
 
     opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True)
@@ -244,3 +246,6 @@ def test_a_textured_warm_cast_overcast_is_all_cloud(base, tmp_path):
     assert case.kind == "overcast" and min(r.cloud_fraction.values()) >= 0.9, r.cloud_fraction
     assert score.missed_m == [] and score.spurious_m == [], (score.found_m, score.expected_m)
     assert not set(r.flags) & INVALIDATING
+    case, r, score, _ = run_random_case(9564, base, SIZE, tmp_path, options=opts)
+    assert case.kind == "broken" and max(r.cloud_fraction.values()) < 0.95, r.cloud_fraction
+    assert score.spurious_m == [] and not set(r.flags) & INVALIDATING, r.flags
