@@ -249,3 +249,31 @@ def test_a_textured_warm_cast_overcast_is_all_cloud(base, tmp_path):
     case, r, score, _ = run_random_case(9564, base, SIZE, tmp_path, options=opts)
     assert case.kind == "broken" and max(r.cloud_fraction.values()) < 0.95, r.cloud_fraction
     assert score.spurious_m == [] and not set(r.flags) & INVALIDATING, r.flags
+
+
+def test_a_layer_camera_2_does_not_see_is_no_layer(base, tmp_path):
+    """Seed 9733 (``eval_random.py --size 480 --kind clear --skylines --unmasked --twice-encoded``):
+    a clear sky whose sun, 62° out, camera 1's exposure saturates far wider than camera 2's. The
+    aureole ring round camera 1's glare read as cloud and matched: a layer at 1629 m (at 960 px,
+    266 and 3625 m) whose camera-2 pixels were cloud in camera 2 for 12 % of its points (camera
+    2 saw 2 % of its sky as cloud, at the horizon). A layer is cloud both cameras see."""
+    from cbh.sim.randomize import RandomOptions
+
+    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, kind="clear")
+    case, r, score, _ = run_random_case(9733, base, SIZE, tmp_path, options=opts)
+    assert case.kind == "clear" and r.layers == [] and score.spurious_m == []
+    assert not set(r.flags) & INVALIDATING
+
+
+def test_unseen_layers_counts_each_layers_points_on_camera_2s_cloud():
+    """:func:`cbh.pipeline.support.unseen_layers`: a layer is unseen when under a quarter of its
+    points land on camera 2's cloud grown by 3 px; points of no layer do not count."""
+    from cbh.pipeline.support import unseen_layers
+
+    cloud2 = np.zeros((50, 50), bool)
+    cloud2[10:20, 10:20] = True
+    px2 = np.array([[12, 12], [22, 15], [40, 40], [41, 41], [42, 40], [15, 15], [45, 5]], float)
+    label = np.array([0, 0, 1, 1, 1, 1, -1])  # layer 0: on, and 3 px off the edge; layer 1: 1 of 4 on
+    assert unseen_layers(cloud2, px2, label, 2) == []  # 1/4 = 0.25 is seen
+    label[5] = -1  # layer 1: 0 of 3 on
+    assert unseen_layers(cloud2, px2, label, 3) == [1]  # (layer 2 has no point: not judged)

@@ -65,7 +65,7 @@ from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, heigh
 from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
-from cbh.pipeline.support import alias_layers, without_aliases
+from cbh.pipeline.support import alias_layers, unseen_layers, without_aliases
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
@@ -468,7 +468,8 @@ class Pipeline:
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
-                lay = self.stage_layers(pts, seg, masks, hmap, ctx, gray=gray, comp=comp)
+                lay = self.stage_layers(pts, seg, masks, hmap, ctx, gray=gray, comp=comp,
+                                        cloud2=None if sky_mode else self._cloud2_as_matched(seg, comp))
             est = MotionEstimate()
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
@@ -729,8 +730,7 @@ class Pipeline:
             images, maps = shifted_images(gray[1], self.cam2, rates, used_s)
             g2, comp = compensate_camera2(gray[1], mot.prev_gray[1], self.cam2, rates, used_s, mot.dt_s, maps=maps,
                                           images=images)
-            c2 = cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
-                           borderMode=cv2.BORDER_REPLICATE).astype(bool)
+            c2 = self._cloud2_as_matched(seg, comp)
             views = None
             if mcfg.plane_compensation and len(images) > 1 and self.backend != "torch":  # (the torch sweep: g2)
                 from cbh.pipeline.sweep import PlaneViews
@@ -1240,10 +1240,12 @@ class Pipeline:
                       parallax_px=parallax_px(xyz, self.cam1.position_m, self.cam2.position_m, self._px_per_rad2()))
 
     def stage_layers(self, pts: "Points", seg: "Segmentation", masks: "Masks", hmap: HeightMap,
-                     ctx: "PairContext", gray=None, comp=None) -> LayerSet:
+                     ctx: "PairContext", gray=None, comp=None, cloud2=None) -> LayerSet:
         """Height histogram → candidate intervals → supported layers with covers → less the
         aliases of other layers (:mod:`.support`; with the working grey images ``gray`` and
-        camera 2's clock compensation ``comp``, as matched). A clear sky has no layer."""
+        camera 2's clock compensation ``comp``, as matched) → less the layers camera 2 does not
+        see (``cloud2``: its cloud mask in the frame the points' camera-2 pixels are in; None:
+        not checked). A clear sky has no layer."""
         hist, intervals = self._layers(pts.xyz_m[:, 2], self.config.layers, self.config.filtering)
         if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION or self._chance_matches_only(hmap):
             intervals = []  # whatever matched on a clear sky is not cloud, nor chance matches on a featureless one
@@ -1263,10 +1265,26 @@ class Pipeline:
             if aliases:
                 ctx.diagnostics["alias_layers_m"] = float(sum(lay.layers[k].height_m for k in aliases) / len(aliases))
             lay = without_aliases(lay, aliases)
+        if cloud2 is not None and lay.layers:  # a layer camera 2 does not see is camera 1's aureole or glare
+            unseen = unseen_layers(cloud2, (pts.px2 + 0.5) * self.factors[1] - 0.5, lay.label, len(lay.layers))
+            if unseen:
+                gone = sum(lay.layers[k].cover for k in unseen)
+                lay = without_aliases(lay, dict.fromkeys(unseen))
+                cf1 = seg.fractions[self.cam1.name]
+                lay = replace(lay, cover_incomplete=bool(lay.layers) and (lay.cover_incomplete or gone > 0.1 * cf1))
         if lay.cover_incomplete:
             ctx.flags.append("cover_incomplete")
         alt = self.station.altitude_m
         return replace(lay, layers=[replace(L, altitude_m=L.height_m + alt) for L in lay.layers])
+
+    @staticmethod
+    def _cloud2_as_matched(seg: "Segmentation", comp) -> np.ndarray:
+        """Camera 2's cloud mask in the frame its matches were made in (carried to camera 1's
+        time by the clock compensation ``comp``, as :meth:`_match_compensated` does)."""
+        if comp is None:
+            return seg.clouds[1]
+        return cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_REPLICATE).astype(bool)
 
     def _chance_matches_only(self, hmap: HeightMap) -> bool:
         """Whether a dense method's matches are chance ones (:data:`CHANCE_PATCH_WINDOWS`)."""
