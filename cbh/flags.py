@@ -35,7 +35,7 @@ class Flag(enum.IntFlag):
     camera_missing = 1 << 16  # a network camera delivered no frame: the result is from the cameras present
     clock_unknown = 1 << 17  # the matches disagree with the geometry while the cameras' clock offset, which could explain it, is not known yet (a run's first pair): layers not valid
     clock_too_far = 1 << 19  # the cameras' clocks differ by more than the sky's motion could be carried over on this pair (the sky maps found no match at the running offset): layers not valid
-    overexposed = 1 << 20  # a camera's sky is so bright that over half of it reaches the clip level: its colours are lost, cloud masks and cover unreliable
+    overexposed = 1 << 20  # half a camera's sky or more has two channels at its white level: colours lost, cloud masks and cover unreliable
     night = 1 << 18  # the sun more than 6 deg below the horizon and a camera's sky too dark to read: no cloud can be told, no layer reported, no geometry judged
 
 
@@ -62,7 +62,7 @@ _MEANING = {
     "below_range": "much of the cloud sits on the lowest height searched: cloud at or below it",
     "cloud_unmatched": "most of the cloud found no height: the layers describe only the matched part",
     "underexposed": "a camera's sky is too dark for its colours to be read",
-    "overexposed": "a camera's sky is so bright that over half of it reaches the camera's white level: its "
+    "overexposed": "half a camera's sky or more has two colour channels at the camera's white level: its "
                    "colours are lost, so cloud cannot be told from clear sky there",
     "camera_mismatch": "a network camera disagrees with the others' geometry and was left out",
     "camera_missing": "a network camera delivered no frame",

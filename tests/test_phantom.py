@@ -224,9 +224,16 @@ def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_p
     is clear, and ``overexposed`` (two channels at white over half the sky) is not raised."""
     from cbh.sim.randomize import RandomOptions
 
+    from cbh.pipeline.clip import clip_level
+    from cbh.sim import SkySimulator
+
     opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True)
     case, r, score, _ = run_random_case(seed, base, SIZE, tmp_path, options=opts)
     assert case.kind == "clear"
+    shot = SkySimulator(case.station, case.scene, size_px=SIZE).render()
+    clips = [clip_level(shot.views[c].image).level_dn for c in list(case.station.cameras)[:2]]
+    # the premise: one camera's sky has its brightest channel at its white level over half of it
+    assert any(r.diagnostics[f"sky_cam{k + 1}_dn"] >= c - 5 for k, c in enumerate(clips)), (r.diagnostics, clips)
     _assert_clear(r)
     assert "overexposed" not in r.flags
 
@@ -277,3 +284,18 @@ def test_unseen_layers_counts_each_layers_points_on_camera_2s_cloud():
     assert unseen_layers(cloud2, px2, label, 2) == []  # 1/4 = 0.25 is seen
     label[5] = -1  # layer 1: 0 of 3 on
     assert unseen_layers(cloud2, px2, label, 3) == [1]  # (layer 2 has no point: not judged)
+
+
+@pytest.mark.slow
+def test_a_layer_camera_2_does_not_see_is_no_layer_below_full_size(base, tmp_path):
+    """Seed 9733 rendered at 960 px and processed at half that (``working_radius_px`` 240): the
+    points' camera-2 pixels are full-size and camera 2's mask is at working size, so the test of
+    :func:`test_a_layer_camera_2_does_not_see_is_no_layer` needs the conversion between them."""
+    from cbh.pipeline import PipelineConfig
+    from cbh.sim.randomize import RandomOptions
+
+    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, kind="clear")
+    cfg = PipelineConfig().replace(working_radius_px=240)
+    case, r, score, _ = run_random_case(9733, base, 960, tmp_path, config=cfg, options=opts)
+    assert r.cloud_masks[list(r.cloud_masks)[1]].shape == (960, 960)  # (reported at full size)
+    assert case.kind == "clear" and r.layers == [] and score.spurious_m == []

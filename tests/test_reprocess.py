@@ -160,6 +160,26 @@ def test_a_lead_pair_beyond_the_motion_gap_is_not_reprocessed():
     assert _lead_in_reach(Chunk("a", date(2024, 6, 21), 1, pairs, untimed), 120.0)
 
 
+def test_a_days_first_chunk_is_the_same_on_any_actor(archive):
+    """Day 2's first chunk, whose lead pair is day 1's last (a day earlier: beyond
+    ``motion.max_gap_s``), gives the same records on an actor that has just processed day 1's
+    last chunk (its state is not handed on) as on a fresh one, and neither re-processes the lead."""
+    from cbh.actions.reprocess import PairWorker, ReprocessOptions, _plan_chunks, load_jobs, plan_reprocess
+
+    jobs = load_jobs([archive / "station.toml"], [f"cam1={archive / 'cam1'}", f"cam2={archive / 'cam2'}"])
+    plan = plan_reprocess(jobs, ReprocessOptions(out=archive / "unused", chunk_pairs=2))
+    (chunks,) = _plan_chunks(plan)[0].values()
+    first2 = next(c for c in chunks if c.day == DAY2.date() and c.index == 0)
+    last1 = max((c for c in chunks if c.day == T0.date()), key=lambda c: c.index)
+    assert first2.lead == last1.pairs[-1] and (first2.pairs[0].time_utc - first2.lead.time_utc).total_seconds() > 86000
+    stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs}
+    on = PairWorker(stations)
+    on.process(last1)
+    continued, fresh = on.process(first2), PairWorker(stations).process(first2)
+    assert continued.lead_in == fresh.lead_in == 0 and continued.error is None and fresh.error is None
+    assert continued.records and repr(continued.records) == repr(fresh.records)
+
+
 def test_an_error_outside_the_pairs_comes_back_with_its_chunk():
     """A bug or a pipeline that cannot be built is not a Ray task error (which Ray's pool could
     not tie to its chunk) but a result naming the chunk and the error: its day is left unwritten."""

@@ -222,3 +222,24 @@ def test_a_pale_clear_sky_is_clear_in_both_cameras(base, tmp_path):
     assert case.kind == "clear"
     _assert_clear(r)
     assert score.spurious_m == []
+
+
+def test_learned_obstacles_are_forgotten_on_request(base):
+    """A pipeline keeps masking what it found in most of a camera's frames after ten of them (a
+    building under a dark cloud is still a building); :meth:`Pipeline.forget_learned` drops that,
+    so that ``cbh reprocess`` chunks learn from their own frames on whichever actor takes them."""
+    from cbh.pipeline import Pipeline
+    from cbh.sim import SkySimulator
+
+    case = random_case(1, base, CLEAR)
+    sim = SkySimulator(case.station, case.scene, size_px=SIZE)
+    pipe = Pipeline(sim.station)
+    frame = pipe.to_working(0, sim.view("cam1").image)
+    for _ in range(10):
+        seen = pipe.auto_obstacles(0, frame)
+    assert seen.sum() > 100
+    empty = np.zeros_like(frame)
+    empty[...] = (200, 150, 110)  # a plain blue sky: nothing dark at the horizon
+    assert pipe.auto_obstacles(0, empty).sum() >= 0.9 * seen.sum()  # the learned ones stay masked
+    pipe.forget_learned()
+    assert pipe.auto_obstacles(0, empty).sum() == 0

@@ -222,6 +222,25 @@ def test_segmentation_on_torch_reads_texture_on_a_one_class_sky():
     assert np.array_equal(c_n, c_t) and f_t == f_n
 
 
+def test_segmentation_on_torch_calls_a_clear_class_of_cloud_cloud(tmp_path):
+    """Randomized sky 9570 (480 px): a textured overcast under a warm cast, whose two-class split
+    called its bluer shade clear (5 % cloud) until a clear class with no part bluer than red and
+    a cloud's texture counted as cloud (:func:`cbh.pipeline.segment.clear_class_is_sky`): both
+    backends now read it all cloud."""
+    from cbh.sim import SkySimulator
+    from cbh.sim.randomize import RandomOptions, random_case, station_with_masks
+
+    case = random_case(9570, load_station(station_path()), RandomOptions(skylines=True, unmasked=True,
+                                                                          twice_encoded=True))
+    sim = SkySimulator(case.station, case.scene, size_px=480)
+    shot = sim.render()
+    cams = list(sim.station.cameras)[:2]
+    pipe = Pipeline(station_with_masks(case, sim, tmp_path))
+    prep = pipe.prepare(shot.views[cams[0]].image, shot.views[cams[1]].image, shot.time_utc, channels="bgr")
+    (c_n, f_n), (c_t, f_t) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], prep.masks.sun_angle[0])
+    assert f_n >= 0.9 and f_t >= 0.9 and np.mean(c_n == c_t) >= 0.9998, (f_n, f_t)
+
+
 @pytest.mark.parametrize("size", [600, 3])
 def test_segmentation_on_torch_edge_cases_as_opencv(size):
     """No usable pixel on the sampling lattice (usable sky on even rows only: the 2-px lattice

@@ -48,7 +48,10 @@ contiguous stretch of chunks, :class:`_ChunkQueue`) skips the re-processing and 
 the state the lead-in would leave (:func:`_as_lead_in`: the same frames, no offset history),
 so the results do not depend on which actor took which chunk, nor on an actor's restart (a
 restarted actor has no such state: its retried chunk re-processes the lead-in), and the extra
-pairs are one per stretch (about one per actor and station), not one per chunk. That affinity
+pairs are one per stretch (about one per actor and station), not one per chunk. A lead pair
+more than the pipeline's ``motion.max_gap_s`` before the chunk's first pair (a day's first
+chunk after the night) hands on nothing the pipeline uses: it is not re-processed, and an
+actor continuing across such a gap starts fresh too (:func:`_lead_in_reach`). That affinity
 is why the chunks go through an actor pool that asks the queue at hand-out time, not through
 Ray Data: its ``map_batches`` over an actor pool gives a batch to whichever actor is free, so
 every chunk would re-process a lead-in pair (1/``chunk_pairs`` more work on 2 or more workers).
@@ -454,6 +457,8 @@ class PairWorker:
         images = load_images([f for p in lead + chunk.pairs for f in p.present])
         records, failures = [], []
         for k, p in enumerate(lead + chunk.pairs):
+            if k in (0, len(lead)):  # the chunk's pairs learn from themselves alone, on any actor (a lead-in:
+                pipe.forget_learned()  # nothing, as on the actor that carries its state over instead)
             imgs = {f.camera: images[f] for f in p.present}
             bad = next((v for v in imgs.values() if isinstance(v, Exception)), None)
             if bad is None:
@@ -490,9 +495,11 @@ def _lead_in_reach(chunk: Chunk, max_gap_s: float) -> bool:
     the lead-in's clock offsets are dropped anyway, :func:`_as_lead_in`). A day's first chunk
     after a night's gap then starts fresh, whichever actor takes it, without re-processing the
     previous evening's last pair; so does the chunk an actor continues into after such a gap."""
-    lead, first = chunk.lead, (chunk.pairs[0] if chunk.pairs else None)
-    if lead is None or first is None or lead.time_utc is None or first.time_utc is None:
-        return lead is not None
+    if chunk.lead is None or not chunk.pairs:
+        return False  # (no pair to hand a state to)
+    lead, first = chunk.lead, chunk.pairs[0]
+    if lead.time_utc is None or first.time_utc is None:
+        return True  # (the pipeline decides what an untimed pair hands on)
     return (first.time_utc - lead.time_utc).total_seconds() <= max_gap_s
 
 

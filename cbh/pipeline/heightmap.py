@@ -83,14 +83,15 @@ def dense_height_map(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarra
                 hmap = np.where(n > 0, np.nansum(stack, axis=0) / np.maximum(n, 1), np.nan).astype(np.float32)
     known = np.isfinite(hmap)
     n_cloud = int(np.count_nonzero(cloud))
-    measured = float(np.count_nonzero(known & cloud)) / n_cloud if n_cloud else float("nan")
+    on_cloud = known & cloud
+    measured = float(np.count_nonzero(on_cloud)) / n_cloud if n_cloud else float("nan")
     nearest, dist = (nearest or nearest_fill)(hmap)
     if cfg.fill == "nearest":
         fill = cloud & ~known & (dist <= cfg.fill_max_px)
         hmap = hmap.copy()
         hmap[fill] = nearest[fill]
     return HeightMap(working_m=hmap, nearest_m=nearest, full_size=(int(full_size[0]), int(full_size[1])),
-                     measured_fraction=measured, measured=known & cloud)
+                     measured_fraction=measured, measured=on_cloud)
 
 
 def rasterize_heights(shape: tuple[int, int], px: np.ndarray, height_m: np.ndarray) -> np.ndarray:

@@ -342,6 +342,7 @@ class LayerSet:
     histogram: Histogram
     label: np.ndarray  # (N,) int16: each point's index into ``layers``, -1 = none
     cover_incomplete: bool  # over ``_COVER_SLACK`` of the cloud lies in no reported layer
+    unassigned: float = 0.0  # share of the usable sky that is cloud in no reported layer
 
 
 def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram,
@@ -393,10 +394,16 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
         layers.append(layer_stats(heights_m[sel], cover_of[k], cfg, noise_m[sel],
                                   None if offsets is None else offsets[sel], None if parallax is None else parallax[sel],
                                   camera_z_m, float(hist.edges_m[-1]) if len(hist.edges_m) else math.inf))
-    incomplete = bool(layers) and unassigned > max(_COVER_SLACK * cloud_fraction, 0.005)
     if not isinstance(hist, Histogram):
         hist = Histogram(np.zeros(1), np.zeros(0))
-    return LayerSet(layers=layers, histogram=hist, label=label, cover_incomplete=incomplete)
+    return LayerSet(layers=layers, histogram=hist, label=label,
+                    cover_incomplete=cover_incomplete(bool(layers), unassigned, cloud_fraction), unassigned=unassigned)
+
+
+def cover_incomplete(any_layer: bool, unassigned: float, cloud_fraction: float) -> bool:
+    """Whether over ``_COVER_SLACK`` of the cloud (``cloud_fraction``) lies in no reported layer
+    (``unassigned``, a share of the usable sky) while some layer is reported."""
+    return any_layer and unassigned > max(_COVER_SLACK * cloud_fraction, 0.005)
 
 
 LAYER_METHODS = {"histogram": histogram_layers}

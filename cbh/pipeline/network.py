@@ -735,6 +735,11 @@ class StationPipeline:
     def cameras(self) -> tuple[str, ...]:
         return tuple(self.names)
 
+    def forget_learned(self) -> None:
+        """Every pair pipeline's :meth:`Pipeline.forget_learned`."""
+        for pipe in ([self.single] if self.single is not None else []) + list(self._pipes.values()):
+            pipe.forget_learned()
+
     def pipeline(self, plan: PairPlan):
         """The :class:`~cbh.pipeline.run.Pipeline` of one pair (made on first use)."""
         if plan.cameras not in self._pipes:

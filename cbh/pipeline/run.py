@@ -61,7 +61,8 @@ from cbh.pipeline.config import PipelineConfig
 from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identical, seeded_matches
 from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
-from cbh.pipeline.layers import LayerSet, angular_noise, get_layer_method, height_noise, parallax_px, supported_layers
+from cbh.pipeline.layers import (LayerSet, angular_noise, cover_incomplete, get_layer_method, height_noise, parallax_px,
+                                 supported_layers)
 from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
@@ -300,6 +301,13 @@ class Pipeline:
                 found = found | (votes >= _OBSTACLE_LEARN_SHARE * n)
         return found
 
+    def forget_learned(self) -> None:
+        """Forget what earlier frames taught (the horizon obstacles of :meth:`auto_obstacles`), so
+        that the next frames' results depend on them alone: ``cbh reprocess`` calls it at each
+        chunk, whichever actor takes it."""
+        with self._obstacle_lock:
+            self._obstacle_votes = {}
+
     def rays_cam_device(self, i: int):
         """:meth:`rays_cam` as a tensor on the pipeline's device (uploaded once)."""
         key = ("dev", i)
@@ -468,8 +476,7 @@ class Pipeline:
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
-                lay = self.stage_layers(pts, seg, masks, hmap, ctx, gray=gray, comp=comp,
-                                        cloud2=None if sky_mode else self._cloud2_as_matched(seg, comp))
+                lay = self.stage_layers(pts, seg, masks, hmap, ctx, gray=gray, comp=comp, judge_unseen=not sky_mode)
             est = MotionEstimate()
             if mot.prev_gray is not None:
                 with _timed(ctx, "motion"):
@@ -1240,12 +1247,12 @@ class Pipeline:
                       parallax_px=parallax_px(xyz, self.cam1.position_m, self.cam2.position_m, self._px_per_rad2()))
 
     def stage_layers(self, pts: "Points", seg: "Segmentation", masks: "Masks", hmap: HeightMap,
-                     ctx: "PairContext", gray=None, comp=None, cloud2=None) -> LayerSet:
+                     ctx: "PairContext", gray=None, comp=None, judge_unseen: bool = False) -> LayerSet:
         """Height histogram → candidate intervals → supported layers with covers → less the
         aliases of other layers (:mod:`.support`; with the working grey images ``gray`` and
-        camera 2's clock compensation ``comp``, as matched) → less the layers camera 2 does not
-        see (``cloud2``: its cloud mask in the frame the points' camera-2 pixels are in; None:
-        not checked). A clear sky has no layer."""
+        camera 2's clock compensation ``comp``, as matched) → with ``judge_unseen``, less the
+        layers camera 2 does not see as cloud (:func:`~.support.unseen_layers`; not for matches
+        whose camera-2 pixels were carried by the sky maps). A clear sky has no layer."""
         hist, intervals = self._layers(pts.xyz_m[:, 2], self.config.layers, self.config.filtering)
         if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION or self._chance_matches_only(hmap):
             intervals = []  # whatever matched on a clear sky is not cloud, nor chance matches on a featureless one
@@ -1265,13 +1272,15 @@ class Pipeline:
             if aliases:
                 ctx.diagnostics["alias_layers_m"] = float(sum(lay.layers[k].height_m for k in aliases) / len(aliases))
             lay = without_aliases(lay, aliases)
-        if cloud2 is not None and lay.layers:  # a layer camera 2 does not see is camera 1's aureole or glare
-            unseen = unseen_layers(cloud2, (pts.px2 + 0.5) * self.factors[1] - 0.5, lay.label, len(lay.layers))
+        if judge_unseen and lay.layers:  # a layer camera 2 does not see is camera 1's aureole or glare
+            unseen = unseen_layers(self._cloud2_as_matched(seg, comp), (pts.px2 + 0.5) * self.factors[1] - 0.5,
+                                   lay.label, len(lay.layers))
             if unseen:
-                gone = sum(lay.layers[k].cover for k in unseen)
+                ctx.diagnostics["unseen_layers_m"] = float(sum(lay.layers[k].height_m for k in unseen) / len(unseen))
+                gone = lay.unassigned + sum(lay.layers[k].cover for k in unseen)
                 lay = without_aliases(lay, dict.fromkeys(unseen))
-                cf1 = seg.fractions[self.cam1.name]
-                lay = replace(lay, cover_incomplete=bool(lay.layers) and (lay.cover_incomplete or gone > 0.1 * cf1))
+                lay = replace(lay, unassigned=gone,
+                              cover_incomplete=cover_incomplete(bool(lay.layers), gone, seg.fractions[self.cam1.name]))
         if lay.cover_incomplete:
             ctx.flags.append("cover_incomplete")
         alt = self.station.altitude_m
@@ -1313,8 +1322,7 @@ class Pipeline:
             ctx.flags.append("clear_sky")  # (and not few_points: a clear sky has nothing to match)
         elif n < self.config.layers.min_points:
             ctx.flags.append("few_points")
-        barely = math.isfinite(measured) and measured < UNMATCHED_FRACTION and not lay.layers  # chance matches only
-        if frac1 > 0.9 and (n < self.config.layers.min_points or barely):
+        if frac1 > 0.9 and (n < self.config.layers.min_points or self._chance_matches_only(hmap)):
             ctx.flags.append("overcast_no_texture")
 
     def _assemble(self, ctx: "PairContext", seg: "Segmentation", hmap: HeightMap, pts: "Points",

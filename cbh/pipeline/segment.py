@@ -624,12 +624,15 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
             score = cv2.addWeighted(score, 1.0, dv, cfg.brightness_weight / math.log(1.5), 0.0)
             cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
     cloud &= usable
-    if gap is not None and not _clear_class_is_sky(cloud, usable, nbr, chroma, image_bgr, sub, cfg):
-        return usable.copy()
+    if gap is not None:
+        clear = (usable & ~cloud)[sub]
+        contrast = None if image_bgr is None else (lambda: local_contrast(image_bgr)[sub][clear])
+        if not clear_class_is_sky(nbr[sub][clear], contrast, cfg):
+            return usable.copy()
     return cloud
 
 
-def _clear_class_is_sky(cloud, usable, nbr, chroma, image_bgr, sub, cfg: SegmentationConfig) -> bool:
+def clear_class_is_sky(nbr_clear: np.ndarray, contrast_clear, cfg: SegmentationConfig) -> bool:
     """Whether what a two-class split left clear can be clear sky: some of it bluer than red (the
     bluest tenth at NBR ≥ :data:`CLEAR_MIN_NBR`), or smooth (median local contrast under
     ``texture_cv``).
@@ -643,11 +646,15 @@ def _clear_class_is_sky(cloud, usable, nbr, chroma, image_bgr, sub, cfg: Segment
     (randomized 9564, median −0.003, bluest tenth 0.37). Texture alone does not tell (the
     clear gaps of a broken sky lie near cloud edges: median contrast 0.03–0.06 in the labelled
     simulated set), nor does chroma (0.13 for that overcast and for a warm over-exposed
-    camera's clear sky)."""
-    clear = (usable & ~cloud)[sub]
-    if image_bgr is None or not clear.any() or float(np.percentile(nbr[sub][clear], 90)) >= CLEAR_MIN_NBR:
+    camera's clear sky).
+
+    ``nbr_clear``: the sampled NBR of the clear class; ``contrast_clear``: a callable giving the
+    same pixels' local contrast (called only when the colour does not decide; None: no image,
+    no judgement). Both backends call this on the same sampling lattice.
+    """
+    if nbr_clear.size == 0 or contrast_clear is None or float(np.percentile(nbr_clear, 90)) >= CLEAR_MIN_NBR:
         return True
-    return float(np.median(local_contrast(image_bgr)[sub][clear])) < cfg.texture_cv
+    return float(np.median(contrast_clear())) < cfg.texture_cv
 
 
 SEGMENTERS = {"hybrid": _hybrid, "nbr": _nbr, "nbr_adaptive": _nbr_adaptive, "otsu": _otsu}

@@ -148,9 +148,11 @@ def unseen_layers(cloud2: np.ndarray, px2: np.ndarray, label: np.ndarray, n_laye
     k = 2 * UNSEEN_TOLERANCE_PX + 1
     near = cv2.dilate(cloud2.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
     h, w = near.shape
-    xi = np.clip(np.rint(px2[:, 0]), 0, w - 1).astype(np.int64)
-    yi = np.clip(np.rint(px2[:, 1]), 0, h - 1).astype(np.int64)
-    on = near[yi, xi] > 0
+    ok = np.isfinite(px2).all(axis=1)
+    p = np.where(ok[:, None], px2, 0.0)
+    xi = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
+    yi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
+    on = ok & (near[yi, xi] > 0)  # (a pixel without a position is on no cloud)
     return [j for j in range(n_layers) if (label == j).any() and float(on[label == j].mean()) < UNSEEN_SHARE]
 
 

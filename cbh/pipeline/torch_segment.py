@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from cbh.pipeline.config import SegmentationConfig
 from cbh.pipeline.segment import (
     _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, PROFILE_STEPS_PER_DEG, _LazyTexture, aureole_profile, check_colour, hybrid_classes,
-    one_class_is_clear, profile_table, reference_tables, sample_lattice, segment,
+    clear_class_is_sky, one_class_is_clear, profile_table, reference_tables, sample_lattice, segment,
 )
 from cbh.pipeline.torch_ops import box, upload
 
@@ -157,10 +157,10 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     if rs.size == 0:  # no usable pixel on the sampling lattice (as segment._hybrid: nothing classified)
         return np.zeros((H, W), bool), 0.0
     gap = hybrid_classes(rs, chroma[sub][us].cpu().numpy(), cfg)
+    # OpenCV's grey conversion, uploaded (its SIMD rounding differs from any one formula by a grey
+    # level on 0.1 % of pixels); only where the texture decides
+    grey = lambda: upload(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY), dev, torch.float32)  # noqa: E731
     if gap is None:  # one class only: the whole usable sky is clear or cloud
-        # OpenCV's grey conversion, uploaded (its SIMD rounding differs from any one formula by a grey
-        # level on 0.1 % of pixels); one-class skies only
-        grey = lambda: upload(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY), dev, torch.float32)  # noqa: E731
         contrast = lambda: _local_contrast(grey())[sub][us].cpu().numpy()  # noqa: E731
         if not one_class_is_clear(nbr[sub][us].cpu().numpy(), contrast, cfg, chroma[sub][us].cpu().numpy()):
             return use.cpu().numpy(), 1.0  # overcast
@@ -183,4 +183,9 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
             dv = dv.abs()
             score = score + dv * (cfg.brightness_weight / math.log(1.5))
             cloud = (score > cfg.score_threshold) & use
+    if gap is not None:  # (as segment._hybrid) a clear class that no clear sky could be: all cloud
+        clear_s = (use & ~cloud)[sub]
+        if not clear_class_is_sky(nbr[sub][clear_s].cpu().numpy(),
+                                  lambda: _local_contrast(grey())[sub][clear_s].cpu().numpy(), cfg):
+            return use.cpu().numpy(), 1.0
     return cloud.cpu().numpy(), float(cloud.count_nonzero()) / n_use
