@@ -449,8 +449,8 @@ def test_carried_matches_are_judged_on_their_pattern_not_their_scatter(unb):
 
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("seed, dense, size", [(4028, False, 960), (11, True, 960), (9919, True, 480)])
+@pytest.mark.parametrize("seed, dense, size", [pytest.param(4028, False, 960, marks=pytest.mark.slow),
+                                               pytest.param(11, True, 960, marks=pytest.mark.slow), (9919, True, 480)])
 def test_randomized_correct_stations_whose_decks_ask_for_different_turns(seed, dense, size, tmp_path):
     """Randomized skies of three decks, the true orientation given, once flagged geometry_mismatch
     (seed 4028: 0.048° ± 0.011° from 216 LK matches; dense seed 11: 0.17° ± 0.024° from 68): each

@@ -221,7 +221,7 @@ def test_a_featureless_sky_one_camera_overexposes_has_no_layer(base, tmp_path):
 def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_path):
     """One channel at the clip over most of the sky (the blue of a clear sky at a camera's white
     level: 71–100 % of it in these three) leaves the other two apart: the colour is read, the sky
-    is clear, and ``overexposed`` (two channels at white over half the sky) is not raised."""
+    is clear, and ``overexposed`` (two channels at white on half the sky or more) is not raised."""
     from cbh.sim.randomize import RandomOptions
 
     from cbh.pipeline.clip import clip_level
@@ -284,6 +284,8 @@ def test_unseen_layers_counts_each_layers_points_on_camera_2s_cloud():
     assert unseen_layers(cloud2, px2, label, 2) == []  # 1/4 = 0.25 is seen
     label[5] = -1  # layer 1: 0 of 3 on
     assert unseen_layers(cloud2, px2, label, 3) == [1]  # (layer 2 has no point: not judged)
+    px2[2:5] = np.nan  # layer 1's points without a camera-2 position: not judged, not "off cloud"
+    assert unseen_layers(cloud2, px2, label, 2) == []
 
 
 @pytest.mark.slow
@@ -299,3 +301,19 @@ def test_a_layer_camera_2_does_not_see_is_no_layer_below_full_size(base, tmp_pat
     case, r, score, _ = run_random_case(9733, base, 960, tmp_path, config=cfg, options=opts)
     assert r.cloud_masks[list(r.cloud_masks)[1]].shape == (960, 960)  # (reported at full size)
     assert case.kind == "clear" and r.layers == [] and score.spurious_m == []
+
+
+@pytest.mark.slow
+def test_real_layers_are_seen_by_camera_2_below_full_size(tmp_path):
+    """The two-layers preset rendered at 960 px and processed at half that: both decks are kept
+    (their camera-2 pixels, full size, brought to camera 2's working-size mask, land on its
+    cloud); without that conversion both were dropped as unseen."""
+    from cbh.pipeline import Pipeline, PipelineConfig
+    from cbh.sim import SkySimulator, load_scene
+
+    sim = SkySimulator(load_station(station_path("unb-lea")), load_scene("two-layers"), size_px=960)
+    shot = sim.render()
+    pipe = Pipeline(sim.station, config=PipelineConfig().replace(working_radius_px=240))
+    assert pipe.factors[1] == 0.5
+    r = pipe.process(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr")
+    assert len(r.layers) == 2 and "unseen_layers_m" not in r.diagnostics, (r.layers, r.diagnostics)

@@ -174,8 +174,13 @@ def test_a_days_first_chunk_is_the_same_on_any_actor(archive):
     assert first2.lead == last1.pairs[-1] and (first2.pairs[0].time_utc - first2.lead.time_utc).total_seconds() > 86000
     stations = {j.name: (j.station.to_toml(), j.cameras) for j in plan.jobs}
     on = PairWorker(stations)
-    on.process(last1)
+    forgot = []
+    pipe = on.pipeline(first2.station)
+    pipe.forget_learned = lambda: forgot.append(1)  # counted: when the learned obstacles are dropped
+    assert on.process(last1).lead_in == 1 and len(forgot) == 2  # at its lead, and at its first pair
+    forgot.clear()
     continued, fresh = on.process(first2), PairWorker(stations).process(first2)
+    assert len(forgot) == 1  # at its first pair: the chunk's pairs learn from themselves alone
     assert continued.lead_in == fresh.lead_in == 0 and continued.error is None and fresh.error is None
     assert continued.records and repr(continued.records) == repr(fresh.records)
 

@@ -51,7 +51,11 @@ restarted actor has no such state: its retried chunk re-processes the lead-in), 
 pairs are one per stretch (about one per actor and station), not one per chunk. A lead pair
 more than the pipeline's ``motion.max_gap_s`` before the chunk's first pair (a day's first
 chunk after the night) hands on nothing the pipeline uses: it is not re-processed, and an
-actor continuing across such a gap starts fresh too (:func:`_lead_in_reach`). That affinity
+actor continuing across such a gap starts fresh too (:func:`_lead_in_reach`). The horizon
+obstacles a pipeline learns over frames (:meth:`~cbh.pipeline.run.Pipeline.auto_obstacles`)
+are learned within each chunk from its own pairs (``forget_learned`` at its lead and at its
+first pair), so on a station without a mask a chunk's first 10 pairs go without them and the
+results depend on ``chunk_pairs``, never on the actor. That affinity
 is why the chunks go through an actor pool that asks the queue at hand-out time, not through
 Ray Data: its ``map_batches`` over an actor pool gives a batch to whichever actor is free, so
 every chunk would re-process a lead-in pair (1/``chunk_pairs`` more work on 2 or more workers).

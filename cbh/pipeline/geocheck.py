@@ -90,7 +90,8 @@ _SIGNIFICANCE = 4.0
 _GROUP_PX = 160.0
 _MIN_GROUPS = 6
 #: … but only where the turn explains little: a real turn moves every match, and fitted it takes
-#: at least this share off their residuals' robust scale (simulated turns of 0.05–0.1°: 10–48 %;
+#: a share off their residuals' robust scale (simulated turns of 0.05–0.1°: 10–48 %, the lower ones
+#: then flagged on the patches' σ, which a real turn's patches keep small since they agree;
 #: a camera 2° off level seen 630 m away, 90 seeded matches in 12 patches whose gate kept a biased
 #: few per patch: 36 %), while the compromise of decks that ask for different turns takes little
 #: or nothing off (randomized seed 4028: 6 %; dense seed 11: −38 %; dense seed 9919 at 480 px,

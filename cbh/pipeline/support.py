@@ -152,8 +152,13 @@ def unseen_layers(cloud2: np.ndarray, px2: np.ndarray, label: np.ndarray, n_laye
     p = np.where(ok[:, None], px2, 0.0)
     xi = np.clip(np.rint(p[:, 0]), 0, w - 1).astype(np.int64)
     yi = np.clip(np.rint(p[:, 1]), 0, h - 1).astype(np.int64)
-    on = ok & (near[yi, xi] > 0)  # (a pixel without a position is on no cloud)
-    return [j for j in range(n_layers) if (label == j).any() and float(on[label == j].mean()) < UNSEEN_SHARE]
+    on = near[yi, xi] > 0
+    out = []
+    for j in range(n_layers):
+        mine = (label == j) & ok  # (a point without a camera-2 position is not judged)
+        if mine.any() and float(on[mine].mean()) < UNSEEN_SHARE:
+            out.append(j)
+    return out
 
 
 def without_aliases(lay, aliases: dict[int, int | None]):
