@@ -35,7 +35,7 @@ class Flag(enum.IntFlag):
     camera_missing = 1 << 16  # a network camera delivered no frame: the result is from the cameras present
     clock_unknown = 1 << 17  # the matches disagree with the geometry while the cameras' clock offset, which could explain it, is not known yet (a run's first pair): layers not valid
     clock_too_far = 1 << 19  # the cameras' clocks differ by more than the sky's motion could be carried over on this pair (the sky maps found no match at the running offset): layers not valid
-    overexposed = 1 << 20  # half a camera's sky or more has two channels at its white level: colours lost, cloud masks and cover unreliable
+    overexposed = 1 << 20  # half a camera's sky or more has two channels at white: cloud masks and cover unreliable
     night = 1 << 18  # the sun more than 6 deg below the horizon and a camera's sky too dark to read: no cloud can be told, no layer reported, no geometry judged
 
 

@@ -972,9 +972,10 @@ class Pipeline:
         clip level (:func:`~.clip.clip_level` of the image, found in it) less the saturation
         margin (``255 − masks.saturation_level``): half the sky or more has two channels at white,
         and its colour is gone (randomized sky 9339: a hazy clear sky at 218 / 245 / 249 DN under
-        a 249 DN clip, 59 % of it two channels clipped, read as one overcast cloud). One clipped channel is common and harmless: the blue of a clear sky at
-        a camera's white, the other two still apart (in 8 other skies of the same 40, ≤ 30 % of
-        the sky had two channels clipped, and every clear one was read clear)."""
+        a 249 DN clip, 59 % of it two channels clipped, read as one overcast cloud). One clipped
+        channel is common and harmless: the blue of a clear sky at a camera's white, the other two
+        still apart (in 8 other skies of the same 40, ≤ 30 % of the sky had two channels clipped,
+        and every clear one was read clear)."""
         margin = FULL_RANGE_WHITE_DN - int(self.config.masks.saturation_level)
         for role, e in zip(("cam1", "cam2"), sky):
             ctx.diagnostics[f"sky_{role}_dn"] = e.bright_dn
