@@ -98,6 +98,12 @@ CLEAR_SKY_FRACTION = 0.01  # camera 1's cloud fraction below this is a clear sky
 #: a layer at 374 or 893 m on a clear sky). Real texture is measured in patches of ≥ 15 windows
 #: even where little of the cloud is (randomized dense skies with 6–7 % measured: 1205–1276 px).
 CHANCE_PATCH_WINDOWS = 4
+#: … and so does one with under this share of its cloud measured, whatever its patches: a clear
+#: sky over-exposed to white round a large aureole (randomized 10034, twice encoded, 960 px: both
+#: cameras at their 242 DN clip, read as one cloud) matched 0.6 % of it along the smooth edge of the
+#: white, in a patch of 10 windows, and made a layer at 243 m. The least matched real texture of the
+#: randomized sets was measured over 6 % of the cloud (dense 9475).
+CHANCE_MEASURED_FRACTION = 0.01
 CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
 _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
 # the defaults' pixels at half size; crowns up to 3° (8 px at a 480 px lens radius) above what stands (a trunk
@@ -1297,11 +1303,13 @@ class Pipeline:
                          borderMode=cv2.BORDER_REPLICATE).astype(bool)
 
     def _chance_matches_only(self, hmap: HeightMap) -> bool:
-        """Whether a dense method's matches are chance ones (:data:`CHANCE_PATCH_WINDOWS`)."""
+        """Whether a dense method's matches are chance ones (:data:`CHANCE_PATCH_WINDOWS`,
+        :data:`CHANCE_MEASURED_FRACTION`)."""
         m = hmap.measured_fraction
         if not (math.isfinite(m) and m < UNMATCHED_FRACTION):
             return False
-        return hmap.largest_patch_px() < CHANCE_PATCH_WINDOWS * self.config.matching.sweep.window_px ** 2
+        return (m < CHANCE_MEASURED_FRACTION
+                or hmap.largest_patch_px() < CHANCE_PATCH_WINDOWS * self.config.matching.sweep.window_px ** 2)
 
     def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext", hmap: HeightMap,
                        lay: LayerSet) -> None:
