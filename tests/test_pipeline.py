@@ -596,7 +596,7 @@ def test_a_layers_two_spreads_share_one_trend_fit():
 
 
 def test_the_largest_measured_patch_of_a_height_map():
-    """:meth:`HeightMap.largest_patch_px`: the biggest 8-connected patch of measured cloud pixels
+    """:attr:`HeightMap.largest_patch_px`: the biggest 8-connected patch of measured cloud pixels
     (the layers' chance-match test); pixels touching at a corner are one patch, apart they are two."""
     from cbh.pipeline.heightmap import HeightMap
 
@@ -605,5 +605,5 @@ def test_the_largest_measured_patch_of_a_height_map():
     m[12, 12] = True  # touches the corner: 101
     m[30:35, 30:35] = True  # 25 px apart
     hm = HeightMap(np.zeros((40, 40), np.float32), np.zeros((40, 40), np.float32), (40, 40), 0.1, m)
-    assert hm.largest_patch_px() == 101
-    assert HeightMap(hm.working_m, hm.nearest_m, (40, 40)).largest_patch_px() == 0
+    assert hm.largest_patch_px == 101
+    assert HeightMap(hm.working_m, hm.nearest_m, (40, 40)).largest_patch_px == 0

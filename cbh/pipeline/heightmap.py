@@ -16,6 +16,7 @@ cloud) is not under-covered by the map but outside the analysed sky by design.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -40,9 +41,10 @@ class HeightMap:
         """The working map standing for camera 1's full-size one (enlarged only when read)."""
         return Enlarged(self.working_m, *self.full_size)
 
+    @cached_property
     def largest_patch_px(self) -> int:
         """Area of the largest 8-connected patch of measured cloud pixels, at working size [px]
-        (0: none measured, or no mask kept)."""
+        (0: none measured, or no mask kept; found once, for the layers and the flags alike)."""
         if self.measured is None or not self.measured.any():
             return 0
         _, _, stats, _ = cv2.connectedComponentsWithStats(self.measured.view(np.uint8), connectivity=8)

@@ -66,7 +66,7 @@ from cbh.pipeline.layers import (LayerSet, angular_noise, cover_incomplete, get_
 from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
-from cbh.pipeline.support import alias_layers, unseen_layers, without_aliases
+from cbh.pipeline.support import alias_layers, unseen_layers, without_layers
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
@@ -1278,14 +1278,14 @@ class Pipeline:
                                    [L.height_m for L in lay.layers], (pts.px1 + 0.5) * f - 0.5, lay.label)
             if aliases:
                 ctx.diagnostics["alias_layers_m"] = float(sum(lay.layers[k].height_m for k in aliases) / len(aliases))
-            lay = without_aliases(lay, aliases)
+            lay = without_layers(lay, aliases)
         if judge_unseen and lay.layers:  # a layer camera 2 does not see is camera 1's aureole or glare
             unseen = unseen_layers(self._cloud2_as_matched(seg, comp), (pts.px2 + 0.5) * self.factors[1] - 0.5,
                                    lay.label, len(lay.layers))
             if unseen:
                 ctx.diagnostics["unseen_layers_m"] = float(sum(lay.layers[k].height_m for k in unseen) / len(unseen))
                 gone = lay.unassigned + sum(lay.layers[k].cover for k in unseen)
-                lay = without_aliases(lay, dict.fromkeys(unseen))
+                lay = without_layers(lay, dict.fromkeys(unseen))
                 lay = replace(lay, unassigned=gone,
                               cover_incomplete=cover_incomplete(bool(lay.layers), gone, seg.fractions[self.cam1.name]))
         if lay.cover_incomplete:
@@ -1309,7 +1309,7 @@ class Pipeline:
         if not (math.isfinite(m) and m < UNMATCHED_FRACTION):
             return False
         return (m < CHANCE_MEASURED_FRACTION
-                or hmap.largest_patch_px() < CHANCE_PATCH_WINDOWS * self.config.matching.sweep.window_px ** 2)
+                or hmap.largest_patch_px < CHANCE_PATCH_WINDOWS * self.config.matching.sweep.window_px ** 2)
 
     def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext", hmap: HeightMap,
                        lay: LayerSet) -> None:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["AliasConfig", "hypothesis_zncc", "alias_layers", "unseen_layers", "without_aliases"]
+__all__ = ["AliasConfig", "hypothesis_zncc", "alias_layers", "unseen_layers", "without_layers"]
 
 
 @dataclass(frozen=True)
@@ -161,19 +161,19 @@ def unseen_layers(cloud2: np.ndarray, px2: np.ndarray, label: np.ndarray, n_laye
     return out
 
 
-def without_aliases(lay, aliases: dict[int, int | None]):
-    """``lay`` (a :class:`~.layers.LayerSet`) less its alias layers: each alias's cover goes to
-    the layer it belongs to (its cloud is that layer's cloud; ``None``: to no layer), its points
-    to no layer."""
+def without_layers(lay, dropped: dict[int, int | None]):
+    """``lay`` (a :class:`~.layers.LayerSet`) less the layers ``dropped`` (index → the layer its
+    cover goes to): an alias's cover goes to the layer it belongs to (its cloud is that layer's
+    cloud), an unseen layer's (``None``) to no layer; their points to no layer."""
     from dataclasses import replace
 
-    if not aliases:
+    if not dropped:
         return lay
     extra = {}
-    for k, j in aliases.items():
+    for k, j in dropped.items():
         if j is not None:
             extra[j] = extra.get(j, 0.0) + lay.layers[k].cover
-    keep = [k for k in range(len(lay.layers)) if k not in aliases]
+    keep = [k for k in range(len(lay.layers)) if k not in dropped]
     new_index = {k: i for i, k in enumerate(keep)}
     label = np.full_like(lay.label, -1)
     for k, i in new_index.items():
