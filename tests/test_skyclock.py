@@ -3,6 +3,7 @@ known: offsets beyond the cadence, a clock that jumps mid-run, a station whose c
 and the maps not paid for on every pair)."""
 from __future__ import annotations
 
+import math
 from datetime import timedelta
 
 import numpy as np
@@ -185,3 +186,23 @@ def test_refining_only_the_usable_lattice_points_changes_none_of_them():
     np.testing.assert_array_equal(ok_part, ok_full & where)
     np.testing.assert_array_equal(part[where], full[where])
     assert np.isnan(part[~where]).all()
+
+
+def test_a_calm_sky_is_still_and_a_moving_one_is_not():
+    """``SkyClock.still``: the maps matched and (almost) nothing moved between the two pairs, so
+    the offset is unobservable and harmless (a run does not hold a calm sky's pairs as
+    ``clock_unknown``); the same sky 10 s later, its decks moving 6–9 m/s, is not still and its
+    offset is measured."""
+    from cbh.pipeline import Pipeline
+
+    sim, sc = _sim(0.0)
+    pipe = Pipeline(sim.station)
+    prep = []
+    for dt in (0.0, 10.0):
+        shot = sim.render(sc.time_utc + timedelta(seconds=dt))
+        prep.append(pipe.prepare(shot.views["cam1"].image, shot.views["cam2"].image, shot.time_utc, channels="bgr"))
+    usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
+    calm = pipe.sky_offset(prep[0].gray, usable, prep[0].gray, 10.0)
+    assert calm.still and math.isnan(calm.offset_s)
+    moving = pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 10.0)
+    assert not moving.still and abs(moving.offset_s) <= 0.5

@@ -833,7 +833,8 @@ class Service:
                 why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"
                        if math.isfinite(own) and math.isfinite(run) else "no motion yet to measure it")
                 log.warning(f"pair at {f1.time_utc.isoformat()}: clock_unknown: the cameras' matches disagree with "
-                            "the station geometry while their clock offset, which would look the same, is not known "
+                            "the station geometry, or are too few to judge it, while their clock offset, which would "
+                            "look the same, is not known "
                             f"({why}); layers are not reported as valid until the offset is measured",
                             extra={"cbh_event": "clock_unknown", "cbh_flags": invalid})
             elif geometric:

@@ -401,7 +401,8 @@ def images_identical(gray1: np.ndarray, gray2: np.ndarray, max_dn: float) -> boo
 
 
 def seeded_matches(gray1: np.ndarray, gray2: np.ndarray, sweep: Matches, cloud1: np.ndarray,
-                   max_points: int = 600, window_px: int = 21, levels: int = 2, fb_max_px: float = 0.5) -> Matches:
+                   max_points: int = 600, window_px: int = 21, levels: int = 2,
+                   fb_max_px: float = 0.5) -> tuple[Matches, int]:
     """2-D correspondences for the geometry check where plain LK finds none: a long baseline.
 
     LK starts at the point at infinity and converges within a few window widths; a 630 m
@@ -413,28 +414,29 @@ def seeded_matches(gray1: np.ndarray, gray2: np.ndarray, sweep: Matches, cloud1:
     sweep cannot, LK can — so :func:`check_geometry` judges these as it judges LK's
     (forward-backward checked, ``fb_max_px``). ``sweep``: the sweep's lattice matches; features:
     corners of camera 1's cloud (``max_points``), each started at its nearest lattice match.
-    Returns ``Matches("lk", …)`` (empty when nothing tracks).
+    Returns ``(Matches("lk", …), tried)``: the features that tracked (empty when none did), and
+    how many were started (those with a lattice match within 4 px).
     """
     empty = Matches("lk", np.zeros((0, 2)), np.zeros((0, 2)))
     if len(sweep) < 4:
-        return empty
+        return empty, 0
     feats = cv2.goodFeaturesToTrack(gray1, maxCorners=max_points, qualityLevel=0.005, minDistance=5,
                                     mask=cloud1.astype(np.uint8), blockSize=7)
     if feats is None:
-        return empty
+        return empty, 0
     p1 = feats.reshape(-1, 2).astype(np.float32)
     idx = _nearest(sweep.px1, p1)
     near = np.linalg.norm(sweep.px1[idx] - p1, axis=1) <= 4.0  # a lattice match within 4 px (stride 3)
     p1, idx = p1[near], idx[near]
     if not len(p1):
-        return empty
+        return empty, 0
     init = (sweep.px2[idx] + (p1 - sweep.px1[idx])).astype(np.float32)  # locally a shift
     lk = dict(winSize=(window_px, window_px), maxLevel=levels, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     p2, st, _ = cv2.calcOpticalFlowPyrLK(gray1, gray2, p1, init.copy(), **lk)
     back, st2, _ = cv2.calcOpticalFlowPyrLK(gray2, gray1, p2, p1.copy(), **lk)
     ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - p1, axis=1) <= fb_max_px)
-    return Matches("lk", p1[ok].astype(np.float64), p2[ok].astype(np.float64))
+    return Matches("lk", p1[ok].astype(np.float64), p2[ok].astype(np.float64)), len(p1)
 
 
 def _nearest(lattice: np.ndarray, px: np.ndarray) -> np.ndarray:

@@ -518,6 +518,8 @@ class Pipeline:
         if "geometry_mismatch" in ctx.flags and (self._clock_explains(previous, mot, sky, before)
                                                  or self._carry_explains(sky, used, ctx)):
             ctx.flags[ctx.flags.index("geometry_mismatch")] = "clock_unknown"
+        elif self._clock_unverified(previous, mot, sky, running, ctx, lay):
+            ctx.flags.append("clock_unknown")
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
                                clock_offset_error_s=sky.error_s)
         if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
@@ -597,6 +599,31 @@ class Pipeline:
             return not math.isfinite(running_before) or abs(running_before) > mcfg.offset_tolerance_s
         return (math.isfinite(sky.offset_s) and math.isfinite(running_before)
                 and abs(sky.offset_s - running_before) > jump_threshold(mot.offsets_s, mcfg.offset_jump_s))
+
+    def _clock_unverified(self, previous, mot: "MotionInput", sky: SkyClock, running: float, ctx: "PairContext",
+                          lay) -> bool:
+        """Whether a pair's layers rest on a clock nothing has checked: in a run, the geometry check
+        had too few 2-D matches for a verdict, and camera 2's clock offset is unknown, either before
+        any motion (a run's first pair, or the first after a gap; also an offset known from a
+        recording, which is not taken out without motion) or because the moving sky did not give
+        it. An offset moves every cloud by wind × offset between the two frames; across the
+        baseline that takes the matches off their epipolar curves, which is what the check would
+        have seen, and LK, started at the point at infinity or at the sweep's match, loses them
+        beyond a few window widths. Seen on the real Fehmarn hour re-paired two and three frames
+        apart (offsets of ±150 and −211 s): the first pair's LK kept 0–2 of 300 features, the
+        seeded LK 1–4 of several hundred, no verdict, and the sweep's best planes along the
+        curves gave a 1.6–1.9 km deck for the real 8–9 km one, with no flag; at −211 s the second
+        pair's sky maps matched too (7 of 82 000 lattice points), so the offset stayed unknown and
+        its layers were as wrong. A calm sky (the maps matched, little of it moved:
+        ``SkyClock.still``) leaves the offset unobservable and harmless: not flagged once there
+        is a pair before to see that by."""
+        mcfg = self.config.motion
+        if (previous is None or not mcfg.clock_offset or not lay.layers or not self.config.geometry_check.enabled
+                or "night" in ctx.flags or math.isfinite(ctx.diagnostics.get("geometry_residual_px", math.nan))):
+            return False
+        if mot.prev_gray is None:
+            return not math.isfinite(running) or abs(running) > mcfg.offset_tolerance_s
+        return not math.isfinite(running) and not sky.still
 
     def _carry_explains(self, sky: SkyClock, used_s: float, ctx: "PairContext") -> bool:
         """Whether a geometry mismatch of a pair matched on the sky maps (camera 2 carried to camera
@@ -1123,8 +1150,10 @@ class Pipeline:
             return raw
         with _timed(ctx, "match_lk_seeded"):
             c = self.config.matching.lk
-            seeded = seeded_matches(gray[0], gray[1], sweep[0], seg.clouds[0], c.max_points, c.window_px,
-                                    fb_max_px=c.fb_max_px)
+            seeded, tried = seeded_matches(gray[0], gray[1], sweep[0], seg.clouds[0], c.max_points, c.window_px,
+                                           fb_max_px=c.fb_max_px)
+        ctx.diagnostics["geometry_seeded_tracked"] = len(seeded) / tried if tried else math.nan
+        ctx.diagnostics["geometry_seeded_tried"] = float(tried)
         return [m for m in raw if m.method != "lk"] + [seeded]
 
     def stage_sun_check(self, work, masks: "Masks", ctx: "PairContext") -> None:
