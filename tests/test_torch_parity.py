@@ -168,13 +168,13 @@ def test_pipeline_on_torch_matches_opencv(scene):
     assert np.percentile(_rel_diff(m_n, m_t), 99) <= 1e-3
 
 
-def _segment_both(pipe, image, usable, sun_angle):
+def _segment_both(pipe, image, usable, sun_angle, sky_clear=False):
     from cbh.pipeline.segment import segment
     from cbh.pipeline.torch_segment import segment_torch
 
     cfg = pipe.config.segmentation
-    return (segment(image, usable, pipe.zenith(0), sun_angle, cfg),
-            segment_torch(image, usable, T.upload(pipe.zenith(0), "cpu"), sun_angle, cfg))
+    return (segment(image, usable, pipe.zenith(0), sun_angle, cfg, sky_clear=sky_clear),
+            segment_torch(image, usable, T.upload(pipe.zenith(0), "cpu"), sun_angle, cfg, sky_clear=sky_clear))
 
 
 @pytest.mark.parametrize("preset", ["two-layers", "clear-sky", pytest.param("overcast", marks=pytest.mark.slow),
@@ -239,6 +239,34 @@ def test_segmentation_on_torch_calls_a_clear_class_of_cloud_cloud(tmp_path):
     prep = pipe.prepare(shot.views[cams[0]].image, shot.views[cams[1]].image, shot.time_utc, channels="bgr")
     (c_n, f_n), (c_t, f_t) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], prep.masks.sun_angle[0])
     assert f_n >= 0.9 and f_t >= 0.9 and np.mean(c_n == c_t) >= 0.9998, (f_n, f_t)
+
+
+def test_segmentation_on_torch_takes_a_pale_sky_as_clear_when_told(tmp_path):
+    """``sky_clear`` (the other camera sees the sky clear, :meth:`Pipeline._pale_camera`): randomized
+    clear sky 13016, whose camera 1 reads its pale sky as one cloud, is clear but for what stands
+    out from it on both backends, and the whole pipeline on torch gives the CPU's answer."""
+    from dataclasses import replace
+
+    from cbh.sim import SkySimulator
+    from cbh.sim.contrail import Contrail
+    from cbh.sim.randomize import RandomOptions, draw_contrails, random_case, station_with_masks
+
+    case = random_case(13016, load_station(station_path()), RandomOptions(kind="clear"))
+    case = replace(case, contrails=(Contrail(height_m=8334.0, point_m=(2836.0, 2104.0), azimuth_deg=349.6,
+                                             width_m=90.0, brightness_dn=90.0),))
+    sim = SkySimulator(case.station, case.scene, size_px=480)
+    shot = draw_contrails(case, sim, sim.render())
+    cams = list(sim.station.cameras)[:2]
+    st = station_with_masks(case, sim, tmp_path)
+    pipe = Pipeline(st)
+    prep = pipe.prepare(shot.views[cams[0]].image, shot.views[cams[1]].image, shot.time_utc, channels="bgr")
+    (c_n, f_n), (c_t, f_t) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], prep.masks.sun_angle[0])
+    assert f_n >= 0.9 and f_t >= 0.9  # alone: one cloud
+    (c_n, f_n), (c_t, f_t) = _segment_both(pipe, prep.work[0], prep.masks.usable[0], prep.masks.sun_angle[0], True)
+    assert f_n <= 0.05 and np.mean(c_n == c_t) >= 0.9998, (f_n, f_t)
+    r = Pipeline(st, backend="torch").process(shot.views[cams[0]].image, shot.views[cams[1]].image, shot.time_utc,
+                                              channels="bgr")
+    assert r.layers == [] and "clear_sky" in r.flags, (r.layers, r.flags)
 
 
 @pytest.mark.parametrize("size", [600, 3])

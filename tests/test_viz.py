@@ -193,7 +193,7 @@ def test_a_flagged_pair_looks_flagged_and_says_why(tmp_path):
     bad = replace(res, flags=list(res.flags) + ["clock_unknown"],
                   diagnostics={**res.diagnostics, "clock_offset_s": float("nan")})
     text = flag_text(bad)
-    assert text.startswith("**Not valid** (clock_unknown)") and "clock offset, which could explain it" in text
+    assert text.startswith("**Not valid** (clock_unknown)") and "clock offset, which could explain a disagreement" in text
     good = replace(res, flags=[f for f in res.flags if f not in ("clock_unknown", "geometry_mismatch")],
                    diagnostics={**res.diagnostics, "clock_offset_s": -31.04, "clock_offset_pair_s": -30.8})
     gtext = flag_text(good)

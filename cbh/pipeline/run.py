@@ -1063,20 +1063,49 @@ class Pipeline:
         None = ``work``)."""
         cams = (self.cam1, self.cam2)
 
-        def one(i):
+        def one(i, sky_clear=False):
             if self.backend == "torch":
                 from cbh.pipeline.torch_segment import segment_torch
 
                 return segment_torch(work[i], masks.usable[i], self.zenith_device(i), masks.sun_angle[i],
-                                     self.config.segmentation, device=self.device, what=cams[i].name)
+                                     self.config.segmentation, device=self.device, what=cams[i].name,
+                                     sky_clear=sky_clear)
             return segment(work[i], masks.usable[i], self.zenith(i), masks.sun_angle[i], self.config.segmentation,
-                           what=cams[i].name)
+                           what=cams[i].name, sky_clear=sky_clear)
 
         (c1, f1), (c2, f2) = pmap(lambda i: self._camera1_once(i, "segment", lambda: one(i)) if as_received1 else one(i),
                                   (0, 1), pool="stages")
+        pale = self._pale_camera((f1, f2), (c1, c2), work, masks)
+        if pale == 0:
+            c1, f1 = one(0, sky_clear=True)
+        elif pale == 1:
+            c2, f2 = one(1, sky_clear=True)
         if self._clear_pair((f1, f2), work, masks, work if taken is None else taken):
             c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
+
+    def _pale_camera(self, fractions: tuple[float, float], clouds, work, masks: "Masks") -> int | None:
+        """The camera that calls the whole sky one cloud while the other sees it mostly clear
+        (cloud on ``CLEAR_SKY_FRACTION`` … ``CLEAR_PAIR_MAX_FRACTION`` of it) and its clear part
+        has a clear sky's colour (median chroma ≥ ``segmentation.clear_chroma``: grey cloud does
+        not turn blue in the other camera): that camera renders clear sky pale or colour-cast, and
+        is segmented again with its sky taken as clear (``segment(…, sky_clear=True)``), so that
+        what stands out from it (the cloud the other camera sees) stays cloud. None otherwise.
+
+        (Under ``CLEAR_SKY_FRACTION`` in the other camera, :meth:`_clear_pair` empties both.)
+        Randomized clear sky 13016 with a contrail drawn in: camera 1's pale sky read as one
+        cloud, camera 2 found the contrail (1.4 % of its sky), so the pair was not called clear,
+        and camera 1's whole sky took the contrail's height, 1088 m (along the baseline, its
+        aperture problem), as a layer covering 15 %."""
+        lo, hi = min(fractions), max(fractions)
+        if not (hi >= _OVERCAST_FRACTION and CLEAR_SKY_FRACTION <= lo < CLEAR_PAIR_MAX_FRACTION):
+            return None
+        k = int(np.argmin(fractions))
+        sl = sample_lattice(np.count_nonzero(masks.usable[k]))
+        clear = (masks.usable[k] & ~clouds[k])[sl]
+        if not clear.any() or float(np.median(chroma(work[k][sl])[clear])) < self.config.segmentation.clear_chroma:
+            return None
+        return 1 - k
 
     def _clear_pair(self, fractions: tuple[float, float], work, masks: "Masks", taken) -> bool:
         """Whether the pair sees a clear sky although one camera's mask says otherwise.

@@ -474,7 +474,8 @@ def fine_texture(image_bgr: np.ndarray) -> np.ndarray:
     """
     g = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
     hp = cv2.subtract(g, cv2.GaussianBlur(g, (0, 0), _TEXTURE_SIGMA_PX))
-    return cv2.sqrt(cv2.blur(cv2.multiply(hp, hp), (_TEXTURE_BOX_PX, _TEXTURE_BOX_PX)))
+    # (the box filter's running sums leave −1e-6 where the detail is flat: a NaN root without the floor at 0)
+    return cv2.sqrt(cv2.max(cv2.blur(cv2.multiply(hp, hp), (_TEXTURE_BOX_PX, _TEXTURE_BOX_PX)), 0.0))
 
 
 class _LazyTexture:
@@ -570,8 +571,13 @@ def _minus_aureole(feature, feature_s, sun_angle_s, sun_angle_deg, q: float, tex
     return cv2.subtract(feature, apply_profile(sun_angle_deg, prof))
 
 
-def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None):
-    """Per-image, per-region adaptive segmentation (see the module docstring, ``hybrid``)."""
+def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chroma=None, image_bgr=None,
+            sky_clear: bool = False):
+    """Per-image, per-region adaptive segmentation (see the module docstring, ``hybrid``).
+
+    ``sky_clear``: the other camera of the pair sees this sky clear (:meth:`Pipeline.stage_segment`):
+    one class, or a clear class no clear sky could be, is then this camera's pale or colour-cast
+    rendering of clear sky, and only what stands out from it is cloud (never the whole sky)."""
     if not usable.any():
         return np.zeros_like(usable)
     refs = clear_sky_references([nbr] if chroma is None else [nbr, chroma], usable, zenith_deg, sun_angle_deg,
@@ -599,7 +605,8 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     gap = hybrid_classes(rs, chroma[sub][us] if chroma is not None else None, cfg)
     if gap is None:  # one class only: the whole usable sky is clear or cloud
         contrast = None if image_bgr is None else (lambda: local_contrast(image_bgr)[sub][us])
-        if not one_class_is_clear(nbr[sub][us], contrast, cfg, chroma[sub][us] if chroma is not None else None):
+        if not sky_clear and not one_class_is_clear(nbr[sub][us], contrast, cfg,
+                                                    chroma[sub][us] if chroma is not None else None):
             return usable.copy()
         score = cv2.divide(r_n, cfg.min_gap * 2.0)  # clear: only what stands out from the clear sky
     else:
@@ -624,7 +631,7 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
             score = cv2.addWeighted(score, 1.0, dv, cfg.brightness_weight / math.log(1.5), 0.0)
             cloud = cv2.compare(score, cfg.score_threshold, cv2.CMP_GT) > 0
     cloud &= usable
-    if gap is not None:
+    if gap is not None and not sky_clear:
         clear = (usable & ~cloud)[sub]
         contrast = None if image_bgr is None else (lambda: local_contrast(image_bgr)[sub][clear])
         if not clear_class_is_sky(nbr[sub][clear], contrast, cfg):
@@ -690,7 +697,7 @@ def local_contrast(image_bgr: np.ndarray, window_px: int = 7) -> np.ndarray:
 
 
 def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig,
-            what: str = "image") -> tuple[np.ndarray, float]:
+            what: str = "image", sky_clear: bool = False) -> tuple[np.ndarray, float]:
     """Cloud mask (H, W) bool and cloud fraction of the usable sky (0..1, 0 if none usable).
 
     Parameters
@@ -705,6 +712,9 @@ def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
     cfg : SegmentationConfig
     what : str
         Name of the image in error messages.
+    sky_clear : bool
+        The other camera of the pair sees this sky clear: ``hybrid`` then never calls the whole
+        sky one cloud (see :func:`_hybrid`); the other methods have no such decision.
 
     Images larger than ``cfg.max_side_px`` on their long side are classified area-averaged
     to that size (less sensor and JPEG noise per pixel, and fast on 24-megapixel frames) and
@@ -718,7 +728,7 @@ def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
         small = cv2.resize(image_bgr, size, interpolation=cv2.INTER_AREA)
         u = cv2.resize(usable.view(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
         rs = lambda a: None if a is None else cv2.resize(np.asarray(a, np.float32), size, interpolation=cv2.INTER_LINEAR)  # noqa: E731
-        c, _ = segment(small, u, rs(zenith_deg), rs(sun_angle_deg), cfg, what)
+        c, _ = segment(small, u, rs(zenith_deg), rs(sun_angle_deg), cfg, what, sky_clear)
         cloud = cv2.resize(c.view(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
         b, g, r = cv2.split(image_bgr)
         usable = usable & (cv2.max(cv2.max(b, g), r) >= cfg.min_brightness)
@@ -732,6 +742,8 @@ def segment(image_bgr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfi
     mn = cv2.min(cv2.min(b, g), r)
     chr_ = cv2.divide(cv2.subtract(mx, mn, dtype=cv2.CV_32F), cv2.max(mx, 1).astype(np.float32))
     usable = usable & (mx >= cfg.min_brightness)
-    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chr_, image_bgr=image_bgr)
+    more = {"sky_clear": True} if sky_clear and get_segmenter(cfg.method) is _hybrid else {}
+    cloud = get_segmenter(cfg.method)(nbr, usable, zenith_deg, sun_angle_deg, cfg, chroma=chr_, image_bgr=image_bgr,
+                                      **more)
     n = int(np.count_nonzero(usable))
     return cloud, (float(np.count_nonzero(cloud)) / n if n else 0.0)

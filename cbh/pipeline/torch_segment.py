@@ -113,7 +113,8 @@ def _minus_aureole(feature: torch.Tensor, feature_s: np.ndarray, sun_s: np.ndarr
 
 
 def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_angle_deg, cfg: SegmentationConfig,
-                  device: torch.device | str = "cpu", what: str = "image") -> tuple[np.ndarray, float]:
+                  device: torch.device | str = "cpu", what: str = "image",
+                  sky_clear: bool = False) -> tuple[np.ndarray, float]:
     """:func:`cbh.pipeline.segment.segment` with its per-pixel work on ``device``.
 
     Parameters and result as :func:`~.segment.segment`; ``zenith_deg`` and ``sun_angle_deg``
@@ -126,7 +127,7 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     if (cfg.method.lower() != "hybrid" or zenith_deg is None or min(H, W) < _MIN_SIDE_PX
             or (cfg.max_side_px and max(H, W) > cfg.max_side_px)):
         host = lambda a: a.cpu().numpy() if isinstance(a, torch.Tensor) else a  # noqa: E731
-        return segment(image_bgr, usable, host(zenith_deg), host(sun_angle_deg), cfg, what)
+        return segment(image_bgr, usable, host(zenith_deg), host(sun_angle_deg), cfg, what, sky_clear)
     dev = torch.device(device)
     img = upload(image_bgr, dev)
     b, g, r = (img[..., k].float() for k in range(3))
@@ -162,7 +163,8 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     grey = lambda: upload(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY), dev, torch.float32)  # noqa: E731
     if gap is None:  # one class only: the whole usable sky is clear or cloud
         contrast = lambda: _local_contrast(grey())[sub][us].cpu().numpy()  # noqa: E731
-        if not one_class_is_clear(nbr[sub][us].cpu().numpy(), contrast, cfg, chroma[sub][us].cpu().numpy()):
+        if not sky_clear and not one_class_is_clear(nbr[sub][us].cpu().numpy(), contrast, cfg,
+                                                    chroma[sub][us].cpu().numpy()):
             return use.cpu().numpy(), 1.0  # overcast
         score = r_n / (cfg.min_gap * 2.0)
     else:
@@ -183,7 +185,7 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
             dv = dv.abs()
             score = score + dv * (cfg.brightness_weight / math.log(1.5))
             cloud = (score > cfg.score_threshold) & use
-    if gap is not None:  # (as segment._hybrid) a clear class that no clear sky could be: all cloud
+    if gap is not None and not sky_clear:  # (as segment._hybrid) a clear class that no clear sky could be: all cloud
         clear_s = (use & ~cloud)[sub]
         if not clear_class_is_sky(nbr[sub][clear_s].cpu().numpy(),
                                   lambda: _local_contrast(grey())[sub][clear_s].cpu().numpy(), cfg):

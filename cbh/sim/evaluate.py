@@ -82,6 +82,7 @@ class LayerScore:
     spurious_m: list[float]
     tolerance: dict[float, float]  # expected height → relative tolerance
     merged: dict[float, float] = field(default_factory=dict)  # expected height → the layer it was reported as one with
+    cloud_fraction: float = 0.0  # share of the analysed field that is cloud in truth
 
     @property
     def missed_m(self) -> list[float]:
@@ -130,4 +131,4 @@ def score_layers(result: PairResult, truth_height_m: np.ndarray, fov: np.ndarray
         if f in spurious:
             spurious.remove(f)
     return LayerScore(expected_m=expected, found_m=found, matched=matched, spurious_m=spurious,
-                      tolerance={h: tol[h] for h in expected}, merged=merged)
+                      tolerance={h: tol[h] for h in expected}, merged=merged, cloud_fraction=float(counts.sum()) / n)

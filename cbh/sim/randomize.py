@@ -26,6 +26,7 @@ before (its own draws come from a separate stream of the seed):
 - ``twice_encoded``: the frames are saved twice: the camera's output (limited-range video, or
   full range) as JPEG, then the recorder's second JPEG (4:2:0), the final clip level anywhere
   from 230 to 255 DN;
+- ``contrails``: aircraft contrails (:mod:`cbh.sim.contrail`) drawn into 70 % of the skies;
 - ``dense``: broken skies of two or three layers (15 % of them closer than the historical 35 %:
   18–35 % apart), the lowest covering 0.55–0.85 of the sky and the upper ones 0.3–0.7, so that an
   upper deck is seen mostly through the gaps of the lower ones.
@@ -44,7 +45,8 @@ import numpy as np
 from cbh.geometry.station import Station, rotation_from_angles
 from cbh.sim.scene import CloudLayer, Imperfection, ImageSettings, Obstacle, Scene, Sky, Sun
 
-__all__ = ["RandomCase", "RandomOptions", "random_case", "random_network_case", "station_with_masks", "run_random_case", "SKY_KINDS"]
+__all__ = ["RandomCase", "RandomOptions", "random_case", "random_network_case", "station_with_masks", "run_random_case",
+           "draw_contrails", "SKY_KINDS"]
 
 SKY_KINDS = ("clear", "broken", "overcast")
 
@@ -59,6 +61,7 @@ class RandomOptions:
     kind: str | None = None  # "clear", "broken" or "overcast": only skies of this kind
     twice_encoded: bool = False  # camera JPEG then the recorder's JPEG, clip level 230–255 DN
     dense: bool = False  # broken skies of 2–3 layers, the lowest covering 0.55–0.85 (upper decks seen through gaps)
+    contrails: bool = False  # 1–3 aircraft contrails at 7–11.5 km in 70 % of skies (:mod:`cbh.sim.contrail`)
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in SKY_KINDS:
@@ -88,6 +91,7 @@ class RandomCase:
     station: Station
     mask_given: bool
     baseline_m: float
+    contrails: tuple = ()  # Contrail, drawn into the rendered frames (RandomOptions.contrails)
 
     def describe(self) -> str:
         """One line: the sky's main parameters."""
@@ -100,7 +104,8 @@ class RandomCase:
                 f"{im.white_level}{' limited' if im.limited_range else ''}; jpeg {im.jpeg_quality}"
                 f"{f' then {im.reencode_quality}' if im.reencode_quality else ''}"
                 f"{f'; haze band {self.scene.sky.haze_band:.1f}' if self.scene.sky.haze_band else ''}"
-                f"{'; ' + '/'.join(o.kind for o in self.scene.obstacles) if self.scene.obstacles else ''}")
+                f"{'; ' + '/'.join(o.kind for o in self.scene.obstacles) if self.scene.obstacles else ''}"
+                + "".join(f"; contrail {c.height_m:.0f} m az {c.azimuth_deg:.0f}°" for c in self.contrails))
 
 
 def _layers(rng: np.random.Generator, kind: str) -> tuple[CloudLayer, ...]:
@@ -249,7 +254,38 @@ def random_case(seed: int, base: Station, options: RandomOptions = RandomOptions
     mask_given = bool(obstacles) and rng.random() < 0.5 and not options.unmasked
     scene = Scene(layers=layers, time_utc=time_utc, sun=sun, sky=sky, image=image, obstacles=obstacles, imperfections=imps,
                   seed=int(rng.integers(0, 2**31)), name=f"random-{seed}")
-    return RandomCase(seed=int(seed), kind=kind, scene=scene, station=station, mask_given=mask_given, baseline_m=b)
+    trails = _contrails(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 35]))) if options.contrails else ()
+    return RandomCase(seed=int(seed), kind=kind, scene=scene, station=station, mask_given=mask_given, baseline_m=b,
+                      contrails=trails)
+
+
+def _contrails(rng: np.random.Generator) -> tuple:
+    """0 (30 %) or 1–3 contrails: cruise level 7–11.5 km, any direction, axis within 5 km of
+    the zenith point, σ 20–150 m (young to spread), 25–110 DN at the axis."""
+    from cbh.sim.contrail import Contrail
+
+    if rng.random() < 0.3:
+        return ()
+    return tuple(Contrail(height_m=float(rng.uniform(7000.0, 11500.0)), point_m=tuple(float(v) for v in rng.uniform(-5000, 5000, 2)),
+                          azimuth_deg=float(rng.uniform(0.0, 180.0)), width_m=float(rng.uniform(20.0, 150.0)),
+                          brightness_dn=float(rng.uniform(25.0, 110.0)))
+                 for _ in range(int(rng.integers(1, 4))))
+
+
+def draw_contrails(case: RandomCase, sim, shot):
+    """``shot``'s frames and true height maps with ``case.contrails`` drawn in (:func:`~cbh.sim.contrail.draw_contrail`),
+    as new views; ``shot`` itself when the case has none."""
+    if not case.contrails:
+        return shot
+    from cbh.sim.contrail import draw_contrail
+
+    views = dict(shot.views)
+    for name in list(sim.station.cameras)[:2]:
+        im, hm = views[name].image, views[name].height_m
+        for c in case.contrails:
+            im, hm = draw_contrail(im, hm, sim.station.cameras[name], c)
+        views[name] = replace(views[name], image=im, height_m=hm)
+    return replace(shot, views=views)
 
 
 def station_with_masks(case: RandomCase, sim, folder: Path) -> Station:
@@ -287,7 +323,7 @@ def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config
 
     case = random_case(seed, base, options)
     sim = SkySimulator(case.station, case.scene, size_px=size_px)
-    shot = sim.render()
+    shot = draw_contrails(case, sim, sim.render())
     pipe = Pipeline(station_with_masks(case, sim, folder), config=config)
     cams = list(sim.station.cameras)[:2]
     t0 = time.perf_counter()
