@@ -206,3 +206,24 @@ def test_a_calm_sky_is_still_and_a_moving_one_is_not():
     assert calm.still and math.isnan(calm.offset_s)
     moving = pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 10.0)
     assert not moving.still and abs(moving.offset_s) <= 0.5
+
+
+def test_a_wind_along_the_baseline_is_told_from_a_clock_that_cannot_be_read():
+    """``SkyClock.along``: both decks drifting along the 50 m east baseline move no match off its
+    epipolar curve whatever the offset, so the offset is unobservable (NaN) and a geometry mismatch
+    then cannot be the clock's; the preset's winds, which cross the baseline, are not ``along``."""
+    from dataclasses import replace
+
+    from cbh.pipeline import Pipeline
+
+    sim0, sc0 = _sim(0.0)
+    for winds, along in (([(8.0, 0.0), (-6.0, 0.0)], True), (None, False)):
+        sc = sc0 if winds is None else replace(sc0, layers=tuple(replace(L, wind_ms=w) for L, w in zip(sc0.layers, winds)))
+        sim = type(sim0)(sim0.station, sc, size_px=640)
+        pipe = Pipeline(sim.station)
+        prep = [pipe.prepare(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, channels="bgr")
+                for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 10.0))]
+        usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
+        clock = pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 10.0)
+        assert clock.along is along and not clock.still, (winds, clock.offset_s)
+        assert math.isnan(clock.offset_s) if along else abs(clock.offset_s) <= 0.5

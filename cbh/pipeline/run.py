@@ -515,8 +515,12 @@ class Pipeline:
         before = running_offset(mot.offsets_s)
         offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
         running = running_offset(offsets)
-        if "geometry_mismatch" in ctx.flags and (self._clock_explains(previous, mot, sky, before)
-                                                 or self._carry_explains(sky, used, ctx)):
+        if "geometry_mismatch" in ctx.flags and "clock_too_far" in ctx.flags:
+            # (its matches were not carried over the known offset: a mismatch is the clock's, already invalidating;
+            # the real hour at a 2-minute cadence had both flags on its last pairs)
+            ctx.flags.remove("geometry_mismatch")
+        elif "geometry_mismatch" in ctx.flags and (self._clock_explains(previous, mot, sky, before)
+                                                   or self._carry_explains(sky, used, ctx)):
             ctx.flags[ctx.flags.index("geometry_mismatch")] = "clock_unknown"
         elif self._clock_unverified(previous, mot, sky, running, ctx, lay):
             ctx.flags.append("clock_unknown")
@@ -597,6 +601,12 @@ class Pipeline:
             return False
         if mot.prev_gray is None:  # (an offset known from a recording is not taken out without motion)
             return not math.isfinite(running_before) or abs(running_before) > mcfg.offset_tolerance_s
+        if not math.isfinite(running_before) and not math.isfinite(sky.offset_s):
+            # never measured yet, and this pair's maps did not measure it either: the clock may still explain
+            # it, unless the maps saw a calm sky or a wind along the baseline (then an offset moves no match off
+            # its curve). The real Fehmarn hour at a 2-minute cadence: the first pairs' maps, 120 s apart,
+            # did not match, and their mismatches were flagged as the geometry's.
+            return not (sky.still or sky.along)
         return (math.isfinite(sky.offset_s) and math.isfinite(running_before)
                 and abs(sky.offset_s - running_before) > jump_threshold(mot.offsets_s, mcfg.offset_jump_s))
 

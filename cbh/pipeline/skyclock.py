@@ -137,6 +137,9 @@ class SkyClock:
     # the maps matched (at least the tiles an estimate needs) and under ``min_share`` of what matched moved
     # by ``min_motion_px`` in the pairs' interval: the offset is unobservable, and harmless (a calm sky)
     still: bool = False
+    # the maps matched and the sky drifted, but under ``min_share`` of it across the baseline: the offset is
+    # unobservable, and cannot take matches off their epipolar curves (a wind along the baseline)
+    along: bool = False
 
     def rate_at(self, a: np.ndarray) -> np.ndarray:
         """The measured rate (N, 2) [1/s] at plane offsets a (N, 2) (the nearest map pixel's): meant
@@ -152,8 +155,8 @@ class SkyClock:
         return self.a1 + self.flow - self.rate * offset_s
 
     @classmethod
-    def unknown(cls, tiles: int = 0, still: bool = False) -> "SkyClock":
-        return cls(math.nan, math.nan, tiles, np.zeros(0), np.zeros((0, 2)), still=still)
+    def unknown(cls, tiles: int = 0, still: bool = False, along: bool = False) -> "SkyClock":
+        return cls(math.nan, math.nan, tiles, np.zeros(0), np.zeros((0, 2)), still=still, along=along)
 
 
 def _texture(img: np.ndarray, valid: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
@@ -251,7 +254,9 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     # n·w at the flow's noise, a few pixels pass by chance, and the ratio of two noises has a median
     # near 0 with a small spread (−0.7 s "± 0.1" for a wind along a 50 m baseline: a confident number)
     drifting = ok & (np.hypot(w[..., 0], w[..., 1]) * dt_s >= min_motion_px * grid.res)
-    still = bool(ok.sum() >= min_tiles * tile_px ** 2 and drifting.sum() < min_share * ok.sum())
+    matched = ok.sum() >= min_tiles * tile_px ** 2
+    still = bool(matched and drifting.sum() < min_share * ok.sum())
+    along = bool(matched and not still and moving.sum() < min_share * drifting.sum())
     est, err, tiles = math.nan, math.nan, 0
     if moving.sum() >= min_share * max(int(drifting.sum()), 1):
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -260,7 +265,7 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     own = math.isfinite(est) and err <= max_error_s and abs(est) <= max_offset_s  # (beyond: not believed)
     if not own:
         if not (math.isfinite(known_offset_s) and ok.any()):
-            return SkyClock.unknown(tiles, still)
+            return SkyClock.unknown(tiles, still, along)
         est = float(known_offset_s)  # carried by the running offset; this pair's own is unknown
     # the carry's noise: the two cameras measure one rate; half their difference is the noise of
     # the mean (each one's is the difference / √2, the mean's that / √2), times |δ|
@@ -286,7 +291,8 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     w2 = w[sel] * ((hh / (hh - dz_m)))[:, None]  # camera 2's rate: v / (h − z2), heights above camera 1
     return SkyClock(offset_s=est if own else math.nan, error_s=err if own else math.nan, tiles=tiles, heights_m=hh,
                     rates2=w2, a1=a1m, flow=f[good],
-                    rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res * lattice, still=still)
+                    rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res * lattice, still=still,
+                    along=along)
 
 
 def _lattice_flows(t1, t2, tp1, tp2, u, fb_max_px: float, step: int):
