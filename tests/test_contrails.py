@@ -77,6 +77,21 @@ def test_a_pale_camera_whose_partner_sees_a_contrail_in_clear_sky_is_not_overcas
     assert not set(r.flags) & INVALIDATING
 
 
+def test_a_partner_blue_only_as_taken_still_shows_the_pale_camera_wrong(tmp_path):
+    """Randomized clear sky 14512 with its contrail (``--contrails --size 480 --kind clear``):
+    camera 2 saw its contrail and aureole (16 % cloud) in a sky blue as it took it (median NBR
+    0.159) but pale once the photometric step mapped it onto camera 1's response (0.091), while
+    camera 1 read its whole sky as one cloud: the contrail's 6023 m (7350 m in truth) was reported
+    over 79 % of the sky with no flag. The partner's colour as taken now counts: no layer, and
+    camera 1's cloud is its contrail."""
+    from cbh.sim.randomize import run_random_case
+
+    case, r, score, _ = run_random_case(14512, load_station(station_path()), SIZE, tmp_path,
+                                        options=RandomOptions(contrails=True, kind="clear"))
+    assert case.contrails and score.spurious_m == [] and r.layers == [], r.layers
+    assert r.cloud_fraction[list(case.station.cameras)[0]] <= 0.05, r.cloud_fraction
+
+
 @pytest.mark.slow
 def test_randomized_contrails_are_found_at_their_height_and_make_no_phantom(tmp_path):
     """``eval_random.py --n 40 --seed 14000 --contrails``: 49 of 49 layers, 0 spurious, 0 of 11

@@ -77,7 +77,7 @@ from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compen
                                  jump_threshold)
 from cbh.pipeline.skyclock import SkyClock, sky_clock, sky_grid
 from cbh.pipeline.photometric import estimate_response
-from cbh.pipeline.segment import chroma, one_class_pair_is_clear, sample_lattice, segment
+from cbh.pipeline.segment import chroma, normalized_blue_red, one_class_pair_is_clear, sample_lattice, segment
 from cbh.pipeline.threads import pmap
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Prepared", "Masks", "Segmentation", "Correspondences",
@@ -105,6 +105,7 @@ CHANCE_PATCH_WINDOWS = 4
 #: randomized sets was measured over 6 % of the cloud (dense 9475).
 CHANCE_MEASURED_FRACTION = 0.01
 CLEAR_PAIR_MAX_FRACTION = 0.15  # one camera under CLEAR_SKY_FRACTION and the other under this: a clear pair (masks emptied)
+_PALE_PARTNER_MAX_FRACTION = 0.5  # one camera calls the sky one cloud, the other under this and blue: the first is pale (Pipeline._pale_camera)
 _OVERCAST_FRACTION = 0.9  # a camera whose cloud fraction reaches this calls its sky one cloud
 # the defaults' pixels at half size; crowns up to 3° (8 px at a 480 px lens radius) above what stands (a trunk
 # thinner than a pixel is not seen below its crown: randomized clear skyline seeds 7020, 7025; 8 is the least that
@@ -1085,7 +1086,7 @@ class Pipeline:
 
         (c1, f1), (c2, f2) = pmap(lambda i: self._camera1_once(i, "segment", lambda: one(i)) if as_received1 else one(i),
                                   (0, 1), pool="stages")
-        pale = self._pale_camera((f1, f2), (c1, c2), work, masks)
+        pale = self._pale_camera((f1, f2), (c1, c2), work, masks, work if taken is None else taken)
         if pale == 0:
             c1, f1 = one(0, sky_clear=True)
         elif pale == 1:
@@ -1094,28 +1095,36 @@ class Pipeline:
             c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
-    def _pale_camera(self, fractions: tuple[float, float], clouds, work, masks: "Masks") -> int | None:
-        """The camera that calls the whole sky one cloud while the other sees it mostly clear
-        (cloud on ``CLEAR_SKY_FRACTION`` … ``CLEAR_PAIR_MAX_FRACTION`` of it) and its clear part
-        has a clear sky's colour (median chroma ≥ ``segmentation.clear_chroma``: grey cloud does
-        not turn blue in the other camera): that camera renders clear sky pale or colour-cast, and
-        is segmented again with its sky taken as clear (``segment(…, sky_clear=True)``), so that
-        what stands out from it (the cloud the other camera sees) stays cloud. None otherwise.
+    def _pale_camera(self, fractions: tuple[float, float], clouds, work, masks: "Masks", taken) -> int | None:
+        """The camera that calls the whole sky one cloud while the other sees most of it clear
+        (cloud on ``CLEAR_SKY_FRACTION`` … ``_PALE_PARTNER_MAX_FRACTION`` of it) and that clear part
+        has a clear sky's colour (median chroma ≥ ``segmentation.clear_chroma`` after the
+        photometric step, or median NBR ≥ ``segmentation.fixed_threshold`` as ``taken``, before it
+        made the bluer camera as pale as the other: grey cloud does not turn blue in the other
+        camera, and a bluish cast lifts it to NBR 0.125 at most, :func:`.segment.one_class_pair_is_clear`):
+        that camera renders clear sky pale or colour-cast, and is segmented again with its sky taken
+        as clear (``segment(…, sky_clear=True)``), so that what stands out from it (the cloud the
+        other camera sees) stays cloud. None otherwise.
 
         (Under ``CLEAR_SKY_FRACTION`` in the other camera, :meth:`_clear_pair` empties both.)
-        Randomized clear sky 13016 with a contrail drawn in: camera 1's pale sky read as one
+        Randomized clear skies with contrails drawn in: 13016, camera 1's pale sky read as one
         cloud, camera 2 found the contrail (1.4 % of its sky), so the pair was not called clear,
         and camera 1's whole sky took the contrail's height, 1088 m (along the baseline, its
-        aperture problem), as a layer covering 15 %."""
+        aperture problem), as a layer covering 15 %; 14512 (480 px), camera 2 found its contrail
+        and the aureole (16 %), blue as taken (NBR 0.159) but pale once mapped onto camera 1 (0.091), and
+        camera 1's whole sky took the contrail's 6023 m (7350 m in truth) as a layer over 79 %."""
         lo, hi = min(fractions), max(fractions)
-        if not (hi >= _OVERCAST_FRACTION and CLEAR_SKY_FRACTION <= lo < CLEAR_PAIR_MAX_FRACTION):
+        if not (hi >= _OVERCAST_FRACTION and CLEAR_SKY_FRACTION <= lo < _PALE_PARTNER_MAX_FRACTION):
             return None
         k = int(np.argmin(fractions))
         sl = sample_lattice(np.count_nonzero(masks.usable[k]))
         clear = (masks.usable[k] & ~clouds[k])[sl]
-        if not clear.any() or float(np.median(chroma(work[k][sl])[clear])) < self.config.segmentation.clear_chroma:
+        if not clear.any():
             return None
-        return 1 - k
+        cfg = self.config.segmentation
+        blue = (float(np.median(chroma(work[k][sl])[clear])) >= cfg.clear_chroma
+                or float(np.median(normalized_blue_red(taken[k][sl])[clear])) >= cfg.fixed_threshold)
+        return 1 - k if blue else None
 
     def _clear_pair(self, fractions: tuple[float, float], work, masks: "Masks", taken) -> bool:
         """Whether the pair sees a clear sky although one camera's mask says otherwise.
