@@ -94,6 +94,7 @@ def test_a_first_pair_without_a_verdict_is_not_trusted(station):
     assert "clock_unknown" not in pipe.process(a, b, t).flags
 
 
+@pytest.mark.slow  # (the suite's time)
 def test_at_a_two_minute_cadence_the_unmeasured_clock_is_not_blamed_on_the_geometry(station):
     """Every other frame (pairs 120 s apart, the longest gap motion is taken over): the sky maps of
     the second and third pairs did not match across 120 s, so the offset was still unknown, and

@@ -830,8 +830,10 @@ class Service:
                             extra={"cbh_event": "clock_too_far", "cbh_flags": invalid})
             elif not geometric and "clock_unknown" in invalid:
                 own, run = (result.diagnostics.get(k, math.nan) for k in ("clock_offset_pair_s", "clock_offset_s"))
+                moved = math.isfinite(result.diagnostics.get("motion_dt_s", math.nan))
                 why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"
-                       if math.isfinite(own) and math.isfinite(run) else "no motion yet to measure it")
+                       if math.isfinite(own) and math.isfinite(run)
+                       else "the sky maps did not measure it" if moved else "no motion yet to measure it")
                 log.warning(f"pair at {f1.time_utc.isoformat()}: clock_unknown: the cameras' matches disagree with "
                             "the station geometry, or are too few to judge it, while their clock offset, which would "
                             "look the same, is not known "

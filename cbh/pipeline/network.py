@@ -221,9 +221,13 @@ def plan_pairs(station: Station, names: list[str], max_zenith_deg: float = 80.0,
 
 def pair_verdict(result: PairResult) -> bool | None:
     """True: the pair agrees with the station's geometry; False: it does not
-    (``geometry_mismatch``); None: no verdict (too few 2-D matches, a clear sky)."""
+    (``geometry_mismatch``); None: no verdict (too few 2-D matches, a clear sky, or a clock that
+    may stand behind whatever it found: ``clock_unknown``, ``clock_too_far``, whose pairs lose
+    ``geometry_mismatch`` to the clock but keep their residual)."""
     if "geometry_mismatch" in result.flags:
         return False
+    if {"clock_unknown", "clock_too_far"} & set(result.flags):
+        return None
     return True if math.isfinite(result.diagnostics.get("geometry_residual_px", math.nan)) else None
 
 

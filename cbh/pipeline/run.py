@@ -77,7 +77,8 @@ from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compen
                                  jump_threshold)
 from cbh.pipeline.skyclock import SkyClock, sky_clock, sky_grid
 from cbh.pipeline.photometric import estimate_response
-from cbh.pipeline.segment import chroma, normalized_blue_red, one_class_pair_is_clear, sample_lattice, segment
+from cbh.pipeline.segment import (chroma, local_contrast, normalized_blue_red, one_class_pair_is_clear, sample_lattice,
+                                  segment)
 from cbh.pipeline.threads import pmap
 
 __all__ = ["Pipeline", "working_factor", "PairContext", "Prepared", "Masks", "Segmentation", "Correspondences",
@@ -133,6 +134,18 @@ def _resolve_backend(device: str, backend: str):
     from cbh.pipeline.torch_ops import resolve_device
 
     return resolve_device(device), "torch"
+
+
+def _sky_median(feature, image: np.ndarray, where: np.ndarray, neighbourhood: bool = False) -> float:
+    """Median of the per-pixel ``feature`` (a colour map of a BGR image; ``neighbourhood``: one that
+    reads each pixel's surroundings, run on the whole image) over ``where``, on its sampling lattice
+    (:func:`.segment.sample_lattice`); NaN where nothing is left (every comparison then fails)."""
+    sl = sample_lattice(np.count_nonzero(where))
+    w = where[sl]
+    if not w.any():
+        return math.nan
+    values = feature(image)[sl] if neighbourhood else feature(image[sl])
+    return float(np.median(values[w]))
 
 
 def working_factor(cam: Camera, working_radius_px: float) -> float:
@@ -516,15 +529,7 @@ class Pipeline:
         before = running_offset(mot.offsets_s)
         offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
         running = running_offset(offsets)
-        if "geometry_mismatch" in ctx.flags and "clock_too_far" in ctx.flags:
-            # (its matches were not carried over the known offset: a mismatch is the clock's, already invalidating;
-            # the real hour at a 2-minute cadence had both flags on its last pairs)
-            ctx.flags.remove("geometry_mismatch")
-        elif "geometry_mismatch" in ctx.flags and (self._clock_explains(previous, mot, sky, before)
-                                                   or self._carry_explains(sky, used, ctx)):
-            ctx.flags[ctx.flags.index("geometry_mismatch")] = "clock_unknown"
-        elif self._clock_unverified(previous, mot, sky, running, ctx, lay):
-            ctx.flags.append("clock_unknown")
+        self._clock_flags(previous, mot, sky, before, running, used, ctx, lay)
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
                                clock_offset_error_s=sky.error_s)
         if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
@@ -596,7 +601,11 @@ class Pipeline:
         the same; or one resumed from a recording, which cannot be taken out without motion), or
         when this pair's own offset from the sky maps is further from the running one than a jump
         (:func:`~.motion.jump_threshold`) that compensated it (a clock that jumped; the next pair
-        confirms it)."""
+        confirms it), or, with motion, while no offset was ever measured and this pair's maps did
+        not measure one either, unless they saw a calm sky or a wind along the baseline (then no
+        offset moves a match off its curve). The price: a camera knocked at the start of a run is
+        reported ``clock_unknown``, not ``geometry_mismatch``, until the offset is measured (from the
+        first pair whose maps match; `cbh calibrate` or a stated offset settles it at once)."""
         mcfg = self.config.motion
         if previous is None or not mcfg.clock_offset:
             return False
@@ -610,6 +619,22 @@ class Pipeline:
             return not (sky.still or sky.along)
         return (math.isfinite(sky.offset_s) and math.isfinite(running_before)
                 and abs(sky.offset_s - running_before) > jump_threshold(mot.offsets_s, mcfg.offset_jump_s))
+
+    def _clock_flags(self, previous, mot: "MotionInput", sky: SkyClock, before: float, running: float, used: float,
+                     ctx: "PairContext", lay) -> None:
+        """Whose a pair's disagreement with the geometry is, and whether its clock can be vouched for:
+        a mismatch of matches not carried over the known offset (``clock_too_far``: already
+        invalidating) is the clock's and is dropped (the real hour at a 2-minute cadence had both
+        flags on its last pairs); one the clock may explain (:meth:`_clock_explains`,
+        :meth:`_carry_explains`) is ``clock_unknown``; so is a pair that nothing could judge while
+        the clock is unknown (:meth:`_clock_unverified`)."""
+        if "geometry_mismatch" in ctx.flags and "clock_too_far" in ctx.flags:
+            ctx.flags.remove("geometry_mismatch")
+        elif "geometry_mismatch" in ctx.flags and (self._clock_explains(previous, mot, sky, before)
+                                                   or self._carry_explains(sky, used, ctx)):
+            ctx.flags[ctx.flags.index("geometry_mismatch")] = "clock_unknown"
+        elif self._clock_unverified(previous, mot, sky, running, ctx, lay):
+            ctx.flags.append("clock_unknown")
 
     def _clock_unverified(self, previous, mot: "MotionInput", sky: SkyClock, running: float, ctx: "PairContext",
                           lay) -> bool:
@@ -626,15 +651,19 @@ class Pipeline:
         curves gave a 1.6–1.9 km deck for the real 8–9 km one, with no flag; at −211 s the second
         pair's sky maps matched too (7 of 82 000 lattice points), so the offset stayed unknown and
         its layers were as wrong. A calm sky (the maps matched, little of it moved:
-        ``SkyClock.still``) leaves the offset unobservable and harmless: not flagged once there
-        is a pair before to see that by."""
+        ``SkyClock.still``) or a wind along the baseline (``SkyClock.along``) leaves the offset
+        unobservable and is not flagged once there is a pair before to see that by; nor is any
+        pair of a station whose motion is off (``motion.enabled``: nothing could ever measure it).
+        Maps that did not match at all (the −211 s pair above, 7 of 82 000 lattice points) are:
+        a clock minutes off is what makes them fail."""
         mcfg = self.config.motion
-        if (previous is None or not mcfg.clock_offset or not lay.layers or not self.config.geometry_check.enabled
-                or "night" in ctx.flags or math.isfinite(ctx.diagnostics.get("geometry_residual_px", math.nan))):
+        if (previous is None or not mcfg.clock_offset or not mcfg.enabled or not lay.layers
+                or not self.config.geometry_check.enabled or "night" in ctx.flags
+                or math.isfinite(ctx.diagnostics.get("geometry_residual_px", math.nan))):
             return False
         if mot.prev_gray is None:
             return not math.isfinite(running) or abs(running) > mcfg.offset_tolerance_s
-        return not math.isfinite(running) and not sky.still
+        return not math.isfinite(running) and not (sky.still or sky.along)
 
     def _carry_explains(self, sky: SkyClock, used_s: float, ctx: "PairContext") -> bool:
         """Whether a geometry mismatch of a pair matched on the sky maps (camera 2 carried to camera
@@ -1070,7 +1099,8 @@ class Pipeline:
                       taken: tuple[np.ndarray, np.ndarray] | None = None) -> "Segmentation":
         """Cloud mask and cloud fraction of each camera's usable sky (``as_received1``: camera 1's
         image is as delivered, not mapped onto camera 2's response: its mask is its own, and a
-        network's pairs share it; ``taken``: the working images before the photometric step,
+        network's pairs share it, unless a pair finds camera 1 pale (:meth:`_pale_camera`) and
+        segments it again for itself; ``taken``: the working images before the photometric step,
         None = ``work``)."""
         cams = (self.cam1, self.cam2)
 
@@ -1096,35 +1126,36 @@ class Pipeline:
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
     def _pale_camera(self, fractions: tuple[float, float], clouds, work, masks: "Masks", taken) -> int | None:
-        """The camera that calls the whole sky one cloud while the other sees most of it clear
-        (cloud on ``CLEAR_SKY_FRACTION`` … ``_PALE_PARTNER_MAX_FRACTION`` of it) and that clear part
-        has a clear sky's colour (median chroma ≥ ``segmentation.clear_chroma`` after the
-        photometric step, or median NBR ≥ ``segmentation.fixed_threshold`` as ``taken``, before it
-        made the bluer camera as pale as the other: grey cloud does not turn blue in the other
-        camera, and a bluish cast lifts it to NBR 0.125 at most, :func:`.segment.one_class_pair_is_clear`):
-        that camera renders clear sky pale or colour-cast, and is segmented again with its sky taken
-        as clear (``segment(…, sky_clear=True)``), so that what stands out from it (the cloud the
-        other camera sees) stays cloud. None otherwise.
+        """The camera that calls the whole sky one smooth cloud (median local contrast under
+        ``segmentation.texture_cv``) while the other sees most of it clear (cloud on
+        ``CLEAR_SKY_FRACTION`` … ``_PALE_PARTNER_MAX_FRACTION`` of it) and that clear part is blue
+        as ``taken`` (median NBR ≥ ``segmentation.fixed_threshold``, before the photometric step
+        made the bluer camera as pale as the other; grey cloud does not turn blue in the other
+        camera, and a bluish cast lifts it to NBR 0.125 at most, the rule of
+        :func:`.segment.one_class_pair_is_clear`): that camera renders clear sky pale or colour-cast,
+        and is segmented again with its sky taken as clear (``segment(…, sky_clear=True)``,
+        ``hybrid`` only), so that what stands out from it (the cloud the other camera sees) stays
+        cloud. None otherwise.
 
-        (Under ``CLEAR_SKY_FRACTION`` in the other camera, :meth:`_clear_pair` empties both.)
+        (Under ``CLEAR_SKY_FRACTION`` in the other camera, or when the re-segmented camera is left
+        with under that, :meth:`_clear_pair` empties both, and a contrail of 1 % goes with them.)
         Randomized clear skies with contrails drawn in: 13016, camera 1's pale sky read as one
         cloud, camera 2 found the contrail (1.4 % of its sky), so the pair was not called clear,
         and camera 1's whole sky took the contrail's height, 1088 m (along the baseline, its
         aperture problem), as a layer covering 15 %; 14512 (480 px), camera 2 found its contrail
         and the aureole (16 %), blue as taken (NBR 0.159) but pale once mapped onto camera 1 (0.091), and
-        camera 1's whole sky took the contrail's 6023 m (7350 m in truth) as a layer over 79 %."""
+        camera 1's whole sky took the contrail's 6023 m (7350 m in truth) as a layer over 79 %. (Both
+        partners' clear parts read NBR 0.25 and 0.159 as taken, the pale cameras' local contrast
+        0.0015–0.006.)"""
         lo, hi = min(fractions), max(fractions)
-        if not (hi >= _OVERCAST_FRACTION and CLEAR_SKY_FRACTION <= lo < _PALE_PARTNER_MAX_FRACTION):
+        cfg = self.config.segmentation
+        if not (cfg.method.lower() == "hybrid" and hi >= _OVERCAST_FRACTION
+                and CLEAR_SKY_FRACTION <= lo < _PALE_PARTNER_MAX_FRACTION):
             return None
         k = int(np.argmin(fractions))
-        sl = sample_lattice(np.count_nonzero(masks.usable[k]))
-        clear = (masks.usable[k] & ~clouds[k])[sl]
-        if not clear.any():
-            return None
-        cfg = self.config.segmentation
-        blue = (float(np.median(chroma(work[k][sl])[clear])) >= cfg.clear_chroma
-                or float(np.median(normalized_blue_red(taken[k][sl])[clear])) >= cfg.fixed_threshold)
-        return 1 - k if blue else None
+        blue = _sky_median(normalized_blue_red, taken[k], masks.usable[k] & ~clouds[k]) >= cfg.fixed_threshold
+        smooth = _sky_median(local_contrast, work[1 - k], masks.usable[1 - k], neighbourhood=True) < cfg.texture_cv
+        return 1 - k if blue and smooth else None
 
     def _clear_pair(self, fractions: tuple[float, float], work, masks: "Masks", taken) -> bool:
         """Whether the pair sees a clear sky although one camera's mask says otherwise.
@@ -1147,9 +1178,7 @@ class Pipeline:
         if hi < _OVERCAST_FRACTION:
             return False
         i = int(np.argmin(fractions))
-        sl = sample_lattice(np.count_nonzero(masks.usable[i]))
-        u = masks.usable[i][sl]
-        return bool(u.any()) and float(np.median(chroma(work[i][sl])[u])) >= self.config.segmentation.clear_chroma
+        return _sky_median(chroma, work[i], masks.usable[i]) >= self.config.segmentation.clear_chroma
 
     def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
                     cloud2: np.ndarray | None = None, views2=None) -> "Correspondences":

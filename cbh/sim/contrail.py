@@ -6,12 +6,14 @@ along itself, so where a contrail runs along the baseline (its epipolar directio
 of the sweep finds it somewhere (the aperture problem), and it is a new, narrow cloud class in a
 clear sky's colour statistics.
 
-A :class:`Contrail` is a horizontal line in the plane ``height_m`` above camera 1 (ENU, metres),
+A :class:`Contrail` is a horizontal line in the plane ``height_m`` above the ENU origin (metres),
 drawn per camera by intersecting each pixel's ray with that plane (so the two cameras see it
 with its true parallax), with a Gaussian cross-section of ``width_m``. It adds
 ``brightness_dn`` at its axis, up to the frame's own white (a camera clips it where it clips
 the rest), and hides behind lower cloud: it is drawn only where the true height map is clear or
-higher, and there it becomes the true height.
+higher, and there it becomes the true height. It is drawn onto the finished frames, after the
+renderer's noise, colour response and JPEG: a trail is cleaner than the sky around it (no noise
+or compression of its own), which makes it easier to segment than a real one, not harder to match.
 """
 from __future__ import annotations
 
@@ -28,7 +30,7 @@ _TRUTH_WEIGHT = 0.3  # where the trail adds at least this share of its axis brig
 
 @dataclass(frozen=True)
 class Contrail:
-    height_m: float  # above camera 1 [m]
+    height_m: float  # above the ENU origin (camera 1 in the randomized stations) [m]
     point_m: tuple[float, float]  # a point of its axis, east and north of camera 1 [m]
     azimuth_deg: float  # direction of its axis, clockwise from north [deg]
     width_m: float  # Gaussian σ of its cross-section [m]
@@ -52,7 +54,7 @@ def draw_contrail(image: np.ndarray, height_m: np.ndarray, camera, trail: Contra
     across = xy @ np.array([math.cos(a), -math.sin(a)])
     w = np.exp(-0.5 * (across / trail.width_m) ** 2) * (np.abs(along) <= trail.length_m / 2) * (up > _MIN_UP)
     w = np.nan_to_num(w).reshape(H, W).astype(np.float32)
-    h_trail = trail.height_m + o[2]  # above the ENU origin, as the true height maps
+    h_trail = trail.height_m  # the plane crossed above: ENU z, as the true height maps
     seen = ~(height_m < h_trail)  # clear (NaN) or higher cloud: the trail is in front
     w *= seen
     white = float(image.max())
