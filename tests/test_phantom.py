@@ -331,3 +331,53 @@ def test_a_white_clear_sky_matched_nowhere_has_no_layer(base, tmp_path):
     assert case.kind == "clear" and r.layers == [] and score.spurious_m == []
     assert r.diagnostics["measured_fraction"] < 0.01 and "cloud_unmatched" in r.flags
     assert not set(r.flags) & INVALIDATING
+
+
+def test_a_layer_on_both_cameras_sun_lines_is_a_lens_flare_ghost():
+    """:func:`cbh.pipeline.support.flare_layers`: points that lie within the band round the line
+    through the sun's image and the optical centre in both cameras make a ghost layer when it is
+    small; a layer spread over the sky, a layer of 5 % cover or more, or a sun at the axis (no
+    line) make none."""
+    from cbh.pipeline.support import flare_layers
+
+    rng = np.random.default_rng(1)
+    lines = (((700.0, 480.0), (480.0, 480.0)), ((480.0, 200.0), (480.0, 480.0)))  # camera 2 yawed 90°
+    t = rng.uniform(-400, 400, 200)
+    on = (np.stack([480 + t, 480 + rng.normal(0, 10, 200)], -1), np.stack([480 + rng.normal(0, 10, 200), 480 - t], -1))
+    spread = (rng.uniform(100, 860, (300, 2)), rng.uniform(100, 860, (300, 2)))
+    px = tuple(np.concatenate([a, b]) for a, b in zip(on, spread))
+    label = np.r_[np.zeros(200, int), np.ones(300, int)]
+    assert flare_layers(px, lines, label, [0.01, 0.01], band_px=60.0) == [0]
+    assert flare_layers(px, lines, label, [0.06, 0.01], band_px=60.0) == []
+    at_axis = (((485.0, 480.0), (480.0, 480.0)), lines[1])
+    assert flare_layers(px, at_axis, label, [0.01, 0.01], band_px=60.0) == []
+
+
+@pytest.mark.slow
+def test_lens_flare_ghosts_make_no_layer(base, tmp_path):
+    """Randomized clear sky 12124 with lens-flare ghosts drawn in (discs on the line through the sun's
+    image and the optical centre, the same in both cameras, as one lens design makes them): a layer
+    at 1896 m over 1 % of the sky, reported valid, before; none now (``flare_layers_m`` says what
+    was dropped)."""
+    from cbh.pipeline import Pipeline
+    from cbh.sim import SkySimulator
+    from cbh.sim.randomize import RandomOptions, station_with_masks
+    from cbh.sim.sky import sun_direction
+
+    case = random_case(12124, base, RandomOptions(kind="clear"))
+    sim = SkySimulator(case.station, case.scene, size_px=960)
+    shot = sim.render()
+    sun = sun_direction(*sim.sun(shot.time_utc))
+    images = []
+    for name in list(sim.station.cameras)[:2]:
+        cam, img = sim.station.cameras[name], shot.views[name].image.astype(np.float32)
+        s, c = cam.direction_to_pixel(sun[None, :])[0], np.asarray(cam.model.center_xy, float)
+        yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]].astype(np.float32)
+        g = np.random.default_rng(13123)  # one lens design: the same ghosts in both cameras (the probe's draw)
+        for k in g.uniform(-1.2, 0.8, int(g.integers(2, 6))):
+            p, r, amp = c + k * (s - c), g.uniform(8, 70), g.uniform(15, 70)
+            tint = np.array([g.uniform(0.5, 1.2), g.uniform(0.6, 1.3), g.uniform(0.5, 1.2)])
+            img += (amp * np.clip((r - np.hypot(xx - p[0], yy - p[1])) / (0.3 * r), 0, 1))[..., None] * tint
+        images.append(np.clip(img, 0, 255).astype(np.uint8))
+    r = Pipeline(station_with_masks(case, sim, tmp_path)).process(*images, shot.time_utc, channels="bgr")
+    assert r.layers == [], [L.height_m for L in r.layers]

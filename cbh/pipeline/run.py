@@ -66,7 +66,7 @@ from cbh.pipeline.layers import (LayerSet, angular_noise, cover_incomplete, get_
 from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
-from cbh.pipeline.support import alias_layers, unseen_layers, without_layers
+from cbh.pipeline.support import FLARE_BAND_DEG, alias_layers, flare_layers, unseen_layers, without_layers
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
@@ -1386,18 +1386,30 @@ class Pipeline:
                 ctx.diagnostics["alias_layers_m"] = float(sum(lay.layers[k].height_m for k in aliases) / len(aliases))
             lay = without_layers(lay, aliases)
         if judge_unseen and lay.layers:  # a layer camera 2 does not see is camera 1's aureole or glare
-            unseen = unseen_layers(self._cloud2_as_matched(seg, comp), (pts.px2 + 0.5) * self.factors[1] - 0.5,
-                                   lay.label, len(lay.layers))
-            if unseen:
-                ctx.diagnostics["unseen_layers_m"] = float(sum(lay.layers[k].height_m for k in unseen) / len(unseen))
-                gone = lay.unassigned + sum(lay.layers[k].cover for k in unseen)
-                lay = without_layers(lay, dict.fromkeys(unseen))
-                lay = replace(lay, unassigned=gone,
-                              cover_incomplete=cover_incomplete(bool(lay.layers), gone, seg.fractions[self.cam1.name]))
+            px2 = (pts.px2 + 0.5) * self.factors[1] - 0.5
+            unseen = unseen_layers(self._cloud2_as_matched(seg, comp), px2, lay.label, len(lay.layers))
+            lay = self._drop_unseen(lay, unseen, "unseen_layers_m", seg, ctx)
+            if lay.layers and masks.sun_dir_enu is not None:  # … and one on both sun lines a lens-flare ghost
+                lines = tuple((cam.direction_to_pixel(masks.sun_dir_enu[None, :])[0], cam.model.center_xy)
+                              for cam in (self.cam1, self.cam2))
+                flare = flare_layers(((pts.px1 + 0.5) * self.factors[0] - 0.5, px2), lines, lay.label,
+                                     [L.cover for L in lay.layers], math.radians(FLARE_BAND_DEG) * self._px_per_rad2())
+                lay = self._drop_unseen(lay, flare, "flare_layers_m", seg, ctx)
         if lay.cover_incomplete:
             ctx.flags.append("cover_incomplete")
         alt = self.station.altitude_m
         return replace(lay, layers=[replace(L, altitude_m=L.height_m + alt) for L in lay.layers])
+
+    def _drop_unseen(self, lay: LayerSet, which: list[int], key: str, seg: "Segmentation", ctx: "PairContext") -> LayerSet:
+        """``lay`` less the layers ``which`` that are not cloud (their cover to no layer), their mean
+        height in the diagnostic ``key``."""
+        if not which:
+            return lay
+        ctx.diagnostics[key] = float(sum(lay.layers[k].height_m for k in which) / len(which))
+        gone = lay.unassigned + sum(lay.layers[k].cover for k in which)
+        lay = without_layers(lay, dict.fromkeys(which))
+        return replace(lay, unassigned=gone,
+                       cover_incomplete=cover_incomplete(bool(lay.layers), gone, seg.fractions[self.cam1.name]))
 
     @staticmethod
     def _cloud2_as_matched(seg: "Segmentation", comp) -> np.ndarray:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["AliasConfig", "hypothesis_zncc", "alias_layers", "unseen_layers", "without_layers"]
+__all__ = ["AliasConfig", "hypothesis_zncc", "alias_layers", "unseen_layers", "flare_layers", "without_layers"]
 
 
 @dataclass(frozen=True)
@@ -157,6 +157,47 @@ def unseen_layers(cloud2: np.ndarray, px2: np.ndarray, label: np.ndarray, n_laye
     for j in range(n_layers):
         mine = (label == j) & ok  # (a point without a camera-2 position is not judged)
         if mine.any() and float(on[mine].mean()) < UNSEEN_SHARE:
+            out.append(j)
+    return out
+
+
+#: A layer of small cover whose points lie, in both cameras, within this angle of the line through
+#: the sun's image and the optical centre is a lens-flare ghost (:func:`flare_layers`).
+FLARE_BAND_DEG = 12.0
+FLARE_SHARE = 0.8  # … this share of its points or more
+FLARE_MAX_COVER = 0.05  # … and it covers less than this of the sky
+
+
+def flare_layers(px: tuple[np.ndarray, np.ndarray], lines: tuple, label: np.ndarray, covers: list[float],
+                 band_px: float) -> list[int]:
+    """Indices of the layers that are lens-flare ghosts, not cloud.
+
+    A lens is rotationally symmetric about its axis, so the ghosts of the sun (reflections between
+    its elements) lie on the line through the sun's image and the optical centre, and a pair of
+    cameras of one design puts them at nearly one direction in each: zero parallax but for the two
+    lenses' differences, which the sweep turns into any height. A probe of 30 randomized clear
+    skies with 2–5 ghosts (8–70 px discs at 960 px, 15–70 DN, the same in both cameras) gave layers
+    at 1896 and 12 405 m whose points all lay within 12° of those lines in both cameras, against at
+    most 28 % for the 45 layers of 40 randomized skies without ghosts. A real cloud on the sun's
+    vertical in camera 1 is on it in camera 2 only as far as the baseline allows, and a layer of
+    ``FLARE_MAX_COVER`` or more does not fit the band.
+
+    ``px``: the points' pixels in each camera (N, 2), working size; ``lines``: per camera (sun
+    pixel, optical centre), working size; ``label``: each point's layer; ``covers``: each layer's
+    cover; ``band_px``: ``FLARE_BAND_DEG`` in pixels."""
+    inside = np.ones(len(label), bool)
+    for p, (sun, centre) in zip(px, lines):
+        d = np.asarray(sun, np.float64) - np.asarray(centre, np.float64)
+        norm = float(np.hypot(*d))
+        if not np.isfinite(norm) or norm < band_px:  # the sun near the axis: no line to speak of
+            return []
+        n = np.array([-d[1], d[0]]) / norm
+        with np.errstate(invalid="ignore"):
+            inside &= np.abs((np.asarray(p, np.float64) - np.asarray(centre, np.float64)) @ n) <= band_px
+    out = []
+    for j, cover in enumerate(covers):
+        mine = label == j
+        if cover < FLARE_MAX_COVER and mine.any() and float(inside[mine].mean()) >= FLARE_SHARE:
             out.append(j)
     return out
 
