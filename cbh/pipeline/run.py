@@ -1389,16 +1389,26 @@ class Pipeline:
             px2 = (pts.px2 + 0.5) * self.factors[1] - 0.5
             unseen = unseen_layers(self._cloud2_as_matched(seg, comp), px2, lay.label, len(lay.layers))
             lay = self._drop_unseen(lay, unseen, "unseen_layers_m", seg, ctx)
-            if lay.layers and masks.sun_dir_enu is not None:  # … and one on both sun lines a lens-flare ghost
-                lines = tuple((cam.direction_to_pixel(masks.sun_dir_enu[None, :])[0], cam.model.center_xy)
-                              for cam in (self.cam1, self.cam2))
+            lines = self._sun_lines(masks)
+            if lay.layers and lines is not None:  # … and one on both sun lines a lens-flare ghost
                 flare = flare_layers(((pts.px1 + 0.5) * self.factors[0] - 0.5, px2), lines, lay.label,
-                                     [L.cover for L in lay.layers], math.radians(FLARE_BAND_DEG) * self._px_per_rad2())
+                                     [L.cover for L in lay.layers], self._flare_band_px())
                 lay = self._drop_unseen(lay, flare, "flare_layers_m", seg, ctx)
         if lay.cover_incomplete:
             ctx.flags.append("cover_incomplete")
         alt = self.station.altitude_m
         return replace(lay, layers=[replace(L, altitude_m=L.height_m + alt) for L in lay.layers])
+
+    def _sun_lines(self, masks: "Masks") -> tuple | None:
+        """Per camera (the sun's pixel, the optical centre), working size: the line a lens's ghosts
+        of the sun lie on (:func:`~.support.flare_layers`); None when the sun is unknown or down."""
+        if masks.sun_dir_enu is None:
+            return None
+        return tuple((cam.direction_to_pixel(masks.sun_dir_enu[None, :])[0], cam.model.center_xy)
+                     for cam in (self.cam1, self.cam2))
+
+    def _flare_band_px(self) -> float:
+        return math.radians(FLARE_BAND_DEG) * self._px_per_rad2()
 
     def _drop_unseen(self, lay: LayerSet, which: list[int], key: str, seg: "Segmentation", ctx: "PairContext") -> LayerSet:
         """``lay`` less the layers ``which`` that are not cloud (their cover to no layer), their mean

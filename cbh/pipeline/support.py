@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["AliasConfig", "hypothesis_zncc", "alias_layers", "unseen_layers", "flare_layers", "without_layers"]
+__all__ = ["AliasConfig", "hypothesis_zncc", "alias_layers", "unseen_layers", "flare_layers", "on_sun_lines",
+           "without_layers"]
 
 
 @dataclass(frozen=True)
@@ -168,6 +169,23 @@ FLARE_SHARE = 0.8  # … this share of its points or more
 FLARE_MAX_COVER = 0.05  # … and it covers less than this of the sky
 
 
+def on_sun_lines(px: tuple[np.ndarray, np.ndarray], lines: tuple, band_px: float) -> np.ndarray | None:
+    """Which matches lie within ``band_px`` of the line through the sun's image and the optical
+    centre in both cameras (``px``: each camera's pixels (N, 2); ``lines``: per camera (sun pixel,
+    optical centre); working size), where a lens's ghosts of the sun lie (:func:`flare_layers`);
+    None when the sun is within ``band_px`` of a camera's centre (no line to speak of)."""
+    inside = np.ones(len(px[0]), bool)
+    for p, (sun, centre) in zip(px, lines):
+        d = np.asarray(sun, np.float64) - np.asarray(centre, np.float64)
+        norm = float(np.hypot(*d))
+        if not np.isfinite(norm) or norm < band_px:
+            return None
+        n = np.array([-d[1], d[0]]) / norm
+        with np.errstate(invalid="ignore"):
+            inside &= np.abs((np.asarray(p, np.float64) - np.asarray(centre, np.float64)) @ n) <= band_px
+    return inside
+
+
 def flare_layers(px: tuple[np.ndarray, np.ndarray], lines: tuple, label: np.ndarray, covers: list[float],
                  band_px: float) -> list[int]:
     """Indices of the layers that are lens-flare ghosts, not cloud.
@@ -185,15 +203,9 @@ def flare_layers(px: tuple[np.ndarray, np.ndarray], lines: tuple, label: np.ndar
     ``px``: the points' pixels in each camera (N, 2), working size; ``lines``: per camera (sun
     pixel, optical centre), working size; ``label``: each point's layer; ``covers``: each layer's
     cover; ``band_px``: ``FLARE_BAND_DEG`` in pixels."""
-    inside = np.ones(len(label), bool)
-    for p, (sun, centre) in zip(px, lines):
-        d = np.asarray(sun, np.float64) - np.asarray(centre, np.float64)
-        norm = float(np.hypot(*d))
-        if not np.isfinite(norm) or norm < band_px:  # the sun near the axis: no line to speak of
-            return []
-        n = np.array([-d[1], d[0]]) / norm
-        with np.errstate(invalid="ignore"):
-            inside &= np.abs((np.asarray(p, np.float64) - np.asarray(centre, np.float64)) @ n) <= band_px
+    inside = on_sun_lines(px, lines, band_px)
+    if inside is None:
+        return []
     out = []
     for j, cover in enumerate(covers):
         mine = label == j
