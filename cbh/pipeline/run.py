@@ -1408,6 +1408,7 @@ class Pipeline:
                      for cam in (self.cam1, self.cam2))
 
     def _flare_band_px(self) -> float:
+        """``support.FLARE_BAND_DEG`` at working size [px] (the lens scale near the zenith)."""
         return math.radians(FLARE_BAND_DEG) * self._px_per_rad2()
 
     def _drop_unseen(self, lay: LayerSet, which: list[int], key: str, seg: "Segmentation", ctx: "PairContext") -> LayerSet:
