@@ -224,6 +224,22 @@ def test_a_pair_that_matched_far_less_cloud_than_a_passing_one_fails():
     assert pair_verdicts([(plans["cam1+cam2"], good), (plans["cam1+cam3"], broken)])[("cam1", "cam3")] is None
 
 
+def test_a_pair_whose_clock_may_stand_behind_it_vouches_for_no_camera():
+    """A pair whose mismatch went to the clock (``clock_unknown``, or ``clock_too_far``, which drops
+    ``geometry_mismatch``) keeps its finite residual; it is no verdict, not a pass that would vouch
+    for a knocked camera of it (found by review)."""
+    from cbh.pipeline.network import pair_verdict
+
+    r = _pair_result(("cam1", "cam2"), [1500.0])
+    r.diagnostics.update(geometry_residual_px=2.4)
+    assert pair_verdict(r) is True
+    for flag in ("clock_unknown", "clock_too_far"):
+        r.flags = [flag]
+        assert pair_verdict(r) is None, flag
+    r.flags = ["geometry_mismatch", "clock_offset"]
+    assert pair_verdict(r) is False
+
+
 def _pair_result(cameras, heights, points=1000):
     from cbh.result import Histogram, Layer, PairResult, PointSet
 

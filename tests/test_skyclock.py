@@ -188,6 +188,24 @@ def test_refining_only_the_usable_lattice_points_changes_none_of_them():
     assert np.isnan(part[~where]).all()
 
 
+def _clock_with_winds(winds):
+    """The sky maps' estimate between two frames 10 s apart of the preset's two decks with their
+    winds replaced by ``winds`` (one (east, north) [m/s] per deck; None: the preset's own)."""
+    from dataclasses import replace
+
+    from cbh.pipeline import Pipeline
+
+    sim0, sc = _sim(0.0)
+    if winds is not None:
+        sc = replace(sc, layers=tuple(replace(L, wind_ms=w) for L, w in zip(sc.layers, winds)))
+    sim = type(sim0)(sim0.station, sc, size_px=640)
+    pipe = Pipeline(sim.station)
+    prep = [pipe.prepare(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, channels="bgr")
+            for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 10.0))]
+    usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
+    return pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 10.0)
+
+
 @pytest.mark.slow  # (the suite's time; the rule's Fehmarn tests run by default)
 def test_a_calm_sky_is_still_and_a_moving_one_is_not():
     """``SkyClock.still``: the maps matched and (almost) nothing moved between the two pairs, so
@@ -195,19 +213,8 @@ def test_a_calm_sky_is_still_and_a_moving_one_is_not():
     ``clock_unknown``): the preset's decks with no wind, rendered 10 s apart (the sun moves, the
     sensor noise is drawn again); with their winds (6–9 m/s) the sky is not still and its offset
     is measured."""
-    from dataclasses import replace
-
-    from cbh.pipeline import Pipeline
-
-    sim0, sc0 = _sim(0.0)
-    calm_sc = replace(sc0, layers=tuple(replace(L, wind_ms=(0.0, 0.0)) for L in sc0.layers))
-    for sc, still in ((calm_sc, True), (sc0, False)):
-        sim = type(sim0)(sim0.station, sc, size_px=640)
-        pipe = Pipeline(sim.station)
-        prep = [pipe.prepare(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, channels="bgr")
-                for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 10.0))]
-        usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
-        clock = pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 10.0)
+    for winds, still in (([(0.0, 0.0), (0.0, 0.0)], True), (None, False)):
+        clock = _clock_with_winds(winds)
         assert clock.still is still and not clock.along, clock.offset_s
         assert math.isnan(clock.offset_s) if still else abs(clock.offset_s) <= 0.5
 
@@ -217,18 +224,7 @@ def test_a_wind_along_the_baseline_is_told_from_a_clock_that_cannot_be_read():
     """``SkyClock.along``: both decks drifting along the 50 m east baseline move no match off its
     epipolar curve whatever the offset, so the offset is unobservable (NaN) and a geometry mismatch
     then cannot be the clock's; the preset's winds, which cross the baseline, are not ``along``."""
-    from dataclasses import replace
-
-    from cbh.pipeline import Pipeline
-
-    sim0, sc0 = _sim(0.0)
     for winds, along in (([(8.0, 0.0), (-6.0, 0.0)], True), (None, False)):
-        sc = sc0 if winds is None else replace(sc0, layers=tuple(replace(L, wind_ms=w) for L, w in zip(sc0.layers, winds)))
-        sim = type(sim0)(sim0.station, sc, size_px=640)
-        pipe = Pipeline(sim.station)
-        prep = [pipe.prepare(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, channels="bgr")
-                for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 10.0))]
-        usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
-        clock = pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 10.0)
+        clock = _clock_with_winds(winds)
         assert clock.along is along and not clock.still, (winds, clock.offset_s)
         assert math.isnan(clock.offset_s) if along else abs(clock.offset_s) <= 0.5
