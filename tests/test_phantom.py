@@ -12,7 +12,7 @@ import pytest
 from cbh.flags import INVALIDATING
 from cbh.geometry.station import load_station
 from cbh.presets import station_path
-from cbh.sim.randomize import random_case, run_random_case
+from cbh.sim.randomize import RandomOptions, random_case, run_random_case
 
 SIZE = 480  # render size [px]: the pipeline's working size for these lenses is about this
 
@@ -39,6 +39,48 @@ def test_randomized_clear_skies_are_clear(base, seed, tmp_path):
     case, r, score, _ = run_random_case(seed, base, SIZE, tmp_path)
     assert case.kind == "clear" and score.expected_m == []
     _assert_clear(r)
+
+
+@pytest.mark.parametrize("seed, size", [
+    (15119, SIZE),  # pale camera 2 (limited range), 3.4x aureole: 17 % cloud beside camera 1's 0 %
+    (15153, SIZE),  # 4.0x aureole round a sun 14 deg from the zenith: camera 2 38 % cloud, below_range
+    pytest.param(15009, 960, marks=pytest.mark.slow),  # JPEG rings round a clipped sun: 26 %, below_range
+])
+def test_a_smooth_cloud_that_only_one_camera_sees_beside_a_blue_clear_sky_is_clear(base, seed, size, tmp_path):
+    """``eval_random.py --kind clear``: one camera read its sky clear (under 1 %) and blue, the
+    other 17–64 % smooth "cloud" (its strong aureole, or the aureole's JPEG rings, which the
+    aureole's texture test took for sunlit cloud). Both cameras see the same clouds: such a pair
+    is clear (:meth:`Pipeline._aureole_pair`)."""
+    case, r, score, _ = run_random_case(seed, base, size, tmp_path, options=RandomOptions(kind="clear"))
+    assert case.kind == "clear" and not case.contrails
+    _assert_clear(r)
+
+
+def test_textured_cloud_that_one_camera_misses_keeps_the_pair_cloudy(base):
+    """The rule above trusts the blue camera only against smooth "cloud": real cloud is textured.
+    A broken sky (randomized 15004: 21 % cloud, layer at 407 m) whose camera 1 mask is taken as
+    empty (a camera that missed it, or a frame from another time) is not made clear."""
+    from types import SimpleNamespace
+
+    from cbh.pipeline import Pipeline
+    from cbh.sim import SkySimulator
+
+    case = random_case(15004, base)
+    sim = SkySimulator(case.station, case.scene, size_px=SIZE)
+    shot = sim.render()
+    pipe = Pipeline(sim.station)
+    names = list(sim.station.cameras)[:2]
+    work = tuple(shot.views[n].image for n in names)
+    usable = tuple(sim.station.cameras[n].zenith_map() <= 80.0 for n in names)
+    cloud2 = np.isfinite(shot.views[names[1]].height_m) & usable[1]
+    clouds = (np.zeros_like(usable[0]), cloud2)
+    f2 = float(cloud2.sum() / usable[1].sum())
+    assert 0.15 <= f2 < 0.9
+    assert not pipe._clear_pair((0.0, f2), clouds, work, SimpleNamespace(usable=usable), work)
+    # the same pair with camera 2's "cloud" a smooth patch of its clear sky is clear
+    clear = SkySimulator(case.station, random_case(15009, base, RandomOptions(kind="clear")).scene, size_px=SIZE)
+    calm = tuple(clear.render().views[n].image for n in names)
+    assert pipe._clear_pair((0.0, f2), clouds, calm, SimpleNamespace(usable=usable), calm)
 
 
 def test_unmasked_obstacles_are_found_in_one_frame(base, tmp_path):

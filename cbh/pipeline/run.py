@@ -1121,7 +1121,7 @@ class Pipeline:
             c1, f1 = one(0, sky_clear=True)
         elif pale == 1:
             c2, f2 = one(1, sky_clear=True)
-        if self._clear_pair((f1, f2), work, masks, work if taken is None else taken):
+        if self._clear_pair((f1, f2), (c1, c2), work, masks, work if taken is None else taken):
             c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
         return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
 
@@ -1153,11 +1153,15 @@ class Pipeline:
                 and CLEAR_SKY_FRACTION <= lo < _PALE_PARTNER_MAX_FRACTION):
             return None
         k = int(np.argmin(fractions))
-        blue = _sky_median(normalized_blue_red, taken[k], masks.usable[k] & ~clouds[k]) >= cfg.fixed_threshold
         smooth = _sky_median(local_contrast, work[1 - k], masks.usable[1 - k], neighbourhood=True) < cfg.texture_cv
-        return 1 - k if blue and smooth else None
+        return 1 - k if self._blue_as_taken(k, clouds, masks, taken) and smooth else None
 
-    def _clear_pair(self, fractions: tuple[float, float], work, masks: "Masks", taken) -> bool:
+    def _blue_as_taken(self, k: int, clouds, masks: "Masks", taken) -> bool:
+        """Whether camera ``k``'s clear part is blue as ``taken`` (median NBR ≥ ``segmentation.fixed_threshold``)."""
+        clear = masks.usable[k] & ~clouds[k]
+        return _sky_median(normalized_blue_red, taken[k], clear) >= self.config.segmentation.fixed_threshold
+
+    def _clear_pair(self, fractions: tuple[float, float], clouds, work, masks: "Masks", taken) -> bool:
         """Whether the pair sees a clear sky although one camera's mask says otherwise.
 
         Both cameras look at one sky, so cloud over 1 % of it is in both: when one camera finds
@@ -1167,7 +1171,14 @@ class Pipeline:
         clear sky's colour (median chroma ≥ ``segmentation.clear_chroma``), the overcast one is
         a pale or colour-cast camera: grey cloud does not turn blue in the other camera. When both
         call it one cloud, the images as ``taken`` (before the photometric step made the bluer
-        one as pale as the other) decide (:func:`.segment.one_class_pair_is_clear`)."""
+        one as pale as the other) decide (:func:`.segment.one_class_pair_is_clear`).
+
+        Between the two (the second camera finds ``CLEAR_PAIR_MAX_FRACTION`` … ``_OVERCAST_FRACTION``
+        cloud), the pair is clear when the first camera's sky is blue as ``taken`` (median NBR ≥
+        ``segmentation.fixed_threshold``) and what the second calls cloud is smooth (median local
+        contrast under ``segmentation.texture_cv``): a strong aureole, its JPEG rings around a
+        clipped sun, or a pale camera's two shades of clear sky, not cloud, which is textured and
+        which the first camera would see too (:meth:`_aureole_pair`)."""
         lo, hi = min(fractions), max(fractions)
         if lo >= _OVERCAST_FRACTION:
             return one_class_pair_is_clear(taken, masks.usable, self.config.segmentation)
@@ -1175,10 +1186,29 @@ class Pipeline:
             return False
         if hi < CLEAR_PAIR_MAX_FRACTION:
             return True
-        if hi < _OVERCAST_FRACTION:
-            return False
         i = int(np.argmin(fractions))
+        if hi < _OVERCAST_FRACTION:
+            return self._aureole_pair(i, clouds, work, masks, taken)
         return _sky_median(chroma, work[i], masks.usable[i]) >= self.config.segmentation.clear_chroma
+
+    def _aureole_pair(self, k: int, clouds, work, masks: "Masks", taken) -> bool:
+        """Whether camera ``k`` sees a clear blue sky (cloud under ``CLEAR_SKY_FRACTION``, median
+        NBR as ``taken`` ≥ ``segmentation.fixed_threshold``) where the other camera's cloud (a
+        share of its sky from ``CLEAR_PAIR_MAX_FRACTION`` to ``_OVERCAST_FRACTION``) is smooth
+        (median local contrast under ``segmentation.texture_cv``).
+
+        Two cameras tens or hundreds of metres apart see the same clouds: in randomized broken
+        skies their cloud fractions agree within 0.02, and cloud is textured (median local
+        contrast of cloud pixels 0.045–0.064). Randomized clear skies with a strong aureole
+        (3.4–4.0×) had one camera at 0.000–0.002 and blue (NBR 0.157–0.363 as taken) while the
+        other read 16–64 % cloud, smooth (0.0075–0.0145): the aureole's JPEG rings around a clipped
+        sun, which the aureole's texture test took for sunlit cloud (15009, 15130), or a pale
+        camera's two shades of clear sky (15119, 15153)."""
+        cfg = self.config.segmentation
+        if cfg.method.lower() != "hybrid":
+            return False
+        smooth = _sky_median(local_contrast, work[1 - k], clouds[1 - k], neighbourhood=True) < cfg.texture_cv
+        return self._blue_as_taken(k, clouds, masks, taken) and smooth
 
     def stage_match(self, work, masks: "Masks", seg: "Segmentation", ctx: "PairContext", gray=None,
                     cloud2: np.ndarray | None = None, views2=None) -> "Correspondences":
