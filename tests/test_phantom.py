@@ -259,6 +259,19 @@ def test_a_featureless_sky_one_camera_overexposes_has_no_layer(base, tmp_path):
     assert not set(r.flags) & INVALIDATING
 
 
+@pytest.mark.parametrize("seed", [15300, 15326])
+def test_a_smooth_pale_sky_both_cameras_call_one_cloud_gives_no_height(base, seed, tmp_path):
+    """``eval_random.py --kind clear --size 480 --twice-encoded``: pale hazy clear skies (local
+    contrast 0.003–0.005) that both cameras read as one cloud; 11 % of it matched (a smooth
+    gradient's contours and JPEG steps: ZNCC of a ramp is 1 at any shift along it), and layers at
+    315 m over 81 % (15300, B = 146 m) and 535 m over 70 % (15326) were reported, flagged only
+    ``cloud_unmatched``. Now no layer, and the flag says why (``Pipeline._smooth_pair``)."""
+    case, r, score, _ = run_random_case(seed, base, SIZE, tmp_path,
+                                        options=RandomOptions(kind="clear", twice_encoded=True))
+    assert case.kind == "clear" and r.layers == [] and score.spurious_m == [], r.layers
+    assert {"overcast_no_texture", "cloud_unmatched"} <= set(r.flags), r.flags
+
+
 @pytest.mark.parametrize("seed", [9310, 9312, 9314])
 def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_path):
     """One channel at the clip over most of the sky (the blue of a clear sky at a camera's white

@@ -1123,7 +1123,21 @@ class Pipeline:
             c2, f2 = one(1, sky_clear=True)
         if self._clear_pair((f1, f2), (c1, c2), work, masks, work if taken is None else taken):
             c1, c2, f1, f2 = np.zeros_like(c1), np.zeros_like(c2), 0.0, 0.0
-        return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2})
+        return Segmentation(clouds=(c1, c2), fractions={cams[0].name: f1, cams[1].name: f2},
+                            smooth=self._smooth_pair((f1, f2), work, masks))
+
+    def _smooth_pair(self, fractions: tuple[float, float], work, masks: "Masks") -> bool:
+        """Whether both cameras call their sky one cloud (``_OVERCAST_FRACTION``) and see it smooth
+        (median local contrast under ``segmentation.texture_cv``): what matches there is no cloud
+        texture but a smooth gradient's contours (ZNCC of a ramp is 1 at any shift along it) or
+        JPEG steps, and a height from under ``UNMATCHED_FRACTION`` of it is chance
+        (:meth:`_chance_matches_only`). Randomized pale hazy clear skies twice encoded (15300,
+        15326 at 480 px, B = 146 and 178 m; local contrast 0.003–0.005): layers at 315 m over 81 %
+        and 535 m over 70 % from 11 % of the sky matched, flagged only ``cloud_unmatched``."""
+        if min(fractions) < _OVERCAST_FRACTION:
+            return False
+        tcv = self.config.segmentation.texture_cv
+        return all(_sky_median(local_contrast, work[i], masks.usable[i], neighbourhood=True) < tcv for i in (0, 1))
 
     def _pale_camera(self, fractions: tuple[float, float], clouds, work, masks: "Masks", taken) -> int | None:
         """The camera that calls the whole sky one smooth cloud (median local contrast under
@@ -1397,7 +1411,7 @@ class Pipeline:
         layers camera 2 does not see as cloud (:func:`~.support.unseen_layers`; not for matches
         whose camera-2 pixels were carried by the sky maps). A clear sky has no layer."""
         hist, intervals = self._layers(pts.xyz_m[:, 2], self.config.layers, self.config.filtering)
-        if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION or self._chance_matches_only(hmap):
+        if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION or self._chance_matches_only(hmap, seg):
             intervals = []  # whatever matched on a clear sky is not cloud, nor chance matches on a featureless one
         rel = pts.xyz_m - np.asarray(self.cam1.position_m, np.float64)[None, :]
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -1461,13 +1475,14 @@ class Pipeline:
         return cv2.remap(seg.clouds[1].view(np.uint8), comp, None, cv2.INTER_NEAREST,
                          borderMode=cv2.BORDER_REPLICATE).astype(bool)
 
-    def _chance_matches_only(self, hmap: HeightMap) -> bool:
+    def _chance_matches_only(self, hmap: HeightMap, seg: "Segmentation") -> bool:
         """Whether a dense method's matches are chance ones (:data:`CHANCE_PATCH_WINDOWS`,
-        :data:`CHANCE_MEASURED_FRACTION`)."""
+        :data:`CHANCE_MEASURED_FRACTION`, or under ``UNMATCHED_FRACTION`` of a smooth one-cloud
+        sky, :meth:`_smooth_pair`)."""
         m = hmap.measured_fraction
         if not (math.isfinite(m) and m < UNMATCHED_FRACTION):
             return False
-        return (m < CHANCE_MEASURED_FRACTION
+        return (seg.smooth or m < CHANCE_MEASURED_FRACTION
                 or hmap.largest_patch_px < CHANCE_PATCH_WINDOWS * self.config.matching.sweep.window_px ** 2)
 
     def _quality_flags(self, pts: "Points", seg: "Segmentation", ctx: "PairContext", hmap: HeightMap,
@@ -1490,7 +1505,7 @@ class Pipeline:
             ctx.flags.append("clear_sky")  # (and not few_points: a clear sky has nothing to match)
         elif n < self.config.layers.min_points:
             ctx.flags.append("few_points")
-        if frac1 > 0.9 and (n < self.config.layers.min_points or self._chance_matches_only(hmap)):
+        if frac1 > 0.9 and (n < self.config.layers.min_points or self._chance_matches_only(hmap, seg)):
             ctx.flags.append("overcast_no_texture")
 
     def _assemble(self, ctx: "PairContext", seg: "Segmentation", hmap: HeightMap, pts: "Points",
@@ -1643,6 +1658,7 @@ class Segmentation:
 
     clouds: tuple[np.ndarray, np.ndarray]  # (H, W) bool each
     fractions: dict[str, float]  # camera name → 0..1
+    smooth: bool = False  # both cameras call their sky one cloud, and it is smooth (Pipeline._smooth_pair)
 
 
 @dataclass(frozen=True)
