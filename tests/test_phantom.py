@@ -272,6 +272,26 @@ def test_a_smooth_pale_sky_both_cameras_call_one_cloud_gives_no_height(base, see
     assert {"overcast_no_texture", "cloud_unmatched"} <= set(r.flags), r.flags
 
 
+def test_only_a_smooth_one_cloud_pair_is_smooth(base):
+    """The rule above holds for smooth skies only: a randomized textured overcast (15400) whose
+    cameras both call it one cloud is not smooth, and keeps whatever it matched; the pale clear
+    sky 15300 as both cameras render it is."""
+    from types import SimpleNamespace
+
+    from cbh.pipeline import Pipeline
+    from cbh.sim import SkySimulator
+
+    for seed, kind, smooth in ((15400, "overcast", False), (15300, "clear", True)):
+        case = random_case(seed, base, RandomOptions(kind=kind, twice_encoded=True))
+        sim = SkySimulator(case.station, case.scene, size_px=SIZE)
+        shot = sim.render()
+        names = list(sim.station.cameras)[:2]
+        work = tuple(shot.views[n].image for n in names)
+        usable = SimpleNamespace(usable=tuple(sim.station.cameras[n].zenith_map() <= 80.0 for n in names))
+        assert Pipeline(sim.station)._smooth_pair((1.0, 1.0), work, usable) is smooth, seed
+        assert not Pipeline(sim.station)._smooth_pair((1.0, 0.5), work, usable)  # one camera sees a clear part
+
+
 @pytest.mark.parametrize("seed", [9310, 9312, 9314])
 def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_path):
     """One channel at the clip over most of the sky (the blue of a clear sky at a camera's white
