@@ -239,3 +239,20 @@ def test_benchmark_scores_every_method_and_the_baseline(tmp_path, capsys):
     assert "2 labelled images" in out
     # on a blue cast the fixed baseline calls the cloud clear; the default does not
     assert float(rows["hybrid"][1]) > float(rows["nbr@0.15"][1])
+
+
+def test_ring_value_order_is_lexsorts_order():
+    """The aureole profile sorts its samples by ring, then value, with one sort of 64-bit keys
+    (:func:`cbh.pipeline.segment.ring_value_order`): the permutation must be ``np.lexsort``'s
+    exactly (the profile reads each ring's percentile at its rank, and the texture of the samples
+    up to it), ties, −0 against +0, infinities and NaN included."""
+    from cbh.pipeline.segment import ring_value_order
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        n = int(rng.integers(1, 3000))
+        v = rng.normal(size=n).astype(np.float32)
+        for value, share in ((0.0, 0.1), (-0.0, 0.05), (np.nan, 0.05), (np.inf, 0.02), (-np.inf, 0.02), (0.5, 0.1)):
+            v[rng.random(n) < share] = value
+        k = rng.integers(0, 27, n)
+        assert np.array_equal(ring_value_order(k, v), np.lexsort((v, k)))

@@ -166,7 +166,7 @@ def channel_percentiles(values: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def estimate_response(image1: np.ndarray, image2: np.ndarray, geometry, usable1: np.ndarray,
-                      usable2: np.ndarray) -> ColourResponse:
+                      usable2: np.ndarray, clips=(None, None)) -> ColourResponse:
     """Camera 2's colour response relative to camera 1 from the common field of view.
 
     Parameters
@@ -177,6 +177,8 @@ def estimate_response(image1: np.ndarray, image2: np.ndarray, geometry, usable1:
         The pair's infinity remap (camera 1's grid → camera 2's pixels).
     usable1, usable2 : ndarray, bool
         Each camera's usable sky (the sun and saturated glare already removed).
+    clips : (ClipLevel or None, ClipLevel or None)
+        Each image's clip level where already found (:func:`~.clip.clip_level`; None: found here).
 
     Returns
     -------
@@ -199,8 +201,9 @@ def estimate_response(image1: np.ndarray, image2: np.ndarray, geometry, usable1:
     q2 = channel_percentiles(cv2.remap(image2, mx, my, **kw)[common], _QUANTILES)
     # quantiles at a camera's own clip level (235 on limited-range video, not only 255) say nothing
     # of its response: each camera's bright limit is its clip level less _CLIP_MARGIN
-    b1 = min(_BRIGHT, clip_level(image1).level_dn - _CLIP_MARGIN)
-    b2 = min(_BRIGHT, clip_level(image2).level_dn - _CLIP_MARGIN)
+    c1, c2 = (c if c is not None else clip_level(im) for c, im in zip(clips, (image1, image2)))
+    b1 = min(_BRIGHT, c1.level_dn - _CLIP_MARGIN)
+    b2 = min(_BRIGHT, c2.level_dn - _CLIP_MARGIN)
     ok = (q1 > _DARK) & (q1 < b1) & (q2 > _DARK) & (q2 < b2)
     if ok.sum(axis=0).min() < 3:
         return ColourResponse(pixels=n)

@@ -1005,7 +1005,7 @@ class Pipeline:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
         return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known,  # (the sun check: a known time only)
-                     sunlit=(s1, s2), obstacles=(o1, o2))
+                     sunlit=(s1, s2), obstacles=(o1, o2), clips=(dn1.clip, dn2.clip))
 
     def _sun_from_image(self, image_bgr: np.ndarray) -> np.ndarray | None:
         """The sun's ENU direction from camera 1's image when the capture time is unknown: the
@@ -1083,7 +1083,7 @@ class Pipeline:
         pc = self.config.photometric
         if not pc.correct:
             return work
-        resp = estimate_response(work[0], work[1], self.geometry, masks.usable[0], masks.usable[1])
+        resp = estimate_response(work[0], work[1], self.geometry, masks.usable[0], masks.usable[1], masks.clips)
         if not resp.pixels:
             return work
         ctx.diagnostics.update(resp.diagnostics())
@@ -1287,7 +1287,7 @@ class Pipeline:
 
         def one(i):
             expected = masks.sun_dir_enu @ cams[i].R_world_from_cam
-            det = detect_sun(work[i], cams[i], expected, cfg.search_deg, usable=self.static_mask(i))
+            det = detect_sun(work[i], cams[i], expected, cfg.search_deg, usable=self.static_mask(i), clip=masks.clips[i])
             return math.degrees(math.acos(min(1.0, float(det.ray_cam @ expected)))) if det.ok else math.nan
 
         res = list(pmap(lambda i: self._camera1_once(i, "sun_check", lambda: one(i)), (0, 1), pool="stages"))
@@ -1643,6 +1643,7 @@ class Masks:
     #: saturated cloud near the sun (masks.glare_and_sunlit), per camera or None: usable sky that
     #: segments as cloud, but not for matching (its contour is where each camera's exposure clips)
     sunlit: tuple = (None, None)
+    clips: tuple = (None, None)  # each camera's working image's clip level (:func:`~.clip.clip_level`), None = not found yet
 
     def for_matching(self, seg: "Segmentation") -> tuple["Masks", "Segmentation"]:
         """These masks and ``seg`` without the sunlit saturated cloud (themselves when there is none)."""
