@@ -817,7 +817,8 @@ def _refine(j: np.ndarray, c0: np.ndarray, cm1: np.ndarray, cp1: np.ndarray, s_v
     """s of the peak of the parabola through the scores of planes j−1, j, j+1 (where adjacent), float32."""
     n = len(s_values)
     gap = np.diff(s_values, prepend=-np.inf, append=np.inf)
-    adj = (j > 0) & (j < n - 1) & (gap[j] < 1.01 * ds) & (gap[np.minimum(j + 1, n)] < 1.01 * ds)
+    q = np.arange(n)
+    adj = ((q > 0) & (q < n - 1) & (gap[:n] < 1.01 * ds) & (gap[1:] < 1.01 * ds))[j]  # per plane, then looked up
     den = cm1 - 2.0 * c0 + cp1
     with np.errstate(invalid="ignore", divide="ignore"):
         delta = np.where(adj & (den < 0), 0.5 * (cm1 - cp1) / den, 0.0)
