@@ -195,47 +195,13 @@ def test_patches_that_disagree_make_no_significant_turn():
     assert np.linalg.norm(om_t) > 10 * sig_t
 
 
-def test_a_bias_shared_by_one_low_deck_makes_no_significant_turn():
-    """A correct station's one low deck seen from far apart (556 m at B = 189 m: views 19° apart,
-    as randomized seed 15821): every match pushed across its curve by a smooth pattern of a few
-    tenths of a pixel (LK on sheared views). From one deck in one part of the sky the fit reads
-    it as a turn about the direction the matches barely see, ~1°, and its formal σ shrinks with
-    the matches (> 4 σ: flagged). With the matches' shared bias in σ (``bias_rad``, as
-    :func:`check_geometry` passes it: ``_SHEAR_BIAS`` × shear) it is no turn; a real 1° turn of
-    the same camera (5 % of these views' parallax: 5 % of the height) over the same matches still
-    is one (> 4 σ). (A real 0.3° turn comes out at 2.5 σ: on such views LK cannot tell it from
-    its own bias; it moves this deck by 1.6 %, under the 2 % the check tolerates anyway.)"""
-    from cbh.geometry.calibrate import rotvec_to_matrix
-    from cbh.pipeline.geocheck import _SHEAR_BIAS, _SIGNIFICANCE, relative_rotation
-
-    rng = np.random.default_rng(11)
-    n = 150
-    o2 = np.array([-65.0, -177.0, 0.0])
-    p = np.stack([rng.uniform(-300, 300, n), rng.uniform(-100, 500, n), np.full(n, 556.0)], 1)
-    d1 = p / np.linalg.norm(p, axis=1, keepdims=True)
-    d2 = (p - o2) / np.linalg.norm(p - o2, axis=1, keepdims=True)
-    normal = np.cross(o2[None, :], d1)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    shear = np.arccos(np.clip(np.einsum("ij,ij->i", d1, d2), -1, 1))
-    push = 2.5e-3 * (p[:, 0] / 300.0)  # a smooth push across the curves, up to 0.4 px at 160 px/rad
-    biased = d2 + push[:, None] * normal + rng.normal(0, 1e-3, (n, 3))
-    biased /= np.linalg.norm(biased, axis=1, keepdims=True)
-    omega, formal = relative_rotation(d1, biased, o2)
-    _, sigma = relative_rotation(d1, biased, o2, bias_rad=_SHEAR_BIAS * shear)
-    assert math.degrees(np.linalg.norm(omega)) > 0.5
-    assert np.linalg.norm(omega) > _SIGNIFICANCE * formal  # what flagged the correct station
-    assert np.linalg.norm(omega) < _SIGNIFICANCE * sigma
-    turned = d2 @ rotvec_to_matrix(np.radians([1.0, 0.0, 0.0])).T + rng.normal(0, 1e-3, (n, 3))
-    turned /= np.linalg.norm(turned, axis=1, keepdims=True)
-    om_t, sig_t = relative_rotation(d1, turned, o2, bias_rad=_SHEAR_BIAS * shear)
-    assert math.degrees(np.linalg.norm(om_t)) == pytest.approx(1.0, abs=0.1)
-    assert np.linalg.norm(om_t) > _SIGNIFICANCE * sig_t
-
-
+@pytest.mark.xfail(strict=True, reason="a known limit (docs/accuracy.md, Limits): one sheared deck's shared LK bias")
 def test_randomized_low_deck_far_apart_is_no_turn(tmp_path):
     """Randomized overcast seed 15821 at 480 px (skylines): one 556 m deck seen by cameras 189 m
-    apart, the true orientation given, was flagged geometry_mismatch (a fitted turn of 1.03° ±
-    0.087° along the direction its 117 LK matches barely constrain); the deck is at 556 m."""
+    apart, the true orientation given, is flagged geometry_mismatch (a fitted turn of 1.03° ±
+    0.087° along the direction its 117 LK matches barely constrain); the deck is at 556 m. Kept as
+    a strict expected failure: a fix makes it pass, and then this mark must go. (Widening σ by
+    the matches' shared shear bias fixed it, and also hid a camera 2° off level seen 630 m away.)"""
     from cbh.presets import station_path
     from cbh.sim.randomize import RandomOptions, run_random_case
 

@@ -111,12 +111,6 @@ _SHEAR_TOL = 2.0
 #: its parallax in radians: LK on a sheared patch is biased, not only noisy (a 300 m deck at B = 241 m,
 #: 44 px of parallax, pulled a correct station's fit to 0.08°), while a turn moves every match alike.
 _SHEAR_SCALE = 0.05
-#: … and its bias is shared by its neighbours (one deck's views are sheared alike), so it does not
-#: average out: each match may sit this share of its shear [rad] off its curve, in σ
-#: (:func:`_bias_sigma`). 0.003: a correct 189 m pair's 556 m deck (shear 0.31) asked for 1.03°,
-#: now 4σ = 1.6°; every simulated turn of 0.05–1° (``eval_flags.py turn``, 480 and 960 px) is
-#: flagged as before (σ at most 2× the formal one there).
-_SHEAR_BIAS = 0.003
 #: Methods whose camera-2 rays are carried to camera 1's time by each pixel's own motion (the sky
 #: maps', :mod:`.skyclock`): judged on tile medians (:func:`_tile_verdict`), tiles of this size
 #: [px, working size].
@@ -140,7 +134,7 @@ class GeometryCheck:
 
 def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
                       iterations: int = 4, prior: np.ndarray | None = None,
-                      groups: np.ndarray | None = None, bias_rad: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                      groups: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The small rotation ω (3,) [rad, ENU rotation vector] of camera 2's rays that best puts them
     on the epipolar planes of camera 1's rays: ``d2 → d2 + ω × d2`` (robust least squares).
 
@@ -159,10 +153,7 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     trusted; None: all alike). ``groups`` (N,) int: the patch of sky each match lies in; with at
     least ``_MIN_GROUPS`` of them, and a turn that takes less than ``_EXPLAINS`` off the
     residuals' robust scale, σ is also taken from the scatter of the fits that leave one patch
-    out (:func:`_jackknife_sigma`), and the larger σ stands. ``bias_rad`` (N,): how far each match
-    may sit off its curve by a bias its neighbours share (not noise: it does not average out);
-    σ then also holds their median over how strongly the matches fix the turn's direction
-    (:func:`_bias_sigma`).
+    out (:func:`_jackknife_sigma`), and the larger σ stands.
 
     Returns (ω, σ): σ [rad] is the standard deviation of |ω| along ω's direction, from the
     weighted normal equations and the residuals' robust scale (and, with ``groups``, from the
@@ -184,29 +175,7 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
             and _explained(e0, e0 + J @ omega) < _EXPLAINS:
         u = omega / max(float(np.linalg.norm(omega)), 1e-300)
         sigma = max(sigma, _jackknife_sigma(J, e0, w, np.asarray(groups), u))
-    if bias_rad is not None and len(e0):
-        sigma = math.hypot(sigma, _bias_sigma(J, w, np.asarray(bias_rad, np.float64), omega))
     return omega, sigma
-
-
-def _bias_sigma(J: np.ndarray, w: np.ndarray, bias_rad: np.ndarray, omega: np.ndarray) -> float:
-    """σ [rad] of a fitted turn ``omega`` from the matches' shared bias: the weighted matches'
-    median bias over the turn's leverage along its direction u, √(Σ w (J·u)² / Σ w) (1 where a
-    turn about u moves every match across its curve by the turn itself; near 0 for a turn the
-    matches barely see, such as one about the direction they look in).
-
-    Why: a bias that a whole deck's matches share (LK on views sheared by B/h) fits a turn like
-    a real one, and its formal σ shrinks with the number of matches; the fit picks the direction
-    the matches constrain least, where a fraction of a pixel of bias asks for a degree
-    (randomized seed 15821: one 556 m deck at B = 189 m, 480 px, views 19° apart; 117 matches,
-    leverage 0.12 along the fitted turn, which asked for 1.03° ± 0.087° and flagged a correct
-    station). A real turn is seen in the directions the matches constrain well."""
-    keep = w > 0
-    if not keep.any() or not np.any(omega):
-        return 0.0
-    u = omega / float(np.linalg.norm(omega))
-    lev = math.sqrt(float(np.sum(w[keep] * (J[keep] @ u) ** 2)) / float(np.sum(w[keep])))
-    return float(np.median(bias_rad[keep])) / max(lev, 1e-6)
 
 
 def _explained(before: np.ndarray, after: np.ndarray) -> float:
@@ -381,7 +350,7 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     fit = inl if inl.sum() >= cfg.min_matches else np.zeros(n, bool)
     shear = np.nan_to_num(par, nan=0.0) / ppr  # [rad] (see _SHEAR_SCALE)
     omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
-                                      groups=_patches(px1[fit]), bias_rad=_SHEAR_BIAS * shear[fit])
+                                      groups=_patches(px1[fit]))
                     if fit.any() else (np.zeros(3), math.inf))
     rot = math.degrees(float(np.linalg.norm(omega)))
     # tolerance: a shift of max_rotation_px, or _ROTATION_PARALLAX (2 %) of the matches' median
