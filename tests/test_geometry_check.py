@@ -212,6 +212,21 @@ def test_randomized_low_deck_far_apart_is_no_turn(tmp_path):
     assert [round(L.height_m, -1) for L in r.layers] == [560.0]
 
 
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="a known limit (docs/accuracy.md, Limits): horizon-only matches, the aperture problem")
+def test_randomized_clear_sky_with_horizon_only_matches_is_no_turn(tmp_path):
+    """Randomized clear seed 15523 at 960 px (skylines, unmasked obstacles, twice encoded; B =
+    196 m): its only LK matches are a haze band and skyline 67–80° from the zenith, at infinity,
+    which fit a turn of 0.075° ± 0.014° and flag the correct station geometry_mismatch. A strict
+    expected failure: a fix makes it pass, and then this mark must go."""
+    from cbh.presets import station_path
+    from cbh.sim.randomize import RandomOptions, run_random_case
+
+    _, r, _, _ = run_random_case(15523, load_station(station_path()), 960, tmp_path,
+                                 options=RandomOptions(skylines=True, unmasked=True, twice_encoded=True))
+    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+
+
 def test_the_jackknifes_widening_is_students_t():
     """The patch jackknife's σ from G patches is widened by t(0.9995, G − 1) / z(0.9995): the
     table to 29 degrees of freedom and the Cornish–Fisher expansion beyond meet (within 0.1 %),
