@@ -213,7 +213,7 @@ def test_randomized_low_deck_far_apart_is_no_turn(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="a known limit (docs/accuracy.md, Limits): horizon-only matches, the aperture problem")
+@pytest.mark.xfail(strict=True, reason="a known limit (docs/accuracy.md, Limits): horizon-only matches fit a turn")
 def test_randomized_clear_sky_with_horizon_only_matches_is_no_turn(tmp_path):
     """Randomized clear seed 15523 at 960 px (skylines, unmasked obstacles, twice encoded; B =
     196 m): its only LK matches are a haze band and skyline 67–80° from the zenith, at infinity,
