@@ -303,11 +303,11 @@ def test_the_summary_carries_the_per_pair_results(level_network):
     assert all("support" in L for L in s["layers"])
 
 
-@pytest.mark.slow  # (5.7 s; the default suite keeps the level network's no-mismatch checks)
-def test_the_reference_camera_off_level_is_named_and_the_others_carry_the_result():
+@pytest.mark.parametrize("size", [480, pytest.param(960, marks=pytest.mark.slow)])  # (960 px: 5.7 s)
+def test_the_reference_camera_off_level_is_named_and_the_others_carry_the_result(size):
     """cam1 2° off level: both star pairs fail, the tie-breaker cam2 + cam3 passes, cam1 is named
     and the result is cam2 + cam3's (on cam2's grid)."""
-    r = _process(*_network_sky("cam1"))
+    r = _process(*_network_sky("cam1", size=size))
     assert r.diagnostics["mismatched_cameras"] == ["cam1"] and "camera_mismatch" in r.flags
     assert "geometry_mismatch" not in r.flags and r.cameras[0] == "cam2"
     assert len(r.layers) == 2
