@@ -256,3 +256,4 @@ def test_ring_value_order_is_lexsorts_order():
             v[rng.random(n) < share] = value
         k = rng.integers(0, 27, n)
         assert np.array_equal(ring_value_order(k, v), np.lexsort((v, k)))
+    assert np.array_equal(ring_value_order(k, v.astype(np.float64) + 1e-12), np.lexsort((v.astype(np.float64) + 1e-12, k)))

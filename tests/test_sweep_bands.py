@@ -71,22 +71,29 @@ def test_fine_pass_cost_is_the_plane_by_plane_cost(pair, monkeypatch):
     cloud = np.zeros((h, w), bool)
     cloud[20: h - 25, 15: w - 30] = True
     s = np.linspace(0.0, 1.0 / 800.0, 15)  # the two layers: 1200 and 3500 m
-    for keep in (False, True):
-        if keep:
-            maps.keep_planes(200.0)
-            maps.keep_planes(200.0)  # (kept from the second sweep on)
-        f = S.fine_pass(g1.astype(np.float32), g2.astype(np.float32), cloud, maps, s, float(s[1]), cfg)
-        sl = f.region
-        z = S._HalfZncc(np.ascontiguousarray(g1.astype(np.float32)[sl]), g2.astype(np.float32), maps,
-                        int(cfg.window_px) // 2, sl)
-        ref = np.stack([cv2.multiply(z(float(x)), f.textured) for x in s])
-        assert np.array_equal(f.cost, ref)
-        best = np.max(np.stack([z(float(x)) for x in s]), axis=0)
-        i1 = g1.astype(np.float32)[sl]
-        k = int(cfg.window_px)
-        mu = cv2.boxFilter(i1, -1, (k, k))
-        var = cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k)) - mu * mu
-        m0 = cloud[sl] & (var >= float(cfg.min_texture) ** 2)
-        ok = m0 & (cv2.resize(best, (m0.shape[1], m0.shape[0]), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
-        assert 0.3 < f.ok.mean() and np.array_equal(f.ok, ok)
-    maps.keep_planes(0.0)
+    try:
+        for keep in (False, True):
+            _fine_pass_against_planes(maps, g1, g2, cloud, s, cfg, keep)
+    finally:
+        maps.keep_planes(0.0)  # the process-wide store off again, whatever happened
+
+
+def _fine_pass_against_planes(maps, g1, g2, cloud, s, cfg, keep: bool) -> None:
+    """One fine pass against the plane-by-plane scores (``keep``: with the plane tables kept)."""
+    if keep:
+        maps.keep_planes(200.0)
+        maps.keep_planes(200.0)  # (kept from the second sweep on)
+    f = S.fine_pass(g1.astype(np.float32), g2.astype(np.float32), cloud, maps, s, float(s[1]), cfg)
+    sl = f.region
+    z = S._HalfZncc(np.ascontiguousarray(g1.astype(np.float32)[sl]), g2.astype(np.float32), maps,
+                    int(cfg.window_px) // 2, sl)
+    ref = np.stack([cv2.multiply(z(float(x)), f.textured) for x in s])
+    assert np.array_equal(f.cost, ref)
+    best = np.max(np.stack([z(float(x)) for x in s]), axis=0)
+    i1 = g1.astype(np.float32)[sl]
+    k = int(cfg.window_px)
+    mu = cv2.boxFilter(i1, -1, (k, k))
+    var = cv2.sqrBoxFilter(i1, cv2.CV_32F, (k, k)) - mu * mu
+    m0 = cloud[sl] & (var >= float(cfg.min_texture) ** 2)
+    ok = m0 & (cv2.resize(best, (m0.shape[1], m0.shape[0]), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
+    assert 0.3 < f.ok.mean() and np.array_equal(f.ok, ok)

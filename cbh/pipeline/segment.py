@@ -496,7 +496,10 @@ class _LazyTexture:
 def ring_value_order(ring: np.ndarray, values: np.ndarray) -> np.ndarray:
     """``np.lexsort((values, ring))`` (by ring, then value; ties in their order) for rings 0 … 2³¹
     and float32 values, in one sort of 64-bit keys (ring above, the value's bits below, mapped so
-    that their unsigned order is the float order: −0 as +0, NaN last): 2–3× faster."""
+    that their unsigned order is the float order: −0 as +0, NaN last): 2–3× faster. Other value
+    types (float64 would lose its order in 32 bits) go to ``np.lexsort`` itself."""
+    if np.asarray(values).dtype != np.float32 or np.asarray(ring).dtype.kind not in "iu":
+        return np.lexsort((values, ring))
     v = np.ascontiguousarray(values, np.float32) + np.float32(0.0)  # −0 → +0 (lexsort: equal)
     bits = v.view(np.uint32).astype(np.uint64)
     neg = (bits >> np.uint64(31)).astype(bool)

@@ -668,19 +668,20 @@ def _zncc_blocks(k: int, i1: np.ndarray, mu1: np.ndarray, var1: np.ndarray, w2: 
 class _ZnccBand:
     """The scores of :class:`_HalfZncc` on a band of its half-resolution rows, ``rows`` (of the
     grown grid, its ``std1``), computed on that band of the region alone: bit for bit the same
-    numbers (the band is read with a halo of k half rows on each side, more than the box
-    filter reaches; OpenCV's float box filter sums in double).
+    numbers (the band is read with a halo of k // 2 + 1 half rows on each side, one more than the
+    box filter reaches; OpenCV's float box filter sums in double).
 
     Why: a plane's score is some fifteen passes over the region (remap, products, 2 × 2 pools,
     box filters, the ZNCC arithmetic); over a whole 880 px region each pass streams its arrays
     through memory, over a band of ~110 rows they stay in the core's cache from one pass to the
     next, and a band's strip of camera 2 stays there from one plane to the next (measured: the
-    fine pass's 17 planes of the two-layers pair, 80 → 54 ms on one thread, ≈ 41 → 36 ms on two).
+    scores of the two-layers pair's 17 fine planes alone, 80 → 54 ms on one thread, ≈ 41 → 36 ms
+    on two; the whole fine pass in the pipeline, one thread, 78–85 → 59–61 ms).
     """
 
     def __init__(self, z: "_HalfZncc", a: int, b: int):
-        hh = z.mu1.shape[0]  # the ungrown half-resolution rows
-        a0, b0 = max(a - z.k, 0), min(b + z.k, hh)
+        hh, halo = z.mu1.shape[0], z.k // 2 + 1  # the ungrown half-resolution rows; the box reaches k // 2
+        a0, b0 = max(a - halo, 0), min(b + halo, hh)
         self.z, self.crop = z, slice(a - a0, b - a0)
         self.i1 = z.i1[2 * a0: 2 * b0]
         self.mu1, self.var1 = z.mu1[a0: b0], z.var1[a0: b0]
