@@ -1,7 +1,7 @@
 """The real Fehmarn station (issue 32): every pair of the shared half hour, in time order, as a
 station runs it, scored against the reference layers of ../shared/data/fehmarn-2016-09-01.
 
-    python benchmarks/eval_fehmarn.py [--data DIR] [--shift N] [--extra-offset S] [--first K] [--json OUT]
+    python benchmarks/eval_fehmarn.py [--data DIR] [--shift N] [--extra-offset S] [--first K] [--step N] [--json OUT]
 
 ``--shift N`` re-pairs the real images: FE3's frame i with FE4's frame i+N (stamped as FE4's frame
 i), which adds N × 60 s to camera FE4's clock offset (about +30 s as recorded: N = 1 gives
@@ -37,7 +37,9 @@ def reference_layers(data: Path) -> dict[datetime, list[tuple[float, float]]]:
     return dict(ref)
 
 
-def frames(data: Path, shift: int = 0) -> list[tuple[Path, Path, datetime]]:
+def frames(data: Path, shift: int = 0, step: int = 1) -> list[tuple[Path, Path, datetime]]:
+    """FE3's frame i with FE4's frame i + ``shift``, every ``step``-th frame (a cadence of
+    ``step`` minutes)."""
     from cbh.timeutil import time_from_name
 
     f3 = sorted((data / "fe3").glob("*.jpg"))
@@ -47,14 +49,15 @@ def frames(data: Path, shift: int = 0) -> list[tuple[Path, Path, datetime]]:
         j = i + shift
         if 0 <= j < len(f4):
             out.append((a, f4[j], time_from_name(a.name)))
-    return out
+    return out[::step]
 
 
 def agrees(h: float, refs: list[tuple[float, float]]) -> bool:
     return any(abs(h - r) <= (0.15 if r > 5000 else 0.10) * r for r, _ in refs)
 
 
-def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool = True, config=None) -> dict:
+def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool = True, config=None,
+             step: int = 1) -> dict:
     from cbh.flags import INVALIDATING
     from cbh.geometry.station import load_station
     from cbh.pipeline import Pipeline
@@ -64,7 +67,7 @@ def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool
     pipe = Pipeline(station, config=config) if config is not None else Pipeline(station)
     ref = reference_layers(data)
     rows, state = [], PairState.start()  # as `cbh run` starts
-    for k, (a, b, t) in enumerate(frames(data, shift)[:first]):
+    for k, (a, b, t) in enumerate(frames(data, shift, step)[:first]):
         t0 = time.perf_counter()
         r = pipe.process(a, b, t, previous=state)
         state = r.state
@@ -101,9 +104,10 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DEFAULT)
     ap.add_argument("--shift", type=int, default=0)
     ap.add_argument("--first", type=int, default=None)
+    ap.add_argument("--step", type=int, default=1, help="every N-th frame: a cadence of N minutes")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
-    res = evaluate(a.data, a.shift, a.first)
+    res = evaluate(a.data, a.shift, a.first, step=a.step)
     if a.json:
         a.json.write_text(json.dumps(res, indent=1, default=str))
 

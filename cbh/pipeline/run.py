@@ -75,7 +75,7 @@ from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LA
 from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, layer_motion,
                                  motion_weights, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
                                  running_offset, shifted_images, track_back, track_profile, update_offsets,
-                                 jump_threshold)
+                                 jump_floor_s, jump_threshold)
 from cbh.pipeline.skyclock import SkyClock, sky_clock, sky_grid
 from cbh.pipeline.photometric import estimate_response
 from cbh.pipeline.segment import (chroma, local_contrast, normalized_blue_red, one_class_pair_is_clear, sample_lattice,
@@ -466,7 +466,7 @@ class Pipeline:
         if not mot.offsets_s and math.isfinite(self._stated_offset()) and mcfg.clock_offset:
             mot = replace(mot, offsets_s=(self._stated_offset(),))  # the station states the clocks
         sky = self._sky_clock(gray, mmasks, mot, ctx)  # this pair's offset from the sky maps (no stereo needed)
-        history = update_offsets(mot.offsets_s, sky.offset_s, mcfg.offset_history, mcfg.offset_jump_s)
+        history = update_offsets(mot.offsets_s, sky.offset_s, mcfg.offset_history, self._jump_s(mot))
         used = running_offset(history) if (mot.prev_gray is not None and mcfg.clock_offset) else math.nan
         profile = mot.profile  # (the tracks' of the pair before; the sky maps' where there is none yet)
         sky_seeded = False
@@ -506,7 +506,7 @@ class Pipeline:
                     lay = self.stage_motion(lay, hmap, est, mseg.clouds[0])
             if not sky_mode:  # a short carry: the compensated stereo tracks refine the sky maps' start
                 pair_s = est.pair_offset_s if math.isfinite(est.pair_offset_s) else pair_s
-            new = running_offset(update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s))
+            new = running_offset(update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, self._jump_s(mot)))
             moved = math.isfinite(new) and abs(new - (used if comp is not None else 0.0)) > mcfg.rematch_s
             if attempt and comp is not None:  # start-up passes: also until the motion profile settles
                 moved = moved or profile.moved_px(est.profile, new, self._px_per_rad2()) > _RATES_SETTLED_PX
@@ -528,7 +528,7 @@ class Pipeline:
             sky = self._sky_clock(gray, mmasks, replace(mot, sky_check_in=0), ctx)
             pair_s = sky.offset_s if math.isfinite(sky.offset_s) else pair_s
         before = running_offset(mot.offsets_s)
-        offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, mcfg.offset_jump_s)
+        offsets = update_offsets(mot.offsets_s, pair_s, mcfg.offset_history, self._jump_s(mot))
         running = running_offset(offsets)
         self._clock_flags(previous, mot, sky, before, running, used, ctx, lay)
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
@@ -619,7 +619,7 @@ class Pipeline:
             # did not match, and their mismatches were flagged as the geometry's.
             return not (sky.still or sky.along)
         return (math.isfinite(sky.offset_s) and math.isfinite(running_before)
-                and abs(sky.offset_s - running_before) > jump_threshold(mot.offsets_s, mcfg.offset_jump_s))
+                and abs(sky.offset_s - running_before) > jump_threshold(mot.offsets_s, self._jump_s(mot)))
 
     def _clock_flags(self, previous, mot: "MotionInput", sky: SkyClock, before: float, running: float, used: float,
                      ctx: "PairContext", lay) -> None:
@@ -697,7 +697,7 @@ class Pipeline:
         if sky_mode or not math.isfinite(running) or "geometry_mismatch" in flags:
             return 0
         if (math.isfinite(sky.offset_s)
-                and abs(sky.offset_s - running) > jump_threshold(mot.offsets_s, mcfg.offset_jump_s)):
+                and abs(sky.offset_s - running) > jump_threshold(mot.offsets_s, self._jump_s(mot))):
             return 0  # perhaps a jump: the next pair confirms it (update_offsets) or not
         if math.isfinite(sky.offset_s):
             return mcfg.sky_check_pairs - 1
@@ -790,6 +790,11 @@ class Pipeline:
         profile = track_profile(h, w2, cfg.min_tracks, cfg.layer_tolerance_log)
         return MotionEstimate(dt_s=mot.dt_s, px1=m.px1, w1=w1, w2=w2, pair_offset_s=sky.offset_s, height_m=h,
                               profile=profile)
+
+    def _jump_s(self, mot: "MotionInput") -> float:
+        """The least clock jump that this pair's interval can tell from its estimate's scatter
+        (:func:`~.motion.jump_floor_s`)."""
+        return jump_floor_s(self.config.motion.offset_jump_s, mot.dt_s)
 
     def _px_per_rad2(self) -> float:
         """Camera 2's lens scale near the zenith at working size [px/rad]."""

@@ -19,9 +19,14 @@ is 1.7°: the stereo matches of the raw pair are then mostly wrong, and a matche
 that triangulate keeps none). Static things (masts, the other camera, overlay text, the sun's flare)
 have w = 0 and carry no weight. Layers moving in different directions each give δ with their own w.
 
-**Large offsets.** f can be tens of map pixels (a 120 s offset, a fast layer): before the dense
-flow (DIS, :func:`cv2.DISOpticalFlow`), camera 2's map is shifted by the dominant translation
-found by phase correlation, and the flow measures only what is left.
+**Large offsets, long cadences.** f can be tens of map pixels (a 120 s offset, a fast layer):
+before the dense flow (DIS, :func:`cv2.DISOpticalFlow`), camera 2's map is shifted by the dominant
+translation found by phase correlation, and the flow measures only what is left. A camera's own
+motion between its frames can be as large (a deck at 20 m/s moves ≈ 45 map px in 2 min), and there
+phase correlation finds what does not move (the sun's flare, masts): each camera's motions are
+found in the difference of its two frames, where everything static cancels
+(:func:`_motion_shifts`), one candidate per layer moving apart, and each pixel keeps the flow that
+passes its forward-backward check best.
 
 **Estimate.** δ per pixel, weighted by ``(n·w)²`` (inverse variance); pixels are pooled in tiles
 (one value per tile: neighbouring pixels of a flow are not independent) and δ is the median of the
@@ -193,6 +198,72 @@ def _dominant_shift(s1: np.ndarray, s2: np.ndarray, valid: np.ndarray) -> np.nda
     return np.array([dx, dy], np.float64)
 
 
+def _motion_shifts(now: np.ndarray, prev: np.ndarray, valid: np.ndarray, most: int = 2, min_z: float = 10.0,
+                   r0_px: float = 2.0, reach_px: float = 16.0) -> list[np.ndarray]:
+    """The motions (dx, dy) [map px] of one camera's sky from ``now`` to ``prev`` (content at x in
+    ``now`` is at x + d in ``prev``) that stand out, at most ``most``, the strongest first; none
+    where nothing moved.
+
+    Phase correlation of the two frames finds the static things (the sun's flare, masts, the lens's
+    own pattern) as well as the clouds, and on the real Fehmarn maps 2 min apart it picked "no
+    motion" under a deck that had moved 45 map px. In the difference of the frames everything
+    static cancels: for a pattern m moved by v, D = m(x − v) − m(x), whose autocorrelation is
+    2·C(d) − C(d − v) − C(d + v), a positive peak at 0 and negative ones at ±v (whitened by the
+    frames' mean power spectrum, so the peaks are sharp); layers moving apart give a pair each.
+    The deepest ones beyond ``r0_px`` (at half size) give ±v when they stand ``min_z`` robust
+    deviations below the rest of the autocorrelation (noise alone: 6–7 on a 573 px map; the real
+    deck: 16–22), a further layer 1.5 ``min_z`` (the ridges of one deck's trough on the real maps
+    reached 8–10.5; the preset's two decks moving apart give 22–27 each); the sign is where the
+    frames' own cross-correlation is larger (their static part correlates alike at ±v). A motion
+    within ``reach_px`` (map px, what DIS follows unaided) of no motion is the candidate 0, one
+    within it of another candidate adds nothing; ``most`` counts the moving candidates."""
+    win = cv2.createHanningWindow(now.shape[::-1], cv2.CV_32F)
+    half = (now.shape[1] // 2, now.shape[0] // 2)  # at half the map's size: DIS takes the last pixels
+    fa, fb = (cv2.resize(np.where(valid, f.astype(np.float32) - 128.0, 0.0).astype(np.float32) * win, half,
+                         interpolation=cv2.INTER_AREA) for f in (now, prev))
+    shape = tuple(cv2.getOptimalDFTSize(n) for n in fa.shape)  # (a size the FFT is fast at)
+    ta, tb = np.fft.rfft2(fa, s=shape), np.fft.rfft2(fb, s=shape)
+    power = 0.5 * (ta.real ** 2 + ta.imag ** 2 + tb.real ** 2 + tb.imag ** 2)
+    power += 1e-3 * float(power.mean()) + 1e-30
+    dd = tb - ta
+    ac = np.fft.irfft2((dd.real ** 2 + dd.imag ** 2) / power, s=shape)
+    n0, n1 = shape
+    ry = np.minimum(np.arange(n0), n0 - np.arange(n0))[:, None]
+    rx = np.minimum(np.arange(n1), n1 - np.arange(n1))[None, :]
+    far = np.hypot(ry, rx) > r0_px
+    rest = ac[far][::7]  # (a sample is enough for the noise's level)
+    med = float(np.median(rest))
+    spread = 1.4826 * float(np.median(np.abs(rest - med)))
+    cc, out, search = None, [], np.where(far, ac, np.inf)
+    for _ in range(most + 3):  # (a few peaks more: one within another's reach adds nothing)
+        iy, ix = np.unravel_index(int(np.argmin(search)), ac.shape)
+        if (sum(bool(w.any()) for w in out) == most
+                or not (spread > 0 and (med - search[iy, ix]) >= (1.5 if out else 1.0) * min_z * spread)):
+            break
+        dy, dx = (iy if iy <= n0 // 2 else iy - n0), (ix if ix <= n1 // 2 else ix - n1)
+        for sy, sx in ((dy, dx), (-dy, -dx)):  # this motion's two peaks are spent
+            ey = np.minimum((np.arange(n0) - sy) % n0, (sy - np.arange(n0)) % n0)[:, None]
+            ex = np.minimum((np.arange(n1) - sx) % n1, (sx - np.arange(n1)) % n1)[None, :]
+            search[np.hypot(ey, ex) <= 2.0 * r0_px + 1.0] = np.inf
+        if cc is None:
+            cc = np.fft.irfft2(tb * np.conj(ta) / power, s=shape)
+        if cc[-dy % n0, -dx % n1] > cc[dy % n0, dx % n1]:
+            dx, dy = -dx, -dy
+        v = 2.0 * np.array([dx, dy], np.float64)
+        if np.hypot(*v) <= reach_px:
+            v = np.zeros(2)  # a motion that DIS follows unshifted
+        if not any(np.hypot(*(v - w)) <= reach_px for w in out):
+            out.append(v)
+    return out
+
+
+def _shifted(img: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``img`` moved by −d [map px] (content at x + d comes to x), mid-grey where it has none."""
+    n = img.shape[0]
+    return cv2.warpAffine(img, np.float32([[1, 0, -d[0]], [0, 1, -d[1]]]), (n, n), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=128)
+
+
 def _flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     return dis.calc(a, b, None)
@@ -301,20 +372,40 @@ def _lattice_flows(t1, t2, tp1, tp2, u, fb_max_px: float, step: int):
     previous frame where it sees the camera-1 pixel (g2); a usable mask (forward-backward checks,
     both cameras' motions agreeing) and that disagreement.
 
-    DIS gives each dense field (after a phase correlation takes out camera 2's dominant shift, so
-    that a 120 s offset is in reach); its variational smoothing pulls a layer's flow towards its
+    DIS gives each dense field after the motion it cannot reach is taken out: camera 2's dominant
+    shift by phase correlation (so that a 120 s offset is in reach), and each camera's own motion
+    over the interval by :func:`_motion_shifts` (a deck at 20 m/s moves ≈ 45 map px in 2 min);
+    where two layers move apart, each motion is a candidate and every pixel keeps the flow that
+    passes its forward-backward check best (the preset's decks 2 min apart move 30 and 65 map px
+    in directions 100° apart: one shift lost the other deck, whose wrong but consistent flows gave
+    an offset 7 s off). Its variational smoothing pulls a layer's flow towards its
     neighbour's across their edges (a 1200 m layer read 8 % high beside a 3500 m one, its rate
     4 % slow), so each lattice point is then refined by Lucas–Kanade in a 9 px window from there."""
     n = t1.shape[0]
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
-    d0 = _dominant_shift(t1, t2, u[0] & u[1])
-    t2s = cv2.warpAffine(t2, np.float32([[1, 0, -d0[0]], [0, 1, -d0[1]]]), (n, n), flags=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=128)
-    # the five dense flows are independent: side by side on the pipeline's threads
-    f12, f21, g1, g1b, g2 = pmap(lambda ab: _flow(*ab), ((t1, t2s), (t2s, t1), (t1, tp1), (tp1, t1), (t2, tp2)))
+    d0, s1, s2 = pmap(lambda f: f[0](*f[1:]), ((_dominant_shift, t1, t2, u[0] & u[1]), (_motion_shifts, t1, tp1, u[0]),
+                                             (_motion_shifts, t2, tp2, u[1])))
+    s1, s2 = s1 or [np.zeros(2)], s2 or [np.zeros(2)]
+    t2s = _shifted(t2, d0)
+    back2 = len(s2) > 1  # camera 2's candidates are told apart by their backward flows too
+    tasks = [(t1, t2s), (t2s, t1)]
+    for d in s1:
+        tp = _shifted(tp1, d)
+        tasks += [(t1, tp), (tp, t1)]
+    for d in s2:
+        tp = _shifted(tp2, d)
+        tasks += [(t2, tp), (tp, t2)] if back2 else [(t2, tp)]
+    # the dense flows are independent: side by side on the pipeline's threads
+    flows = list(pmap(lambda ab: _flow(*ab), tasks))
+    f12, f21 = flows[:2]
     fb12 = np.hypot(*np.moveaxis(_sample(f21, xx + f12[..., 0], yy + f12[..., 1]) + f12, -1, 0))
     f12 = f12 + d0.astype(np.float32)  # camera 1 → camera 2 as captured
-    fbg1 = np.hypot(*np.moveaxis(_sample(g1b, xx + g1[..., 0], yy + g1[..., 1]) + g1, -1, 0))
+    k = 2 + 2 * len(s1)
+    g1, fbg1 = _best_flow(flows[2:k], s1, xx, yy)  # camera 1 → its previous frame
+    if back2:
+        g2, _ = _best_flow(flows[k:], s2, xx, yy)
+    else:
+        g2 = flows[k] + s2[0].astype(np.float32)
     sl = (slice(None, None, step), slice(None, None, step))
     p0 = np.stack([xx[sl], yy[sl]], -1)
     # only the lattice points that can still be usable are refined (camera 1 sees sky there and
@@ -331,6 +422,24 @@ def _lattice_flows(t1, t2, tp1, tp2, u, fb_max_px: float, step: int):
     disagree = np.hypot(*np.moveaxis(g1 - g2_at, -1, 0))
     ok &= disagree <= max(1.0, 0.25 * float(np.median(np.hypot(*np.moveaxis(g1, -1, 0))[ok])) if ok.any() else 1.0)
     return f12, g1, g2_at, ok, disagree
+
+
+def _best_flow(flows: list, shifts: list, xx: np.ndarray, yy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the candidate flow with the smallest forward-backward error, and that error [map
+    px]; ``flows`` alternate forward and backward DIS fields, one pair per shift in ``shifts``
+    (each taken out before the flow: added back here)."""
+    best = err = None
+    for i, d in enumerate(shifts):
+        fw, bw = flows[2 * i], flows[2 * i + 1]
+        fb = np.hypot(*np.moveaxis(_sample(bw, xx + fw[..., 0], yy + fw[..., 1]) + fw, -1, 0))
+        g = fw + d.astype(np.float32)
+        if best is None:
+            best, err = g, fb
+            continue
+        with np.errstate(invalid="ignore"):
+            take = fb < np.where(np.isnan(err), np.inf, err)
+        best, err = np.where(take[..., None], g, best), np.where(take, fb, err)
+    return best, err
 
 
 def _refine(a: np.ndarray, b: np.ndarray, p0: np.ndarray, flow0: np.ndarray,
