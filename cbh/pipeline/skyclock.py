@@ -316,10 +316,14 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     f = f12 * to_a  # a2 − a1
     w = -0.5 * (g1 + g2_at) * to_a / dt_s  # rate [1/s]
     b = np.asarray(baseline_m, np.float64)
-    bn = b / np.linalg.norm(b)
-    nrm = np.array([-bn[1], bn[0]])
-    nw = w[..., 0] * nrm[0] + w[..., 1] * nrm[1]
-    nf = f[..., 0] * nrm[0] + f[..., 1] * nrm[1]
+    # the parallax lies along B' = B − Δz·a2, not along B: across B' is what has none in it (with
+    # camera 2 9 m below camera 1 (Fehmarn), across B held ±1 % of a 900 m deck's parallax, and its
+    # offset read 9 % long in simulation; the cross product is the stereo tracks' own,
+    # :func:`~.motion.offset_per_match`)
+    bp = b[None, None, :] - dz_m * (np.stack([ae, an], -1) + f)
+    nrm = np.stack([-bp[..., 1], bp[..., 0]], -1) / np.linalg.norm(bp, axis=-1, keepdims=True)
+    nw = (w * nrm).sum(-1)
+    nf = (f * nrm).sum(-1)
     moving = ok & (np.abs(nw) * dt_s >= min_motion_px * grid.res)
     # observable only when much of the moving sky moves across the baseline: a wind along it leaves
     # n·w at the flow's noise, a few pixels pass by chance, and the ratio of two noises has a median
@@ -341,15 +345,13 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     # the carry's noise: the two cameras measure one rate; half their difference is the noise of
     # the mean (each one's is the difference / √2, the mean's that / √2), times |δ|
     carry = 0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s * abs(est)
-    # heights for that offset: q·B' = w·δ − f (along the baseline), B' ≈ B (Δz·a2 is small beside B)
-    a2 = np.stack([ae, an], -1) + f
-    bp = b[None, None, :] - dz_m * a2
+    # heights for that offset: q·B' = w·δ − f (along B')
     rhs = w * est - f
     with np.errstate(invalid="ignore", divide="ignore"):
         q = (rhs * bp).sum(-1) / (bp * bp).sum(-1)
         h = 1.0 / q
     sel = ok & np.isfinite(h) & (h >= height_range_m[0]) & (h <= height_range_m[1])
-    # the matches: the across-baseline residual once δ is out is the rays' miss (as an angle: a
+    # the matches: the residual across B' once δ is out is the rays' miss (as an angle: a
     # plane-offset step at a is cos²θ = 1 / (1 + |a|²) of a radian)
     miss = np.abs(nf - est * nw) / (1.0 + ae ** 2 + an ** 2)
     good = ok & np.isfinite(miss) & (miss <= math.radians(max_miss_deg))
