@@ -81,7 +81,9 @@ def main() -> None:
             line.append(f"| {h:.0f} m: {L.height_m:.0f} m ({eh:+.2f} %)")
             if moving:
                 worst["height_pct"] = max(worst["height_pct"], abs(eh))
-            if math.isfinite(L.motion_east_ms):
+            if math.isfinite(L.motion_east_ms) and math.hypot(we, wn) < 0.1:  # a calm layer: no relative error
+                line.append(f"(calm: {math.hypot(L.motion_east_ms, L.motion_north_ms):.2f} m/s measured)")
+            elif math.isfinite(L.motion_east_ms):
                 es = 100 * (math.hypot(L.motion_east_ms, L.motion_north_ms) / math.hypot(we, wn) - 1)
                 ed = math.degrees(math.atan2(L.motion_east_ms, L.motion_north_ms) - math.atan2(we, wn))
                 ed = (ed + 180) % 360 - 180

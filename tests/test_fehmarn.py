@@ -120,7 +120,7 @@ def test_at_a_two_minute_cadence_the_offset_is_found_at_once_and_the_deck_is_val
     called a possible jump (``clock_unknown``) on a 3 s threshold: 29 % / 23 % of the pairs valid
     with a reference layer, 14 % / 15 % led by a phantom deck, one ``geometry_mismatch``. Now the
     offset is known from the second pair, within 2 s of its 1-minute median, and ≥ 75 % of the
-    pairs from the third on are valid with a reference layer (measured 86 % / 77 %), none led by
+    pairs from the third on are valid with a reference layer (measured 79 % / 77 %), none led by
     a phantom, no ``geometry_mismatch``."""
     from eval_fehmarn import evaluate
 
@@ -187,7 +187,7 @@ def test_re_paired_at_minus_ninety_seconds(station, as_recorded):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("shift, low, phantom", [(3, 0.7, 0.2), (-2, 0.55, 0.12), (4, 0.1, 0.35)])
+@pytest.mark.parametrize("shift, low, phantom", [(3, 0.8, 0.15), (-2, 0.7, 0.15), (4, 0.5, 0.3)])
 def test_re_paired_minutes_apart_no_unflagged_phantom_decks(shift, low, phantom):
     """Re-paired 3, −2 and 4 frames (+149, −151, +210 s). Before: the estimate beyond 150 s was not
     believed (−2: never found), and a pair whose own sky-map estimate failed was matched on the raw
@@ -197,7 +197,10 @@ def test_re_paired_minutes_apart_no_unflagged_phantom_decks(shift, low, phantom)
     when they do not match either, flagged ``clock_too_far`` (not valid). From the third pair no
     valid pair is led by such a low phantom deck; what the shares still count as phantoms is the
     8 km deck read 15–30 % off (+3: 81 % valid, 15 % phantom-led; −2: 67 %, 7 %; +4: 24 %, 28 %:
-    at 210 s the sky itself has changed too much between the captures for most pairs)."""
+    at 210 s the sky itself has changed too much between the captures for most pairs). Since the
+    maps take each camera's own motion out first and the jump floor is 5 % of the offset (stop 51),
+    fewer pairs lose their own estimate: +3: 88 %, 12 %; −2: 81 %, 11 % (one more phantom, a pair
+    carried by the running offset whose deck read 17 % high); +4: 60 %, 24 %."""
     from eval_fehmarn import evaluate
 
     res = evaluate(DATA, shift, verbose=False)
@@ -249,7 +252,8 @@ def test_a_run_of_outliers_is_not_a_jump():
     beyond the 3 s threshold and 2.6 s apart; they had restarted the history at 33.8 s (and
     09:23's deck, carried by it, read 18 % high), while the next pairs read 28.4, 26.8, 30.0 s.
     Two estimates confirm a jump when they agree to half the threshold; and at a 2-minute cadence
-    the threshold's floor doubles (the estimates scatter about three times as much there)."""
+    the threshold's floor doubles (the estimates scatter about three times as much there), and it
+    is at least 5 % of the offset."""
     from cbh.pipeline.motion import jump_floor_s, running_offset, update_offsets
 
     h = (28.8, 29.0, 29.0, 29.5, 28.6, 28.7, 26.9, 27.4, 27.0, 26.3, 25.7, 29.0, 29.5, 30.2, 31.1, 29.9, 29.8,
@@ -258,6 +262,12 @@ def test_a_run_of_outliers_is_not_a_jump():
         h = update_offsets(h, new, 60, 3.0)
     assert running_offset(h) == pytest.approx(29.0, abs=0.3)
     assert (jump_floor_s(3.0, 60.0), jump_floor_s(3.0, 120.0), jump_floor_s(3.0, 10.0)) == (3.0, 6.0, 3.0)
+    # and at 5 % of the offset: re-paired to −151 s the estimates drifted to −146 s with the offset fixed
+    assert jump_floor_s(3.0, 60.0, -31.0) == 3.0 and jump_floor_s(3.0, 60.0, -151.0) == pytest.approx(7.55)
+    h = (-152.0, -151.3, -151.1, -151.1, -150.8, -152.1, -152.1, -153.2, -154.4, -154.0, -148.4)
+    for new in (-145.4, -145.4):
+        h = update_offsets(h, new, 60, jump_floor_s(3.0, 60.0, running_offset(h)))
+    assert running_offset(h) == pytest.approx(-151.3, abs=0.5)
 
 
 def test_run_summary_names_each_cause(station):

@@ -205,16 +205,19 @@ def update_offsets(history, new_s: float, keep: int, jump_s: float) -> tuple[flo
     return (hist + (new_s,))[-keep:]
 
 
-def jump_floor_s(jump_s: float, dt_s: float) -> float:
-    """The least jump of a camera's clock [s] that pairs ``dt_s`` [s] apart can tell from the scatter
-    of their own offset estimates: ``jump_s`` per minute of interval, at least ``jump_s``. A pair's
-    estimate rests on the sky's motion over the interval, and the clouds change shape over it: on
-    the real Fehmarn half hour (offset −31 s) the estimates scattered by about 1 s about their median
-    at a 1-minute cadence and by about 3 s (−25 to −36 s) at 2 minutes, where a 3 s floor had called
-    5 of 14 pairs a possible jump (``clock_unknown``)."""
-    if not (math.isfinite(dt_s) and dt_s > 0):
-        return float(jump_s)
-    return float(jump_s) * max(1.0, dt_s / 60.0)
+def jump_floor_s(jump_s: float, dt_s: float, offset_s: float = math.nan) -> float:
+    """The least jump of a camera's clock [s] that pairs ``dt_s`` [s] apart, at a running offset
+    ``offset_s`` [s], can tell from the scatter of their own offset estimates: ``jump_s`` per
+    minute of interval (at least ``jump_s``), and at least 5 % of the offset. A pair's estimate is
+    the offset's motion across the baseline over the sky's rate, and the rate rests on the clouds'
+    motion over the interval, while they change shape: on the real Fehmarn half hour the
+    estimates scattered by about 1 s about their median (−31 s) at a 1-minute cadence and by about
+    3 s (−25 to −36 s) at 2 minutes, where a 3 s floor had called 5 of 14 pairs a possible jump
+    (``clock_unknown``); re-paired to −151 s they drifted from −152 to −146 s over the half hour
+    with the offset fixed (a rate read 4 % fast), and two of them had restarted the history at
+    −145 s (the deck then read 10–30 % high)."""
+    floor = float(jump_s) * (max(1.0, dt_s / 60.0) if (math.isfinite(dt_s) and dt_s > 0) else 1.0)
+    return max(floor, 0.05 * abs(offset_s)) if math.isfinite(offset_s) else floor
 
 
 def jump_threshold(offsets_s, jump_s: float) -> float:

@@ -792,9 +792,9 @@ class Pipeline:
                               profile=profile)
 
     def _jump_s(self, mot: "MotionInput") -> float:
-        """The least clock jump that this pair's interval can tell from its estimate's scatter
-        (:func:`~.motion.jump_floor_s`)."""
-        return jump_floor_s(self.config.motion.offset_jump_s, mot.dt_s)
+        """The least clock jump that this pair's interval and the running offset can tell from its
+        estimate's scatter (:func:`~.motion.jump_floor_s`)."""
+        return jump_floor_s(self.config.motion.offset_jump_s, mot.dt_s, running_offset(mot.offsets_s))
 
     def _px_per_rad2(self) -> float:
         """Camera 2's lens scale near the zenith at working size [px/rad]."""

@@ -198,11 +198,57 @@ def _dominant_shift(s1: np.ndarray, s2: np.ndarray, valid: np.ndarray) -> np.nda
     return np.array([dx, dy], np.float64)
 
 
+def _half_spectra(a: np.ndarray, b: np.ndarray, valid: np.ndarray):
+    """Two maps' spectra (``rfft2``) at half the map's size (DIS takes the last pixels), windowed,
+    masked to ``valid``, at a size the FFT is fast at; with that size."""
+    win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+    half = (a.shape[1] // 2, a.shape[0] // 2)
+    fa, fb = (cv2.resize(np.where(valid, f.astype(np.float32) - 128.0, 0.0).astype(np.float32) * win, half,
+                         interpolation=cv2.INTER_AREA) for f in (a, b))
+    shape = tuple(cv2.getOptimalDFTSize(n) for n in fa.shape)
+    return np.fft.rfft2(fa, s=shape), np.fft.rfft2(fb, s=shape), shape
+
+
+def _peaks(surface: np.ndarray, min_z: float, r0_px: float, symmetric: bool, count: int):
+    """The highest peaks of a correlation ``surface`` (half-size px, origin at [0, 0]) beyond
+    ``r0_px`` of the origin, at most ``count``, each (dy, dx, z) with z its height in robust
+    deviations of the surface; the first needs ``min_z``, the others 1.5 ``min_z``. A peak's
+    neighbourhood is spent once taken (and its mirror image's, for a ``symmetric`` surface)."""
+    n0, n1 = surface.shape
+    ar0, ar1 = np.arange(n0), np.arange(n1)
+    far = np.hypot(np.minimum(ar0, n0 - ar0)[:, None], np.minimum(ar1, n1 - ar1)[None, :]) > r0_px
+    rest = surface[far][::7]  # (a sample is enough for the noise's level)
+    med = float(np.median(rest))
+    spread = 1.4826 * float(np.median(np.abs(rest - med)))
+    search, out = np.where(far, surface, -np.inf), []
+    while len(out) < count and spread > 0:
+        iy, ix = np.unravel_index(int(np.argmax(search)), search.shape)
+        z = (float(search[iy, ix]) - med) / spread
+        if z < (1.5 if out else 1.0) * min_z:
+            break
+        dy, dx = (iy if iy <= n0 // 2 else iy - n0), (ix if ix <= n1 // 2 else ix - n1)
+        for sy, sx in ((dy, dx), (-dy, -dx))[:2 if symmetric else 1]:
+            ey = np.minimum((ar0 - sy) % n0, (sy - ar0) % n0)[:, None]
+            ex = np.minimum((ar1 - sx) % n1, (sx - ar1) % n1)[None, :]
+            search[np.hypot(ey, ex) <= 2.0 * max(r0_px, 1.0) + 1.0] = -np.inf
+        out.append((dy, dx, z))
+    return out
+
+
+def _add_candidate(out: list, v: np.ndarray, reach_px: float, snap: bool = True) -> None:
+    """Append motion ``v`` [map px] to the candidates ``out`` unless one is within ``reach_px`` (what
+    DIS follows unaided); with ``snap``, one within it of no motion is the candidate 0."""
+    if snap and np.hypot(*v) <= reach_px:
+        v = np.zeros(2)
+    if not any(np.hypot(*(v - w)) <= reach_px for w in out):
+        out.append(v)
+
+
 def _motion_shifts(now: np.ndarray, prev: np.ndarray, valid: np.ndarray, most: int = 2, min_z: float = 10.0,
                    r0_px: float = 2.0, reach_px: float = 16.0) -> list[np.ndarray]:
     """The motions (dx, dy) [map px] of one camera's sky from ``now`` to ``prev`` (content at x in
-    ``now`` is at x + d in ``prev``) that stand out, at most ``most``, the strongest first; none
-    where nothing moved.
+    ``now`` is at x + d in ``prev``) that stand out, at most ``most`` moving ones, the strongest
+    first; none where nothing moved.
 
     Phase correlation of the two frames finds the static things (the sun's flare, masts, the lens's
     own pattern) as well as the clouds, and on the real Fehmarn maps 2 min apart it picked "no
@@ -216,44 +262,47 @@ def _motion_shifts(now: np.ndarray, prev: np.ndarray, valid: np.ndarray, most: i
     reached 8–10.5; the preset's two decks moving apart give 22–27 each); the sign is where the
     frames' own cross-correlation is larger (their static part correlates alike at ±v). A motion
     within ``reach_px`` (map px, what DIS follows unaided) of no motion is the candidate 0, one
-    within it of another candidate adds nothing; ``most`` counts the moving candidates."""
-    win = cv2.createHanningWindow(now.shape[::-1], cv2.CV_32F)
-    half = (now.shape[1] // 2, now.shape[0] // 2)  # at half the map's size: DIS takes the last pixels
-    fa, fb = (cv2.resize(np.where(valid, f.astype(np.float32) - 128.0, 0.0).astype(np.float32) * win, half,
-                         interpolation=cv2.INTER_AREA) for f in (now, prev))
-    shape = tuple(cv2.getOptimalDFTSize(n) for n in fa.shape)  # (a size the FFT is fast at)
-    ta, tb = np.fft.rfft2(fa, s=shape), np.fft.rfft2(fb, s=shape)
+    within it of another candidate adds nothing (:func:`_add_candidate`)."""
+    ta, tb, shape = _half_spectra(now, prev, valid)
     power = 0.5 * (ta.real ** 2 + ta.imag ** 2 + tb.real ** 2 + tb.imag ** 2)
     power += 1e-3 * float(power.mean()) + 1e-30
     dd = tb - ta
     ac = np.fft.irfft2((dd.real ** 2 + dd.imag ** 2) / power, s=shape)
-    n0, n1 = shape
-    ry = np.minimum(np.arange(n0), n0 - np.arange(n0))[:, None]
-    rx = np.minimum(np.arange(n1), n1 - np.arange(n1))[None, :]
-    far = np.hypot(ry, rx) > r0_px
-    rest = ac[far][::7]  # (a sample is enough for the noise's level)
-    med = float(np.median(rest))
-    spread = 1.4826 * float(np.median(np.abs(rest - med)))
-    cc, out, search = None, [], np.where(far, ac, np.inf)
-    for _ in range(most + 3):  # (a few peaks more: one within another's reach adds nothing)
-        iy, ix = np.unravel_index(int(np.argmin(search)), ac.shape)
-        if (sum(bool(w.any()) for w in out) == most
-                or not (spread > 0 and (med - search[iy, ix]) >= (1.5 if out else 1.0) * min_z * spread)):
+    cc, out = None, []
+    for dy, dx, _ in _peaks(-ac, min_z, r0_px, True, most + 3):  # (a few more: one within reach adds nothing)
+        if sum(bool(w.any()) for w in out) == most:
             break
-        dy, dx = (iy if iy <= n0 // 2 else iy - n0), (ix if ix <= n1 // 2 else ix - n1)
-        for sy, sx in ((dy, dx), (-dy, -dx)):  # this motion's two peaks are spent
-            ey = np.minimum((np.arange(n0) - sy) % n0, (sy - np.arange(n0)) % n0)[:, None]
-            ex = np.minimum((np.arange(n1) - sx) % n1, (sx - np.arange(n1)) % n1)[None, :]
-            search[np.hypot(ey, ex) <= 2.0 * r0_px + 1.0] = np.inf
         if cc is None:
             cc = np.fft.irfft2(tb * np.conj(ta) / power, s=shape)
-        if cc[-dy % n0, -dx % n1] > cc[dy % n0, dx % n1]:
+        if cc[-dy % shape[0], -dx % shape[1]] > cc[dy % shape[0], dx % shape[1]]:
             dx, dy = -dx, -dy
-        v = 2.0 * np.array([dx, dy], np.float64)
-        if np.hypot(*v) <= reach_px:
-            v = np.zeros(2)  # a motion that DIS follows unshifted
-        if not any(np.hypot(*(v - w)) <= reach_px for w in out):
-            out.append(v)
+        _add_candidate(out, 2.0 * np.array([dx, dy], np.float64), reach_px)
+    return out
+
+
+def _cross_shifts(t1: np.ndarray, t2: np.ndarray, valid: np.ndarray, most: int = 2, min_z: float = 10.0,
+                  reach_px: float = 16.0) -> list[np.ndarray]:
+    """The translations (dx, dy) [map px] taking camera 1's map to camera 2's: the dominant one by
+    phase correlation (:func:`_dominant_shift`, to a fraction of a pixel), then each further layer
+    whose own phase-correlation peak stands 1.5 ``min_z`` robust deviations out, beyond
+    ``reach_px`` of every other candidate. Layers far apart in height, or moving apart, are
+    translated differently (each by its parallax and its motion over the clock offset): on the
+    real station's geometry, 1500 m and 8000 m decks 89 s apart were 48 map px apart, beyond
+    DIS's reach from one shift, and the 1500 m deck was never found; their peaks stood 50 and 82
+    deviations out, the real deck's 22–78 with nothing else above 10.5. Where the phase
+    correlation locked onto what is still (the real hour re-paired one frame later, 09:12: the
+    deck 14 map px off), the strongest peak is taken instead."""
+    d0 = _dominant_shift(t1, t2, valid)
+    ta, tb, shape = _half_spectra(t1, t2, valid)
+    x = tb * np.conj(ta)
+    x /= np.abs(x) + 1e-9 * float(np.abs(x).max()) + 1e-30
+    peaks = _peaks(np.fft.irfft2(x, s=shape), min_z, -1.0, False, most + 3)
+    vs = [2.0 * np.array([dx, dy], np.float64) for dy, dx, _ in peaks]
+    out = [d0 if not vs or np.hypot(*(d0 - vs[0])) <= 4.0 else vs[0]]
+    for v in vs[1:]:
+        if len(out) == most:
+            break
+        _add_candidate(out, v, reach_px, snap=False)
     return out
 
 
@@ -385,12 +434,14 @@ def _lattice_flows(t1, t2, tp1, tp2, u, fb_max_px: float, step: int):
     4 % slow), so each lattice point is then refined by Lucas–Kanade in a 9 px window from there."""
     n = t1.shape[0]
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
-    d0, s1, s2 = pmap(lambda f: f[0](*f[1:]), ((_dominant_shift, t1, t2, u[0] & u[1]), (_motion_shifts, t1, tp1, u[0]),
+    s0, s1, s2 = pmap(lambda f: f[0](*f[1:]), ((_cross_shifts, t1, t2, u[0] & u[1]), (_motion_shifts, t1, tp1, u[0]),
                                              (_motion_shifts, t2, tp2, u[1])))
     s1, s2 = s1 or [np.zeros(2)], s2 or [np.zeros(2)]
-    t2s = _shifted(t2, d0)
     back2 = len(s2) > 1  # camera 2's candidates are told apart by their backward flows too
-    tasks = [(t1, t2s), (t2s, t1)]
+    tasks = []
+    for d in s0:
+        t2s = _shifted(t2, d)
+        tasks += [(t1, t2s), (t2s, t1)]
     for d in s1:
         tp = _shifted(tp1, d)
         tasks += [(t1, tp), (tp, t1)]
@@ -399,11 +450,10 @@ def _lattice_flows(t1, t2, tp1, tp2, u, fb_max_px: float, step: int):
         tasks += [(t2, tp), (tp, t2)] if back2 else [(t2, tp)]
     # the dense flows are independent: side by side on the pipeline's threads
     flows = list(pmap(lambda ab: _flow(*ab), tasks))
-    f12, f21 = flows[:2]
-    fb12 = np.hypot(*np.moveaxis(_sample(f21, xx + f12[..., 0], yy + f12[..., 1]) + f12, -1, 0))
-    f12 = f12 + d0.astype(np.float32)  # camera 1 → camera 2 as captured
-    k = 2 + 2 * len(s1)
-    g1, fbg1 = _best_flow(flows[2:k], s1, xx, yy)  # camera 1 → its previous frame
+    k0 = 2 * len(s0)
+    f12, fb12 = _best_flow(flows[:k0], s0, xx, yy)  # camera 1 → camera 2 as captured
+    k = k0 + 2 * len(s1)
+    g1, fbg1 = _best_flow(flows[k0:k], s1, xx, yy)  # camera 1 → its previous frame
     if back2:
         g2, _ = _best_flow(flows[k:], s2, xx, yy)
     else:
