@@ -327,7 +327,7 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
               dt_s: float, *, tile_px: int = 24, min_tiles: int = 6, min_motion_px: float = 0.5,
               fb_max_px: float = 0.5, max_error_s: float = 2.0, height_range_m=(50.0, 20000.0),
               max_miss_deg: float = 2.0, lattice: int = 2, min_share: float = 0.25,
-              known_offset_s: float = math.nan, max_offset_s: float = math.inf) -> SkyClock:
+              known_offset_s: float = math.nan, max_offset_s: float = math.inf, min_in_range: float = 0.1) -> SkyClock:
     """Camera 2's clock offset from one pair and the pair before (see the module docstring).
 
     With ``known_offset_s`` (the running offset of the pairs before), a pair whose own estimate
@@ -386,7 +386,20 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
         with np.errstate(invalid="ignore", divide="ignore"):
             d_px = np.where(moving, nf / nw, np.nan)
         est, err, tiles = _tile_median(d_px, np.where(moving, nw ** 2, 0.0), tile_px, min_tiles)
+    def in_range(offset_s: float) -> np.ndarray:
+        """The matches' heights for that offset, ``q·B' = w·δ − f`` (along B'), in the height range."""
+        rhs = w * offset_s - f
+        with np.errstate(invalid="ignore", divide="ignore"):
+            h = 1.0 / ((rhs * bp).sum(-1) / (bp * bp).sum(-1))
+        return h, ok & np.isfinite(h) & (h >= height_range_m[0]) & (h <= height_range_m[1])
+
     own = math.isfinite(est) and err <= max_error_s and abs(est) <= max_offset_s  # (beyond: not believed)
+    # a first offset that leaves almost none of the matched sky at a height in range is not the offset:
+    # the maps matched something else (a randomized deck carried 2 km by a 112 s offset, beyond the
+    # map's half: −14.0 s "± 0.9" with none of its 263 matches in range). The real hour's own estimates
+    # keep 16–99 % (the low ones are the wavering ones, which the running offset then judges)
+    if not math.isfinite(known_offset_s):
+        own = own and int(in_range(est)[1].sum()) >= min_in_range * int(ok.sum())
     if not own:
         if not (math.isfinite(known_offset_s) and ok.any()):
             return SkyClock.unknown(tiles, still, along)
@@ -394,12 +407,7 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     # the carry's noise: the two cameras measure one rate; half their difference is the noise of
     # the mean (each one's is the difference / √2, the mean's that / √2), times |δ|
     carry = 0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s * abs(est)
-    # heights for that offset: q·B' = w·δ − f (along B')
-    rhs = w * est - f
-    with np.errstate(invalid="ignore", divide="ignore"):
-        q = (rhs * bp).sum(-1) / (bp * bp).sum(-1)
-        h = 1.0 / q
-    sel = ok & np.isfinite(h) & (h >= height_range_m[0]) & (h <= height_range_m[1])
+    h, sel = in_range(est)
     # the matches: the residual across B' once δ is out is the rays' miss (as an angle: a
     # plane-offset step at a is cos²θ = 1 / (1 + |a|²) of a radian)
     miss = np.abs(nf - est * nw) / (1.0 + ae ** 2 + an ** 2)
