@@ -386,11 +386,8 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
         with np.errstate(invalid="ignore", divide="ignore"):
             d_px = np.where(moving, nf / nw, np.nan)
         est, err, tiles = _tile_median(d_px, np.where(moving, nw ** 2, 0.0), tile_px, min_tiles)
-    def in_range(offset_s: float) -> np.ndarray:
-        """The matches' heights for that offset, ``q·B' = w·δ − f`` (along B'), in the height range."""
-        rhs = w * offset_s - f
-        with np.errstate(invalid="ignore", divide="ignore"):
-            h = 1.0 / ((rhs * bp).sum(-1) / (bp * bp).sum(-1))
+    def in_range(offset_s: float) -> tuple[np.ndarray, np.ndarray]:
+        h = _heights(w, f, bp, offset_s)
         return h, ok & np.isfinite(h) & (h >= height_range_m[0]) & (h <= height_range_m[1])
 
     own = math.isfinite(est) and err <= max_error_s and abs(est) <= max_offset_s  # (beyond: not believed)
@@ -423,6 +420,14 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
                     rates2=w2, a1=a1m, flow=f[good],
                     rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res * lattice, still=still,
                     along=along)
+
+
+def _heights(w: np.ndarray, f: np.ndarray, bp: np.ndarray, offset_s: float) -> np.ndarray:
+    """Heights above camera 1 [m] of map matches with flow f and rate w (…, 2) for camera 2's
+    offset ``offset_s``: ``q·B' = w·δ − f``, along B' (``bp``, …, 2)."""
+    rhs = w * offset_s - f
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return 1.0 / ((rhs * bp).sum(-1) / (bp * bp).sum(-1))
 
 
 def _lattice_flows(t1, t2, tp1, tp2, u, fb_max_px: float, step: int):
