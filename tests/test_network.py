@@ -494,3 +494,31 @@ def test_without_the_reference_camera_the_others_carry_the_set(level_network):
                                              channels="bgr")
     assert r.cameras == ("cam2", "cam3") and "camera_missing" in r.flags
     assert [L.height_m for L in r.layers] == pytest.approx([LOW, HIGH], rel=0.01)
+
+
+@pytest.mark.slow  # (three cameras, two frame sets; the sky clock's own tests run by default)
+def test_a_far_camera_whose_clock_is_minutes_off_is_carried_not_blamed():
+    """The three-camera preset (cam3 630 m north), cam3 capturing 90 s early, frame sets 2 min
+    apart. Before: cam3's offset was never measured (its maps 2 min apart did not match) and
+    every frame set was flagged ``camera_mismatch``, a clock taken for a camera turned. Now the
+    cam1+cam3 pair measures −90 s (within 1 s) from the second frame set, which is not flagged,
+    and both layers are found within 2 %."""
+    from datetime import timedelta
+
+    from cbh.geometry.station import load_station
+    from cbh.pipeline.network import StationPipeline
+    from cbh.presets import scene_path, station_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.scene import with_clock_offsets
+
+    sc = with_clock_offsets(load_scene(scene_path("two-layers")), ["cam3=-90"])
+    sim = SkySimulator(load_station(station_path("unb-lea-network")), sc, size_px=640)
+    pipe, state = StationPipeline(sim.station), None
+    for k in range(2):
+        shot = sim.render(sc.time_utc + timedelta(seconds=120.0 * k))
+        r = pipe.process({n: v.image for n, v in shot.views.items()}, shot.time_utc, channels="bgr", previous=state)
+        state = r.state
+    assert abs(r.diagnostics["cam1+cam3.clock_offset_s"] + 90.0) <= 1.0, r.diagnostics
+    assert "camera_mismatch" not in r.flags, r.flags
+    for h in (1200.0, 3500.0):
+        assert any(abs(L.height_m / h - 1) <= 0.02 for L in r.layers), [L.height_m for L in r.layers]
