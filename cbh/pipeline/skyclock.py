@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -201,10 +202,10 @@ def _dominant_shift(s1: np.ndarray, s2: np.ndarray, valid: np.ndarray) -> np.nda
 def _half_spectra(a: np.ndarray, b: np.ndarray, valid: np.ndarray):
     """Two maps' spectra (``rfft2``) at half the map's size (DIS takes the last pixels), windowed,
     masked to ``valid``, at a size the FFT is fast at; with that size."""
-    win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+    win = np.where(valid, cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F), np.float32(0.0))
     half = (a.shape[1] // 2, a.shape[0] // 2)
-    fa, fb = (cv2.resize(np.where(valid, f.astype(np.float32) - 128.0, 0.0).astype(np.float32) * win, half,
-                         interpolation=cv2.INTER_AREA) for f in (a, b))
+    fa, fb = (cv2.resize((f.astype(np.float32) - np.float32(128.0)) * win, half, interpolation=cv2.INTER_AREA)
+              for f in (a, b))
     shape = tuple(cv2.getOptimalDFTSize(n) for n in fa.shape)
     return np.fft.rfft2(fa, s=shape), np.fft.rfft2(fb, s=shape), shape
 
@@ -215,12 +216,15 @@ def _peaks(surface: np.ndarray, min_z: float, r0_px: float, symmetric: bool, cou
     deviations of the surface; the first needs ``min_z``, the others 1.5 ``min_z``. A peak's
     neighbourhood is spent once taken (and its mirror image's, for a ``symmetric`` surface)."""
     n0, n1 = surface.shape
-    ar0, ar1 = np.arange(n0), np.arange(n1)
-    far = np.hypot(np.minimum(ar0, n0 - ar0)[:, None], np.minimum(ar1, n1 - ar1)[None, :]) > r0_px
+    far = _beyond(n0, n1, float(r0_px))
     rest = surface[far][::7]  # (a sample is enough for the noise's level)
     med = float(np.median(rest))
     spread = 1.4826 * float(np.median(np.abs(rest - med)))
     search, out = np.where(far, surface, -np.inf), []
+    rad = 2.0 * max(r0_px, 1.0) + 1.0
+    k = int(math.floor(rad))
+    dk = np.arange(-k, k + 1)
+    disk = np.hypot(dk[:, None], dk[None, :]) <= rad
     while len(out) < count and spread > 0:
         iy, ix = np.unravel_index(int(np.argmax(search)), search.shape)
         z = (float(search[iy, ix]) - med) / spread
@@ -228,11 +232,20 @@ def _peaks(surface: np.ndarray, min_z: float, r0_px: float, symmetric: bool, cou
             break
         dy, dx = (iy if iy <= n0 // 2 else iy - n0), (ix if ix <= n1 // 2 else ix - n1)
         for sy, sx in ((dy, dx), (-dy, -dx))[:2 if symmetric else 1]:
-            ey = np.minimum((ar0 - sy) % n0, (sy - ar0) % n0)[:, None]
-            ex = np.minimum((ar1 - sx) % n1, (sx - ar1) % n1)[None, :]
-            search[np.hypot(ey, ex) <= 2.0 * max(r0_px, 1.0) + 1.0] = -np.inf
+            rows, cols = np.ix_((sy + dk) % n0, (sx + dk) % n1)
+            search[rows, cols] = np.where(disk, -np.inf, search[rows, cols])
         out.append((dy, dx, z))
     return out
+
+
+@lru_cache(maxsize=8)
+def _beyond(n0: int, n1: int, r0_px: float) -> np.ndarray:
+    """Where an (n0, n1) surface with its origin at [0, 0] (wrapping around) is beyond ``r0_px``
+    of it (read-only)."""
+    ar0, ar1 = np.arange(n0), np.arange(n1)
+    far = np.hypot(np.minimum(ar0, n0 - ar0)[:, None], np.minimum(ar1, n1 - ar1)[None, :]) > r0_px
+    far.setflags(write=False)
+    return far
 
 
 def _add_candidate(out: list, v: np.ndarray, reach_px: float, snap: bool = True) -> None:
