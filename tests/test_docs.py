@@ -330,7 +330,7 @@ def test_all_examples_run(page, tmp_path):
 
 def test_mkdocs_build_strict(tmp_path):
     """The site builds with every warning an error (broken links, griffe's docstring warnings)."""
-    p = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q", "-f",
+    p = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f",
                         str(REPO / "mkdocs.yml"), "-d", str(tmp_path / "site")],
                        cwd=tmp_path, env=_env(tmp_path), capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stdout + p.stderr
