@@ -99,12 +99,19 @@ def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool
     return {"rows": rows, "score": score}
 
 
+def _positive(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, not {n}")
+    return n
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT)
     ap.add_argument("--shift", type=int, default=0)
     ap.add_argument("--first", type=int, default=None)
-    ap.add_argument("--step", type=int, default=1, help="every N-th frame: a cadence of N minutes")
+    ap.add_argument("--step", type=_positive, default=1, help="every N-th frame: a cadence of N minutes")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
     res = evaluate(a.data, a.shift, a.first, step=a.step)

@@ -190,22 +190,28 @@ def test_refining_only_the_usable_lattice_points_changes_none_of_them():
     assert np.isnan(part[~where]).all()
 
 
+def _maps_clock(sim, start, dt_s: float):
+    """The sky maps' estimate between ``sim``'s frames at ``start`` and ``dt_s`` [s] later, through
+    the usable masks that a run hands them (the matching masks)."""
+    from cbh.pipeline import Pipeline
+
+    cams = list(sim.station.cameras)[:2]
+    pipe = Pipeline(sim.station)
+    prep = [pipe.prepare(s.views[cams[0]].image, s.views[cams[1]].image, s.time_utc, channels="bgr")
+            for s in (sim.render(start + timedelta(seconds=dt)) for dt in (0.0, dt_s))]
+    usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
+    return pipe.sky_offset(prep[1].gray, usable, prep[0].gray, dt_s)
+
+
 def _clock_with_winds(winds):
     """The sky maps' estimate between two frames 10 s apart of the preset's two decks with their
     winds replaced by ``winds`` (one (east, north) [m/s] per deck; None: the preset's own)."""
     from dataclasses import replace
 
-    from cbh.pipeline import Pipeline
-
     sim0, sc = _sim(0.0)
     if winds is not None:
         sc = replace(sc, layers=tuple(replace(L, wind_ms=w) for L, w in zip(sc.layers, winds)))
-    sim = type(sim0)(sim0.station, sc, size_px=640)
-    pipe = Pipeline(sim.station)
-    prep = [pipe.prepare(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, channels="bgr")
-            for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 10.0))]
-    usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
-    return pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 10.0)
+    return _maps_clock(type(sim0)(sim0.station, sc, size_px=640), sc.time_utc, 10.0)
 
 
 @pytest.mark.slow  # (the suite's time; the rule's Fehmarn tests run by default)
@@ -304,18 +310,24 @@ def test_two_decks_two_minutes_apart_give_the_offset():
     frames 120 s apart: the maps' estimate within 1 s. With one shift per camera before the flow
     it was −23.7 s with a standard error of 0.09 s (a confident wrong clock); with phase
     correlation alone, NaN."""
-    from cbh.pipeline import Pipeline
-
     sim, sc = _sim(-31.0)
-    pipe = Pipeline(sim.station)
-    prep = [pipe.prepare(s.views["cam1"].image, s.views["cam2"].image, s.time_utc, channels="bgr")
-            for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 120.0))]
-    usable = prep[1].masks.for_matching(prep[1].seg)[0].usable
-    clock = pipe.sky_offset(prep[1].gray, usable, prep[0].gray, 120.0)
+    clock = _maps_clock(sim, sc.time_utc, 120.0)
     assert abs(clock.offset_s + 31.0) <= 1.0, (clock.offset_s, clock.error_s, clock.tiles)
 
 
 FEHMARN = Path(__file__).resolve().parents[2] / "shared" / "data" / "fehmarn-2016-09-01"
+
+
+def _fehmarn_clock(scene: str, offset_spec: str, size: int = 640):
+    """The sky maps' estimate on the real Fehmarn station's geometry, preset ``scene`` with the
+    clock offset ``offset_spec`` (``fe4=S``), frames 60 s apart, rendered ``size`` px wide."""
+    from cbh.geometry.station import load_station
+    from cbh.presets import scene_path
+    from cbh.sim import SkySimulator, load_scene
+    from cbh.sim.scene import with_clock_offsets
+
+    sc = with_clock_offsets(load_scene(scene_path(scene)), [offset_spec])
+    return _maps_clock(SkySimulator(load_station(FEHMARN / "station.toml"), sc, size_px=size), sc.time_utc, 60.0)
 
 
 @pytest.mark.skipif(not FEHMARN.is_dir(), reason="needs ../shared/data/fehmarn-2016-09-01")
@@ -323,20 +335,9 @@ def test_a_camera_below_the_other_leaves_the_clock_unbiased():
     """The real Fehmarn station's geometry (FE4 241 m away and 9 m below FE3), the three-layer
     preset (900 / 2800 / 7000 m), FE4 31 s early, frames 60 s apart. The parallax lies along
     B' = B − Δz·a2, which has a component across B: the maps' estimate had read it as the clock
-    (−31.6 s here; at 960 px −31.8 s, the 900 m deck alone −33.9 s, and the 7000 m layer 6 % low),
+    (−31.7 s here; at 960 px −31.8 s, the 900 m deck alone −33.9 s, and the 7000 m layer 6 % low),
     now within 0.2 s (the stereo tracks' estimate always used B')."""
-    from cbh.geometry.station import load_station
-    from cbh.pipeline import Pipeline
-    from cbh.presets import scene_path
-    from cbh.sim import SkySimulator, load_scene
-    from cbh.sim.scene import with_clock_offsets
-
-    sc = with_clock_offsets(load_scene(scene_path("three-layers")), ["fe4=-31"])
-    sim = SkySimulator(load_station(FEHMARN / "station.toml"), sc, size_px=640)
-    pipe = Pipeline(sim.station)
-    prep = [pipe.prepare(s.views["fe3"].image, s.views["fe4"].image, s.time_utc, channels="bgr")
-            for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 60.0))]
-    clock = pipe.sky_offset(prep[1].gray, prep[1].masks.usable, prep[0].gray, 60.0)
+    clock = _fehmarn_clock("three-layers", "fe4=-31")
     assert abs(clock.offset_s + 31.0) <= 0.2, (clock.offset_s, clock.error_s)
 
 
@@ -358,30 +359,21 @@ def test_layers_translated_apart_between_the_cameras_are_two_candidates():
 @pytest.mark.skipif(not FEHMARN.is_dir(), reason="needs ../shared/data/fehmarn-2016-09-01")
 def test_a_low_deck_under_a_high_one_far_apart_in_time_is_matched():
     """The real station's geometry, the preset's 1500 m and 8000 m decks, FE4 89 s late, frames 60 s
-    apart: between the cameras the decks are translated ≈ 48 map px apart (at 960 px), and with
-    one shift before the flow the maps matched one deck only (at 960 px the 8000 m one: the 1500 m
-    deck was never found in a run; at 640 px the 1500 m one). Now both decks are matched on the
-    maps (each by at least 100 matches; 231 and 4704 here), the offset within 0.5 s."""
-    from cbh.geometry.station import load_station
-    from cbh.pipeline import Pipeline
-    from cbh.presets import scene_path
-    from cbh.sim import SkySimulator, load_scene
-    from cbh.sim.scene import with_clock_offsets
-
-    sc = with_clock_offsets(load_scene(scene_path("low-and-high")), ["fe4=89"])
-    sim = SkySimulator(load_station(FEHMARN / "station.toml"), sc, size_px=640)
-    pipe = Pipeline(sim.station)
-    prep = [pipe.prepare(s.views["fe3"].image, s.views["fe4"].image, s.time_utc, channels="bgr")
-            for s in (sim.render(sc.time_utc + timedelta(seconds=dt)) for dt in (0.0, 60.0))]
-    clock = pipe.sky_offset(prep[1].gray, prep[1].masks.usable, prep[0].gray, 60.0)
+    apart, 960 px: between the cameras the decks are translated ≈ 48 map px apart, and with one
+    shift before the flow the maps matched the 8000 m deck alone (824 matches, none on the 1500 m
+    one, which was never found in a run; at 640 px the flow still reached part of it). Now both
+    decks are matched on the maps (7690 and 816 matches), the offset within 0.5 s."""
+    clock = _fehmarn_clock("low-and-high", "fe4=89", size=960)
     assert abs(clock.offset_s - 89.0) <= 0.5, (clock.offset_s, clock.tiles)
     h = clock.heights_m
-    for deck in (1500.0, 8000.0):  # (one shift kept one deck: the 1500 m one at 640 px, the 8000 m one at 960)
+    for deck in (1500.0, 8000.0):
         assert np.sum(np.abs(h / deck - 1) < 0.15) >= 100, (deck, np.histogram(h, bins=[0, 1000, 2000, 6000, 10000, 20000]))
 
 
 def _random_clock(seed: int, tmp_path) -> dict:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    if bench not in sys.path:
+        sys.path.insert(0, bench)
     from eval_clock_random import run_case
 
     from cbh.geometry.station import load_station
