@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from cbh.result import Enlarged
+from cbh.pipeline.ccl import components_with_stats
 
 
 __all__ = ["HeightMap", "dense_height_map", "rasterize_heights", "nearest_fill"]
@@ -47,7 +48,7 @@ class HeightMap:
         (0: none measured, or no mask kept; found once, for the layers and the flags alike)."""
         if self.measured is None or not self.measured.any():
             return 0
-        _, _, stats, _ = cv2.connectedComponentsWithStats(self.measured.view(np.uint8), connectivity=8)
+        _, _, stats, _ = components_with_stats(self.measured.view(np.uint8))
         return int(stats[1:, cv2.CC_STAT_AREA].max())
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from cbh.errors import ImageError
 from cbh.geometry.station import Camera
+from cbh.pipeline.ccl import components_with_stats
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, ClipLevel, saturated_pixels
 from cbh.pipeline.config import MasksConfig
 
@@ -92,7 +93,7 @@ def saturation_mask(image_bgr: np.ndarray, cfg: MasksConfig, clip: ClipLevel | N
     x, y, w, h = cv2.boundingRect(sat)  # blobs and their growth: only around the saturated pixels
     g = max(int(cfg.saturation_grow_px), 0)
     y0, y1, x0, x1 = max(y - g, 0), min(y + h + g, sat.shape[0]), max(x - g, 0), min(x + w + g, sat.shape[1])
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(sat[y0:y1, x0:x1], connectivity=8)
+    n, lab, stats, _ = components_with_stats(sat[y0:y1, x0:x1])
     keep = stats[:, cv2.CC_STAT_AREA] >= cfg.saturation_min_area_px
     keep[0] = False
     out = np.zeros(sat.shape, bool)

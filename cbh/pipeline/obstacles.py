@@ -24,6 +24,7 @@ import numpy as np
 from cbh.geometry.camera import CameraModel
 from cbh.geometry.station import Camera
 from cbh.errors import ImageError, InputError
+from cbh.pipeline.ccl import components_with_stats
 
 __all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames", "FrameObstacleConfig", "obstacle_rings", "obstacles_in_frame",
            "HorizonGrid", "horizon_grid", "darkest_of_four"]
@@ -320,12 +321,12 @@ def obstacles_in_frame(image_bgr: np.ndarray, ring: np.ndarray, band: np.ndarray
         strong = wide | ((darkest < thr) & look).view(np.uint8)
     cand = strong
     if grid is not None:  # paler parts that stand on the ground below them, beside dark ones that do
-        s_n, s_labels, stats, _ = cv2.connectedComponentsWithStats(strong, connectivity=8)
+        s_n, s_labels, stats, _ = components_with_stats(strong)
         s_area = stats[:, cv2.CC_STAT_AREA]
         # the walk's seeds (and the heights that cap it) from what is dark at this size only: a thin
         # mast's cables and tip would lift the cap on the cloud beside it (the real WAHRSIS pair)
         w_n, w_labels, w_stats, _ = (s_n, s_labels, stats, None) if strong is wide else \
-            cv2.connectedComponentsWithStats(wide, connectivity=8)
+            components_with_stats(wide)
         seed = np.zeros(w_n, bool)
         seed[w_labels[band & (wide > 0)]] = True
         seed &= w_stats[:, cv2.CC_STAT_AREA] >= cfg.min_area_px

@@ -66,6 +66,7 @@ from cbh.pipeline.layers import (LayerSet, angular_noise, cover_incomplete, get_
                                  supported_layers)
 from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
+from cbh.pipeline.ccl import components_with_stats
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import FLARE_BAND_DEG, alias_layers, flare_layers, unseen_layers, without_layers
 from cbh.geometry.sun import sun_position
@@ -1025,7 +1026,7 @@ class Pipeline:
             if not inside.any():
                 return None
             sat = ((grey >= np.percentile(grey[inside], 99.9)) & inside).astype(np.uint8)
-        n, lab, stats, cent = cv2.connectedComponentsWithStats(sat, connectivity=8)
+        n, lab, stats, cent = components_with_stats(sat)
         if n < 2:
             return None
         k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))

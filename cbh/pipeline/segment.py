@@ -64,6 +64,7 @@ import numpy as np
 
 from cbh.errors import ConfigError, ImageError
 from cbh.imageio import is_greyscale
+from cbh.pipeline.ccl import components_with_stats
 from cbh.pipeline.config import SegmentationConfig
 
 __all__ = ["SEGMENTERS", "normalized_blue_red", "chroma", "segment", "get_segmenter", "check_colour",
@@ -187,7 +188,7 @@ def _saturated_sun(image_bgr: np.ndarray, usable: np.ndarray) -> tuple[float, fl
     from cbh.pipeline.clip import saturated_pixels
 
     sat = saturated_pixels(image_bgr)
-    n, _, stats, cent = cv2.connectedComponentsWithStats(sat, connectivity=8)
+    n, _, stats, cent = components_with_stats(sat)
     if n < 2:
         return None
     k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))

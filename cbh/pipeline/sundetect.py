@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 
 from cbh.geometry.station import Camera
+from cbh.pipeline.ccl import components_with_stats
 from cbh.pipeline.clip import ClipConfig, ClipLevel, clip_level, saturated_pixels
 
 __all__ = ["SunDetection", "SunDetectConfig", "detect_sun"]
@@ -137,7 +138,7 @@ def detect_sun(image_bgr: np.ndarray, cam: Camera, expected_ray_cam: np.ndarray 
     if usable is None:
         usable = m.image_circle_mask()
     sat[~usable[y0:y1, x0:x1]] = 0
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(sat, connectivity=8)
+    n, lab, stats, _ = components_with_stats(sat)
     if n <= 1:
         return SunDetection(False, "absent")
     big = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
@@ -149,7 +150,7 @@ def detect_sun(image_bgr: np.ndarray, cam: Camera, expected_ray_cam: np.ndarray 
         sat = cv2.morphologyEx(sat, cv2.MORPH_OPEN, disk)
         if clip.smeared:  # a twice-encoded clip: its blocky, ragged edge closed (a cloud's cut is wider)
             sat = cv2.morphologyEx(sat, cv2.MORPH_CLOSE, disk)
-        n, lab, stats, _ = cv2.connectedComponentsWithStats(sat, connectivity=8)
+        n, lab, stats, _ = components_with_stats(sat)
         if n <= 1:
             return SunDetection(False, "absent")
     areas = stats[1:, cv2.CC_STAT_AREA]
