@@ -815,15 +815,43 @@ def _band_cuts(rows: int) -> list[tuple[int, int]]:
 
 def _refine(j: np.ndarray, c0: np.ndarray, cm1: np.ndarray, cp1: np.ndarray, s_values: np.ndarray,
             ds: float) -> np.ndarray:
-    """s of the peak of the parabola through the scores of planes j−1, j, j+1 (where adjacent), float32."""
+    """s of the score's peak from planes j−1, j, j+1 (where adjacent), float32: :func:`peak_offset`."""
     n = len(s_values)
     gap = np.diff(s_values, prepend=-np.inf, append=np.inf)
     q = np.arange(n)
     adj = ((q > 0) & (q < n - 1) & (gap[:n] < 1.01 * ds) & (gap[1:] < 1.01 * ds))[j]  # per plane, then looked up
+    delta = np.where(adj, peak_offset(c0, cm1, cp1), np.float32(0.0))
+    return s_values.astype(np.float32)[j] + delta.astype(np.float32) * np.float32(ds)
+
+
+def peak_offset(c0, cm1, cp1, xp=np):
+    """Where a correlation peak lies between three samples one plane apart, in planes from the
+    middle one (its best), within ±0.5: the three-point Gaussian estimator — the vertex of the
+    parabola through the scores' logarithms — where all three are positive, else the vertex of
+    the parabola through the scores (0 where neither curves down).
+
+    Why Gaussian: the ZNCC of a texture against itself shifted by d falls off as the texture's
+    autocorrelation, which for cloud detail blurred by the lens and the resampling is close to a
+    Gaussian of d; the log-parabola is exact for a Gaussian at any phase between the samples,
+    where the parabola pulls the peak towards the nearest plane ("peak locking", the reason
+    particle-image velocimetry uses the Gaussian fit). Measured (`bench_vs_opencv.py`'s 1920 px
+    pairs, one deck of the two-layers texture at 600–9000 m): dense MdAPE 0.15 / 0.40 / 0.78 /
+    1.07 / 1.60 % with the parabola, 0.13 / 0.38 / 0.57 / 0.71 / 0.93 % with this (2000 / 5000 /
+    7000 / 9000 m), signed bias about halved.
+
+    ``xp``: numpy or torch (same arithmetic, float32 arrays or tensors).
+    """
+    where, log = xp.where, xp.log
     den = cm1 - 2.0 * c0 + cp1
-    with np.errstate(invalid="ignore", divide="ignore"):
-        delta = np.where(adj & (den < 0), 0.5 * (cm1 - cp1) / den, 0.0)
-    return (s_values.astype(np.float32)[j] + np.clip(delta, -0.5, 0.5).astype(np.float32) * np.float32(ds))
+    pos = (c0 > 0) & (cm1 > 0) & (cp1 > 0)
+    one = xp.ones_like(c0)
+    lm, l0, lp = log(where(pos, cm1, one)), log(where(pos, c0, one)), log(where(pos, cp1, one))
+    dg = lm - 2.0 * l0 + lp
+    gauss = pos & (dg < 0)
+    para = ~gauss & (den < 0)
+    delta = where(gauss, 0.5 * (lm - lp) / where(gauss, dg, -one), xp.zeros_like(c0))
+    delta = where(para, 0.5 * (cm1 - cp1) / where(para, den, -one), delta)
+    return xp.clip(delta, -0.5, 0.5)
 
 
 # --- the passes ----------------------------------------------------------------------------

@@ -59,7 +59,7 @@ from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
     CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_lattice, plane_range, coarse_planes,
-    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, resolved_layers, truncated, vote_layers, SweepField, field_points,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, peak_offset, resolved_layers, truncated, vote_layers, SweepField, field_points,
 )
 
 __all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
@@ -225,16 +225,14 @@ def _best3(stack: torch.Tensor):
 
 
 def _refine(j, c0, cm1, cp1, s_values: np.ndarray, ds: float) -> torch.Tensor:
-    """Parabola peak through planes j−1, j, j+1 (where adjacent), as :func:`cbh.pipeline.sweep._refine`."""
+    """The score's peak from planes j−1, j, j+1 (where adjacent), as :func:`cbh.pipeline.sweep._refine`."""
     dev = c0.device
     n = len(s_values)
     sv = torch.as_tensor(np.asarray(s_values, np.float32), device=dev)
     gap = torch.as_tensor(np.diff(s_values, prepend=-np.inf, append=np.inf), device=dev)
     adj = (j > 0) & (j < n - 1) & (gap[j] < 1.01 * ds) & (gap[(j + 1).clamp_max(n)] < 1.01 * ds)
-    den = cm1 - 2.0 * c0 + cp1
-    ok = adj & (den < 0)
-    delta = torch.where(ok, 0.5 * (cm1 - cp1) / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(den))
-    return sv[j] + delta.clamp(-0.5, 0.5) * float(ds)
+    delta = torch.where(adj, peak_offset(c0, cm1, cp1, xp=torch), torch.zeros_like(c0))
+    return sv[j] + delta * float(ds)
 
 
 def _region_t(r):
