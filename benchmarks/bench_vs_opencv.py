@@ -5,6 +5,7 @@
     python benchmarks/bench_vs_opencv.py --real                  # the WAHRSIS pair (no truth)
     python benchmarks/bench_vs_opencv.py --cpu-time              # CPU time, one thread each: robust on a busy machine
     python benchmarks/bench_vs_opencv.py --working-radius 320    # cbh at 640 px working size: faster, less precise
+    python benchmarks/bench_vs_opencv.py --deck-m 7000           # one deck of the scene's texture at 7000 m
 
 The OpenCV route: rectify both raw fisheye images to a common ``--rect-px`` (1024) px,
 ``--rect-fov`` (120°) perspective pair looking up, x along the baseline (``cv2.remap``, maps
@@ -103,6 +104,8 @@ def _score(found: list[float], truth: list[float]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="two-layers")
+    ap.add_argument("--deck-m", type=float, default=None, metavar="H",
+                    help="one deck only: the scene's last layer moved to H m (the sub-plane peak against height)")
     ap.add_argument("--size", type=int, default=1920)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--real", action="store_true", help="the WAHRSIS pair in ../shared/data (no truth)")
@@ -141,7 +144,12 @@ def main() -> None:
     else:
         from cbh.sim import SkySimulator, load_scene
 
-        sim = SkySimulator(load_station(station_path("unb-lea")), load_scene(a.scene), size_px=a.size)
+        scene = load_scene(a.scene)
+        if a.deck_m is not None:
+            from dataclasses import replace
+
+            scene = replace(scene, layers=(replace(scene.layers[-1], height_m=a.deck_m),))
+        sim = SkySimulator(load_station(station_path("unb-lea")), scene, size_px=a.size)
         shot = sim.render()
         st, t_utc = sim.station, shot.time_utc
         im1, im2 = shot.views["cam1"].image, shot.views["cam2"].image

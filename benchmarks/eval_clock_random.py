@@ -1,12 +1,12 @@
 """Camera 2's clock offset on randomized skies (issue 32's clock, issue 33's class of skies).
 
     python benchmarks/eval_clock_random.py [--n 20] [--seed 0] [--size 640] [--pairs 3] [--verbose]
-        [--station NAME_OR_TOML] [--kind broken] [--max-offset 120]
+        [--station NAME_OR_TOML] [--kind broken] [--max-offset 120] [--cadences 10 30 60 120]
 
 Each seed draws a sky with :func:`cbh.sim.randomize.random_case` (layers 300 m – 10 km, winds
 0–30 m/s in any direction, baselines 20–200 m in any direction, the cameras' own responses, noise
 and JPEG), and from its own stream a clock offset for camera 2 (uniform in ±``--max-offset`` s)
-and a cadence (10, 30, 60 or 120 s). ``--pairs`` frames are run in order as `cbh run` runs them
+and a cadence (``--cadences``: 10, 30, 60 or 120 s by default). ``--pairs`` frames are run in order as `cbh run` runs them
 (the previous pair handed on). The offset is scored on the last pair:
 
 - ``ok``: within 2 s of the truth (issue 32's bar);
@@ -26,8 +26,11 @@ from datetime import timedelta
 
 import numpy as np
 
+CADENCES_S = (10.0, 30.0, 60.0, 120.0)  # the cadences drawn by default [s]
 
-def run_case(seed: int, base, size: int, pairs: int, kind: str | None, max_offset_s: float, folder) -> dict:
+
+def run_case(seed: int, base, size: int, pairs: int, kind: str | None, max_offset_s: float, folder,
+             cadences=CADENCES_S) -> dict:
     """One randomized sky with a random clock offset and cadence, run for ``pairs`` pairs."""
     from cbh.pipeline import Pipeline
     from cbh.pipeline.motion import PairState
@@ -40,7 +43,7 @@ def run_case(seed: int, base, size: int, pairs: int, kind: str | None, max_offse
         case = random_case(seed, base, RandomOptions(kind="broken"))
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xC10C]))
     offset = float(rng.uniform(-max_offset_s, max_offset_s))
-    cadence = float(rng.choice([10.0, 30.0, 60.0, 120.0]))
+    cadence = float(rng.choice(list(cadences)))
     cams = list(case.station.cameras)[:2]
     scene = with_clock_offsets(case.scene, [f"{cams[1]}={offset}"])
     sim = SkySimulator(case.station, scene, size_px=size)
@@ -74,13 +77,15 @@ def main() -> None:
     ap.add_argument("--station", default="unb-lea", help="preset name or station TOML (its lenses are kept)")
     ap.add_argument("--kind", choices=["clear", "broken", "overcast"])
     ap.add_argument("--max-offset", type=float, default=120.0)
+    ap.add_argument("--cadences", type=float, nargs="+", default=list(CADENCES_S), metavar="S",
+                    help="the cadences a sky's frames are drawn from [s]")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args()
     base = load_station(station_path(a.station) if not a.station.endswith(".toml") else a.station)
     rows, t0 = [], time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(a.seed, a.seed + a.n):
-            row = run_case(seed, base, a.size, a.pairs, a.kind, a.max_offset, tmp)
+            row = run_case(seed, base, a.size, a.pairs, a.kind, a.max_offset, tmp, a.cadences)
             rows.append(row)
             if a.verbose:
                 print(f"{seed} {row['kind']:8s} offset {row['offset_s']:+7.1f} s every {row['cadence_s']:3.0f} s -> "

@@ -405,3 +405,41 @@ def test_randomized_clock_of_two_decks_moving_apart_over_a_long_carry(tmp_path):
     error of its rate is a third of its parallax. A strict expected failure: a fix makes it pass."""
     row = _random_clock(16120, tmp_path)
     assert row["verdict"] in ("ok", "unknown"), row
+
+
+def test_a_layer_whose_parallax_the_carry_blurs_is_not_measured(unb_station):
+    """A pair matched on the sky maps measures a layer's parallax |B| / (h − z1) through a carry
+    whose own noise (the rate's noise × the offset) adds to it: below 1 × that noise the layer's
+    height is the noise's, and the pair is flagged ``clock_too_far``; above, it stands."""
+    from types import SimpleNamespace
+
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.run import MIN_PARALLAX_OVER_CARRY, PairContext
+
+    pipe = Pipeline(unb_station)
+    o1, o2 = (np.asarray(c.position_m, float) for c in (pipe.cam1, pipe.cam2))
+    b = float(np.linalg.norm((o2 - o1)[:2]))
+    h = o1[2] + b / 0.01  # a layer whose zenith parallax is 0.01 rad
+    lay = SimpleNamespace(layers=[SimpleNamespace(height_m=o1[2] + 500.0), SimpleNamespace(height_m=h)])
+    for noise, flagged in ((0.0099 / MIN_PARALLAX_OVER_CARRY, False), (0.0101 / MIN_PARALLAX_OVER_CARRY, True)):
+        ctx = PairContext(time_utc=None)
+        assert pipe._carry_swamps(lay, noise, ctx) is flagged
+        assert ctx.diagnostics["carry_parallax_ratio"] == pytest.approx(0.01 / noise)
+    assert not pipe._carry_swamps(lay, 0.0, PairContext(time_utc=None))  # no carry: nothing to judge
+
+
+@pytest.mark.slow
+def test_randomized_far_deck_over_a_short_baseline_and_a_long_carry_is_not_valid(tmp_path):
+    """Seed 16441 every 10 s: one 9979 m deck, cameras 22 m apart, camera 2 79 s early, wind
+    19 m/s: the clock is right (−78.8 s) but the carry's noise (0.014 rad) is six times the deck's
+    parallax (0.0022 rad), and the pair reported a deck at 3164–3239 m, valid. Now ``clock_too_far``."""
+    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    if bench not in sys.path:
+        sys.path.insert(0, bench)
+    from eval_clock_random import run_case
+
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+
+    row = run_case(16441, load_station(station_path()), 640, 3, None, 120.0, tmp_path, (10.0,))
+    assert row["verdict"] == "ok" and "clock_too_far" in row["flags"], row

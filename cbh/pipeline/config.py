@@ -222,7 +222,7 @@ class MotionConfig:
     :mod:`cbh.pipeline.motion`; the previous pair itself is state, not configuration)."""
 
     enabled: bool = True  # track clouds between consecutive pairs (needs ``previous`` and capture times)
-    max_gap_s: float = 120.0  # no motion across a longer time between consecutive pairs [s]
+    max_gap_s: float = 200.0  # no motion across a longer time between consecutive pairs [s] (a 3-minute cadence and its jitter: docs/fehmarn.md)
     max_points: int = 500  # features tracked per camera (of the LK stereo matches) [1]
     window_px: int = 15  # LK window side, at working size [px]
     levels: int = 5  # pyramid levels above the base (cloud displacements up to ~2^levels windows) [1]

@@ -120,6 +120,7 @@ _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obs
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
 _RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
+MIN_PARALLAX_OVER_CARRY = 1.0  # a layer matched on the sky maps needs this × the carry's noise of parallax near the zenith (Pipeline._carry_swamps) [1]
 _MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
 _TRACK_NOISE_PX = 0.1  # LK stereo match noise for the motion tracks' height check [px at working size]
@@ -522,7 +523,8 @@ class Pipeline:
             seg = Segmentation(clouds=tuple(np.zeros_like(c) for c in seg.clouds), fractions=dict.fromkeys(seg.fractions, 0.0))
             geo = geo and (geo[0], check_geometry(self.geometry, [], self.config.filtering, self.config.geometry_check))
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
-        if not sky_mode and self._uncarried(used, profile, comp):
+        if (self._uncarried(used, profile, comp) if not sky_mode else
+                self._carry_swamps(lay, sky.carry_noise_rad, ctx)):
             ctx.flags.append("clock_too_far")
         self._quality_flags(pts, seg, ctx, hmap, lay)
         if "geometry_mismatch" in ctx.flags and not math.isfinite(sky.offset_s):  # not checked this pair: now
@@ -724,6 +726,24 @@ class Pipeline:
         if mcfg.sky_matching and self._long_carry(used_s, profile):
             return True
         return comp is None and math.isfinite(used_s) and abs(used_s) >= mcfg.compensate_min_s and not len(profile)
+
+    def _carry_swamps(self, lay: LayerSet, carry_noise_rad: float, ctx: "PairContext") -> bool:
+        """Whether a pair matched on the sky maps reports a layer whose parallax near the zenith,
+        |B| / (h − z1), is less than ``MIN_PARALLAX_OVER_CARRY`` × the carry's own noise (the rate's
+        noise × the offset, :class:`~.skyclock.SkyClock`): each of its points' parallax is then
+        mostly that noise, and its height is not measured (diagnostic ``carry_parallax_ratio``,
+        the least layer's). A randomized 9979 m deck seen 22 m apart, carried 79 s at 19 m/s:
+        parallax 0.0022 rad under 0.014 rad of carry noise, read 3200–7200 m with no flag. On the
+        real Fehmarn hour re-paired 211 s apart, the five layers at 0.9–1.2 × were all 10–14 km
+        phantoms over an 8–9 km deck; the decks found at 1.3–3.4 × (re-paired 149 s and 211 s
+        apart) agree with the reference."""
+        if not (lay.layers and carry_noise_rad > 0):
+            return False
+        o1 = np.asarray(self.cam1.position_m, np.float64)
+        b = float(np.linalg.norm((np.asarray(self.cam2.position_m, np.float64) - o1)[:2]))
+        ratio = min(b / max(L.height_m - o1[2], 1.0) for L in lay.layers) / carry_noise_rad
+        ctx.diagnostics["carry_parallax_ratio"] = float(ratio)
+        return bool(ratio < MIN_PARALLAX_OVER_CARRY)
 
     def _long_carry(self, used_s: float, profile: MotionProfile) -> bool:
         """Whether carrying camera 2 by ``used_s`` moves the fastest layer of ``profile`` by at least

@@ -76,17 +76,17 @@ The passes (each a function with a typed result; :func:`sweep_field` runs them i
    cost stays out of both layers' refinement, below. Dropping such pixels altogether was tried:
    it gained nothing at 960 px, and on a clear sky without a capture time it left a cluster of
    aureole matches that passed as a layer.)
-4. :func:`refine_pass`. Each pixel's height is refined (parabola through the three best
-   planes) on its layer's cost summed over that layer's pixels only — and of those, only the
+4. :func:`refine_pass`. Each pixel's height is refined (the Gaussian peak through the three
+   best planes, :func:`peak_offset`) on its layer's cost summed over that layer's pixels only — and of those, only the
    ones whose own best plane lies in the layer's range: a pixel labelled into the layer by
    mistake (occluded in camera 2, or at a boundary) has its cost peak outside the range, and
-   its sloped cost would pull the parabola towards the range's edge (−3 … −5 % bias on the far
+   its sloped cost would pull the peak towards the range's edge (−3 … −5 % bias on the far
    layer at B = 30 m before) — so it is sharp at layer boundaries; the half-resolution s is
    brought back to working size bilinearly (a box average varies smoothly inside a layer).
    A pixel whose best plane is the last before a gap in the planes (a hypothesis's edge) is
    not matched (:func:`truncated`: the maximum is where the sweep stopped).
    With ``aggregate_px`` = 1 each pixel keeps its own best plane (full-resolution ZNCC,
-   :func:`zncc_planes`), refined by the parabola.
+   :func:`zncc_planes`), refined by :func:`peak_offset`.
 
 The same passes run on a torch device in :mod:`.torch_ops` (same 1-D steps:
 :func:`coarse_hypotheses`, :func:`fine_planes`, :func:`vote_layers`, :func:`layer_planes`,
@@ -834,10 +834,10 @@ def peak_offset(c0, cm1, cp1, xp=np):
     autocorrelation, which for cloud detail blurred by the lens and the resampling is close to a
     Gaussian of d; the log-parabola is exact for a Gaussian at any phase between the samples,
     where the parabola pulls the peak towards the nearest plane ("peak locking", the reason
-    particle-image velocimetry uses the Gaussian fit). Measured (`bench_vs_opencv.py`'s 1920 px
-    pairs, one deck of the two-layers texture at 600–9000 m): dense MdAPE 0.15 / 0.40 / 0.78 /
-    1.07 / 1.60 % with the parabola, 0.13 / 0.38 / 0.57 / 0.71 / 0.93 % with this (2000 / 5000 /
-    7000 / 9000 m), signed bias about halved.
+    particle-image velocimetry uses the Gaussian fit). Measured (`bench_vs_opencv.py --deck-m H`:
+    one deck of the two-layers texture at H = 600 / 2000 / 5000 / 7000 / 9000 m, 1920 px): dense
+    MdAPE 0.15 / 0.40 / 0.78 / 1.07 / 1.60 % with the parabola, 0.13 / 0.38 / 0.57 / 0.71 / 0.93 %
+    with this, the signed bias about halved.
 
     ``xp``: numpy or torch (same arithmetic, float32 arrays or tensors).
     """
@@ -1120,7 +1120,7 @@ class PlaneLattice:
     layers and long baselines (large parallax p) were swept finer than their heights need (the
     real 241 m station's 2300 m deck, 30–40 px: 2.5–3.3 % per plane, 11 planes, now 9; the 50 m
     pair's 1200 m deck, 13 px: 7.7 % per plane, unchanged) and a long baseline cost more planes
-    per pair. Everything that needs evenly spaced planes (the refinement's parabola, the layer
+    per pair. Everything that needs evenly spaced planes (the refinement's peak, the layer
     votes' bins, the regions' plane lattice, the gaps of :func:`truncated`) works in u."""
 
     s0: float  # [1/m]; inf: u = s everywhere
@@ -1166,7 +1166,7 @@ def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: floa
     """The fine planes (ascending s, ``step_px`` apart): the far range from infinity up to
     ``far_px`` of parallax, and each coarse hypothesis's extent ± 1.5 coarse steps; at most
     ``max_planes``: beyond, the step grows (a whole multiple of ``step_px``) until they fit, so
-    that the planes stay evenly spaced — the refinement's parabola needs a pixel's neighbouring
+    that the planes stay evenly spaced — the refinement's peak needs a pixel's neighbouring
     planes one step away (thinning by index left gaps: a 630 m pair's 3500 m layer fell between
     3575 and 3452 m with no plane at 3512 m, and every pixel snapped to 3452 m, −1.4 %).
     The planes are evenly spaced in the lattice coordinate u (:class:`PlaneLattice`): ``step_px``
@@ -1508,11 +1508,11 @@ def resolved_layers(ok: np.ndarray, s_px: np.ndarray, label: np.ndarray, o1z: fl
 
 
 def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.ndarray:
-    """Pass 4: each pixel's s, refined (parabola through the three best planes) on its layer's cost
+    """Pass 4: each pixel's s, refined (:func:`peak_offset` of the three best planes) on its layer's cost
     summed over an ``aggregate_px`` box of that layer's pixels only — and of those only the ones
     whose own best plane lies in the layer's range: a pixel labelled into the layer by mistake
     (occluded in camera 2, or at a boundary) has its cost peak outside the range, and its sloped
-    cost would pull the parabola towards the range's edge (−3 … −5 % bias on the far layer at
+    cost would pull the peak towards the range's edge (−3 … −5 % bias on the far layer at
     B = 30 m before). Far layers (``far_aggregate_px``) get a box grown like 1/parallax. The
     half-resolution s is brought back to working size bilinearly (a box average varies smoothly
     inside a layer).
@@ -1569,12 +1569,12 @@ def truncated(j: np.ndarray, s: np.ndarray, ds: float) -> np.ndarray:
 
 def _per_pixel(g1, g2, cloud1, maps, s, ds, cfg):
     """``aggregate_px`` = 1: each textured cloud pixel's own best plane (full-resolution ZNCC),
-    refined by the parabola. Returns (region, ok (h, w) bool, s (h, w) float32)."""
+    refined by :func:`peak_offset`. Returns (region, ok (h, w) bool, s (h, w) float32)."""
     sl = _bbox(cloud1, cfg.window_px)
     sf, std1 = zncc_planes(g1, g2, maps, s, cfg.window_px, sl)
     j, c0, cm1, cp1 = _best3(sf)
     ok = cloud1[sl] & (std1 >= cfg.min_texture) & (c0 >= cfg.min_zncc)
-    lat = plane_lattice(maps.scale_px, cfg)  # (the parabola in the lattice coordinate: planes evenly spaced)
+    lat = plane_lattice(maps.scale_px, cfg)  # (the peak in the lattice coordinate: planes evenly spaced)
     if lat is None:
         return sl, ok, _refine(j, c0, cm1, cp1, s, ds)
     return sl, ok, lat.s(_refine(j, c0, cm1, cp1, lat.u(s), ds))
