@@ -841,16 +841,12 @@ def peak_offset(c0, cm1, cp1, xp=np):
 
     ``xp``: numpy or torch (same arithmetic, float32 arrays or tensors).
     """
-    where, log = xp.where, xp.log
-    den = cm1 - 2.0 * c0 + cp1
-    pos = (c0 > 0) & (cm1 > 0) & (cp1 > 0)
-    one = xp.ones_like(c0)
-    lm, l0, lp = log(where(pos, cm1, one)), log(where(pos, c0, one)), log(where(pos, cp1, one))
-    dg = lm - 2.0 * l0 + lp
-    gauss = pos & (dg < 0)
-    para = ~gauss & (den < 0)
-    delta = where(gauss, 0.5 * (lm - lp) / where(gauss, dg, -one), xp.zeros_like(c0))
-    delta = where(para, 0.5 * (cm1 - cp1) / where(para, den, -one), delta)
+    with np.errstate(all="ignore"):  # (logarithms of non-positive scores, zero curvatures: not selected)
+        lm, l0, lp = xp.log(cm1), xp.log(c0), xp.log(cp1)
+        dg = lm - 2.0 * l0 + lp
+        gauss = (c0 > 0) & (cm1 > 0) & (cp1 > 0) & (dg < 0)
+        den = cm1 - 2.0 * c0 + cp1
+        delta = xp.where(gauss, 0.5 * (lm - lp) / dg, xp.where(den < 0, 0.5 * (cm1 - cp1) / den, xp.zeros_like(c0)))
     return xp.clip(delta, -0.5, 0.5)
 
 
