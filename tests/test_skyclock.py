@@ -356,6 +356,7 @@ def test_layers_translated_apart_between_the_cameras_are_two_candidates():
     assert len(one) == 1 and np.allclose(one[0], (-10.0, -28.0), atol=1.5), one
 
 
+@pytest.mark.slow  # (2.4 s; the candidates themselves: test_layers_translated_apart_between_the_cameras_are_two_candidates)
 @pytest.mark.skipif(not FEHMARN.is_dir(), reason="needs ../shared/data/fehmarn-2016-09-01")
 def test_a_low_deck_under_a_high_one_far_apart_in_time_is_matched():
     """The real station's geometry, the preset's 1500 m and 8000 m decks, FE4 89 s late, frames 60 s
