@@ -732,11 +732,12 @@ class Pipeline:
         |B| / (h − z1), is less than ``MIN_PARALLAX_OVER_CARRY`` × the carry's own noise (the rate's
         noise × the offset, :class:`~.skyclock.SkyClock`): each of its points' parallax is then
         mostly that noise, and its height is not measured (diagnostic ``carry_parallax_ratio``,
-        the least layer's). A randomized 9979 m deck seen 22 m apart, carried 79 s at 19 m/s:
-        parallax 0.0022 rad under 0.014 rad of carry noise, read 3200–7200 m with no flag. On the
-        real Fehmarn hour re-paired 211 s apart, the five layers at 0.9–1.2 × were all 10–14 km
-        phantoms over an 8–9 km deck; the decks found at 1.3–3.4 × (re-paired 149 s and 211 s
-        apart) agree with the reference."""
+        the least layer's). A randomized 9979 m deck seen 22 m apart, carried 79 s at 19 m/s with
+        frames 10 s apart: parallax 0.0022 rad under 0.014 rad of carry noise, read 3164–3239 m with
+        no flag (with frames 60–180 s apart the rates are measured better, the ratio is 1.3–3.7, and
+        it reads 6300–7200 m: a limit, docs/accuracy.md). On the real Fehmarn hour re-paired 211 s
+        apart, the five layers below 1.2 × were all 10–14 km phantoms over the 8–9 km deck; the
+        pairings within ±151 s keep every layer they had."""
         if not (lay.layers and carry_noise_rad > 0):
             return False
         o1 = np.asarray(self.cam1.position_m, np.float64)
