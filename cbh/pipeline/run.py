@@ -736,8 +736,8 @@ class Pipeline:
         frames 10 s apart: parallax 0.0022 rad under 0.014 rad of carry noise, read 3164–3239 m with
         no flag (with frames 60–180 s apart the rates are measured better, the ratio is 1.3–3.7, and
         it reads 6300–7200 m: a limit, docs/accuracy.md). On the real Fehmarn hour re-paired 211 s
-        apart, the five layers below 1.2 × were all 10–14 km phantoms over the 8–9 km deck; the
-        pairings within ±151 s keep every layer they had."""
+        apart it flags three of the seven pairs led by a 10–14 km phantom over the 8–9 km deck, and
+        one valid pair; the pairings within ±151 s keep every layer they had."""
         if not (lay.layers and carry_noise_rad > 0):
             return False
         o1 = np.asarray(self.cam1.position_m, np.float64)
