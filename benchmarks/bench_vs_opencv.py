@@ -101,10 +101,17 @@ def _score(found: list[float], truth: list[float]) -> str:
     return f"max {100 * max(abs(f - t) / t for f, t in zip(found, truth)):.2f} %"
 
 
+def _positive_m(text: str) -> float:
+    h = float(text)
+    if not h > 0:
+        raise argparse.ArgumentTypeError(f"a deck's height must be above 0 m, not {text}")
+    return h
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="two-layers")
-    ap.add_argument("--deck-m", type=float, default=None, metavar="H",
+    ap.add_argument("--deck-m", type=_positive_m, default=None, metavar="H",
                     help="one deck only: the scene's last layer moved to H m (the sub-plane peak against height)")
     ap.add_argument("--size", type=int, default=1920)
     ap.add_argument("--repeat", type=int, default=5)

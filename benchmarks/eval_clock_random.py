@@ -63,6 +63,13 @@ def run_case(seed: int, base, size: int, pairs: int, kind: str | None, max_offse
             "baseline_m": round(float(np.linalg.norm(case.baseline_m)), 1)}
 
 
+def _positive_s(text: str) -> float:
+    s = float(text)
+    if not s > 0:
+        raise argparse.ArgumentTypeError(f"a cadence must be above 0 s, not {text}")
+    return s
+
+
 def main() -> None:
     import tempfile
 
@@ -77,7 +84,7 @@ def main() -> None:
     ap.add_argument("--station", default="unb-lea", help="preset name or station TOML (its lenses are kept)")
     ap.add_argument("--kind", choices=["clear", "broken", "overcast"])
     ap.add_argument("--max-offset", type=float, default=120.0)
-    ap.add_argument("--cadences", type=float, nargs="+", default=list(CADENCES_S), metavar="S",
+    ap.add_argument("--cadences", type=_positive_s, nargs="+", default=list(CADENCES_S), metavar="S",
                     help="the cadences a sky's frames are drawn from [s]")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args()
