@@ -60,6 +60,7 @@ def run_case(seed: int, base, size: int, pairs: int, kind: str | None, max_offse
     return {"seed": seed, "kind": case.kind, "offset_s": offset, "cadence_s": cadence, "estimate_s": est,
             "verdict": verdict, "held": "clock_unknown" in r.flags, "flags": r.flags,
             "layers_m": [round(L.height_m) for L in case.scene.layers], "winds_ms": [round(w, 1) for w in winds],
+            "found_m": [round(L.height_m) for L in r.layers],
             "baseline_m": round(float(np.linalg.norm(case.baseline_m)), 1)}
 
 

@@ -429,6 +429,71 @@ def test_a_layer_whose_parallax_the_carry_blurs_is_not_measured(unb_station):
     assert not pipe._carry_swamps(lay, 0.0, PairContext(time_utc=None))  # no carry: nothing to judge
 
 
+def test_the_carry_noise_counts_the_offset_read_across_the_baseline():
+    """δ is read across the baseline (n·f / n·w), so a rate noise σ_w puts σ_w / |n·w| on it
+    relatively, and the carry along the baseline, (b·w)·δ, takes |b·w| times that: the carry's
+    noise is |δ|·σ_w·√(1 + (b·w / n·w)²). A wind across the baseline leaves only the rate's own
+    part; one five times as much along it as across multiplies the noise by √26."""
+    from cbh.pipeline.skyclock import _carry_noise
+
+    b = np.array([1.0, 0.0])
+    sigma, delta = 2e-5, 90.0
+    across = np.tile([0.0, 1e-3], (50, 1))
+    assert _carry_noise(sigma, delta, across, across[:, 1], b) == pytest.approx(sigma * delta)
+    oblique = np.tile([5e-4, 1e-4], (50, 1))
+    assert _carry_noise(sigma, -delta, oblique, oblique[:, 1], b) == pytest.approx(sigma * delta * math.sqrt(26.0))
+    assert _carry_noise(sigma, delta, oblique, np.zeros(50), b) == math.inf  # no motion across: δ unread
+    assert _carry_noise(sigma, math.nan, oblique, oblique[:, 1], b) == 0.0
+    assert _carry_noise(0.0, delta, oblique, oblique[:, 1], b) == 0.0
+
+
+def _random_clock_layers(seed: int, tmp_path) -> dict:
+    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    if bench not in sys.path:
+        sys.path.insert(0, bench)
+    from eval_clock_random import run_case
+
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+
+    return run_case(seed, load_station(station_path()), 640, 3, None, 120.0, tmp_path)
+
+
+def _off_layers(row: dict) -> list[int]:
+    """A valid pair's layers more than 10 % from every true deck."""
+    from cbh.flags import INVALIDATING
+
+    if INVALIDATING & set(row["flags"]):
+        return []
+    return [h for h in row["found_m"] if min(abs(h - t) / t for t in row["layers_m"]) > 0.10]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [16425, 16439, 16458])
+def test_randomized_decks_whose_offset_the_wind_along_the_baseline_blurs_are_not_valid(seed, tmp_path):
+    """``eval_clock_random.py --n 40 --seed 16420``: with the clock right, 16425 (a 7520 m deck 79 m
+    apart, wind 7 m/s across the baseline and 17 m/s along it, carried 94 s) read 5973–6022 m,
+    16439 (1673 m, B 25 m) 2004–2021 m and 16458 (2158 m, B 57 m) 1737–1757 m, valid, with the
+    carry's own noise at 1/1.1 – 1/2.4 of the parallax: the offset's error, which the wind along the
+    baseline carries 3–6 times over, was not counted (:func:`~cbh.pipeline.skyclock._carry_noise`).
+    Now ``clock_too_far``, or every layer within 10 %."""
+    row = _random_clock_layers(seed, tmp_path)
+    assert row["verdict"] == "ok" and not _off_layers(row), row
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="a known limit (docs/accuracy.md): map flows' bias")
+@pytest.mark.parametrize("seed", [16423, 16456])
+def test_randomized_decks_read_off_by_the_maps_flow_bias(seed, tmp_path):
+    """16423 (6079 m, B 53 m, every 10 s, −24 s) reads 6964–7015 m and 16456 (4773 m, B 97 m, +98 s)
+    5582–5640 m, valid: the carry's counted noise is 1/1.2 – 1/1.3 of the parallax, yet the heights
+    are 15–18 % off. The maps' flows carry a bias that the two cameras' disagreement does not show:
+    they lock towards half a map pixel (a 0.92 px shift reads 0.90), and 16423's parallax reads
+    2.4 % short with no offset at all. A strict expected failure: a fix makes it pass."""
+    row = _random_clock_layers(seed, tmp_path)
+    assert row["verdict"] == "ok" and not _off_layers(row), row
+
+
 @pytest.mark.slow
 def test_randomized_far_deck_over_a_short_baseline_and_a_long_carry_is_not_valid(tmp_path):
     """Seed 16441 every 10 s: one 9979 m deck, cameras 22 m apart, camera 2 79 s early, wind
