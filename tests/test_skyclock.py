@@ -383,16 +383,27 @@ def _random_clock(seed: int, tmp_path) -> dict:
     return run_case(seed, load_station(station_path()), 640, 3, None, 120.0, tmp_path)
 
 
+_CLOCK_LIMIT = pytest.mark.xfail(strict=True, raises=AssertionError,
+                                 reason="a known limit (docs/accuracy.md): maps matched with nothing in common")
+
+
 @pytest.mark.slow  # (three pairs each; `benchmarks/eval_clock_random.py` runs the class)
 @pytest.mark.parametrize("seed, verdicts", [(16104, ("unknown",)), (16114, ("unknown",)), (16103, ("ok",)),
-                                            (16121, ("ok",))])
+                                            (16121, ("ok",)),
+                                            pytest.param(16478, ("ok", "unknown"), marks=_CLOCK_LIMIT),
+                                            pytest.param(16481, ("ok", "unknown"), marks=_CLOCK_LIMIT)])
 def test_randomized_clocks_are_right_or_unknown(seed, verdicts, tmp_path):
     """Randomized skies with a random offset (±120 s) and cadence (10–120 s), three pairs: the
     offset within 2 s, or unknown, never a confident wrong clock. 16104 (an 891 m deck carried
     2 km by +112 s, beyond the map's half) read −14.0 s, and 16114 (+15.5 s, two high decks, an
     exposure mismatch) +3.7 s: their maps had matched something else, none or few of the matches
     at a height in range; now unknown. 16103 (−116 s every 30 s, three layers) and 16121
-    (−117 s every 120 s, overcast) within 2 s."""
+    (−117 s every 120 s, overcast) within 2 s. Strict expected failures, from the fresh set
+    ``eval_clock_random.py --n 24 --seed 16464`` (stop 53): 16478 (an overcast 310 m deck at
+    11 m/s, camera 2 101 s late every 10 s: the deck moved 1.1 km, twice the view's radius at its
+    height, yet the maps match with 16 tiles at +3.38 ± 0.04 s and heights of 270–294 m; the pair
+    is then flagged ``geometry_mismatch``, a clock taken for a geometry) and 16481 (decks at 337,
+    6187 and 9629 m, B 23 m, +25.3 s every 120 s, read −27.3 ± 0.3 s)."""
     row = _random_clock(seed, tmp_path)
     assert row["verdict"] in verdicts, row
 
