@@ -620,8 +620,8 @@ def _windows(img: np.ndarray, c: np.ndarray, half: int, interpolation: int = cv2
     OpenCV's maps stay under 32 767 rows)."""
     k = 2 * half + 1
     oy, ox = np.mgrid[-half:half + 1, -half:half + 1].astype(np.float32)
-    mx = (c[:, 0, None, None] + ox[None]).reshape(len(c), k * k).astype(np.float32)
-    my = (c[:, 1, None, None] + oy[None]).reshape(len(c), k * k).astype(np.float32)
+    mx = (c[:, 0, None, None] + ox[None]).reshape(len(c), k * k).astype(np.float32, copy=False)
+    my = (c[:, 1, None, None] + oy[None]).reshape(len(c), k * k).astype(np.float32, copy=False)
     out = np.empty((len(c), k * k), np.float32)
     for i in range(0, len(c), rows):
         out[i:i + rows] = cv2.remap(img, mx[i:i + rows], my[i:i + rows], interpolation,
