@@ -398,16 +398,20 @@ def test_a_low_deck_under_a_high_one_far_apart_in_time_is_matched():
         assert np.sum(np.abs(h / deck - 1) < 0.15) >= 100, (deck, np.histogram(h, bins=[0, 1000, 2000, 6000, 10000, 20000]))
 
 
-def _random_clock(seed: int, tmp_path) -> dict:
+def _random_clock(seed: int, tmp_path, pairs: int = 3, cadences_s=None, station=None) -> dict:
+    """``benchmarks/eval_clock_random.py``'s row for ``seed`` at 640 px: ``pairs`` pairs, its own
+    cadences unless ``cadences_s`` is given, on the preset station's lenses or ``station``'s (a
+    station TOML path)."""
     bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
     if bench not in sys.path:
         sys.path.insert(0, bench)
-    from eval_clock_random import run_case
+    from eval_clock_random import CADENCES_S, run_case
 
     from cbh.geometry.station import load_station
     from cbh.presets import station_path
 
-    return run_case(seed, load_station(station_path()), 640, 3, None, 120.0, tmp_path)
+    base = load_station(station_path() if station is None else station)
+    return run_case(seed, base, 640, pairs, None, 120.0, tmp_path, cadences_s or CADENCES_S)
 
 
 @pytest.mark.slow
@@ -417,30 +421,15 @@ def test_an_offset_from_a_motion_under_a_map_pixel_across_is_not_believed(tmp_pa
     shared by the tiles (what the unlocked flows are good to) is 3 s of offset; the tiles'
     spread said 1.4 s, and the estimate read +58.3 s, a confident wrong clock. With the flows'
     floor in its error (``FLOW_FLOOR_PX``) it is not believed: unknown, not wrong."""
-    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
-    if bench not in sys.path:
-        sys.path.insert(0, bench)
-    from eval_clock_random import run_case
-
-    from cbh.geometry.station import load_station
-    from cbh.presets import station_path
-
-    row = run_case(16447, load_station(station_path()), 640, 3, None, 120.0, tmp_path, (180.0,))
+    row = _random_clock(16447, tmp_path, cadences_s=(180.0,))
     assert row["verdict"] in ("ok", "unknown"), row
 
 
 def _fehmarn_lens_clock(seed: int, tmp_path) -> dict:
-    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
-    if bench not in sys.path:
-        sys.path.insert(0, bench)
-    from eval_clock_random import run_case
-
-    from cbh.geometry.station import load_station
-
     station = Path(__file__).resolve().parents[2] / "shared" / "data" / "fehmarn-2016-09-01" / "station.toml"
     if not station.exists():
         pytest.skip("../shared/data/fehmarn-2016-09-01 is not here")
-    return run_case(seed, load_station(station), 640, 3, None, 120.0, tmp_path)
+    return _random_clock(seed, tmp_path, station=station)
 
 
 @pytest.mark.slow
@@ -539,18 +528,6 @@ def test_the_carry_noise_counts_the_offset_read_across_the_baseline():
     assert _carry_noise(0.0, delta, oblique, oblique[:, 1], b) == 0.0
 
 
-def _random_clock_layers(seed: int, tmp_path, pairs: int = 3) -> dict:
-    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
-    if bench not in sys.path:
-        sys.path.insert(0, bench)
-    from eval_clock_random import run_case
-
-    from cbh.geometry.station import load_station
-    from cbh.presets import station_path
-
-    return run_case(seed, load_station(station_path()), 640, pairs, None, 120.0, tmp_path)
-
-
 def _off_layers(row: dict) -> list[int]:
     """A valid pair's layers more than 10 % from every true deck."""
     from cbh.flags import INVALIDATING
@@ -569,7 +546,7 @@ def test_randomized_decks_whose_offset_the_wind_along_the_baseline_blurs_are_not
     carry's own noise at 1/1.1 – 1/2.4 of the parallax: the offset's error, which the wind along the
     baseline carries 3–6 times over, was not counted (:func:`~cbh.pipeline.skyclock._carry_noise`).
     Now ``clock_too_far``, or every layer within 10 %."""
-    row = _random_clock_layers(seed, tmp_path)
+    row = _random_clock(seed, tmp_path)
     assert row["verdict"] == "ok" and not _off_layers(row), row
 
 
@@ -583,7 +560,7 @@ def test_randomized_decks_the_maps_flows_read_off_are_within_ten_percent(seed, t
     offset at all and its offset 0.5 s short. With the lock taken out
     (:func:`~cbh.pipeline.skyclock._unlocked`) every valid layer is within 10 % (both were strict
     expected failures)."""
-    row = _random_clock_layers(seed, tmp_path)
+    row = _random_clock(seed, tmp_path)
     assert row["verdict"] == "ok" and not _off_layers(row), row
 
 
@@ -598,7 +575,7 @@ def test_randomized_decks_off_with_their_noise_counted(seed, pairs, tmp_path):
     (1 of 28 valid layers off): 16501's second pair (decks at 606, 2840 and 9920 m, B 48 m, +84 s
     every 10 s, 1/1.1) reads one layer at 1960 m; its third is ``clock_too_far``. A strict expected
     failure: a fix makes it pass."""
-    row = _random_clock_layers(seed, tmp_path, pairs)
+    row = _random_clock(seed, tmp_path, pairs)
     assert row["verdict"] == "ok" and not _off_layers(row), row
 
 
@@ -607,13 +584,5 @@ def test_randomized_far_deck_over_a_short_baseline_and_a_long_carry_is_not_valid
     """Seed 16441 every 10 s: one 9979 m deck, cameras 22 m apart, camera 2 79 s early, wind
     19 m/s: the clock is right (−78.8 s) but the carry's noise (0.014 rad) is six times the deck's
     parallax (0.0022 rad), and the pair reported a deck at 3164–3239 m, valid. Now ``clock_too_far``."""
-    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
-    if bench not in sys.path:
-        sys.path.insert(0, bench)
-    from eval_clock_random import run_case
-
-    from cbh.geometry.station import load_station
-    from cbh.presets import station_path
-
-    row = run_case(16441, load_station(station_path()), 640, 3, None, 120.0, tmp_path, (10.0,))
+    row = _random_clock(16441, tmp_path, cadences_s=(10.0,))
     assert row["verdict"] == "ok" and "clock_too_far" in row["flags"], row

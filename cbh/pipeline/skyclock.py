@@ -592,7 +592,8 @@ def _unlocked(a: np.ndarray, b: np.ndarray, p: np.ndarray, flow: np.ndarray) -> 
     its offset 0.5 s short with one (the carry then moved its height 15 %). The same windows are
     moved by inverse-compositional Gauss–Newton steps, each window read by bicubic interpolation
     (its phase error at a quarter pixel is a third of bilinear's on this texture, and each step's
-    fixed point is where the windows agree): the shifts above then read within 0.005 px."""
+    fixed point is where the windows agree): on band-limited noise as fine as the maps' (σ 0.8
+    px) shifts then read within 0.013 px, against up to 0.037 px before."""
     if not len(p):
         return np.zeros((0, 2), np.float32)
     A, B = np.asarray(a, np.float32), np.asarray(b, np.float32)
