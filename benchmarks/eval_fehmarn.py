@@ -56,6 +56,11 @@ def agrees(h: float, refs: list[tuple[float, float]]) -> bool:
     return any(abs(h - r) <= (0.15 if r > 5000 else 0.10) * r for r, _ in refs)
 
 
+def _ratio(x) -> str:
+    """The pair's parallax over its carry noise (``carry_parallax_ratio``), where it was measured."""
+    return "" if x is None else f" carry ratio {x:.2f}"
+
+
 def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool = True, config=None,
              step: int = 1) -> dict:
     from cbh.flags import INVALIDATING
@@ -79,12 +84,14 @@ def evaluate(data: Path, shift: int = 0, first: int | None = None, verbose: bool
                "layers": [(round(L.height_m), round(L.cover, 3)) for L in r.layers], "ref": refs,
                "valid": valid, "hit": valid and any(agrees(L.height_m, refs) for L in r.layers),
                "phantom_lead": valid and lead is not None and not agrees(lead.height_m, refs),
+               "carry_ratio": r.diagnostics.get("carry_parallax_ratio"),
                "ms": round((time.perf_counter() - t0) * 1000)}
         rows.append(row)
         if verbose:
             print(f"{k:2d} {t:%H:%M} off {row['offset_s']:7.1f} (pair {row['offset_pair_s']:7.1f}) "
                   f"{'HIT ' if row['hit'] else 'miss'}{' PHANTOM' if row['phantom_lead'] else ''} "
-                  f"layers {row['layers']} ref {[round(h) for h, _ in refs]} flags {r.flags} {row['ms']} ms", flush=True)
+                  f"layers {row['layers']} ref {[round(h) for h, _ in refs]} flags {r.flags}"
+                  f"{_ratio(row['carry_ratio'])} {row['ms']} ms", flush=True)
     tail = rows[2:]
     offs = [r["offset_s"] for r in tail if r["offset_s"] is not None and math.isfinite(r["offset_s"])]
     med = statistics.median(offs) if offs else math.nan
