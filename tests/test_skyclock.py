@@ -455,13 +455,16 @@ def test_a_clock_on_the_real_lenses_over_two_fast_decks_is_right_or_unknown(tmp_
 
 _CLOCK_LIMIT = pytest.mark.xfail(strict=True, raises=AssertionError,
                                  reason="a known limit (docs/accuracy.md): maps matched with nothing in common")
+_CLOCK_SHORT = pytest.mark.xfail(strict=True, raises=AssertionError,
+                                 reason="a known limit (docs/accuracy.md): an offset read 7 % short, a seventh of the error counted")
 
 
 @pytest.mark.slow  # (three pairs each; `benchmarks/eval_clock_random.py` runs the class)
 @pytest.mark.parametrize("seed, verdicts", [(16104, ("unknown",)), (16114, ("unknown",)), (16103, ("ok",)),
                                             (16121, ("ok",)),
                                             pytest.param(16478, ("ok", "unknown"), marks=_CLOCK_LIMIT),
-                                            pytest.param(16481, ("ok", "unknown"), marks=_CLOCK_LIMIT)])
+                                            pytest.param(16481, ("ok", "unknown"), marks=_CLOCK_LIMIT),
+                                            pytest.param(16556, ("ok", "unknown"), marks=_CLOCK_SHORT)])
 def test_randomized_clocks_are_right_or_unknown(seed, verdicts, tmp_path):
     """Randomized skies with a random offset (±120 s) and cadence (10–120 s), three pairs: the
     offset within 2 s, or unknown, never a confident wrong clock. 16104 (an 891 m deck carried
@@ -473,7 +476,10 @@ def test_randomized_clocks_are_right_or_unknown(seed, verdicts, tmp_path):
     11 m/s, camera 2 101 s late every 10 s: the deck moved 1.1 km, twice the view's radius at its
     height, yet the maps match with 16 tiles at +3.38 ± 0.04 s and heights of 270–294 m; the pair
     is then flagged ``geometry_mismatch``, a clock taken for a geometry) and 16481 (decks at 337,
-    6187 and 9629 m, B 23 m, +25.3 s every 120 s, read −27.3 ± 0.3 s)."""
+    6187 and 9629 m, B 23 m, +25.3 s every 120 s, read −27.3 ± 0.3 s). From the fresh set
+    ``eval_clock_random.py --n 20 --seed 16540`` (stop 54): 16556 (a broken 4174 m deck at 8.5 m/s,
+    B 166 m, camera 2 46.0 s late every 10 s, its sky at 238 DN against camera 1's 180) reads
+    +42.6 s "± 0.51 s" on pairs 3–5, and its deck 3595 m (−14 %), valid."""
     row = _random_clock(seed, tmp_path)
     assert row["verdict"] in verdicts, row
 
