@@ -32,6 +32,7 @@ CADENCES_S = (10.0, 30.0, 60.0, 120.0)  # the cadences drawn by default [s]
 def run_case(seed: int, base, size: int, pairs: int, kind: str | None, max_offset_s: float, folder,
              cadences=CADENCES_S) -> dict:
     """One randomized sky with a random clock offset and cadence, run for ``pairs`` pairs."""
+    from cbh.flags import INVALIDATING
     from cbh.pipeline import Pipeline
     from cbh.pipeline.motion import PairState
     from cbh.sim import SkySimulator
@@ -59,6 +60,8 @@ def run_case(seed: int, base, size: int, pairs: int, kind: str | None, max_offse
     winds = [math.hypot(*L.wind_ms) for L in case.scene.layers]
     return {"seed": seed, "kind": case.kind, "offset_s": offset, "cadence_s": cadence, "estimate_s": est,
             "verdict": verdict, "held": "clock_unknown" in r.flags, "flags": r.flags,
+            "error_s": r.diagnostics.get("clock_offset_error_s", math.nan),
+            "valid": not (INVALIDATING & set(r.flags)),
             "layers_m": [round(L.height_m) for L in case.scene.layers], "winds_ms": [round(w, 1) for w in winds],
             "found_m": [round(L.height_m) for L in r.layers],
             "baseline_m": round(float(np.linalg.norm(case.baseline_m)), 1)}
@@ -98,7 +101,8 @@ def main() -> None:
             if a.verbose:
                 print(f"{seed} {row['kind']:8s} offset {row['offset_s']:+7.1f} s every {row['cadence_s']:3.0f} s -> "
                       f"{row['estimate_s']:+8.2f} {row['verdict']:7s}{' (held clock_unknown)' if row['held'] else ''} "
-                      f"layers {row['layers_m']} winds {row['winds_ms']} B {row['baseline_m']} m", flush=True)
+                      f"(± {row['error_s']:.2f} s) layers {row['layers_m']} winds {row['winds_ms']} "
+                      f"B {row['baseline_m']} m; found {row['found_m']} {'valid' if row['valid'] else 'flagged'}", flush=True)
     n = max(len(rows), 1)
     share = {v: sum(r["verdict"] == v for r in rows) / n for v in ("ok", "unknown", "wrong")}
     wrong_unheld = sum(r["verdict"] == "wrong" and not r["held"] for r in rows)
