@@ -445,8 +445,9 @@ def _floor_error_s(offset_s: float, nw: np.ndarray, res: float, dt_s: float) -> 
     / (|n·w|·dt), which δ takes |δ| times. The second part is |δ| / dt times the first: at 10 s
     frames and a 46 s offset, 4.6 times. Measured on a randomized 4174 m deck (8.5 m/s, 2.7 m/s of it
     across the baseline) without noise or JPEG: offsets of +20, +46, +90 and −46 s read 2.6–3.9 %
-    short with frames every 10 s, 0.5 % every 30 s, and exact every 60 s: a bias of the rate, a
-    share of a map pixel that the interval divides. Two randomized clocks that had read confidently
+    short with frames every 10 s, 0.5 % every 30 s, and exact every 60 s: |n·w| reads large by a
+    share of a map pixel that the interval divides (the tiles weigh and choose their pixels by
+    their own noisy n·w: docs/accuracy.md, Limits). Two randomized clocks that had read confidently
     wrong: −102.5 s every 10 s over the real station's lenses read −90.3 s within its tiles' error
     (now unknown), and the 4174 m deck, camera 2 46.0 s late, +42.6 s "± 0.51 s" with its deck 14 %
     low (now ± 1.0 s; still valid: its rate's bias, 0.06 px with the camera's noise and JPEG, is
