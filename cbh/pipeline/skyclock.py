@@ -435,6 +435,11 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
                     along=along)
 
 
+def _rms(v: np.ndarray) -> float:
+    """Root mean square of ``v`` (0 when empty): the size of n·w that the estimate's (n·w)² weights pool."""
+    return float(np.sqrt(np.mean(v ** 2))) if len(v) else 0.0
+
+
 def _floor_error_s(offset_s: float, nw: np.ndarray, res: float, dt_s: float) -> float:
     """The error [s] that the flows' floor (:data:`FLOW_FLOOR_PX`, a bias every tile shares) puts on
     an offset δ = n·f / n·w read from motion across the baseline ``nw`` [1/s] (the moving pixels),
@@ -452,7 +457,7 @@ def _floor_error_s(offset_s: float, nw: np.ndarray, res: float, dt_s: float) -> 
     (now unknown), and the 4174 m deck, camera 2 46.0 s late, +42.6 s "± 0.51 s" with its deck 14 %
     low (now ± 1.0 s; still valid: its rate's bias, 0.06 px with the camera's noise and JPEG, is
     four times the floor)."""
-    nw_rms = float(np.sqrt(np.mean(nw ** 2))) if len(nw) else 0.0
+    nw_rms = _rms(nw)
     if not (nw_rms > 0 and dt_s > 0):
         return math.inf
     return FLOW_FLOOR_PX * res / nw_rms * math.hypot(1.0, offset_s / dt_s)
@@ -474,7 +479,7 @@ def _carry_noise(rate_noise: float, offset_s: float, w: np.ndarray, nw: np.ndarr
     if not (math.isfinite(offset_s) and rate_noise > 0 and len(w)):
         return 0.0
     own = rate_noise * abs(offset_s)
-    nw_rms = float(np.sqrt(np.mean(nw ** 2))) if len(nw) else 0.0
+    nw_rms = _rms(nw)
     wb = float(np.percentile(np.abs(w @ b_unit), 90))
     via_offset = own * wb / nw_rms if nw_rms > 0 else math.inf
     return float(math.hypot(own, via_offset))
