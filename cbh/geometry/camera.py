@@ -32,6 +32,33 @@ __all__ = [
 ]
 
 
+# Whole-image maps (rays, angles) of the lenses used last, shared by every equal model: a
+# station loaded again, a scaled copy made again, or the simulator's true camera beside the
+# nominal one all get the same lens, and its maps cost a full-image pass to build.
+_SHARED_MAPS: dict = {}
+_SHARED_MAX = 8
+
+
+def _shared_map(model: "CameraModel", key: str, build) -> np.ndarray:
+    """``model``'s read-only map ``key``, from its own cache, an equal model's, or ``build()``."""
+    if key in model._cache:
+        return model._cache[key]
+    try:
+        skey = (model, key)
+        arr = _SHARED_MAPS.pop(skey, None)  # re-inserted below: most recently used last
+    except TypeError:  # a field that cannot be hashed: this model's own cache only
+        skey, arr = None, None
+    if arr is None:
+        arr = build()
+        arr.setflags(write=False)
+    if skey is not None:
+        _SHARED_MAPS[skey] = arr
+        while len(_SHARED_MAPS) > _SHARED_MAX:
+            _SHARED_MAPS.pop(next(iter(_SHARED_MAPS)))
+    model._cache[key] = arr
+    return arr
+
+
 def _as_pixels(px) -> np.ndarray:
     px = np.asarray(px, dtype=np.float64)
     if px.ndim == 1:
@@ -159,21 +186,18 @@ class CameraModel:
         return np.stack([xs.ravel(), ys.ravel()], axis=-1).astype(np.float64)
 
     def ray_map(self) -> np.ndarray:
-        """Unit ray of every pixel, shape (height, width, 3), float64 (cached)."""
-        if "ray_map" not in self._cache:
-            rays = self.pixel_to_ray(self.pixel_grid()).reshape(self.height, self.width, 3)
-            rays.setflags(write=False)
-            self._cache["ray_map"] = rays
-        return self._cache["ray_map"]
+        """Unit ray of every pixel, shape (height, width, 3), float64 (cached, read-only)."""
+        return _shared_map(self, "ray_map",
+                           lambda: self.pixel_to_ray(self.pixel_grid()).reshape(self.height, self.width, 3))
 
     def theta_map(self) -> np.ndarray:
-        """Angle from the optical axis [deg] of every pixel, shape (height, width) (cached)."""
-        if "theta_map" not in self._cache:
+        """Angle from the optical axis [deg] of every pixel, shape (height, width) (cached, read-only)."""
+
+        def build():
             u, v = self._sensor_from_pixel(self.pixel_grid())
-            th = np.degrees(self.theta_from_r(np.hypot(u, v))).reshape(self.height, self.width)
-            th.setflags(write=False)
-            self._cache["theta_map"] = th
-        return self._cache["theta_map"]
+            return np.degrees(self.theta_from_r(np.hypot(u, v))).reshape(self.height, self.width)
+
+        return _shared_map(self, "theta_map", build)
 
     def image_circle_mask(self, max_theta_deg: float | None = None) -> np.ndarray:
         """Pixels within ``max_theta_deg`` of the optical axis, shape (height, width), bool."""

@@ -27,6 +27,7 @@ construction. Two things make it fast and keep it from aliasing:
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -48,8 +49,9 @@ FADE_FULL_PX = 3.0  # octave weight 1 at ≥ this many grid px per wavelength �
 FADE_ZERO_PX = 1.5  # … and 0 at ≤ this many
 
 
+@functools.lru_cache(maxsize=16)  # a scene's layers are rebuilt for every renderer of it
 def make_tiles(seed: int) -> np.ndarray:
-    """Two independent periodic band-pass noise tiles.
+    """Two independent periodic band-pass noise tiles (read-only: one array per seed is shared).
 
     Returns
     -------
@@ -70,7 +72,21 @@ def make_tiles(seed: int) -> np.ndarray:
     tiles = np.stack([field.real, field.imag]).astype(np.float64)
     tiles -= tiles.mean(axis=(1, 2), keepdims=True)
     tiles /= tiles.std(axis=(1, 2), keepdims=True)
-    return tiles.astype(np.float32)
+    tiles = tiles.astype(np.float32)
+    tiles.setflags(write=False)
+    return tiles
+
+
+@functools.lru_cache(maxsize=16)
+def _padded(seed: int) -> np.ndarray:
+    """:func:`make_tiles`, wrap-padded by one sample so that bilinear reads at u in [511, 512)
+    stay inside (read-only)."""
+    out = np.ascontiguousarray(np.pad(make_tiles(seed), ((0, 0), (0, 1), (0, 1)), mode="wrap"))
+    out.setflags(write=False)
+    return out
+
+
+_QUANTILES: dict = {}  # (seed, texture_scale_m, octaves) → (probabilities, quantiles)
 
 
 @dataclass(frozen=True)
@@ -108,8 +124,7 @@ class LayerTexture:
         self.texture_scale_m = float(texture_scale_m)
         self.seed = int(seed)
         self.tiles = make_tiles(seed)
-        # wrap-padded by one sample so that bilinear reads at u in [511, 512) stay inside
-        self.tiles_padded = np.ascontiguousarray(np.pad(self.tiles, ((0, 0), (0, 1), (0, 1)), mode="wrap"))
+        self.tiles_padded = _padded(seed)
         n_oct = 1
         while n_oct < MAX_OCTAVES and texture_scale_m / 2 ** n_oct >= finest_m:
             n_oct += 1
@@ -136,7 +151,6 @@ class LayerTexture:
                 level=level,
             ))
         self.octaves: tuple[Octave, ...] = tuple(octs)
-        self._quantiles = None
 
     # --- exact evaluation at points (reference; threshold statistics) -----------------------
     def evaluate(self, east_m, north_m) -> tuple[np.ndarray, np.ndarray]:
@@ -171,15 +185,19 @@ class LayerTexture:
         return shape[:size], detail[:size]
 
     def quantiles(self) -> tuple[np.ndarray, np.ndarray]:
-        """(probabilities, shape-field quantiles) over one full period (cached)."""
-        if self._quantiles is None:
+        """(probabilities, shape-field quantiles) over one full period (cached: the shape field
+        depends only on the seed, the coarsest wavelength and the number of octaves)."""
+        key = (self.seed, self.texture_scale_m, len(self.octaves))
+        if key not in _QUANTILES:
             period = TILE_PX / self.octaves[0].scale  # every octave's period divides this
             rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x9A47]))
             pts = rng.uniform(0.0, period, size=(2, 1 << 17))
             shape, _ = self.evaluate(pts[0], pts[1])
             p = np.linspace(0.0, 1.0, 2001)
-            self._quantiles = (p, np.quantile(shape.astype(np.float64), p))
-        return self._quantiles
+            if len(_QUANTILES) >= 256:
+                _QUANTILES.pop(next(iter(_QUANTILES)))
+            _QUANTILES[key] = (p, np.quantile(shape.astype(np.float64), p))
+        return _QUANTILES[key]
 
     def threshold(self, coverage: float) -> float:
         """Shape-field value above which ``coverage`` of the layer's area is cloud."""
