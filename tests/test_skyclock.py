@@ -479,13 +479,17 @@ _CLOCK_LIMIT = pytest.mark.xfail(strict=True, raises=AssertionError,
 _CLOCK_SHORT = pytest.mark.xfail(strict=True, raises=AssertionError,
                                  reason="a known limit (docs/accuracy.md): an offset read 7 % short, a third of the error counted")
 
+_CLOCK_HIGH_DECKS = pytest.mark.xfail(strict=True, raises=AssertionError,
+                                      reason="a known limit (docs/accuracy.md): two high decks, the offset 2.1 s off, a layer between them")
+
 
 @pytest.mark.slow  # (three pairs each; `benchmarks/eval_clock_random.py` runs the class)
 @pytest.mark.parametrize("seed, verdicts", [(16104, ("unknown",)), (16114, ("unknown",)), (16103, ("ok",)),
                                             (16121, ("ok",)),
                                             pytest.param(16478, ("ok", "unknown"), marks=_CLOCK_LIMIT),
                                             pytest.param(16481, ("ok", "unknown"), marks=_CLOCK_LIMIT),
-                                            pytest.param(16556, ("ok", "unknown"), marks=_CLOCK_SHORT)])
+                                            pytest.param(16556, ("ok", "unknown"), marks=_CLOCK_SHORT),
+                                            pytest.param(16585, ("ok", "unknown"), marks=_CLOCK_HIGH_DECKS)])
 def test_randomized_clocks_are_right_or_unknown(seed, verdicts, tmp_path):
     """Randomized skies with a random offset (±120 s) and cadence (10–120 s), three pairs: the
     offset within 2 s, or unknown, never a confident wrong clock. 16104 (an 891 m deck carried
@@ -502,7 +506,10 @@ def test_randomized_clocks_are_right_or_unknown(seed, verdicts, tmp_path):
     B 166 m, camera 2 46.0 s late every 10 s, its sky at 238 DN against camera 1's 180) reads
     +42.6 s on pairs 3–5, and its deck 3595 m (−14 %), valid; its error counted 0.51 s, now 1.0 s
     with the rates' floor (without noise or JPEG it reads 44.5 s: rates read over 10 s are biased
-    by about 0.025 map px, above the 0.015 px floor)."""
+    by about 0.025 map px, above the 0.015 px floor). From ``eval_clock_random.py --n 20 --seed
+    16584`` (stop 55): 16585 (decks at 5254 and 9753 m, 12 and 14 m/s, B 176 m, camera 2 72.6 s
+    late every 30 s) reads +70.48 ± 1.15 s and reports one layer at 6462 m, valid: between the two
+    decks, 23 % above the lower."""
     row = _random_clock(seed, tmp_path)
     assert row["verdict"] in verdicts, row
 
