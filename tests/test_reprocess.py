@@ -62,9 +62,10 @@ def archive(tmp_path_factory) -> Path:
 def ray_session():
     from cbh.actions.reprocess import start_ray
 
+    before = os.environ.get("PYTHONPATH")
     owned, cpus = start_ray(workers=2)
     assert cpus >= 2
-    yield
+    yield before
     if owned:
         import ray
 
@@ -400,10 +401,14 @@ def test_cli_bad_input_is_one_line(tmp_path, capsys):
 
 def test_the_private_ray_keeps_token_auth_without_its_notice(ray_session):
     """Ray prints "Token authentication is enabled …" unless RAY_AUTH_MODE is set: cbh sets it
-    (token, Ray's own default for a local instance) for the private instance it starts."""
+    (token, Ray's own default for a local instance) for the private instance it starts. The
+    repository's folder goes on the path of the processes Ray starts (its workers import this
+    cbh: every chunk test here), not on this process's: it had stayed on PYTHONPATH, and a later
+    subprocess found the repository's top-level ``cli`` (tests/test_api.py, run after this file)."""
     import ray
 
     assert ray.is_initialized() and os.environ.get("RAY_AUTH_MODE") == "token"
+    assert os.environ.get("PYTHONPATH") == ray_session
 
 
 @pytest.mark.slow  # a fresh process starting Ray: ~6 s

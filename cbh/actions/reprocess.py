@@ -558,16 +558,29 @@ def start_ray(workers: int | None = None, address: str | None = None, device: st
         # explicitly: Ray's documented switch, which also keeps its notice ("Token authentication
         # is enabled for this Ray cluster …") off every run (a user's own setting wins)
         os.environ.setdefault("RAY_AUTH_MODE", "token")
+    old_path = os.environ.get("PYTHONPATH")
     if address is None:
         # local workers import the very cbh this process runs (Ray's worker processes do not
         # always see a virtual environment's site-packages, and another cbh may be installed
-        # system-wide): its folder goes first on the path of every process Ray starts from here
+        # system-wide): its folder goes first on the path of the processes Ray starts now (its
+        # raylet, whose environment its workers inherit); this process's own is put back below
         import cbh
 
         root = str(Path(cbh.__file__).resolve().parent.parent)
-        paths = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        paths = [p for p in (old_path or "").split(os.pathsep) if p]
         if root not in paths:
             os.environ["PYTHONPATH"] = os.pathsep.join([root] + paths)
+    try:
+        return _init_ray(workers, address, device)
+    finally:  # the caller's later subprocesses see its own path (not the repository's `cli/`)
+        if old_path is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = old_path
+
+
+def _init_ray(workers: int | None, address: str | None, device: str) -> tuple[bool, int]:
+    """:func:`start_ray` once the environment is set: import Ray, start or join it."""
     try:
         import ray
     except ImportError:
