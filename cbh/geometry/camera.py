@@ -15,6 +15,7 @@ coordinates (u, v), and the angle from the optical axis depends only on r = hypo
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -37,6 +38,7 @@ __all__ = [
 # nominal one all get the same lens, and its maps cost a full-image pass to build.
 _SHARED_MAPS: dict = {}
 _SHARED_MAX = 8
+_SHARED_LOCK = threading.Lock()  # the pipeline's threads ask for both cameras' maps at once
 
 
 def _shared_map(model: "CameraModel", key: str, build) -> np.ndarray:
@@ -45,16 +47,18 @@ def _shared_map(model: "CameraModel", key: str, build) -> np.ndarray:
         return model._cache[key]
     try:
         skey = (model, key)
-        arr = _SHARED_MAPS.pop(skey, None)  # re-inserted below: most recently used last
+        with _SHARED_LOCK:
+            arr = _SHARED_MAPS.pop(skey, None)  # re-inserted below: most recently used last
     except TypeError:  # a field that cannot be hashed: this model's own cache only
         skey, arr = None, None
     if arr is None:
         arr = build()
         arr.setflags(write=False)
     if skey is not None:
-        _SHARED_MAPS[skey] = arr
-        while len(_SHARED_MAPS) > _SHARED_MAX:
-            _SHARED_MAPS.pop(next(iter(_SHARED_MAPS)))
+        with _SHARED_LOCK:
+            _SHARED_MAPS[skey] = arr
+            while len(_SHARED_MAPS) > _SHARED_MAX:
+                _SHARED_MAPS.pop(next(iter(_SHARED_MAPS)))
     model._cache[key] = arr
     return arr
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -87,6 +88,7 @@ def _padded(seed: int) -> np.ndarray:
 
 
 _QUANTILES: dict = {}  # (seed, texture_scale_m, octaves) → (probabilities, quantiles)
+_QUANTILES_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -188,16 +190,19 @@ class LayerTexture:
         """(probabilities, shape-field quantiles) over one full period (cached: the shape field
         depends only on the seed, the coarsest wavelength and the number of octaves)."""
         key = (self.seed, self.texture_scale_m, len(self.octaves))
-        if key not in _QUANTILES:
+        found = _QUANTILES.get(key)
+        if found is None:
             period = TILE_PX / self.octaves[0].scale  # every octave's period divides this
             rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x9A47]))
             pts = rng.uniform(0.0, period, size=(2, 1 << 17))
             shape, _ = self.evaluate(pts[0], pts[1])
             p = np.linspace(0.0, 1.0, 2001)
-            if len(_QUANTILES) >= 256:
-                _QUANTILES.pop(next(iter(_QUANTILES)))
-            _QUANTILES[key] = (p, np.quantile(shape.astype(np.float64), p))
-        return _QUANTILES[key]
+            found = (p, np.quantile(shape.astype(np.float64), p))
+            with _QUANTILES_LOCK:
+                if len(_QUANTILES) >= 256:
+                    _QUANTILES.pop(next(iter(_QUANTILES)))
+                _QUANTILES[key] = found
+        return found
 
     def threshold(self, coverage: float) -> float:
         """Shape-field value above which ``coverage`` of the layer's area is cloud."""
