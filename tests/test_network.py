@@ -463,6 +463,7 @@ def test_cameras_looking_at_another_sky_are_one_line_errors(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("cbh: error:") and "cam3 overlaps no other camera" in err[0]
 
 
+@pytest.mark.slow  # (the suite's time; the pairs' planning runs by default above)
 def test_a_far_camera_listed_first_still_gets_the_low_cloud_from_the_short_pair():
     """cam3 (630 m away) first in the file: the reference's pairs both sweep from 900 m, so the
     50 m pair (without the reference) runs too and gives the 500 m layer; 2500 m comes from all."""
@@ -484,6 +485,7 @@ def test_a_far_camera_listed_first_still_gets_the_low_cloud_from_the_short_pair(
     assert {p for p, *_ in r.layers[0].support} == {"cam1+cam2"}
 
 
+@pytest.mark.slow  # (the suite's time; a camera that goes away: tests/test_network_run.py, by default)
 def test_without_the_reference_camera_the_others_carry_the_set(level_network):
     """cam1 (the reference) delivers nothing: cam2 + cam3 become the station (camera_missing),
     not a failed set. (It once raised: the star only held cam1's pairs.)"""

@@ -259,7 +259,7 @@ def test_a_featureless_sky_one_camera_overexposes_has_no_layer(base, tmp_path):
     assert not set(r.flags) & INVALIDATING
 
 
-@pytest.mark.parametrize("seed", [15300, 15326])
+@pytest.mark.parametrize("seed", [pytest.param(15300, marks=pytest.mark.slow), 15326])  # (one by default: the suite's time)
 def test_a_smooth_pale_sky_both_cameras_call_one_cloud_gives_no_height(base, seed, tmp_path):
     """``eval_random.py --kind clear --size 480 --twice-encoded``: pale hazy clear skies (local
     contrast 0.003–0.005) that both cameras read as one cloud; 11 % of it matched (a smooth
@@ -292,7 +292,7 @@ def test_only_a_smooth_one_cloud_pair_is_smooth(base):
         assert not Pipeline(sim.station)._smooth_pair((1.0, 0.5), work, usable)  # one camera sees a clear part
 
 
-@pytest.mark.parametrize("seed", [9310, 9312, 9314])
+@pytest.mark.parametrize("seed", [9310, pytest.param(9312, marks=pytest.mark.slow), pytest.param(9314, marks=pytest.mark.slow)])
 def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_path):
     """One channel at the clip over most of the sky (the blue of a clear sky at a camera's white
     level: 71–100 % of it in these three) leaves the other two apart: the colour is read, the sky
@@ -313,6 +313,7 @@ def test_a_clear_sky_with_its_blue_at_white_is_not_overexposed(base, seed, tmp_p
     assert "overexposed" not in r.flags
 
 
+@pytest.mark.slow  # (the suite's time; the same sky's segmentation, both backends, runs by default in test_torch_parity)
 def test_a_textured_warm_cast_overcast_is_all_cloud(base, tmp_path):
     """Seed 9570 (``eval_random.py --size 480 --skylines --unmasked --twice-encoded``): a textured
     overcast at 2207 m under a warm colour cast. The hybrid split is relative (each region's bluest
