@@ -407,8 +407,13 @@ def test_the_private_ray_keeps_token_auth_without_its_notice(ray_session):
     subprocess found the repository's top-level ``cli`` (tests/test_api.py, run after this file)."""
     import ray
 
+    import cbh
+
     assert ray.is_initialized() and os.environ.get("RAY_AUTH_MODE") == "token"
     assert os.environ.get("PYTHONPATH") == ray_session
+    root = str(Path(cbh.__file__).resolve().parent.parent)
+    workers_path = ray.get(ray.remote(lambda: os.environ.get("PYTHONPATH", "")).remote())
+    assert workers_path.split(os.pathsep)[0] == root, workers_path
 
 
 @pytest.mark.slow  # a fresh process starting Ray: ~6 s

@@ -14,8 +14,8 @@ coordinates (u, v), and the angle from the optical axis depends only on r = hypo
 """
 from __future__ import annotations
 
+import functools
 import math
-import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -36,31 +36,25 @@ __all__ = [
 # Whole-image maps (rays, angles) of the lenses used last, shared by every equal model: a
 # station loaded again, a scaled copy made again, or the simulator's true camera beside the
 # nominal one all get the same lens, and its maps cost a full-image pass to build.
-_SHARED_MAPS: dict = {}
-_SHARED_MAX = 8
-_SHARED_LOCK = threading.Lock()  # the pipeline's threads ask for both cameras' maps at once
+@functools.lru_cache(maxsize=8)
+def _lens_map(model: "CameraModel", key: str) -> np.ndarray:
+    return _read_only(getattr(model, f"_build_{key}")())
 
 
-def _shared_map(model: "CameraModel", key: str, build) -> np.ndarray:
-    """``model``'s read-only map ``key``, from its own cache, an equal model's, or ``build()``."""
-    if key in model._cache:
-        return model._cache[key]
-    try:
-        skey = (model, key)
-        with _SHARED_LOCK:
-            arr = _SHARED_MAPS.pop(skey, None)  # re-inserted below: most recently used last
-    except TypeError:  # a field that cannot be hashed: this model's own cache only
-        skey, arr = None, None
-    if arr is None:
-        arr = build()
-        arr.setflags(write=False)
-    if skey is not None:
-        with _SHARED_LOCK:
-            _SHARED_MAPS[skey] = arr
-            while len(_SHARED_MAPS) > _SHARED_MAX:
-                _SHARED_MAPS.pop(next(iter(_SHARED_MAPS)))
-    model._cache[key] = arr
-    return arr
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+def _shared_map(model: "CameraModel", key: str) -> np.ndarray:
+    """``model``'s read-only map ``key`` (``_build_<key>``), from its own cache, an equal model's, or
+    built; a model with a field that cannot be hashed keeps it in its own cache only."""
+    if key not in model._cache:
+        try:
+            model._cache[key] = _lens_map(model, key)
+        except TypeError:
+            model._cache[key] = _read_only(getattr(model, f"_build_{key}")())
+    return model._cache[key]
 
 
 def _as_pixels(px) -> np.ndarray:
@@ -191,17 +185,18 @@ class CameraModel:
 
     def ray_map(self) -> np.ndarray:
         """Unit ray of every pixel, shape (height, width, 3), float64 (cached, read-only)."""
-        return _shared_map(self, "ray_map",
-                           lambda: self.pixel_to_ray(self.pixel_grid()).reshape(self.height, self.width, 3))
+        return _shared_map(self, "ray_map")
+
+    def _build_ray_map(self) -> np.ndarray:
+        return self.pixel_to_ray(self.pixel_grid()).reshape(self.height, self.width, 3)
 
     def theta_map(self) -> np.ndarray:
         """Angle from the optical axis [deg] of every pixel, shape (height, width) (cached, read-only)."""
+        return _shared_map(self, "theta_map")
 
-        def build():
-            u, v = self._sensor_from_pixel(self.pixel_grid())
-            return np.degrees(self.theta_from_r(np.hypot(u, v))).reshape(self.height, self.width)
-
-        return _shared_map(self, "theta_map", build)
+    def _build_theta_map(self) -> np.ndarray:
+        u, v = self._sensor_from_pixel(self.pixel_grid())
+        return np.degrees(self.theta_from_r(np.hypot(u, v))).reshape(self.height, self.width)
 
     def image_circle_mask(self, max_theta_deg: float | None = None) -> np.ndarray:
         """Pixels within ``max_theta_deg`` of the optical axis, shape (height, width), bool."""
