@@ -19,7 +19,8 @@ from cbh.pipeline.ccl import components_with_stats
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, ClipLevel, saturated_pixels
 from cbh.pipeline.config import MasksConfig
 
-__all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask", "glare_mask", "glare_and_sunlit"]
+__all__ = ["static_sky_mask", "load_obstacle_mask", "angle_map_deg", "saturation_mask", "glare_mask", "glare_and_sunlit",
+           "near_clip"]
 
 
 def load_obstacle_mask(path: Path, width: int, height: int) -> np.ndarray:
@@ -169,3 +170,22 @@ def glare_and_sunlit(image_bgr: np.ndarray, cfg: MasksConfig, sun_angle_deg: np.
         blob = cv2.bitwise_and(blob, cv2.compare(ang[ya:yb, xa:xb], float(cfg.glare_radius_deg), cv2.CMP_LE))
     out[ya:yb, xa:xb] = blob > 0
     return out, sunlit
+
+
+def near_clip(image_bgr: np.ndarray, cfg: MasksConfig, clip: ClipLevel | None, reach_px: int) -> np.ndarray | None:
+    """The pixels within ``reach_px`` (a square) of a pixel at the image's clip level
+    (:func:`~cbh.pipeline.clip.saturated_pixels`, the saturation mask's margin), (H, W) bool;
+    None where nothing is clipped.
+
+    A window that holds clipped pixels is not a measurement of where the sky's texture lies:
+    its brightest part is cut where *this* camera's exposure clips, and two cameras clip the same
+    cloud along different contours. On an over-exposed randomized sky (16855: 24 % and 39 % of
+    the two working images at white) every one of the 76 LK matches the geometry check had such
+    a window in one camera or the other; their median miss of the epipolar curves, 1.9 px, flagged a
+    correct station ``geometry_mismatch``.
+    """
+    sat = saturated_pixels(image_bgr, FULL_RANGE_WHITE_DN - int(cfg.saturation_level), clip)
+    if not cv2.countNonZero(sat):
+        return None
+    k = 2 * max(int(reach_px), 0) + 1
+    return cv2.dilate(sat, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))) > 0

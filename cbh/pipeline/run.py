@@ -64,7 +64,8 @@ from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import (LayerSet, angular_noise, cover_incomplete, get_layer_method, height_noise, parallax_px,
                                  supported_layers)
-from cbh.pipeline.masks import angle_map_deg, glare_and_sunlit, load_obstacle_mask, saturation_mask, static_sky_mask
+from cbh.pipeline.masks import (angle_map_deg, glare_and_sunlit, load_obstacle_mask, near_clip, saturation_mask,
+                                static_sky_mask)
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.ccl import components_with_stats
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
@@ -495,7 +496,8 @@ class Pipeline:
 
             def geometry():
                 with _timed(ctx, "geometry_check"):
-                    return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0)
+                    return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0,
+                                                  masks.near_clip)
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -1024,15 +1026,16 @@ class Pipeline:
                 sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang, clip)
                 if sat.any():
                     u, glare = u & ~sat, True
-            return u, ang, glare, SkyExposure(*_sky_dn(work[i], u), clip), sunlit, obst
+            clipped = near_clip(work[i], cfg.masks, clip, int(cfg.matching.lk.window_px) // 2)
+            return u, ang, glare, SkyExposure(*_sky_dn(work[i], u), clip), sunlit, obst, clipped
 
-        (u1, a1, glare1, dn1, s1, o1), (u2, a2, _, dn2, s2, o2) = pmap(
+        (u1, a1, glare1, dn1, s1, o1, c1), (u2, a2, _, dn2, s2, o2, c2) = pmap(
             lambda i: self._camera1_once(i, "masks", lambda: one(i)), (0, 1), pool="stages")
         if glare1:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
         return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known,  # (the sun check: a known time only)
-                     sunlit=(s1, s2), obstacles=(o1, o2), clips=(dn1.clip, dn2.clip))
+                     sunlit=(s1, s2), obstacles=(o1, o2), clips=(dn1.clip, dn2.clip), near_clip=(c1, c2))
 
     def _sun_from_image(self, image_bgr: np.ndarray) -> np.ndarray | None:
         """The sun's ENU direction from camera 1's image when the capture time is unknown: the
@@ -1334,7 +1337,7 @@ class Pipeline:
         self._apply_geometry(self.geometry_findings(work, corr), ctx)
 
     def geometry_findings(self, work, corr: "Correspondences", seg: "Segmentation | None" = None,
-                          carry_noise_rad: float = 0.0) -> "tuple[bool, object] | None":
+                          carry_noise_rad: float = 0.0, near_clip: tuple = (None, None)) -> "tuple[bool, object] | None":
         """The geometry check's findings (identical images, :func:`check_geometry`'s result);
         None when the check is off. Reads only its arguments: runs beside the height map.
 
@@ -1346,7 +1349,11 @@ class Pipeline:
         ``carry_noise_rad``: the angular noise of carrying camera 2 to camera 1's time (a pair
         matched on the sky maps with a clock offset, :mod:`.skyclock`), added in quadrature to the
         miss the station's calibration is expected to leave: a miss that the carry explains is not
-        the geometry's."""
+        the geometry's.
+
+        ``near_clip``: per camera, the pixels within half an LK window of a clipped one
+        (:func:`~.masks.near_clip`, None = none): a match there is left out, in either camera (its
+        window's texture is cut where that camera's exposure clips)."""
         cfg = self.config.geometry_check
         if not cfg.enabled:
             return None
@@ -1358,6 +1365,7 @@ class Pipeline:
                 raw = []
             else:
                 raw = [m.take(_on_mask(seg.clouds[1], m.px2)) for m in raw]
+        raw = [_off_clip(m, near_clip) if m.method in CHECK_METHODS else m for m in raw]
         return (images_identical(work[0], work[1], cfg.identical_max_dn),
                 check_geometry(self.geometry, raw, self.config.filtering, cfg))
 
@@ -1595,6 +1603,15 @@ class FrameMemo:
         return slot[1]
 
 
+def _off_clip(m: Matches, near_clip: tuple) -> Matches:
+    """The matches whose pixels are off each camera's ``near_clip`` mask (None: nothing clipped)."""
+    keep = np.ones(len(m), bool)
+    for mask, px in zip(near_clip, (m.px1, m.px2)):
+        if mask is not None:
+            keep &= ~_on_mask(mask, px)
+    return m if keep.all() else m.take(keep)
+
+
 def _on_mask(mask: np.ndarray, px: np.ndarray) -> np.ndarray:
     """Which of the pixels ``px`` (N, 2) [x, y] fall on True pixels of ``mask`` (H, W), (N,) bool."""
     if len(px) == 0:
@@ -1671,6 +1688,8 @@ class Masks:
     #: segments as cloud, but not for matching (its contour is where each camera's exposure clips)
     sunlit: tuple = (None, None)
     clips: tuple = (None, None)  # each camera's working image's clip level (:func:`~.clip.clip_level`), None = not found yet
+    #: per camera, the pixels within half an LK window of a clipped one (:func:`~.masks.near_clip`), None = none
+    near_clip: tuple = (None, None)
 
     def for_matching(self, seg: "Segmentation") -> tuple["Masks", "Segmentation"]:
         """These masks and ``seg`` without the sunlit saturated cloud (themselves when there is none)."""
