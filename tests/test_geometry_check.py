@@ -271,7 +271,8 @@ def test_matches_whose_windows_hold_clipped_pixels_are_no_evidence_of_a_turn(see
 def test_a_match_near_either_cameras_clipped_pixels_is_left_out_of_the_check():
     """:func:`near_clip` marks the pixels within ``reach_px`` (a square) of a pixel at the image's
     clip level, nothing for an image that does not clip; the geometry check's matches whose
-    camera-1 pixel is near camera 1's clipping, or camera-2 pixel near camera 2's, are left out."""
+    camera-1 pixel is near camera 1's clipping, or camera-2 pixel near camera 2's, are left out
+    where the cameras' responses differ (``exposure_mismatch``), and only there."""
     from cbh.pipeline.clip import clip_level
     from cbh.pipeline.config import MasksConfig
     from cbh.pipeline.masks import near_clip
@@ -292,6 +293,14 @@ def test_a_match_near_either_cameras_clipped_pixels_is_left_out_of_the_check():
     kept = _off_clip(mt, (m, far))
     assert kept.px1.tolist() == [[100.0, 20.0]]  # the first near camera 1's clip, the second near camera 2's
     assert _off_clip(mt, (None, None)) is mt
+    # only cameras of unlike responses clip one cloud along different contours
+    from types import SimpleNamespace
+
+    from cbh.pipeline.run import _clip_contours_differ
+
+    masks = SimpleNamespace(near_clip=(m, far))
+    assert _clip_contours_differ(masks, SimpleNamespace(flags=["sun_glare", "exposure_mismatch"])) == (m, far)
+    assert _clip_contours_differ(masks, SimpleNamespace(flags=["sun_glare"])) == (None, None)
 
 
 def test_the_jackknifes_widening_is_students_t():

@@ -179,7 +179,8 @@ def near_clip(image_bgr: np.ndarray, cfg: MasksConfig, clip: ClipLevel | None, r
 
     A window that holds clipped pixels is not a measurement of where the sky's texture lies:
     its brightest part is cut where *this* camera's exposure clips, and two cameras clip the same
-    cloud along different contours. On an over-exposed randomized sky (16855: 24 % and 39 % of
+    cloud along different contours when their responses differ (``Pipeline`` then leaves such
+    matches out of the geometry check). On an over-exposed randomized sky (16855: 24 % and 39 % of
     the two working images at white) every one of the 76 LK matches the geometry check had such
     a window in one camera or the other; their median miss of the epipolar curves, 1.9 px, flagged a
     correct station ``geometry_mismatch``.

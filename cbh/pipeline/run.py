@@ -497,7 +497,7 @@ class Pipeline:
             def geometry():
                 with _timed(ctx, "geometry_check"):
                     return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0,
-                                                  masks.near_clip)
+                                                  _clip_contours_differ(masks, ctx))
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -1601,6 +1601,16 @@ class FrameMemo:
         if slot[2] is not None:
             raise slot[2]
         return slot[1]
+
+
+def _clip_contours_differ(masks: "Masks", ctx: "PairContext") -> tuple:
+    """Each camera's pixels near its clipping (``Masks.near_clip``) where the two cameras clip one
+    cloud along different contours, their responses unlike (flag ``exposure_mismatch``); else
+    (None, None). Cameras of one response clip the same radiance: a clipped area's edge is then
+    one line of the sky in both views and its matches are as good as any (a simulated network
+    sky whose cloud clips had 70 % of its LK matches within half a window of it, and without them
+    too few to name a camera 2° off level)."""
+    return masks.near_clip if "exposure_mismatch" in ctx.flags else (None, None)
 
 
 def _off_clip(m: Matches, near_clip: tuple) -> Matches:
