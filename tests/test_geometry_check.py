@@ -296,11 +296,15 @@ def test_a_match_near_either_cameras_clipped_pixels_is_left_out_of_the_check():
     # only cameras of unlike responses clip one cloud along different contours
     from types import SimpleNamespace
 
-    from cbh.pipeline.run import _clip_contours_differ
+    from cbh.pipeline import PipelineConfig
+    from cbh.pipeline.run import Masks
 
-    masks = SimpleNamespace(near_clip=(m, far))
-    assert _clip_contours_differ(masks, SimpleNamespace(flags=["sun_glare", "exposure_mismatch"])) == (m, far)
-    assert _clip_contours_differ(masks, SimpleNamespace(flags=["sun_glare"])) == (None, None)
+    plain = rng.integers(60, 200, (200, 200, 3)).astype(np.uint8)
+    masks = Masks(usable=(far, far), sun_angle=(None, None), sun_dir_enu=None, clips=(clip_level(img), None))
+    pipe = SimpleNamespace(config=PipelineConfig())  # (LK window 21 px: a reach of 10)
+    unlike = Pipeline._clip_contours(pipe, (img, plain), masks, SimpleNamespace(flags=["sun_glare", "exposure_mismatch"]))
+    assert np.array_equal(unlike.near_clip[0], m) and unlike.near_clip[1] is None
+    assert Pipeline._clip_contours(pipe, (img, plain), masks, SimpleNamespace(flags=["sun_glare"])).near_clip == (None, None)
 
 
 def test_the_jackknifes_widening_is_students_t():

@@ -450,6 +450,7 @@ class Pipeline:
         with _timed(ctx, "photometric"):
             taken = work
             work = self.stage_photometric(work, masks, ctx)
+            masks = self._clip_contours(taken, masks, ctx)
         with _timed(ctx, "segmentation"):
             seg = self.stage_segment(work, masks, as_received1=work[0] is taken[0], taken=taken)
             gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
@@ -497,7 +498,7 @@ class Pipeline:
             def geometry():
                 with _timed(ctx, "geometry_check"):
                     return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0,
-                                                  _clip_contours_differ(masks, ctx))
+                                                  masks.near_clip)
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -1026,16 +1027,15 @@ class Pipeline:
                 sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang, clip)
                 if sat.any():
                     u, glare = u & ~sat, True
-            clipped = near_clip(work[i], cfg.masks, clip, int(cfg.matching.lk.window_px) // 2)
-            return u, ang, glare, SkyExposure(*_sky_dn(work[i], u), clip), sunlit, obst, clipped
+            return u, ang, glare, SkyExposure(*_sky_dn(work[i], u), clip), sunlit, obst
 
-        (u1, a1, glare1, dn1, s1, o1, c1), (u2, a2, _, dn2, s2, o2, c2) = pmap(
+        (u1, a1, glare1, dn1, s1, o1), (u2, a2, _, dn2, s2, o2) = pmap(
             lambda i: self._camera1_once(i, "masks", lambda: one(i)), (0, 1), pool="stages")
         if glare1:
             ctx.flags.append("sun_glare")
         self._exposure_check((dn1, dn2), ctx)
         return Masks(usable=(u1, u2), sun_angle=(a1, a2), sun_dir_enu=known,  # (the sun check: a known time only)
-                     sunlit=(s1, s2), obstacles=(o1, o2), clips=(dn1.clip, dn2.clip), near_clip=(c1, c2))
+                     sunlit=(s1, s2), obstacles=(o1, o2), clips=(dn1.clip, dn2.clip))
 
     def _sun_from_image(self, image_bgr: np.ndarray) -> np.ndarray | None:
         """The sun's ENU direction from camera 1's image when the capture time is unknown: the
@@ -1102,6 +1102,20 @@ class Pipeline:
             d_cam = np.asarray(sun_dir, np.float64) @ cam.R_world_from_cam
             return angle_map_deg_torch(self.rays_cam_device(i), d_cam).cpu().numpy()
         return angle_map_deg(cam, sun_dir, self.rays_cam(i))
+
+    def _clip_contours(self, taken: tuple[np.ndarray, np.ndarray], masks: "Masks", ctx: "PairContext") -> "Masks":
+        """``masks`` with each camera's pixels near its clipping (:func:`~.masks.near_clip` of the
+        images as ``taken``, within half an LK window) where the two cameras clip one cloud along
+        different contours, their responses unlike (flag ``exposure_mismatch``); else unchanged.
+        Cameras of one response clip the same radiance: a clipped area's edge is then one line of
+        the sky in both views and its matches are as good as any (a simulated network sky whose
+        cloud clips had 70 % of its LK matches within half a window of it, and without them too few
+        to name a camera 2° off level)."""
+        if "exposure_mismatch" not in ctx.flags:
+            return masks
+        reach = int(self.config.matching.lk.window_px) // 2
+        return replace(masks, near_clip=tuple(near_clip(taken[i], self.config.masks, masks.clips[i], reach)
+                                              for i in (0, 1)))
 
     def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
                           ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
@@ -1603,16 +1617,6 @@ class FrameMemo:
         return slot[1]
 
 
-def _clip_contours_differ(masks: "Masks", ctx: "PairContext") -> tuple:
-    """Each camera's pixels near its clipping (``Masks.near_clip``) where the two cameras clip one
-    cloud along different contours, their responses unlike (flag ``exposure_mismatch``); else
-    (None, None). Cameras of one response clip the same radiance: a clipped area's edge is then
-    one line of the sky in both views and its matches are as good as any (a simulated network
-    sky whose cloud clips had 70 % of its LK matches within half a window of it, and without them
-    too few to name a camera 2° off level)."""
-    return masks.near_clip if "exposure_mismatch" in ctx.flags else (None, None)
-
-
 def _off_clip(m: Matches, near_clip: tuple) -> Matches:
     """The matches whose pixels are off each camera's ``near_clip`` mask (None: nothing clipped)."""
     keep = np.ones(len(m), bool)
@@ -1698,7 +1702,8 @@ class Masks:
     #: segments as cloud, but not for matching (its contour is where each camera's exposure clips)
     sunlit: tuple = (None, None)
     clips: tuple = (None, None)  # each camera's working image's clip level (:func:`~.clip.clip_level`), None = not found yet
-    #: per camera, the pixels within half an LK window of a clipped one (:func:`~.masks.near_clip`), None = none
+    #: per camera, the pixels within half an LK window of a clipped one (:func:`~.masks.near_clip`) where the
+    #: cameras' responses differ (Pipeline._clip_contours), None = none or not asked
     near_clip: tuple = (None, None)
 
     def for_matching(self, seg: "Segmentation") -> tuple["Masks", "Segmentation"]:
