@@ -82,6 +82,16 @@ CHECK_METHODS = ("lk", "orb", "dis", "skyflow")
 #: parallax, median distance 1.3 px on a correct station, flagged), while a distance across the curve
 #: moves no height at all (heights come from the parallax along it); up to ``_SHEAR_TOL``.
 _ROTATION_PARALLAX = 0.02
+#: LK's bias on sheared views, as a share of the shear across its window: a match of views sheared
+#: by ``shear`` [rad] (its parallax in radians) with a ``window_px`` window is biased by up to about
+#: this × shear × window_px [px], shared by every match of the deck, so no fit of them can tell a turn
+#: of that size from it, and the fitted rotation is judged only beyond it. Seen on correct stations:
+#: a 300 m deck at B = 241 m, 960 px (shear 0.144 rad, 21 px windows), fitted 0.08° (0.43 px: 0.14);
+#: randomized dense 9919 at 480 px, 212 of 229 matches on a 788 m deck at B = 151 m (0.19 rad),
+#: 0.243° ± 0.055° (0.65 px: 0.16). Set at 1.5 × the larger. The window is fixed in pixels, so at
+#: 960 px (305 px per radian) it allows 1.7 % of the parallax, under the 2 % above, and at 480 px
+#: 3.4 %: the same window spans twice the sky, and its bias twice the share of the parallax.
+_LK_SHEAR_BIAS = 0.25
 #: A fitted turn is significant beyond this many of its σ. It is the length of a 3-vector: with no
 #: turn, |ω|/σ follows a χ distribution with 3 degrees of freedom, which exceeds 3 in 2.9 % of
 #: pairs (a false alarm every 35 correct pairs from the fit's own scatter alone) and 4 in 0.1 %.
@@ -279,7 +289,7 @@ def _px_per_rad(geom: PairGeometry) -> float:
 
 
 def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: FilteringConfig,
-                   cfg: GeometryCheckConfig) -> GeometryCheck:
+                   cfg: GeometryCheckConfig, window_px: float = 21.0) -> GeometryCheck:
     """Judge the correspondences of the 2-D matching methods against the station geometry.
 
     Parameters
@@ -291,6 +301,9 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     filtering : FilteringConfig
         Height range and ray-miss gate of the pipeline.
     cfg : GeometryCheckConfig
+    window_px : float
+        The 2-D matcher's window side [px] (LK's, ``matching.lk.window_px``): its bias on sheared
+        views sets a floor under the rotation's tolerance (``_LK_SHEAR_BIAS``).
 
     Returns
     -------
@@ -359,7 +372,8 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # the station states an expected miss: its lens models leave rays that far apart, and a
     # rotation fitted against them absorbs their error (see relative_rotation)
     parallax = float(np.median(par[fit])) if fit.any() else 0.0
-    tol_rot_px = max(cfg.max_rotation_px, _ROTATION_PARALLAX * parallax)
+    bias_px = _LK_SHEAR_BIAS * float(np.median(shear[fit])) * float(window_px) if fit.any() else 0.0
+    tol_rot_px = max(cfg.max_rotation_px, _ROTATION_PARALLAX * parallax, bias_px)
     tol_rot = math.degrees(tol_rot_px / ppr) if cfg.expected_miss_ratio <= 0 else math.inf
     # size and significance, separately: above the tolerance *and* beyond _SIGNIFICANCE σ of the fit.
     # Matches from one patch of sky (a lone cloud) constrain the rotation poorly (σ 0.025–0.09° for a

@@ -1381,7 +1381,7 @@ class Pipeline:
                 raw = [m.take(_on_mask(seg.clouds[1], m.px2)) for m in raw]
         raw = [_off_clip(m, near_clip) if m.method in CHECK_METHODS else m for m in raw]
         return (images_identical(work[0], work[1], cfg.identical_max_dn),
-                check_geometry(self.geometry, raw, self.config.filtering, cfg))
+                check_geometry(self.geometry, raw, self.config.filtering, cfg, self.config.matching.lk.window_px))
 
     @staticmethod
     def _apply_geometry(found, ctx: "PairContext") -> None:
