@@ -65,7 +65,7 @@ import numpy as np
 
 from cbh.geometry.calibrate import epipolar_angle_rad
 from cbh.geometry.triangulate import TriangulationLimits, triangulate
-from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
+from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig, LKConfig
 from cbh.pipeline.match import Matches, PairGeometry
 
 __all__ = ["GeometryCheck", "check_geometry", "relative_rotation", "images_identical", "seeded_matches", "CHECK_METHODS"]
@@ -289,7 +289,7 @@ def _px_per_rad(geom: PairGeometry) -> float:
 
 
 def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: FilteringConfig,
-                   cfg: GeometryCheckConfig, window_px: float = 21.0) -> GeometryCheck:
+                   cfg: GeometryCheckConfig, window_px: float = LKConfig.window_px) -> GeometryCheck:
     """Judge the correspondences of the 2-D matching methods against the station geometry.
 
     Parameters
