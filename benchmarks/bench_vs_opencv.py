@@ -6,6 +6,7 @@
     python benchmarks/bench_vs_opencv.py --cpu-time              # CPU time, one thread each: robust on a busy machine
     python benchmarks/bench_vs_opencv.py --working-radius 320    # cbh at 640 px working size: faster, less precise
     python benchmarks/bench_vs_opencv.py --deck-m 7000           # one deck of the scene's texture at 7000 m
+    python benchmarks/bench_vs_opencv.py --oblique-levels 2      # cbh's boxes grown near the horizon: more precise there
 
 The OpenCV route: rectify both raw fisheye images to a common ``--rect-px`` (1024) px,
 ``--rect-fov`` (120°) perspective pair looking up, x along the baseline (``cv2.remap``, maps
@@ -121,6 +122,9 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="cbh's device (cpu or cuda)")
     ap.add_argument("--working-radius", type=float, default=None, metavar="PX",
                     help="cbh's pipeline.working_radius_px (default: the station's, 480): the speed/accuracy trade-off")
+    ap.add_argument("--oblique-levels", type=int, default=None, metavar="N",
+                    help="cbh's matching.sweep.oblique_levels (default: the station's, 0): boxes grown 2× per level "
+                         "where a plane step moves a pixel less (near the horizon)")
     ap.add_argument("--cpu-time", action="store_true",
                     help="time with process_time, OpenCV and torch on one thread (robust under load; minimum of the runs)")
     a = ap.parse_args()
@@ -170,6 +174,11 @@ def main() -> None:
         cfg = PipelineConfig.from_dict(st.sections.get("pipeline", {}))
         if a.working_radius is not None:
             cfg = cfg.replace(working_radius_px=a.working_radius)
+        if a.oblique_levels is not None:
+            from dataclasses import replace
+
+            sweep = replace(cfg.matching.sweep, oblique_levels=a.oblique_levels)
+            cfg = cfg.replace(matching=replace(cfg.matching, sweep=sweep))
         pipe = Pipeline(st, config=cfg, device=a.device)
     except ConfigError as e:  # e.g. --device cuda without CUDA: a benchmark skips, it does not fail
         print(f"skipped: {e}")

@@ -58,6 +58,7 @@ def test_unknown_methods_list_valid_names():
         ({"matching": {"orb": {"max_parallax_deg": -1.0}}}, "pipeline.matching.orb.max_parallax_deg"),
         ({"matching": {"orb": {"max_hamming": -1}}}, "pipeline.matching.orb.max_hamming"),
         ({"matching": {"sweep": {"label_px": 0}}}, "pipeline.matching.sweep.label_px"),
+        ({"matching": {"sweep": {"oblique_levels": 3}}}, "pipeline.matching.sweep.oblique_levels"),
         ({"layers": {"min_cover": 2.0}}, "pipeline.layers.min_cover"),
         ({"layers": {"min_fraction": -0.1}}, "pipeline.layers.min_fraction"),
         ({"masks": {"saturation_grow_px": -3}}, "pipeline.masks.saturation_grow_px"),

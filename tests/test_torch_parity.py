@@ -125,6 +125,23 @@ def test_every_sweep_pass_agrees(scene):
     r_t = T.refine_pass_torch(f_t, l_t, maps.scale_px, cfg).numpy()
     ok = f_n.ok & f_t.ok.numpy()
     assert np.percentile(np.abs(r_n[ok] - r_t[ok]) / ds, 99) <= 0.01
+    _oblique_levels_agree(f_n, f_t, l_n, l_t, r_n, maps, cfg, ok, ds)
+
+
+def _oblique_levels_agree(f_n, f_t, l_n, l_t, r_0, maps, cfg0, ok, ds) -> None:
+    """``oblique_levels`` (the refinement's boxes grown 2× and 4× where a plane step moves a pixel
+    less): the same heights on both backends, and they differ from the layer box's alone where
+    the pixels are oblique (else the levels did nothing)."""
+    from dataclasses import replace
+
+    cfg = replace(cfg0, oblique_levels=2)
+    assert np.allclose(f_n.reach, f_t.reach.numpy()) and f_n.reach.max() <= 1.0 + 1e-6
+    r_n = S.refine_pass(f_n, l_n, maps.scale_px, cfg)
+    r_t = T.refine_pass_torch(f_t, l_t, maps.scale_px, cfg).numpy()
+    assert np.percentile(np.abs(r_n[ok] - r_t[ok]) / ds, 99) <= 0.01
+    oblique = ok & (cv2.resize(f_n.reach, ok.shape[::-1], interpolation=cv2.INTER_NEAREST) < 0.5)
+    assert oblique.sum() > 1000
+    assert np.median(np.abs(r_n[oblique] - r_0[oblique]) / ds) > 0.01
 
 
 def test_coarse_pass_with_near_planes_agrees(scene):

@@ -160,6 +160,8 @@ class SweepConfig:
     aggregate_px: int = 31  # refine each pixel on its layer's cost summed over this box (1 = off) [px]
     label_px: int = 15  # box over which a pixel's cost decides its layer [px]
     far_aggregate_px: float = 8.0  # layers with less parallax than this get a box grown by this/parallax (≤ 4×); 0 = off [px]
+    oblique_levels: int = 0  # pixels a plane step moves less (near the horizon) refined on their layer's box grown 2× per level:
+    #                          below 1/√2 of the zenith's shift, 4× below 1/(2√2), … (≤ 4× in all); 0 = off [1]
     vote_percentile: float = 70.0  # fine layer votes: only pixels whose wide-box ZNCC is above this percentile [%]
     region_px: int = 64  # layers are also proposed per region of this side (a deck seen only through gaps); 0 = off [px]
     region_share: float = 0.1  # a region's layer needs this share of the region's votes [1]
@@ -426,6 +428,8 @@ def _check_sweep(sw, where: str) -> None:
             raise ConfigError(f"{where}.{k}: must be in (0, 1], got {getattr(sw, k)}")
     _positive(f"{where}.min_texture", sw.min_texture, strict=False)
     _positive(f"{where}.far_aggregate_px", sw.far_aggregate_px, strict=False)
+    if not 0 <= sw.oblique_levels <= 2:
+        raise ConfigError(f"{where}.oblique_levels: must be 0, 1 or 2, got {sw.oblique_levels}")
     if not 0 <= sw.vote_percentile < 100:
         raise ConfigError(f"{where}.vote_percentile: must be in [0, 100), got {sw.vote_percentile}")
     _positive(f"{where}.map_cache_mb", sw.map_cache_mb, strict=False)

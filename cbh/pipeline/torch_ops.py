@@ -59,7 +59,8 @@ from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
     CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_lattice, plane_range, coarse_planes,
-    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, peak_offset, resolved_layers, truncated, vote_layers, SweepField, field_points,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, parallax_reach, peak_offset, reach_levels,
+    resolved_layers, truncated, vote_layers, SweepField, field_points,
 )
 
 __all__ = ["upload", "remap", "box", "pool2", "TorchPlaneMaps", "zncc_half", "sweep_matches_torch", "sweep_field_torch", "angle_map_deg_torch",
@@ -235,6 +236,30 @@ def _refine(j, c0, cm1, cp1, s_values: np.ndarray, ds: float) -> torch.Tensor:
     return sv[j] + delta * float(ds)
 
 
+def _oblique_peaks(prod: torch.Tensor, label: torch.Tensor, sel: np.ndarray, s: np.ndarray, ds: float, kL: int,
+                   levels: list, reach: torch.Tensor | None):
+    """As :func:`cbh.pipeline.sweep._oblique_peaks` on the layer's masked costs ``prod`` (n, h, w)."""
+    h, w = prod.shape[1:]
+    ja, s_half = _peak_of(box(prod[None], kL)[0], s[sel], ds)
+    for f, split in levels:
+        here = label & (reach < split)
+        if not bool(here.any()):
+            break
+        prod = pool2(prod[None])[0]
+        jg, sg = _peak_of(box(prod[None], kL)[0], s[sel], ds)
+        pad = (0, w - jg.shape[1] * f, 0, h - jg.shape[0] * f)
+        cut = torch.as_tensor(truncated(np.asarray(sel)[jg.cpu().numpy()], s, ds), device=prod.device)
+        cut = F.pad(cut.repeat_interleave(f, 0).repeat_interleave(f, 1)[None, None].float(), pad, mode="replicate")
+        sg = F.pad(F.interpolate(sg[None, None], scale_factor=f, mode="bilinear", align_corners=False), pad, mode="replicate")
+        s_half = torch.where(here & (cut[0, 0] == 0), sg[0, 0], s_half)
+    return ja, s_half
+
+
+def _peak_of(agg: torch.Tensor, s_sel: np.ndarray, ds: float):
+    ja, ca, la, ra = _best3(agg)
+    return ja, _refine(ja, ca, la, ra, s_sel, ds)
+
+
 def _region_t(r):
     return (slice(r[0].start, r[0].stop), slice(r[1].start, r[1].stop))
 
@@ -285,7 +310,7 @@ def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: 
     up = best.repeat_interleave(2, 0).repeat_interleave(2, 1)
     ok = m0 & (up >= cfg.min_zncc)
     return FineCost(sl, s, ds, sc * textured, textured, ok, pool2(ok.float()[None, None])[0, 0],
-                    plane_lattice(tm.scale_px, cfg))
+                    plane_lattice(tm.scale_px, cfg), upload(parallax_reach(tm.maps, sl), g1.device))
 
 
 def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
@@ -336,15 +361,16 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
         sel = layer_planes(lab, L, s, ds)
         kL = layer_box(lab, L, scale_px, cfg, fine.lattice)
         k2 = max(3, (int(cfg.aggregate_px) // 2) | 1)
-        if len(sel) < 3 or (n_layers == 1 and kL == k2 and len(sel) == len(s)):
+        levels = reach_levels(kL, k2, tuple(lab.label.shape), cfg) if fine.reach is not None else []
+        oblique = bool(levels) and bool((fine.reach < levels[0][1]).any())
+        if len(sel) < 3 or (n_layers == 1 and kL == k2 and len(sel) == len(s) and not oblique):
             s_half = lab.s_wide  # as the OpenCV twin: the wide-box winner itself
         else:
             mL = lab.label == L
             if n_layers > 1:
                 mL = mL & (plane_layer[lab.own_plane] == L)
-            agg = box((cost[torch.as_tensor(sel, device=dev)] * mL.float())[None], kL)[0]
-            ja, ca, la, ra = _best3(agg)
-            s_half = _refine(ja, ca, la, ra, s[sel], ds)
+            prod = cost[torch.as_tensor(sel, device=dev)] * mL.float()
+            ja, s_half = _oblique_peaks(prod, lab.label == L, sel, s, ds, kL, levels if oblique else [], fine.reach)
             cut = torch.as_tensor(truncated(np.asarray(sel)[ja.cpu().numpy()], s, ds), device=dev)
             if bool(cut.any()):  # as the OpenCV twin: not matched where the sweep stopped
                 s_half = torch.where(cut, lab.s_wide, s_half)
