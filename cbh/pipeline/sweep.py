@@ -861,7 +861,7 @@ class FineCost:
     ok: np.ndarray  # (h, w) bool: accepted pixels (textured cloud whose best ZNCC ≥ min_zncc)
     ok_frac: np.ndarray  # (h/2, w/2) float32: accepted fraction of each 2 × 2 block
     lattice: "PlaneLattice | None" = None  # u(s) of the planes (None: u = s)
-    reach: "np.ndarray | None" = None  # (h/2, w/2) float32: each block's :func:`parallax_reach` (None: 1 everywhere)
+    reach: "np.ndarray | None" = None  # (h/2, w/2) float32: each block's :func:`parallax_reach` (None: ``oblique_levels`` off)
 
     @property
     def u(self) -> np.ndarray:
@@ -1216,7 +1216,7 @@ def fine_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s: np.nda
         pass
     ok = m0 & (cv2.resize(best, (w, h), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
     return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)), plane_lattice(maps.scale_px, cfg),
-                    parallax_reach(maps, sl))
+                    parallax_reach(maps, sl) if cfg.oblique_levels > 0 else None)
 
 
 def parallax_reach(maps: PlaneMaps, sl) -> np.ndarray:

@@ -310,7 +310,8 @@ def fine_pass_torch(g1: torch.Tensor, g2: torch.Tensor, cloud1: np.ndarray, tm: 
     up = best.repeat_interleave(2, 0).repeat_interleave(2, 1)
     ok = m0 & (up >= cfg.min_zncc)
     return FineCost(sl, s, ds, sc * textured, textured, ok, pool2(ok.float()[None, None])[0, 0],
-                    plane_lattice(tm.scale_px, cfg), upload(parallax_reach(tm.maps, sl), g1.device))
+                    plane_lattice(tm.scale_px, cfg),
+                    upload(parallax_reach(tm.maps, sl), g1.device) if cfg.oblique_levels > 0 else None)
 
 
 def label_pass_torch(fine: FineCost, cfg) -> LayerLabels:
