@@ -115,6 +115,41 @@ sweep's matches (:mod:`.geocheck`), got 97 matches instead of 96; its fitted tur
 than 15 % off their scatter, so its σ came from the agreement of 6 patches of sky (leave-one-out
 0.62–1.19°, ± 0.81° after the widening for 5 degrees of freedom) and 0.92° was not significant,
 where before the formal 1.12° ± 0.14° stood; the other camera (cam2) was named.
+
+Resolvability (numbers for the Table 1 lenses at the default working size, lens radius 480 px
+for 90°, 305.6 px/rad): parallax at zenith p = 305.6 px · B / h. The aggregated per-pixel
+parallax (31 px box) is good to ≈ 0.1 px, so a pixel's height is within 2 % where
+0.02·p ≥ 0.1 px, i.e. p ≥ 5 px (B = 50 m: h ≤ 3.0 km; B = 30 m: h ≤ 1.8 km; B = 100 m:
+h ≤ 6.1 km); the grown box for far layers extends this to p ≈ 2 px (7000 m at B = 50 m:
+2.2 px, dense-map median error 1.4 % with three layers). Two layers are told apart (separate
+vote peaks) down to ≈ 2 px of parallax difference: 2800 m and 7000 m are 3.3 px apart at
+B = 50 m and 2.0 px at B = 30 m (both separated; layer heights, aggregated over thousands of
+pixels, within 2 %). At B = 30 m the pixels of the upper two layers are not resolved to 2 %:
+p = 3.3 and 1.3 px, 2 % of which is 0.066 and 0.026 px, and the 7000 m pixels within ≈ 3 px
+of a lower cloud (a third of them; many occluded in camera 2) take a lower layer's label:
+dense-map median error 2.2 % over all three layers, coverage 69 %. Use a larger
+working size (``working_radius_px``: parallax scales with it) or a longer baseline there.
+
+Speed (1920 px pair, working size 960 px, two-layers scene, 2 cores, 2026-12-01): coarse
+28 ms (16 far planes at 480 px, 30 near ones at 240 px), fine 77 ms (17 planes, ≈ 5 ms of one
+core each: remap ≈ 2, plane map 0.7 (one ``cv2.transform`` per axis), the rest products,
+2 × 2 pools, half-size boxes and arithmetic), labels 23 ms, refine 17 ms. The planes of every
+pass run on threads (:func:`~cbh.pipeline.threads.pmap`; the caller reduces them in order as
+they come); everything per pixel goes through OpenCV (no numpy temporaries); numpy's masked
+``copyto`` and ``argmax`` over a stack axis are avoided (20× and 10× slower).
+
+Clock offsets (camera 2 capturing δ late, :mod:`.motion`): image 2 may be a :class:`PlaneViews`,
+one image per height of the sky's motion profile, each camera 2 moved back to camera 1's time
+with that height's motion; plane H is matched against the image of the height nearest to H,
+its scores weighted by how well that motion explains camera 1's own motion. Each layer is then
+compensated with its own motion, however far it moves during δ. Every pass takes either.
+
+Output: :class:`SweepField`, the refined s of every accepted pixel of camera 1's region (the
+matcher makes the height map from it in closed form, h = o1z + 1/s, and a lattice of
+correspondences, :func:`field_points`: px2 = the plane mapping at s; the exact camera-2 ray
+follows from s, so triangulation needs no fisheye back-projection of px2). Such a
+correspondence lies on the epipolar geometry by construction, so its ray miss is ≈ 0 (not a
+measurement of matching quality; the sparse ``lk`` matches carry that).
 """
 from __future__ import annotations
 
