@@ -125,6 +125,9 @@ def main() -> None:
     ap.add_argument("--oblique-levels", type=int, default=None, metavar="N",
                     help="cbh's matching.sweep.oblique_levels (default: the station's, 0): boxes grown 2× per level "
                          "where a plane step moves a pixel less (near the horizon)")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="cbh's dense error split by true deck and by zenith band (median and signed median): "
+                         "where the error comes from")
     ap.add_argument("--cpu-time", action="store_true",
                     help="time with process_time, OpenCV and torch on one thread (robust under load; minimum of the runs)")
     a = ap.parse_args()
@@ -209,6 +212,8 @@ def main() -> None:
         print(f"  layers: OpenCV {fmt(lay_ocv)} m, cbh {fmt(lay_cbh)} m (no truth for the real pair)")
         return
     _accuracy(truth, cam1, pipe, ocv, h_ocv, r, lay_ocv, lay_cbh, fmt)
+    if a.breakdown:
+        _breakdown(truth, cam1, pipe, r)
 
 
 def _accuracy(truth, cam1, pipe, ocv, h_ocv, r, lay_ocv, lay_cbh, fmt) -> None:
@@ -234,6 +239,28 @@ def _accuracy(truth, cam1, pipe, ocv, h_ocv, r, lay_ocv, lay_cbh, fmt) -> None:
           f" of true cloud (zenith ≤ 80°), layers {fmt(lay_ocv)} m ({_score(lay_ocv, tl)})")
     print(f"  cbh:    dense MdAPE {100 * np.median(ape_c):.2f} %, coverage {100 * have.sum() / cloud.sum():.0f} %"
           f" of true cloud (zenith ≤ 80°), layers {fmt(lay_cbh)} m ({_score(lay_cbh, sorted(tl))})")
+
+
+def _breakdown(truth, cam1, pipe, r) -> None:
+    """cbh's dense error against the truth, per true deck (pixels within 2 % of its height) and
+    per 10° of zenith: share of the measured pixels, MdAPE, signed median (+ = read too high). A
+    median error that equals its signed median is a bias (the sub-plane peak, a neighbour's
+    height), one well above it is noise (the parallax a plane step gives there)."""
+    th, tl = truth
+    zen = cam1.zenith_map()
+    have = np.isfinite(th) & (zen <= pipe.config.masks.max_zenith_deg) & np.isfinite(r.height_map)
+    if not have.any():
+        print("  breakdown: no measured cloud pixel")
+        return
+    e = (r.height_map[have] - th[have]) / th[have]
+    tv, z = th[have], zen[have]
+    rows = [(f"deck {h:.0f} m", np.abs(tv - h) <= 0.02 * h) for h in sorted(tl)]
+    rows += [(f"zenith {lo}-{lo + 10}°", (z >= lo) & (z < lo + 10)) for lo in range(0, 90, 10)]
+    print("  cbh's error by part of the sky (share of measured pixels, MdAPE, signed median):")
+    for name, m in rows:
+        if m.any():
+            print(f"    {name:<16} {100 * m.mean():5.1f} %   {100 * np.median(np.abs(e[m])):6.2f} %   "
+                  f"{100 * np.median(e[m]):+6.2f} %")
 
 
 if __name__ == "__main__":

@@ -299,8 +299,11 @@ def test_fresh_skies_of_stop_56_are_right(seed, opts, tmp_path):
 def test_fresh_dense_sky_of_stop_57_is_right(tmp_path):
     """``eval_random.py --n 24 --seed 16920 --dense`` (960 px): seed 16941, a 3194 m deck over 78 %
     of the sky and an 8846 m one over 64 %, B = 120 m, sun at 44°, white at 245: the 8846 m deck
-    is missed (flags sun_glare, exposure_mismatch, cover_incomplete). Strict expected failure: a
-    fix makes it pass, and then this mark must go."""
+    is missed (flags sun_glare, exposure_mismatch, cover_incomplete). Why (stop 58): the high deck
+    shows through the low one's gaps on 37 000 working pixels (7 % of the cloud), 97 % of them
+    segmented as cloud and 91 % accepted, but every one lies within 6 working px of the low deck's
+    edge (no gap holds a 9 px window), and all take a plane of the low deck as their own best.
+    Strict expected failure: a fix makes it pass, and then this mark must go."""
     case, r, score, _ = run_random_case(16941, load_station(station_path()), 960, tmp_path, options=DENSE)
     assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)
 
