@@ -221,22 +221,18 @@ def test_oblique_levels_sharpen_the_heights_near_the_horizon():
     assert err[2][0] <= err[0][0] * 1.05 + 1e-4
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="open (issue 36, stop 58): the quadratic plane maps over-read the parallax near the zenith")
 @pytest.mark.parametrize("height_m", [1200.0, 3500.0, 9000.0])
 def test_plane_maps_follow_the_exact_projection_near_the_zenith(height_m):
     """The sweep's plane maps (``PlaneMaps``, read through ``points`` as the matches are) against
     camera 2's exact projection of the plane's points, camera 1's pixels within 20° of the zenith,
     the unb-lea station (B = 50 m, 960 px working size). A relative error of the parallax is the
     same relative error of the height, so the maps are held to a fifth of the 0.5 % the bar's pair
-    is held to: 0.1 %. Today they are not: p2(s) = m0 + a·s + b·s², exact at s = 0, s_a, 2·s_a
-    (s_a·|B| = 0.1 rad), and near the zenith camera 2 sees the point at atan(s·|B|), an odd
-    function of s, which such a quadratic over-reads by 2/3 · 0.1² ≈ 0.67 % of the parallax as
-    s → 0 (measured: +0.25 % at 1175 m, +0.43 % at 3500 m, +0.50 % at 9000 m); every height there
-    reads that much too high (``bench_vs_opencv.py --breakdown``: zenith 0–30° +0.25 … +0.37 %).
-    A cubic through s = 0 … 3·s_a, built and reverted in stop 58, left +0.02 … +0.05 % (its limit
-    for atan: 36/5 · 0.1⁴ ≈ 0.07 %). Strict expected failure: a fix makes it pass, and then this
-    mark must go."""
+    is held to: 0.1 %. Near the zenith camera 2 sees the point at atan(s·|B|), odd in s: the
+    quadratic the maps were until stop 59 (exact at s = 0, s_a, 2·s_a, s_a·|B| = 0.1 rad)
+    over-read it by 2/3 · 0.1² ≈ 0.67 % as s → 0 (+0.25 % at 1175 m, +0.43 % at 3500 m, +0.50 %
+    at 9000 m), and every height there read that much too high (``bench_vs_opencv.py
+    --breakdown``: zenith 0–30° +0.25 … +0.37 %). The cubic through s = 0 … 3·s_a leaves
+    0.02–0.05 % (its limit for atan: 36/5 · 0.1⁴ ≈ 0.07 %)."""
     from cbh.presets import station_path
     from cbh.geometry.station import load_station
 

@@ -125,6 +125,8 @@ class PairGeometry:
         if self._planes is not None:
             p = self._planes
             out.update(plane_m0=p.m0, plane_a=p.a, plane_b=p.b, plane_scalars=np.array([p.s_a, p.scale_px]))
+            if p.c is not None:
+                out["plane_c"] = p.c
         return out
 
     @property

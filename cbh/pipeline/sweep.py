@@ -194,17 +194,19 @@ _REGION_MIN_FILL = 0.25  # a region proposes layers when this share of its cells
 
 @dataclass
 class PlaneMaps:
-    """Camera-2 pixel of each camera-1 pixel as a quadratic in s = 1/(h − o1z).
+    """Camera-2 pixel of each camera-1 pixel as a cubic in s = 1/(h − o1z).
 
     Attributes
     ----------
     m0, a, b : ndarray, shape (H1, W1, 2), float32
-        ``p2(s) = m0 + a·s + b·s²`` [px, px·m, px·m²]; m0 = _OUTSIDE, a = b = 0 where
-        camera 2 cannot see the pixel's ray at s = 0, s_a or 2·s_a.
+        ``p2(s) = m0 + a·s + b·s² + c·s³`` [px, px·m, px·m², px·m³]; m0 = _OUTSIDE, a = b = c = 0
+        where camera 2 cannot see the pixel's ray at s = 0, s_a or 2·s_a.
     s_a : float
         Anchor [1/m].
     scale_px : float
         Largest ``|a|`` over valid pixels: parallax in pixels per unit s [px·m].
+    c : ndarray, shape (H1, W1, 2), float32, or None
+        The cubic term (None: a quadratic; 0 where camera 2 cannot see the ray at 3·s_a).
     """
 
     m0: np.ndarray
@@ -212,6 +214,12 @@ class PlaneMaps:
     b: np.ndarray
     s_a: float
     scale_px: float
+    c: "np.ndarray | None" = None
+
+    @property
+    def terms(self) -> tuple:
+        """(m0, a, b) or (m0, a, b, c): the polynomial's coefficients, lowest first."""
+        return (self.m0, self.a, self.b) if self.c is None else (self.m0, self.a, self.b, self.c)
 
     def at(self, s: float, sl=np.s_[:, :], rows: slice = np.s_[:]) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 for one plane, on the region ``sl`` (of it,
@@ -243,8 +251,8 @@ class PlaneMaps:
             self._region_tables("merged", sl)
 
     def _tables_at(self, s: float, sl, rows: slice = np.s_[:]) -> tuple[np.ndarray, np.ndarray]:
-        tx, ty = self._region_tables("merged", sl)  # (h, w, 3) tables (m0, a, b) per axis
-        coef = np.array([[1.0, float(s), float(s) * float(s)]])  # one pass per axis: m0 + a·s + b·s²
+        tx, ty = self._region_tables("merged", sl)  # (h, w, 3 or 4) tables (m0, a, b[, c]) per axis
+        coef = np.array([[float(s) ** k for k in range(tx.shape[2])]])  # one pass per axis: m0 + a·s + b·s² + c·s³
         return cv2.transform(tx[rows], coef), cv2.transform(ty[rows], coef)
 
     def keep_planes(self, max_mb: float) -> None:
@@ -284,7 +292,7 @@ class PlaneMaps:
         hit = cache.get(key)
         if hit is not None:
             return hit
-        cut = [[np.ascontiguousarray(m[sl + (k,)]) for m in (self.m0, self.a, self.b)] for k in (0, 1)]
+        cut = [[np.ascontiguousarray(m[sl + (k,)]) for m in self.terms] for k in (0, 1)]
         val = [cv2.merge(c) for c in cut] if kind == "merged" else cut
         with _REGION_LOCK:
             while len(cache) >= _REGION_CACHE:
@@ -300,20 +308,22 @@ class PlaneMaps:
         w = self.m0.shape[1]
         idx = np.asarray(yi, np.int64) * w + np.asarray(xi, np.int64)  # flat gathers: ~3× faster
         s = np.asarray(s, np.float32)[:, None]
-        m0, a, b = (m.reshape(-1, 2)[idx] for m in (self.m0, self.a, self.b))
-        b *= s
-        b += a
-        b *= s
-        b += m0
-        return b.astype(np.float64)
+        terms = [m.reshape(-1, 2)[idx] for m in self.terms]
+        v = terms[-1]
+        for m in terms[-2::-1]:  # Horner: ((c·s + b)·s + a)·s + m0
+            v *= s
+            v += m
+        return v.astype(np.float64)
 
     def pixels(self, s: np.ndarray, sl) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 on the region ``sl`` for a per-pixel s (h, w)
         float32; where s is NaN (no plane) the pixel maps far outside (``_OUTSIDE``)."""
         s = np.asarray(s, np.float32)
         out = []
-        for m0, a, b in self._region_tables("split", sl):
-            v = cv2.add(cv2.multiply(cv2.add(cv2.multiply(b, s), a), s), m0)  # m0 + a·s + b·s²
+        for terms in self._region_tables("split", sl):
+            v = terms[-1]
+            for m in terms[-2::-1]:  # Horner: ((c·s + b)·s + a)·s + m0
+                v = cv2.add(cv2.multiply(v, s), m)
             cv2.patchNaNs(v, _OUTSIDE)  # in place
             out.append(v)
         return out[0], out[1]
@@ -336,8 +346,13 @@ class PlaneMaps:
         bad = m0[..., 0] < -1.0e3
         m0 = (m0 + 0.5) / factor - 0.5
         a, b = rs(self.a) / factor, rs(self.b) / factor
+        c = None if self.c is None else rs(self.c) / factor
         m0[bad], a[bad], b[bad] = _OUTSIDE, 0.0, 0.0
-        return PlaneMaps(m0.astype(np.float32), a.astype(np.float32), b.astype(np.float32), self.s_a, self.scale_px / factor)
+        if c is not None:
+            c[bad] = 0.0
+            c = c.astype(np.float32)
+        return PlaneMaps(m0.astype(np.float32), a.astype(np.float32), b.astype(np.float32), self.s_a, self.scale_px / factor,
+                         c)
 
 
 class _KeptPlanes:
@@ -514,20 +529,25 @@ def plane_maps(cam1, cam2, rays1_world: np.ndarray) -> PlaneMaps:
     base = np.asarray(cam2.position_m, np.float64) - np.asarray(cam1.position_m, np.float64)
     blen = float(np.linalg.norm(base))
     s_a = 0.1 / max(blen, 1e-6)
-    maps, ok = [], d[:, 2] > 1e-3
-    for s in (0.0, s_a, 2.0 * s_a):
+    maps, seen = [], []
+    for s in (0.0, s_a, 2.0 * s_a, 3.0 * s_a):
         p = cam2.direction_to_pixel(d - s * d[:, 2:3] * base[None, :])
         good = np.isfinite(p).all(axis=1)
         good[good] = cam2.model.contains(p[good])
-        ok &= good
+        seen.append(good)
         maps.append(np.nan_to_num(p, nan=0.0))
-    p0, p1, p2 = maps
-    a = (4.0 * p1 - p2 - 3.0 * p0) / (2.0 * s_a)
-    b = (p2 - 2.0 * p1 + p0) / (2.0 * s_a * s_a)
-    p0[~ok], a[~ok], b[~ok] = _OUTSIDE, 0.0, 0.0
+    ok = (d[:, 2] > 1e-3) & seen[0] & seen[1] & seen[2]
+    p0, p1, p2, p3 = maps
+    # Newton's forward differences in t = s / s_a: p0 + t·Δ1 + t(t−1)/2·Δ2 + t(t−1)(t−2)/6·Δ3, expanded
+    d1, d2 = p1 - p0, p2 - 2.0 * p1 + p0
+    d3 = np.where(seen[3][:, None], p3 - 3.0 * p2 + 3.0 * p1 - p0, 0.0)  # (no 4th node: the quadratic)
+    a = (d1 - d2 / 2.0 + d3 / 3.0) / s_a
+    b = (d2 / 2.0 - d3 / 2.0) / (s_a * s_a)
+    c = d3 / (6.0 * s_a ** 3)
+    p0[~ok], a[~ok], b[~ok], c[~ok] = _OUTSIDE, 0.0, 0.0, 0.0
     scale = float(np.linalg.norm(a[ok], axis=1).max()) if ok.any() else 1.0
     f32 = lambda m: m.reshape(h, w, 2).astype(np.float32)  # noqa: E731
-    return PlaneMaps(f32(p0), f32(a), f32(b), s_a, scale)
+    return PlaneMaps(f32(p0), f32(a), f32(b), s_a, scale, f32(c))
 
 
 def _box(img, k):

@@ -146,6 +146,8 @@ class TorchPlaneMaps:
         self.an = upload(maps.a, device, torch.float32) * scale
         self.bn = upload(maps.b, device, torch.float32) * scale
         self.m0, self.a, self.b = m0, upload(maps.a, device, torch.float32), upload(maps.b, device, torch.float32)
+        self.c = None if maps.c is None else upload(maps.c, device, torch.float32)
+        self.cn = None if maps.c is None else self.c * scale
         self._down: dict[int, TorchPlaneMaps] = {}
 
     def downsampled(self, factor: int, size2: tuple[int, int]) -> "TorchPlaneMaps":
@@ -155,12 +157,16 @@ class TorchPlaneMaps:
 
     def grid(self, s: torch.Tensor, region) -> torch.Tensor:
         s = s.reshape(-1, 1, 1, 1)
-        return self.m0n[region] + s * (self.an[region] + s * self.bn[region])
+        if self.cn is None:
+            return self.m0n[region] + s * (self.an[region] + s * self.bn[region])
+        return self.m0n[region] + s * (self.an[region] + s * (self.bn[region] + s * self.cn[region]))
 
     def points(self, s: torch.Tensor, yi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
         """Camera-2 pixels (N, 2) at per-pixel s (N,) for camera-1 pixels (yi, xi) (float32)."""
         s = s[:, None]
-        return self.m0[yi, xi] + (self.a[yi, xi] + self.b[yi, xi] * s) * s
+        if self.c is None:
+            return self.m0[yi, xi] + (self.a[yi, xi] + self.b[yi, xi] * s) * s
+        return self.m0[yi, xi] + (self.a[yi, xi] + (self.b[yi, xi] + self.c[yi, xi] * s) * s) * s
 
 
 def zncc_half(i1: torch.Tensor, g2: torch.Tensor, tm: TorchPlaneMaps, s: np.ndarray, half_window: int,
