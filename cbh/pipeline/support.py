@@ -47,7 +47,7 @@ def hypothesis_zncc(gray1: np.ndarray, gray2: np.ndarray, planes, s_values, px1:
     gray1, gray2 : ndarray, shape (H1, W1) and (H2, W2)
         Working-size grey images.
     planes : PlaneMaps
-        Camera-2 pixel of each camera-1 pixel as a quadratic in s (:class:`~.sweep.PlaneMaps`).
+        Camera-2 pixel of each camera-1 pixel as a cubic in s (:class:`~.sweep.PlaneMaps`).
     s_values : sequence of float
         The planes' s = 1/(h − o1z) [1/m].
     px1 : ndarray, shape (N, 2), int

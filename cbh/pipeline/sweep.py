@@ -12,15 +12,16 @@ Plane mapping (exact geometry, no rectification). For a camera-1 ray d (ENU, uni
 plane at height h, the point is o1 + d·(h − o1z)/d_z, and its direction from camera 2 is
 proportional to ``d − s·d_z·B`` with ``s = 1/(h − o1z)`` [1/m] and ``B = o2 − o1``. The
 camera-2 pixel is therefore a smooth function of the single number s. It is evaluated
-exactly (``Camera.direction_to_pixel``) for s = 0 (infinity), s_a and 2·s_a once per camera
-pair, and in between by the quadratic through those three maps
-(:class:`PlaneMaps`): ``p2(s) = m0 + a·s + b·s²`` — 2 FMAs per pixel per plane instead of a
-fisheye projection. ``s_a·|B| = 0.1 rad``: interpolation covers parallaxes up to 0.2 rad
-(h ≥ 5·|B|), with a cubic remainder below 0.05 px; beyond, it extrapolates. Near the zenith
-that remainder is a bias: camera 2 sees the point at atan(s·|B|), odd in s, and the quadratic
-over-reads the parallax (and so the height) by up to 2/3 · 0.1² ≈ 0.67 % (+0.25 % at 1175 m,
-B = 50 m; ``tests/test_sweep_field.py::test_plane_maps_follow_the_exact_projection_near_the_zenith``,
-a strict expected failure, docs/accuracy.md "Stop 58").
+exactly (``Camera.direction_to_pixel``) for s = 0 (infinity), s_a, 2·s_a and 3·s_a once per
+camera pair, and in between by the cubic through those four maps (:class:`PlaneMaps`):
+``p2(s) = m0 + a·s + b·s² + c·s³`` — 3 FMAs per pixel per plane instead of a fisheye
+projection. ``s_a·|B| = 0.1 rad``: interpolation covers parallaxes up to 0.3 rad
+(h ≥ 3.3·|B|); beyond, it extrapolates. Near the zenith camera 2 sees the point at
+atan(s·|B|), odd in s; the quadratic through s = 0, s_a, 2·s_a that the maps were until stop 59
+over-read the parallax (and so the height) by up to 2/3 · 0.1² ≈ 0.67 % (+0.25 % at 1175 m,
+B = 50 m); the cubic leaves 0.02–0.05 %
+(``tests/test_sweep_field.py::test_plane_maps_follow_the_exact_projection_near_the_zenith``,
+docs/accuracy.md "Stop 58" and "Stop 59").
 
 Planes are spaced uniformly in s, so neighbouring planes shift image 2 by at most
 ``step_px`` pixels anywhere in the image (``|a|`` is the parallax in pixels per unit s).
@@ -103,7 +104,7 @@ side, while 2 % of a far layer's height is a small parallax (2 % of p). A layer 
 peak has less than ``far_aggregate_px`` of parallax is refined on a box grown by
 ``far_aggregate_px`` / p (at most 4×): coarser detail where the parallax is small.
 
-Oblique pixels, the same physics within a layer (``oblique_levels``, off by default): a plane
+Oblique pixels, the same physics within a layer (``oblique_levels``, 2 by default): a plane
 step shifts a pixel near the horizon far less than one at the zenith (its *reach*,
 :func:`parallax_reach`: the camera-2 shift per unit s against the image's largest, ≈ cos z for
 a horizontal plane), so one pixel of parallax noise is a larger share of its height (one flat
@@ -113,12 +114,10 @@ a horizontal plane), so one pixel of parallax noise is a larger share of its hei
 ``_MAX_GROW``), :func:`reach_levels`: the noise of a box average falls like 1/side. Measured on
 that deck: 60–70° 0.92 → 0.45 %, 70–80° 7.3 → 1.1 %, the zenith unchanged; the bar's two-layers
 pair (``bench_vs_opencv.py --oblique-levels 2``): dense MdAPE 0.62 → 0.51 %, the refinement
-≈ 20 ms more on one thread. Off by default: on the 480 px network sky whose reference camera is
-2° off level (``tests/test_network.py``), the 630 m pair's geometry check, LK seeded at the
-sweep's matches (:mod:`.geocheck`), kept a slightly different 96 matches; its fitted turn then took less
-than 15 % off their scatter, so its σ came from the agreement of 6 patches of sky (leave-one-out
-0.62–1.19°, ± 0.81° after the widening for 5 degrees of freedom) and 0.92° was not significant,
-where before the formal 1.12° ± 0.14° stood; the other camera (cam2) was named.
+≈ 20 ms more on one thread. It was off until stop 59: on the 480 px network sky whose reference
+camera is 2° off level (``tests/test_network.py``), the 630 m pair's geometry check (LK seeded at
+the sweep's matches, :mod:`.geocheck`) kept a slightly different 96 matches with the levels on,
+and the other camera was named; with the cubic plane maps it names the right one either way.
 
 Resolvability (numbers for the Table 1 lenses at the default working size, lens radius 480 px
 for 90°, 305.6 px/rad): parallax at zenith p = 305.6 px · B / h. The aggregated per-pixel
@@ -260,7 +259,7 @@ class PlaneMaps:
         whole process (every mapping and its downsampled versions share one store; the latest
         sweep's budget holds; 0 = off for this mapping, the others unchanged).
 
-        Building a plane's tables (one pass over the (h, w, 3) quadratic per axis) is a third of
+        Building a plane's tables (one pass over the (h, w, 4) cubic per axis) is a third of
         a fine plane's ZNCC (measured 7.7 → 5.4 ms per plane at 960 px, one thread), and the
         planes of the sweep lie on a lattice fixed per station (the coarse ones, the far range,
         each layer's ±1.5 coarse steps), so the next pair asks for the same ones. At 960 px a

@@ -21,7 +21,7 @@ kornia where it fits:
   by 2/(W − 1), which only ``align_corners=True`` maps back to pixel centres; its default,
   False, is off by up to half a pixel at the edges). :func:`remap` wraps it; the sweep itself
   samples with ``torch.nn.functional.grid_sample`` on plane grids *pre-normalised* the same
-  way (the quadratic p2(s) = m0 + a·s + b·s² is linear in the tables, so normalising the three
+  way (the cubic p2(s) = m0 + a·s + b·s² + c·s³ is linear in the tables, so normalising the four
   tables once equals normalising every plane's map), which saves kornia's per-call stack and
   normalisation of a (P, h, w, 2) grid;
 - box filters: not ``kornia.filters.box_blur``: for even sizes it anchors the box on the
