@@ -162,6 +162,24 @@ def test_pale_clear_sky_of_one_class_is_clear():
     assert not one_class_is_clear(np.full(1000, 0.3, np.float32), lambda: np.full(1000, 0.08, np.float32), cfg,
                                   np.full(1000, 0.4, np.float32))  # blue but textured: cloud
 
+    # a warm cast: red above blue (NBR < 0) with a sky's chroma is grey cloud, not clear sky
+    assert not one_class_is_clear(np.full(1000, -0.12, np.float32), smooth, cfg, np.full(1000, 0.21, np.float32))
+
+
+def test_a_warm_cast_overcast_is_not_clear_sky(tmp_path):
+    """``eval_random.py --n 30 --seed 16944 --dense`` (960 px), seed 16947: decks at 303 m over
+    83 % of the sky, 542 and 2170 m, camera 1 warm-cast (median NBR −0.12, chroma 0.21), its
+    local contrast 0.030 (at ``texture_cv``): both cameras read one class, camera 1 called it
+    clear on its chroma, and the pair reported a clear sky under an overcast. Chroma is a clear
+    sky's cue only for a sky bluer than red (grey under a +10 % warm cast with gamma 1.25:
+    chroma ≈ 0.22)."""
+    from cbh.sim.randomize import RandomOptions
+
+    case, r, score, _ = run_random_case(16947, load_station(station_path()), 960, tmp_path,
+                                        options=RandomOptions(dense=True))
+    assert min(r.cloud_fraction.values()) > 0.8 and "clear_sky" not in r.flags, (r.cloud_fraction, r.flags)
+    assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)
+
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [105, 111, 113, 117, 121, 137, 200, 201, 202, 203, 204, 205])

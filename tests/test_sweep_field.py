@@ -185,6 +185,30 @@ def replace_cfg(cfg, **kw):
     return dataclasses.replace(cfg, **kw)
 
 
+@pytest.mark.parametrize("levels", [0, pytest.param(2, marks=pytest.mark.xfail(
+    strict=True, raises=AssertionError, reason="open (stop 59): a grown box mixes in a missed deck's pixels"))])
+def test_oblique_levels_do_not_pull_a_deck_toward_a_missed_one(levels, tmp_path):
+    """``eval_random.py --n 30 --seed 16974 --size 480 --skylines --unmasked --twice-encoded
+    --dense``, seed 16981: decks at 334 m over 69 %, 538 m over 35 % and 5616 m over 33 %
+    (missed), B = 32 m. Without oblique levels the 538 m deck reads 535 m; with them 587 m (600 m
+    with one level), a confident wrong layer: a grown box sums the cost of every pixel labelled
+    with the layer, and the missed deck's pixels are labelled with the nearest one. The reason
+    ``oblique_levels`` stays off by default; strict expected failure with them on."""
+    from dataclasses import replace
+
+    from cbh.pipeline.config import PipelineConfig
+    from cbh.presets import station_path
+    from cbh.geometry.station import load_station
+    from cbh.sim.randomize import RandomOptions, run_random_case
+
+    cfg = PipelineConfig()
+    cfg = replace(cfg, matching=replace(cfg.matching, sweep=replace(cfg.matching.sweep, oblique_levels=levels)))
+    opts = RandomOptions(dense=True, skylines=True, unmasked=True, twice_encoded=True)
+    case, r, score, _ = run_random_case(16981, load_station(station_path()), 480, tmp_path, config=cfg, options=opts)
+    assert min(abs(f - 538.0) for f in score.found_m) < 0.02 * 538.0, (case.describe(), score.found_m)
+    assert score.spurious_m == [], score.spurious_m
+
+
 @pytest.mark.slow
 def test_oblique_levels_sharpen_the_heights_near_the_horizon():
     """``oblique_levels``: one flat 1200 m deck of the two-layers texture (B = 50 m, 1920 px): a
