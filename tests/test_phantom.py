@@ -166,6 +166,7 @@ def test_pale_clear_sky_of_one_class_is_clear():
     assert not one_class_is_clear(np.full(1000, -0.12, np.float32), smooth, cfg, np.full(1000, 0.21, np.float32))
 
 
+@pytest.mark.slow  # (9 s at 960 px; the rule itself: the test above, by default)
 def test_a_warm_cast_overcast_is_not_clear_sky(tmp_path):
     """``eval_random.py --n 30 --seed 16944 --dense`` (960 px), seed 16947: decks at 303 m over
     83 % of the sky, 542 and 2170 m, camera 1 warm-cast (median NBR −0.12, chroma 0.21), its

@@ -8,6 +8,8 @@ closest approach: ≤ 1e-5 relative), same rejections, and the point set is the 
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -245,6 +247,15 @@ def test_oblique_levels_sharpen_the_heights_near_the_horizon():
     assert err[2][0] <= err[0][0] * 1.05 + 1e-4
 
 
+@functools.lru_cache(maxsize=1)
+def _unb_lea_pipeline():
+    """The unb-lea station's pipeline (960 px working size), built once for the map tests."""
+    from cbh.presets import station_path
+    from cbh.geometry.station import load_station
+
+    return Pipeline(load_station(station_path("unb-lea")))
+
+
 @pytest.mark.parametrize("height_m", [1200.0, 3500.0, 9000.0])
 def test_plane_maps_follow_the_exact_projection_near_the_zenith(height_m):
     """The sweep's plane maps (``PlaneMaps``, read through ``points`` as the matches are) against
@@ -257,11 +268,7 @@ def test_plane_maps_follow_the_exact_projection_near_the_zenith(height_m):
     at 9000 m), and every height there read that much too high (``bench_vs_opencv.py
     --breakdown``: zenith 0–30° +0.25 … +0.37 %). The cubic through s = 0 … 3·s_a leaves
     0.02–0.05 % (its limit for atan: 36/5 · 0.1⁴ ≈ 0.07 %)."""
-    from cbh.presets import station_path
-    from cbh.geometry.station import load_station
-
-    st = load_station(station_path("unb-lea"))
-    pipe = Pipeline(st)
+    pipe = _unb_lea_pipeline()
     geom = pipe.geometry
     pm, cam1, cam2 = geom.planes, geom.cam1, geom.cam2
     near = (pipe.zenith(0) < 20.0) & np.isfinite(pipe.zenith(0))
