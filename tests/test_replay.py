@@ -111,8 +111,9 @@ def test_reprocess_reruns_the_pipeline_and_records(tmp_path, short_session, caps
         # same images, same station, same config: the pipeline is deterministic on CPU ...
         assert [l.height_m for l in c.result.layers] == [l.height_m for l in b.result.layers]
         # ... and the recording's own pipeline (an older cbh's, as a station's archive is) found the
-        # same layers: the repository's sample predates later changes that moved them by < 0.1 %
-        assert [l.height_m for l in b.result.layers] == pytest.approx([l.height_m for l in a.result.layers], rel=2e-3)
+        # same layers: the repository's sample predates later changes that moved them by < 0.1 %, and
+        # the cubic plane maps of stop 59, which took a zenith bias of up to 0.5 % out (3486 → 3477 m)
+        assert [l.height_m for l in b.result.layers] == pytest.approx([l.height_m for l in a.result.layers], rel=5e-3)
     assert rrd_verify(rrd).returncode == 0
 
 
