@@ -365,8 +365,8 @@ def _exact_beyond_tables(g: PairGeometry, s: np.ndarray, mx: np.ndarray, my: np.
     The tables interpolate camera 2's pixel up to s = 3·s_a (a parallax of 0.3 rad; for atan
     within 0.06 %) and extrapolate beyond (−0.1 % at 0.4 rad, −0.4 % at 0.5 rad); the pixels
     past s = 2·s_a (heights under 5·|B|: for a 50 m pair, cloud under 250 m) are re-triangulated,
-    where the quadratic the maps were until stop 59 extrapolated. The sweep still finds the right pixel there (the texture matches at p2(s)), but the s that the
-    extrapolated table put at that pixel is not the height of the two rays through it: on a
+    where the quadratic the maps were until stop 59 extrapolated. The sweep still finds the right
+    pixel there (the texture matches at p2(s)), but the s that the extrapolated table put at that pixel is not the height of the two rays through it: on a
     630 m pair a flat 1500 m base read 1528 m at the zenith and 1498 m at 60° (true rays: within
     ±5 m). So pixels beyond the tables get s from camera 1's ray and camera 2's back-projected
     ray through their matched pixel (closest approach: :func:`~cbh.geometry.triangulate.triangulate`)."""

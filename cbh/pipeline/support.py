@@ -67,16 +67,12 @@ def hypothesis_zncc(gray1: np.ndarray, gray2: np.ndarray, planes, s_values, px1:
     a = gray1[yy, xx].astype(np.float32)
     a -= a.mean(axis=1, keepdims=True)
     na = np.sqrt((a * a).sum(axis=1))
-    m0, qa, qb = planes.m0[yy, xx], planes.a[yy, xx], planes.b[yy, xx]
-    qc = planes.c[yy, xx] if planes.c is not None else None
+    yi, xi = yy.ravel(), xx.ravel()
     H2, W2 = gray2.shape
     out = np.full((len(s_values), len(px1)), np.nan, np.float32)
     g2 = gray2.astype(np.float32)
     for i, s in enumerate(s_values):
-        p2 = m0 + qa * np.float32(s) + qb * np.float32(s * s)
-        if qc is not None:
-            p2 = p2 + qc * np.float32(s * s * s)
-        p2 = p2.astype(np.float32)
+        p2 = planes.points(np.full(len(yi), s, np.float32), yi, xi).astype(np.float32).reshape(yy.shape + (2,))
         inside = ((p2[..., 0] >= 0) & (p2[..., 0] <= W2 - 1) & (p2[..., 1] >= 0) & (p2[..., 1] <= H2 - 1)).all(axis=1)
         b = cv2.remap(g2, np.ascontiguousarray(p2[..., 0]), np.ascontiguousarray(p2[..., 1]), cv2.INTER_LINEAR)
         b -= b.mean(axis=1, keepdims=True)
