@@ -123,7 +123,7 @@ def main() -> None:
     ap.add_argument("--working-radius", type=float, default=None, metavar="PX",
                     help="cbh's pipeline.working_radius_px (default: the station's, 480): the speed/accuracy trade-off")
     ap.add_argument("--oblique-levels", type=int, default=None, metavar="N",
-                    help="cbh's matching.sweep.oblique_levels (default: the station's, 0): boxes grown 2× per level "
+                    help="cbh's matching.sweep.oblique_levels (default: the station's, 2): boxes grown 2× per level "
                          "where a plane step moves a pixel less (near the horizon)")
     ap.add_argument("--breakdown", action="store_true",
                     help="cbh's dense error split by true deck and by zenith band (median and signed median): "

@@ -132,8 +132,9 @@ def test_a_layer_s_base_comes_from_its_better_measured_half():
     ∝ B⊥ cos z 2–4 times the others', predicted noise 1.5–3 m), at 400 ± 2 m; the other 60 % (near
     the horizon, predicted 3–8 m) spread over the planes swept there, 288–420 m. From the spread of
     all points the base is 6 % low; the spread of the better-measured half is nil: the base is the
-    median of all points, which the horizon's half pulls down by 1 %. The median and spread
-    reported still say what all its points say; without the points' parallax, as before."""
+    layer's median. That median weighs the worse-measured half down by its inverse variance
+    (:func:`layers.geometry_median`), so the horizon's half pulls it down by less than the 1 % of
+    the plain median; without the points' parallax, the plain median as before."""
     rng = np.random.default_rng(5)
     h = np.r_[400.0 + rng.normal(0.0, 2.0, 800), rng.uniform(288.0, 420.0, 1200)]
     noise = np.r_[rng.uniform(1.5, 3.0, 800), rng.uniform(3.0, 8.0, 1200)]
@@ -141,10 +142,27 @@ def test_a_layer_s_base_comes_from_its_better_measured_half():
     parallax = 30.0 * geo * 400.0 / h
     cfg = LayersConfig()
     L = layer_stats(h, 0.3, cfg, noise, parallax=parallax)
-    assert 0.98 * 400.0 < L.height_m <= L.median_height_m < L.height_m + 0.005 * 400.0
+    assert 0.99 * 400.0 < L.height_m <= L.median_height_m < L.height_m + 0.005 * 400.0
     before = layer_stats(h, 0.3, cfg, noise)
     assert before.height_m < 0.95 * 400.0
-    assert (L.median_height_m, L.spread_m) == (before.median_height_m, before.spread_m)
+    assert before.median_height_m == pytest.approx(float(np.median(h)))
+    assert before.median_height_m < 0.99 * 400.0 < L.median_height_m <= 400.0 + 2.0
+
+
+def test_the_median_weighs_only_the_worse_measured_half_down():
+    """:func:`layers.geometry_median`: points whose geometry (parallax × height above camera 1)
+    is at least the median's count alike, whatever their height (a deck whose height changes
+    across the sky keeps its median); a point with half the median geometry counts a quarter."""
+    from cbh.pipeline.layers import geometry_median
+
+    h = np.array([100.0, 200.0, 300.0, 400.0, 500.0])
+    good = 10.0 / (h - 0.0)  # parallax × height = 10: all alike
+    assert geometry_median(h, good, 0.0) == 300.0
+    better = good * np.array([1.0, 1.0, 1.0, 3.0, 3.0])  # better geometry does not pull
+    assert geometry_median(h, better, 0.0) == 300.0
+    worse = good * np.array([0.5, 0.5, 1.0, 1.0, 1.0])  # two points at a quarter weight each
+    assert geometry_median(h, worse, 0.0) == 400.0
+    assert geometry_median(h, None, 0.0) == 300.0
 
 
 def test_no_match_where_the_sweep_stopped():

@@ -169,14 +169,15 @@ def _rel_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="open (stop 59): since the cubic plane maps the torch "
-                   "backend's measured heights differ from OpenCV's by > 0.1 % on 2.6 % of pixels (0.14 % before)")
 def test_pipeline_on_torch_matches_opencv(scene):
     """Layers within 0.2 %; the height map's measured pixels: 99 % within 0.1 % (as the sweep's
     passes agree). With the fill, a filled pixel (≤ 3 px from a measured one) copies its nearest
     measured height, and OpenCV's chamfer distances (≤ 2 % long) can rank another seed first than
     the exact jump flooding does: at a layer edge that is the other layer's height (measured:
-    1.27 % of pixels off by more than 0.1 %, against 0.91 % with OpenCV's fill on both sides)."""
+    1.27 % of pixels off by more than 0.1 %, against 0.91 % with OpenCV's fill on both sides).
+    A strict expected failure in stop 59 (2.6 % of the unfilled pixels off by more than 0.1 %, at
+    50–80° from the zenith); it passes again since stop 60 (edge windows weighed down, oblique
+    levels on), the cause of the gap not isolated."""
     from dataclasses import replace
 
     shot, r_n = scene["shot"], scene["result"]

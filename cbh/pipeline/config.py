@@ -160,7 +160,7 @@ class SweepConfig:
     aggregate_px: int = 31  # refine each pixel on its layer's cost summed over this box (1 = off) [px]
     label_px: int = 15  # box over which a pixel's cost decides its layer [px]
     far_aggregate_px: float = 8.0  # layers with less parallax than this get a box grown by this/parallax (≤ 4×); 0 = off [px]
-    oblique_levels: int = 0  # pixels a plane step moves less (near the horizon) refined on their layer's box grown 2× per level:
+    oblique_levels: int = 2  # pixels a plane step moves less (near the horizon) refined on their layer's box grown 2× per level:
     #                          below 1/√2 of the zenith's shift, 4× below 1/(2√2), … (≤ 4× in all); 0 = off [1]
     vote_percentile: float = 70.0  # fine layer votes: only pixels whose wide-box ZNCC is above this percentile [%]
     region_px: int = 64  # layers are also proposed per region of this side (a deck seen only through gaps); 0 = off [px]

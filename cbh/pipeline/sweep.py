@@ -1613,8 +1613,9 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
             s_half = lab.s_wide
         else:
             mL = lab.label == L
-            if n_layers > 1:  # only pixels whose own best plane is in this layer
+            if n_layers > 1:  # only pixels whose own best plane is in this layer, weighed by their window
                 mL &= lab.plane_layer[lab.own_plane] == L
+                mL = mL * layer_interior(lab.label == L, cfg.window_px)
             ja, s_half = _oblique_peaks(cost, mL, lab.label == L, sel, s, ds, kL, levels, fine.reach if oblique else None)
             cut = truncated(sel[ja], s, ds)
             if cut.any():  # (NaN there: not matched; bilinear on the neighbours' s as before)
@@ -1624,6 +1625,24 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
         up = cv2.resize(s_half, (w, h), interpolation=cv2.INTER_LINEAR)
         cv2.copyTo(up, here.view(np.uint8), s_px)
     return fine.to_s(s_px)
+
+
+_EDGE_WEIGHT = 0.05  # a layer pixel whose ZNCC window reaches across the layer's boundary counts this much [1]
+
+
+def layer_interior(inside: np.ndarray, window_px: int) -> np.ndarray:
+    """Weights (h/2, w/2) float32 of a layer's pixels ``inside`` (its label, half resolution) in
+    its box sums: 1 where the pixel's ``window_px`` ZNCC window (working size) lies in the layer,
+    ``_EDGE_WEIGHT`` where it reaches across the layer's boundary. Such a window holds the other
+    deck's texture too, moving with the other deck's parallax: its cost peaks between the two,
+    and summed into the layer's box it pulls the layer's heights towards the other deck (the
+    bar's 3500 m deck read −2 … −3.4 % at 50–70° from the zenith, its 1200 m deck +1 %, where
+    foreshortened gaps leave few pixels far from an edge; a lone deck of either height reads
+    within 0.2 % there). Not zero: a sliver of a layer narrower than a window keeps its own sum."""
+    r = max(int(window_px) // 2 + 1, 2) // 2  # the window's half side at half resolution, rounded up
+    k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
+    core = cv2.erode(inside.view(np.uint8), k, borderType=cv2.BORDER_REPLICATE).astype(bool)
+    return np.where(core, 1.0, _EDGE_WEIGHT).astype(np.float32) * inside
 
 
 def reach_levels(kL: int, k2: int, shape: tuple[int, int], cfg) -> list[tuple[int, float]]:
@@ -1643,7 +1662,8 @@ def reach_levels(kL: int, k2: int, shape: tuple[int, int], cfg) -> list[tuple[in
 
 def _oblique_peaks(cost: np.ndarray, mL: np.ndarray, label: np.ndarray, sel: np.ndarray, s: np.ndarray, ds: float,
                    kL: int, levels: list, reach: "np.ndarray | None"):
-    """Best plane (index into ``sel``) and refined u of the cost of the pixels ``mL`` summed over
+    """Best plane (index into ``sel``) and refined u of the cost of the pixels ``mL`` (bool, or
+    float weights: :func:`layer_interior`) summed over
     the layer's box ``kL``; for the oblique pixels of the layer's ``label`` (bool), u of the grown
     boxes of ``levels`` (:func:`reach_levels`). A box f × ``kL`` runs as ``kL`` on the costs
     pooled f × f (the same sums on every f-th pixel, for 1/f² of the work), its u brought back

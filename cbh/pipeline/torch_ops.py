@@ -59,7 +59,8 @@ from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
     CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_lattice, plane_range, coarse_planes,
-    coarse_regions, coarse_layers, fine_planes, layer_box, layer_planes, own_plane_peaks, parallax_reach, peak_offset, reach_levels,
+    coarse_regions, coarse_layers, fine_planes, layer_box, layer_interior, layer_planes, own_plane_peaks, parallax_reach,
+    peak_offset, reach_levels,
     resolved_layers, truncated, vote_layers, SweepField, field_points,
 )
 
@@ -374,9 +375,11 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
             s_half = lab.s_wide  # as the OpenCV twin: the wide-box winner itself
         else:
             mL = lab.label == L
-            if n_layers > 1:
-                mL = mL & (plane_layer[lab.own_plane] == L)
-            prod = cost[torch.as_tensor(sel, device=dev)] * mL.float()
+            weight = mL.float()
+            if n_layers > 1:  # as the OpenCV twin: own best plane in the layer, windows across its edge weighed less
+                inner = layer_interior((lab.label == L).cpu().numpy(), cfg.window_px)
+                weight = (mL & (plane_layer[lab.own_plane] == L)).float() * torch.as_tensor(inner, device=dev)
+            prod = cost[torch.as_tensor(sel, device=dev)] * weight
             ja, s_half = _oblique_peaks(prod, lab.label == L, sel, s, ds, kL, levels if oblique else [], fine.reach)
             cut = torch.as_tensor(truncated(np.asarray(sel)[ja.cpu().numpy()], s, ds), device=dev)
             if bool(cut.any()):  # as the OpenCV twin: not matched where the sweep stopped
