@@ -187,7 +187,7 @@ def replace_cfg(cfg, **kw):
     return dataclasses.replace(cfg, **kw)
 
 
-@pytest.mark.parametrize("levels", [0, 2])
+@pytest.mark.parametrize("levels", [pytest.param(0, marks=pytest.mark.slow), 2])  # (levels off: the suite's time)
 def test_a_deck_seen_only_near_the_horizon_is_not_pulled_up(levels, tmp_path):
     """``eval_random.py --n 30 --seed 16974 --size 480 --skylines --unmasked --twice-encoded
     --dense``, seed 16981: decks at 334 m over 69 %, 538 m over 35 % (seen only 55–80° from the
