@@ -262,6 +262,7 @@ def test_a_layer_window_across_its_edge_weighs_less():
     w = layer_interior(inside, 9)
     assert w.dtype == np.float32
     assert np.all(w[~inside] == 0.0)
+    assert 0.0 < _EDGE_WEIGHT <= 0.1  # an edge window counts for little, but a sliver keeps a sum
     assert np.all(w[:, 28:30] == pytest.approx(_EDGE_WEIGHT)) and np.all(w[:16, :28] == 1.0)
     assert w[16, 12] == pytest.approx(_EDGE_WEIGHT) and w[15, 12] == 1.0  # two pixels from the gap: inside it
     assert w[0, 0] == 1.0 and w[39, 5] == 1.0  # the image's border

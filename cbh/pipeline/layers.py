@@ -50,7 +50,8 @@ Each layer's statistics (:func:`layer_stats`):
   planes are a fraction of a pixel apart and its matches there are spread over the swept
   planes far beyond their predicted noise (random dense seed 109: a 400 m layer at B = 52 m,
   its points 75–80° from the zenith at −28 … +54 %, σ_obs 23 m; based at 370 m from all
-  points, 383 m now). The median stays that of all points. (The smaller of two sample
+  points, 383 m now). The median is of all points, the worse-measured half weighed down by its
+  relative inverse variance (:func:`geometry_median`; the plain median before stop 60). (The smaller of two sample
   estimates is biased low: on a homogeneous Gaussian layer, σ 50 m, it raises the base by
   3.6 / 2.0 / 1.4 m on average at 120 / 300 / 1000 points, against the 10–40 m it moves where the
   horizon's matches spread);

@@ -1612,11 +1612,10 @@ def refine_pass(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) -> np.nd
             # (one layer on its own box over every plane: exactly the wide-box winner of pass 3)
             s_half = lab.s_wide
         else:
-            mL = lab.label == L
+            inL = mL = lab.label == L
             if n_layers > 1:  # only pixels whose own best plane is in this layer, weighed by their window
-                mL &= lab.plane_layer[lab.own_plane] == L
-                mL = mL * layer_interior(lab.label == L, cfg.window_px)
-            ja, s_half = _oblique_peaks(cost, mL, lab.label == L, sel, s, ds, kL, levels, fine.reach if oblique else None)
+                mL = (inL & (lab.plane_layer[lab.own_plane] == L)) * layer_interior(inL, cfg.window_px)
+            ja, s_half = _oblique_peaks(cost, mL, inL, sel, s, ds, kL, levels, fine.reach if oblique else None)
             cut = truncated(sel[ja], s, ds)
             if cut.any():  # (NaN there: not matched; bilinear on the neighbours' s as before)
                 s_half = np.where(cut, lab.s_wide, s_half)
