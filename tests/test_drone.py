@@ -72,6 +72,7 @@ def _run(d: Path, *extra, log="flight.csv", out=None):
                 out or d.parent / "check.csv", *extra)
 
 
+@pytest.mark.slow  # (the suite's time: 6.4 s; the flight's CLI, its report and the flight's fixes run by default below)
 def test_simulated_flight_end_to_end(flight):
     """All positions reported, MAPE <= 1 %, the log's clock within 0.5 s, no star or aircraft
     taken for the drone (every measured position within 2 m of the log's)."""

@@ -70,6 +70,7 @@ def test_a_camera_that_goes_away_degrades_to_the_others(sky_folders, tmp_path, c
     assert results[-1].cameras == ("cam1", "cam2") and results[-1].layers
 
 
+@pytest.mark.slow  # (the suite's time: 6.8 s; the network run and its recording read back run by default above)
 @needs_cli
 def test_replay_shows_every_camera_and_reprocesses_the_network(sky_folders, tmp_path, capsys):
     rec = tmp_path / "net.mcap"

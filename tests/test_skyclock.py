@@ -42,6 +42,7 @@ def _run(sims, cadence_s: float, n: int):
     return out
 
 
+@pytest.mark.slow  # (the suite's time: 5.4 s; the offset from the second pair: tests/test_fehmarn.py, by default)
 def test_offset_beyond_the_cadence_found_from_the_second_pair():
     """Camera 2 captures 45 s early at a 30 s cadence (1.5 cadences; the stereo-track estimate
     allowed ±30 s and needed matches that triangulate): within 1 s from the second pair, and the low

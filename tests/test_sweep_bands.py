@@ -61,15 +61,69 @@ def test_bands_score_every_plane_as_the_whole_region(pair, half_window, weighted
         assert np.array_equal(banded, whole), f"plane 1/{1 / s if s else np.inf:.0f} m differs"
 
 
-def test_fine_pass_cost_is_the_plane_by_plane_cost(pair, monkeypatch):
+@pytest.mark.parametrize("half_window", [3, 4])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_band_scores_only_the_columns_it_needs_and_the_same_numbers(pair, half_window, seed, monkeypatch):
+    """Bands asked for the scores of some pixels (``need``: a sky disc of random size and place,
+    a clear stripe, random specks) cover each needed pixel, score it exactly as the whole region
+    does (also in a row's last columns, which OpenCV's vector loops leave to scalar code), and a
+    band that needs none is left out."""
+    maps, g1, g2 = pair
+    monkeypatch.setattr(S, "_BAND_ROWS", 13)
+    rng = np.random.default_rng(seed)
+    h, w = g1.shape
+    sl = np.s_[6: h - 10, 4 + 2 * seed: w - 6]
+    z = S._HalfZncc(np.ascontiguousarray(g1[sl].astype(np.float32)), g2, maps, half_window, sl)
+    hh, wh = z.std1.shape
+    yy, xx = np.mgrid[:hh, :wh]
+    cy, cx, r = rng.uniform(0.3, 0.7) * hh, rng.uniform(0.2, 0.8) * wh, rng.uniform(0.3, 0.6) * hh
+    need = (yy - cy) ** 2 + (xx - cx) ** 2 < r ** 2  # a disc, as the sky
+    stripe = int(rng.integers(10, hh - 40))
+    need |= rng.random((hh, wh)) < 0.002
+    need[stripe: stripe + 30] = False  # clear across a few bands
+    need[-1, -1] = True  # the grown grid's last row and column (odd windows replicate them)
+    bands = z.bands(need)
+    assert len(bands) < len(z.bands())
+    covered = np.zeros((hh, wh), int)
+    for b in bands:
+        covered[b.rows, b.cols] += 1
+    assert (covered[need] == 1).all() and covered.max() == 1
+    for s in (0.0, 1.0 / 3500.0, 1.0 / 700.0):
+        whole = z(s)
+        for b in bands:
+            assert np.array_equal(b(s), whole[b.rows, b.cols]), f"plane 1/{1 / s if s else np.inf:.0f} m differs"
+
+
+def test_a_band_narrower_than_the_region_is_narrower_in_its_work():
+    """A band whose needed columns lie inside the region reads only those, its halo and the
+    alignment margin, not the region's whole width."""
+    z = S._HalfZncc.__new__(S._HalfZncc)
+    z.k, z.off = 4, 1
+    z.mu1 = z.var1 = np.zeros((64, 400), np.float32)
+    z.i1 = np.zeros((128, 800), np.float32)
+    need = np.zeros((64, 401), bool)
+    need[10:20, 200:230] = True
+    b = S._ZnccBand(z, 0, 64, need)
+    assert b.cols == slice(200, 230)
+    assert b.region_cols.stop - b.region_cols.start <= 2 * (30 + 2 * (z.k // 2 + 1) + 2 * S._COL_HALO)
+    assert S._ZnccBand(z, 0, 64, np.zeros((64, 401), bool)).cols is None
+
+
+@pytest.mark.parametrize("shape", ["box", "disc with a clear stripe"])
+def test_fine_pass_cost_is_the_plane_by_plane_cost(pair, shape, monkeypatch):
     """The fine pass's cost stack and accepted pixels equal those of scoring each whole plane in
-    turn (the way it ran before the bands), with the plane tables kept between calls too."""
+    turn (the way it ran before the bands), with the plane tables kept between calls too; for a
+    sky-shaped cloud too, whose bands score only their cloud's columns."""
     maps, g1, g2 = pair
     monkeypatch.setattr(S, "_BAND_ROWS", 11)
     cfg = Pipeline(load_station(station_path("unb-lea"))).config.matching.sweep
     h, w = g1.shape
     cloud = np.zeros((h, w), bool)
     cloud[20: h - 25, 15: w - 30] = True
+    if shape != "box":
+        yy, xx = np.mgrid[:h, :w]
+        cloud &= (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (0.42 * h) ** 2
+        cloud[h // 2 - 40: h // 2 + 40] = False
     s = np.linspace(0.0, 1.0 / 800.0, 15)  # the two layers: 1200 and 3500 m
     try:
         for keep in (False, True):

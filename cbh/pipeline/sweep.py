@@ -183,6 +183,7 @@ _OUTSIDE = -1.0e5
 _REGION_CACHE = 8  # regions whose cut tables PlaneMaps keeps
 _REGION_LOCK = threading.Lock()
 _BAND_ROWS = 64  # the fine pass scores bands of about this many half-resolution rows (_ZnccBand)
+_COL_HALO = 16  # a band's columns start on a multiple of this, and end this much past its halo (_ZnccBand)
 _SRC_SCALE = 64.0  # image 2 enters the sweep's remap as uint16 in 1/64 grey levels (see _HalfZncc)
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
 _REACH_SPLIT = 0.5 ** 0.5  # oblique pixels: a layer's box grown 2× below this reach (the geometric middle of 1×
@@ -224,9 +225,9 @@ class PlaneMaps:
         """(m0, a, b) or (m0, a, b, c): the polynomial's coefficients, lowest first."""
         return (self.m0, self.a, self.b) if self.c is None else (self.m0, self.a, self.b, self.c)
 
-    def at(self, s: float, sl=np.s_[:, :], rows: slice = np.s_[:]) -> tuple[np.ndarray, np.ndarray]:
+    def at(self, s: float, sl=np.s_[:, :], rows: slice = np.s_[:], cols: slice = np.s_[:]) -> tuple[np.ndarray, np.ndarray]:
         """Remap tables (map_x, map_y) (h, w) float32 for one plane, on the region ``sl`` (of it,
-        only the ``rows``, counted from the region's first: a band of the region).
+        only the ``rows`` and ``cols``, counted from the region's first: a band of the region).
 
         With planes kept (:meth:`keep_planes`), views of the plane's whole-image tables, computed
         once and then reused by later pairs (the planes lie on a fixed lattice of s); else
@@ -234,17 +235,17 @@ class PlaneMaps:
         root = self.__dict__.get("_kept_root")
         kept = _KEPT
         if root is None or not root["active"] or kept.max_bytes <= 0:
-            return self._tables_at(s, sl, rows)
+            return self._tables_at(s, sl, rows, cols)
         key = (root["id"], self.__dict__.get("_kept_tag", ()), float(s))
         full = kept.get(key)
         if full is None:
             if not kept.make_room(2 * self.m0.shape[0] * self.m0.shape[1] * 4):
-                return self._tables_at(s, sl, rows)  # no room without evicting the last sweeps' own planes
+                return self._tables_at(s, sl, rows, cols)  # no room without evicting the last sweeps' own planes
             full = self._tables_at(s, np.s_[:, :])
             for a in full:
                 a.flags.writeable = False  # shared by every later pair: nobody writes into them
             kept.put(key, full)
-        return full[0][sl][rows], full[1][sl][rows]
+        return full[0][sl][rows, cols], full[1][sl][rows, cols]
 
     def warm(self, sl) -> None:
         """Build what :meth:`at` will read on the region ``sl``: its cut of the quadratic's
@@ -253,10 +254,10 @@ class PlaneMaps:
         if root is None or not root["active"] or _KEPT.max_bytes <= 0:
             self._region_tables("merged", sl)
 
-    def _tables_at(self, s: float, sl, rows: slice = np.s_[:]) -> tuple[np.ndarray, np.ndarray]:
+    def _tables_at(self, s: float, sl, rows: slice = np.s_[:], cols: slice = np.s_[:]) -> tuple[np.ndarray, np.ndarray]:
         tx, ty = self._region_tables("merged", sl)  # (h, w, 3 or 4) tables (m0, a, b[, c]) per axis
         coef = np.array([[float(s) ** k for k in range(tx.shape[2])]])  # one pass per axis: m0 + a·s + b·s² + c·s³
-        return cv2.transform(tx[rows], coef), cv2.transform(ty[rows], coef)
+        return cv2.transform(tx[rows, cols], coef), cv2.transform(ty[rows, cols], coef)
 
     def keep_planes(self, max_mb: float) -> None:
         """Keep the whole-image remap tables of the planes used, within ``max_mb`` MB for the
@@ -695,10 +696,13 @@ class _HalfZncc:
         grey levels; eps scaled alike)."""
         return self._grow(_zncc_blocks(self.k, self.i1, self.mu1, self.var1, w2))
 
-    def bands(self) -> list["_ZnccBand"]:
+    def bands(self, need: np.ndarray | None = None) -> list["_ZnccBand"]:
         """The region's half-resolution rows cut into bands (:func:`_band_cuts`), each scored on
-        its own (:class:`_ZnccBand`)."""
-        return [_ZnccBand(self, a, b) for a, b in _band_cuts(self.mu1.shape[0])]
+        its own (:class:`_ZnccBand`); with ``need`` ((h/2, w/2) bool, the grown grid), each only
+        between its first and last column that needs a score, and a band that needs none is left
+        out."""
+        out = (_ZnccBand(self, a, b, need) for a, b in _band_cuts(self.mu1.shape[0]))
+        return [b for b in out if b.cols is not None]
 
 
 def _zncc_blocks(k: int, i1: np.ndarray, mu1: np.ndarray, var1: np.ndarray, w2: np.ndarray) -> np.ndarray:
@@ -727,25 +731,41 @@ class _ZnccBand:
     on two; the whole fine pass in the pipeline, one thread, 78–85 → 59–61 ms).
     """
 
-    def __init__(self, z: "_HalfZncc", a: int, b: int):
-        hh, halo = z.mu1.shape[0], z.k // 2 + 1  # the ungrown half-resolution rows; the box reaches k // 2
+    def __init__(self, z: "_HalfZncc", a: int, b: int, need: np.ndarray | None = None):
+        (hh, ww), halo = z.mu1.shape, z.k // 2 + 1  # the ungrown half-resolution grid; the box reaches k // 2
+        pad_row = int(z.off and b == hh)  # the grown grid's last row (last band)
+        self.rows = slice(a, b + pad_row)
+        c0, c1, pad_col = 0, ww, int(z.off)  # ungrown columns scored; the grown grid's last column
+        if need is not None:
+            cols = np.flatnonzero(need[self.rows].any(axis=0))
+            if cols.size == 0:
+                self.cols = None
+                return
+            c0, c1, pad_col = int(cols[0]), min(int(cols[-1]) + 1, ww), int(z.off and cols[-1] >= ww)
         a0, b0 = max(a - halo, 0), min(b + halo, hh)
-        self.z, self.crop = z, slice(a - a0, b - a0)
-        self.i1 = z.i1[2 * a0: 2 * b0]
-        self.mu1, self.var1 = z.mu1[a0: b0], z.var1[a0: b0]
-        self.region_rows = slice(2 * a0, 2 * b0)  # of z's region
-        self.pad = (int(z.off and b == hh), int(z.off))  # the grown grid's last row (last band) and column
-        self.rows = slice(a, b + self.pad[0])
+        # columns: OpenCV's vector loops leave a row's last few outputs to scalar code, whose
+        # rounding differs (the 2 × 2 pool of w2², 1 ulp); so a band starts on a multiple of
+        # _COL_HALO and ends at the region's end (the same last columns) or _COL_HALO past its halo
+        x0 = max(c0 - halo, 0) // _COL_HALO * _COL_HALO
+        x1 = c1 + halo + _COL_HALO
+        x1 = ww if x1 >= ww else x1
+        self.z, self.crop = z, np.s_[a - a0: b - a0, c0 - x0: c1 - x0]
+        self.i1 = np.ascontiguousarray(z.i1[2 * a0: 2 * b0, 2 * x0: 2 * x1])
+        self.mu1, self.var1 = (np.ascontiguousarray(m[a0: b0, x0: x1]) for m in (z.mu1, z.var1))
+        self.region_rows, self.region_cols = slice(2 * a0, 2 * b0), slice(2 * x0, 2 * x1)  # of z's region
+        self.pad = (pad_row, pad_col)
+        self.cols = slice(c0, c1 + pad_col)
 
     def __call__(self, s: float) -> np.ndarray:
+        """Score (rows, cols) of the plane s on the band's :attr:`rows` and :attr:`cols` of the grown grid."""
         z = self.z
-        mx, my = z.maps.at(float(s), z.sl, self.region_rows)
+        mx, my = z.maps.at(float(s), z.sl, self.region_rows, self.region_cols)
         j = z.src2.index(float(s))
         w2 = cv2.remap(z.src2.images[j], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         score = _zncc_blocks(z.k, self.i1, self.mu1, self.var1, w2.astype(np.float32))[self.crop]
         if self.pad[0] or self.pad[1]:
             score = cv2.copyMakeBorder(score, 0, self.pad[0], 0, self.pad[1], cv2.BORDER_REPLICATE)
-        return score if z.factor is None else cv2.multiply(score, z.factor[j][self.rows])
+        return score if z.factor is None else cv2.multiply(score, z.factor[j][self.rows, self.cols])
 
 
 def _zncc_half_iter(i1: np.ndarray, gray2: np.ndarray, maps: PlaneMaps, s_values: np.ndarray, half_window: int, sl):
@@ -1262,19 +1282,19 @@ def fine_pass(g1: np.ndarray, g2, cloud1: np.ndarray, maps: PlaneMaps, s: np.nda
     m0 = cloud1[sl] & (var >= float(cfg.min_texture) ** 2)  # textured cloud pixels: the candidates
     textured = _pool2(m0.astype(np.float32))
     z = _HalfZncc(i1, g2, maps, k // 2, sl)
-    cost = np.empty((len(s), h // 2, w // 2), np.float32)
+    cost = np.zeros((len(s), h // 2, w // 2), np.float32)  # (0 wherever no candidate: no band computes it)
     best = np.full((h // 2, w // 2), -np.inf, np.float32)
 
     def band(b: _ZnccBand) -> None:  # each plane's cost into the band of the stack; the band's best ZNCC
-        top = None
+        top, at = None, (b.rows, b.cols)
         for q in range(len(s)):
             score = b(float(s[q]))
-            cv2.multiply(score, textured[b.rows], dst=cost[q, b.rows])
+            cv2.multiply(score, textured[at], dst=cost[(q,) + at])
             top = score if top is None else cv2.max(top, score, dst=top)
         if top is not None:
-            best[b.rows] = top
+            best[at] = top
 
-    for _ in _pmap(band, z.bands()):
+    for _ in _pmap(band, z.bands(textured > 0)):
         pass
     ok = m0 & (cv2.resize(best, (w, h), interpolation=cv2.INTER_NEAREST) >= cfg.min_zncc)
     return FineCost(sl, s, ds, cost, textured, ok, _pool2(ok.astype(np.float32)), plane_lattice(maps.scale_px, cfg),
