@@ -290,6 +290,7 @@ def test_cbh_pair_with_previous_prints_motion(sequence_dir, capsys):
     assert rc == 2 and "must be captured before" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # (the suite's time: 4.1 s; the same run through the CLI with the motion in its CSV runs by default below)
 def test_run_on_directories_gives_motion_from_the_second_pair(sequence_dir):
     """`cbh run --source cam1=DIR --source cam2=DIR --cadence-s 0`: the service's results carry
     each layer's motion from the second pair on (the export writes what the results carry)."""

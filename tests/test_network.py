@@ -341,6 +341,7 @@ def test_a_two_camera_station_runs_the_pair_pipeline_unchanged(small_sky):
     assert [L.height_m for L in a.layers] == [L.height_m for L in b.layers] and not b.pairs
 
 
+@pytest.mark.slow  # (the suite's time: 4.1 s; `cbh pair` on a network's folders: tests/test_network_run.py, by default)
 def test_cbh_pair_takes_one_image_per_camera(tmp_path, capsys):
     import cv2
     import json

@@ -38,7 +38,9 @@ quarter of the pixels (:func:`_zncc_half_iter`). Everything downstream (layer vo
 refinement) already worked on 2 × 2 pooled scores; the per-pixel acceptance now uses the
 block's score. The fine pass scores its planes band by band (:class:`_ZnccBand`: ~64 half
 rows at a time, every plane, then the next band), so that a band's arrays stay in the core's
-cache; the numbers are the whole region's, bit for bit.
+cache, and each band only between its first and last column with a candidate pixel (a band
+with none is skipped: the sky's disc and clear stretches); the numbers are the whole region's,
+bit for bit.
 
 The passes (each a function with a typed result; :func:`sweep_field` runs them in order):
 
