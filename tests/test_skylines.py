@@ -200,37 +200,21 @@ def test_pale_sunlit_blocks_over_a_clear_sky_are_no_cloud(base, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="found in stop 61, not fixed (docs/accuracy.md, stop 61)")
 def test_matches_beside_masts_and_blocks_give_no_verdict(base, tmp_path):
     """Seed 17076 (``eval_random.py --n 40 --seed 17044 --size 960 --skylines --unmasked
     --twice-encoded --contrails``): a clear sky over block rows, a tree line and masts, the sun
     58° from the zenith with a strong aureole, camera 2 pale. Every one of the geometry check's
-    52 LK matches lay on or beside the obstacles (34 on them, the rest along the masts and the
-    found blocks' edges, 66–80° from the zenith); their fitted turn of 0.10° ± 0.02° flagged the
-    correct station ``geometry_mismatch``. Matches within half an LK window of a found obstacle
-    are left out of the check: 19 remain, too few for a verdict. (Its cloud fraction, 0.077 of
-    aureole speckle and unfound block parts, is the clear-sky count's open case.)"""
+    52 LK matches lies on or beside the obstacles (34 on them, the rest along the masts and the
+    found blocks' edges, 66–80° from the zenith); their fitted turn of 0.10° ± 0.02° flags the
+    correct station ``geometry_mismatch``. Leaving out matches within half an LK window of a found
+    obstacle fixed it (19 left, no verdict) but flagged seed 9564
+    (:func:`tests.test_phantom.test_a_textured_warm_cast_overcast_is_all_cloud`): its three such
+    matches had kept the fit's σ wide over a sheared 319 m deck (0.31° ± 0.19° → 0.21° ± 0.05°)."""
     opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True)
     case, r, score, _ = run_random_case(17076, base, 960, tmp_path, options=opts)
     assert case.kind == "clear" and r.layers == [], r.layers
     assert not set(r.flags) & INVALIDATING, r.flags
-
-
-def test_the_geometry_check_leaves_out_half_an_lk_window_around_found_obstacles(base):
-    """The pixels :meth:`Pipeline._near_obstacles` takes out of the geometry check: a found
-    obstacle grown by half the LK window (a square), per camera; none where nothing was found."""
-    from types import SimpleNamespace
-
-    from cbh.pipeline import Pipeline
-
-    pipe = Pipeline(base)
-    half = int(pipe.config.matching.lk.window_px) // 2
-    obst = np.zeros((200, 200), bool)
-    obst[100, 100] = True
-    near1, near2 = pipe._near_obstacles(SimpleNamespace(obstacles=(obst, None)))
-    assert near2 is None
-    assert near1[100 + half, 100 - half] and not near1[100 + half + 1, 100] and not near1[100, 100 - half - 1]
-    assert near1.sum() == (2 * half + 1) ** 2
-    assert pipe._near_obstacles(SimpleNamespace(obstacles=(np.zeros((9, 9), bool), None))) == (None, None)
 
 
 @pytest.mark.slow

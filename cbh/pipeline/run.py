@@ -498,7 +498,7 @@ class Pipeline:
             def geometry():
                 with _timed(ctx, "geometry_check"):
                     return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0,
-                                                  _either(masks.near_clip, self._near_obstacles(masks)))
+                                                  masks.near_clip)
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -1117,18 +1117,6 @@ class Pipeline:
         return replace(masks, near_clip=tuple(near_clip(taken[i], self.config.masks, masks.clips[i], reach)
                                               for i in (0, 1)))
 
-    def _near_obstacles(self, masks: "Masks") -> tuple:
-        """Per camera, the pixels within half an LK window of a horizon obstacle found in the frame
-        (:meth:`auto_obstacles`; None: none found). A window there holds a near object's texture,
-        which moves between the cameras by its own large parallax, not the sky's: on a clear
-        randomized sky with masts and buildings (17076) every one of the 52 matches the geometry
-        check had lay on or beside them, and their fitted turn of 0.10° flagged a correct
-        station ``geometry_mismatch``."""
-        k = 2 * (int(self.config.matching.lk.window_px) // 2) + 1
-        el = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
-        return tuple(None if o is None or not o.any() else cv2.dilate(o.view(np.uint8), el) > 0
-                     for o in masks.obstacles)
-
     def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
                           ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
         """Camera 2's colour response relative to camera 1, reported and removed (:mod:`.photometric`).
@@ -1631,11 +1619,6 @@ class FrameMemo:
         if slot[2] is not None:
             raise slot[2]
         return slot[1]
-
-
-def _either(a: tuple, b: tuple) -> tuple:
-    """Per camera, the union of two optional masks (None: empty)."""
-    return tuple(x if y is None else (y if x is None else x | y) for x, y in zip(a, b))
 
 
 def _off_clip(m: Matches, near_clip: tuple) -> Matches:
