@@ -106,7 +106,7 @@ side, while 2 % of a far layer's height is a small parallax (2 % of p). A layer 
 peak has less than ``far_aggregate_px`` of parallax is refined on a box grown by
 ``far_aggregate_px`` / p (at most 4×): coarser detail where the parallax is small.
 
-Oblique pixels, the same physics within a layer (``oblique_levels``, off by default): a plane
+Oblique pixels, the same physics within a layer (``oblique_levels``, 2 by default): a plane
 step shifts a pixel near the horizon far less than one at the zenith (its *reach*,
 :func:`parallax_reach`: the camera-2 shift per unit s against the image's largest, ≈ cos z for
 a horizontal plane), so one pixel of parallax noise is a larger share of its height (one flat
@@ -114,16 +114,14 @@ a horizontal plane), so one pixel of parallax noise is a larger share of its hei
 0.92 % at 60–70°, 7.3 % at 70–80°). With ``oblique_levels`` = n, pixels whose reach is below
 1/√2 are refined on the layer's box grown 2×, below 1/(2√2) 4× (n = 2; within the 4× of
 ``_MAX_GROW``), :func:`reach_levels`: the noise of a box average falls like 1/side. Measured on
-that deck: 60–70° 0.92 → 0.45 %, 70–80° 7.3 → 1.1 %, the zenith unchanged; the bar's two-layers
-pair (``bench_vs_opencv.py --oblique-levels 2``): dense MdAPE 0.62 → 0.51 %, the refinement
-≈ 20 ms more on one thread. Off by default. A grown box sums the costs of every pixel labelled
-with the layer, and a deck the sweep missed has its pixels labelled with the nearest layer: the
-grown box mixes them in. Randomized 16981 (480 px, B = 32 m; decks at 334, 538 and 5616 m, the
-highest missed): its 538 m deck read 535 m without the levels, 600 m with one, 587 m with two
-(``tests/test_sweep_field.py::test_oblique_levels_do_not_pull_a_deck_toward_a_missed_one``).
-(Until stop 59 the reason was another: on the 480 px network sky whose reference camera is 2°
-off level, ``tests/test_network.py``, the 630 m pair's geometry check named the other camera
-with the levels on; with the cubic plane maps it names the right one either way.)
+that deck: 60–70° 0.92 → 0.45 %, 70–80° 7.3 → 1.1 %, the zenith unchanged; the refinement
+≈ 15–20 ms more on one thread. A grown box sums the costs of every pixel labelled with the
+layer, and a deck the sweep missed has its pixels labelled with the nearest layer: the grown
+box mixes them in (randomized 16981, 480 px, B = 32 m: its 538 m deck read 587 m with two
+levels in stop 59, when they were off by default). The windows across a layer's edge weighing
+little (:func:`layer_interior`) and the layer's geometry-weighted median
+(:func:`~cbh.pipeline.layers.geometry_median`) leave it at 552 m, and the levels are on
+(``tests/test_sweep_field.py::test_a_deck_seen_only_near_the_horizon_is_not_pulled_up``).
 
 Resolvability (numbers for the Table 1 lenses at the default working size, lens radius 480 px
 for 90°, 305.6 px/rad): parallax at zenith p = 305.6 px · B / h. The aggregated per-pixel
@@ -250,7 +248,7 @@ class PlaneMaps:
         return full[0][sl][rows, cols], full[1][sl][rows, cols]
 
     def warm(self, sl) -> None:
-        """Build what :meth:`at` will read on the region ``sl``: its cut of the quadratic's
+        """Build what :meth:`at` will read on the region ``sl``: its cut of the polynomial's
         tables, unless this mapping keeps its planes (then only whole-image tables are read)."""
         root = self.__dict__.get("_kept_root")
         if root is None or not root["active"] or _KEPT.max_bytes <= 0:

@@ -377,7 +377,7 @@ def refine_pass_torch(fine: FineCost, lab: LayerLabels, scale_px: float, cfg) ->
             mL = lab.label == L
             weight = mL.float()
             if n_layers > 1:  # as the OpenCV twin: own best plane in the layer, windows across its edge weighed less
-                inner = layer_interior((lab.label == L).cpu().numpy(), cfg.window_px)
+                inner = layer_interior(mL.cpu().numpy(), cfg.window_px)
                 weight = (mL & (plane_layer[lab.own_plane] == L)).float() * torch.as_tensor(inner, device=dev)
             prod = cost[torch.as_tensor(sel, device=dev)] * weight
             ja, s_half = _oblique_peaks(prod, lab.label == L, sel, s, ds, kL, levels if oblique else [], fine.reach)
