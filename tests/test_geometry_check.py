@@ -613,3 +613,41 @@ def test_a_turn_is_judged_beyond_lks_bias_on_sheared_views(unb):
     assert within.rotation_deg == pytest.approx(0.12, abs=0.01) and not within.mismatch
     assert check(0.12, 5).mismatch  # beyond 2 % of the parallax (0.095°)
     assert check(0.3, 21).mismatch
+
+
+def test_a_turn_from_matches_beside_obstacles_is_not_judged_but_a_gross_one_is(unb):
+    """Matches beside a horizon obstacle found in the frame (``beside``) carry a near object's
+    parallax and a mast's drag along its length: the rotation is judged only when ``min_matches``
+    of its fit lie elsewhere (randomized 17076). A small turn asked for by such matches alone is no
+    verdict; the same matches with enough others are; a turn that moves every match off its curve
+    is flagged by the median whatever the matches lie on."""
+    from cbh.geometry.calibrate import rotvec_to_matrix
+    from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
+    from cbh.pipeline.geocheck import check_geometry
+    from cbh.pipeline.match import Matches, PairGeometry
+
+    cam1, cam2 = unb.scaled(480).pair()
+    geom = PairGeometry(cam1, cam2)
+    rng = np.random.default_rng(17076)
+    cfg = GeometryCheckConfig()
+
+    def matches(turn_deg, n=200):
+        p = np.stack([rng.uniform(-900, 900, n), rng.uniform(-900, 900, n), np.full(n, 2000.0)], 1)
+        px1 = cam1.world_to_pixel(p)
+        px2 = cam2.direction_to_pixel((p - cam2.position_m) @ rotvec_to_matrix(np.radians([turn_deg, 0.0, 0.0])).T)
+        ok = np.isfinite(px1).all(1) & np.isfinite(px2).all(1)
+        return Matches("lk", px1[ok] + rng.normal(0, 0.05, (ok.sum(), 2)), px2[ok] + rng.normal(0, 0.05, (ok.sum(), 2)))
+
+    def check(m, n_beside):
+        beside = np.zeros(len(m), bool)
+        beside[:n_beside] = True
+        return check_geometry(geom, [m], FilteringConfig(), cfg, window_px=5, beside=[beside])
+
+    small, gross = matches(0.15), matches(2.0)
+    alone = check(small, len(small))
+    assert alone.rotation_deg == pytest.approx(0.15, abs=0.02) and not alone.mismatch
+    assert check(small, 0).mismatch
+    assert check(small, len(small) - cfg.min_matches).mismatch  # min_matches elsewhere: judged
+    assert not check(small, len(small) - cfg.min_matches + 1).mismatch
+    g = check(gross, len(gross))
+    assert g.mismatch and g.residual_px > g.tolerance_px

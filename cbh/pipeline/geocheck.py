@@ -289,7 +289,8 @@ def _px_per_rad(geom: PairGeometry) -> float:
 
 
 def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: FilteringConfig,
-                   cfg: GeometryCheckConfig, window_px: float = LKConfig.window_px) -> GeometryCheck:
+                   cfg: GeometryCheckConfig, window_px: float = LKConfig.window_px,
+                   beside: list[np.ndarray] | None = None) -> GeometryCheck:
     """Judge the correspondences of the 2-D matching methods against the station geometry.
 
     Parameters
@@ -304,16 +305,29 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     window_px : float
         The 2-D matcher's window side [px] (LK's, ``matching.lk.window_px``): its bias on sheared
         views sets a floor under the rotation's tolerance (``_LK_SHEAR_BIAS``).
+    beside : list of ndarray (N_i,) bool, or None
+        Per entry of ``matches``, which of its matches lie beside a horizon obstacle found in the
+        frame (within a matcher's window of it, in either camera). A near object's texture moves
+        between the cameras by its own parallax, and a mast or a roof edge drags a window along
+        its length: such matches are judged with the rest, but the *rotation* is judged only when
+        at least ``cfg.min_matches`` of its fit lie elsewhere (randomized 17076: a clear sky's 52
+        matches all on or beside masts and blocks fitted a turn of 0.10° ± 0.02° on a correct
+        station). A turn large enough to matter moves every match off its curve, which the
+        median and the inlier fraction judge on all of them.
 
     Returns
     -------
     GeometryCheck
     """
-    use = [m for m in matches if m.method in CHECK_METHODS and len(m)]
+    pick = [i for i, m in enumerate(matches) if m.method in CHECK_METHODS and len(m)]
+    use = [matches[i] for i in pick]
     px1 = np.concatenate([m.px1 for m in use]) if use else np.zeros((0, 2))
     px2 = np.concatenate([m.px2 for m in use]) if use else np.zeros((0, 2))
+    near_obj = (np.concatenate([beside[i] for i in pick]) if use and beside is not None
+                else np.zeros(len(px1), bool))
     if len(px1) > cfg.max_matches:  # dense methods: an even subsample is as good and cheaper
-        px1, px2 = px1[:: len(px1) // cfg.max_matches + 1], px2[:: len(px2) // cfg.max_matches + 1]
+        k = len(px1) // cfg.max_matches + 1
+        px1, px2, near_obj = px1[::k], px2[::k], near_obj[::k]
     ppr = _px_per_rad(geom)
     tol_px = max(cfg.max_residual_px, 1.25 * cfg.expected_miss_ratio * ppr)
     n = len(px1)
@@ -381,6 +395,7 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # the whole sky σ is 0.002–0.007°, so the tolerance decides (subtracting the σs from the size
     # instead let a −0.05° roll through that moved a 3500 m layer by −8 %)
     rotated = rot > tol_rot and rot > _SIGNIFICANCE * math.degrees(sigma)
+    rotated = rotated and int((fit & ~near_obj).sum()) >= cfg.min_matches  # not from obstacles' matches
     return GeometryCheck(med, frac, tol_px, n, over or frac < cfg.min_inlier_fraction or rotated,
                          rot, tol_rot, math.degrees(sigma))
 

@@ -498,7 +498,7 @@ class Pipeline:
             def geometry():
                 with _timed(ctx, "geometry_check"):
                     return self.geometry_findings(received, corr, mseg, sky.carry_noise_rad if sky_mode else 0.0,
-                                                  masks.near_clip)
+                                                  masks.near_clip, self._near_obstacles(masks))
 
             hmap, pts, geo = pmap(lambda f: f(), (height_map, points, geometry), pool="stages")  # side by side
             with _timed(ctx, "layers"):
@@ -1117,6 +1117,15 @@ class Pipeline:
         return replace(masks, near_clip=tuple(near_clip(taken[i], self.config.masks, masks.clips[i], reach)
                                               for i in (0, 1)))
 
+    def _near_obstacles(self, masks: "Masks") -> tuple:
+        """Per camera, the pixels within half an LK window of a horizon obstacle found in the frame
+        (:meth:`auto_obstacles`; None: none found): an LK window there holds a near object's
+        texture (:func:`~.geocheck.check_geometry`'s ``beside``)."""
+        k = 2 * (int(self.config.matching.lk.window_px) // 2) + 1
+        el = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+        return tuple(None if o is None or not o.any() else cv2.dilate(o.view(np.uint8), el) > 0
+                     for o in masks.obstacles)
+
     def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
                           ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
         """Camera 2's colour response relative to camera 1, reported and removed (:mod:`.photometric`).
@@ -1349,7 +1358,8 @@ class Pipeline:
         self._apply_geometry(self.geometry_findings(work, corr), ctx)
 
     def geometry_findings(self, work, corr: "Correspondences", seg: "Segmentation | None" = None,
-                          carry_noise_rad: float = 0.0, near_clip: tuple = (None, None)) -> "tuple[bool, object] | None":
+                          carry_noise_rad: float = 0.0, near_clip: tuple = (None, None),
+                          near_obstacle: tuple = (None, None)) -> "tuple[bool, object] | None":
         """The geometry check's findings (identical images, :func:`check_geometry`'s result);
         None when the check is off. Reads only its arguments: runs beside the height map.
 
@@ -1365,7 +1375,11 @@ class Pipeline:
 
         ``near_clip``: per camera, the pixels within half an LK window of a clipped one
         (:func:`~.masks.near_clip`, None = none): a match there is left out, in either camera (its
-        window's texture is cut where that camera's exposure clips)."""
+        window's texture is cut where that camera's exposure clips).
+
+        ``near_obstacle``: per camera, the pixels within half an LK window of a horizon obstacle
+        found in the frame (:meth:`_near_obstacles`, None = none): a match there still counts,
+        but a rotation verdict needs enough others (:func:`check_geometry`'s ``beside``)."""
         cfg = self.config.geometry_check
         if not cfg.enabled:
             return None
@@ -1378,8 +1392,10 @@ class Pipeline:
             else:
                 raw = [m.take(_on_mask(seg.clouds[1], m.px2)) for m in raw]
         raw = [_off_clip(m, near_clip) if m.method in CHECK_METHODS else m for m in raw]
+        beside = [_on_either(near_obstacle, m) for m in raw]
         return (images_identical(work[0], work[1], cfg.identical_max_dn),
-                check_geometry(self.geometry, raw, self.config.filtering, cfg, self.config.matching.lk.window_px))
+                check_geometry(self.geometry, raw, self.config.filtering, cfg, self.config.matching.lk.window_px,
+                               beside))
 
     @staticmethod
     def _apply_geometry(found, ctx: "PairContext") -> None:
@@ -1621,12 +1637,19 @@ class FrameMemo:
         return slot[1]
 
 
+def _on_either(masks: tuple, m: Matches) -> np.ndarray:
+    """Which matches have camera 1's pixel on ``masks[0]`` or camera 2's on ``masks[1]`` (None:
+    an empty mask), (N,) bool."""
+    on = np.zeros(len(m), bool)
+    for mask, px in zip(masks, (m.px1, m.px2)):
+        if mask is not None:
+            on |= _on_mask(mask, px)
+    return on
+
+
 def _off_clip(m: Matches, near_clip: tuple) -> Matches:
     """The matches whose pixels are off each camera's ``near_clip`` mask (None: nothing clipped)."""
-    keep = np.ones(len(m), bool)
-    for mask, px in zip(near_clip, (m.px1, m.px2)):
-        if mask is not None:
-            keep &= ~_on_mask(mask, px)
+    keep = ~_on_either(near_clip, m)
     return m if keep.all() else m.take(keep)
 
 
