@@ -166,6 +166,26 @@ def test_pale_clear_sky_of_one_class_is_clear():
     assert not one_class_is_clear(np.full(1000, -0.12, np.float32), smooth, cfg, np.full(1000, 0.21, np.float32))
 
 
+def test_a_blue_sky_with_a_faint_cloud_class_is_not_one_cloud():
+    """One class by ``min_gap`` (0.06), blue (median NBR 0.23) and textured: when its blue
+    deficits split into classes at least half of ``min_gap`` apart it is faint cloud on a blue
+    sky (randomized 17087), judged as a clear sky is; an equally blue sky whose deficits are one
+    class (an overcast under a strong blue cast, 0.012 apart) is not; nor is a sky whose classes
+    are apart but whose median NBR is a grey cloud's."""
+    from cbh.pipeline.config import SegmentationConfig
+    from cbh.pipeline.segment import faint_cloud_on_blue, hybrid_classes
+
+    cfg = SegmentationConfig()
+    rng = np.random.default_rng(17087)
+    blue = np.full(4000, 0.23, np.float32)
+    faint = np.concatenate([rng.normal(0.016, 0.006, 3000), rng.normal(0.069, 0.01, 1000)]).astype(np.float32)
+    assert hybrid_classes(faint, None, cfg) is None  # under min_gap: one class
+    assert faint_cloud_on_blue(faint, blue, cfg)
+    one = np.concatenate([rng.normal(0.003, 0.002, 2000), rng.normal(0.015, 0.003, 2000)]).astype(np.float32)
+    assert not faint_cloud_on_blue(one, blue, cfg)
+    assert not faint_cloud_on_blue(faint, np.full(4000, 0.1, np.float32), cfg)
+
+
 @pytest.mark.slow  # (9 s at 960 px; the rule itself: the test above, by default)
 def test_a_warm_cast_overcast_is_not_clear_sky(tmp_path):
     """``eval_random.py --n 30 --seed 16944 --dense`` (960 px), seed 16947: decks at 303 m over

@@ -219,6 +219,21 @@ def test_matches_beside_masts_and_blocks_give_no_verdict(base, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_speckled_high_deck_on_a_blue_sky_is_not_one_cloud(base, tmp_path):
+    """Seed 17087 (``eval_random.py --n 40 --seed 17084 --size 480 --skylines --unmasked
+    --twice-encoded --contrails``): a speckled 7653 m deck of cover 0.23 over a 157 m baseline, a
+    strong aureole, tree lines and walls. At 480 px its blue deficit stands 0.053 above the clear
+    sky's, under ``min_gap``: one class, textured, so the whole sky was one cloud (cf 1.0) with a
+    phantom 583 m layer in the horizon's haze. Blue sky with faint cloud on it is judged as a clear
+    sky is: 7679 m alone, cf 0.17 and 0.14 (truth 0.14 in the analysed field)."""
+    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True)
+    case, r, score, _ = run_random_case(17087, base, 480, tmp_path, options=opts)
+    assert score.spurious_m == [] and score.missed_m == [], (score.found_m, score.expected_m)
+    assert max(r.cloud_fraction.values()) < 0.3, r.cloud_fraction
+    assert not set(r.flags) & INVALIDATING, r.flags
+
+
+@pytest.mark.slow
 def test_a_clear_sky_over_block_rows_has_no_verdict_on_its_skyline(base, tmp_path):
     """Seed 112 (``eval_random.py --n 30 --seed 100 --size 960 --skylines --unmasked``): a clear
     sky over three block rows, the back row hazed to within 10 % of the sky: cf 0.081 and the
