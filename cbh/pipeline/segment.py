@@ -33,7 +33,9 @@ refused by :func:`segment` (:class:`~cbh.errors.ImageError`): there is no blue-r
      only (the hybrid-thresholding idea: no threshold from a unimodal histogram): overcast when
      the median NBR is below ``fixed_threshold`` (0.15) or the sky is textured (median local
      contrast ≥ ``texture_cv``); else a clear sky, where only what stands out by ≈ 0.05 from
-     the reference is cloud.
+     the reference is cloud. A textured sky that is blue (median NBR ≥ 0.15) and whose classes
+     are at least half of ``min_gap`` apart is faint cloud on a blue sky, judged as a clear sky
+     (:func:`faint_cloud_on_blue`).
 
   Measured (``benchmarks/segmentation.py --simulate``, 24 simulated skies × camera colour
   responses, with the station): 97.5 % accuracy, F1 97.2, against 84.2 % / 80.7 for
