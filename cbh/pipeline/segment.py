@@ -398,26 +398,27 @@ def hybrid_classes(rs: np.ndarray, cs: np.ndarray | None, cfg: SegmentationConfi
     split = _li_split(rs)
     bimodal = False
     if split is not None:
-        t, gap_n = split
+        t, gap_n, hi_median = split
         bimodal = gap_n >= cfg.min_gap
         if not bimodal and gap_n >= cfg.min_gap / 2 and cs is not None:
             # a pale (hazy, over-exposed) sky: a small blue deficit, but the high class is grey and
             # the low class is not (textured overcast: both classes equally grey)
             c_lo, c_hi = float(np.median(cs[rs <= t])), float(np.median(cs[rs > t]))
             bimodal = c_lo - c_hi >= cfg.chroma_gap and c_hi <= 0.5 * c_lo
-    return max(float(np.median(rs[rs > split[0]])), cfg.min_gap) if bimodal else None  # blue deficit of typical cloud
+    return max(hi_median, cfg.min_gap) if bimodal else None  # blue deficit of typical cloud
 
 
-def _li_split(rs: np.ndarray) -> tuple[float, float] | None:
-    """Li's threshold of the sampled blue deficits ``rs`` and the gap between its classes: the
-    upper class's median deficit less the lower's (floored at 0: the clear sky's own deficit is
-    ≈ 0, and a lower class far below 0 is a tail of one broad class, not clear sky). None when
-    either class holds under 2 % of the samples."""
+def _li_split(rs: np.ndarray) -> tuple[float, float, float] | None:
+    """Li's threshold of the sampled blue deficits ``rs``, the gap between its classes (the upper
+    class's median deficit less the lower's, floored at 0: the clear sky's own deficit is ≈ 0,
+    and a lower class far below 0 is a tail of one broad class, not clear sky) and the upper
+    class's median. None when either class holds under 2 % of the samples."""
     t = li_threshold(rs)
     lo, hi = rs[rs <= t], rs[rs > t]
     if lo.size < 0.02 * rs.size or hi.size < 0.02 * rs.size:
         return None
-    return t, float(np.median(hi) - max(float(np.median(lo)), 0.0))
+    hi_median = float(np.median(hi))
+    return t, hi_median - max(float(np.median(lo)), 0.0), hi_median
 
 
 def faint_cloud_on_blue(rs: np.ndarray, nbr_s: np.ndarray, cfg: SegmentationConfig) -> bool:
