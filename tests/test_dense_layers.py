@@ -352,10 +352,7 @@ def test_fresh_dense_skies_of_stop_59_are_right(seed, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, decks_m", [
-    (16760, (2060, 4855)),
-    pytest.param(16742, (752, 1520, 5397), marks=pytest.mark.xfail(
-        strict=True, raises=AssertionError, reason="failing since stop 60's edge weights, found in stop 62 (docs/accuracy.md, Stop 62)"))])
+@pytest.mark.parametrize("seed, decks_m", [(16760, (2060, 4855)), (16742, (752, 1520, 5397))])
 def test_a_deck_above_the_lower_ones_is_proposed_at_any_phase(seed, decks_m, tmp_path):
     """``eval_random.py --n 30 --seed 16740`` (960 px, default options). 16760: a 4855 m deck over
     22 % of the sky, seen through the gaps of a 2060 m one over 60 %, B = 104 m: its coarse votes
@@ -364,12 +361,12 @@ def test_a_deck_above_the_lower_ones_is_proposed_at_any_phase(seed, decks_m, tmp
     over-exposed): weighing the flanks between the two lower decks by their mass too lost the
     1520 m deck. Each deck within the benchmark's tolerance, none spurious, no invalidating flag.
 
-    16742 fails since stop 60 (commit 0de5228, a layer's windows across its edge weigh 0.05 in its
-    box sums; found in stop 62, when the whole file ran): the label pass makes two ranges only,
-    752 and 5239 m, cut at 1554 m, so the 1520 m deck (cover 0.61) is refined inside the 752 m
-    layer. Before that commit its pixels' heights still formed a 1533 m layer (cover 0.11) in the
-    layer histogram; with the edge weights the histogram has no layer there. The deck was never
-    a layer of the sweep's own vote, so the fix belongs there: a strict expected failure."""
+    16742 failed from stop 60 (commit 0de5228: edge weights, oblique levels on) to stop 62: the
+    label pass makes two ranges only, 752 m and one that holds both the 1520 m deck (cover 0.61,
+    no vote peak of its own) and the 5397 m one; the oblique levels' grown boxes summed the far
+    deck's costs into the near deck's pixels, and the 1520 m layer was lost (either change alone
+    kept it). Since stop 62 a grown box whose best plane lies over ``_GROWN_APART`` planes from
+    its layer box's leaves the pixel the layer box's u: 752 / 1539 / 5345 m."""
     case, r, score, _ = run_random_case(seed, load_station(station_path()), 960, tmp_path)
     assert not set(r.flags) & INVALIDATING, r.flags
     assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)
