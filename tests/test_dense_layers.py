@@ -365,8 +365,8 @@ def test_a_deck_above_the_lower_ones_is_proposed_at_any_phase(seed, decks_m, tmp
     label pass makes two ranges only, 752 m and one that holds both the 1520 m deck (cover 0.61,
     no vote peak of its own) and the 5397 m one; the oblique levels' grown boxes summed the far
     deck's costs into the near deck's pixels, and the 1520 m layer was lost (either change alone
-    kept it). Since stop 62 a grown box whose best plane lies over ``_GROWN_APART`` planes from
-    its layer box's leaves the pixel the layer box's u: 752 / 1539 / 5345 m."""
+    kept it). Since stop 62 a grown box whose best plane lies over ``_GROWN_APART_PX`` (1 px) of
+    parallax from its layer box's leaves the pixel the layer box's u: 752 / 1539 / 5338 m."""
     case, r, score, _ = run_random_case(seed, load_station(station_path()), 960, tmp_path)
     assert not set(r.flags) & INVALIDATING, r.flags
     assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)

@@ -339,26 +339,26 @@ def test_plane_maps_follow_the_exact_projection_near_the_zenith(height_m):
 def test_a_grown_box_that_reaches_another_deck_leaves_the_pixel_its_layer_box():
     """Two decks in one label range (one without a vote peak of its own, randomized 16742): the
     oblique levels' grown boxes near their boundary sum the stronger deck's costs, whose best plane
-    lies far from the pixel's layer box's; such a pixel keeps its layer box's u (``_GROWN_APART``),
+    lies far from the pixel's layer box's; such a pixel keeps its layer box's u (``_GROWN_APART_PX``),
     while a grown box within a few planes of it sharpens u as before."""
-    from cbh.pipeline.sweep import _GROWN_APART, _oblique_peaks
+    from cbh.pipeline.sweep import _GROWN_APART_PX, _oblique_peaks
 
     P, h, w, kL = 14, 96, 96, 3
     q = np.arange(P, dtype=np.float32)[:, None, None]
     x = np.arange(w)[None, None, :]
-    near, far = 3.0, 11.0  # the two decks' planes, more than _GROWN_APART apart
-    assert far - near > _GROWN_APART
+    near, far = 3.0, 11.0  # the two decks' planes: 1.6 px apart at the reach below, over _GROWN_APART_PX
+    reach = np.full((h, w), 0.2, np.float32)  # oblique everywhere: both levels apply
+    assert (far - near) * 0.2 > _GROWN_APART_PX
     cost = np.where(x < w // 2, 0.3 * np.exp(-0.5 * (q - near) ** 2), 0.9 * np.exp(-0.5 * (q - far) ** 2))
     cost = np.ascontiguousarray(np.broadcast_to(cost, (P, h, w)), np.float32)
     label = np.ones((h, w), bool)
     s, ds = np.arange(P, dtype=np.float64) * 0.1, 0.1
     levels = [(2, 0.5 ** 0.5), (4, 0.5 ** 1.5)]
-    reach = np.full((h, w), 0.2, np.float32)  # oblique everywhere: both levels apply
     ja, u = _oblique_peaks(cost, label, label, np.arange(P), s, ds, kL, levels, reach)
     edge = slice(w // 2 - 8, w // 2 - 2)  # near deck's pixels within the grown boxes' reach of the far deck
     assert np.all(ja[h // 2, edge] == int(near))
     # not pulled to the far deck's 1.1 (within the grown boxes' bilinear return, as at any edge)
-    assert np.all(np.abs(u[h // 2, edge] - near * ds) <= _GROWN_APART * ds + 1e-6), u[h // 2, edge]
+    assert np.all(np.abs(u[h // 2, edge] - near * ds) * 0.2 <= _GROWN_APART_PX * ds + 1e-6), u[h // 2, edge]
     assert np.allclose(u[h // 2, 5:20], near * ds, atol=0.05 * ds)  # the interior as before
     assert np.allclose(u[h // 2, w - 20:w - 5], far * ds, atol=0.05 * ds)
     # the torch backend's same rule (CPU tensors)

@@ -186,10 +186,10 @@ _BAND_ROWS = 64  # the fine pass scores bands of about this many half-resolution
 _COL_HALO = 16  # a band's columns start on a multiple of this, and end this much past its halo (_ZnccBand)
 _SRC_SCALE = 64.0  # image 2 enters the sweep's remap as uint16 in 1/64 grey levels (see _HalfZncc)
 _MAX_GROW = 4.0  # far layers: aggregation box at most this × aggregate_px
-#: a grown box (oblique levels) whose best plane lies more planes than this from its layer box's has
-#: summed another deck's costs (two decks in one label range): the pixel keeps its layer box's u. One
-#: pixel of parallax at the lowest reach a level grows for (1 / (2√2) ≈ 0.35 px per plane) is ≈ 3 planes
-_GROWN_APART = 3
+#: a grown box (oblique levels) whose best plane lies farther from its layer box's than this shift of
+#: camera 2's pixel (planes apart × the pixel's reach, a plane step being ≈ 1 px at full reach) has
+#: summed another deck's costs (two decks in one label range): the pixel keeps its layer box's u [px]
+_GROWN_APART_PX = 1.0
 _REACH_SPLIT = 0.5 ** 0.5  # oblique pixels: a layer's box grown 2× below this reach (the geometric middle of 1×
 #                             and 2×), and 2× again below each further half [1] (refine_pass)
 _VOTE_SMOOTH_BINS = 0.5  # Gaussian smoothing of the fine vote histogram [bins of half a plane step]
@@ -1692,8 +1692,8 @@ def _oblique_peaks(cost: np.ndarray, mL: np.ndarray, label: np.ndarray, sel: np.
     pooled f × f (the same sums on every f-th pixel, for 1/f² of the work), its u brought back
     bilinearly. The grown boxes only sharpen u: the best plane returned (what decides whether a
     pixel is matched, :func:`truncated`) is the layer box's, and a grown box whose best plane
-    ends a run of planes, or lies more than ``_GROWN_APART`` planes from the layer box's, leaves
-    the pixel its layer box's u. (A label range can hold two decks when one of them has no vote
+    ends a run of planes, or lies farther from the layer box's than ``_GROWN_APART_PX`` of
+    parallax (planes apart × ``reach``), leaves the pixel its layer box's u. (A label range can hold two decks when one of them has no vote
     peak of its own: randomized 16742, 1520 m and 5397 m in one range; the grown boxes summed the
     far deck's costs into the near deck's pixels, and the 1520 m deck was lost.)"""
     m = mL.astype(np.float32)
@@ -1711,7 +1711,8 @@ def _oblique_peaks(cost: np.ndarray, mL: np.ndarray, label: np.ndarray, sel: np.
             pooled = [_pool2(c) for c in pooled]
         jg, cg, lg, rg = _best3_map(lambda c: _box(c, kL), pooled)
         here &= ~_back(truncated(sel[jg], s, ds).view(np.uint8), f, m.shape, cv2.INTER_NEAREST).astype(bool)
-        here &= np.abs(_back(jg.astype(np.int16), f, m.shape, cv2.INTER_NEAREST).astype(np.int32) - ja) <= _GROWN_APART
+        apart = np.abs(_back(jg.astype(np.int16), f, m.shape, cv2.INTER_NEAREST).astype(np.float32) - ja)
+        here &= apart * reach <= _GROWN_APART_PX
         s_half = np.where(here, _back(_refine(jg, cg, lg, rg, s[sel], ds), f, m.shape, cv2.INTER_LINEAR), s_half)
     return ja, s_half
 

@@ -58,7 +58,7 @@ import torch.nn.functional as F
 from kornia.geometry.transform import remap as _kornia_remap
 
 from cbh.pipeline.sweep import (
-    _GROWN_APART, CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_lattice, plane_range, coarse_planes,
+    _GROWN_APART_PX, CoarseLayers, FineCost, LayerLabels, PassTimer, PlaneMaps, _bbox, plane_lattice, plane_range, coarse_planes,
     coarse_regions, coarse_layers, fine_planes, layer_box, layer_interior, layer_planes, own_plane_peaks, parallax_reach,
     peak_offset, reach_levels,
     resolved_layers, truncated, vote_layers, SweepField, field_points,
@@ -258,7 +258,7 @@ def _oblique_peaks(prod: torch.Tensor, label: torch.Tensor, sel: np.ndarray, s: 
         cut = torch.as_tensor(truncated(np.asarray(sel)[jg.cpu().numpy()], s, ds), device=prod.device)
         cut = F.pad(cut.repeat_interleave(f, 0).repeat_interleave(f, 1)[None, None].float(), pad, mode="replicate")
         jb = F.pad(jg.repeat_interleave(f, 0).repeat_interleave(f, 1)[None, None].float(), pad, mode="replicate")
-        near = (jb[0, 0] - ja.float()).abs() <= _GROWN_APART
+        near = (jb[0, 0] - ja.float()).abs() * reach <= _GROWN_APART_PX
         sg = F.pad(F.interpolate(sg[None, None], scale_factor=f, mode="bilinear", align_corners=False), pad, mode="replicate")
         s_half = torch.where(here & (cut[0, 0] == 0) & near, sg[0, 0], s_half)
     return ja, s_half
