@@ -1693,9 +1693,10 @@ def _oblique_peaks(cost: np.ndarray, mL: np.ndarray, label: np.ndarray, sel: np.
     bilinearly. The grown boxes only sharpen u: the best plane returned (what decides whether a
     pixel is matched, :func:`truncated`) is the layer box's, and a grown box whose best plane
     ends a run of planes, or lies farther from the layer box's than ``_GROWN_APART_PX`` of
-    parallax (planes apart × ``reach``), leaves the pixel its layer box's u. (A label range can hold two decks when one of them has no vote
-    peak of its own: randomized 16742, 1520 m and 5397 m in one range; the grown boxes summed the
-    far deck's costs into the near deck's pixels, and the 1520 m deck was lost.)"""
+    parallax (planes apart × ``reach``), leaves the pixel its layer box's u. (A label range can
+    hold two decks when one of them has no vote peak of its own: randomized 16742, 1520 m and
+    5397 m in one range; the grown boxes summed the far deck's costs into the near deck's
+    pixels, and the 1520 m deck was lost.)"""
     m = mL.astype(np.float32)
     ja, ca, la, ra = _best3_map(lambda q: _box(cv2.multiply(cost[q], m), kL), list(sel))
     s_half = _refine(ja, ca, la, ra, s[sel], ds)
