@@ -608,21 +608,16 @@ def test_a_turn_is_judged_beyond_lks_bias_on_sheared_views(unb):
     is biased by up to ``_LK_SHEAR_BIAS`` × shear × window, a share of the parallax twice as large
     at 480 px as at 960 px: a fitted turn within it is not judged, one beyond it is; a matcher with
     a 5 px window is judged down to 2 % of the parallax."""
-    from cbh.geometry.calibrate import rotvec_to_matrix
     from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
     from cbh.pipeline.geocheck import check_geometry
-    from cbh.pipeline.match import Matches, PairGeometry
+    from cbh.pipeline.match import PairGeometry
 
     cam1, cam2 = unb.scaled(480).pair()
     geom = PairGeometry(cam1, cam2)
     rng = np.random.default_rng(5)
 
     def matches(turn_deg, n=600):
-        p = np.stack([rng.uniform(-600, 600, n), rng.uniform(-600, 600, n), np.full(n, 300.0)], 1)
-        px1 = cam1.world_to_pixel(p)
-        px2 = cam2.direction_to_pixel((p - cam2.position_m) @ rotvec_to_matrix(np.radians([turn_deg, 0.0, 0.0])).T)
-        ok = np.isfinite(px1).all(1) & np.isfinite(px2).all(1)
-        return Matches("lk", px1[ok] + rng.normal(0, 0.1, (ok.sum(), 2)), px2[ok] + rng.normal(0, 0.1, (ok.sum(), 2)))
+        return _deck_matches(cam1, cam2, rng, turn_deg, n, 600.0, 300.0, 0.1)
 
     def check(turn_deg, window_px):
         return check_geometry(geom, [matches(turn_deg)], FilteringConfig(), GeometryCheckConfig(), window_px=window_px)
@@ -640,10 +635,9 @@ def test_a_turn_from_matches_beside_obstacles_is_not_judged_but_a_gross_one_is(u
     of its fit lie elsewhere (randomized 17076). A small turn asked for by such matches alone is no
     verdict; the same matches with enough others are; a turn that moves every match off its curve
     is flagged by the median whatever the matches lie on."""
-    from cbh.geometry.calibrate import rotvec_to_matrix
     from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
     from cbh.pipeline.geocheck import check_geometry
-    from cbh.pipeline.match import Matches, PairGeometry
+    from cbh.pipeline.match import PairGeometry
 
     cam1, cam2 = unb.scaled(480).pair()
     geom = PairGeometry(cam1, cam2)
@@ -651,11 +645,7 @@ def test_a_turn_from_matches_beside_obstacles_is_not_judged_but_a_gross_one_is(u
     cfg = GeometryCheckConfig()
 
     def matches(turn_deg, n=200):
-        p = np.stack([rng.uniform(-900, 900, n), rng.uniform(-900, 900, n), np.full(n, 2000.0)], 1)
-        px1 = cam1.world_to_pixel(p)
-        px2 = cam2.direction_to_pixel((p - cam2.position_m) @ rotvec_to_matrix(np.radians([turn_deg, 0.0, 0.0])).T)
-        ok = np.isfinite(px1).all(1) & np.isfinite(px2).all(1)
-        return Matches("lk", px1[ok] + rng.normal(0, 0.05, (ok.sum(), 2)), px2[ok] + rng.normal(0, 0.05, (ok.sum(), 2)))
+        return _deck_matches(cam1, cam2, rng, turn_deg, n, 900.0, 2000.0, 0.05)
 
     def check(m, n_beside):
         beside = np.zeros(len(m), bool)
@@ -670,3 +660,17 @@ def test_a_turn_from_matches_beside_obstacles_is_not_judged_but_a_gross_one_is(u
     assert not check(small, len(small) - cfg.min_matches + 1).mismatch
     g = check(gross, len(gross))
     assert g.mismatch and g.residual_px > g.tolerance_px
+
+
+def _deck_matches(cam1, cam2, rng, turn_deg: float, n: int, half_m: float, height_m: float, noise_px: float):
+    """LK-like matches of ``n`` points of a flat deck at ``height_m`` over ±``half_m``, seen by
+    camera 2 turned by ``turn_deg`` about east, each pixel with ``noise_px`` of Gaussian noise."""
+    from cbh.geometry.calibrate import rotvec_to_matrix
+    from cbh.pipeline.match import Matches
+
+    p = np.stack([rng.uniform(-half_m, half_m, n), rng.uniform(-half_m, half_m, n), np.full(n, height_m)], 1)
+    px1 = cam1.world_to_pixel(p)
+    px2 = cam2.direction_to_pixel((p - cam2.position_m) @ rotvec_to_matrix(np.radians([turn_deg, 0.0, 0.0])).T)
+    ok = np.isfinite(px1).all(1) & np.isfinite(px2).all(1)
+    return Matches("lk", px1[ok] + rng.normal(0, noise_px, (ok.sum(), 2)),
+                   px2[ok] + rng.normal(0, noise_px, (ok.sum(), 2)))
