@@ -270,7 +270,7 @@ def test_randomized_low_overcast_with_horizon_matches_is_no_turn(tmp_path):
     """Fresh sky 17165 of stop 63 at 960 px (``eval_random.py --n 30 --seed 17154 --size 960
     --skylines --unmasked --twice-encoded --contrails``; a 352 m overcast, B = 71 m, the sun 11°
     from the zenith, a tree line and skylines): the correct station was flagged geometry_mismatch,
-    a fitted turn of 0.235° ± 0.057° against 0.206°. 184 of its LK matches lie on the deck, in one
+    a fitted turn of 0.235° ± 0.057° against 0.206°. 185 of its LK matches lie on the deck, in one
     patch, and ask for 0.12°; 4 more near the horizon, 0.7–1.6 px from infinity and 1–1.4 px off
     their curves, carried the fit along the axis the patch barely constrains. Matches within 2
     tolerances of infinity are no longer counted as the cloud's in the fit."""
