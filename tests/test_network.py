@@ -46,7 +46,7 @@ def _process(sim, shot):
 
 @pytest.fixture(scope="module")
 def level_network():
-    sim, shot = _network_sky()
+    sim, shot = _network_sky(size=640)  # (960 px: 10 s of the default suite; 640 px measures the layers within 0.1 %)
     return sim, shot, _process(sim, shot)
 
 

@@ -9,7 +9,8 @@ does not dip below ``valley_ratio`` × the lower peak. Each surviving peak owns 
 between the valleys on either side. A layer is reported only with enough support:
 ``min_points`` points, ``min_fraction`` of all points and ``min_cover`` of the usable sky. Where
 the plane sweep resolved a layer of its own above its lowest one (a vote peak of the image or of
-a region, each pixel refined on that layer's planes and pixels alone: :mod:`.sweep`),
+a region, each pixel refined on that layer's planes and pixels alone: :mod:`.sweep`), and a layer
+is reported below it (only a layer can hide a deck),
 ``min_fraction_resolved``
 (0.5 %, the share of the sky that ``min_cover`` asks for) of the points is enough: an upper deck
 seen through the gaps of a lower one holds 0.8–4 % of them in dense skies, while a cluster of
@@ -393,9 +394,10 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
         The points' plane offsets from camera 1 (:func:`local_spread`).
     resolved_m : sequence of float
         Heights of the layers the plane sweep resolved on its own [m]: an interval holding one
-        above the lowest needs only ``min_fraction_resolved`` of the points (a deck seen through
-        the gaps of a lower one holds a few per cent of them; a cluster of noise is no layer of
-        the sweep). The lowest is hidden by nothing: it needs ``min_fraction`` as any other.
+        above the lowest, with a layer reported below it, needs only ``min_fraction_resolved`` of
+        the points (a deck seen through the gaps of a lower one holds a few per cent of them; a
+        cluster of noise is no layer of the sweep). The lowest reported layer is hidden by
+        nothing: it needs ``min_fraction`` as any other.
     parallax : ndarray, shape (N,), optional
         The points' parallax [px] (:func:`parallax_px`), for each layer's band (:func:`layer_band`).
     camera_z_m : float
@@ -408,7 +410,11 @@ def supported_layers(heights_m: np.ndarray, noise_m: np.ndarray, hist: Histogram
     for k, (lo, hi) in enumerate(intervals):
         sel = (heights_m >= lo) & (heights_m < hi)
         n = int(sel.sum())
-        frac = cfg.min_fraction_resolved if any(lo <= h < hi for h in upper) else cfg.min_fraction
+        # only a reported layer below can hide a deck: the sweep's own lowest may be no layer (a
+        # pile of matches at its floor over unmasked masts, randomized 17270: a 128 m "deck" over
+        # 0.2 % of a clear sky, passed as hidden by a 100 m one that was none)
+        hidden = bool(layers) and any(lo <= h < hi for h in upper)
+        frac = cfg.min_fraction_resolved if hidden else cfg.min_fraction
         # a deck seen through gaps is measured in their interiors only (a window on a gap's edge
         # takes the lower deck): its cover is short by as much as its share of the points
         cover = cfg.min_cover * frac / cfg.min_fraction if cfg.min_fraction > 0 else cfg.min_cover
