@@ -359,17 +359,25 @@ def test_decks_under_lower_ones_of_stop_54_are_found(seed, size, opts, tmp_path)
 _CONTRAIL_480 = RandomOptions(twice_encoded=True, contrails=True, skylines=True)
 
 
+_STOP_55 = pytest.mark.xfail(strict=True, raises=AssertionError,
+                             reason="a known limit (docs/accuracy.md, Limits): fresh failures of stop 55")
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="a known limit (docs/accuracy.md, Limits): fresh failures of stop 55")
 @pytest.mark.parametrize("seed, size, opts", [
-    (16780, 960, DENSE),  # 711 (83 %) / 5865 m (30 %), B = 42 m: 5865 not found
+    pytest.param(16780, 960, DENSE, marks=_STOP_55),  # 711 (83 %) / 5865 m (30 %), B = 42 m: 5865 not found
     (16794, 960, DENSE),  # 311 (82 %) / 517 m (50 %), B = 63 m: a 598 m layer (+16 % of 517 m)
-    (16824, 480, _CONTRAIL_480),  # 2732 / 4581 m as one at 3229 m, 8249 m (70 %) not found
+    pytest.param(16824, 480, _CONTRAIL_480, marks=_STOP_55),  # 2732 / 4581 m as one at 3229 m, 8249 m (70 %) not found
 ])
 def test_fresh_skies_of_stop_55_are_right(seed, size, opts, tmp_path):
     """``eval_random.py --n 30 --seed 16770 --dense`` and ``--n 30 --seed 16800 --size 480
     --twice-encoded --contrails --skylines``: every deck found within the benchmark's tolerance,
-    none spurious. Strict expected failures: a fix makes them pass, and then this mark must go."""
+    none spurious. 16780 and 16824 are strict expected failures: a fix makes them pass, and then
+    their marks must go. 16794 passes since stop 64: its 598 m layer (median 646 m, 389 points,
+    11 % of them within 65° of the zenith, the median 72° out) stood on the share of the points
+    a deck seen through a lower one's gaps needs, and such a deck is seen mostly near the zenith
+    (:func:`cbh.pipeline.layers.seen_through_gaps`); the 517 m deck, mostly hidden, is not one the
+    scorer expects."""
     case, r, score, _ = run_random_case(seed, load_station(station_path()), size, tmp_path, options=opts)
     assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)
 
