@@ -482,6 +482,8 @@ _CLOCK_SHORT = pytest.mark.xfail(strict=True, raises=AssertionError,
 
 _CLOCK_HIGH_DECKS = pytest.mark.xfail(strict=True, raises=AssertionError,
                                       reason="a known limit (docs/accuracy.md): two high decks, the offset 2.1 s off, a layer between them")
+_CLOCK_STILL_DECK = pytest.mark.xfail(strict=True, raises=AssertionError,
+                                      reason="a known limit (docs/accuracy.md): a low overcast at 0.7 m/s, the offset 2.1 s off")
 
 
 @pytest.mark.slow  # (three pairs each; `benchmarks/eval_clock_random.py` runs the class)
@@ -490,7 +492,8 @@ _CLOCK_HIGH_DECKS = pytest.mark.xfail(strict=True, raises=AssertionError,
                                             pytest.param(16478, ("ok", "unknown"), marks=_CLOCK_LIMIT),
                                             pytest.param(16481, ("ok", "unknown"), marks=_CLOCK_LIMIT),
                                             pytest.param(16556, ("ok", "unknown"), marks=_CLOCK_SHORT),
-                                            pytest.param(16585, ("ok", "unknown"), marks=_CLOCK_HIGH_DECKS)])
+                                            pytest.param(16585, ("ok", "unknown"), marks=_CLOCK_HIGH_DECKS),
+                                            pytest.param(16613, ("ok", "unknown"), marks=_CLOCK_STILL_DECK)])
 def test_randomized_clocks_are_right_or_unknown(seed, verdicts, tmp_path):
     """Randomized skies with a random offset (±120 s) and cadence (10–120 s), three pairs: the
     offset within 2 s, or unknown, never a confident wrong clock. 16104 (an 891 m deck carried
@@ -510,7 +513,9 @@ def test_randomized_clocks_are_right_or_unknown(seed, verdicts, tmp_path):
     by about 0.025 map px, above the 0.015 px floor). From ``eval_clock_random.py --n 20 --seed
     16584`` (stop 55): 16585 (decks at 5254 and 9753 m, 12 and 14 m/s, B 176 m, camera 2 72.6 s
     late every 30 s) reads +70.48 ± 1.15 s and reports one layer at 6462 m, valid: between the two
-    decks, 23 % above the lower."""
+    decks, 23 % above the lower. From ``eval_clock_random.py --n 20 --seed 16604`` (stop 64): 16613
+    (an overcast 322 m deck at 0.7 m/s under 1756 and 2408 m decks, B 186 m, camera 2 35.7 s early
+    every 10 s) reads −33.56 ± 0.78 s, 2.1 s off; its layer, 319 m, barely moves in 2 s."""
     row = _random_clock(seed, tmp_path)
     assert row["verdict"] in verdicts, row
 
