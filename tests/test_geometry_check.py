@@ -284,6 +284,23 @@ def test_randomized_dense_deck_with_few_lk_matches_is_no_turn(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="found in stop 64, not fixed (docs/accuracy.md, Stop 64)")
+def test_randomized_low_deck_and_a_higher_one_with_default_options_is_no_turn(tmp_path):
+    """Fresh sky 17498 of stop 64 at 960 px with the default options (``eval_random.py --n 30
+    --seed 17482 --size 960``: 34 / 34 layers, this the one false alarm): 314 m over 35 % of the
+    sky and 1173 m over 16 %, B = 145 m, white at 255, JPEG 60. The correct station is flagged
+    geometry_mismatch: a turn of 0.143° ± 0.021° (median distance 0.29 px, 94 % inliers). The
+    314 m deck's views are sheared by 0.46 rad, so the fit weighs its matches little; whether the
+    1173 m deck's ask for the turn on their own is not established. At 480 px no turn is fitted and
+    both decks are found."""
+    from cbh.presets import station_path
+    from cbh.sim.randomize import run_random_case
+
+    _, r, _, _ = run_random_case(17498, load_station(station_path()), 960, tmp_path)
+    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+
+
+@pytest.mark.slow
 def test_randomized_low_overcast_with_horizon_matches_is_no_turn(tmp_path):
     """Fresh sky 17165 of stop 63 at 960 px (``eval_random.py --n 30 --seed 17154 --size 960
     --skylines --unmasked --twice-encoded --contrails``; a 352 m overcast, B = 71 m, the sun 11°
