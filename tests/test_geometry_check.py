@@ -18,6 +18,7 @@ from cbh.flags import INVALIDATING
 from cbh.geometry.station import load_station
 from cbh.pipeline import Pipeline
 from cbh.sim import SkySimulator, load_scene
+from cbh.sim.randomize import RandomOptions, run_random_case
 from cbh.sim.scene import Imperfection
 
 T0 = datetime(2024, 6, 21, 14, 0, tzinfo=timezone.utc)
@@ -195,6 +196,19 @@ def test_patches_that_disagree_make_no_significant_turn():
     assert np.linalg.norm(om_t) > 10 * sig_t
 
 
+_DENSE_HARD = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True, dense=True)
+
+
+def _quiet_correct_station(seed: int, size: int, tmp_path, options: RandomOptions = RandomOptions()):
+    """Randomized sky ``seed`` at ``size`` px on its correct station: no invalidating flag.
+    Returns (result, score) (:func:`cbh.sim.randomize.run_random_case`)."""
+    from cbh.presets import station_path
+
+    _, r, score, _ = run_random_case(seed, load_station(station_path()), size, tmp_path, options=options)
+    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    return r, score
+
+
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, raises=AssertionError, reason="a known limit (docs/accuracy.md, Limits): one sheared deck's shared LK bias")
 def test_randomized_low_deck_far_apart_is_no_turn(tmp_path):
@@ -203,12 +217,7 @@ def test_randomized_low_deck_far_apart_is_no_turn(tmp_path):
     0.087° along the direction its 117 LK matches barely constrain); the deck is at 556 m. Kept as
     a strict expected failure: a fix makes it pass, and then this mark must go. (Widening σ by
     the matches' shared shear bias fixed it, and also hid a camera 2° off level seen 630 m away.)"""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    _, r, _, _ = run_random_case(15821, load_station(station_path()), 480, tmp_path,
-                                 options=RandomOptions(kind="overcast", skylines=True))
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    r, _ = _quiet_correct_station(15821, 480, tmp_path, RandomOptions(kind="overcast", skylines=True))
     assert [round(L.height_m, -1) for L in r.layers] == [560.0]
 
 
@@ -220,12 +229,7 @@ def test_randomized_clear_sky_with_horizon_only_matches_is_no_turn(tmp_path):
     station geometry_mismatch. Passing since stop 56, whose geometry check leaves out matches
     within half a window of a camera's clipped pixels where the two cameras' responses differ
     (:func:`cbh.pipeline.masks.near_clip`)."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    _, r, _, _ = run_random_case(15523, load_station(station_path()), 960, tmp_path,
-                                 options=RandomOptions(skylines=True, unmasked=True, twice_encoded=True))
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    _quiet_correct_station(15523, 960, tmp_path, RandomOptions(skylines=True, unmasked=True, twice_encoded=True))
 
 
 @pytest.mark.slow
@@ -238,12 +242,8 @@ def test_randomized_deck_whose_matches_lean_by_azimuth_is_no_turn(tmp_path):
     peak locking out of them (the sky clock's bicubic steps) gives 0.079°, no flag, but leaves
     the pattern: not the cause. Passing since stop 63, whose rotation fit leaves out matches within
     2 tolerances of infinity (as for 17165): 0.106° ± 0.041°, not significant."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, dense=True)
-    _, r, _, _ = run_random_case(16727, load_station(station_path()), 480, tmp_path, options=opts)
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    _quiet_correct_station(16727, 480, tmp_path,
+                           RandomOptions(skylines=True, unmasked=True, twice_encoded=True, dense=True))
 
 
 @pytest.mark.slow
@@ -257,12 +257,7 @@ def test_randomized_high_deck_through_a_low_decks_gaps_is_no_turn(tmp_path):
     contrails (drawn out, the same turn), not the masts (5 of the fit beside them). At 960 px the
     same sky fits 0.045° against a tolerance of 0.045°: a bias of ≈ 0.2–0.4 working pixels in
     either, like the two known limits above."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True, dense=True)
-    _, r, _, _ = run_random_case(17138, load_station(station_path()), 480, tmp_path, options=opts)
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    _quiet_correct_station(17138, 480, tmp_path, _DENSE_HARD)
 
 
 @pytest.mark.slow
@@ -275,12 +270,7 @@ def test_randomized_dense_deck_with_few_lk_matches_is_no_turn(tmp_path):
     the 3578 m deck's), lie 0.05 px off their curves (median) yet fit a turn of 0.176° ± 0.030°
     against a tolerance of 0.090°; at 960 px LK keeps 15 and the check does not run. 17138's kind
     (above), with ten times fewer matches."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True, dense=True)
-    _, r, _, _ = run_random_case(17389, load_station(station_path()), 480, tmp_path, options=opts)
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    _quiet_correct_station(17389, 480, tmp_path, _DENSE_HARD)
 
 
 @pytest.mark.slow
@@ -293,11 +283,7 @@ def test_randomized_low_deck_and_a_higher_one_with_default_options_is_no_turn(tm
     314 m deck's views are sheared by 0.46 rad, so the fit weighs its matches little; whether the
     1173 m deck's ask for the turn on their own is not established. At 480 px no turn is fitted and
     both decks are found."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import run_random_case
-
-    _, r, _, _ = run_random_case(17498, load_station(station_path()), 960, tmp_path)
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    _quiet_correct_station(17498, 960, tmp_path)
 
 
 @pytest.mark.slow
@@ -309,12 +295,8 @@ def test_randomized_low_overcast_with_horizon_matches_is_no_turn(tmp_path):
     patch, and ask for 0.12°; 4 more near the horizon, 0.7–1.6 px from infinity and 1–1.4 px off
     their curves, carried the fit along the axis the patch barely constrains. Matches within 2
     tolerances of infinity are no longer counted as the cloud's in the fit."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True)
-    _, r, score, _ = run_random_case(17165, load_station(station_path()), 960, tmp_path, options=opts)
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    _, score = _quiet_correct_station(17165, 960, tmp_path,
+                                      RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True))
     assert score.missed_m == [] and score.spurious_m == [], (score.found_m, score.expected_m)
 
 
@@ -331,11 +313,7 @@ def test_matches_whose_windows_hold_clipped_pixels_are_no_evidence_of_a_turn(see
     - 16855 (``--seed 16830 --dense``: 499 m and 7717 m, B = 114 m, an over-exposed sky with 24 %
       and 39 % of the two working images at white): all 76 matches the check had were such, their
       median 1.9 px off their epipolar curves; none is left, and the check gives no verdict."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    _, r, _, _ = run_random_case(seed, load_station(station_path()), 960, tmp_path, options=RandomOptions(dense=True))
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    r, _ = _quiet_correct_station(seed, 960, tmp_path, RandomOptions(dense=True))
     assert len(r.layers) >= 2
 
 
@@ -647,12 +625,7 @@ def test_randomized_correct_stations_whose_decks_ask_for_different_turns(seed, d
     11° of parallax apart (B = 151 m), and alone ask for 0.270° ± 0.026°: LK's bias on one sheared
     deck, shared by every patch of it. The turn is judged beyond that bias (``_LK_SHEAR_BIAS``:
     0.292° here)."""
-    from cbh.presets import station_path
-    from cbh.sim.randomize import RandomOptions, run_random_case
-
-    opts = RandomOptions(dense=dense, twice_encoded=seed == 9919)
-    _, r, _, _ = run_random_case(seed, load_station(station_path()), size, tmp_path, options=opts)
-    assert not set(r.flags) & INVALIDATING, (r.flags, r.diagnostics.get("geometry_rotation_deg"))
+    _quiet_correct_station(seed, size, tmp_path, RandomOptions(dense=dense, twice_encoded=seed == 9919))
 
 
 def test_a_turn_is_judged_beyond_lks_bias_on_sheared_views(unb):
