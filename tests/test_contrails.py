@@ -28,6 +28,29 @@ def _shot(case):
     return sim, draw_contrails(case, sim, sim.render())
 
 
+def test_a_contrail_is_no_brighter_than_its_camera_can_output():
+    """A camera that clips at 230 with a colour cast outputs at most its own white per channel
+    (``SkySimulator.output_white``), and a contrail in its frames is clipped there too. It was
+    clipped at the frame's brightest pixel, which JPEG's ringing round the clipped sun lifts
+    above the clip: randomized 17477 (white 230, encoded twice) drew its contrail through the
+    sun at 255, the clip finder took that for the white level, the aureole clipped at 228 was
+    not glare, and the clear sky reported layers at 384 and 1392 m."""
+    base = load_station(station_path())
+    case = random_case(17477, base, RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrails=True,
+                                                  kind="clear"))
+    assert case.scene.image.white_level == 230 and case.contrails
+    sim, shot = _shot(case)
+    plain = sim.render()
+    for name in list(sim.station.cameras)[:2]:
+        white = sim.output_white(name)
+        assert np.all(white <= 230.0)
+        before, after = plain.views[name].image, shot.views[name].image
+        trail = np.any(after != before, axis=2)
+        assert trail.sum() > 100
+        assert np.all(after[trail] <= np.maximum(before[trail], white)), name  # never above what the camera outputs
+        assert after[trail].max() >= white.max() - 1  # the trail through the sun's glow does clip
+
+
 def test_a_contrail_is_drawn_where_each_camera_sees_its_line_and_hides_behind_lower_cloud():
     """Each camera's pixels on the trail are those whose rays cross the plane at its height near
     its axis (so the pair sees it with its true parallax), the true height map says so there, it
@@ -47,6 +70,7 @@ def test_a_contrail_is_drawn_where_each_camera_sees_its_line_and_hides_behind_lo
         assert np.abs(across).max() <= 100.0 * math.sqrt(2 * math.log(1 / 0.3)) + 1.0  # where it adds ≥ 30 %
         gain = after.image.astype(int) - before.image.astype(int)
         assert gain.min() >= 0 and gain.max() <= 60 and after.image.max() <= before.image.max()
+        assert np.all(after.image <= np.maximum(before.image, sim.output_white(name)))
     over = random_case(5, base, RandomOptions(kind="overcast"))
     sim_o, shot_o = _shot(replace(over, contrails=(trail,)))
     name = list(sim_o.station.cameras)[0]

@@ -283,7 +283,7 @@ def draw_contrails(case: RandomCase, sim, shot):
     for name in list(sim.station.cameras)[:2]:
         im, hm = views[name].image, views[name].height_m
         for c in case.contrails:
-            im, hm = draw_contrail(im, hm, sim.station.cameras[name], c)
+            im, hm = draw_contrail(im, hm, sim.station.cameras[name], c, sim.output_white(name))
         views[name] = replace(views[name], image=im, height_m=hm)
     return replace(shot, views=views)
 

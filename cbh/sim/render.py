@@ -383,6 +383,15 @@ class SkySimulator:
     def cameras(self) -> tuple[str, ...]:
         return tuple(self._cams)
 
+    def output_white(self, name: str) -> np.ndarray:
+        """The brightest value (3,) BGR [DN] camera ``name`` outputs: full white through its colour
+        response (gain, tone curve, white balance) and its white level. A clipped sky reads this."""
+        cs = self._cams[name]
+        px = np.full((1, 1, 3), 255, np.uint8)
+        if cs.colour_lut is not None:
+            px = cv2.LUT(px, cs.colour_lut)
+        return output_levels(px, self.scene.image.white_level, self.scene.image.limited_range).reshape(3).astype(np.float32)
+
     def sun(self, time_utc: datetime) -> tuple[float, float]:
         """Sun (zenith_deg, azimuth_deg) at ``time_utc``."""
         st = self.station
