@@ -54,7 +54,7 @@ def test_a_contrail_is_no_brighter_than_its_camera_can_output():
 def test_a_contrail_is_drawn_where_each_camera_sees_its_line_and_hides_behind_lower_cloud():
     """Each camera's pixels on the trail are those whose rays cross the plane at its height near
     its axis (so the pair sees it with its true parallax), the true height map says so there, it
-    adds at most its brightness and never beyond the frame's white; a lower overcast hides it."""
+    adds at most its brightness and never beyond its camera's white; a lower overcast hides it."""
     base = load_station(station_path())
     trail = Contrail(height_m=9000.0, point_m=(0.0, 0.0), azimuth_deg=30.0, width_m=100.0, brightness_dn=60.0)
     case = replace(random_case(5, base, RandomOptions(kind="clear")), contrails=(trail,))
