@@ -10,9 +10,10 @@ A :class:`Contrail` is a horizontal line in the plane ``height_m`` above the ENU
 drawn per camera by intersecting each pixel's ray with that plane (so the two cameras see it
 with its true parallax), with a Gaussian cross-section of ``width_m``. It adds
 ``brightness_dn`` at its axis, up to the camera's white (``white_dn``, per channel: a camera
-clips it where it clips the rest, white balance and all; not the frame's brightest pixel, which JPEG's ringing round a clipped sun
-lifts to 255 above a 230 clip: randomized 17477, a contrail through the sun drawn at 255 beside
-an aureole clipped at 228, made that ringing the clip level), and hides behind lower cloud: it is drawn only where the true height map is clear or
+clips it where it clips the rest, white balance and all; not the frame's brightest pixel, which
+JPEG's ringing round a clipped sun lifts to 255 above a 230 clip: randomized 17477, a contrail
+through the sun drawn at 255 beside an aureole clipped at 228, made that ringing the clip
+level), and hides behind lower cloud: it is drawn only where the true height map is clear or
 higher, and there it becomes the true height. It is drawn onto the finished frames, after the
 renderer's noise, colour response and JPEG: a trail is cleaner than the sky around it (no noise
 or compression of its own), which makes it easier to segment than a real one, not harder to match.
@@ -44,7 +45,8 @@ def draw_contrail(image: np.ndarray, height_m: np.ndarray, camera, trail: Contra
                   white_dn=255.0) -> tuple[np.ndarray, np.ndarray]:
     """``image`` (H, W, 3) uint8 and its true ``height_m`` map (H, W; NaN = clear) with ``trail``
     drawn in as ``camera`` (a station camera at the image's size) sees it, clipped at the camera's
-    output white ``white_dn`` [DN] (a number, or (3,) BGR: ``SkySimulator.output_white``). Returns new arrays."""
+    output white ``white_dn`` [DN] (a number, or (3,) BGR: ``SkySimulator.output_white``).
+    Returns new arrays."""
     H, W = image.shape[:2]
     yy, xx = np.mgrid[0:H, 0:W]
     d = camera.pixel_to_world(np.stack([xx.ravel(), yy.ravel()], -1).astype(np.float64))
