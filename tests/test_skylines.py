@@ -362,7 +362,7 @@ _HARD = RandomOptions(skylines=True, unmasked=True, twice_encoded=True, contrail
 @pytest.mark.slow
 @_STOP_65
 @pytest.mark.parametrize("seed, size", [
-    (17522, 960),  # camera 2 over-exposed, camera 1 pale: a 106 m layer, flagged below_range (its cause: the clipped sky)
+    (17522, 960),  # camera 2 over-exposed, camera 1 pale: a 106 m layer, flagged below_range (the cause: the exposure, not fog)
     (17537, 960),  # 9107 m over 42 % missed above 303 m over 53 % (B = 169 m): the class of stop 59
     (17540, 960),  # a clear sky, tree lines unmasked, a contrail: cloud 0.119 against 0.081
     (17563, 480),  # 613 m over 30 % missed above 400 m over 54 % (B = 34 m: 1.5 % apart in parallax)
