@@ -2,6 +2,7 @@
 
 Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--jobs 2] [--verbose]
      [--skylines] [--unmasked] [--kind clear] [--twice-encoded] [--dense] [--contrails]
+     [--station NAME_OR_TOML]
 
 Each sky is :func:`cbh.sim.randomize.random_case` (seed S, S+1, …): clear, broken or overcast;
 1–3 layers 300 m – 10 km; baselines 20–200 m in any direction; winds 0–30 m/s; the sun 10–85°
@@ -10,7 +11,9 @@ responses; white levels 235–255 and limited-range video; JPEG; noise. One pair
 true orientation given. The options widen the distribution
 (:class:`cbh.sim.randomize.RandomOptions`): skyline obstacles and hazy horizons, obstacles in
 every sky without a mask, one kind of sky, twice-encoded frames, dense skies of two or three
-layers (upper decks seen through the gaps of the lowest), aircraft contrails. A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
+layers (upper decks seen through the gaps of the lowest), aircraft contrails; ``--station``: another
+station's lenses (a preset or a TOML, e.g. the real Fehmarn station's OCamCalib fits; its first two
+cameras' intrinsics and its ``[pipeline]`` table are kept, positions and yaws drawn). A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
 δθ = half a rendered pixel at the zenith (:func:`cbh.sim.evaluate.layer_tolerance`).
 
 Two true layers closer than the pair resolves are found *reported as one* (counted found, listed
@@ -42,8 +45,8 @@ BANDS = ((0, 1000), (1000, 3000), (3000, 6000), (6000, 10_001))
 def one_sky(job):
     """One sky's summary (run in a worker): (seed, kind, expected, matched, spurious, missed,
     found, cloud fraction, layer count, flags, seconds)."""
-    seed, size, options = job
-    base = load_station(station_path())
+    seed, size, options, station = job
+    base = load_station(station_path(station) if not str(station).endswith(".toml") else station)
     with tempfile.TemporaryDirectory() as folder:
         case, r, sc, dt = run_random_case(seed, base, size, folder, options=options)
     return dict(seed=seed, kind=case.kind, describe=case.describe(), expected=sc.expected_m, matched=sc.matched,
@@ -83,7 +86,7 @@ def report(rows, args) -> None:
                   + (f" as one {fmt(row['merged'])}" if row.get("merged") else "") + f" cf {row['cf']:.3f} "
                   f"measured {row.get('measured', float('nan')):.3f} "
                   f"flags {','.join(row['flags']) or '-'} {row['dt']:.2f} s", flush=True)
-    print(f"\nskies {args.n} (seeds {args.seed}..{args.seed + args.n - 1}, {args.size} px)")
+    print(f"\nskies {args.n} (seeds {args.seed}..{args.seed + args.n - 1}, {args.size} px, lenses of {args.station})")
     as_one = sum(len(row.get("merged", ())) for row in rows)
     print(f"layers found {found}/{expected} ({100 * found / max(expected, 1):.1f} %; {as_one} of them reported as one "
           f"with another, closer than the pair resolves)")
@@ -110,6 +113,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--twice-encoded", action="store_true", help="camera JPEG then recorder JPEG, clip 230-255 DN")
     ap.add_argument("--dense", action="store_true", help="broken skies of 2-3 layers, the lowest covering 0.55-0.85")
     ap.add_argument("--contrails", action="store_true", help="1-3 aircraft contrails at 7-11.5 km in 70 %% of skies")
+    ap.add_argument("--station", default="unb-lea", help="preset name or station TOML whose lenses are kept")
     return ap
 
 
@@ -117,7 +121,7 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     options = RandomOptions(skylines=args.skylines, unmasked=args.unmasked, kind=args.kind,
                             twice_encoded=args.twice_encoded, dense=args.dense, contrails=args.contrails)
-    jobs = [(s, args.size, options) for s in range(args.seed, args.seed + args.n)]
+    jobs = [(s, args.size, options, args.station) for s in range(args.seed, args.seed + args.n)]
     if args.jobs > 1:
         import multiprocessing as mp
 

@@ -259,3 +259,32 @@ def test_ring_value_order_is_lexsorts_order():
     # float64 values that one float32 cannot tell apart keep their float64 order (lexsort's own)
     v64, k64 = np.array([1.0, 1.0 + 1e-12, 1.0 - 1e-12]), np.zeros(3, np.int64)
     assert np.array_equal(ring_value_order(k64, v64), [2, 0, 1])
+
+
+def _class_samples(nbr_p10, nbr_p90, contrast, n=2000, seed=0):
+    """Samples of a clear class: NBR spread evenly from its 10th to its 90th percentile, and a
+    callable giving their local contrast (all ``contrast``)."""
+    rng = np.random.default_rng(seed)
+    nbr = rng.uniform(nbr_p10 - 0.125 * (nbr_p90 - nbr_p10), nbr_p90 + 0.125 * (nbr_p90 - nbr_p10), n)
+    return nbr.astype(np.float32), (lambda: np.full(n, contrast, np.float32))
+
+
+@pytest.mark.parametrize("p10, p90, contrast, is_sky", [
+    (0.02, 0.07, 0.05, False),  # textured, no tenth bluer than grey cloud can be (17716: 0.068, 0.040)
+    (0.01, 0.04, 0.07, False),  # a near-overcast's bluer shade (randomized dense 20525: 0.026, 0.05)
+    (-0.05, -0.01, 0.06, False),  # warmer than grey (9570: −0.02, 0.06)
+    (0.06, 0.12, 0.05, True),  # clear gaps of a broken sky under a warm cast (randomized: 0.11 and up)
+    (0.15, 0.30, 0.05, True),  # clear gaps by cloud edges: textured, blue
+    (0.02, 0.07, 0.01, True),  # smooth: a pale camera's clear sky
+])
+def test_a_clear_class_is_sky_only_if_bluer_than_cloud_or_smooth(p10, p90, contrast, is_sky):
+    """A two-class split's clear class that is textured is clear sky only where its bluest tenth
+    reaches NBR 0.1 (:data:`cbh.pipeline.segment.TEXTURED_CLEAR_MIN_NBR`, stop 66): distant cloud
+    takes the airlight's blue, and the regions of a near-overcast sky with no clear sky of their
+    own split a shade of the cloud off as clear (randomized dense skies: every textured clear
+    class under 0.1 was cloud, true cloud 0.92–0.98 read 0.38–0.88). A smooth class is clear."""
+    from cbh.pipeline.segment import TEXTURED_CLEAR_MIN_NBR, clear_class_is_sky
+
+    nbr, contrast_of = _class_samples(p10, p90, contrast)
+    assert (np.percentile(nbr, 90) >= TEXTURED_CLEAR_MIN_NBR) == (p90 >= TEXTURED_CLEAR_MIN_NBR)
+    assert clear_class_is_sky(nbr, contrast_of, SegmentationConfig()) is is_sky
