@@ -273,7 +273,7 @@ def _class_samples(nbr_p10, nbr_p90, contrast, n=2000, seed=0):
     (0.02, 0.07, 0.05, False),  # textured, no tenth bluer than grey cloud can be (17716: 0.068, 0.040)
     (0.01, 0.04, 0.07, False),  # a near-overcast's bluer shade (randomized dense 20525: 0.026, 0.05)
     (-0.05, -0.01, 0.06, False),  # warmer than grey (9570: −0.02, 0.06)
-    (0.06, 0.12, 0.05, True),  # clear gaps of a broken sky under a warm cast (randomized: 0.11 and up)
+    (0.06, 0.12, 0.05, True),  # a warm cast's clear gaps (randomized broken skies: 0.14 and up)
     (0.15, 0.30, 0.05, True),  # clear gaps by cloud edges: textured, blue
     (0.02, 0.07, 0.01, True),  # smooth: a pale camera's clear sky
 ])
