@@ -92,7 +92,7 @@ def main() -> None:
                     help="the cadences a sky's frames are drawn from [s]")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args()
-    base = load_station(station_path(a.station) if not a.station.endswith(".toml") else a.station)
+    base = load_station(station_path(a.station))
     rows, t0 = [], time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(a.seed, a.seed + a.n):

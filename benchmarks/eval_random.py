@@ -46,7 +46,7 @@ def one_sky(job):
     """One sky's summary (run in a worker): (seed, kind, expected, matched, spurious, missed,
     found, cloud fraction, layer count, flags, seconds)."""
     seed, size, options, station = job
-    base = load_station(station_path(station) if not str(station).endswith(".toml") else station)
+    base = load_station(station_path(station))
     with tempfile.TemporaryDirectory() as folder:
         case, r, sc, dt = run_random_case(seed, base, size, folder, options=options)
     return dict(seed=seed, kind=case.kind, describe=case.describe(), expected=sc.expected_m, matched=sc.matched,
