@@ -106,9 +106,21 @@ _LK_SHEAR_BIAS = 0.25
 #: 480 and 960 px, verdicts unchanged: the weakest, a 0.1° roll at 480 px, reads 6.8 σ).
 _SIGNIFICANCE = 5.0
 #: The rotation's σ is also taken from the agreement of patches of sky (:func:`_jackknife_sigma`),
-#: squares of this side [px, working size] of camera 1's pixels, when the matches lie in at least
-#: ``_MIN_GROUPS`` of them (fewer: the normal equations' σ alone).
-_GROUP_PX = 160.0
+#: squares of this side [rad of sky, in pixels at camera 2's scale 45° off axis] of camera 1's pixels,
+#: when the matches lie in at least ``_MIN_GROUPS`` of them (fewer: the normal equations' σ alone).
+#: An angle, not pixels: 160 px at the default 960 px working size, 80 px at 480 px (a fixed 160 px
+#: left an overcast's matches within 40° of the zenith at 480 px in 3 patches, no jackknife, and
+#: a formal σ of 0.010° made the 0.01–0.03 px bias they share a significant 0.10° turn: randomized
+#: 17716; 17138 and 17389 alike)
+_GROUP_RAD = 160.0 / 305.6
+#: … and only for a turn that biases of at most this [px, working size] on every match (each one's sign
+#: the worst) could make (:func:`_bias_gain`): the decks' shared LK biases, which make large turns only
+#: along directions the matches barely constrain. A turn that needs larger biases is no such bias,
+#: whatever its patches say, and the formal σ stands. Correct stations' turns needed 0.02–0.16 px
+#: (randomized 17716, 17389, 17138 at 480 px) and up to 0.32 px (dense seed 11 at 960 px: 0.17°, its
+#: decks asking for 0.32° and 1.05°); a camera 2° off level seen 630 m away at 480 px fits 1.15°,
+#: ± 0.15° formally and ± 0.60° from 15 patches of 5 gated matches each, and needs 0.83 px.
+_SHARED_BIAS_PX = 0.5
 _MIN_GROUPS = 6
 #: … but only where the turn explains little: a real turn moves every match, and fitted it takes
 #: a share off their residuals' robust scale (simulated turns of 0.05–0.1°: 10–48 %, the lower ones
@@ -154,7 +166,7 @@ class GeometryCheck:
 
 def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
                       iterations: int = 4, prior: np.ndarray | None = None,
-                      groups: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                      groups: np.ndarray | None = None, max_bias_rad: float = math.inf) -> tuple[np.ndarray, float]:
     """The small rotation ω (3,) [rad, ENU rotation vector] of camera 2's rays that best puts them
     on the epipolar planes of camera 1's rays: ``d2 → d2 + ω × d2`` (robust least squares).
 
@@ -173,7 +185,9 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     trusted; None: all alike). ``groups`` (N,) int: the patch of sky each match lies in; with at
     least ``_MIN_GROUPS`` of them, and a turn that takes less than ``_EXPLAINS`` off the
     residuals' robust scale, σ is also taken from the scatter of the fits that leave one patch
-    out (:func:`_jackknife_sigma`), and the larger σ stands.
+    out (:func:`_jackknife_sigma`), and the larger σ stands; but only for a turn no larger than
+    biases of ``max_bias_rad`` [rad] on every match could make (:func:`_bias_gain`; radians of
+    epipolar angle, ``_SHARED_BIAS_PX`` in :func:`check_geometry`).
 
     Returns (ω, σ): σ [rad] is the standard deviation of |ω| along ω's direction, from the
     weighted normal equations and the residuals' robust scale (and, with ``groups``, from the
@@ -191,11 +205,21 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     w0 = np.ones(len(e0)) if prior is None else np.asarray(prior, np.float64)
     w0 = w0 / max(float(w0.mean()), 1e-300) if len(w0) else w0  # relative: σ's scale stays the residuals'
     omega, sigma, w = _robust_turn(J, e0, w0, iterations)
+    u = omega / max(float(np.linalg.norm(omega)), 1e-300)
     if groups is not None and len(np.unique(np.asarray(groups)[w > 0])) >= _MIN_GROUPS \
-            and _explained(e0, e0 + J @ omega) < _EXPLAINS:
-        u = omega / max(float(np.linalg.norm(omega)), 1e-300)
+            and _explained(e0, e0 + J @ omega) < _EXPLAINS \
+            and float(np.linalg.norm(omega)) <= max_bias_rad * _bias_gain(J, w, u):
         sigma = max(sigma, _jackknife_sigma(J, e0, w, np.asarray(groups), u))
     return omega, sigma
+
+
+def _bias_gain(J: np.ndarray, w: np.ndarray, u: np.ndarray) -> float:
+    """The largest turn along ``u`` [rad] that the weighted fit (Jacobian ``J`` (N, 3), weights
+    ``w`` (N,)) makes of biases of at most 1 rad on the matches' epipolar angles, each one's sign
+    the worst: Σ |(W J N⁻¹ u)_i|. Large along a direction the matches barely constrain (an
+    overcast's matches within 40° of the zenith: 13; the whole sky's: 1–4)."""
+    A = J * w[:, None]
+    return float(np.abs(A @ (np.linalg.pinv(A.T @ J) @ u)).sum())
 
 
 def _explained(before: np.ndarray, after: np.ndarray) -> float:
@@ -284,9 +308,10 @@ def _t_widening(dof: int) -> float:
     return (z + (z ** 3 + z) / (4 * v) + (5 * z ** 5 + 16 * z ** 3 + 3 * z) / (96 * v * v)) / z
 
 
-def _patches(px: np.ndarray) -> np.ndarray:
-    """Each pixel's patch of sky for :func:`_jackknife_sigma`: squares of ``_GROUP_PX``, (N,) int."""
-    q = np.floor(np.asarray(px, np.float64) / _GROUP_PX).astype(np.int64)
+def _patches(px: np.ndarray, px_per_rad: float) -> np.ndarray:
+    """Each pixel's patch of sky for :func:`_jackknife_sigma`: squares of ``_GROUP_RAD`` at
+    ``px_per_rad`` [px/rad], (N,) int."""
+    q = np.floor(np.asarray(px, np.float64) / (_GROUP_RAD * px_per_rad)).astype(np.int64)
     return q[:, 0] * 100_003 + q[:, 1]
 
 
@@ -392,10 +417,6 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # flagged by the median already; its fitted size then comes out low (0.37° for a 0.5° pitch)
     fit = inl if inl.sum() >= cfg.min_matches else np.zeros(n, bool)
     shear = np.nan_to_num(par, nan=0.0) / ppr  # [rad] (see _SHEAR_SCALE)
-    omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
-                                      groups=_patches(px1[fit]))
-                    if fit.any() else (np.zeros(3), math.inf))
-    rot = math.degrees(float(np.linalg.norm(omega)))
     # tolerance: a shift of max_rotation_px, or _ROTATION_PARALLAX (2 %) of the matches' median
     # parallax if more (a turn that moves a near layer's 100 px of parallax by 1 px moves its
     # height by 1 %: harmless, and near cloud's fits scatter by 0.04–0.12°); not judged where
@@ -405,6 +426,10 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     bias_px = _LK_SHEAR_BIAS * float(np.median(shear[fit])) * float(window_px) if fit.any() else 0.0
     tol_rot_px = max(cfg.max_rotation_px, _ROTATION_PARALLAX * parallax, bias_px)
     tol_rot = math.degrees(tol_rot_px / ppr) if cfg.expected_miss_ratio <= 0 else math.inf
+    omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
+                                      groups=_patches(px1[fit], ppr), max_bias_rad=_SHARED_BIAS_PX / ppr)
+                    if fit.any() else (np.zeros(3), math.inf))
+    rot = math.degrees(float(np.linalg.norm(omega)))
     # size and significance, separately: above the tolerance *and* beyond _SIGNIFICANCE σ of the fit.
     # Matches from one patch of sky (a lone cloud) constrain the rotation poorly (σ 0.025–0.09° for a
     # patch of 100 px radius): a correct station must not be flagged for the fit's own scatter. Over
