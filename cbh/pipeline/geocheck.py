@@ -417,6 +417,10 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # flagged by the median already; its fitted size then comes out low (0.37° for a 0.5° pitch)
     fit = inl if inl.sum() >= cfg.min_matches else np.zeros(n, bool)
     shear = np.nan_to_num(par, nan=0.0) / ppr  # [rad] (see _SHEAR_SCALE)
+    omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
+                                      groups=_patches(px1[fit], ppr), max_bias_rad=_SHARED_BIAS_PX / ppr)
+                    if fit.any() else (np.zeros(3), math.inf))
+    rot = math.degrees(float(np.linalg.norm(omega)))
     # tolerance: a shift of max_rotation_px, or _ROTATION_PARALLAX (2 %) of the matches' median
     # parallax if more (a turn that moves a near layer's 100 px of parallax by 1 px moves its
     # height by 1 %: harmless, and near cloud's fits scatter by 0.04–0.12°); not judged where
@@ -426,10 +430,6 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     bias_px = _LK_SHEAR_BIAS * float(np.median(shear[fit])) * float(window_px) if fit.any() else 0.0
     tol_rot_px = max(cfg.max_rotation_px, _ROTATION_PARALLAX * parallax, bias_px)
     tol_rot = math.degrees(tol_rot_px / ppr) if cfg.expected_miss_ratio <= 0 else math.inf
-    omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
-                                      groups=_patches(px1[fit], ppr), max_bias_rad=_SHARED_BIAS_PX / ppr)
-                    if fit.any() else (np.zeros(3), math.inf))
-    rot = math.degrees(float(np.linalg.norm(omega)))
     # size and significance, separately: above the tolerance *and* beyond _SIGNIFICANCE σ of the fit.
     # Matches from one patch of sky (a lone cloud) constrain the rotation poorly (σ 0.025–0.09° for a
     # patch of 100 px radius): a correct station must not be flagged for the fit's own scatter. Over
