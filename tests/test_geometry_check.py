@@ -164,7 +164,7 @@ def test_patches_that_disagree_make_no_significant_turn():
     patches' jackknife σ says it is no turn (under 4 σ). The same matches turned alike by a real
     0.05° (every patch agrees) are at > 10 σ."""
     from cbh.geometry.calibrate import rotvec_to_matrix
-    from cbh.pipeline.geocheck import _EXPLAINS, _SIGNIFICANCE, _explained, _patches, relative_rotation
+    from cbh.pipeline.geocheck import _EXPLAINS, _GROUP_RAD, _SIGNIFICANCE, _explained, _patches, relative_rotation
 
     rng = np.random.default_rng(5)
     n = 600
@@ -176,7 +176,7 @@ def test_patches_that_disagree_make_no_significant_turn():
     # camera 1's pixels (an equidistant 480 px lens): the patches are squares of the image
     theta = np.arccos(d1[:, 2])
     px1 = 480.0 + 480.0 * theta[:, None] / (np.pi / 2) * d1[:, :2] / np.linalg.norm(d1[:, :2], axis=1, keepdims=True)
-    groups = _patches(px1, 480.0 / (np.pi / 2))
+    groups = _patches(px1, 480.0 / (np.pi / 2), _GROUP_RAD)
     ids, inv = np.unique(groups, return_inverse=True)
     normal = np.cross(o2[None, :], d1)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
@@ -189,6 +189,11 @@ def test_patches_that_disagree_make_no_significant_turn():
     assert _explained(e0, e0 + np.cross(biased, normal) @ omega) < _EXPLAINS
     assert np.linalg.norm(omega) > _SIGNIFICANCE * formal  # what flagged the correct stations
     assert np.linalg.norm(omega) < _SIGNIFICANCE * sigma
+    # on two grids (the second shifted by half a side) the larger σ stands
+    shifted = _patches(px1, 480.0 / (np.pi / 2), _GROUP_RAD, 0.5)
+    _, s_shifted = relative_rotation(d1, biased, o2, groups=shifted)
+    _, s_both = relative_rotation(d1, biased, o2, groups=[groups, shifted])
+    assert s_shifted != sigma and s_both == max(sigma, s_shifted)
     turned = d2 @ rotvec_to_matrix(np.radians([0.05, 0.0, 0.0])).T + rng.normal(0, 3e-4, (n, 3))
     turned /= np.linalg.norm(turned, axis=1, keepdims=True)
     om_t, sig_t = relative_rotation(d1, turned, o2, groups=groups)
@@ -202,7 +207,7 @@ def test_patches_are_the_same_sky_at_any_working_size():
     960 px. With 160 px squares, an overcast's matches within 40° of the zenith at 480 px fell in
     4 patches, too few for the jackknife, and the formal σ made their shared 0.01 px bias a
     significant turn on a correct station (randomized 17716, 17138, 17389)."""
-    from cbh.pipeline.geocheck import _MIN_GROUPS, _patches
+    from cbh.pipeline.geocheck import _GROUP_RAD, _MIN_GROUPS, _patches
 
     rng = np.random.default_rng(3)
     theta = np.radians(rng.uniform(0.0, 40.0, 300))
@@ -211,7 +216,7 @@ def test_patches_are_the_same_sky_at_any_working_size():
     counts = []
     for radius_px in (480.0, 240.0):
         ppr = radius_px / (np.pi / 2)
-        g = _patches(radius_px + ppr * unit, ppr)
+        g = _patches(radius_px + ppr * unit, ppr, _GROUP_RAD)
         counts.append(len(np.unique(g)))
         if radius_px == 480.0:
             first = np.unique(g, return_inverse=True)[1]

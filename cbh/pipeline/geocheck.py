@@ -108,11 +108,16 @@ _SIGNIFICANCE = 5.0
 #: The rotation's σ is also taken from the agreement of patches of sky (:func:`_jackknife_sigma`),
 #: squares of this side [rad of sky, in pixels at camera 2's scale 45° off axis] of camera 1's pixels,
 #: when the matches lie in at least ``_MIN_GROUPS`` of them (fewer: the normal equations' σ alone).
-#: An angle, not pixels: 160 px at the default 960 px working size, 80 px at 480 px (a fixed 160 px
-#: left an overcast's matches within 40° of the zenith at 480 px in 3 patches, no jackknife, and
-#: a formal σ of 0.010° made the 0.01–0.03 px bias they share a significant 0.10° turn: randomized
-#: 17716; 17138 and 17389 alike)
+#: An angle, not pixels: 30° is 160 px at the default 960 px working size, 80 px at 480 px (160 px at
+#: any size left an overcast's matches within 40° of the zenith at 480 px in 3 patches, no jackknife,
+#: and a formal σ of 0.010° made the 0.01–0.03 px bias they share a significant 0.10° turn:
+#: randomized 17716; 17138 and 17389 alike).
 _GROUP_RAD = 160.0 / 305.6
+#: … on each of these grids (shifted by these shares of a side along both axes), the larger σ standing:
+#: which matches share a patch is the grid's chance, and a σ from one grid of a few patches is itself
+#: uncertain (randomized 17087 at 480 px, a faint 7.7 km deck twice encoded: 0.109°, ± 0.021° on one
+#: grid and flagged, ± 0.022° on the shifted one, 4.9 σ; with 160 px patches it read ± 0.025°).
+_GROUP_SHIFTS = (0.0, 0.5)
 #: … and only for a turn that biases of at most this [px, working size] on every match (each one's sign
 #: the worst) could make (:func:`_bias_gain`): the decks' shared LK biases, which make large turns only
 #: along directions the matches barely constrain. A turn that needs larger biases is no such bias,
@@ -166,7 +171,7 @@ class GeometryCheck:
 
 def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
                       iterations: int = 4, prior: np.ndarray | None = None,
-                      groups: np.ndarray | None = None, max_bias_rad: float = math.inf) -> tuple[np.ndarray, float]:
+                      groups: np.ndarray | list[np.ndarray] | None = None, max_bias_rad: float = math.inf) -> tuple[np.ndarray, float]:
     """The small rotation ω (3,) [rad, ENU rotation vector] of camera 2's rays that best puts them
     on the epipolar planes of camera 1's rays: ``d2 → d2 + ω × d2`` (robust least squares).
 
@@ -182,7 +187,8 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     1.4826 · MAD) so that mismatches do not pull it.
 
     ``prior`` (N,): each match's weight before the robust ones (how much its own position is
-    trusted; None: all alike). ``groups`` (N,) int: the patch of sky each match lies in; with at
+    trusted; None: all alike). ``groups`` (N,) int, or a list of such: the patch of sky each match lies in (at each
+    patch size; the largest σ stands); with at
     least ``_MIN_GROUPS`` of them, and a turn that takes less than ``_EXPLAINS`` off the
     residuals' robust scale, σ is also taken from the scatter of the fits that leave one patch
     out (:func:`_jackknife_sigma`), and the larger σ stands; but only for a turn no larger than
@@ -206,10 +212,11 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     w0 = w0 / max(float(w0.mean()), 1e-300) if len(w0) else w0  # relative: σ's scale stays the residuals'
     omega, sigma, w = _robust_turn(J, e0, w0, iterations)
     u = omega / max(float(np.linalg.norm(omega)), 1e-300)
-    if groups is not None and len(np.unique(np.asarray(groups)[w > 0])) >= _MIN_GROUPS \
-            and _explained(e0, e0 + J @ omega) < _EXPLAINS \
+    if groups is not None and len(groups) and _explained(e0, e0 + J @ omega) < _EXPLAINS \
             and float(np.linalg.norm(omega)) <= max_bias_rad * _bias_gain(J, w, u):
-        sigma = max(sigma, _jackknife_sigma(J, e0, w, np.asarray(groups), u))
+        for g in ([groups] if np.ndim(groups[0]) == 0 else groups):
+            if len(np.unique(np.asarray(g)[w > 0])) >= _MIN_GROUPS:
+                sigma = max(sigma, _jackknife_sigma(J, e0, w, np.asarray(g), u))
     return omega, sigma
 
 
@@ -308,10 +315,10 @@ def _t_widening(dof: int) -> float:
     return (z + (z ** 3 + z) / (4 * v) + (5 * z ** 5 + 16 * z ** 3 + 3 * z) / (96 * v * v)) / z
 
 
-def _patches(px: np.ndarray, px_per_rad: float) -> np.ndarray:
-    """Each pixel's patch of sky for :func:`_jackknife_sigma`: squares of ``_GROUP_RAD`` at
-    ``px_per_rad`` [px/rad], (N,) int."""
-    q = np.floor(np.asarray(px, np.float64) / (_GROUP_RAD * px_per_rad)).astype(np.int64)
+def _patches(px: np.ndarray, px_per_rad: float, side_rad: float, shift: float = 0.0) -> np.ndarray:
+    """Each pixel's patch of sky for :func:`_jackknife_sigma`: squares of ``side_rad`` at
+    ``px_per_rad`` [px/rad], the grid shifted by ``shift`` × the side along both axes, (N,) int."""
+    q = np.floor(np.asarray(px, np.float64) / (side_rad * px_per_rad) + shift).astype(np.int64)
     return q[:, 0] * 100_003 + q[:, 1]
 
 
@@ -418,7 +425,8 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     fit = inl if inl.sum() >= cfg.min_matches else np.zeros(n, bool)
     shear = np.nan_to_num(par, nan=0.0) / ppr  # [rad] (see _SHEAR_SCALE)
     omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
-                                      groups=_patches(px1[fit], ppr), max_bias_rad=_SHARED_BIAS_PX / ppr)
+                                      groups=[_patches(px1[fit], ppr, _GROUP_RAD, f) for f in _GROUP_SHIFTS],
+                                      max_bias_rad=_SHARED_BIAS_PX / ppr)
                     if fit.any() else (np.zeros(3), math.inf))
     rot = math.degrees(float(np.linalg.norm(omega)))
     # tolerance: a shift of max_rotation_px, or _ROTATION_PARALLAX (2 %) of the matches' median
