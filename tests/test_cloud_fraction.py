@@ -82,7 +82,7 @@ def test_the_overcast_of_17716_at_480_px_raises_no_false_alarm(base, tmp_path):
     had no layer (cloud_unmatched, few_points); now the 3294 m overcast is read (3301 m over the
     whole sky) and the geometry check flagged the correct station ``geometry_mismatch``: its 298
     LK matches, all within 40° of the zenith and 0.025 px off their curves (median), fitted a turn
-    of 0.102° ± 0.010° (tolerance 0.094°) from a bias of ≈ 0.01 px that they share. They lay in 4
+    of 0.102° ± 0.010° (tolerance 0.094°) from a bias of ≈ 0.01 px that they share. They lay in 3
     patches of 160 px, too few for the jackknife σ; since stop 67 the patches are 30° of sky (80 px
     at this size) and the patches' disagreement gives ± 0.046°: not significant."""
     from cbh.flags import INVALIDATING

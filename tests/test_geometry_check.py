@@ -205,7 +205,7 @@ def test_patches_are_the_same_sky_at_any_working_size():
     """The jackknife's patches are squares of sky (30° at camera 2's scale 45° off axis), not of
     pixels: the same matches at half the working size fall in the same patches, as many as at
     960 px. With 160 px squares, an overcast's matches within 40° of the zenith at 480 px fell in
-    4 patches, too few for the jackknife, and the formal σ made their shared 0.01 px bias a
+    3 patches, too few for the jackknife, and the formal σ made their shared 0.01 px bias a
     significant turn on a correct station (randomized 17716, 17138, 17389)."""
     from cbh.pipeline.geocheck import _GROUP_RAD, _MIN_GROUPS, _patches
 

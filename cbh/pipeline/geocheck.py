@@ -171,7 +171,8 @@ class GeometryCheck:
 
 def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
                       iterations: int = 4, prior: np.ndarray | None = None,
-                      groups: np.ndarray | list[np.ndarray] | None = None, max_bias_rad: float = math.inf) -> tuple[np.ndarray, float]:
+                      groups: np.ndarray | list[np.ndarray] | None = None,
+                      max_bias_rad: float = math.inf) -> tuple[np.ndarray, float]:
     """The small rotation ω (3,) [rad, ENU rotation vector] of camera 2's rays that best puts them
     on the epipolar planes of camera 1's rays: ``d2 → d2 + ω × d2`` (robust least squares).
 
@@ -187,8 +188,8 @@ def relative_rotation(d1: np.ndarray, d2: np.ndarray, baseline_m: np.ndarray,
     1.4826 · MAD) so that mismatches do not pull it.
 
     ``prior`` (N,): each match's weight before the robust ones (how much its own position is
-    trusted; None: all alike). ``groups`` (N,) int, or a list of such: the patch of sky each match lies in (at each
-    patch size; the largest σ stands); with at
+    trusted; None: all alike). ``groups`` (N,) int, or a list of such (one per grid of patches;
+    the largest σ stands): the patch of sky each match lies in; with at
     least ``_MIN_GROUPS`` of them, and a turn that takes less than ``_EXPLAINS`` off the
     residuals' robust scale, σ is also taken from the scatter of the fits that leave one patch
     out (:func:`_jackknife_sigma`), and the larger σ stands; but only for a turn no larger than
