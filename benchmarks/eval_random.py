@@ -2,6 +2,7 @@
 
 Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--jobs 2] [--verbose]
      [--skylines] [--unmasked] [--kind clear] [--twice-encoded] [--dense] [--contrails]
+     [--mounts]
      [--station NAME_OR_TOML]
 
 Each sky is :func:`cbh.sim.randomize.random_case` (seed S, S+1, …): clear, broken or overcast;
@@ -11,7 +12,8 @@ responses; white levels 235–255 and limited-range video; JPEG; noise. One pair
 true orientation given. The options widen the distribution
 (:class:`cbh.sim.randomize.RandomOptions`): skyline obstacles and hazy horizons, obstacles in
 every sky without a mask, one kind of sky, twice-encoded frames, dense skies of two or three
-layers (upper decks seen through the gaps of the lowest), aircraft contrails; ``--station``: another
+layers (upper decks seen through the gaps of the lowest), aircraft contrails, cameras mounted as
+real stations are (tilted 0–3°, 0–15 m apart in height, each its own lens, off-centre); ``--station``: another
 station's lenses (a preset or a TOML, e.g. the real Fehmarn station's OCamCalib fits; its first two
 cameras' intrinsics and its ``[pipeline]`` table are kept, positions and yaws drawn). A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
 δθ = half a rendered pixel at the zenith (:func:`cbh.sim.evaluate.layer_tolerance`).
@@ -113,6 +115,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--twice-encoded", action="store_true", help="camera JPEG then recorder JPEG, clip 230-255 DN")
     ap.add_argument("--dense", action="store_true", help="broken skies of 2-3 layers, the lowest covering 0.55-0.85")
     ap.add_argument("--contrails", action="store_true", help="1-3 aircraft contrails at 7-11.5 km in 70 %% of skies")
+    ap.add_argument("--mounts", action="store_true",
+                    help="cameras tilted 0-3 deg, 0-15 m apart in height, each its own lens (ocam/equidistant/equisolid, off-centre)")
     ap.add_argument("--station", default="unb-lea", help="preset name or station TOML whose lenses are kept")
     return ap
 
@@ -120,7 +124,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     options = RandomOptions(skylines=args.skylines, unmasked=args.unmasked, kind=args.kind,
-                            twice_encoded=args.twice_encoded, dense=args.dense, contrails=args.contrails)
+                            twice_encoded=args.twice_encoded, dense=args.dense, contrails=args.contrails,
+                            mounts=args.mounts)
     jobs = [(s, args.size, options, args.station) for s in range(args.seed, args.seed + args.n)]
     if args.jobs > 1:
         import multiprocessing as mp

@@ -624,6 +624,107 @@ def test_matches_from_one_patch_of_sky_do_not_flag_a_correct_station(unb):
     assert whole.mismatch and whole.rotation_deg == pytest.approx(0.5, abs=0.03)
 
 
+
+def test_matches_whose_windows_do_not_correlate_or_are_lines_are_not_judged(unb):
+    """Two ways LK's forward-backward check lets a wrong match through, both no evidence about
+    the station: a lock onto a neighbouring blob of fine texture (its windows do not correlate:
+    randomized 17849, 0.18–0.37 against 0.67–0.80 for the true matches), and a slide along a line
+    (a contrail: the window matches itself anywhere along it; randomized 17945's matches slid
+    0.5–3° off their curves, corner ratios 0.02–0.09). 80 true matches of a 2 km deck with 140
+    such: judged all together the correct station is flagged, judged on ``min_zncc`` and
+    ``min_corner_ratio`` it is not; the same true matches of a camera turned 0.5° still are."""
+    from dataclasses import replace
+
+    from cbh.geometry.calibrate import rotvec_to_matrix
+    from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig
+    from cbh.pipeline.geocheck import check_geometry
+    from cbh.pipeline.match import Matches, PairGeometry
+
+    cam1, cam2 = unb.scaled(480).pair()
+    geom = PairGeometry(cam1, cam2)
+    rng = np.random.default_rng(11)
+    p = np.stack([rng.uniform(-3000, 3000, 400), rng.uniform(-3000, 3000, 400), np.full(400, 2000.0)], 1)
+
+    def lk(turn_deg, kind):
+        px1 = cam1.world_to_pixel(p)
+        px2 = cam2.direction_to_pixel((p - cam2.position_m) @ rotvec_to_matrix(np.radians([0.0, 0.0, turn_deg])).T)
+        ok = np.flatnonzero(np.isfinite(px1).all(1) & np.isfinite(px2).all(1))[:220]
+        px1, px2 = px1[ok] + rng.normal(0, 0.1, (220, 2)), px2[ok] + rng.normal(0, 0.1, (220, 2))
+        a = rng.uniform(0, 2 * np.pi, 140)  # the wrong ones: a blob's width or a slide off, any direction
+        px2[80:] += rng.uniform(10, 20, (140, 1)) * np.stack([np.cos(a), np.sin(a)], 1)
+        zncc, corner = rng.uniform(0.67, 0.8, 220), rng.uniform(0.3, 1.0, 220)
+        if kind == "blobs":
+            zncc[80:] = rng.uniform(0.18, 0.37, 140)
+        else:  # lines: they correlate well
+            zncc[80:], corner[80:] = rng.uniform(0.95, 0.99, 140), rng.uniform(0.02, 0.09, 140)
+        return Matches("lk", px1, px2, zncc=zncc, corner=corner)
+
+    cfg = GeometryCheckConfig()
+    for kind in ("blobs", "lines"):
+        every = replace(cfg, min_zncc=0.0, min_corner_ratio=0.0)
+        assert check_geometry(geom, [lk(0.0, kind)], FilteringConfig(), every).mismatch, kind
+        judged = check_geometry(geom, [lk(0.0, kind)], FilteringConfig(), cfg)
+        assert not judged.mismatch and judged.matches == 80 and judged.residual_px < 0.3, (kind, judged)
+        assert check_geometry(geom, [lk(0.5, kind)], FilteringConfig(), cfg).mismatch, kind
+
+
+def test_a_line_is_no_corner():
+    """:func:`cbh.pipeline.match.corner_ratio`: a contrail-like line (Gaussian, σ 2 px) in any
+    direction reads under 0.1, blurred noise (cloud texture) over 0.3, a flat window 0."""
+    import cv2
+
+    from cbh.pipeline.match import corner_ratio
+
+    yy, xx = np.mgrid[0:120, 0:120].astype(np.float32)
+    p = np.array([[60.0, 60.0], [50.5, 70.2]])
+    for ang in (0.0, 0.4, 1.2, 2.0):
+        d = (xx - 60) * np.sin(ang) - (yy - 60) * np.cos(ang)
+        line = 100 + 80 * np.exp(-0.5 * (d / 2.0) ** 2)
+        assert corner_ratio(line, p, 21).max() < 0.1, ang
+    rng = np.random.default_rng(2)
+    tex = cv2.GaussianBlur(rng.normal(0, 40, (120, 120)).astype(np.float32), (0, 0), 1.5)
+    assert corner_ratio(tex, rng.uniform(20, 100, (40, 2)), 21).min() > 0.3
+    assert np.all(corner_ratio(np.full((120, 120), 7.0, np.float32), p, 21) == 0)
+
+
+@pytest.mark.parametrize("size", [480, pytest.param(960, marks=pytest.mark.slow)])
+def test_randomized_overcast_whose_lk_locked_onto_other_blobs_is_no_mismatch(size, tmp_path):
+    """Randomized 17849 (default options): a 5745 m overcast of fine texture at B = 40 m, camera 1
+    near its white. 140 of LK's 218 matches (480 px) locked 12–26 px off onto other blobs and
+    passed the forward-backward check (ZNCC of their windows 0.18–0.37; the true ones 0.67–0.80):
+    a median of 12 px (32 px at 960 px) flagged the correct station ``geometry_mismatch``. Judged
+    on the matches whose windows correlate: 0.04 px at 480 px, no verdict at 960 px (too few)."""
+    r, score = _quiet_correct_station(17849, size, tmp_path)
+    assert score.missed_m == [] and score.spurious_m == [], score.found_m
+
+
+@pytest.mark.slow
+def test_randomized_clear_sky_whose_lk_slid_along_contrails_is_no_mismatch(tmp_path):
+    """Randomized 17945 (960 px, skylines unmasked, twice encoded, contrails): a clear sky with
+    three contrails at 7.1–11.4 km, B = 30 m. 16 of LK's 33 matches slid 0.5–3° along the
+    contrails (ZNCC 0.95–0.99: a line matches itself anywhere along it): flagged
+    ``geometry_mismatch`` at 1.28 px. Their windows' corner ratios are 0.02–0.09; judged on
+    corners only, too few matches are left for a verdict."""
+    _quiet_correct_station(17945, 960, tmp_path, RandomOptions(skylines=True, unmasked=True, twice_encoded=True,
+                                                               contrails=True))
+
+def test_a_window_correlates_with_itself_and_not_with_its_neighbour():
+    """:func:`cbh.pipeline.match.window_zncc`: the same texture at a sub-pixel place correlates
+    (≥ 0.99, bilinear), with a gain and an offset too; a window beside it does not (fine texture
+    of 3 px blobs: median |ZNCC| < 0.2); a flat window scores 0."""
+    import cv2
+
+    from cbh.pipeline.match import window_zncc
+
+    rng = np.random.default_rng(3)
+    tex = cv2.GaussianBlur(rng.normal(0, 40, (200, 200)).astype(np.float32), (0, 0), 1.5) + 128
+    p = rng.uniform(40, 160, (50, 2))
+    shifted = cv2.warpAffine(tex, np.float32([[1, 0, 3.3], [0, 1, -2.6]]), (200, 200), flags=cv2.INTER_CUBIC)
+    z = window_zncc(tex, p, 0.5 * shifted + 20, p + [3.3, -2.6], 21)
+    assert z.min() > 0.99
+    assert np.median(np.abs(window_zncc(tex, p, tex, p + [25.0, 0.0], 21))) < 0.2  # (chance: σ ≈ 0.17)
+    assert np.all(window_zncc(np.full((200, 200), 90, np.float32), p, tex, p, 21) == 0)
+
 def test_carried_matches_are_judged_on_their_pattern_not_their_scatter(unb):
     """Matches carried in time by each pixel's own motion (the sky maps', ``skyflow``) scatter by
     the carry's noise (cloud evolving over a half-minute clock offset: 0.2–0.8° on the real

@@ -255,6 +255,16 @@ class GeometryCheckConfig:
     min_inlier_fraction: float = 0.5  # share of 2-D matches consistent with the geometry, at least [1]
     min_matches: int = 30  # fewer 2-D matches: no verdict [1]
     max_matches: int = 3000  # at most this many matches are judged (even subsample) [1]
+    # a 2-D match is judged only where its windows in image 1 and in image 2 (warped onto camera 1's grid at
+    # infinity) correlate at least this much (ZNCC, the matcher's window): LK locked onto a neighbouring blob of
+    # fine texture passes its forward-backward check, not this (randomized 17849: 0.18–0.37 for those, 0.67–0.80
+    # for the true ones); 0 = every match [1]
+    min_zncc: float = 0.4
+    # … and only where its window in image 1 is a corner: λ_min / λ_max of its structure tensor at least this
+    # (:func:`~cbh.pipeline.match.corner_ratio`): along a line (a contrail) a window matches itself anywhere, and
+    # LK slid 0.5–3° off the curves on a clear sky's contrails (randomized 17945, hard options: 0.02–0.09 for
+    # those; cloud texture's true matches: 5th percentile 0.34–0.37); 0 = every match [1]
+    min_corner_ratio: float = 0.1
     identical_max_dn: float = 0.5  # images closer than this mean grey difference are the same image [DN]
 
 
@@ -451,6 +461,8 @@ def _check_geometry(gc, where: str) -> None:
     _positive(f"{where}.min_matches", gc.min_matches)
     _positive(f"{where}.max_matches", gc.max_matches)
     _positive(f"{where}.identical_max_dn", gc.identical_max_dn, strict=False)
+    _in_range(f"{where}.min_zncc", gc.min_zncc, 0, 1, "0..1")
+    _in_range(f"{where}.min_corner_ratio", gc.min_corner_ratio, 0, 1, "0..1")
 
 
 def _check_layers(ly, where: str, layer_methods) -> None:

@@ -68,7 +68,8 @@ from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, GeometryCheckConfig, LKConfig
 from cbh.pipeline.match import Matches, PairGeometry
 
-__all__ = ["GeometryCheck", "check_geometry", "relative_rotation", "images_identical", "seeded_matches", "CHECK_METHODS"]
+__all__ = ["GeometryCheck", "check_geometry", "relative_rotation", "images_identical", "seeded_matches", "judged",
+           "CHECK_METHODS"]
 
 #: Matching methods whose correspondences can disagree with the geometry (2-D search).
 CHECK_METHODS = ("lk", "orb", "dis", "skyflow")
@@ -331,6 +332,18 @@ def _px_per_rad(geom: PairGeometry) -> float:
     return float((r[1] - r[0]) / math.radians(1.0))
 
 
+def judged(m: Matches, cfg: GeometryCheckConfig) -> np.ndarray:
+    """Which of ``m``'s matches the check judges (N,) bool: those whose windows correlate at least
+    ``cfg.min_zncc`` (``Matches.zncc``) and whose window in image 1 is a corner, not a line
+    (``Matches.corner`` ≥ ``cfg.min_corner_ratio``); every match where the method measured neither."""
+    keep = np.ones(len(m), bool)
+    if m.zncc is not None and cfg.min_zncc > 0:
+        keep &= np.asarray(m.zncc) >= cfg.min_zncc
+    if m.corner is not None and cfg.min_corner_ratio > 0:
+        keep &= np.asarray(m.corner) >= cfg.min_corner_ratio
+    return keep
+
+
 def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: FilteringConfig,
                    cfg: GeometryCheckConfig, window_px: float = LKConfig.window_px,
                    beside: list[np.ndarray] | None = None) -> GeometryCheck:
@@ -363,10 +376,11 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     GeometryCheck
     """
     pick = [i for i, m in enumerate(matches) if m.method in CHECK_METHODS and len(m)]
-    use = [matches[i] for i in pick]
+    sure = [judged(matches[i], cfg) for i in pick]
+    use = [matches[i].take(k) for i, k in zip(pick, sure)]
     px1 = np.concatenate([m.px1 for m in use]) if use else np.zeros((0, 2))
     px2 = np.concatenate([m.px2 for m in use]) if use else np.zeros((0, 2))
-    near_obj = (np.concatenate([beside[i] for i in pick]) if use and beside is not None
+    near_obj = (np.concatenate([beside[i][k] for i, k in zip(pick, sure)]) if use and beside is not None
                 else np.zeros(len(px1), bool))
     if len(px1) > cfg.max_matches:  # dense methods: an even subsample is as good and cheaper
         k = len(px1) // cfg.max_matches + 1

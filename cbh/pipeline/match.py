@@ -41,7 +41,8 @@ from cbh.geometry.triangulate import TriangulationLimits, triangulate
 from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
 __all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "DenseField", "MATCHERS", "MATCHER_BACKENDS",
-           "get_matcher", "triangulate_matches", "stereo_heights", "field_heights", "sample_map"]
+           "get_matcher", "triangulate_matches", "stereo_heights", "field_heights", "sample_map", "window_zncc",
+           "warped_zncc", "corner_ratio"]
 
 #: Methods whose matches lie on the epipolar curve by construction: their ray miss says
 #: nothing about the matching noise (the pipeline's angular-noise estimate skips them).
@@ -211,6 +212,11 @@ class Matches:
     # px1/px2 then a subsample of it on the point lattice (``point_stride_px``): the point set; the height map is
     # made from the field
     field: "DenseField | None" = None
+    # where the method measured them (LK), each match's ZNCC (its windows, image 2 warped onto camera 1's grid at
+    # infinity: :func:`warped_zncc`) and its window's corner ratio in image 1 (:func:`corner_ratio`): the geometry
+    # check judges only those above ``geometry_check.min_zncc`` and ``min_corner_ratio``
+    zncc: np.ndarray | None = None
+    corner: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.px1.shape[0])
@@ -218,7 +224,8 @@ class Matches:
     def take(self, keep: np.ndarray) -> "Matches":
         r1 = None if self.ray1_world is None else self.ray1_world[keep]
         r2 = None if self.ray2_world is None else self.ray2_world[keep]
-        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1, self.field)
+        z, c = (None if a is None else a[keep] for a in (self.zncc, self.corner))
+        return Matches(self.method, self.px1[keep], self.px2[keep], self.dense, r2, r1, self.field, z, c)
 
 
 @dataclass(frozen=True)
@@ -242,6 +249,54 @@ def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
     return ok
 
 
+def _windows(img: np.ndarray, p: np.ndarray, side: int) -> np.ndarray:
+    """The ``side`` × ``side`` windows (N, side · side) float32 of ``img`` centred on ``p`` (N, 2),
+    bilinear at sub-pixel centres (outside the image: 0)."""
+    o = np.arange(side, dtype=np.float32) - (side - 1) / 2.0
+    ox, oy = (a.ravel() for a in np.meshgrid(o, o))
+    p = np.asarray(p, np.float32)
+    mx = np.ascontiguousarray(p[:, :1] + ox[None, :])
+    my = np.ascontiguousarray(p[:, 1:2] + oy[None, :])
+    return cv2.remap(np.asarray(img, np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def window_zncc(img1: np.ndarray, p1: np.ndarray, img2: np.ndarray, p2: np.ndarray, side: int) -> np.ndarray:
+    """ZNCC (N,) of the ``side`` × ``side`` windows of ``img1`` centred on ``p1`` (N, 2) and of
+    ``img2`` on ``p2`` (N, 2), bilinear at sub-pixel centres (outside an image: 0 there). A flat
+    window (no variance) scores 0."""
+    if len(p1) == 0:
+        return np.zeros(0)
+    a, b = (w - w.mean(axis=1, keepdims=True) for w in (_windows(img1, p1, side), _windows(img2, p2, side)))
+    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    return np.where(den > 0, (a * b).sum(axis=1) / np.maximum(den, 1e-12), 0.0)
+
+
+def corner_ratio(img: np.ndarray, p: np.ndarray, side: int) -> np.ndarray:
+    """λ_min / λ_max (N,) of the structure tensor (summed gradient products) of ``img``'s
+    ``side`` × ``side`` window on each of ``p`` (N, 2): 1 for texture that varies alike in every
+    direction, near 0 for a line or an edge (a contrail), along which a window matches itself
+    anywhere: the aperture problem. 0 for a flat window."""
+    if len(p) == 0:
+        return np.zeros(0)
+    w = _windows(img, p, side).reshape(-1, side, side)
+    gy, gx = np.gradient(w, axis=(1, 2))
+    a, b, c = (gx * gx).sum(axis=(1, 2)), (gy * gy).sum(axis=(1, 2)), (gx * gy).sum(axis=(1, 2))
+    half = 0.5 * (a + b)
+    disc = np.sqrt(np.maximum(half * half - (a * b - c * c), 0.0))
+    return np.where(half + disc > 0, (half - disc) / np.maximum(half + disc, 1e-12), 0.0)
+
+
+def warped_zncc(g: PairGeometry, gray1: np.ndarray, warped2: np.ndarray, px1: np.ndarray, px2: np.ndarray,
+                side: int) -> np.ndarray:
+    """:func:`window_zncc` of camera-1 pixels ``px1`` and camera-2 pixels ``px2`` (N, 2), judged on
+    camera 1's grid: image 2 warped there at infinity (``warped2``, :meth:`PairGeometry.warp2`),
+    where both windows face the same way whatever the cameras' yaws."""
+    if len(px1) == 0:
+        return np.zeros(0)
+    q = np.nan_to_num(g.cam1.direction_to_pixel(g.cam2.pixel_to_world(np.asarray(px2, np.float64))), nan=_OUTSIDE)
+    return window_zncc(gray1, px1, warped2, q, side)
+
+
 def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     c = cfg.lk
     feats = cv2.goodFeaturesToTrack(
@@ -260,6 +315,7 @@ def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
         b, st2, _ = cv2.calcOpticalFlowPyrLK(w2, inp.gray1, q, q.copy(), **lk)
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(b - p1, axis=1) <= c.fb_max_px)
         p1, q = p1[ok], q[ok]
+        z = window_zncc(inp.gray1, p1, w2, q, c.window_px)
         px2 = g.infinity(q)
     else:  # raw: start at the infinity prediction in image 2, come back from its inverse
         init = g.infinity(p1)
@@ -273,8 +329,11 @@ def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
         b, st2, _ = cv2.calcOpticalFlowPyrLK(inp.gray2, inp.gray1, p2, back0, **lk)
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(b - p1, axis=1) <= c.fb_max_px)
         p1, px2 = p1[ok], p2[ok].astype(np.float64)
+        z = warped_zncc(g, inp.gray1, inp.warped2, p1, px2, c.window_px)
     keep = _in_cam2(inp, px2)
-    return Matches("lk", p1[keep].astype(np.float64), px2[keep])
+    p1 = p1[keep]
+    return Matches("lk", p1.astype(np.float64), px2[keep], zncc=z[keep],
+                   corner=corner_ratio(inp.gray1, p1, c.window_px))
 
 
 def _orb(inp: MatchInput, cfg: MatchingConfig) -> Matches:

@@ -27,6 +27,11 @@ before (its own draws come from a separate stream of the seed):
   full range) as JPEG, then the recorder's second JPEG (4:2:0), the final clip level anywhere
   from 230 to 255 DN;
 - ``contrails``: aircraft contrails (:mod:`cbh.sim.contrail`) drawn into 70 % of the skies;
+- ``mounts``: the cameras as real stations mount them (the station file states it all, as a
+  calibration would): each tilted 0–3° towards any azimuth, camera 2 up to 15 m above or below
+  camera 1, and each camera its own lens: the base camera's own, an equidistant or an equisolid
+  one (90° radius 82–98 % of half the width), centred up to 2 % of the width off the image's
+  centre (the real Fehmarn station: tilts of 2.0° and 2.6°, camera 2 9 m lower);
 - ``dense``: broken skies of two or three layers (15 % of them closer than the historical 35 %:
   18–35 % apart), the lowest covering 0.55–0.85 of the sky and the upper ones 0.3–0.7, so that an
   upper deck is seen mostly through the gaps of the lower ones.
@@ -62,6 +67,7 @@ class RandomOptions:
     twice_encoded: bool = False  # camera JPEG then the recorder's JPEG, clip level 230–255 DN
     dense: bool = False  # broken skies of 2–3 layers, the lowest covering 0.55–0.85 (upper decks seen through gaps)
     contrails: bool = False  # 1–3 aircraft contrails at 7–11.5 km in 70 % of skies (:mod:`cbh.sim.contrail`)
+    mounts: bool = False  # cameras as real stations mount them: tilted, at different heights, each its own lens
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in SKY_KINDS:
@@ -105,7 +111,18 @@ class RandomCase:
                 f"{f' then {im.reencode_quality}' if im.reencode_quality else ''}"
                 f"{f'; haze band {self.scene.sky.haze_band:.1f}' if self.scene.sky.haze_band else ''}"
                 f"{'; ' + '/'.join(o.kind for o in self.scene.obstacles) if self.scene.obstacles else ''}"
-                + "".join(f"; contrail {c.height_m:.0f} m az {c.azimuth_deg:.0f}°" for c in self.contrails))
+                + "".join(f"; contrail {c.height_m:.0f} m az {c.azimuth_deg:.0f}°" for c in self.contrails)
+                + self._mounts())
+
+    def _mounts(self) -> str:
+        """Each camera's lens and tilt, and camera 2's height above camera 1, where a camera is
+        tilted or off the other's height (:class:`RandomOptions` ``mounts``); else nothing."""
+        cams = list(self.station.cameras.values())[:2]
+        tilts = [math.degrees(math.acos(min(1.0, float(np.asarray(c.R_world_from_cam)[2, 2])))) for c in cams]
+        dz = float(cams[1].position_m[2] - cams[0].position_m[2])
+        if max(tilts) < 1e-6 and dz == 0.0:
+            return ""
+        return "; mounts " + ", ".join(f"{c.model.kind} tilt {t:.1f}°" for c, t in zip(cams, tilts)) + f", dz {dz:+.1f} m"
 
 
 def _layers(rng: np.random.Generator, kind: str) -> tuple[CloudLayer, ...]:
@@ -206,6 +223,37 @@ def _station(rng: np.random.Generator, base: Station) -> tuple[Station, float]:
     return replace(base, cameras=cams), b
 
 
+def _mounts(rng: np.random.Generator, station: Station) -> Station:
+    """``station``'s first two cameras as real stations mount them (:class:`RandomOptions` ``mounts``):
+    each tilted 0–3° towards any azimuth (its yaw kept), camera 2 moved 0–15 m up or down, and
+    each camera's own lens (the base's own, equidistant or equisolid, off-centre)."""
+    from cbh.geometry.camera import EquidistantModel, EquisolidModel
+    from cbh.geometry.station import angles_from_rotation
+
+    cams = dict(station.cameras)
+    for i, name in enumerate(list(cams)[:2]):
+        c = cams[name]
+        yaw = angles_from_rotation(c.R_world_from_cam)[0]
+        tilt, towards = float(rng.uniform(0.0, 3.0)), float(rng.uniform(0.0, 2 * math.pi))
+        R = rotation_from_angles(yaw, tilt * math.cos(towards), tilt * math.sin(towards))
+        m = c.model
+        kind = str(rng.choice(["own", "equidistant", "equisolid"], p=[0.4, 0.3, 0.3]))
+        off = rng.uniform(-0.02, 0.02, 2) * m.width
+        centre = (float((m.width - 1) / 2 + off[0]), float((m.height - 1) / 2 + off[1]))
+        radius = float(rng.uniform(0.82, 0.98)) * 0.5 * m.width
+        if kind == "equidistant":
+            m = EquidistantModel(width=m.width, height=m.height, center_xy=centre, radius_px=radius)
+        elif kind == "equisolid":
+            m = EquisolidModel(width=m.width, height=m.height, center_xy=centre, radius_px=radius)
+        else:
+            m = replace(m, center_xy=centre)
+        pos = np.array(c.position_m, float)
+        if i == 1:
+            pos[2] += float(rng.uniform(-15.0, 15.0))
+        cams[name] = replace(c, R_world_from_cam=R, model=m, position_m=pos)
+    return replace(station, cameras=cams)
+
+
 def _place_and_time(rng: np.random.Generator, base: Station):
     """A station place (latitude ±60°, any longitude) and a UTC time whose sun is 10–85° from the zenith."""
     from cbh.geometry.sun import sun_position
@@ -249,6 +297,8 @@ def random_case(seed: int, base: Station, options: RandomOptions = RandomOptions
     if options.twice_encoded:
         image = _twice_encoded(wide, image)
     station, b = _station(rng, base)
+    if options.mounts:
+        station = _mounts(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 36])), station)
     names = list(station.cameras)[:2]
     imps = {n: _imperfection(rng, n) for n in names}
     mask_given = bool(obstacles) and rng.random() < 0.5 and not options.unmasked
@@ -331,8 +381,14 @@ def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config
     dt = time.perf_counter() - t0
     cam1 = sim.station.cameras[cams[0]]
     fov = (cam1.zenith_map() <= pipe.config.masks.max_zenith_deg) & ~sim.obstacle_mask(cams[0])
-    score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.poly[0])
+    score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, zenith_pixel_rad(cam1.model))
     return case, r, score, dt
+
+
+def zenith_pixel_rad(model) -> float:
+    """The angle one pixel spans at the optical axis [rad/px] (an OCam lens: 1 / a0)."""
+    r = np.array([0.0, 1.0])
+    return float(np.diff(model.theta_from_r(r))[0])
 
 
 def random_network_case(seed: int, size: int, tilt: bool = False):
