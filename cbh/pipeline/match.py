@@ -42,7 +42,7 @@ from cbh.pipeline.config import FilteringConfig, MatchingConfig
 
 __all__ = ["EPIPOLAR_METHODS", "PairGeometry", "MatchInput", "Matches", "DenseField", "MATCHERS", "MATCHER_BACKENDS",
            "get_matcher", "triangulate_matches", "stereo_heights", "field_heights", "sample_map", "window_zncc",
-           "warped_zncc", "corner_ratio"]
+           "corner_ratio", "match_scores"]
 
 #: Methods whose matches lie on the epipolar curve by construction: their ray miss says
 #: nothing about the matching noise (the pipeline's angular-noise estimate skips them).
@@ -213,7 +213,7 @@ class Matches:
     # made from the field
     field: "DenseField | None" = None
     # where the method measured them (LK), each match's ZNCC (its windows, image 2 warped onto camera 1's grid at
-    # infinity: :func:`warped_zncc`) and its window's corner ratio in image 1 (:func:`corner_ratio`): the geometry
+    # infinity) and its window's corner ratio in image 1 (:func:`match_scores`): the geometry
     # check judges only those above ``geometry_check.min_zncc`` and ``min_corner_ratio``
     zncc: np.ndarray | None = None
     corner: np.ndarray | None = None
@@ -251,13 +251,32 @@ def _in_cam2(inp: MatchInput, px2: np.ndarray) -> np.ndarray:
 
 def _windows(img: np.ndarray, p: np.ndarray, side: int) -> np.ndarray:
     """The ``side`` × ``side`` windows (N, side · side) float32 of ``img`` centred on ``p`` (N, 2),
-    bilinear at sub-pixel centres (outside the image: 0)."""
+    bilinear at sub-pixel centres (outside the image: 0). A uint8 image is read as it is (OpenCV's
+    bilinear rounds to whole levels: ±0.5 DN, against 1–3 DN of sensor noise), not converted whole."""
     o = np.arange(side, dtype=np.float32) - (side - 1) / 2.0
     ox, oy = (a.ravel() for a in np.meshgrid(o, o))
     p = np.asarray(p, np.float32)
     mx = np.ascontiguousarray(p[:, :1] + ox[None, :])
     my = np.ascontiguousarray(p[:, 1:2] + oy[None, :])
-    return cv2.remap(np.asarray(img, np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    img = img if img.dtype in (np.uint8, np.float32) else np.asarray(img, np.float32)
+    w = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return w.astype(np.float32, copy=False)
+
+
+def _zncc_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """ZNCC of each row of ``a`` with the same row of ``b`` (N, K): 0 where either is flat."""
+    a, b = a - a.mean(axis=1, keepdims=True), b - b.mean(axis=1, keepdims=True)
+    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    return np.where(den > 0, (a * b).sum(axis=1) / np.maximum(den, 1e-12), 0.0)
+
+
+def _corner_rows(w: np.ndarray, side: int) -> np.ndarray:
+    """λ_min / λ_max of the structure tensor of each window (N, side · side) (:func:`corner_ratio`)."""
+    gy, gx = np.gradient(w.reshape(-1, side, side), axis=(1, 2))
+    a, b, c = (gx * gx).sum(axis=(1, 2)), (gy * gy).sum(axis=(1, 2)), (gx * gy).sum(axis=(1, 2))
+    half = 0.5 * (a + b)
+    disc = np.sqrt(np.maximum(half * half - (a * b - c * c), 0.0))
+    return np.where(half + disc > 0, (half - disc) / np.maximum(half + disc, 1e-12), 0.0)
 
 
 def window_zncc(img1: np.ndarray, p1: np.ndarray, img2: np.ndarray, p2: np.ndarray, side: int) -> np.ndarray:
@@ -266,9 +285,7 @@ def window_zncc(img1: np.ndarray, p1: np.ndarray, img2: np.ndarray, p2: np.ndarr
     window (no variance) scores 0."""
     if len(p1) == 0:
         return np.zeros(0)
-    a, b = (w - w.mean(axis=1, keepdims=True) for w in (_windows(img1, p1, side), _windows(img2, p2, side)))
-    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
-    return np.where(den > 0, (a * b).sum(axis=1) / np.maximum(den, 1e-12), 0.0)
+    return _zncc_rows(_windows(img1, p1, side), _windows(img2, p2, side))
 
 
 def corner_ratio(img: np.ndarray, p: np.ndarray, side: int) -> np.ndarray:
@@ -278,23 +295,20 @@ def corner_ratio(img: np.ndarray, p: np.ndarray, side: int) -> np.ndarray:
     anywhere: the aperture problem. 0 for a flat window."""
     if len(p) == 0:
         return np.zeros(0)
-    w = _windows(img, p, side).reshape(-1, side, side)
-    gy, gx = np.gradient(w, axis=(1, 2))
-    a, b, c = (gx * gx).sum(axis=(1, 2)), (gy * gy).sum(axis=(1, 2)), (gx * gy).sum(axis=(1, 2))
-    half = 0.5 * (a + b)
-    disc = np.sqrt(np.maximum(half * half - (a * b - c * c), 0.0))
-    return np.where(half + disc > 0, (half - disc) / np.maximum(half + disc, 1e-12), 0.0)
+    return _corner_rows(_windows(img, p, side), side)
 
 
-def warped_zncc(g: PairGeometry, gray1: np.ndarray, warped2: np.ndarray, px1: np.ndarray, px2: np.ndarray,
-                side: int) -> np.ndarray:
-    """:func:`window_zncc` of camera-1 pixels ``px1`` and camera-2 pixels ``px2`` (N, 2), judged on
-    camera 1's grid: image 2 warped there at infinity (``warped2``, :meth:`PairGeometry.warp2`),
-    where both windows face the same way whatever the cameras' yaws."""
+def match_scores(g: PairGeometry, gray1: np.ndarray, warped2: np.ndarray, px1: np.ndarray, px2: np.ndarray,
+                 side: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ZNCC (N,), corner ratio (N,)) of 2-D matches, camera-1 pixels ``px1`` and camera-2 pixels
+    ``px2`` (N, 2): :func:`window_zncc` judged on camera 1's grid, image 2 warped there at infinity
+    (``warped2``, :meth:`PairGeometry.warp2`: both windows face the same way whatever the cameras'
+    yaws), and :func:`corner_ratio` of camera 1's window (read once for both)."""
     if len(px1) == 0:
-        return np.zeros(0)
+        return np.zeros(0), np.zeros(0)
     q = np.nan_to_num(g.cam1.direction_to_pixel(g.cam2.pixel_to_world(np.asarray(px2, np.float64))), nan=_OUTSIDE)
-    return window_zncc(gray1, px1, warped2, q, side)
+    w1 = _windows(gray1, px1, side)
+    return _zncc_rows(w1, _windows(warped2, q, side)), _corner_rows(w1, side)
 
 
 def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
@@ -315,7 +329,6 @@ def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
         b, st2, _ = cv2.calcOpticalFlowPyrLK(w2, inp.gray1, q, q.copy(), **lk)
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(b - p1, axis=1) <= c.fb_max_px)
         p1, q = p1[ok], q[ok]
-        z = window_zncc(inp.gray1, p1, w2, q, c.window_px)
         px2 = g.infinity(q)
     else:  # raw: start at the infinity prediction in image 2, come back from its inverse
         init = g.infinity(p1)
@@ -329,11 +342,10 @@ def _lk(inp: MatchInput, cfg: MatchingConfig) -> Matches:
         b, st2, _ = cv2.calcOpticalFlowPyrLK(inp.gray2, inp.gray1, p2, back0, **lk)
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(b - p1, axis=1) <= c.fb_max_px)
         p1, px2 = p1[ok], p2[ok].astype(np.float64)
-        z = warped_zncc(g, inp.gray1, inp.warped2, p1, px2, c.window_px)
     keep = _in_cam2(inp, px2)
-    p1 = p1[keep]
-    return Matches("lk", p1.astype(np.float64), px2[keep], zncc=z[keep],
-                   corner=corner_ratio(inp.gray1, p1, c.window_px))
+    p1, px2 = p1[keep].astype(np.float64), px2[keep]
+    z, corner = match_scores(g, inp.gray1, inp.warped2, p1, px2, c.window_px)
+    return Matches("lk", p1, px2, zncc=z, corner=corner)
 
 
 def _orb(inp: MatchInput, cfg: MatchingConfig) -> Matches:

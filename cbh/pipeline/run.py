@@ -73,7 +73,7 @@ from cbh.pipeline.support import FLARE_BAND_DEG, alias_layers, flare_layers, uns
 from cbh.geometry.sun import sun_position
 from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
-                                corner_ratio, get_matcher, sample_map, triangulate_matches, warped_zncc)
+                                get_matcher, match_scores, sample_map, triangulate_matches)
 from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, layer_motion,
                                  motion_weights, offset_estimate, offset_per_match, parallax_heights, plane_offsets,
                                  running_offset, shifted_images, track_back, track_profile, update_offsets,
@@ -1327,8 +1327,8 @@ class Pipeline:
                                            fb_max_px=c.fb_max_px)
             if len(seeded):  # scored as plain LK's are (the check judges the well-correlated corners)
                 g = self.geometry
-                seeded.zncc = warped_zncc(g, gray[0], g.warp2(gray[1]), seeded.px1, seeded.px2, c.window_px)
-                seeded.corner = corner_ratio(gray[0], seeded.px1, c.window_px)
+                seeded.zncc, seeded.corner = match_scores(g, gray[0], g.warp2(gray[1]), seeded.px1, seeded.px2,
+                                                          c.window_px)
         ctx.diagnostics["geometry_seeded_tracked"] = len(seeded) / tried if tried else math.nan
         ctx.diagnostics["geometry_seeded_tried"] = float(tried)
         return [m for m in raw if m.method != "lk"] + [seeded]
