@@ -412,10 +412,11 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     s = np.where(f.ok, f.s, np.float32(np.nan)).astype(np.float32)
     mx, my = g.planes.pixels(s, f.region)
     _exact_beyond_tables(g, s, mx, my, f.region)
-    s[~(cv2.remap(inp.usable2.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                   borderValue=0) > 0)] = np.nan
+    at2 = lambda m: cv2.remap(m.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,  # noqa: E731
+                              borderValue=0) > 0
+    s[~at2(inp.usable2)] = np.nan
     field = DenseField(f.region, s, floor_fraction=_drop_floor(s, f.info.get("planes"), g.planes.scale_px, o1z,
-                                                                cfg.sweep),
+                                                                cfg.sweep, seen2=at2(inp.cloud2) if _one_cameras(inp) else None),
                        resolved_m=tuple(f.info.get("resolved_m", ())))
     # the point set: the same matches on the point lattice
     # (camera 2's pixels from the sweep's own s; their heights from the field's, exact beyond the tables)
@@ -454,7 +455,20 @@ def _exact_beyond_tables(g: PairGeometry, s: np.ndarray, mx: np.ndarray, my: np.
     s[ys, xs] = np.where(ok, 1.0 / np.where(ok, dz, 1.0), np.nan).astype(np.float32)
 
 
-def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg) -> float:
+#: Camera 2 calling cloud less than this share of what camera 1 does: camera 1's cloud is its own
+#: segmentation's (two cameras tens of metres apart see the same sky, fog included); see :func:`_drop_floor`.
+ONE_CAMERA_CLOUD_RATIO = 0.2
+
+
+def _one_cameras(inp: MatchInput) -> bool:
+    """Whether camera 2 calls cloud under ``ONE_CAMERA_CLOUD_RATIO`` of the share of its usable sky
+    that camera 1 does."""
+    share = [float(np.count_nonzero(c & u)) / max(float(np.count_nonzero(u)), 1.0)
+             for c, u in ((inp.cloud1, inp.usable1), (inp.cloud2, inp.usable2))]
+    return share[1] < ONE_CAMERA_CLOUD_RATIO * share[0]
+
+
+def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg, seen2: np.ndarray | None = None) -> float:
     """Drop (set NaN in ``s``) the pixels on the sweep's lowest plane; their share of the measured ones.
 
     A pixel whose best plane is the lowest one (``min_height_m``, within one plane step) has its
@@ -463,6 +477,16 @@ def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg) -> floa
     20–55 % of the measured pixels there, and the rest alias onto false layers at 400 m–3.5 km
     with full confidence; a cloud base above 120 m puts none there. The share is the pair's
     ``below_range_fraction``; above ``BELOW_RANGE_FRACTION`` it flags ``below_range``.
+
+    ``seen2`` (same shape as ``s``, bool; given where camera 2 calls cloud under
+    ``ONE_CAMERA_CLOUD_RATIO`` of camera 1's share, :func:`_one_cameras`): whether camera 2 calls
+    each pixel's match cloud; a pixel on the floor that it does not is dropped but not counted.
+    Fog is cloud in both cameras; cloud that camera 1 alone calls so is its segmentation's
+    (randomized 18125, hard options, 480 px: a pale clear sky, cloud over 30 % of camera 1 and
+    1.6 % of camera 2, put 16 % of its chance matches on the floor and was flagged
+    ``below_range``). Not pixel by pixel on every pair: the floor plane is not where patchy fog
+    below it lies in camera 2 (fog at 10 m over 40 % of the sky: 14 % of the matches land on
+    camera 2's cloud), so its matches there would not count.
     """
     from cbh.pipeline.sweep import plane_range
 
@@ -478,7 +502,7 @@ def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg) -> floa
         return 0.0
     with np.errstate(invalid="ignore"):
         on = s >= np.float32(planes[-1] - ds)
-    k = int(np.count_nonzero(on))
+    k = int(np.count_nonzero(on if seen2 is None else on & seen2))
     s[on] = np.nan
     return k / n
 
