@@ -415,8 +415,9 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     at2 = lambda m: cv2.remap(m.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,  # noqa: E731
                               borderValue=0) > 0
     s[~at2(inp.usable2)] = np.nan
+    seen2 = at2(inp.cloud2) if _one_cameras(inp) else None
     field = DenseField(f.region, s, floor_fraction=_drop_floor(s, f.info.get("planes"), g.planes.scale_px, o1z,
-                                                                cfg.sweep, seen2=at2(inp.cloud2) if _one_cameras(inp) else None),
+                                                                cfg.sweep, seen2=seen2),
                        resolved_m=tuple(f.info.get("resolved_m", ())))
     # the point set: the same matches on the point lattice
     # (camera 2's pixels from the sweep's own s; their heights from the field's, exact beyond the tables)

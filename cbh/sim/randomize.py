@@ -122,7 +122,8 @@ class RandomCase:
         dz = float(cams[1].position_m[2] - cams[0].position_m[2])
         if max(tilts) < 1e-6 and dz == 0.0:
             return ""
-        return "; mounts " + ", ".join(f"{c.model.kind} tilt {t:.1f}°" for c, t in zip(cams, tilts)) + f", dz {dz:+.1f} m"
+        lenses = ", ".join(f"{c.model.kind} tilt {t:.1f}°" for c, t in zip(cams, tilts))
+        return f"; mounts {lenses}, dz {dz:+.1f} m"
 
 
 def _layers(rng: np.random.Generator, kind: str) -> tuple[CloudLayer, ...]:
