@@ -344,6 +344,22 @@ def judged(m: Matches, cfg: GeometryCheckConfig) -> np.ndarray:
     return keep
 
 
+def _judged_matches(matches: list[Matches], cfg: GeometryCheckConfig, beside: list[np.ndarray] | None):
+    """The 2-D methods' matches the check judges (:func:`judged`): (the methods' Matches, px1 (N, 2),
+    px2 (N, 2), beside an obstacle (N,) bool), an even subsample of at most ``cfg.max_matches``."""
+    pick = [i for i, m in enumerate(matches) if m.method in CHECK_METHODS and len(m)]
+    sure = [judged(matches[i], cfg) for i in pick]
+    use = [matches[i].take(k) for i, k in zip(pick, sure)]
+    px1 = np.concatenate([m.px1 for m in use]) if use else np.zeros((0, 2))
+    px2 = np.concatenate([m.px2 for m in use]) if use else np.zeros((0, 2))
+    near_obj = (np.concatenate([beside[i][k] for i, k in zip(pick, sure)]) if use and beside is not None
+                else np.zeros(len(px1), bool))
+    if len(px1) > cfg.max_matches:  # dense methods: an even subsample is as good and cheaper
+        k = len(px1) // cfg.max_matches + 1
+        px1, px2, near_obj = px1[::k], px2[::k], near_obj[::k]
+    return use, px1, px2, near_obj
+
+
 def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: FilteringConfig,
                    cfg: GeometryCheckConfig, window_px: float = LKConfig.window_px,
                    beside: list[np.ndarray] | None = None) -> GeometryCheck:
@@ -375,16 +391,7 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     -------
     GeometryCheck
     """
-    pick = [i for i, m in enumerate(matches) if m.method in CHECK_METHODS and len(m)]
-    sure = [judged(matches[i], cfg) for i in pick]
-    use = [matches[i].take(k) for i, k in zip(pick, sure)]
-    px1 = np.concatenate([m.px1 for m in use]) if use else np.zeros((0, 2))
-    px2 = np.concatenate([m.px2 for m in use]) if use else np.zeros((0, 2))
-    near_obj = (np.concatenate([beside[i][k] for i, k in zip(pick, sure)]) if use and beside is not None
-                else np.zeros(len(px1), bool))
-    if len(px1) > cfg.max_matches:  # dense methods: an even subsample is as good and cheaper
-        k = len(px1) // cfg.max_matches + 1
-        px1, px2, near_obj = px1[::k], px2[::k], near_obj[::k]
+    use, px1, px2, near_obj = _judged_matches(matches, cfg, beside)
     ppr = _px_per_rad(geom)
     tol_px = max(cfg.max_residual_px, 1.25 * cfg.expected_miss_ratio * ppr)
     n = len(px1)
