@@ -166,3 +166,22 @@ def test_contains_rejects_outside_circle():
     m = table1_model("cam1")
     ok = m.contains([[960, 960], [5, 5], [-3, 960], [960, 1925]])
     assert ok.tolist() == [True, False, False, False]
+
+
+def test_a_lens_scale_is_dr_dtheta():
+    """``CameraModel.px_per_rad``: an equidistant lens's R90 / 90° everywhere; an OCam lens's a0
+    at the axis (r = f⁻¹: dr/dθ = a0 there); an equisolid lens's scale falls off axis as cos(θ/2)."""
+    import math
+
+    from cbh.geometry.camera import EquidistantModel, EquisolidModel
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+
+    eq = EquidistantModel(width=960, height=960, center_xy=(479.5, 479.5), radius_px=450.0)
+    for th in (0.0, 0.5, 1.2):
+        assert eq.px_per_rad(th) == pytest.approx(450.0 / (math.pi / 2), rel=1e-9)
+    ocam = load_station(station_path()).camera("cam1").model
+    assert ocam.px_per_rad() == pytest.approx(ocam.poly[0], rel=1e-4)
+    es = EquisolidModel(width=960, height=960, center_xy=(479.5, 479.5), radius_px=450.0)
+    k = 450.0 / math.sin(math.pi / 4) / 2
+    assert es.px_per_rad(math.radians(60.0)) == pytest.approx(k * math.cos(math.radians(30.0)), rel=1e-4)

@@ -276,7 +276,7 @@ def test_randomized_skies_without_a_capture_time(tmp_path):
         cam1 = sim.station.cameras[cams[0]]
         r = pipe.process(shot.views[cams[0]].image, shot.views[cams[1]].image, None, channels="bgr")
         fov = (cam1.zenith_map() <= pipe.config.masks.max_zenith_deg) & ~sim.obstacle_mask(cams[0])
-        sc = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.poly[0])
+        sc = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.px_per_rad())
         spurious += len(sc.spurious_m)
         clear_bad += case.kind == "clear" and (r.cloud_fraction[cams[0]] > 0.02 or bool(r.layers))
     assert spurious <= 2 and clear_bad <= 1, (spurious, clear_bad)

@@ -390,12 +390,13 @@ def test_fog_below_the_sweep_floor_is_flagged_not_reported(height_m, flagged):
 def test_floor_matches_of_cloud_camera_1_alone_calls_so_are_no_fog():
     """``match._drop_floor``: the floor plane's pixels are dropped either way; their share counts
     them all, unless camera 2 calls cloud under a fifth of camera 1's share of the sky
-    (``_one_cameras``): then only those whose camera-2 pixel is cloud count (a pale clear sky that
-    camera 1 alone calls cloud, randomized 18125: 30 % against 1.6 %). Fog is cloud in both."""
+    (``_camera1_alone_calls_cloud``): then only those whose camera-2 pixel is cloud count (a pale
+    clear sky that camera 1 alone calls cloud, randomized 18125: 30 % against 1.6 %). Fog is cloud
+    in both."""
     from types import SimpleNamespace
 
     from cbh.pipeline.config import SweepConfig
-    from cbh.pipeline.match import ONE_CAMERA_CLOUD_RATIO, _drop_floor, _one_cameras
+    from cbh.pipeline.match import ONE_CAMERA_CLOUD_RATIO, _drop_floor, _camera1_alone_calls_cloud
     from cbh.pipeline.sweep import plane_range
 
     cfg = SweepConfig()
@@ -412,8 +413,9 @@ def test_floor_matches_of_cloud_camera_1_alone_calls_so_are_no_fog():
     usable = np.ones((20, 20), bool)
     cloud = lambda k: np.arange(400).reshape(20, 20) < k  # noqa: E731 (a share k / 400 of the sky)
     inp = lambda k1, k2: SimpleNamespace(cloud1=cloud(k1), usable1=usable, cloud2=cloud(k2), usable2=usable)  # noqa: E731
-    assert _one_cameras(inp(120, 6)) and not _one_cameras(inp(120, 120 * ONE_CAMERA_CLOUD_RATIO + 1))
-    assert not _one_cameras(inp(0, 0))
+    alone = _camera1_alone_calls_cloud
+    assert alone(inp(120, 6)) and not alone(inp(120, 120 * ONE_CAMERA_CLOUD_RATIO + 1))
+    assert not alone(inp(0, 0))
 
 def _one_layer(height_m: float, coverage: float, texture_m: float, seed: int, config=None):
     """One simulated layer (480 px, unb-lea) through the pipeline (default config unless given)."""

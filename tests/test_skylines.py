@@ -391,7 +391,8 @@ def test_a_pale_clear_sky_camera_1_alone_calls_cloud_is_no_fog(base, tmp_path):
     chance matches sat on the sweep's floor and flagged ``below_range`` (fog under the floor), an
     invalidating flag on a correct station. Fog is cloud in both cameras: floor matches whose
     camera-2 pixel is clear sky are not counted where camera 2 calls under a fifth of camera 1's
-    share cloud (``match._one_cameras``). No layer, before and after; its cloud fraction stays
+    share cloud (``match._camera1_alone_calls_cloud``). No layer, before and after; its cloud
+    fraction stays
     camera 1's (the class of the pale clear skies, 20032 and others)."""
     case, r, score, _ = run_random_case(18125, base, 480, tmp_path, options=_HARD)
     assert case.kind == "clear" and score.spurious_m == [] and r.layers == []

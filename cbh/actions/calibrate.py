@@ -809,9 +809,7 @@ def _write_atomic(path: Path, text: str) -> None:
 
 
 def _px_per_rad(cam) -> float:
-    th = np.array([math.radians(44.5), math.radians(45.5)])
-    r = np.asarray(cam.model.r_from_theta(th), np.float64)
-    return float((r[1] - r[0]) / math.radians(1.0))
+    return cam.model.px_per_rad(math.radians(45.0))
 
 
 def _azimuth_span_deg(az_deg: np.ndarray) -> float:

@@ -173,6 +173,14 @@ class CameraModel:
         px[theta > math.radians(self.max_theta_deg) + 1e-9] = np.nan
         return px
 
+    def px_per_rad(self, theta_rad: float = 0.0) -> float:
+        """The lens's radial scale dr/dθ [px/rad] at ``theta_rad`` from the optical axis: the
+        difference of r over the 1° centred on it (from the axis out, at the axis)."""
+        h = math.radians(1.0)
+        lo = max(theta_rad - 0.5 * h, 0.0)
+        r = np.asarray(self.r_from_theta(np.array([lo, lo + h])), np.float64)
+        return float((r[1] - r[0]) / h)
+
     def theta_of_pixel(self, px) -> np.ndarray:
         """Angle from the optical axis [deg] of pixels, shape (N,)."""
         u, v = self._sensor_from_pixel(_as_pixels(px))

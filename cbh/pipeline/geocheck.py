@@ -326,10 +326,7 @@ def _patches(px: np.ndarray, px_per_rad: float, side_rad: float, shift: float = 
 
 def _px_per_rad(geom: PairGeometry) -> float:
     """Camera 2's radial scale at 45° off axis [px/rad] (working size)."""
-    m = geom.cam2.model
-    th = np.array([math.radians(44.5), math.radians(45.5)])
-    r = np.asarray(m.r_from_theta(th), np.float64)
-    return float((r[1] - r[0]) / math.radians(1.0))
+    return geom.cam2.model.px_per_rad(math.radians(45.0))
 
 
 def judged(m: Matches, cfg: GeometryCheckConfig) -> np.ndarray:

@@ -415,7 +415,7 @@ def _sweep(inp: MatchInput, cfg: MatchingConfig) -> Matches:
     at2 = lambda m: cv2.remap(m.view(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,  # noqa: E731
                               borderValue=0) > 0
     s[~at2(inp.usable2)] = np.nan
-    seen2 = at2(inp.cloud2) if _one_cameras(inp) else None
+    seen2 = at2(inp.cloud2) if _camera1_alone_calls_cloud(inp) else None
     field = DenseField(f.region, s, floor_fraction=_drop_floor(s, f.info.get("planes"), g.planes.scale_px, o1z,
                                                                 cfg.sweep, seen2=seen2),
                        resolved_m=tuple(f.info.get("resolved_m", ())))
@@ -461,7 +461,7 @@ def _exact_beyond_tables(g: PairGeometry, s: np.ndarray, mx: np.ndarray, my: np.
 ONE_CAMERA_CLOUD_RATIO = 0.2
 
 
-def _one_cameras(inp: MatchInput) -> bool:
+def _camera1_alone_calls_cloud(inp: MatchInput) -> bool:
     """Whether camera 2 calls cloud under ``ONE_CAMERA_CLOUD_RATIO`` of the share of its usable sky
     that camera 1 does."""
     share = [float(np.count_nonzero(c & u)) / max(float(np.count_nonzero(u)), 1.0)
@@ -480,8 +480,9 @@ def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg, seen2: 
     ``below_range_fraction``; above ``BELOW_RANGE_FRACTION`` it flags ``below_range``.
 
     ``seen2`` (same shape as ``s``, bool; given where camera 2 calls cloud under
-    ``ONE_CAMERA_CLOUD_RATIO`` of camera 1's share, :func:`_one_cameras`): whether camera 2 calls
-    each pixel's match cloud; a pixel on the floor that it does not is dropped but not counted.
+    ``ONE_CAMERA_CLOUD_RATIO`` of camera 1's share, :func:`_camera1_alone_calls_cloud`): whether
+    camera 2 calls each pixel's match cloud; a pixel on the floor that it does not is dropped but
+    not counted.
     Fog is cloud in both cameras; cloud that camera 1 alone calls so is its segmentation's
     (randomized 18125, hard options, 480 px: a pale clear sky, cloud over 30 % of camera 1 and
     1.6 % of camera 2, put 16 % of its chance matches on the floor and was flagged

@@ -382,14 +382,8 @@ def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config
     dt = time.perf_counter() - t0
     cam1 = sim.station.cameras[cams[0]]
     fov = (cam1.zenith_map() <= pipe.config.masks.max_zenith_deg) & ~sim.obstacle_mask(cams[0])
-    score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, zenith_pixel_rad(cam1.model))
+    score = score_layers(r, shot.views[cams[0]].height_m, fov, case.baseline_m, 1.0 / cam1.model.px_per_rad())
     return case, r, score, dt
-
-
-def zenith_pixel_rad(model) -> float:
-    """The angle one pixel spans at the optical axis [rad/px] (an OCam lens: 1 / a0)."""
-    r = np.array([0.0, 1.0])
-    return float(np.diff(model.theta_from_r(r))[0])
 
 
 def random_network_case(seed: int, size: int, tilt: bool = False):
