@@ -282,33 +282,52 @@ def test_randomized_skies_without_a_capture_time(tmp_path):
     assert spurious <= 2 and clear_bad <= 1, (spurious, clear_bad)
 
 
-def test_a_featureless_sky_one_camera_overexposes_has_no_layer(base, tmp_path):
+@pytest.mark.parametrize("whitening", [True, False], ids=["whitens", "uniform"])
+def test_a_featureless_sky_one_camera_overexposes_has_no_layer(base, tmp_path, monkeypatch, whitening):
     """Seed 9339 (``eval_random.py --skylines --unmasked --twice-encoded``): a hazy clear sky that
     camera 1 over-exposes (218 / 245 / 249 DN under a 249 DN clip) and camera 2's pale response
     shows grey: both read it as one overcast cloud. Its few windows of noise and JPEG blocks
     matched some plane by chance (2 % of the cloud at 480 px, 0.1 % at 960, in patches of under
-    two matching windows): a layer at 374 m (893 m at 960 px) on a clear sky. Now no layer, and
-    the flags say why: the camera is over-exposed, and the sky has no texture to match."""
+    two matching windows): a layer at 374 m (893 m at 960 px) on a clear sky. Then no layer, and
+    the flags said why: the camera is over-exposed, and the sky has no texture to match. Since
+    stop 69 the sky is what it is, clear: it whitens towards the horizon as no overcast does
+    (:func:`cbh.pipeline.segment.horizon_whitening`). Were it as pale everywhere (``uniform``:
+    the whitening test off), the flags would still say why there is no layer."""
+    from cbh.pipeline import segment
     from cbh.sim.randomize import RandomOptions
 
+    if not whitening:
+        monkeypatch.setattr(segment, "HORIZON_WHITENING", float("inf"))
     opts = RandomOptions(skylines=True, unmasked=True, twice_encoded=True)
     case, r, score, _ = run_random_case(9339, base, SIZE, tmp_path, options=opts)
     assert case.kind == "clear" and r.layers == [] and score.spurious_m == []
-    assert {"overexposed", "overcast_no_texture", "cloud_unmatched"} <= set(r.flags), r.flags
+    want = {"overexposed", "clear_sky"} if whitening else {"overexposed", "overcast_no_texture", "cloud_unmatched"}
+    assert want <= set(r.flags), r.flags
     assert not set(r.flags) & INVALIDATING
 
 
 @pytest.mark.parametrize("seed", [pytest.param(15300, marks=pytest.mark.slow), 15326])  # (one by default: the suite's time)
-def test_a_smooth_pale_sky_both_cameras_call_one_cloud_gives_no_height(base, seed, tmp_path):
+@pytest.mark.parametrize("whitening", [True, False], ids=["whitens", "uniform"])
+def test_a_smooth_pale_sky_both_cameras_call_one_cloud_gives_no_height(base, seed, tmp_path, monkeypatch, whitening):
     """``eval_random.py --kind clear --size 480 --twice-encoded``: pale hazy clear skies (local
     contrast 0.003–0.005) that both cameras read as one cloud; 11 % of it matched (a smooth
     gradient's contours and JPEG steps: ZNCC of a ramp is 1 at any shift along it), and layers at
     315 m over 81 % (15300, B = 146 m) and 535 m over 70 % (15326) were reported, flagged only
-    ``cloud_unmatched``. Now no layer, and the flag says why (``Pipeline._smooth_pair``)."""
+    ``cloud_unmatched``. Then no layer, and the flag said why (``Pipeline._smooth_pair``); since
+    stop 69 the cameras call them clear (they whiten towards the horizon:
+    :func:`cbh.pipeline.segment.horizon_whitening`), and with that test off (``uniform``, a pale
+    sky without the gradient) the smooth-pair rule still holds."""
+    from cbh.pipeline import segment
+
+    if not whitening:
+        monkeypatch.setattr(segment, "HORIZON_WHITENING", float("inf"))
     case, r, score, _ = run_random_case(seed, base, SIZE, tmp_path,
                                         options=RandomOptions(kind="clear", twice_encoded=True))
     assert case.kind == "clear" and r.layers == [] and score.spurious_m == [], r.layers
-    assert {"overcast_no_texture", "cloud_unmatched"} <= set(r.flags), r.flags
+    want = {"clear_sky"} if whitening else {"overcast_no_texture", "cloud_unmatched"}
+    assert want <= set(r.flags), r.flags
+    if whitening:
+        assert r.cloud_fraction["cam1"] < 0.02
 
 
 def test_only_a_smooth_one_cloud_pair_is_smooth(base):

@@ -288,3 +288,53 @@ def test_a_clear_class_is_sky_only_if_bluer_than_cloud_or_smooth(p10, p90, contr
     nbr, contrast_of = _class_samples(p10, p90, contrast)
     assert (np.percentile(nbr, 90) >= TEXTURED_CLEAR_MIN_NBR) == (p90 >= TEXTURED_CLEAR_MIN_NBR)
     assert clear_class_is_sky(nbr, contrast_of, SegmentationConfig()) is is_sky
+
+
+def _sky_samples(nbr_of_zenith, n: int = 20000, seed: int = 0):
+    """Sampled pixels of an all-sky image: zenith 0–80° (uniform in solid angle), the sun at zenith
+    40° azimuth 0; NBR from ``nbr_of_zenith`` plus sensor noise (σ 0.01)."""
+    rng = np.random.default_rng(seed)
+    z = np.degrees(np.arccos(1.0 - rng.random(n) * (1.0 - np.cos(np.radians(80.0)))))
+    az = rng.random(n) * 360.0
+    zs, azs = np.radians(40.0), 0.0
+    cos_psi = np.cos(np.radians(z)) * np.cos(zs) + np.sin(np.radians(z)) * np.sin(zs) * np.cos(np.radians(az) - azs)
+    psi = np.degrees(np.arccos(np.clip(cos_psi, -1.0, 1.0)))
+    return (nbr_of_zenith(z) + rng.normal(0.0, 0.01, n)).astype(np.float32), z.astype(np.float32), psi.astype(np.float32)
+
+
+@pytest.mark.parametrize("profile, low, high", [
+    (lambda z: 0.12 - 0.0015 * np.maximum(z - 30.0, 0.0), 0.035, 0.055),  # clear: whitens 0.045 mid → horizon
+    (lambda z: 0.05 + 0.0 * z, -0.01, 0.01),  # a uniform overcast
+    (lambda z: 0.05 + 0.001 * z, -0.05, -0.01),  # an overcast bluer towards the horizon (airlight)
+])
+def test_horizon_whitening_is_mid_sky_less_horizon_nbr(profile, low, high):
+    from cbh.pipeline.segment import horizon_whitening
+
+    nbr, z, psi = _sky_samples(profile)
+    w = horizon_whitening(nbr, z, psi)
+    assert low <= w <= high
+
+
+def test_horizon_whitening_needs_geometry_and_both_bands():
+    from cbh.pipeline.segment import horizon_whitening
+
+    nbr, z, psi = _sky_samples(lambda z: 0.1 + 0.0 * z)
+    assert horizon_whitening(nbr, None, psi) is None and horizon_whitening(nbr, z, None) is None
+    low = z < 60.0  # a horizon hidden by obstacles
+    assert horizon_whitening(nbr[low], z[low], psi[low]) is None
+
+
+@pytest.mark.parametrize("whitening, clear", [(None, False), (0.0, False), (0.029, False), (0.031, True), (0.08, True)])
+def test_a_pale_smooth_one_class_sky_is_clear_if_it_whitens(whitening, clear):
+    """NBR 0.09, chroma 0.17: as pale as grey cloud under a bluish cast; smooth. Only the
+    whitening towards the horizon (:data:`~cbh.pipeline.segment.HORIZON_WHITENING`) tells."""
+    from cbh.pipeline.segment import one_class_is_clear
+
+    cfg = SegmentationConfig()
+    nbr, chroma = np.full(1000, 0.09, np.float32), np.full(1000, 0.17, np.float32)
+    smooth = lambda: np.full(1000, 0.008, np.float32)  # noqa: E731
+    assert one_class_is_clear(nbr, smooth, cfg, chroma, whitening) is clear
+    textured = lambda: np.full(1000, 0.06, np.float32)  # noqa: E731
+    assert one_class_is_clear(nbr, textured, cfg, chroma, whitening) is False  # texture is cloud, whatever its colour
+    warm = np.full(1000, -0.02, np.float32)  # redder than blue: no clear sky, whitening or not
+    assert one_class_is_clear(warm, smooth, cfg, chroma, whitening) is False

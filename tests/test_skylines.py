@@ -397,3 +397,32 @@ def test_a_pale_clear_sky_camera_1_alone_calls_cloud_is_no_fog(base, tmp_path):
     case, r, score, _ = run_random_case(18125, base, 480, tmp_path, options=_HARD)
     assert case.kind == "clear" and score.spurious_m == [] and r.layers == []
     assert not set(r.flags) & INVALIDATING, r.flags
+
+
+@pytest.mark.parametrize("kind, whitening", [("clear", True), ("clear", False), ("overcast", True)])
+def test_a_pale_smooth_sky_is_clear_if_it_whitens_to_the_horizon(base, tmp_path, monkeypatch, kind, whitening):
+    """Randomized 18361 (480 px, mounted cameras, skylines unmasked, twice encoded, contrails;
+    found in stop 69): a clear sky under a high sun (zenith 14°) that both cameras render pale
+    (median NBR 0.09, chroma 0.17, smooth): as pale as grey cloud under a bluish cast, so both
+    called it one overcast cloud (cloud fraction 1.0), and the chance matches of its smooth sky
+    (69 LK matches 0.3–17 px from infinity) flagged ``geometry_mismatch`` on a correct station.
+    Its NBR falls by 0.06 from mid-sky to the horizon, away from the sun, as clear sky's does and
+    an overcast's does not (:func:`cbh.pipeline.segment.horizon_whitening`): now clear. With that
+    test off (a sky as pale everywhere), it is one smooth cloud, and a smooth one-cloud pair gets
+    no geometry verdict: its matches witness nothing (``overcast_no_texture`` says why). The
+    overcast of the same seed (a pale deck, NBR 0.09, bluer at the horizon by 0.07) stays one cloud."""
+    from dataclasses import replace
+
+    from cbh.pipeline import segment
+
+    if not whitening:
+        monkeypatch.setattr(segment, "HORIZON_WHITENING", float("inf"))
+    opts = replace(_HARD, mounts=True, kind=kind)
+    case, r, score, _ = run_random_case(18361, base, 480, tmp_path, options=opts)
+    assert case.kind == kind and not set(r.flags) & INVALIDATING, r.flags
+    if kind == "overcast":
+        assert min(r.cloud_fraction.values()) > 0.95 and score.missed_m == [], (r.cloud_fraction, score)
+    elif whitening:
+        assert "clear_sky" in r.flags and r.layers == [] and max(r.cloud_fraction.values()) < 0.02
+    else:
+        assert "overcast_no_texture" in r.flags and r.layers == [], r.flags

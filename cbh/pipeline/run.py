@@ -1370,7 +1370,11 @@ class Pipeline:
         With ``seg``, the geometry is judged on real cloud only: correspondences whose camera-2
         pixel is cloud in camera 2 too (a match from cloud onto clear sky, glare or an unmasked
         obstacle is a mismatch of the matcher, not of the station), and not at all when
-        camera 1's sky is clear (``clear_sky``: whatever matched there is not cloud).
+        camera 1's sky is clear (``clear_sky``: whatever matched there is not cloud) or when both
+        cameras see one smooth cloud (``seg.smooth``, :meth:`_smooth_pair`: a ramp matches at any
+        shift along it, and noise on it passes the corner test; randomized 18361 with its pale
+        clear sky read as one cloud: 69 matches 0.3–17 px from infinity over zenith 57–80°,
+        inliers 0.41, ``geometry_mismatch`` on a correct station).
 
         ``carry_noise_rad``: the angular noise of carrying camera 2 to camera 1's time (a pair
         matched on the sky maps with a clock offset, :mod:`.skyclock`), added in quadrature to the
@@ -1391,7 +1395,7 @@ class Pipeline:
             cfg = replace(cfg, expected_miss_ratio=math.hypot(cfg.expected_miss_ratio, carry_noise_rad))
         raw = corr.raw
         if seg is not None:
-            if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION:
+            if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION or seg.smooth:
                 raw = []
             else:
                 raw = [m.take(_on_mask(seg.clouds[1], m.px2)) for m in raw]

@@ -31,9 +31,11 @@ refused by :func:`segment` (:class:`~cbh.errors.ImageError`): there is no blue-r
      desaturation vs the reference) > ``score_threshold`` (w = ``chroma_weight`` = 0.3: the
      desaturation cue catches thin cloud and bluish edges, which keep some blue). One class
      only (the hybrid-thresholding idea: no threshold from a unimodal histogram): overcast when
-     the median NBR is below ``fixed_threshold`` (0.15) or the sky is textured (median local
-     contrast ≥ ``texture_cv``); else a clear sky, where only what stands out by ≈ 0.05 from
-     the reference is cloud. A textured sky that is blue (median NBR ≥ 0.15) and whose classes
+     the median NBR is below ``fixed_threshold`` (0.15), unless the sky's chroma or its
+     whitening towards the horizon (:func:`horizon_whitening`: clear sky pales there, an
+     overcast does not) shows it clear, or when the sky is textured (median local contrast ≥
+     ``texture_cv``); else a clear sky, where only what stands out by ≈ 0.05 from the reference
+     is cloud. A textured sky that is blue (median NBR ≥ 0.15) and whose classes
      are at least half of ``min_gap`` apart is faint cloud on a blue sky, judged as a clear sky
      (:func:`faint_cloud_on_blue`).
 
@@ -438,13 +440,16 @@ def faint_cloud_on_blue(rs: np.ndarray, nbr_s: np.ndarray, cfg: SegmentationConf
     return split is not None and split[1] >= cfg.min_gap / 2
 
 
-def one_class_is_clear(nbr_s: np.ndarray, contrast_s, cfg: SegmentationConfig, chroma_s=None) -> bool:
+def one_class_is_clear(nbr_s: np.ndarray, contrast_s, cfg: SegmentationConfig, chroma_s=None,
+                       whitening: float | None = None) -> bool:
     """One class only (the hybrid-thresholding idea: no threshold from a unimodal histogram): a
     clear sky when the sky is blue — the sampled median NBR at least ``fixed_threshold``, or
     (pale, hazy or warm-cast cameras, whose clear sky can sit at NBR 0.13) its median chroma
-    ``chroma_s`` at least ``clear_chroma``: grey cloud keeps ≈ 0.03–0.1 under the same casts —
-    and smooth (``contrast_s()``: the sampled local contrast, called only then; None = no
-    image); else overcast. Chroma counts only for a sky bluer than red (median NBR at least
+    ``chroma_s`` at least ``clear_chroma``: grey cloud keeps ≈ 0.03–0.1 under the same casts —,
+    or it whitens towards the horizon as only clear sky does (``whitening``,
+    :func:`horizon_whitening`, at least :data:`HORIZON_WHITENING`) — and smooth
+    (``contrast_s()``: the sampled local contrast, called only then; None = no image); else
+    overcast. Chroma and whitening count only for a sky bluer than red (median NBR at least
     :data:`CLEAR_MIN_NBR`): a warm cast's chroma is red's, and grey cloud under a +10 % warm cast
     with gamma 1.25 reaches 1 − (0.9/1.1)^1.25 ≈ 0.22 (randomized 16947, 960 px: an overcast
     303 m deck at NBR −0.12, chroma 0.21, read clear sky by both cameras)."""
@@ -452,9 +457,45 @@ def one_class_is_clear(nbr_s: np.ndarray, contrast_s, cfg: SegmentationConfig, c
     blue = nbr_median >= cfg.fixed_threshold
     if not blue and chroma_s is not None and chroma_s.size and nbr_median >= CLEAR_MIN_NBR:
         blue = float(np.median(chroma_s)) >= cfg.clear_chroma
+    if not blue and whitening is not None and nbr_median >= CLEAR_MIN_NBR:
+        blue = whitening >= HORIZON_WHITENING
     if not blue:
         return False
     return contrast_s is None or float(np.median(contrast_s())) < cfg.texture_cv
+
+
+#: A one-class sky whose NBR falls by this much from mid-sky to the horizon, away from the sun, is
+#: clear sky (:func:`horizon_whitening`) [1]. Clear sky whitens towards the horizon: its light
+#: there has crossed several air masses and been scattered many times, which greys Rayleigh's blue
+#: (and haze, which lies low, greys it more). An overcast deck does not: its light is grey wherever
+#: it comes from, and the air between the camera and the far deck adds blue (aerial perspective),
+#: so the horizon is as blue or bluer. Randomized skies at 480 px, mounted cameras, skylines
+#: unmasked, twice-encoded (`--seed 18310`, 60 clear and 60 overcast, both cameras): every
+#: overcast −0.070 … +0.001; clear skies +0.026 … +0.141 save two pale cameras (−0.012, +0.009)
+#: whose pairs the other camera decided; the pale clear skies called overcast before (18358,
+#: 18360, 18361: NBR 0.09–0.11, chroma 0.17–0.19, smooth) +0.046 … +0.078.
+HORIZON_WHITENING = 0.03
+_WHITENING_MID_DEG = (30.0, 55.0)  # mid-sky band of zenith angles [deg]
+_WHITENING_LOW_DEG = (65.0, 80.0)  # horizon band [deg]
+_WHITENING_SUN_DEG = 45.0  # both bands only this far from the sun (its aureole whitens any sky) [deg]
+_WHITENING_MIN_SAMPLES = 200  # samples each band needs
+
+
+def horizon_whitening(nbr_s: np.ndarray, zenith_s: np.ndarray | None, sun_s: np.ndarray | None) -> float | None:
+    """How much a sky's NBR falls from mid-sky to the horizon: the median NBR of the sampled pixels
+    at zenith 30–55° less that at 65–80°, both at least 45° from the sun (:data:`HORIZON_WHITENING`).
+
+    ``nbr_s``, ``zenith_s``, ``sun_s``: the same sampled usable pixels' NBR, zenith angle and angle
+    to the sun [deg]. None without geometry, or where either band has under 200 samples (a
+    horizon hidden by obstacles, a sun that fills the sky)."""
+    if zenith_s is None or sun_s is None or nbr_s.size == 0:
+        return None
+    far = sun_s >= _WHITENING_SUN_DEG
+    mid = far & (zenith_s >= _WHITENING_MID_DEG[0]) & (zenith_s < _WHITENING_MID_DEG[1])
+    low = far & (zenith_s >= _WHITENING_LOW_DEG[0]) & (zenith_s < _WHITENING_LOW_DEG[1])
+    if np.count_nonzero(mid) < _WHITENING_MIN_SAMPLES or np.count_nonzero(low) < _WHITENING_MIN_SAMPLES:
+        return None
+    return float(np.median(nbr_s[mid]) - np.median(nbr_s[low]))
 
 
 def one_class_pair_is_clear(taken, usables, cfg: SegmentationConfig) -> bool:
@@ -668,8 +709,11 @@ def _hybrid(nbr, usable, zenith_deg, sun_angle_deg, cfg: SegmentationConfig, chr
     gap = hybrid_classes(rs, chroma[sub][us] if chroma is not None else None, cfg)
     if gap is None:  # one class only: the whole usable sky is clear or cloud
         contrast = None if image_bgr is None else (lambda: local_contrast(image_bgr)[sub][us])
-        if not sky_clear and not faint_cloud_on_blue(rs, nbr[sub][us], cfg) and not one_class_is_clear(
-                nbr[sub][us], contrast, cfg, chroma[sub][us] if chroma is not None else None):
+        nbr_s = nbr[sub][us]
+        white = None if zenith_deg is None or sun_angle_deg is None else horizon_whitening(
+            nbr_s, np.asarray(zenith_deg)[sub][us], np.asarray(sun_angle_deg)[sub][us])
+        if not sky_clear and not faint_cloud_on_blue(rs, nbr_s, cfg) and not one_class_is_clear(
+                nbr_s, contrast, cfg, chroma[sub][us] if chroma is not None else None, white):
             return usable.copy()
         score = cv2.divide(r_n, cfg.min_gap * 2.0)  # clear: only what stands out from the clear sky
     else:

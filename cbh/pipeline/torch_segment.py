@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from cbh.pipeline.config import SegmentationConfig
 from cbh.pipeline.segment import (
     _PSI_EDGES_DEG, _REF_STRIDE, _Z_EDGES_DEG, BRIGHTNESS_MIN_CLEAR, PROFILE_STEPS_PER_DEG, _LazyTexture, aureole_profile, check_colour, hybrid_classes,
-    clear_class_is_sky, faint_cloud_on_blue, one_class_is_clear, profile_table, reference_tables, sample_lattice, segment,
+    clear_class_is_sky, faint_cloud_on_blue, horizon_whitening, one_class_is_clear, profile_table, reference_tables, sample_lattice, segment,
 )
 from cbh.pipeline.torch_ops import box, upload
 
@@ -164,8 +164,10 @@ def segment_torch(image_bgr: np.ndarray, usable: np.ndarray, zenith_deg, sun_ang
     if gap is None:  # one class only: the whole usable sky is clear or cloud
         contrast = lambda: _local_contrast(grey())[sub][us].cpu().numpy()  # noqa: E731
         nbr_s = nbr[sub][us].cpu().numpy()
+        white = None if sun is None or zen is None else horizon_whitening(
+            nbr_s, zen[sub][us].cpu().numpy(), sun[sub][us].cpu().numpy())
         if not sky_clear and not faint_cloud_on_blue(rs, nbr_s, cfg) and not one_class_is_clear(
-                nbr_s, contrast, cfg, chroma[sub][us].cpu().numpy()):
+                nbr_s, contrast, cfg, chroma[sub][us].cpu().numpy(), white):
             return use.cpu().numpy(), 1.0  # overcast
         score = r_n / (cfg.min_gap * 2.0)
     else:
