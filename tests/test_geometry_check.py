@@ -698,6 +698,37 @@ def test_randomized_overcast_whose_lk_locked_onto_other_blobs_is_no_mismatch(siz
     assert score.missed_m == [] and score.spurious_m == [], score.found_m
 
 
+def test_randomized_decks_whose_lk_windows_held_two_of_them_are_no_turn(tmp_path):
+    """Randomized 18601 (default options, 480 px, found in stop 69): decks at 430, 1211 and 2201 m
+    over 28, 60 and 39 % of the sky, cameras 172 m apart. LK's corners were where one deck's edge
+    crosses another's (T-junctions): 71 of its 72 judged windows held two decks, whose parallaxes
+    differ by ~10 px there; the translation that LK fits to such a window misses the epipolar
+    curve, and together they fitted a turn of 0.39° ± 0.07° (tolerance 0.18°) on a correct
+    station: ``geometry_mismatch``. The check now judges only windows of one deck (the sweep's
+    heights in them within ``layers.min_separation_log``): no flag, and every deck found."""
+    r, score = _quiet_correct_station(18601, 480, tmp_path)
+    assert score.missed_m == [] and score.spurious_m == [], score.found_m
+
+
+def test_a_window_across_two_decks_spreads_its_heights():
+    """:func:`cbh.pipeline.geocheck.window_height_spread`: ln(90th / 10th percentile) of the dense
+    heights in each window: 0 on one deck, ln 2 across a 1000 m / 2000 m edge, NaN where the
+    sweep measured under 3 heights (no judgement), and a window at the border is cut, not wrapped."""
+    from cbh.pipeline.geocheck import window_height_spread
+
+    grid = np.full((100, 100), 1000.0, np.float32)
+    grid[:, 50:] = 2000.0
+    grid[:, 80:] = np.nan
+    px = np.array([[20.0, 50.0], [50.0, 50.0], [96.0, 50.0], [0.0, 0.0]])
+    spread = window_height_spread(grid, px, 21)
+    assert spread[0] == pytest.approx(0.0, abs=1e-6)
+    assert spread[1] == pytest.approx(math.log(2.0), abs=1e-5)
+    assert math.isnan(spread[2])
+    assert spread[3] == pytest.approx(0.0, abs=1e-6)
+    noisy = grid[:, :50] * np.random.default_rng(0).normal(1.0, 0.01, (100, 50)).astype(np.float32)
+    assert window_height_spread(noisy, px[:1], 21)[0] < 0.05  # 1 % noise: one deck (ln 1.18 = 0.166 is two)
+
+
 @pytest.mark.slow
 def test_randomized_clear_sky_whose_lk_slid_along_contrails_is_no_mismatch(tmp_path):
     """Randomized 17945 (960 px, skylines unmasked, twice encoded, contrails): a clear sky with

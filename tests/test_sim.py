@@ -536,6 +536,53 @@ def test_mounted_cameras_are_tilted_stacked_and_each_its_own_lens(station):
     # 1's height with the base's lens: 0.09)
     assert np.corrcoef(a, b)[0, 1] > 0.85
 
+
+def test_optics_put_ghosts_across_the_centre_from_the_sun_and_spots_dim_one_camera(station):
+    """RandomOptions(optics=True): each camera its own lens-flare ghosts and dome spots, drawn
+    onto its finished frame only; the rest of the seed's sky and its truth unchanged. A ghost's
+    centre lies on the line from the sun's image through the optical centre, ``ratio`` times the
+    sun's distance beyond it (where the frame brightens by its tint); a dome spot dims the sky
+    behind it by its transmission (a smooth sky: the blur changes nothing there)."""
+    import dataclasses as dc
+
+    from cbh.sim.optics import DomeSpot, Ghost, draw_dome_spot, draw_ghost
+    from cbh.sim.randomize import RandomOptions, finish_frames, random_case
+
+    drawn = 0
+    for seed in range(6):
+        plain, optic = random_case(seed, station), random_case(seed, station, RandomOptions(optics=True))
+        assert optic.describe().startswith(plain.describe()) and len(optic.optics) == 2
+        assert optic.scene == plain.scene and optic.baseline_m == plain.baseline_m
+        drawn += sum(len(g) + len(d) for g, d in optic.optics)
+    assert drawn > 6
+    case = random_case(3, station, RandomOptions(optics=True, kind="clear"))
+    sim = SkySimulator(case.station, case.scene, size_px=240)
+    shot = sim.render()
+    done = finish_frames(case, sim, shot)
+    assert all(np.array_equal(done.views[n].height_m, shot.views[n].height_m, equal_nan=True) for n in ("cam1", "cam2"))
+    cam = sim.station.cameras["cam1"]
+    sun = sun_direction(*sim.sun(shot.time_utc))
+    p_sun = cam.direction_to_pixel(sun[None, :])[0]
+    c = np.asarray(cam.model.center_xy)
+    im = shot.views["cam1"].image
+    g = draw_ghost(im, cam, sun, Ghost(ratio=0.6, radius_frac=0.05, brightness_dn=40.0, tint="green"))
+    diff = g.astype(float) - im.astype(float)
+    ys, xs = np.nonzero(diff[..., 1] > 20)
+    centre = np.array([xs.mean(), ys.mean()])
+    assert np.linalg.norm(centre - (c - 0.6 * (p_sun - c))) < 1.5
+    assert diff[ys, xs, 1].mean() > diff[ys, xs, 2].mean() + 10  # green: more in G than in R
+    hot = im.copy()
+    hot[:3, :3] = 255  # above the white the ghost clips at (JPEG's ringing round a clipped sun): kept
+    g = draw_ghost(hot, cam, sun, Ghost(ratio=0.6, radius_frac=0.05, brightness_dn=40.0, tint="green"), white_dn=200.0)
+    assert np.array_equal(g[:40, :40], hot[:40, :40]) and g.max() == 255
+    assert np.all(g.astype(int) <= np.maximum(hot.astype(int), 200))  # no pixel brighter than white or than it was
+    spot = DomeSpot(centre_frac=(0.3, -0.2), radius_frac=0.05, blur_frac=0.005, transmission=0.8)
+    d = draw_dome_spot(im, cam, spot)
+    r_px = cam.model.px_per_rad(0.0) * math.pi / 2
+    x, y = (c + np.array(spot.centre_frac) * r_px).round().astype(int)
+    assert d[y, x].astype(float).mean() == pytest.approx(0.8 * im[y, x].astype(float).mean(), abs=3.0)
+    assert np.array_equal(d[:20, :20], im[:20, :20])  # nothing outside the spot
+
 # --- bad input ---------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("text, key", [

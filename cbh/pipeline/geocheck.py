@@ -329,6 +329,28 @@ def _px_per_rad(geom: PairGeometry) -> float:
     return geom.cam2.model.px_per_rad(math.radians(45.0))
 
 
+def window_height_spread(grid_m: np.ndarray, px: np.ndarray, window_px: float) -> np.ndarray:
+    """The spread of the dense heights ``grid_m`` (H, W) [m], NaN = none) inside each pixel's
+    window (side ``window_px``, centred on ``px`` (N, 2) [x, y]): ln(90th / 10th percentile of the
+    window's heights), (N,) float; NaN where the window holds fewer than 3 heights."""
+    n = len(px)
+    if n == 0:
+        return np.zeros(0)
+    H, W = grid_m.shape
+    r = max(int(window_px) // 2, 1)
+    off = np.arange(-r, r + 1)
+    x = np.clip(np.rint(np.nan_to_num(px[:, 0], nan=-1e9)).astype(np.int64)[:, None] + off[None, :], 0, W - 1)
+    y = np.clip(np.rint(np.nan_to_num(px[:, 1], nan=-1e9)).astype(np.int64)[:, None] + off[None, :], 0, H - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lg = np.log(np.where(grid_m > 0, grid_m, np.nan)).astype(np.float32)
+    win = np.sort(lg[y[:, :, None], x[:, None, :]].reshape(n, -1), axis=1)  # NaN sorts last
+    k = np.isfinite(win).sum(axis=1)
+    rows = np.arange(n)
+    lo = win[rows, np.clip(np.floor(0.1 * (k - 1)).astype(np.int64), 0, None)]
+    hi = win[rows, np.clip(np.ceil(0.9 * (k - 1)).astype(np.int64), 0, None)]
+    return np.where(k >= 3, hi - lo, np.nan)
+
+
 def judged(m: Matches, cfg: GeometryCheckConfig) -> np.ndarray:
     """Which of ``m``'s matches the check judges (N,) bool: those whose windows correlate at least
     ``cfg.min_zncc`` (``Matches.zncc``) and whose window in image 1 is a corner, not a line

@@ -59,7 +59,8 @@ from cbh.result import Enlarged, PairResult, PointSet
 from cbh.geometry.station import Camera, Station
 from cbh.geometry.triangulate import points_on_epipolar
 from cbh.pipeline.config import PipelineConfig
-from cbh.pipeline.geocheck import CHECK_METHODS, check_geometry, images_identical, seeded_matches
+from cbh.pipeline.geocheck import (CARRIED_METHODS, CHECK_METHODS, check_geometry, images_identical, seeded_matches,
+                                   window_height_spread)
 from cbh.pipeline.sundetect import detect_sun
 from cbh.pipeline.heightmap import HeightMap, dense_height_map
 from cbh.pipeline.layers import (LayerSet, angular_noise, cover_incomplete, get_layer_method, height_noise, parallax_px,
@@ -1400,10 +1401,26 @@ class Pipeline:
             else:
                 raw = [m.take(_on_mask(seg.clouds[1], m.px2)) for m in raw]
         raw = [_off_clip(m, near_clip) if m.method in CHECK_METHODS else m for m in raw]
+        grid = next((tr.grid_m for tr in corr.triangulated if tr.grid_m is not None), None)
+        if grid is not None:
+            raw = [self._within_one_deck(m, grid) if m.method in CHECK_METHODS and m.method not in CARRIED_METHODS
+                   else m for m in raw]
         beside = [_on_either(near_obstacle, m) for m in raw]
         return (images_identical(work[0], work[1], cfg.identical_max_dn),
                 check_geometry(self.geometry, raw, self.config.filtering, cfg, self.config.matching.lk.window_px,
                                beside))
+
+    def _within_one_deck(self, m: Matches, grid_m: np.ndarray) -> Matches:
+        """The matches whose matching window holds one deck of the dense heights ``grid_m`` (its
+        heights' 10–90 % spread under ``layers.min_separation_log``, what the layers call one
+        layer; a window with no heights is kept): a window across the edge of a nearer deck holds
+        two parallaxes, a T-junction of two edges that moves between the views as neither does,
+        and a translation fits it with a bias off the epipolar curve. Randomized 18601 (480 px, decks at
+        430, 1211 and 2201 m, B = 172 m): 71 of its 72 judged LK windows held two decks; their
+        fit turned a correct camera by 0.39° ± 0.07° (tolerance 0.18°) and flagged ``geometry_mismatch``."""
+        spread = window_height_spread(grid_m, m.px1, self.config.matching.lk.window_px)
+        keep = ~(spread > self.config.layers.min_separation_log)
+        return m if keep.all() else m.take(keep)
 
     @staticmethod
     def _apply_geometry(found, ctx: "PairContext") -> None:

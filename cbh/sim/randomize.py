@@ -32,6 +32,11 @@ before (its own draws come from a separate stream of the seed):
   camera 1, and each camera its own lens: the base camera's own, an equidistant or an equisolid
   one (90° radius 82–98 % of half the width), centred up to 2 % of the width off the image's
   centre (the real Fehmarn station: tilts of 2.0° and 2.6°, camera 2 9 m lower);
+- ``optics``: what each camera's optics add (:mod:`cbh.sim.optics`), drawn independently per
+  camera: lens-flare ghosts of the sun (in 80 % of the frames that see the sun: 1–3 soft tinted
+  disks of 1–6 % of the image circle's radius, 8–50 DN, on the line through the sun and the
+  centre) and dust or dried drops on the dome (in half of the frames: 1–4 blurred, dimmed
+  patches of 1–5 % of the radius);
 - ``dense``: broken skies of two or three layers (15 % of them closer than the historical 35 %:
   18–35 % apart), the lowest covering 0.55–0.85 of the sky and the upper ones 0.3–0.7, so that an
   upper deck is seen mostly through the gaps of the lower ones.
@@ -51,7 +56,7 @@ from cbh.geometry.station import Station, rotation_from_angles
 from cbh.sim.scene import CloudLayer, Imperfection, ImageSettings, Obstacle, Scene, Sky, Sun
 
 __all__ = ["RandomCase", "RandomOptions", "random_case", "random_network_case", "station_with_masks", "run_random_case",
-           "draw_contrails", "SKY_KINDS"]
+           "draw_contrails", "draw_optics", "finish_frames", "SKY_KINDS"]
 
 SKY_KINDS = ("clear", "broken", "overcast")
 
@@ -68,6 +73,7 @@ class RandomOptions:
     dense: bool = False  # broken skies of 2–3 layers, the lowest covering 0.55–0.85 (upper decks seen through gaps)
     contrails: bool = False  # 1–3 aircraft contrails at 7–11.5 km in 70 % of skies (:mod:`cbh.sim.contrail`)
     mounts: bool = False  # cameras as real stations mount them: tilted, at different heights, each its own lens
+    optics: bool = False  # lens-flare ghosts of the sun and dust on the dome, each camera its own (:mod:`cbh.sim.optics`)
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in SKY_KINDS:
@@ -98,6 +104,7 @@ class RandomCase:
     mask_given: bool
     baseline_m: float
     contrails: tuple = ()  # Contrail, drawn into the rendered frames (RandomOptions.contrails)
+    optics: tuple = ()  # per camera (its Ghosts, its DomeSpots), drawn into its frames (RandomOptions.optics)
 
     def describe(self) -> str:
         """One line: the sky's main parameters."""
@@ -112,7 +119,14 @@ class RandomCase:
                 f"{f'; haze band {self.scene.sky.haze_band:.1f}' if self.scene.sky.haze_band else ''}"
                 f"{'; ' + '/'.join(o.kind for o in self.scene.obstacles) if self.scene.obstacles else ''}"
                 + "".join(f"; contrail {c.height_m:.0f} m az {c.azimuth_deg:.0f}°" for c in self.contrails)
-                + self._mounts())
+                + self._mounts() + self._optics())
+
+    def _optics(self) -> str:
+        """Each camera's ghosts and dome spots (:class:`RandomOptions` ``optics``); else nothing."""
+        if not any(g or d for g, d in self.optics):
+            return ""
+        return "; optics " + ", ".join(f"{len(g)} ghost{'s' * (len(g) != 1)}/{len(d)} spot{'s' * (len(d) != 1)}"
+                                       for g, d in self.optics)
 
     def _mounts(self) -> str:
         """Each camera's lens and tilt, and camera 2's height above camera 1, where a camera is
@@ -306,8 +320,28 @@ def random_case(seed: int, base: Station, options: RandomOptions = RandomOptions
     scene = Scene(layers=layers, time_utc=time_utc, sun=sun, sky=sky, image=image, obstacles=obstacles, imperfections=imps,
                   seed=int(rng.integers(0, 2**31)), name=f"random-{seed}")
     trails = _contrails(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 35]))) if options.contrails else ()
+    optics = _optics(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 37]))) if options.optics else ()
     return RandomCase(seed=int(seed), kind=kind, scene=scene, station=station, mask_given=mask_given, baseline_m=b,
-                      contrails=trails)
+                      contrails=trails, optics=optics)
+
+
+def _optics(rng: np.random.Generator) -> tuple:
+    """Per camera of the pair (:mod:`cbh.sim.optics`): 1–3 ghosts in 80 % of the frames, 1–4 dome spots in half."""
+    from cbh.sim.optics import GHOST_TINTS_BGR, DomeSpot, Ghost
+
+    out = []
+    for _ in range(2):
+        ghosts = tuple(Ghost(ratio=float(rng.uniform(0.2, 1.2)), radius_frac=float(rng.uniform(0.01, 0.06)),
+                             brightness_dn=float(rng.uniform(8.0, 50.0)), tint=str(rng.choice(list(GHOST_TINTS_BGR))))
+                       for _ in range(int(rng.integers(1, 4)) if rng.random() < 0.8 else 0))
+        spots = []
+        for _ in range(int(rng.integers(1, 5)) if rng.random() < 0.5 else 0):
+            rho, phi = 0.85 * math.sqrt(float(rng.random())), float(rng.uniform(0.0, 2.0 * math.pi))
+            spots.append(DomeSpot(centre_frac=(rho * math.cos(phi), rho * math.sin(phi)),
+                                  radius_frac=float(rng.uniform(0.01, 0.05)), blur_frac=float(rng.uniform(0.005, 0.02)),
+                                  transmission=float(rng.uniform(0.75, 1.0))))
+        out.append((ghosts, tuple(spots)))
+    return tuple(out)
 
 
 def _contrails(rng: np.random.Generator) -> tuple:
@@ -337,6 +371,33 @@ def draw_contrails(case: RandomCase, sim, shot):
             im, hm = draw_contrail(im, hm, sim.station.cameras[name], c, sim.output_white(name))
         views[name] = replace(views[name], image=im, height_m=hm)
     return replace(shot, views=views)
+
+
+def draw_optics(case: RandomCase, sim, shot):
+    """``shot``'s frames with each camera's ``case.optics`` drawn in (:mod:`cbh.sim.optics`), as
+    new views (the truth unchanged: a ghost is no cloud, and cloud behind a dome spot is still
+    cloud); ``shot`` itself when the case has none."""
+    if not any(g or d for g, d in case.optics):
+        return shot
+    from cbh.sim.optics import draw_dome_spot, draw_ghost
+    from cbh.sim.sky import sun_direction
+
+    views = dict(shot.views)
+    sun = sun_direction(*sim.sun(shot.time_utc))
+    for name, (ghosts, spots) in zip(list(sim.station.cameras)[:2], case.optics):
+        cam, im = sim.station.cameras[name], views[name].image
+        for d in spots:
+            im = draw_dome_spot(im, cam, d)
+        for g in ghosts:
+            im = draw_ghost(im, cam, sun, g, sim.output_white(name))
+        views[name] = replace(views[name], image=im)
+    return replace(shot, views=views)
+
+
+def finish_frames(case: RandomCase, sim, shot):
+    """``shot`` as the case's cameras deliver it: its contrails (:func:`draw_contrails`), then
+    each camera's optics (:func:`draw_optics`)."""
+    return draw_optics(case, sim, draw_contrails(case, sim, shot))
 
 
 def station_with_masks(case: RandomCase, sim, folder: Path) -> Station:
@@ -374,7 +435,7 @@ def run_random_case(seed: int, base: Station, size_px: int, folder: Path, config
 
     case = random_case(seed, base, options)
     sim = SkySimulator(case.station, case.scene, size_px=size_px)
-    shot = draw_contrails(case, sim, sim.render())
+    shot = finish_frames(case, sim, sim.render())
     pipe = Pipeline(station_with_masks(case, sim, folder), config=config)
     cams = list(sim.station.cameras)[:2]
     t0 = time.perf_counter()
