@@ -523,9 +523,7 @@ class Pipeline:
                     or not math.isfinite(new)):
                 break
             used, profile = new, est.profile
-        if not lay.layers and _only_on_skylines(seg, masks):  # a clear sky: nothing real to judge either
-            seg = Segmentation(clouds=tuple(np.zeros_like(c) for c in seg.clouds), fractions=dict.fromkeys(seg.fractions, 0.0))
-            geo = geo and (geo[0], check_geometry(self.geometry, [], self.config.filtering, self.config.geometry_check))
+        seg, geo = self._nothing_to_judge(seg, masks, lay, hmap, geo)
         self._apply_geometry(geo, ctx)  # (found beside the height map, on the last pass's correspondences)
         if (self._uncarried(used, profile, comp) if not sky_mode else
                 self._carry_swamps(lay, sky.carry_noise_rad, ctx)):
@@ -1371,11 +1369,8 @@ class Pipeline:
         With ``seg``, the geometry is judged on real cloud only: correspondences whose camera-2
         pixel is cloud in camera 2 too (a match from cloud onto clear sky, glare or an unmasked
         obstacle is a mismatch of the matcher, not of the station), and not at all when
-        camera 1's sky is clear (``clear_sky``: whatever matched there is not cloud) or when both
-        cameras see one smooth cloud (``seg.smooth``, :meth:`_smooth_pair`: a ramp matches at any
-        shift along it, and noise on it passes the corner test; randomized 18361 with its pale
-        clear sky read as one cloud: 69 matches 0.3–17 px from infinity over zenith 57–80°,
-        inliers 0.41, ``geometry_mismatch`` on a correct station).
+        camera 1's sky is clear (``clear_sky``: whatever matched there is not cloud; nor on a
+        smooth one-cloud sky's chance matches: :meth:`finish`).
 
         ``carry_noise_rad``: the angular noise of carrying camera 2 to camera 1's time (a pair
         matched on the sky maps with a clock offset, :mod:`.skyclock`), added in quadrature to the
@@ -1396,7 +1391,7 @@ class Pipeline:
             cfg = replace(cfg, expected_miss_ratio=math.hypot(cfg.expected_miss_ratio, carry_noise_rad))
         raw = corr.raw
         if seg is not None:
-            if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION or seg.smooth:
+            if seg.fractions[self.cam1.name] < CLEAR_SKY_FRACTION:
                 raw = []
             else:
                 raw = [m.take(_on_mask(seg.clouds[1], m.px2)) for m in raw]
@@ -1421,6 +1416,19 @@ class Pipeline:
         spread = window_height_spread(grid_m, m.px1, self.config.matching.lk.window_px)
         keep = ~(spread > self.config.layers.min_separation_log)
         return m if keep.all() else m.take(keep)
+
+    def _nothing_to_judge(self, seg: "Segmentation", masks: "Masks", lay: LayerSet, hmap: HeightMap, geo):
+        """(seg, geo) with the geometry check's verdict withdrawn where the pair's matches witness
+        nothing: a clear sky over a skyline (:func:`_only_on_skylines`; its cloud emptied too), and
+        a smooth one-cloud sky's chance matches (:meth:`_smooth_pair`, :meth:`_chance_matches_only`:
+        a ramp matches at any shift along it, and noise on it passes the corner test; randomized
+        18361, its pale clear sky read as one cloud: 69 LK matches 0.3–17 px from infinity, inliers
+        0.41, ``geometry_mismatch`` on a correct station)."""
+        if not lay.layers and _only_on_skylines(seg, masks):
+            seg = Segmentation(clouds=tuple(np.zeros_like(c) for c in seg.clouds), fractions=dict.fromkeys(seg.fractions, 0.0))
+        elif not (seg.smooth and self._chance_matches_only(hmap, seg)):
+            return seg, geo
+        return seg, geo and (geo[0], check_geometry(self.geometry, [], self.config.filtering, self.config.geometry_check))
 
     @staticmethod
     def _apply_geometry(found, ctx: "PairContext") -> None:
