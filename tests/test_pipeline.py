@@ -640,3 +640,15 @@ def test_the_largest_measured_patch_of_a_height_map():
     hm = HeightMap(np.zeros((40, 40), np.float32), np.zeros((40, 40), np.float32), (40, 40), 0.1, m)
     assert hm.largest_patch_px == 101
     assert HeightMap(hm.working_m, hm.nearest_m, (40, 40)).largest_patch_px == 0
+
+
+@pytest.mark.parametrize("height_m, coverage, texture_m, seed", [(80.0, 0.6, 100.0, 5), (45.0, 0.4, 200.0, 3)])
+def test_fog_whose_few_matches_sit_on_the_floor_is_flagged(height_m, coverage, texture_m, seed):
+    """Fog at 80 and 45 m (``eval_flags.py fog --size 480``): 7–9 % of it measured, in patches too
+    small for anything but chance (``Pipeline._chance_matches_only``), so its floor share (25–50 %)
+    was not read, and only ``cloud_unmatched`` was left. Chance matches spread over the planes
+    (a featureless clear sky's: 6 % on the floor); a fifth of them on the one lowest plane is fog
+    below it (``match.BELOW_RANGE_CHANCE_FRACTION``): ``below_range``, no layer."""
+    r = _one_layer(height_m, coverage, texture_m, seed)
+    assert r.diagnostics["below_range_fraction"] > 0.2 and r.diagnostics["measured_fraction"] < 0.15
+    assert {"below_range", "cloud_unmatched"} <= set(r.flags) and r.layers == [], r.flags

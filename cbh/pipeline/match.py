@@ -512,6 +512,12 @@ def _drop_floor(s: np.ndarray, planes, scale_px: float, o1z: float, cfg, seen2: 
 #: Share of the sweep's measured pixels on its lowest plane above which the pair is flagged
 #: ``below_range`` (see :func:`_drop_floor`).
 BELOW_RANGE_FRACTION = 0.05
+#: … and where the measured pixels are chance matches only (a featureless sky's: ``Pipeline._chance_matches_only``),
+#: above this share: chance matches spread over the planes (randomized 9339, a featureless clear sky
+#: at 480 px: 6.2 % on the floor), so a fifth of them on the one lowest plane is no chance. Simulated
+#: fog at 480 px (``eval_flags.py fog``): 45 and 80 m fogs with 25–50 % of their few matches on the
+#: floor were flagged only ``cloud_unmatched``.
+BELOW_RANGE_CHANCE_FRACTION = 0.2
 #: A pair whose lowest layer lies within this factor of the sweep's floor while less than
 #: ``FLOOR_LAYER_MATCHED`` of camera 1's cloud was measured is flagged ``below_range`` too: fog
 #: well below the floor (10–80 m under a 100 m floor, B = 50 m: 60–100° of parallax) matches

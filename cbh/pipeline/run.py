@@ -72,7 +72,7 @@ from cbh.pipeline.ccl import components_with_stats
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import FLARE_BAND_DEG, alias_layers, flare_layers, unseen_layers, without_layers
 from cbh.geometry.sun import sun_position
-from cbh.pipeline.match import (BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
+from cbh.pipeline.match import (BELOW_RANGE_CHANCE_FRACTION, BELOW_RANGE_FRACTION, EPIPOLAR_METHODS, FLOOR_LAYER_MATCHED, FLOOR_LAYER_RATIO,
                                 UNMATCHED_FRACTION, Matches, MatchInput, PairGeometry, TriangulatedMatches,
                                 get_matcher, match_scores, sample_map, triangulate_matches)
 from cbh.pipeline.motion import (MotionProfile, PairState, assign_layers, compensate_camera2, layer_motion,
@@ -1596,8 +1596,9 @@ class Pipeline:
             # the share of the matches on the floor plane, unless they are chance ones: a featureless
             # sky's few chance matches put one plane or another ahead (seed 9339, 480 px: 6.2 % of 1.9 %
             # measured on the floor once the floor plane's map was exact, a cubic in stop 59)
-            if (ctx.diagnostics.get("below_range_fraction", 0.0) > BELOW_RANGE_FRACTION
-                    and "below_range" not in ctx.flags and not self._chance_matches_only(hmap, seg)):
+            floor = ctx.diagnostics.get("below_range_fraction", 0.0)
+            if (floor > BELOW_RANGE_FRACTION and "below_range" not in ctx.flags
+                    and (floor > BELOW_RANGE_CHANCE_FRACTION or not self._chance_matches_only(hmap, seg))):
                 ctx.flags.append("below_range")
             # the lowest layer that covers a share of the sky (fog's floor layers: 13–24 %), not a
             # small chance one
