@@ -578,7 +578,7 @@ def test_optics_put_ghosts_across_the_centre_from_the_sun_and_spots_dim_one_came
     assert np.all(g.astype(int) <= np.maximum(hot.astype(int), 200))  # no pixel brighter than white or than it was
     spot = DomeSpot(centre_frac=(0.3, -0.2), radius_frac=0.05, blur_frac=0.005, transmission=0.8)
     d = draw_dome_spot(im, cam, spot)
-    r_px = cam.model.px_per_rad(0.0) * math.pi / 2
+    r_px = float(cam.model.r_from_theta(np.array([math.pi / 2]))[0])
     x, y = (c + np.array(spot.centre_frac) * r_px).round().astype(int)
     assert d[y, x].astype(float).mean() == pytest.approx(0.8 * im[y, x].astype(float).mean(), abs=3.0)
     assert np.array_equal(d[:20, :20], im[:20, :20])  # nothing outside the spot

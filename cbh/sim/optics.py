@@ -62,7 +62,7 @@ def _circle(camera) -> tuple[float, float, float]:
     """The camera's optical centre (x, y) [px] and the radius [px] of its image circle (90° off axis)."""
     m = camera.model
     cx, cy = m.center_xy
-    return float(cx), float(cy), float(m.px_per_rad(0.0)) * math.pi / 2.0
+    return float(cx), float(cy), float(np.asarray(m.r_from_theta(np.array([math.pi / 2.0])))[0])
 
 
 def draw_ghost(image: np.ndarray, camera, sun_dir_enu, ghost: Ghost, white_dn=255.0) -> np.ndarray:
