@@ -2,7 +2,7 @@
 
 Run: python benchmarks/eval_random.py --n 200 --seed 0 [--size 960] [--jobs 2] [--verbose]
      [--skylines] [--unmasked] [--kind clear] [--twice-encoded] [--dense] [--contrails]
-     [--mounts] [--optics]
+     [--mounts] [--optics] [--overlays]
      [--station NAME_OR_TOML]
 
 Each sky is :func:`cbh.sim.randomize.random_case` (seed S, S+1, …): clear, broken or overcast;
@@ -14,7 +14,8 @@ true orientation given. The options widen the distribution
 every sky without a mask, one kind of sky, twice-encoded frames, dense skies of two or three
 layers (upper decks seen through the gaps of the lowest), aircraft contrails, cameras mounted as
 real stations are (tilted 0–3°, 0–15 m apart in height, each its own lens, off-centre), each
-camera's optics (lens-flare ghosts of the sun, dust on the dome); ``--station``: another
+camera's optics (lens-flare ghosts of the sun, dust on the dome), each camera's on-screen clock and
+name stamped on its frames (``--overlays``); ``--station``: another
 station's lenses (a preset or a TOML, e.g. the real Fehmarn station's OCamCalib fits; its first two
 cameras' intrinsics and its ``[pipeline]`` table are kept, positions and yaws drawn). A layer is found when a reported one is within max(5 %, H·δθ/B) of it,
 δθ = half a rendered pixel at the zenith (:func:`cbh.sim.evaluate.layer_tolerance`).
@@ -120,6 +121,8 @@ def parser() -> argparse.ArgumentParser:
                     help="cameras tilted 0-3 deg, 0-15 m apart in height, each its own lens (ocam/equidistant/equisolid, off-centre)")
     ap.add_argument("--optics", action="store_true",
                     help="each camera its own lens-flare ghosts of the sun (80 %% of frames) and dome spots (half)")
+    ap.add_argument("--overlays", action="store_true",
+                    help="each camera stamps its clock (and name) on its frames: outline, shadow or banner, mostly on the sky")
     ap.add_argument("--station", default="unb-lea", help="preset name or station TOML whose lenses are kept")
     return ap
 
@@ -128,7 +131,7 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     options = RandomOptions(skylines=args.skylines, unmasked=args.unmasked, kind=args.kind,
                             twice_encoded=args.twice_encoded, dense=args.dense, contrails=args.contrails,
-                            mounts=args.mounts, optics=args.optics)
+                            mounts=args.mounts, optics=args.optics, overlays=args.overlays)
     jobs = [(s, args.size, options, args.station) for s in range(args.seed, args.seed + args.n)]
     if args.jobs > 1:
         import multiprocessing as mp

@@ -59,6 +59,7 @@ class MasksConfig:
     max_zenith_deg: float = 80.0  # largest zenith angle of usable sky [deg]
     static_mask: bool = True  # apply the camera's obstacle mask image (station `mask`), if any
     auto_obstacles: bool = True  # a camera without a mask: find dark horizon objects in each frame (and learn them over a run)
+    overlay_text: bool = True  # find the camera's on-screen text (its clock, its name) in each frame and mask it (cbh.pipeline.overlay)
     sun: bool = True  # mask a disk around the sun (pvlib position from lat/lon + time)
     sun_radius_deg: float = 8.0  # radius of the masked sun disk [deg]
     saturation: bool = True  # also mask saturated blobs (sun, glare, specular reflections)

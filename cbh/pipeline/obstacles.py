@@ -9,7 +9,10 @@ Buildings, trees and masts rise from the horizon and stay put; the sky above the
 2. it barely changes (temporal standard deviation below ``static_dn``, or below half the sky's
    typical variability when clouds move), so a passing dark cloud base is not an obstacle;
 3. it is connected to the horizon ring (the outer ``horizon_band_deg`` of the field of view):
-   ground obstacles stand on the horizon; isolated dark blobs in the sky are not obstacles.
+   ground obstacles stand on the horizon; isolated dark blobs in the sky are not obstacles;
+
+or it is the camera's on-screen text in any of the frames (:func:`~.overlay.overlay_text`: its
+date and time change from frame to frame, so they are neither static nor dark).
 
 The result uses the station's ``mask`` convention: uint8, 255 = usable sky, 0 = obstacle or
 outside the image circle.
@@ -25,6 +28,7 @@ from cbh.geometry.camera import CameraModel
 from cbh.geometry.station import Camera
 from cbh.errors import ImageError, InputError
 from cbh.pipeline.ccl import components_with_stats
+from cbh.pipeline.overlay import overlay_text
 
 __all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames", "FrameObstacleConfig", "obstacle_rings", "obstacles_in_frame",
            "HorizonGrid", "horizon_grid", "darkest_of_four"]
@@ -93,6 +97,12 @@ def obstacle_mask_from_frames(images, model: CameraModel, cfg: ObstacleMaskConfi
     if cfg.dilate_px > 0 and obstacle.any():
         k = 2 * cfg.dilate_px + 1
         obstacle = cv2.dilate(obstacle.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    # 4. the camera's on-screen text (its clock, its name), wherever a frame shows it
+    inside = cv2.erode(circle.view(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    for im in images:
+        text = overlay_text(im, inside)
+        if text is not None:
+            obstacle |= text
     return np.where(circle & ~obstacle, 255, 0).astype(np.uint8)
 
 

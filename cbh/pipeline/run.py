@@ -69,6 +69,7 @@ from cbh.pipeline.masks import (angle_map_deg, glare_and_sunlit, load_obstacle_m
                                 static_sky_mask)
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.ccl import components_with_stats
+from cbh.pipeline.overlay import overlay_text
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import FLARE_BAND_DEG, alias_layers, flare_layers, unseen_layers, without_layers
 from cbh.geometry.sun import sun_position
@@ -226,6 +227,7 @@ class Pipeline:
         self.cam1, self.cam2 = (c.scaled(f) if f != 1.0 else c for c, f in zip((self.cam1_full, self.cam2_full), self.factors))
         self._static: dict[int, np.ndarray] = {}
         self._circles: dict[int, tuple] = {}  # per camera: obstacle rings and horizon band (working size)
+        self._inside: dict[int, np.ndarray] = {}  # per camera: its image circle less its rim (working size)
         self._obstacle_votes: dict[int, tuple[np.ndarray, int]] = {}  # frames in which each pixel was an obstacle, of n
         self._obstacle_lock = threading.Lock()
         self._rays: dict[int, np.ndarray] = {}
@@ -294,6 +296,15 @@ class Pipeline:
                 obstacle = load_obstacle_mask(cam.mask, cam.model.width, cam.model.height)
             self._static[i] = static_sky_mask(cam, self.config.masks, obstacle)
         return self._static[i]
+
+    def inside_circle(self, i: int) -> np.ndarray:
+        """Camera ``i``'s image circle at working size less a 3 px rim, (H, W) bool: where its
+        on-screen text is looked for (the rim's step from black to bright sky is no text) and
+        its clip level is read (less the text)."""
+        if i not in self._inside:
+            circle = (self.cam1, self.cam2)[i].model.image_circle_mask().view(np.uint8)
+            self._inside[i] = cv2.erode(circle, np.ones((7, 7), np.uint8)) > 0
+        return self._inside[i]
 
     def auto_obstacles(self, i: int, image: np.ndarray) -> np.ndarray | None:
         """Horizon obstacles of camera ``i`` found in this frame (working size, (H, W) bool), or
@@ -1017,11 +1028,17 @@ class Pipeline:
             obst = self.auto_obstacles(i, work[i])
             if obst is not None:
                 u = u & ~obst
+            text = overlay_text(work[i], self.inside_circle(i)) if cfg.masks.overlay_text else None
+            if text is not None:  # the camera's clock stamped on the sky: no cloud, and its white no clip
+                u = u & ~text
             ang = self._angle_map(i, sun_dir) if sun_dir is not None else None
             glare, sunlit = False, None
             if cfg.masks.sun and ang is not None:
                 u = u & (ang > cfg.masks.sun_radius_deg)
-            clip = clip_level(work[i])  # (the glare mask's, and the sky's over-exposure)
+            # (the glare mask's, and the sky's over-exposure): read inside the image circle, less
+            # the text (a camera's white stamp in a corner, as at Fehmarn, is no clip)
+            inside = self.inside_circle(i) if text is None else self.inside_circle(i) & ~text
+            clip = clip_level(work[i], mask=inside)
             if cfg.masks.saturation:  # the sun's glare; other saturation is over-exposed cloud
                 sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang, clip)
                 if sat.any():

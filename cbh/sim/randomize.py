@@ -37,6 +37,11 @@ before (its own draws come from a separate stream of the seed):
   disks of 1–6 % of the image circle's radius, 8–50 DN, on the line through the sun and the
   centre) and dust or dried drops on the dome (in half of the frames: 1–4 blurred, dimmed
   patches of 1–5 % of the radius);
+- ``overlays``: each camera stamps its clock (and, in half of the stations, its name) on its
+  frames (:mod:`cbh.sim.overlay`), as IP cameras do: one style and place per station (white or
+  yellow text with a one-pixel outline, a drop shadow or a black banner; cap height 1.5–4 % of
+  the frame; a line or two near the top or the bottom edge, mostly on the sky, sometimes in a
+  corner outside the image circle), camera 2's clock 0–40 s off camera 1's;
 - ``dense``: broken skies of two or three layers (15 % of them closer than the historical 35 %:
   18–35 % apart), the lowest covering 0.55–0.85 of the sky and the upper ones 0.3–0.7, so that an
   upper deck is seen mostly through the gaps of the lower ones.
@@ -56,7 +61,7 @@ from cbh.geometry.station import Station, rotation_from_angles
 from cbh.sim.scene import CloudLayer, Imperfection, ImageSettings, Obstacle, Scene, Sky, Sun
 
 __all__ = ["RandomCase", "RandomOptions", "random_case", "random_network_case", "station_with_masks", "run_random_case",
-           "draw_contrails", "draw_optics", "finish_frames", "SKY_KINDS"]
+           "draw_contrails", "draw_optics", "draw_overlays", "finish_frames", "SKY_KINDS"]
 
 SKY_KINDS = ("clear", "broken", "overcast")
 
@@ -74,6 +79,7 @@ class RandomOptions:
     contrails: bool = False  # 1–3 aircraft contrails at 7–11.5 km in 70 % of skies (:mod:`cbh.sim.contrail`)
     mounts: bool = False  # cameras as real stations mount them: tilted, at different heights, each its own lens
     optics: bool = False  # lens-flare ghosts of the sun and dust on the dome, each camera its own (:mod:`cbh.sim.optics`)
+    overlays: bool = False  # each camera stamps its clock and name on the frame (:mod:`cbh.sim.overlay`)
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in SKY_KINDS:
@@ -105,6 +111,7 @@ class RandomCase:
     baseline_m: float
     contrails: tuple = ()  # Contrail, drawn into the rendered frames (RandomOptions.contrails)
     optics: tuple = ()  # per camera (its Ghosts, its DomeSpots), drawn into its frames (RandomOptions.optics)
+    overlays: tuple = ()  # per camera, its Overlay lines (RandomOptions.overlays)
 
     def describe(self) -> str:
         """One line: the sky's main parameters."""
@@ -119,7 +126,8 @@ class RandomCase:
                 f"{f'; haze band {self.scene.sky.haze_band:.1f}' if self.scene.sky.haze_band else ''}"
                 f"{'; ' + '/'.join(o.kind for o in self.scene.obstacles) if self.scene.obstacles else ''}"
                 + "".join(f"; contrail {c.height_m:.0f} m az {c.azimuth_deg:.0f}°" for c in self.contrails)
-                + self._mounts() + self._optics())
+                + self._mounts() + self._optics()
+                + (f"; overlay {self.overlays[0][0].style} {len(self.overlays[0])} line(s)" if self.overlays else ""))
 
     def _optics(self) -> str:
         """Each camera's ghosts and dome spots (:class:`RandomOptions` ``optics``); else nothing."""
@@ -321,8 +329,35 @@ def random_case(seed: int, base: Station, options: RandomOptions = RandomOptions
                   seed=int(rng.integers(0, 2**31)), name=f"random-{seed}")
     trails = _contrails(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 35]))) if options.contrails else ()
     optics = _optics(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 37]))) if options.optics else ()
+    overlays = _overlays(np.random.default_rng(np.random.SeedSequence([int(seed), 0x5C1E5, 38]))) if options.overlays else ()
     return RandomCase(seed=int(seed), kind=kind, scene=scene, station=station, mask_given=mask_given, baseline_m=b,
-                      contrails=trails, optics=optics)
+                      contrails=trails, optics=optics, overlays=overlays)
+
+
+def _overlays(rng: np.random.Generator) -> tuple:
+    """Per camera of the pair, its OSD lines (:mod:`cbh.sim.overlay`): one vendor's style and place
+    for both, each camera its own name and clock."""
+    from cbh.sim.overlay import OVERLAY_FORMATS, OVERLAY_STYLES, Overlay
+
+    style, fmt = str(rng.choice(OVERLAY_STYLES)), str(rng.choice(OVERLAY_FORMATS))
+    h = float(rng.uniform(0.015, 0.04))
+    named, two_lines, yellow = rng.random() < 0.5, rng.random() < 0.3, rng.random() < 0.2
+    if rng.random() < 0.15:  # in a corner, outside the image circle (as at Fehmarn)
+        x, y = float(rng.uniform(0.005, 0.02)), float(rng.uniform(0.03, 0.05))
+    else:  # near the top or the bottom edge, across the circle
+        x, y = float(rng.uniform(0.12, 0.45)), float(rng.uniform(0.06, 0.22))
+        if rng.random() < 0.5:
+            y = 1.0 - y
+    offset2 = float(rng.uniform(0.0, 40.0)) if rng.random() < 0.7 else 0.0
+    out = []
+    for k, off in enumerate((0.0, offset2)):
+        name = f"CAM{k + 1}" if named else ""
+        if two_lines and name:
+            lines = (Overlay(name, "", style, h, x, y, yellow, off), Overlay("", fmt, style, h, x, y + 1.8 * h, yellow, off))
+        else:
+            lines = (Overlay(name, fmt, style, h, x, y, yellow, off),)
+        out.append(lines)
+    return tuple(out)
 
 
 def _optics(rng: np.random.Generator) -> tuple:
@@ -394,10 +429,26 @@ def draw_optics(case: RandomCase, sim, shot):
     return replace(shot, views=views)
 
 
+def draw_overlays(case: RandomCase, sim, shot):
+    """``shot``'s frames with each camera's ``case.overlays`` stamped on (:mod:`cbh.sim.overlay`),
+    as new views (the truth unchanged: text is no cloud); ``shot`` itself when it has none."""
+    if not case.overlays:
+        return shot
+    from cbh.sim.overlay import draw_overlay
+
+    views = dict(shot.views)
+    for name, lines in zip(list(sim.station.cameras)[:2], case.overlays):
+        im = views[name].image
+        for line in lines:
+            im = draw_overlay(im, line, shot.time_utc, case.scene.image.jpeg_quality)
+        views[name] = replace(views[name], image=im)
+    return replace(shot, views=views)
+
+
 def finish_frames(case: RandomCase, sim, shot):
-    """``shot`` as the case's cameras deliver it: its contrails (:func:`draw_contrails`), then
-    each camera's optics (:func:`draw_optics`)."""
-    return draw_optics(case, sim, draw_contrails(case, sim, shot))
+    """``shot`` as the case's cameras deliver it: its contrails (:func:`draw_contrails`), each
+    camera's optics (:func:`draw_optics`), then each camera's on-screen text (:func:`draw_overlays`)."""
+    return draw_overlays(case, sim, draw_optics(case, sim, draw_contrails(case, sim, shot)))
 
 
 def station_with_masks(case: RandomCase, sim, folder: Path) -> Station:
