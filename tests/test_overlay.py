@@ -75,9 +75,15 @@ def test_each_style_is_found_on_the_sky_and_the_plain_sky_gives_nothing(style, s
     assert m[changed].mean() > 0.99
     ys, xs = np.nonzero(changed)
     cap = int(0.02 * size) + 1
-    near = np.zeros_like(m)
-    near[ys.min() - cap: ys.max() + cap + 1, xs.min() - cap: xs.max() + cap + 1] = True
-    assert not (m & ~near).any()  # the line's box and its margin, not the sky around it
+
+    def near(k):  # the text's box grown by k cap heights
+        out = np.zeros_like(m)
+        out[ys.min() - k * cap: ys.max() + k * cap + 1, xs.min() - k * cap: xs.max() + k * cap + 1] = True
+        return out
+
+    # the line's box and its margin, and near-black pixels (a skyline's, beside it) a little beyond:
+    # not the sky around it
+    assert not (m & ~near(2)).any() and (m & ~near(1)).sum() <= 0.01 * m.sum()
 
 
 def test_randomized_overlays_stamp_each_cameras_own_clock_and_leave_the_truth():
@@ -160,3 +166,22 @@ def test_randomized_clear_skies_under_a_stamp_stay_clear(seed, tmp_path):
     assert case.kind == "clear" and case.overlays
     assert not r.layers and not score.spurious_m
     assert max(r.cloud_fraction.values()) < 0.02 and "clear_sky" in r.flags
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="found in stop 70, not fixed: camera 2 reads this deck's sky as 25 % cloud "
+                                       "(camera 1: 91 %), and its masked banner tips it to 13 %: the 403 m deck is "
+                                       "dropped as unseen by camera 2")
+def test_a_deck_under_a_banner_at_960_px_is_kept(tmp_path):
+    """Randomized 19612 (``eval_random.py --n 40 --seed 19600 --size 960 --overlays --skylines
+    --unmasked --mounts``): decks at 403 m (cover 0.67), 1739 and 8984 m, B = 168 m, each camera
+    stamping two lines on a banner. The unstamped pair finds 403/1744/8969 m; the stamped one
+    loses the 403 m deck."""
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim.randomize import RandomOptions, run_random_case
+
+    opts = RandomOptions(overlays=True, skylines=True, unmasked=True, mounts=True)
+    case, r, score, _ = run_random_case(19612, load_station(station_path("unb-lea")), 960, tmp_path, options=opts)
+    assert 403 in [round(h) for h in score.expected_m]
+    assert not score.missed_m

@@ -28,8 +28,10 @@ outline, cross each of its columns several times: 0.19–0.7 of the box at 480 p
 shadowed text at 960 px whose strokes are wider than the 3 × 3 band; a roofline, a row of tree
 crowns or a city's blocks is one contour, the band a few pixels thick: 0.04–0.07 where, on
 randomized skylines, they stepped from black to white as often as text). A shorter chain right above or
-below a line (the camera's name over its clock) is text too. Each line's box, grown by half its
-height (the outline, a banner's margin), is the overlay.
+below a line (the camera's name over its clock) is text too. Each line's box, grown by a quarter of its
+height (the outline, the strokes' blur), is the overlay, with the near-black pixels up to a
+height beyond it (a banner's margin: masking the whole height would take sky the text does not
+hide, and cost a thin layer's matches in camera 2).
 
 Limits: text without an outline, shadow or banner (white on sky) has no black beside it and is
 not found; nor is text smaller than ``MIN_HEIGHT_PX`` at working size.
@@ -95,7 +97,8 @@ def overlay_text(image_bgr: np.ndarray, inside: np.ndarray | None = None) -> np.
     Returns
     -------
     ndarray, shape (H, W), bool, or None
-        True on each text line's box, grown by half its height; None when there is none.
+        True on each text line's box, grown by a quarter of its height (at least 2 px), and the
+        near-black pixels up to a height beyond it; None when there is none.
     """
     luma = cv2.cvtColor(np.ascontiguousarray(image_bgr), cv2.COLOR_BGR2GRAY)
     edges = hard_edges(luma)
@@ -119,10 +122,14 @@ def overlay_text(image_bgr: np.ndarray, inside: np.ndarray | None = None) -> np.
     if not found:
         return None
     out = np.zeros((H, W), bool)
+    reach = np.zeros((H, W), bool)
     for x, y, w, h in found:
-        g = (h + 1) // 2
+        g = max(2, (h + 3) // 4)  # the outline's and the strokes' blur: a quarter of the line's height
         out[max(y - g, 0): y + h + g, max(x - g, 0): x + w + g] = True
-    return out
+        g = h  # a banner's black margin (its descent and padding), up to a height beyond
+        reach[max(y - g, 0): y + h + g, max(x - g, 0): x + w + g] = True
+    dark = cv2.dilate((luma <= BLACK_DN).view(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return out | (reach & dark)
 
 
 def text_lines(boxes: np.ndarray) -> list[list[tuple[int, int, int, int]]]:

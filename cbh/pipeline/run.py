@@ -1040,7 +1040,8 @@ class Pipeline:
             inside = self.inside_circle(i) if text is None else self.inside_circle(i) & ~text
             clip = clip_level(work[i], mask=inside)
             if cfg.masks.saturation:  # the sun's glare; other saturation is over-exposed cloud
-                sat, sunlit = glare_and_sunlit(work[i], cfg.masks, ang, clip)
+                seen = work[i] if text is None else np.where(text[..., None], np.uint8(0), work[i])  # (its white is no glare)
+                sat, sunlit = glare_and_sunlit(seen, cfg.masks, ang, clip)
                 if sat.any():
                     u, glare = u & ~sat, True
             return u, ang, glare, SkyExposure(*_sky_dn(work[i], u), clip), sunlit, obst
