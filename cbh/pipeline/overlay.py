@@ -55,7 +55,7 @@ MIN_STROKES_PER_HEIGHT = 0.8  # strokes crossed along the middle rows per height
 
 
 _GLYPH_GAP = 1.0  # glyphs of one line are at most this many heights apart (a space between words, a colon between digits) [1]
-_MAX_GLYPHS = 1500  # glyph boxes chained at most (pairwise, 1500² pairs): a frame with text has tens to hundreds
+_MAX_GLYPHS = 600  # glyph boxes chained at most (pairwise: 600² pairs, a few MB), in raster order: a frame with text has tens to a hundred
 
 
 def hard_edges(luma: np.ndarray) -> np.ndarray:
@@ -144,9 +144,6 @@ def text_lines(boxes: np.ndarray) -> list[list[tuple[int, int, int, int]]]:
     :func:`overlay_text` decides)."""
     if not len(boxes):
         return []
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
-
     x, y, w, h = (boxes[:, k][:, None] for k in range(4))
     xt, yt, wt, ht = (boxes[:, k][None, :] for k in range(4))
     hmax, hmin = np.maximum(h, ht), np.minimum(h, ht)
@@ -155,7 +152,7 @@ def text_lines(boxes: np.ndarray) -> list[list[tuple[int, int, int, int]]]:
     alike = (hmax < 2 * hmin) & (overlap >= 0.5 * hmin)  # two glyphs
     within = (hmax < 4 * hmin) & (overlap >= 0.9 * hmin)  # a colon, a dot, a fragment of a shadowed glyph
     linked = (alike | within) & (gap <= _GLYPH_GAP * hmax)
-    _, label = connected_components(csr_matrix(linked), directed=False)
+    label = _chains(linked)
     out = []
     for k in np.unique(label):
         b = boxes[label == k]
@@ -171,6 +168,23 @@ def text_lines(boxes: np.ndarray) -> list[list[tuple[int, int, int, int]]]:
         if cands:
             out.append(cands)
     return out
+
+
+def _chains(linked: np.ndarray) -> np.ndarray:
+    """The connected components of a symmetric (N, N) bool adjacency: each node's label, (N,) int."""
+    parent = np.arange(len(linked))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(linked, 1))):
+        ri, rj = root(int(i)), root(int(j))
+        if ri != rj:
+            parent[max(ri, rj)] = min(ri, rj)
+    return np.array([root(i) for i in range(len(linked))])
 
 
 def _box(b: np.ndarray) -> tuple[int, int, int, int]:
