@@ -156,16 +156,19 @@ def test_randomized_clear_skies_under_a_stamp_stay_clear(seed, tmp_path):
     (``eval_random.py --overlays --seed 19300``, 480 px): 19306 (two shadowed lines) read
     ``cloud_unmatched`` and ``few_points`` before the overlay mask, 19358 (a banner) three
     spurious layers at 334, 418 and 1057 m with 9 % cloud. Both are clear: no layer, under
-    2 % cloud, ``clear_sky``."""
+    2 % cloud, and the flags of the same sky unstamped (``clear_sky``; 19306 no ``sun_glare``:
+    the text's white is no glare)."""
     from cbh.geometry.station import load_station
     from cbh.presets import station_path
     from cbh.sim.randomize import RandomOptions, run_random_case
 
-    case, r, score, _ = run_random_case(seed, load_station(station_path("unb-lea")), 480, tmp_path,
-                                        options=RandomOptions(overlays=True))
+    base = load_station(station_path("unb-lea"))
+    case, r, score, _ = run_random_case(seed, base, 480, tmp_path, options=RandomOptions(overlays=True))
+    _, plain, _, _ = run_random_case(seed, base, 480, tmp_path)
     assert case.kind == "clear" and case.overlays
     assert not r.layers and not score.spurious_m
     assert max(r.cloud_fraction.values()) < 0.02 and "clear_sky" in r.flags
+    assert sorted(r.flags) == sorted(plain.flags)
 
 
 @pytest.mark.slow

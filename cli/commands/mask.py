@@ -20,7 +20,8 @@ def mask_cmd(
     frames: int = typer.Option(30, "--frames", min=3, help="Frames to use (spread over minutes is best)."),
     timeout_s: float = typer.Option(60.0, "--timeout-s", help="Give up on a live source after this long [s]."),
 ) -> None:
-    """Find buildings, trees and masts on the horizon (dark, static, standing on the horizon).
+    """Find buildings, trees and masts on the horizon (dark, static, standing on the horizon),
+    and the camera's own on-screen text (its clock, its name) on the sky.
 
     Reference the written PNG as the camera's `mask` in the station file.
     """
