@@ -188,3 +188,24 @@ def test_a_deck_under_a_banner_at_960_px_is_kept(tmp_path):
     case, r, score, _ = run_random_case(19612, load_station(station_path("unb-lea")), 960, tmp_path, options=opts)
     assert 403 in [round(h) for h in score.expected_m]
     assert not score.missed_m
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="found in stop 70, not fixed: text across the circle's rim, its glyphs cut by "
+                                       "the rim, is not found; its 255 white beats the over-exposed sky's 233 DN clip")
+def test_a_stamp_across_the_rim_leaves_the_clip_alone(tmp_path):
+    """Randomized 19741 (``eval_random.py --n 100 --seed 19700 --size 480 --overlays --optics
+    --mounts --skylines --unmasked --twice-encoded --contrails``): a clear sky over-exposed to
+    camera 1's 233 DN clip, a shadowed clock across the top of the circle. Unstamped it flags
+    ``sun_glare`` and ``overexposed``; stamped, the clip is read at 255 from 131 pixels of the
+    text, and both flags are lost."""
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim.randomize import RandomOptions, run_random_case
+
+    base = load_station(station_path("unb-lea"))
+    hard = dict(optics=True, mounts=True, skylines=True, unmasked=True, twice_encoded=True, contrails=True)
+    _, r, _, _ = run_random_case(19741, base, 480, tmp_path, options=RandomOptions(overlays=True, **hard))
+    _, plain, _, _ = run_random_case(19741, base, 480, tmp_path, options=RandomOptions(**hard))
+    assert "overexposed" in plain.flags
+    assert sorted(r.flags) == sorted(plain.flags)
