@@ -51,7 +51,7 @@ MIN_HEIGHT_PX = 6  # smallest text line found, outline included, at working size
 MAX_HEIGHT_FRAC = 0.08  # tallest text line, as a share of the frame's height [1]
 MIN_ASPECT = 3.0  # a text line of at least three glyphs is this many heights wide [1]
 MIN_FILL = 0.1  # hard pixels fill at least this of a line's box (text 0.15–0.7 measured; skylines that step as text does 0.04–0.07) [1]
-MIN_STROKES_PER_HEIGHT = 0.8  # strokes crossed along the middle rows per height of width (text: 1.2–3.4 measured; a glyph has 2–4 per 0.6 heights) [1]
+MIN_STROKES_PER_HEIGHT = 0.8  # strokes crossed along the middle rows per height of width (text 1.0–3.4 measured at 480 and 960 px; a glyph has 2–4 per 0.6 heights) [1]
 
 
 _GLYPH_GAP = 1.0  # glyphs of one line are at most this many heights apart (a space between words, a colon between digits) [1]
