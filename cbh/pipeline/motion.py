@@ -104,7 +104,7 @@ from datetime import datetime
 import cv2
 import numpy as np
 
-from cbh.pipeline.peaks import find_peaks, smooth_gaussian, valley_cuts
+from cbh.pipeline.peaks import find_peaks, smooth_gaussian, valley_cuts, weighted_median
 from cbh.result import Layer
 
 __all__ = ["PairState", "MotionProfile", "Tracks", "track_back", "plane_offsets", "offset_per_match",
@@ -381,12 +381,6 @@ def offset_per_match(baseline_m: np.ndarray, dz_m: float, a1: np.ndarray, a2: np
     return delta, q, weight
 
 
-def _weighted_median(v: np.ndarray, w: np.ndarray) -> float:
-    o = np.argsort(v)
-    cw = np.cumsum(w[o])
-    return float(v[o][np.searchsorted(cw, 0.5 * cw[-1])])
-
-
 def offset_estimate(delta_s: np.ndarray, q_inv_m: np.ndarray, weight: np.ndarray, min_height_m: float,
                     max_height_m: float, max_offset_s: float, dt_s: float, min_matches: int = 20,
                     min_share: float = 0.25, max_error_s: float = 0.1) -> float:
@@ -411,12 +405,12 @@ def offset_estimate(delta_s: np.ndarray, q_inv_m: np.ndarray, weight: np.ndarray
         return math.nan
     d = delta_s[ok]
     w = np.minimum(weight[ok], 2.0 * np.median(weight[ok]))
-    est = _weighted_median(d, w)
+    est = weighted_median(d, w)
     # the weighted spread over the effective number of matches: the matches of a slow layer, whose
     # little motion across the baseline makes each a poor measure of δ (0.5 s from 0.1 px of LK
     # noise at 1 m/s across a 50 m baseline), count as little in the error as in the estimate
     n_eff = float(w.sum()) ** 2 / max(float((w * w).sum()), 1e-300)
-    if 1.4826 * _weighted_median(np.abs(d - est), w) / math.sqrt(n_eff) > max_error_s:
+    if 1.4826 * weighted_median(np.abs(d - est), w) / math.sqrt(n_eff) > max_error_s:
         return math.nan
     return est
 

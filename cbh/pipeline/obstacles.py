@@ -28,7 +28,7 @@ from cbh.geometry.camera import CameraModel
 from cbh.geometry.station import Camera
 from cbh.errors import ImageError, InputError
 from cbh.pipeline.ccl import components_with_stats
-from cbh.pipeline.overlay import overlay_text
+from cbh.pipeline.overlay import overlay_text, search_area
 
 __all__ = ["ObstacleMaskConfig", "obstacle_mask_from_frames", "FrameObstacleConfig", "obstacle_rings", "obstacles_in_frame",
            "HorizonGrid", "horizon_grid", "darkest_of_four"]
@@ -98,7 +98,7 @@ def obstacle_mask_from_frames(images, model: CameraModel, cfg: ObstacleMaskConfi
         k = 2 * cfg.dilate_px + 1
         obstacle = cv2.dilate(obstacle.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
     # 4. the camera's on-screen text (its clock, its name), wherever a frame shows it
-    inside = cv2.erode(circle.view(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    inside = search_area(circle)
     for im in images:
         text = overlay_text(im, inside)
         if text is not None:

@@ -42,8 +42,9 @@ import cv2
 import numpy as np
 
 from cbh.pipeline.ccl import components_with_stats
+from cbh.pipeline.peaks import weighted_median
 
-__all__ = ["overlay_text", "BLACK_DN", "WHITE_DN"]
+__all__ = ["overlay_text", "search_area", "BLACK_DN", "WHITE_DN"]
 
 BLACK_DN = 70  # the outline's luma at most this (0, or 16 in limited-range video, plus JPEG's ringing) [DN]
 WHITE_DN = 170  # the strokes' luma at least this (255 or 235, less the working size's averaging) [DN]
@@ -56,6 +57,12 @@ MIN_STROKES_PER_HEIGHT = 0.8  # strokes crossed along the middle rows per height
 
 _GLYPH_GAP = 1.0  # glyphs of one line are at most this many heights apart (a space between words, a colon between digits) [1]
 _MAX_GLYPHS = 600  # glyph boxes chained at most (pairwise: 600² pairs, a few MB), in raster order: a frame with text has tens to a hundred
+
+
+def search_area(circle: np.ndarray) -> np.ndarray:
+    """Where a camera's text is looked for: its image circle (H, W) bool less a 3 px rim, whose
+    step from the black outside to a bright sky is a hard edge all round."""
+    return cv2.erode(np.asarray(circle, bool).view(np.uint8), np.ones((7, 7), np.uint8)) > 0
 
 
 def hard_edges(luma: np.ndarray) -> np.ndarray:
@@ -90,7 +97,7 @@ def overlay_text(image_bgr: np.ndarray, inside: np.ndarray | None = None) -> np.
     image_bgr : ndarray, shape (H, W, 3), uint8
         The frame (any size; the pipeline passes its working size).
     inside : ndarray, shape (H, W), bool, optional
-        Where to look: the image circle less its rim (:meth:`Pipeline.inside_circle`). The rim's
+        Where to look: the image circle less its rim (:func:`search_area`). The rim's
         step from the black outside to a bright sky is a hard edge all round, which would merge
         with the glyphs of a line that crosses it; text outside the circle hides no sky.
 
@@ -159,8 +166,8 @@ def text_lines(boxes: np.ndarray) -> list[list[tuple[int, int, int, int]]]:
         union = _box(b)
         # the core: the rows of the width-weighted median top and bottom of its glyphs (a
         # skyline's edge that touches the line is not one of them), the glyphs centred there
-        y0 = int(_weighted_median(b[:, 1], b[:, 2]))
-        y1 = int(_weighted_median(b[:, 1] + b[:, 3], b[:, 2]))
+        y0 = int(weighted_median(b[:, 1], b[:, 2]))
+        y1 = int(weighted_median(b[:, 1] + b[:, 3], b[:, 2]))
         c2 = 2 * b[:, 1] + b[:, 3]
         core = b[(c2 >= 2 * y0) & (c2 <= 2 * y1)]
         cands = [union] + ([_box(core)] if len(core) and _box(core) != union else [])
@@ -190,12 +197,6 @@ def _chains(linked: np.ndarray) -> np.ndarray:
 def _box(b: np.ndarray) -> tuple[int, int, int, int]:
     x0, y0 = int(b[:, 0].min()), int(b[:, 1].min())
     return x0, y0, int((b[:, 0] + b[:, 2]).max()) - x0, int((b[:, 1] + b[:, 3]).max()) - y0
-
-
-def _weighted_median(v: np.ndarray, w: np.ndarray) -> float:
-    order = np.argsort(v, kind="stable")
-    cw = np.cumsum(w[order])
-    return float(v[order][np.searchsorted(cw, 0.5 * cw[-1])])
 
 
 def _stacked(b, line) -> bool:

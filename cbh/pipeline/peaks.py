@@ -7,13 +7,14 @@ at least ``min_height``. Two neighbouring peaks are one when they are closer tha
 lower peak is smallest; the higher peak survives), so the result does not depend on the
 direction of the scan. Each surviving peak either owns the bins between the valleys on either
 side (:func:`valley_cuts`) or the run of bins around it that stay above a fraction of it and
-fall monotonically away from it (:func:`peak_extent`).
+fall monotonically away from it (:func:`peak_extent`). And the weighted median of a 1-D sample
+(:func:`weighted_median`), the middle of its weighted histogram.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["find_peaks", "valley_cuts", "peak_extent", "smooth_gaussian"]
+__all__ = ["find_peaks", "valley_cuts", "peak_extent", "smooth_gaussian", "weighted_median"]
 
 
 def find_peaks(values: np.ndarray, min_height: float = 0.0, valley_ratio: float = 0.5,
@@ -91,3 +92,11 @@ def smooth_gaussian(values: np.ndarray, sigma: float) -> np.ndarray:
     k = np.exp(-0.5 * (x / sigma) ** 2)
     out = np.convolve(v, k / k.sum(), mode="full")  # "same" centres wrongly when the kernel is longer
     return out[r: r + len(v)]
+
+
+def weighted_median(v: np.ndarray, w: np.ndarray) -> float:
+    """The value of ``v`` (N,) at which the cumulative weight ``w`` (N,), in ascending ``v``,
+    first reaches half the total (the lower weighted median)."""
+    o = np.argsort(v, kind="stable")
+    cw = np.cumsum(w[o])
+    return float(v[o][np.searchsorted(cw, 0.5 * cw[-1])])

@@ -69,7 +69,7 @@ from cbh.pipeline.masks import (angle_map_deg, glare_and_sunlit, load_obstacle_m
                                 static_sky_mask)
 from cbh.pipeline.clip import FULL_RANGE_WHITE_DN, clip_level
 from cbh.pipeline.ccl import components_with_stats
-from cbh.pipeline.overlay import overlay_text
+from cbh.pipeline.overlay import overlay_text, search_area
 from cbh.pipeline.obstacles import FrameObstacleConfig, darkest_of_four, horizon_grid, obstacle_rings, obstacles_in_frame
 from cbh.pipeline.support import FLARE_BAND_DEG, alias_layers, flare_layers, unseen_layers, without_layers
 from cbh.geometry.sun import sun_position
@@ -302,8 +302,7 @@ class Pipeline:
         on-screen text is looked for (the rim's step from black to bright sky is no text) and
         its clip level is read (less the text)."""
         if i not in self._inside:
-            circle = (self.cam1, self.cam2)[i].model.image_circle_mask().view(np.uint8)
-            self._inside[i] = cv2.erode(circle, np.ones((7, 7), np.uint8)) > 0
+            self._inside[i] = search_area((self.cam1, self.cam2)[i].model.image_circle_mask())
         return self._inside[i]
 
     def auto_obstacles(self, i: int, image: np.ndarray) -> np.ndarray | None:

@@ -18,6 +18,8 @@ from datetime import datetime, timedelta
 import cv2
 import numpy as np
 
+from cbh.sim.render import reencode
+
 __all__ = ["Overlay", "draw_overlay", "OVERLAY_STYLES", "OVERLAY_FORMATS"]
 
 OVERLAY_STYLES = ("outline", "shadow", "banner")
@@ -74,7 +76,5 @@ def _encode_block(image: np.ndarray, box: tuple[int, int, int, int], quality: in
     x1, y1 = min(-(-box[2] // 16) * 16, W), min(-(-box[3] // 16) * 16, H)
     if x1 <= x0 or y1 <= y0:
         return image
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(image[y0:y1, x0:x1]), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if ok:
-        image[y0:y1, x0:x1] = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    image[y0:y1, x0:x1] = reencode(np.ascontiguousarray(image[y0:y1, x0:x1]), quality)
     return image
