@@ -48,6 +48,8 @@ _MIN_PIXELS = 2000  # fewer common pixels: no estimate (identity)
 _MIN_LOG_RANGE = 0.25  # spread of ln(I2) over the fitted quantiles below which γ is fixed to 1
 _GAMMA_LIMITS = (0.4, 2.5)  # estimates outside this are not a camera response: clamp
 _SAMPLES = 30_000  # camera-1 pixels sampled (on a regular grid) for the quantiles
+MAX_LUT_SLOPE = 2.0  # a matching table rises at most this many levels per input level … [1]
+LUT_SLOPE_SPAN = 4  # … over any span of this many levels or more (a shorter one: this × the slope) [levels]
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,7 @@ class ColourResponse:
                 s = np.concatenate([[0.0], np.maximum.accumulate(src[:, c]), [255.0]])
                 d = np.concatenate([[0.0], np.maximum.accumulate(dst[:, c]), [255.0]])
                 s, keep = np.unique(s, return_index=True)  # strictly increasing abscissae
-                chans.append(np.interp(x, s, d[keep]))
+                chans.append(capped_slope(np.interp(x, s, d[keep]), MAX_LUT_SLOPE, LUT_SLOPE_SPAN))
             out.append(np.clip(np.round(np.stack(chans, axis=-1)), 0, 255).astype(np.uint8).reshape(256, 1, 3))
         return out[0], out[1]
 
@@ -139,6 +141,30 @@ class ColourResponse:
                 "wb_red": float(self.wb_red), "wb_blue": float(self.wb_blue)}
 
 
+
+
+def capped_slope(table: np.ndarray, max_slope: float, span: int = 1) -> np.ndarray:
+    """The largest table under ``table`` (256,), non-decreasing, whose rise over any n levels is
+    at most ``max_slope`` · max(n, ``span``): t'[x] = min(t[x], min over y < x of
+    t'[y] + max_slope · max(x − y, span)).
+
+    A camera near its clip compresses a channel's top into a few levels (its tone curve's
+    shoulder: randomized 19871 at 480 px, camera 2's blue 246–250 DN over the sky where camera 1's
+    spans 182–236); matching its percentiles onto the other camera's stretches each of its levels,
+    and every JPEG block step with it, 10× (NBR blocks 0.05–0.1 apart on a clear sky, half of it
+    then read as cloud). The levels it lost are not restored by stretching: the capped table
+    leaves that top compressed. Single steps of a few levels are the percentiles' own
+    quantization (one level of the compressed camera between two knots), hence the span."""
+    t = np.asarray(table, np.float64)
+    out = t.copy()
+    best = np.inf  # min over y ≤ x − span of out[y] − max_slope·y
+    for x in range(1, t.size):
+        y = x - span
+        if y >= 0:
+            best = min(best, out[y] - max_slope * y)
+        near = min((out[k] + max_slope * span for k in range(max(y + 1, 0), x)), default=np.inf)
+        out[x] = min(t[x], max_slope * x + best, near)
+    return out
 
 
 def channel_percentiles(values: np.ndarray, q: np.ndarray) -> np.ndarray:
