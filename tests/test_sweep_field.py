@@ -181,6 +181,44 @@ def test_fine_planes_are_spaced_by_their_parallax():
     assert plane_lattice(scale, replace_cfg(cfg, step_rel=0.0)) is None  # off: planes uniform in s
 
 
+def test_a_regions_hypothesis_gets_planes_beyond_the_images_budget():
+    """A deck seen only through the gaps of lower ones is proposed by its regions
+    (``CoarseLayers.regional``); when the image's own hypotheses already take ``max_planes``,
+    its range still gets planes at the same step, up to ``regional_planes`` more (randomized
+    19803 at 960 px: its 4825 m deck's range was dropped, and the deck missed)."""
+    from cbh.pipeline.config import SweepConfig
+    from cbh.pipeline.sweep import CoarseLayers, fine_planes
+
+    cfg = replace_cfg(SweepConfig(), step_rel=0.0)  # planes uniform in s: one step_px apart
+    scale = 50000.0  # [px·m]
+    grid = np.arange(0.0, 80.0 / scale, 2.0 / scale)  # coarse planes 2 px apart (a half-size pass)
+    # the far range (0–6 px) and the image's hypothesis (30–62 px, ± 1.5 coarse steps): 46 planes 1 px apart
+    coarse = CoarseLayers(grid, 2.0 / scale, [(15, 31)], [1000.0], [(8, 10)])  # a region's: 16–20 px
+    planes, du = fine_planes(coarse, scale, 0.0, 0.01, cfg)
+    p = planes * scale
+    assert cfg.max_planes < len(p) <= cfg.max_planes + cfg.regional_planes
+    assert np.all(np.isin(np.arange(13, 24), np.round(p)))  # the region's range is swept …
+    np.testing.assert_allclose(p, np.round(p), atol=1e-6)  # … on the image's lattice, one step apart
+    planes0, _ = fine_planes(coarse, scale, 0.0, 0.01, replace_cfg(cfg, regional_planes=0))
+    assert len(planes0) <= cfg.max_planes and not np.any((planes0 * scale > 13) & (planes0 * scale < 23))
+
+
+@pytest.mark.slow
+def test_a_deck_seen_through_two_lower_ones_is_found(tmp_path):
+    """Randomized 19803 (``eval_random.py --n 40 --seed 19800 --size 960``): decks at 1017 m over
+    41 %, 2435 m over 70 % and 4825 m over 49 %, the last seen in 7.4 % of camera 1's sky through
+    the others' gaps, B = 185 m. Its regions proposed it, but the image's hypotheses had taken
+    the 48 fine planes and its range got none: missed. Now found, within the scoring's
+    tolerance, and nothing else."""
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim.randomize import run_random_case
+
+    _, r, score, _ = run_random_case(19803, load_station(station_path("unb-lea")), 960, tmp_path)
+    assert 4825 in [round(h) for h in score.expected_m]
+    assert not score.missed_m and not score.spurious_m
+
+
 def replace_cfg(cfg, **kw):
     import dataclasses
 

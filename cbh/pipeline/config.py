@@ -167,6 +167,7 @@ class SweepConfig:
     region_px: int = 64  # layers are also proposed per region of this side (a deck seen only through gaps); 0 = off [px]
     region_share: float = 0.1  # a region's layer needs this share of the region's votes [1]
     max_planes: int = 48  # fine planes at most (the step grows beyond) [1]
+    regional_planes: int = 16  # fine planes the regions' own hypotheses may add beyond max_planes (the step kept) [1]
     map_cache_mb: float = 512.0  # remap tables of the planes used, kept for the next pairs (≈ 7 MB per fine plane at 960 px; per process); 0 = off [MB]
     point_stride_px: int = 3  # keep every n-th dense correspondence in the point set [px]
 
@@ -444,6 +445,7 @@ def _check_sweep(sw, where: str) -> None:
     if not 0 <= sw.vote_percentile < 100:
         raise ConfigError(f"{where}.vote_percentile: must be in [0, 100), got {sw.vote_percentile}")
     _positive(f"{where}.map_cache_mb", sw.map_cache_mb, strict=False)
+    _positive(f"{where}.regional_planes", sw.regional_planes, strict=False)
 
 
 def _check_filtering(fl, where: str) -> None:

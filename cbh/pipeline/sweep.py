@@ -1241,7 +1241,8 @@ def plane_lattice(scale_px: float, cfg) -> PlaneLattice | None:
 def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: float, cfg) -> tuple[np.ndarray, float]:
     """The fine planes (ascending s, ``step_px`` apart): the far range from infinity up to
     ``far_px`` of parallax, and each coarse hypothesis's extent ± 1.5 coarse steps; at most
-    ``max_planes``: beyond, the step grows (a whole multiple of ``step_px``) until they fit, so
+    ``max_planes`` (and the regions' own hypotheses up to ``regional_planes`` more, at the same
+    step, strongest first): beyond, the step grows (a whole multiple of ``step_px``) until they fit, so
     that the planes stay evenly spaced — the refinement's peak needs a pixel's neighbouring
     planes one step away (thinning by index left gaps: a 630 m pair's 3500 m layer fell between
     3575 and 3452 m with no plane at 3512 m, and every pixel snapped to 3452 m, −1.4 %).
@@ -1265,9 +1266,12 @@ def fine_planes(coarse: CoarseLayers, scale_px: float, s_min: float, s_max: floa
         if len(s) <= cfg.max_planes:
             break
     kept = list(coarse.ranges)
+    budget = cfg.max_planes + cfg.regional_planes  # (randomized 19803 at 960 px: a 4825 m deck seen through two
+    #                                                lower ones in 7 % of the sky was proposed by its regions and
+    #                                                dropped, its range not fitting the 48 planes the image's took)
     for r in coarse.regional:  # the regions' hypotheses, strongest first, while the step stays
         more = planes(kept + [r], ds)
-        if len(more) <= cfg.max_planes:
+        if len(more) <= budget:
             kept, s = kept + [r], more
     return s, ds
 
