@@ -76,12 +76,14 @@ class ColourResponse:
     q1: np.ndarray | None = field(default=None, repr=False, compare=False)  # (Q, 3) camera 1 percentiles, BGR
     q2: np.ndarray | None = field(default=None, repr=False, compare=False)  # (Q, 3) camera 2 percentiles, BGR
 
-    def matching_luts(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def matching_luts(self, capped: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
         """Histogram-matching lookup tables (camera 2 → 1, camera 1 → 2), each (256, 1, 3) uint8.
 
         Monotone piecewise-linear maps through the matched percentiles of the common view
         (the parametric model fitted to the same percentiles is what is *reported*; the
         tables also follow a tone curve's knee and shoulder, which a power law does not).
+        ``capped``: each table's rise limited by :func:`capped_slope` (``MAX_LUT_SLOPE`` per level
+        over ``LUT_SLOPE_SPAN`` levels), for the colours that segmentation reads.
         None without percentiles.
         """
         if self.q1 is None or self.q2 is None:
@@ -94,7 +96,8 @@ class ColourResponse:
                 s = np.concatenate([[0.0], np.maximum.accumulate(src[:, c]), [255.0]])
                 d = np.concatenate([[0.0], np.maximum.accumulate(dst[:, c]), [255.0]])
                 s, keep = np.unique(s, return_index=True)  # strictly increasing abscissae
-                chans.append(capped_slope(np.interp(x, s, d[keep]), MAX_LUT_SLOPE, LUT_SLOPE_SPAN))
+                t = np.interp(x, s, d[keep])
+                chans.append(capped_slope(t, MAX_LUT_SLOPE, LUT_SLOPE_SPAN) if capped else t)
             out.append(np.clip(np.round(np.stack(chans, axis=-1)), 0, 255).astype(np.uint8).reshape(256, 1, 3))
         return out[0], out[1]
 
@@ -154,7 +157,10 @@ def capped_slope(table: np.ndarray, max_slope: float, span: int = 1) -> np.ndarr
     and every JPEG block step with it, 10× (NBR blocks 0.05–0.1 apart on a clear sky, half of it
     then read as cloud). The levels it lost are not restored by stretching: the capped table
     leaves that top compressed. Single steps of a few levels are the percentiles' own
-    quantization (one level of the compressed camera between two knots), hence the span."""
+    quantization (one level of the compressed camera between two knots), hence the span.
+    Only segmentation reads the capped tables (its colour thresholds are absolute); the
+    matchers keep the full match (their ZNCC does not see a monotone stretch's gain, and the
+    real Fehmarn hour re-paired 3 minutes apart lost two pairs when they read the capped one)."""
     t = np.asarray(table, np.float64)
     out = t.copy()
     best = np.inf  # min over y ≤ x − span of out[y] − max_slope·y

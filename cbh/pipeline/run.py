@@ -460,10 +460,10 @@ class Pipeline:
         received = (image1, image2)  # as the cameras delivered them, full size (the identical-image check)
         with _timed(ctx, "photometric"):
             taken = work
-            work = self.stage_photometric(work, masks, ctx)
+            work, coloured = self.stage_photometric(work, masks, ctx)
             masks = self._clip_contours(taken, masks, ctx)
         with _timed(ctx, "segmentation"):
-            seg = self.stage_segment(work, masks, as_received1=work[0] is taken[0], taken=taken)
+            seg = self.stage_segment(coloured, masks, as_received1=coloured[0] is taken[0], taken=taken)
             gray = (cv2.cvtColor(work[0], cv2.COLOR_BGR2GRAY), cv2.cvtColor(work[1], cv2.COLOR_BGR2GRAY))
         return Prepared(ctx=ctx, t_all=t_all, first=first, work=work, masks=masks, seg=seg, gray=gray, received=received,
                         prepare_ms=_ms(t_all))
@@ -1143,27 +1143,32 @@ class Pipeline:
                      for o in masks.obstacles)
 
     def stage_photometric(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks",
-                          ctx: "PairContext") -> tuple[np.ndarray, np.ndarray]:
+                          ctx: "PairContext") -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """Camera 2's colour response relative to camera 1, reported and removed (:mod:`.photometric`).
 
-        Returns the working images with the brighter camera mapped onto the darker one's
-        response (unchanged when ``photometric.correct`` is off or nothing could be estimated).
+        Returns (for matching, for segmentation): the working images with the brighter camera
+        mapped onto the darker one's response, by the full matching tables and by the tables
+        with their slope capped (:func:`~.photometric.capped_slope`); ``work`` twice when
+        ``photometric.correct`` is off or nothing could be estimated.
         """
         pc = self.config.photometric
         if not pc.correct:
-            return work
+            return work, work
         resp = estimate_response(work[0], work[1], self.geometry, masks.usable[0], masks.usable[1], masks.clips)
         if not resp.pixels:
-            return work
+            return work, work
         ctx.diagnostics.update(resp.diagnostics())
         if resp.is_large(pc.max_gain, pc.max_gamma, pc.max_wb):
             ctx.flags.append("exposure_mismatch")
         if resp.is_identity:
-            return work
-        lut21, lut12 = resp.matching_luts()
-        if resp.brightens():  # camera 2 is the darker one: map camera 1 down onto it instead
-            return (cv2.LUT(work[0], lut12), work[1])
-        return (work[0], cv2.LUT(work[1], lut21))
+            return work, work
+        down1 = resp.brightens()  # camera 2 is the darker one: camera 1 mapped down onto it instead
+
+        def mapped(capped: bool):
+            lut21, lut12 = resp.matching_luts(capped)
+            return (cv2.LUT(work[0], lut12), work[1]) if down1 else (work[0], cv2.LUT(work[1], lut21))
+
+        return mapped(False), mapped(True)
 
     def stage_segment(self, work: tuple[np.ndarray, np.ndarray], masks: "Masks", as_received1: bool = False,
                       taken: tuple[np.ndarray, np.ndarray] | None = None) -> "Segmentation":
