@@ -161,16 +161,16 @@ def capped_slope(table: np.ndarray, max_slope: float, span: int = 1) -> np.ndarr
     Only segmentation reads the capped tables (its colour thresholds are absolute); the
     matchers keep the full match (their ZNCC does not see a monotone stretch's gain, and the
     real Fehmarn hour re-paired 3 minutes apart lost two pairs when they read the capped one)."""
-    t = np.asarray(table, np.float64)
-    out = t.copy()
-    best = np.inf  # min over y ≤ x − span of out[y] − max_slope·y
-    for x in range(1, t.size):
+    t = [float(v) for v in np.asarray(table, np.float64)]  # (plain floats: 256 steps, 20× faster than numpy scalars)
+    out = t[:1]
+    best, rise, inf = math.inf, float(max_slope) * span, math.inf  # best: min over y ≤ x − span of out[y] − max_slope·y
+    for x in range(1, len(t)):
         y = x - span
         if y >= 0:
             best = min(best, out[y] - max_slope * y)
-        near = min((out[k] + max_slope * span for k in range(max(y + 1, 0), x)), default=np.inf)
-        out[x] = min(t[x], max_slope * x + best, near)
-    return out
+        near = min(out[max(y + 1, 0):x], default=inf) + rise
+        out.append(min(t[x], max_slope * x + best, near))
+    return np.asarray(out, np.float64)
 
 
 def channel_percentiles(values: np.ndarray, q: np.ndarray) -> np.ndarray:
