@@ -156,7 +156,7 @@ def test_capped_slope_keeps_the_table_under_it_monotone_and_within_the_slope():
 def test_a_camera_compressed_at_its_clip_is_not_stretched_onto_the_other():
     """Camera 2 brighter (mapped down at mid-grey) but its blue compressed near its clip into
     237–250 DN where camera 1 spans 182–236 (randomized 19871's clear sky): the matching table
-    follows the percentiles below and rises at most 3 levels per level over any 4 levels at the
+    follows the percentiles below and rises at most 2 levels per level over any 4 levels at the
     top (uncapped: 10 levels per level, each JPEG step of camera 2 stretched into a cloud edge)."""
     from cbh.pipeline.photometric import LUT_SLOPE_SPAN, MAX_LUT_SLOPE
 

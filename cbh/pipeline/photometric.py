@@ -48,7 +48,7 @@ _MIN_PIXELS = 2000  # fewer common pixels: no estimate (identity)
 _MIN_LOG_RANGE = 0.25  # spread of ln(I2) over the fitted quantiles below which γ is fixed to 1
 _GAMMA_LIMITS = (0.4, 2.5)  # estimates outside this are not a camera response: clamp
 _SAMPLES = 30_000  # camera-1 pixels sampled (on a regular grid) for the quantiles
-MAX_LUT_SLOPE = 2.0  # a matching table rises at most this many levels per input level … [1]
+MAX_LUT_SLOPE = 2.0  # the table segmentation reads (matching_luts(capped=True)) rises at most this many levels per level … [1]
 LUT_SLOPE_SPAN = 4  # … over any span of this many levels or more (a shorter one: this × the slope) [levels]
 
 
