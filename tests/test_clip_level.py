@@ -84,6 +84,81 @@ def test_saturated_pixels_follow_the_clip_level():
     assert not saturated_pixels(img, 5, ClipLevel.nominal()).any()
 
 
+def _tinted(img: np.ndarray, gains_bgr) -> np.ndarray:
+    """``img`` with per-channel gains applied after its clip: a camera's white balance or exposure
+    gain applied once the sensor has clipped (randomized 19982: a white sun at 220 / 242 / 237)."""
+    return np.clip(np.round(img.astype(np.float64) * np.asarray(gains_bgr)), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("quality", [None, 92, 75])
+@pytest.mark.parametrize("gains", [(0.86, 0.95, 0.93), (1.0, 0.9, 0.8)])
+def test_a_tinted_clip_is_saturated_in_each_channel_at_its_own_level(quality, gains):
+    """A sun (its disk clipped in all channels over a 12 px radius) clipped at 255 and then scaled
+    per channel: its plateau's luma is the clip level, and a channel below it by more than JPEG's
+    smear clips at its own level (gain × 255 less up to 5 DN: the median of the spike's pixels,
+    the disk's frayed edge among them, and JPEG's chroma smear). Every pixel of the clipped disk is
+    saturated as it is without the tint (≥ 95 % of it; through JPEG 75, whose chroma smear pulls
+    the edge's red 7 DN below the plateau, ≥ 80 %, against 95 % untinted: the tint left red 1 DN
+    under the luma, so 4 DN of margin where white has 5), and little else (≤ 40 % of the disk's
+    area, a ring where all three channels are within the margin of their clip): with one level
+    for all channels, not one pixel of the disk was."""
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[0:320, 0:320].astype(np.float64)
+    glow = 400.0 * np.exp(-np.hypot(xx - 130, yy - 110) / 15.0)
+    base = np.stack([150 + 0.2 * yy, 110 + 0.2 * yy, 70 + 0.2 * yy], axis=-1)  # B, G, R
+    raw = np.clip(np.round(np.minimum(base + glow[..., None] + rng.normal(0.0, 1.5, base.shape), 255)), 0, 255)
+    disk = raw.min(axis=2) >= 255
+    img = _jpeg(_tinted(raw.astype(np.uint8), gains), quality)
+    c = clip_level(img)
+    assert c.found and c.channels_dn is not None, c
+    lum = 0.114 * gains[0] + 0.587 * gains[1] + 0.299 * gains[2]
+    assert abs(c.level_dn - 255 * lum) <= 2
+    for ch, g in enumerate(gains):
+        want = round(255 * g)
+        if want < c.level_dn - 4:
+            assert want - 5 <= c.channels_dn[ch] <= want + 1, (c.channels_dn, gains)
+        else:
+            assert c.channels_dn[ch] == c.level_dn
+    sat = saturated_pixels(img, 5, c) > 0
+    assert sat[disk].mean() >= (0.8 if quality == 75 else 0.95)
+    assert sat[~disk].sum() <= 0.4 * disk.sum()
+    assert not (saturated_pixels(img, 5, ClipLevel(c.level_dn, True, c.pixels)) > 0)[disk].any()
+
+
+def test_a_bright_patch_of_colour_is_no_tinted_clip():
+    """A flat bright patch (B, G, R = 222, 242, 240) taken for a clip by its luma spike, beside a
+    clear sky whose blue reaches 250: blue is not at its top there, so it has no level of its own
+    and the patch is not saturated (it would have been, had its colour been read as the clip's)."""
+    rng = np.random.default_rng(5)
+    img = np.empty((200, 200, 3), np.float64)
+    img[:, :100] = (250.0, 200.0, 150.0) + rng.normal(0.0, 1.5, (200, 100, 3))  # blue sky, blue at 250
+    img[:, 100:] = (222.0, 242.0, 240.0)  # the patch: flat
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    c = clip_level(img)
+    assert c.channels_dn is None
+    assert not (saturated_pixels(img, 5, c) > 0)[:, 100:].any()
+
+
+def test_a_clear_sky_with_a_tinted_clip_has_no_ring_of_cloud_round_the_sun():
+    """Randomized 19982 (``eval_random.py --n 60 --seed 19930 --size 480`` with every hard option,
+    here with contrails alone): camera 2's exposure gain and white balance below 1 after its clip
+    leave its sun disk and aureole at B, G, R = 220, 242, 237. Its blue never reached the luma's
+    level, so nothing was saturated, the glare went unmasked, and a 25° ring round the sun read as
+    cloud: 0.125 of the sky against a truth of 0.03 (three contrails). Now each camera reads the
+    contrails, within 0.02 of the truth (their soft edges)."""
+    import tempfile
+
+    from cbh.geometry.station import load_station
+    from cbh.presets import station_path
+    from cbh.sim.randomize import RandomOptions, run_random_case
+
+    with tempfile.TemporaryDirectory() as t:
+        _, r, score, _ = run_random_case(19982, load_station(station_path("unb-lea")), 480, t,
+                                         options=RandomOptions(contrails=True))
+    assert 0.0 < score.cloud_fraction < 0.04
+    assert max(r.cloud_fraction.values()) <= score.cloud_fraction + 0.02
+
+
 def test_clip_level_refuses_what_is_not_a_colour_image():
     with pytest.raises(ValueError, match="uint8"):
         clip_level(np.zeros((4, 4), np.uint8))

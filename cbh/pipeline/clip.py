@@ -36,17 +36,25 @@ plateau piles up within a DN of its level (235 in 1044 of 1300 flat pixels of a 
 against 2016 of 19 000 pixels within ±10 DN raw) while sloped glow and textured cloud drop out.
 
 Without a spike the nominal full-range white (255) is returned with ``found=False``: an image
-that never clips has nothing saturated, as before. One level serves every channel: cameras
-clip white to white (their processing desaturates highlights; limited-range video clips luma
-at 235 with neutral chroma). The luma of the clip is that level, while a channel's own
-histogram near the top mixes in compression overshoots (blue sky's blue piles up at 255).
+that never clips has nothing saturated, as before. Most cameras clip white to white (their
+processing desaturates highlights; limited-range video clips luma at 235 with neutral chroma),
+and then one level serves every channel: the luma of the clip, while a channel's own histogram
+near the top mixes in compression overshoots (blue sky's blue piles up at 255). A camera that
+applies its white balance or exposure gain after the sensor has clipped gives a tinted plateau
+instead (randomized sky 19982: camera 2's sun disk and aureole at B, G, R = 220, 242, 237, luma
+238): its blue never reaches the luma's level, no pixel passed the test below, the glare went
+unmasked and a 25° ring of aureole round it was read as cloud (0.125 of the sky, truth 0.03). So
+the plateau's colour is read too (:func:`_plateau_colour`: each channel's median over the spike's
+pixels), and a channel more than 4 DN below the luma's level that has nothing above it clips at
+its own level (``ClipLevel.channels_dn``).
 
 Limits: a large uniform region brighter than ``min_level_dn`` with nothing brighter in the
 image (a bright, even overcast and no sun) looks the same as a clip and is taken for one; a
 clipped area much smaller than ``min_pixels`` or drowned in textured near-white cloud (JPEG
 quality 75, no sun) is not found, and the nominal level applies.
 
-Saturated (:func:`saturated_pixels`): every channel at least ``L − margin_dn``. JPEG's chroma
+Saturated (:func:`saturated_pixels`): every channel at least its level (``L``, or its own on a
+tinted clip) less ``margin_dn``. JPEG's chroma
 subsampling spreads a clipped disk's colour by a few DN (its smallest channel 1-6 DN below
 the clip at quality 92), hence the margin (5 DN: the pipeline's historical 250 for a 255 clip).
 """
@@ -62,6 +70,8 @@ import numpy as np
 __all__ = ["ClipConfig", "ClipLevel", "clip_level", "saturated_pixels", "FULL_RANGE_WHITE_DN"]
 
 FULL_RANGE_WHITE_DN = 255  # white of an 8-bit full-range image [DN]
+_TINT_WINDOW_DN = 4  # a channel of the clipped plateau further than this below its luma clips at its own level (JPEG's
+#                      chroma smear pulls a white 255 clip's red to 251-252 at Fehmarn) [DN]
 
 
 @dataclass(frozen=True)
@@ -86,7 +96,8 @@ class ClipLevel:
     Attributes
     ----------
     level_dn : int
-        The image's clip (white) level [DN], the same for every channel.
+        The image's clip (white) level [DN]: that of its luma, and of every channel unless
+        ``channels_dn`` says otherwise.
     found : bool
         True when the image shows a clip spike; False: the nominal full-range white (255).
     pixels : int
@@ -94,12 +105,21 @@ class ClipLevel:
     smeared : bool
         True when the level was found only on the smoothed plateau (a clip smeared by a second
         encoding: the saturated area's edge is blocky and ragged).
+    channels_dn : (int, int, int) or None
+        Each channel's own level (B, G, R) where the clip is tinted (white balance or gain applied
+        after the sensor clipped); None: ``level_dn`` for all three.
     """
 
     level_dn: int
     found: bool
     pixels: int = 0
     smeared: bool = field(default=False, repr=False)
+    channels_dn: "tuple[int, int, int] | None" = field(default=None, repr=False)
+
+    def channel_levels(self) -> tuple[int, int, int]:
+        """Each channel's clip level (B, G, R) [DN]: ``channels_dn`` where the clip is tinted
+        (see :func:`clip_level`), else ``level_dn`` for all three."""
+        return self.channels_dn if self.channels_dn is not None else (self.level_dn,) * 3
 
     @classmethod
     def nominal(cls) -> "ClipLevel":
@@ -146,7 +166,38 @@ def clip_level(image_bgr: np.ndarray, cfg: ClipConfig = ClipConfig(), mask: np.n
     if spike is None:
         return ClipLevel.nominal()
     level, hw = spike
-    return ClipLevel(int(level), True, int(h[level - hw:level + hw + 1].sum()), smeared)
+    return ClipLevel(int(level), True, int(h[level - hw:level + hw + 1].sum()), smeared,
+                     _plateau_colour(img, luma, m8, int(level), hw, cfg))
+
+
+def _plateau_colour(img: np.ndarray, luma: np.ndarray, m8: np.ndarray | None, level: int, hw: int,
+                    cfg: ClipConfig) -> "tuple[int, int, int] | None":
+    """Each channel's clip level (B, G, R) where the clip is tinted, else None (every channel
+    at the luma's level; see the module docstring).
+
+    A channel's level is its median over the pixels whose luma lies within ``hw`` of the clip's;
+    it is the channel's own where that lies more than ``_TINT_WINDOW_DN`` below the luma's level
+    (a channel above it passes the luma's test anyway) and the channel has (almost) nothing above it anywhere (at most ``max_above_ratio`` × the
+    spike's pixels more than ``_TINT_WINDOW_DN`` above: the top of its own histogram, as a clip
+    is; a bright even patch of colour taken for a clip has brighter pixels of that channel
+    elsewhere), else the luma's."""
+    spike = cv2.inRange(luma, max(level - hw, 0), min(level + hw, 255))
+    if m8 is not None:
+        spike &= (m8 > 0).view(np.uint8) * 255
+    n = cv2.countNonZero(spike)
+    if not n:
+        return None
+    x, y, w, h = cv2.boundingRect(spike)
+    crop, sm = img[y:y + h, x:x + w], spike[y:y + h, x:x + w]
+    levels = []
+    for c in range(3):
+        hist = np.cumsum(cv2.calcHist([crop], [c], sm, [256], [0, 256]).ravel())
+        v = int(np.searchsorted(hist, 0.5 * hist[-1]))
+        if v < level - _TINT_WINDOW_DN:
+            above = cv2.calcHist([img], [c], m8, [256], [0, 256]).ravel()[v + _TINT_WINDOW_DN + 1:].sum()
+            v = v if above <= cfg.max_above_ratio * n else level
+        levels.append(v if v < level - _TINT_WINDOW_DN else level)
+    return None if levels == [level] * 3 else tuple(levels)
 
 
 def _plateau_histogram(luma: np.ndarray, m8: np.ndarray | None, cfg: ClipConfig) -> np.ndarray:
@@ -225,5 +276,5 @@ def saturated_pixels(image_bgr: np.ndarray, margin_dn: int = 5, clip: ClipLevel 
     """
     if clip is None:
         clip = clip_level(image_bgr)
-    lo = max(int(clip.level_dn) - int(margin_dn), 0)
-    return cv2.inRange(image_bgr, (lo, lo, lo), (255, 255, 255))
+    lo = tuple(max(int(v) - int(margin_dn), 0) for v in clip.channel_levels())
+    return cv2.inRange(image_bgr, lo, (255, 255, 255))
