@@ -139,6 +139,26 @@ def test_a_bright_patch_of_colour_is_no_tinted_clip():
     assert not (saturated_pixels(img, 5, c) > 0)[:, 100:].any()
 
 
+def test_two_channels_at_a_tinted_clip_are_overexposed():
+    """The ``overexposed`` test counts a channel as clipped at its own level: a sky at B, G, R =
+    218, 240, 150 under a sun clipped to 220, 242, 237 (luma 238) has blue and green at their clip
+    over all of it (its colour gone, as a white-clipped sky's), and one at 200, 240, 150 only green.
+    Against the luma's level for every channel, blue at 218 never counted."""
+    from cbh.pipeline.run import _sky_dn
+
+    img = np.empty((200, 200, 3), np.uint8)
+    img[:] = (218, 240, 150)
+    cv2.circle(img, (60, 60), 15, (220, 242, 237), -1)
+    usable = np.ones((200, 200), bool)
+    usable[40:81, 40:81] = False
+    c = clip_level(img)
+    assert c.channels_dn is not None and c.channels_dn[0] == 220, c.channels_dn
+    assert _sky_dn(img, usable, c, 5)[1] == 1.0
+    assert _sky_dn(img, usable, ClipLevel(c.level_dn, True, c.pixels), 5)[1] == 0.0
+    img[usable] = (200, 240, 150)
+    assert _sky_dn(img, usable, c, 5) == (240.0, 0.0)
+
+
 def test_a_clear_sky_with_a_tinted_clip_has_no_ring_of_cloud_round_the_sun():
     """Randomized 19982 (``eval_random.py --n 60 --seed 19930 --size 480`` with every hard option,
     here with contrails alone): camera 2's exposure gain and white balance below 1 after its clip

@@ -232,10 +232,10 @@ def estimate_response(image1: np.ndarray, image2: np.ndarray, geometry, usable1:
     q1 = channel_percentiles(image1[::s, ::s][common], _QUANTILES)  # (Q, 3) B, G, R
     q2 = channel_percentiles(cv2.remap(image2, mx, my, **kw)[common], _QUANTILES)
     # quantiles at a camera's own clip level (235 on limited-range video, not only 255) say nothing
-    # of its response: each camera's bright limit is its clip level less _CLIP_MARGIN
+    # of its response: each channel's bright limit is its clip level (its own on a tinted clip) less
+    # _CLIP_MARGIN
     c1, c2 = (c if c is not None else clip_level(im) for c, im in zip(clips, (image1, image2)))
-    b1 = min(_BRIGHT, c1.level_dn - _CLIP_MARGIN)
-    b2 = min(_BRIGHT, c2.level_dn - _CLIP_MARGIN)
+    b1, b2 = (np.minimum(_BRIGHT, np.asarray(c.channel_levels(), np.float64) - _CLIP_MARGIN) for c in (c1, c2))
     ok = (q1 > _DARK) & (q1 < b1) & (q2 > _DARK) & (q2 < b2)
     if ok.sum(axis=0).min() < 3:
         return ColourResponse(pixels=n)

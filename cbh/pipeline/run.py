@@ -1043,7 +1043,8 @@ class Pipeline:
                 sat, sunlit = glare_and_sunlit(seen, cfg.masks, ang, clip)
                 if sat.any():
                     u, glare = u & ~sat, True
-            return u, ang, glare, SkyExposure(*_sky_dn(work[i], u), clip), sunlit, obst
+            margin = FULL_RANGE_WHITE_DN - int(cfg.masks.saturation_level)
+            return u, ang, glare, SkyExposure(*_sky_dn(work[i], u, clip, margin), clip), sunlit, obst
 
         (u1, a1, glare1, dn1, s1, o1), (u2, a2, _, dn2, s2, o2) = pmap(
             lambda i: self._camera1_once(i, "masks", lambda: one(i)), (0, 1), pool="stages")
@@ -1088,18 +1089,16 @@ class Pipeline:
         JPEG noise swamp: that exposure's mask agrees with the medium one's on 85 % of the sky
         (the high one's: 96 %), and a simulated clear sky at 24 DN reads as a textured overcast.
 
-        Flag ``overexposed`` where the median *second*-brightest channel reaches the camera's own
-        clip level (:func:`~.clip.clip_level` of the image, found in it) less the saturation
-        margin (``255 − masks.saturation_level``): half the sky or more has two channels at white,
-        and its colour is gone (randomized sky 9339: a hazy clear sky at 218 / 245 / 249 DN under
+        Flag ``overexposed`` where half the sky or more has two channels at the camera's own clip
+        level (:func:`~.clip.clip_level` of the image, found in it; each channel's own on a tinted
+        clip) less the saturation margin (``255 − masks.saturation_level``): its colour is gone (randomized sky 9339: a hazy clear sky at 218 / 245 / 249 DN under
         a 249 DN clip, 59 % of it two channels clipped, read as one overcast cloud). One clipped
         channel is common and harmless: the blue of a clear sky at a camera's white, the other two
         still apart (in 8 other skies of the same 40, ≤ 30 % of the sky had two channels clipped,
         and every clear one was read clear)."""
-        margin = FULL_RANGE_WHITE_DN - int(self.config.masks.saturation_level)
         for role, e in zip(("cam1", "cam2"), sky):
             ctx.diagnostics[f"sky_{role}_dn"] = e.bright_dn
-        if any(e.clip is not None and e.clip.found and e.second_dn >= e.clip.level_dn - margin for e in sky):
+        if any(e.clip is not None and e.clip.found and e.two_clipped >= 0.5 for e in sky):
             ctx.flags.append("overexposed")  # (NaN compares False: no usable sky)
         seen = [e.bright_dn for e in sky if math.isfinite(e.bright_dn)]
         if seen and min(seen) < self.config.segmentation.min_sky_dn:
@@ -1866,19 +1865,21 @@ class SkyExposure:
     """How bright a camera's usable sky is (:func:`_sky_dn`), against its own white level."""
 
     bright_dn: float  # median brightest channel [DN] (NaN: no usable sky)
-    second_dn: float  # median second-brightest channel [DN]
+    two_clipped: float  # share of the usable sky with two or three channels at their clip level [1] (NaN: none)
     clip: object = None  # cbh.pipeline.clip.ClipLevel of the image
 
 
-def _sky_dn(image: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
-    """Median brightest and median second-brightest channel [DN] of an image's usable sky, on the
-    sampling lattice (NaN: none)."""
+def _sky_dn(image: np.ndarray, usable: np.ndarray, clip, margin_dn: int) -> tuple[float, float]:
+    """Median brightest channel [DN] of an image's usable sky, and the share of it with at least two
+    channels within ``margin_dn`` of their clip level (``clip``, a :class:`~.clip.ClipLevel`: each
+    channel's own on a tinted clip), on the sampling lattice (NaN: none)."""
     sl = sample_lattice(np.count_nonzero(usable))
     u = usable[sl]
     if not u.any():
         return math.nan, math.nan
-    ch = np.sort(image[sl][u], axis=1)
-    return float(np.median(ch[:, -1])), float(np.median(ch[:, -2]))
+    px = image[sl][u]
+    at = (px >= np.asarray(clip.channel_levels(), np.int32) - int(margin_dn)).sum(axis=1)
+    return float(np.median(px.max(axis=1))), float(np.mean(at >= 2))
 
 
 @contextmanager
