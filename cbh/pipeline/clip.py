@@ -54,9 +54,9 @@ clipped area much smaller than ``min_pixels`` or drowned in textured near-white 
 quality 75, no sun) is not found, and the nominal level applies.
 
 Saturated (:func:`saturated_pixels`): every channel at least its level (``L``, or its own on a
-tinted clip) less ``margin_dn``. JPEG's chroma
-subsampling spreads a clipped disk's colour by a few DN (its smallest channel 1-6 DN below
-the clip at quality 92), hence the margin (5 DN: the pipeline's historical 250 for a 255 clip).
+tinted clip) less ``margin_dn``. JPEG's chroma subsampling spreads a clipped disk's colour by a
+few DN (its smallest channel 1-6 DN below the clip at quality 92), hence the margin (5 DN: the
+pipeline's historical 250 for a 255 clip).
 """
 from __future__ import annotations
 
@@ -177,10 +177,10 @@ def _plateau_colour(img: np.ndarray, luma: np.ndarray, m8: np.ndarray | None, le
 
     A channel's level is its median over the pixels whose luma lies within ``hw`` of the clip's;
     it is the channel's own where that lies more than ``_TINT_WINDOW_DN`` below the luma's level
-    (a channel above it passes the luma's test anyway) and the channel has (almost) nothing above it anywhere (at most ``max_above_ratio`` × the
-    spike's pixels more than ``_TINT_WINDOW_DN`` above: the top of its own histogram, as a clip
-    is; a bright even patch of colour taken for a clip has brighter pixels of that channel
-    elsewhere), else the luma's."""
+    (a channel above it passes the luma's test anyway) and the channel has (almost) nothing above
+    it anywhere (at most ``max_above_ratio`` × the spike's pixels more than ``_TINT_WINDOW_DN``
+    above: the top of its own histogram, as a clip is; a bright even patch of colour taken for a
+    clip has brighter pixels of that channel elsewhere), else the luma's."""
     spike = cv2.inRange(luma, max(level - hw, 0), min(level + hw, 255))
     if m8 is not None:
         spike &= (m8 > 0).view(np.uint8) * 255

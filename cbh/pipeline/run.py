@@ -1091,8 +1091,9 @@ class Pipeline:
 
         Flag ``overexposed`` where half the sky or more has two channels at the camera's own clip
         level (:func:`~.clip.clip_level` of the image, found in it; each channel's own on a tinted
-        clip) less the saturation margin (``255 − masks.saturation_level``): its colour is gone (randomized sky 9339: a hazy clear sky at 218 / 245 / 249 DN under
-        a 249 DN clip, 59 % of it two channels clipped, read as one overcast cloud). One clipped
+        clip) less the saturation margin (``255 − masks.saturation_level``): its colour is gone
+        (randomized sky 9339: a hazy clear sky at 218 / 245 / 249 DN under a 249 DN clip, 59 % of
+        it two channels clipped, read as one overcast cloud). One clipped
         channel is common and harmless: the blue of a clear sky at a camera's white, the other two
         still apart (in 8 other skies of the same 40, ≤ 30 % of the sky had two channels clipped,
         and every clear one was read clear)."""

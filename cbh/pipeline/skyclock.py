@@ -38,9 +38,9 @@ read large and δ short (randomized 16782 over the real station's lenses: a 2201
 0.42 map px across a 37 m baseline per 10 s frame, every chosen pixel ≥ 0.5: +42.4 s "± 1.35 s"
 for +62.5 s, and its deck valid at 674 m; tile medians: +61.4 s ± 2.0 s, unknown at that error).
 NaN (unknown, never a guess) when too few tiles see motion across the baseline or the error is
-above ``max_error_s``. With δ, each pixel's height follows
-from the along-baseline component, and the (height, rate) pairs give camera 2's motion profile, the
-input of the compensation (:func:`~cbh.pipeline.motion.compensate_camera2`).
+above ``max_error_s``. With δ, each pixel's height follows from the along-baseline component, and
+the (height, rate) pairs give camera 2's motion profile, the input of the compensation
+(:func:`~cbh.pipeline.motion.compensate_camera2`).
 """
 from __future__ import annotations
 
@@ -371,6 +371,8 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
         Camera 2 minus camera 1, east and north [m].
     dz_m : float
         Camera 2's height above camera 1 [m].
+    min_tile_motion_px : float
+        A tile's median motion across the baseline per interval for it to give δ [map px].
     """
     if not (dt_s > 0):
         return SkyClock.unknown()
