@@ -188,11 +188,10 @@ def _plateau_colour(img: np.ndarray, luma: np.ndarray, m8: np.ndarray | None, le
     if not n:
         return None
     x, y, w, h = cv2.boundingRect(spike)
-    crop, sm = img[y:y + h, x:x + w], spike[y:y + h, x:x + w]
+    colour = np.median(img[y:y + h, x:x + w][spike[y:y + h, x:x + w] > 0], axis=0)
     levels = []
     for c in range(3):
-        hist = np.cumsum(cv2.calcHist([crop], [c], sm, [256], [0, 256]).ravel())
-        v = int(np.searchsorted(hist, 0.5 * hist[-1]))
+        v = int(colour[c])
         if v < level - _TINT_WINDOW_DN:
             above = cv2.calcHist([img], [c], m8, [256], [0, 256]).ravel()[v + _TINT_WINDOW_DN + 1:].sum()
             v = v if above <= cfg.max_above_ratio * n else level
