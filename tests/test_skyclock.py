@@ -690,3 +690,49 @@ def test_an_overcast_carried_twice_its_height_is_not_a_confident_clock(tmp_path)
     set it apart from a right estimate (16733: 244 points, 7 tiles). A strict expected failure."""
     row = _random_clock(16732, tmp_path)
     assert row["verdict"] in ("ok", "unknown"), row
+
+
+@pytest.mark.parametrize("still, along, running, residual, flagged", [
+    (False, True, math.nan, 0.4, True),  # wind along the baseline, the geometry agrees: the clock is unchecked
+    (False, True, math.nan, math.nan, True),
+    (False, True, 0.0, 0.4, False),  # the offset measured (or stated) before: vouched for
+    (True, False, math.nan, math.nan, False),  # a calm sky carries nothing whatever the offset
+    (False, False, math.nan, 0.4, False),  # a wind across: the geometry check would have seen an offset
+    (False, False, math.nan, math.nan, True),  # nothing judged it
+    (False, True, math.nan, 3.0, False),  # a mismatch along the baseline: the geometry's (no offset explains it)
+])
+def test_a_wind_along_the_baseline_never_vouches_for_an_unmeasured_clock(still, along, running, residual, flagged):
+    """``Pipeline._clock_unverified``: an offset δ carries each cloud wind × δ; along the baseline that
+    moves no match off its epipolar curve (the geometry check passes) and adds wholly to the parallax.
+    Randomized clock sky 16805 (decks 2142–8268 m drifting within 20° of a 106 m baseline, camera 2
+    119 s late) read 593 m for 2142 m, valid, on the geometry check's silence. Layers on a clock never
+    measured under such a wind are ``clock_unknown``; a calm sky, a measured offset, or a wind across
+    (which the check sees) are not."""
+    from types import SimpleNamespace
+
+    from cbh.geometry.station import load_station
+    from cbh.pipeline import Pipeline
+    from cbh.pipeline.motion import PairState
+    from cbh.pipeline.run import MotionInput
+    from cbh.pipeline.skyclock import SkyClock
+    from cbh.presets import station_path
+
+    pipe = Pipeline(load_station(station_path()))
+    mot = MotionInput(prev_gray=(np.zeros((4, 4), np.uint8),) * 2, dt_s=30.0)
+    ctx = SimpleNamespace(diagnostics={"geometry_residual_px": residual}, flags=["geometry_mismatch"] if residual > 1 else [])
+    lay = SimpleNamespace(layers=[object()])
+    sky = SkyClock.unknown(still=still, along=along)
+    assert pipe._clock_unverified(PairState.start(), mot, sky, running, ctx, lay) is flagged
+    assert pipe._clock_unverified(None, mot, sky, running, ctx, lay) is False  # not a run: no clock to vouch for
+
+
+@pytest.mark.slow
+def test_decks_along_the_baseline_under_an_unmeasured_clock_are_not_valid(tmp_path):
+    """``eval_clock_random.py --n 30 --seed 16790`` (stop 73): 16805, decks at 2142, 3756 and 8268 m
+    drifting 10–13 m/s within 20° of a 106 m baseline, camera 2 119 s late every 10 s. The offset is
+    unobservable (unknown, rightly), and the third pair reported 593, 2308 and 7421 m, valid: the
+    119 s carry along the baseline read as parallax. Now ``clock_unknown``."""
+    from cbh.flags import INVALIDATING
+
+    row = _random_clock(16805, tmp_path)
+    assert row["verdict"] == "unknown" and row["found_m"] and INVALIDATING & set(row["flags"]), row

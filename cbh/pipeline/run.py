@@ -667,19 +667,30 @@ class Pipeline:
         curves gave a 1.6–1.9 km deck for the real 8–9 km one, with no flag; at −211 s the second
         pair's sky maps matched too (7 of 82 000 lattice points), so the offset stayed unknown and
         its layers were as wrong. A calm sky (the maps matched, little of it moved:
-        ``SkyClock.still``) or a wind along the baseline (``SkyClock.along``) leaves the offset
-        unobservable and is not flagged once there is a pair before to see that by; nor is any
-        pair of a station whose motion is off (``motion.enabled``: nothing could ever measure it).
-        Maps that did not match at all (the −211 s pair above, 7 of 82 000 lattice points) are:
-        a clock minutes off is what makes them fail."""
+        ``SkyClock.still``) carries nothing whatever the offset and is not flagged once there is a
+        pair before to see that by; nor is any pair of a station whose motion is off
+        (``motion.enabled``: nothing could ever measure it). Maps that did not match at all (the
+        −211 s pair above, 7 of 82 000 lattice points) are: a clock minutes off is what makes them fail.
+
+        A wind along the baseline (``SkyClock.along``) is flagged while the offset was never
+        measured, whatever the geometry check said: it leaves the offset unobservable, but not
+        harmless. An offset δ carries every cloud by wind × δ along the baseline, which moves no
+        match off its epipolar curve (so the check passes) and adds wholly to the parallax
+        (randomized clock sky 16805: decks at 2142, 3756 and 8268 m drifting 10–13 m/s within
+        20° of a 106 m baseline, camera 2 119 s late, read 593, 2308 and 7421 m, valid). A
+        station whose clocks are right says so (``clock_offset_s``) and is never flagged for it;
+        a pair that disagrees with the geometry under such a wind keeps ``geometry_mismatch`` alone
+        (no offset explains it)."""
         mcfg = self.config.motion
         if (previous is None or not mcfg.clock_offset or not mcfg.enabled or not lay.layers
-                or not self.config.geometry_check.enabled or "night" in ctx.flags
-                or math.isfinite(ctx.diagnostics.get("geometry_residual_px", math.nan))):
+                or not self.config.geometry_check.enabled or "night" in ctx.flags):
             return False
+        verdict = math.isfinite(ctx.diagnostics.get("geometry_residual_px", math.nan))
         if mot.prev_gray is None:
-            return not math.isfinite(running) or abs(running) > mcfg.offset_tolerance_s
-        return not math.isfinite(running) and not (sky.still or sky.along)
+            return not verdict and (not math.isfinite(running) or abs(running) > mcfg.offset_tolerance_s)
+        if math.isfinite(running) or sky.still or "geometry_mismatch" in ctx.flags:  # (a mismatch: the geometry's)
+            return False
+        return sky.along or not verdict
 
     def _carry_explains(self, sky: SkyClock, used_s: float, ctx: "PairContext") -> bool:
         """Whether a geometry mismatch of a pair matched on the sky maps (camera 2 carried to camera
