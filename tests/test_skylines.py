@@ -449,3 +449,16 @@ def test_fresh_skies_of_stop_73_are_right(base, seed, tmp_path):
     assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)
     if case.kind == "clear":
         assert max(r.cloud_fraction.values()) <= score.cloud_fraction + 0.02, (r.cloud_fraction, score.cloud_fraction)
+
+
+@pytest.mark.slow
+@_STOP_73
+def test_an_overexposed_high_overcast_is_found(base, tmp_path):
+    """``eval_random.py --n 30 --seed 20160 --size 480 --kind overcast --mounts --optics
+    --twice-encoded --skylines`` (stop 73): 29 of 30 decks, 5 spurious (all 20166's), 1 sky flagged.
+    20166: a 9482 m overcast (B = 100 m, aureole 2.9, white clipped at 235, the sun 22° above the
+    horizon), both cameras over-exposed: 0.134 of the sky measured, matches at 104–13710 m, flagged
+    ``below_range``; the deck is missed. A strict expected failure."""
+    opts = RandomOptions(kind="overcast", mounts=True, optics=True, twice_encoded=True, skylines=True)
+    case, r, score, _ = run_random_case(20166, base, 480, tmp_path, options=opts)
+    assert score.missed_m == [], (case.describe(), score.found_m)
