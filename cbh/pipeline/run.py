@@ -655,7 +655,8 @@ class Pipeline:
     def _clock_unverified(self, previous, mot: "MotionInput", sky: SkyClock, running: float, ctx: "PairContext",
                           lay) -> bool:
         """Whether a pair's layers rest on a clock nothing has checked: in a run, the geometry check
-        had too few 2-D matches for a verdict, and camera 2's clock offset is unknown, either before
+        had too few 2-D matches for a verdict (or, under a wind along the baseline, could not have
+        seen an offset: below), and camera 2's clock offset is unknown, either before
         any motion (a run's first pair, or the first after a gap; also an offset known from a
         recording, which is not taken out without motion) or because the moving sky did not give
         it. An offset moves every cloud by wind × offset between the two frames; across the
