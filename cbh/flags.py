@@ -75,7 +75,10 @@ _MEANING = {
     "clock_unknown": "the matches disagree with the geometry, or are too few to judge it, while the cameras' "
                      "clock offset, which could explain a disagreement or hide behind too few matches, is not known "
                      "yet (or, resumed from a recording, not yet taken out: a run's first pair has no motion to "
-                     "carry a camera with)",
+                     "carry a camera with); or, while it is not known, an offset the geometry check cannot see "
+                     "would move a layer by more than a tenth (a wind along the baseline, or a slow one over a "
+                     "high deck: diagnostics clock_hidden_share; a station whose clocks are right states "
+                     "clock_offset_s)",
 }
 
 

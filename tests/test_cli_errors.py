@@ -91,7 +91,7 @@ def test_log_file_on_a_full_disk_warns_once_and_the_run_goes_on(capsys):
     assert main(["--log-file", "/dev/full", "run", "--frames", "2", "--size", "96", "-q"]) == 0
     out, err = capsys.readouterr()
     assert "processed 2 pairs" in out
-    lines = [l for l in err.splitlines() if l.strip()]
+    lines = [l for l in err.splitlines() if l.strip() and "clock_unknown" not in l]  # (96 px: a clock the check cannot see)
     assert lines == ["cbh: warning: cannot write log file /dev/full (disk full); logging to it stopped"], err
 
 

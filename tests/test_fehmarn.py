@@ -290,7 +290,7 @@ def test_run_summary_names_each_cause(station):
                       stop_reason="sources ended")
     setup = SimpleNamespace(station=station, outputs=lambda: [])
     text = "\n".join(summary_lines(setup, st))
-    assert "1 disagreed with the geometry, or had too few matches to judge it, while the cameras' clock offset was not known yet (clock_unknown)" in text
+    assert "1 disagreed with the geometry, or had too few matches to judge it, while the cameras' clock offset was not known yet, or had layers that an offset too small for the check to see would move (clock_unknown)" in text
     assert "9 disagreed with the station geometry (geometry_mismatch)" in text
 
 

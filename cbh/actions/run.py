@@ -489,7 +489,8 @@ def _open_recorder(st, pcfg, record, rotate_mb, rotate_s, overwrite: bool, notes
 _INVALID_CAUSE = {
     "geometry_mismatch": "disagreed with the station geometry (geometry_mismatch)",
     "clock_unknown": ("disagreed with the geometry, or had too few matches to judge it, while the cameras' clock "
-                      "offset was not known yet (clock_unknown)"),
+                      "offset was not known yet, or had layers that an offset too small for the check to see would "
+                      "move (clock_unknown)"),
     "clock_too_far": "could not be carried over the cameras' clock offset: the sky moved too far (clock_too_far)",
     "below_range": "had cloud below the lowest height searched (below_range)",
     "identical_images": "had both cameras deliver the same image (identical_images)",

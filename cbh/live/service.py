@@ -834,9 +834,14 @@ class Service:
                 why = (f"a clock that jumped? this pair's own estimate {own:.1f} s against {run:.1f} s"
                        if math.isfinite(own) and math.isfinite(run)
                        else "the sky maps did not measure it" if moved else "no motion yet to measure it")
-                log.warning(f"pair at {f1.time_utc.isoformat()}: clock_unknown: the cameras' matches disagree with "
-                            "the station geometry, or are too few to judge it, while their clock offset, which would "
-                            "look the same, is not known "
+                hidden = result.diagnostics.get("clock_hidden_share", math.nan)
+                what = ("the cameras' matches disagree with the station geometry, or are too few to judge it, while "
+                        "their clock offset, which would look the same, is not known"
+                        if not hidden > 0.1 else
+                        f"the cameras' clock offset is not known, and one the geometry check cannot see would move a "
+                        f"layer by up to {100 * hidden:.0f} % (a wind along the baseline, or a slow one over a high "
+                        "deck; a station whose clocks are right states clock_offset_s)")
+                log.warning(f"pair at {f1.time_utc.isoformat()}: clock_unknown: {what} "
                             f"({why}); layers are not reported as valid until the offset is measured",
                             extra={"cbh_event": "clock_unknown", "cbh_flags": invalid})
             elif geometric:

@@ -123,6 +123,7 @@ _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obs
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
 _RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
+_HIDDEN_OFFSET_SHARE = 0.1  # an unmeasured offset the check cannot see may move a layer by this share at most (the real hour's 10 % bar)
 MIN_PARALLAX_OVER_CARRY = 1.0  # a layer matched on the sky maps needs this × the carry's noise of parallax near the zenith (Pipeline._carry_swamps) [1]
 _MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
@@ -689,9 +690,43 @@ class Pipeline:
         verdict = math.isfinite(ctx.diagnostics.get("geometry_residual_px", math.nan))
         if mot.prev_gray is None:
             return not verdict and (not math.isfinite(running) or abs(running) > mcfg.offset_tolerance_s)
-        if math.isfinite(running) or sky.still or "geometry_mismatch" in ctx.flags:  # (a mismatch: the geometry's)
+        if math.isfinite(running) or "geometry_mismatch" in ctx.flags:  # (a mismatch: the geometry's)
             return False
-        return sky.along or not verdict
+        share = self._hidden_offset_share(lay, ctx, verdict)
+        if math.isfinite(share):
+            ctx.diagnostics["clock_hidden_share"] = share
+        hides = share > _HIDDEN_OFFSET_SHARE
+        return hides if sky.still else (sky.along or not verdict or hides)
+
+    def _offset_hides(self, lay, ctx: "PairContext", seen: bool) -> bool:
+        """Whether an offset the geometry check could not see would move a layer's height by more
+        than :data:`_HIDDEN_OFFSET_SHARE` (:meth:`_hidden_offset_share`)."""
+        return self._hidden_offset_share(lay, ctx, seen) > _HIDDEN_OFFSET_SHARE
+
+    def _hidden_offset_share(self, lay, ctx: "PairContext", seen: bool) -> float:
+        """The largest share of a layer's parallax that an offset the geometry check could not see
+        would move (NaN: no layer's wind known; ``clock_hidden_share`` in the diagnostics). With the
+        layer's wind v (its tracks') split along and across the baseline B, an offset δ carries its
+        matches v_across·δ / h across their curves, unseen while under the check's tolerance (up to
+        ``motion.max_offset_s`` where nothing saw them: ``seen`` False, no verdict), and v_along·δ
+        along them, a share v_along·δ / B of the parallax. Randomized clock sky 16844 over the real
+        Fehmarn lenses: a 9987 m overcast at 0.6 m/s, B 46 m, camera 2 76 s late, no offset believed:
+        0.17° across (under 1 px), 6846 m reported valid."""
+        b = np.asarray(self.cam2.position_m - self.cam1.position_m, np.float64)[:2]
+        base = float(np.linalg.norm(b))
+        tol_rad = ctx.geometry_tolerance_px / self._px_per_rad2() if seen else math.inf
+        shares = []
+        for L in lay.layers if base > 0 and tol_rad > 0 else ():
+            v = np.array([L.motion_east_ms, L.motion_north_ms], np.float64)
+            if not np.isfinite(v).all():
+                continue
+            along = abs(float(v @ b)) / base
+            across = math.sqrt(max(float(v @ v) - along * along, 0.0))
+            hidden_s = self.config.motion.max_offset_s
+            if across > 0 and math.isfinite(tol_rad):
+                hidden_s = min(hidden_s, tol_rad * max(L.height_m, 1.0) / across)
+            shares.append(along * hidden_s / base)
+        return max(shares) if shares else math.nan
 
     def _carry_explains(self, sky: SkyClock, used_s: float, ctx: "PairContext") -> bool:
         """Whether a geometry mismatch of a pair matched on the sky maps (camera 2 carried to camera
