@@ -10,7 +10,7 @@ from __future__ import annotations
 import enum
 from typing import Iterable
 
-__all__ = ["Flag", "flag_bits", "flag_names", "check_flags", "flag_meaning", "INVALIDATING"]
+__all__ = ["Flag", "flag_bits", "flag_names", "check_flags", "flag_meaning", "INVALIDATING", "HIDDEN_OFFSET_SHARE"]
 
 
 class Flag(enum.IntFlag):
@@ -43,6 +43,10 @@ class Flag(enum.IntFlag):
 #: "latest layers").
 INVALIDATING = frozenset({"geometry_mismatch", "identical_images", "below_range", "clock_unknown", "clock_too_far",
                           "night"})
+
+#: ``clock_unknown`` while camera 2's offset was never measured: the largest share of a layer's
+#: parallax that an offset the geometry check cannot see may move (the real hour's 10 % bar).
+HIDDEN_OFFSET_SHARE = 0.1
 
 
 _MEANING = {

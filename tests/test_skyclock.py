@@ -746,7 +746,7 @@ def test_a_slow_high_deck_under_an_unmeasured_clock_is_not_valid(tmp_path):
     read no offset (227 tiles, none believed) and reported 6846 m, valid. Its carry over 76 s, 46 m,
     is as long as the baseline: along the baseline it takes a third off the height, and across it
     it moves the matches 0.17°, under the geometry check's 1 px. A clock never measured vouches for
-    nothing a check of that tolerance cannot see (``Pipeline._offset_hides``): now ``clock_unknown``."""
+    nothing a check of that tolerance cannot see (``Pipeline._hidden_offset_share``): now ``clock_unknown``."""
     from cbh.flags import INVALIDATING
 
     row = _fehmarn_lens_clock(16844, tmp_path)
@@ -762,7 +762,7 @@ def test_a_slow_high_deck_under_an_unmeasured_clock_is_not_valid(tmp_path):
     (10000.0, (math.nan, math.nan), True, False),  # the layer's wind unknown: not judged here
 ])
 def test_an_offset_the_check_cannot_see_is_weighed_by_what_it_moves(height_m, wind, seen, hides):
-    """``Pipeline._offset_hides``: an unmeasured offset δ carries a layer's matches v_across·δ / h across
+    """``Pipeline._hidden_offset_share``: an unmeasured offset δ carries a layer's matches v_across·δ / h across
     their curves (seen once over the geometry check's tolerance) and v_along·δ along them, a share
     v_along·δ / B of the parallax; a layer is at risk when the offset hidden under the check (up to
     ``motion.max_offset_s`` when nothing sees it) moves it by more than 10 %. Randomized clock sky
@@ -771,6 +771,7 @@ def test_an_offset_the_check_cannot_see_is_weighed_by_what_it_moves(height_m, wi
 
     from cbh.geometry.station import load_station
     from cbh.pipeline import Pipeline
+    from cbh.flags import HIDDEN_OFFSET_SHARE
     from cbh.presets import station_path
 
     pipe = Pipeline(load_station(station_path()))
@@ -778,7 +779,7 @@ def test_an_offset_the_check_cannot_see_is_weighed_by_what_it_moves(height_m, wi
     assert abs(b[1]) < 1e-6 < abs(b[0])  # the preset's baseline runs east-west
     ctx = SimpleNamespace(geometry_tolerance_px=1.0)
     lay = SimpleNamespace(layers=[SimpleNamespace(height_m=height_m, motion_east_ms=wind[0], motion_north_ms=wind[1])])
-    assert pipe._offset_hides(lay, ctx, seen) is hides
+    assert (pipe._hidden_offset_share(lay, ctx, seen) > HIDDEN_OFFSET_SHARE) is hides
 
 
 @pytest.mark.parametrize("hidden, says", [(0.9, "would move a layer by up to 90 %"),

@@ -48,7 +48,7 @@ from datetime import datetime, timedelta, timezone
 from typing import Callable
 
 from cbh.errors import CbhError, ConfigError, ImageError, RecordingError, SourceError
-from cbh.flags import INVALIDATING
+from cbh.flags import HIDDEN_OFFSET_SHARE, INVALIDATING
 from cbh.interfaces import ResultSink
 from cbh.result import Frame, PairResult
 from cbh.tomlio import dataclass_from_table
@@ -837,7 +837,7 @@ class Service:
                 hidden = result.diagnostics.get("clock_hidden_share", math.nan)
                 what = ("the cameras' matches disagree with the station geometry, or are too few to judge it, while "
                         "their clock offset, which would look the same, is not known"
-                        if not hidden > 0.1 else
+                        if not hidden > HIDDEN_OFFSET_SHARE else
                         f"the cameras' clock offset is not known, and one the geometry check cannot see would move a "
                         f"layer by up to {100 * hidden:.0f} % (a wind along the baseline, or a slow one over a high "
                         "deck; a station whose clocks are right states clock_offset_s)")

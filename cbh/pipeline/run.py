@@ -53,6 +53,7 @@ import cv2
 import numpy as np
 
 from cbh.errors import ConfigError
+from cbh.flags import HIDDEN_OFFSET_SHARE
 from cbh.imageio import as_bgr
 from cbh.timeutil import parse_utc
 from cbh.result import Enlarged, PairResult, PointSet
@@ -123,7 +124,6 @@ _OBSTACLE_LEARN_FRAMES = 10  # frames of a camera after which its persistent obs
 _OBSTACLE_LEARN_SHARE = 0.6  # … those found in at least this share of its frames
 _MAX_PASSES = 4  # matching passes of one pair: the first pairs with a clock offset refine it (see .motion)
 _RATES_SETTLED_PX = 0.1  # … until the compensation moves by less than this between passes [px]
-_HIDDEN_OFFSET_SHARE = 0.1  # an unmeasured offset the check cannot see may move a layer by this share at most (the real hour's 10 % bar)
 MIN_PARALLAX_OVER_CARRY = 1.0  # a layer matched on the sky maps needs this × the carry's noise of parallax near the zenith (Pipeline._carry_swamps) [1]
 _MIN_NOISE_MATCHES = 20  # fewer sparse matches: the angular noise comes from the dense 2-D ones
 _RADIUS_SLACK = 1.05  # working_factor: the working radius may exceed working_radius_px by 5 %
@@ -669,20 +669,22 @@ class Pipeline:
         curves gave a 1.6–1.9 km deck for the real 8–9 km one, with no flag; at −211 s the second
         pair's sky maps matched too (7 of 82 000 lattice points), so the offset stayed unknown and
         its layers were as wrong. A calm sky (the maps matched, little of it moved:
-        ``SkyClock.still``) carries nothing whatever the offset and is not flagged once there is a
-        pair before to see that by; nor is any pair of a station whose motion is off
-        (``motion.enabled``: nothing could ever measure it). Maps that did not match at all (the
-        −211 s pair above, 7 of 82 000 lattice points) are: a clock minutes off is what makes them fail.
+        ``SkyClock.still``) carries little whatever the offset: it is flagged only when what an
+        offset could hide moves a layer (below); no pair of a station whose motion is off
+        (``motion.enabled``: nothing could ever measure it) is flagged. Maps that did not match at
+        all (the −211 s pair above, 7 of 82 000 lattice points) are: a clock minutes off is what
+        makes them fail.
 
-        A wind along the baseline (``SkyClock.along``) is flagged while the offset was never
-        measured, whatever the geometry check said: it leaves the offset unobservable, but not
-        harmless. An offset δ carries every cloud by wind × δ along the baseline, which moves no
-        match off its epipolar curve (so the check passes) and adds wholly to the parallax
-        (randomized clock sky 16805: decks at 2142, 3756 and 8268 m drifting 10–13 m/s within
-        20° of a 106 m baseline, camera 2 119 s late, read 593, 2308 and 7421 m, valid). A
-        station whose clocks are right says so (``clock_offset_s``) and is never flagged for it;
-        a pair that disagrees with the geometry under such a wind keeps ``geometry_mismatch`` alone
-        (no offset explains it)."""
+        While the offset was never measured, a passed check does not vouch for the clock either:
+        a pair is flagged when its maps saw a wind along the baseline (``SkyClock.along``: the
+        offset unobservable, but not harmless), or when an offset the check could not see would
+        move a layer by more than :data:`HIDDEN_OFFSET_SHARE` (:meth:`_hidden_offset_share`). An
+        offset δ carries every cloud by wind × δ; along the baseline that moves no match off its
+        epipolar curve and adds wholly to the parallax (randomized clock sky 16805: decks at 2142,
+        3756 and 8268 m drifting 10–13 m/s within 20° of a 106 m baseline, camera 2 119 s late,
+        read 593, 2308 and 7421 m, valid). A station whose clocks are right says so
+        (``clock_offset_s``) and is never flagged for it; a pair that disagrees with the geometry
+        keeps ``geometry_mismatch`` alone here (under such a wind no offset explains it)."""
         mcfg = self.config.motion
         if (previous is None or not mcfg.clock_offset or not mcfg.enabled or not lay.layers
                 or not self.config.geometry_check.enabled or "night" in ctx.flags):
@@ -695,13 +697,8 @@ class Pipeline:
         share = self._hidden_offset_share(lay, ctx, verdict)
         if math.isfinite(share):
             ctx.diagnostics["clock_hidden_share"] = share
-        hides = share > _HIDDEN_OFFSET_SHARE
+        hides = share > HIDDEN_OFFSET_SHARE
         return hides if sky.still else (sky.along or not verdict or hides)
-
-    def _offset_hides(self, lay, ctx: "PairContext", seen: bool) -> bool:
-        """Whether an offset the geometry check could not see would move a layer's height by more
-        than :data:`_HIDDEN_OFFSET_SHARE` (:meth:`_hidden_offset_share`)."""
-        return self._hidden_offset_share(lay, ctx, seen) > _HIDDEN_OFFSET_SHARE
 
     def _hidden_offset_share(self, lay, ctx: "PairContext", seen: bool) -> float:
         """The largest share of a layer's parallax that an offset the geometry check could not see
