@@ -28,6 +28,9 @@ sweep tells apart) of the layer's, or within ``layers.min_separation_log`` (18 %
 or in its points' 10–90 % range. That reported layer is then not spurious. A band holding one
 true layer changes nothing: it is scored by the rule above alone, and no other rule is looser
 (:class:`cbh.sim.evaluate.LayerScore`).
+
+The cloud fraction of the cloudy skies is scored too: the larger camera's against the share of
+the analysed field that is cloud in truth (median and mean |error|, skies more than 0.1 off).
 """
 from __future__ import annotations
 
@@ -101,6 +104,11 @@ def report(rows, args) -> None:
         e = errs.get(b, [])
         med = f"{100 * float(np.median(e)):.2f} %" if e else "-"
         print(f"  {b[0]:>5d}-{b[1]:<5d} m: {len(e):3d} layers, median error {med}")
+    cf_err = [abs(row["cf"] - row["true_cf"]) for row in rows if row["kind"] != "clear" and "true_cf" in row]
+    if cf_err:
+        print(f"cloud fraction of cloudy skies (the larger camera's against the scene's): |error| median "
+              f"{float(np.median(cf_err)):.3f}, mean {float(np.mean(cf_err)):.3f}, over 0.1 in "
+              f"{sum(e > 0.1 for e in cf_err)}/{len(cf_err)}")
     print(f"failing seeds: {' '.join(map(str, bad_seeds)) or 'none'}")
 
 
