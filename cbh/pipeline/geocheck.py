@@ -152,7 +152,7 @@ _SHEAR_SCALE = 0.05
 #: The rotation is fitted on the matches within this zenith angle [deg] of camera 1 when there are
 #: enough of them (all of them otherwise). A flat deck seen at zenith z from two cameras is
 #: foreshortened differently in each, the views scaled against each other along the zenith by
-#: 2·p·tan z (p: the parallax [rad]; 7.5 p at 75°, p itself about 27°), which a translation (LK)
+#: 2·p·tan z (p: the parallax [rad]; p itself at 27°, 7.5 p at 75°), which a translation (LK)
 #: matches with a bias the shear weight above does not see. Randomized dense 20138 (decks at 1401
 #: and 2270 m, B = 102 m, 960 px): its 49 LK matches 70–80° from the zenith sat 0.40 px off their
 #: curves (0.06 px within 40°) and fitted a correct station 0.063° ± 0.009°, tolerance 0.045°.
@@ -473,10 +473,7 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     # near cloud (24 % of them at 105–150 m, 100 px of parallax) pulled a fit over every match to
     # 0.4–4.6° on a correct station. A turn large enough to push most matches out of the gate is
     # flagged by the median already; its fitted size then comes out low (0.37° for a 0.5° pitch)
-    fit = inl if inl.sum() >= cfg.min_matches else np.zeros(n, bool)
-    high = fit & (d1[:, 2] >= math.cos(math.radians(_FIT_MAX_ZENITH_DEG)))
-    if high.sum() >= cfg.min_matches:
-        fit = high
+    fit = _rotation_fit_set(inl, d1, cfg.min_matches)
     shear = np.nan_to_num(par, nan=0.0) / ppr  # [rad] (see _SHEAR_SCALE)
     omega, sigma = (relative_rotation(d1[fit], d2[fit], t, prior=1.0 / (1.0 + (shear[fit] / _SHEAR_SCALE) ** 2),
                                       groups=[_patches(px1[fit], ppr, _GROUP_RAD, f) for f in _GROUP_SHIFTS],
@@ -501,6 +498,16 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     rotated = rotated and int((fit & ~near_obj).sum()) >= cfg.min_matches  # not from obstacles' matches
     return GeometryCheck(med, frac, tol_px, n, over or frac < cfg.min_inlier_fraction or rotated,
                          rot, tol_rot, math.degrees(sigma))
+
+
+def _rotation_fit_set(inl: np.ndarray, d1: np.ndarray, min_matches: int) -> np.ndarray:
+    """The matches the rotation is fitted on: the inliers ``inl`` within :data:`_FIT_MAX_ZENITH_DEG`
+    of the zenith (camera 1's rays ``d1``, ENU) when there are ``min_matches`` of them, else every
+    inlier, else none (too few to fit)."""
+    if inl.sum() < min_matches:
+        return np.zeros_like(inl)
+    high = inl & (d1[:, 2] >= math.cos(math.radians(_FIT_MAX_ZENITH_DEG)))
+    return high if high.sum() >= min_matches else inl
 
 
 def _tile_verdict(px1: np.ndarray, signed_px: np.ndarray, finite: np.ndarray, tol_px: float,
