@@ -738,3 +738,21 @@ def test_fresh_dense_skies_of_stop_74_are_right(seed, tmp_path):
     opts = RandomOptions(dense=True, skylines=True, twice_encoded=True, optics=True)
     case, r, score, _ = run_random_case(seed, load_station(station_path()), 640, tmp_path, options=opts)
     assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="found in stop 74, not fixed (docs/accuracy.md, Stop 74)")
+def test_a_deck_above_two_lower_ones_over_the_real_lenses_is_found(tmp_path):
+    """``eval_random.py --n 30 --seed 20240 --size 640 --station
+    ../shared/data/fehmarn-2016-09-01/station.toml --mounts --optics --twice-encoded --skylines``
+    (stop 74): 52 of 53 decks, none spurious, no false alarm, 0 of 6 clear skies with cloud. 20249:
+    a 5085 m deck over 0.54 above decks at 309 m (0.70) and 944 m (0.49), B = 40 m, is missed (the
+    class of the thin upper decks, docs/accuracy.md). A strict expected failure."""
+    from pathlib import Path
+
+    station = Path(__file__).resolve().parents[2] / "shared" / "data" / "fehmarn-2016-09-01" / "station.toml"
+    if not station.exists():
+        pytest.skip("../shared/data/fehmarn-2016-09-01 is not here")
+    opts = RandomOptions(mounts=True, optics=True, twice_encoded=True, skylines=True)
+    case, r, score, _ = run_random_case(20249, load_station(station), 640, tmp_path, options=opts)
+    assert score.missed_m == [] and score.spurious_m == [], (case.describe(), score.found_m)
