@@ -464,8 +464,7 @@ def check_geometry(geom: PairGeometry, matches: list[Matches], filtering: Filter
     if 2 * int(inl.sum()) < int((agrees & near).sum()):
         inl = agrees & near
     med = float(np.median(dist))
-    # each match against its own tolerance, over those within 2: a lock-on (randomized 20198: a third
-    # of its LK matches 3–15 px off, on a low deck's sheared views) is counted by frac, not measured
+    # each match against its own tolerance, over those within 2 (a lock-on is counted by frac: 20198)
     over = float(np.median(dist[near] / tol_i[near])) > 1.0 if near.any() else True
     frac = float((agrees & near).mean())
     if use and all(m.method in CARRIED_METHODS for m in use):
