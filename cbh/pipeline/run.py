@@ -548,7 +548,7 @@ class Pipeline:
         running = running_offset(offsets)
         self._clock_flags(previous, mot, sky, before, running, used, ctx, lay)
         ctx.diagnostics.update(clock_offset_s=running, clock_offset_pair_s=pair_s, motion_dt_s=mot.dt_s,
-                               clock_offset_error_s=sky.error_s)
+                               clock_offset_error_s=sky.error_s, clock_interval_ratio=sky.interval_ratio)
         if math.isfinite(running) and abs(running) > mcfg.offset_tolerance_s:
             ctx.flags.append("clock_offset")
         if first and not self._tables_loaded:

@@ -153,6 +153,9 @@ class SkyClock:
     # the maps matched and the sky drifted, but under ``min_share`` of it across the baseline: the offset is
     # unobservable, and cannot take matches off their epipolar curves (a wind along the baseline)
     along: bool = False
+    # camera 2's frame interval over camera 1's, from their own skies' motions (:func:`interval_ratio`):
+    # 1 for frames captured on their stamps; NaN where not measured
+    interval_ratio: float = math.nan
 
     def rate_at(self, a: np.ndarray) -> np.ndarray:
         """The measured rate (N, 2) [1/s] at plane offsets a (N, 2) (the nearest map pixel's): meant
@@ -423,9 +426,12 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
         if not (math.isfinite(known_offset_s) and ok.any()):
             return SkyClock.unknown(tiles, still, along)
         est = float(known_offset_s)  # carried by the running offset; this pair's own is unknown
-    carry = _carry_noise(0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s, est, w[ok], nw[ok],
-                         b / max(float(np.linalg.norm(b)), 1e-9))
     h, sel = in_range(est)
+    ratio = interval_ratio(g1, g2_at, h, dz_m, ok)
+    if own and math.isfinite(ratio):  # (the estimate is δ over the mean rate's timing error: reported, not judged)
+        err = math.hypot(err, abs(ratio - 1.0) * abs(est))
+    carry = _carry_noise(0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s, est, w[ok], nw[ok],
+                         b / max(float(np.linalg.norm(b)), 1e-9), ratio)
     # the matches: the residual across B' once δ is out is the rays' miss (as an angle: a
     # plane-offset step at a is cos²θ = 1 / (1 + |a|²) of a radian)
     miss = np.abs(nf - est * nw) / (1.0 + ae ** 2 + an ** 2)
@@ -440,7 +446,7 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
     return SkyClock(offset_s=est if own else math.nan, error_s=err if own else math.nan, tiles=tiles, heights_m=hh,
                     rates2=w2, a1=a1m, flow=f[good],
                     rate=w[good], carry_noise_rad=carry, rate_map=w, res=grid.res * lattice, still=still,
-                    along=along)
+                    along=along, interval_ratio=ratio)
 
 
 def _rms(v: np.ndarray) -> float:
@@ -471,7 +477,37 @@ def _floor_error_s(offset_s: float, nw: np.ndarray, res: float, dt_s: float) -> 
     return FLOW_FLOOR_PX * res / nw_rms * math.hypot(1.0, offset_s / dt_s)
 
 
-def _carry_noise(rate_noise: float, offset_s: float, w: np.ndarray, nw: np.ndarray, b_unit: np.ndarray) -> float:
+def interval_ratio(g1: np.ndarray, g2: np.ndarray, h: np.ndarray, dz_m: float, ok: np.ndarray,
+                   min_points: int = 50, min_flow_px: float = 2.0) -> float:
+    """Camera 2's frame interval over camera 1's, from how far each camera's own sky moved
+    between its two frames: ``g1`` and ``g2`` (S, S, 2) [map px], camera 2's at the point that
+    camera 1's pixel matched, ``h`` (S, S) those points' heights above camera 1 [m], ``dz_m``
+    camera 2's height above camera 1, ``ok`` the usable lattice points. NaN: fewer than
+    ``min_points`` with a height that moved at least ``min_flow_px`` along the sky's mean motion.
+
+    Both cameras see one cloud move by v·dt, camera 1 as v·dt₁/h and camera 2 as v·dt₂/(h − dz)
+    in plane offsets, so along the sky's mean motion each point's ratio is dt₂/dt₁ · h/(h − dz);
+    the height factor is taken out, and the median of the points' ratios is returned. Frames captured on their stamps give 1 (the real
+    Fehmarn hour: 0.989–1.014 over 30 pairs a minute apart). IP cameras fetched by a script
+    capture each frame a little off its stamp: each camera's rate, read over its nominal interval,
+    is then off by its own interval's error, and this ratio shows their difference (randomized
+    clock sky 16910 with frames up to ±3 s off, every 30 s: 0.77–1.07)."""
+    sel = ok & np.isfinite(h) & (h > 0) & (h - dz_m > 0)
+    if int(sel.sum()) < min_points:
+        return math.nan
+    m = np.median(g1[sel], axis=0)
+    n = float(np.linalg.norm(m))
+    if not n >= min_flow_px:
+        return math.nan
+    u = m / n
+    p1 = g1[sel] @ u
+    p2 = (g2[sel] @ u) * (h[sel] - dz_m) / h[sel]
+    moving = p1 >= min_flow_px  # (each point's own ratio: two decks at two speeds have no middle to share)
+    return float(np.median(p2[moving] / p1[moving])) if int(moving.sum()) >= min_points else math.nan
+
+
+def _carry_noise(rate_noise: float, offset_s: float, w: np.ndarray, nw: np.ndarray, b_unit: np.ndarray,
+                 ratio: float = math.nan) -> float:
     """The noise of carrying camera 2 by ``offset_s`` along the baseline, near the zenith [rad].
 
     Two parts. The rate's own noise ``rate_noise`` [1/s] (the two cameras measure one rate: half
@@ -483,14 +519,28 @@ def _carry_noise(rate_noise: float, offset_s: float, w: np.ndarray, nw: np.ndarr
     randomized 4773 m deck 97 m apart, wind 5 m/s across and 12 m/s along, carried 98 s every
     30 s, read its offset 1.0 s long (a 1 % error in n·w) and its height 5640 m with the first
     part alone at a sixth of its parallax (the second part is five times the first). The real
-    Fehmarn station's wind has |b·w| ≈ 0.8 |n·w|: its noise grows by 1.3."""
-    if not (math.isfinite(offset_s) and rate_noise > 0 and len(w)):
+    Fehmarn station's wind has |b·w| ≈ 0.8 |n·w|: its noise grows by 1.3.
+
+    And the frames' timing (``ratio``, :func:`interval_ratio`): a rate read over an interval that
+    was not the stamps' is off by that interval's error, which both cameras' rates share in their
+    mean and no disagreement between them shows; their intervals' ratio shows its size (for two
+    cameras each off by an independent amount, |ratio − 1| is twice the typical error of their
+    mean, taken whole here), and the carry is off by that share of |w|·|δ| (the 90th percentile
+    of the matched |w|). Randomized clock sky 16910, frames up to ±3 s off every 30 s, camera 2
+    107 s late at 21 m/s: a 2476 m deck read 475 m and 1551 m, valid, its carry's noise the rate's
+    alone."""
+    if not (math.isfinite(offset_s) and len(w)):
         return 0.0
+    timing = 0.0
+    if math.isfinite(ratio):
+        timing = abs(ratio - 1.0) * abs(offset_s) * float(np.percentile(np.hypot(w[:, 0], w[:, 1]), 90))
+    if not rate_noise > 0:
+        return timing
     own = rate_noise * abs(offset_s)
     nw_rms = _rms(nw)
     wb = float(np.percentile(np.abs(w @ b_unit), 90))
     via_offset = own * wb / nw_rms if nw_rms > 0 else math.inf
-    return float(math.hypot(own, via_offset))
+    return float(math.hypot(math.hypot(own, via_offset), timing))
 
 
 def _heights(w: np.ndarray, f: np.ndarray, bp: np.ndarray, offset_s: float) -> np.ndarray:
