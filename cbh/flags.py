@@ -34,7 +34,7 @@ class Flag(enum.IntFlag):
     camera_mismatch = 1 << 15  # a network camera disagrees with the others' geometry and was left out (diagnostics mismatched_cameras); the others carry the result
     camera_missing = 1 << 16  # a network camera delivered no frame: the result is from the cameras present
     clock_unknown = 1 << 17  # the matches disagree with the geometry, or are too few to judge it, while the cameras' clock offset, which could explain it or hide behind it, is not known yet (e.g. a run's first pair): layers not valid
-    clock_too_far = 1 << 19  # the cameras' clocks differ by more than the sky's motion could be carried over on this pair (the sky maps found no match at the running offset, or the carry's noise is as large as a layer's parallax): layers not valid
+    clock_too_far = 1 << 19  # the cameras' clocks differ by more than the sky's motion could be carried over on this pair (the sky maps found no match at the running offset, or the carry's noise, frames captured off their stamps included, is as large as a layer's parallax): layers not valid
     overexposed = 1 << 20  # half a camera's sky or more has two channels at white: cloud masks and cover unreliable
     night = 1 << 18  # the sun more than 6 deg below the horizon and a camera's sky too dark to read: no cloud can be told, no layer reported, no geometry judged
 
@@ -75,7 +75,7 @@ _MEANING = {
     "clock_too_far": "the cameras' clocks differ by more than the sky's motion could be carried over on this pair: "
                      "the clouds moved too far between the two captures for camera 2's view to be matched at camera "
                      "1's time (the sky maps found no match at the running offset, or carrying it there blurs a layer by as much as its "
-                     "parallax), so no layer is valid",
+                     "parallax, as frames captured off their stamps do), so no layer is valid",
     "clock_unknown": "the matches disagree with the geometry, or are too few to judge it, while the cameras' "
                      "clock offset, which could explain a disagreement or hide behind too few matches, is not known "
                      "yet (or, resumed from a recording, not yet taken out: a run's first pair has no motion to "

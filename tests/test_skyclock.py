@@ -624,7 +624,7 @@ def test_frames_captured_off_their_stamps_give_no_confident_wrong_height(seed, t
     the carry over the offset by that share, a third of the parallax. The cameras' intervals'
     ratio (0.77–1.07 there) now counts in the carry's noise, and such a pair is ``clock_too_far``."""
     row = _random_clock(seed, tmp_path, pairs=5, jitter_s=3.0)
-    assert not (row["valid"] and row["far_layer"]), row
+    assert not row["far_layer"] or "clock_too_far" in row["flags"], row
 
 
 @pytest.mark.slow

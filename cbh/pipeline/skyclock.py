@@ -487,8 +487,9 @@ def interval_ratio(g1: np.ndarray, g2: np.ndarray, h: np.ndarray, dz_m: float, o
 
     Both cameras see one cloud move by v·dt, camera 1 as v·dt₁/h and camera 2 as v·dt₂/(h − dz)
     in plane offsets, so along the sky's mean motion each point's ratio is dt₂/dt₁ · h/(h − dz);
-    the height factor is taken out, and the median of the points' ratios is returned. Frames captured on their stamps give 1 (the real
-    Fehmarn hour: 0.989–1.014 over 30 pairs a minute apart). IP cameras fetched by a script
+    the height factor is taken out, and the median of the points' ratios is returned. Frames
+    captured on their stamps give 1 (the real Fehmarn hour: 0.989–1.014 over 30 pairs a minute
+    apart; randomized skies 0.995–1.002). IP cameras fetched by a script
     capture each frame a little off its stamp: each camera's rate, read over its nominal interval,
     is then off by its own interval's error, and this ratio shows their difference (randomized
     clock sky 16910 with frames up to ±3 s off, every 30 s: 0.77–1.07)."""
