@@ -193,7 +193,7 @@ def test_re_paired_at_minus_ninety_seconds(station, as_recorded):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("shift, low, phantom", [(3, 0.8, 0.16), (-2, 0.7, 0.15), (4, 0.45, 0.3)])
+@pytest.mark.parametrize("shift, low, phantom", [(3, 0.8, 0.16), (-2, 0.7, 0.15), (4, 0.38, 0.22)])
 def test_re_paired_minutes_apart_no_unflagged_phantom_decks(shift, low, phantom):
     """Re-paired 3, −2 and 4 frames (+149, −151, +210 s). Before: the estimate beyond 150 s was not
     believed (−2: never found), and a pair whose own sky-map estimate failed was matched on the raw
@@ -208,7 +208,11 @@ def test_re_paired_minutes_apart_no_unflagged_phantom_decks(shift, low, phantom)
     fewer pairs lose their own estimate: +3: 88 %, 12 %; −2: 81 %, 11 % (one more phantom, a pair
     carried by the running offset whose deck read 17 % high); +4: 60 %, 24 %. Stop 72 (the sky
     clock's tiles read δ from their median flows; its offsets here moved 0.1–0.4 s): +3: 85 %, 15 %
-    (pair 25's deck 8099 → 8265 m against 7117 m, 13.8 → 16.1 % high); −2 as before; +4: 48 %."""
+    (pair 25's deck 8099 → 8265 m against 7117 m, 13.8 → 16.1 % high); −2 as before; +4: 48 %.
+    Stop 75 (the frames' timing in the carry's noise: the two cameras' intervals' ratio, 0.99–1.01
+    here, times 210 s of carry): +4: 40 %, 20 %; two phantom-led pairs (9931 m for 8445, 9086 m
+    for 7074) and two within 7 % of the reference (8209 m for 8761, 7590 m for 7108) are now
+    ``clock_too_far``; +3 and −2 as before."""
     from eval_fehmarn import evaluate
 
     res = evaluate(DATA, shift, verbose=False)
