@@ -427,9 +427,8 @@ def sky_clock(grid: SkyGrid, now: tuple, prev: tuple, usable: tuple, baseline_m:
             return SkyClock.unknown(tiles, still, along)
         est = float(known_offset_s)  # carried by the running offset; this pair's own is unknown
     h, sel = in_range(est)
-    ratio = interval_ratio(g1, g2_at, h, dz_m, ok)
-    if own and math.isfinite(ratio):  # (the estimate is δ over the mean rate's timing error: reported, not judged)
-        err = math.hypot(err, abs(ratio - 1.0) * abs(est))
+    ratio = interval_ratio(g1, g2_at, h, dz_m, ok)  # (δ is read over the mean rate's timing error: reported)
+    err = math.hypot(err, abs(ratio - 1.0) * abs(est)) if own and math.isfinite(ratio) else err
     carry = _carry_noise(0.5 * 1.4826 * float(np.median(disagree[ok])) * grid.res / dt_s, est, w[ok], nw[ok],
                          b / max(float(np.linalg.norm(b)), 1e-9), ratio)
     # the matches: the residual across B' once δ is out is the rays' miss (as an angle: a
