@@ -333,3 +333,34 @@ def process_fn_at(t0):
         return PairResult(f1.time_utc, (f1.camera, f2.camera), [], Histogram(np.zeros(2), np.zeros(1)),
                           PointSet.empty(), np.zeros((2, 2), np.float32), {}, {})
     return process
+
+
+@pytest.mark.parametrize("ratio, said", [(1.08, True), (1.005, False), (float("nan"), False)])
+def test_a_carry_blurred_by_frames_off_their_stamps_says_so(ratio, said):
+    """``clock_too_far`` is one warning per change of state; where the pair's two cameras' frame
+    intervals differ by more than 2 % (``clock_interval_ratio``), it also says that the frames are
+    captured off their stamps, which setting the clocks does not mend."""
+    import logging
+
+    from cbh.live import service
+
+    def process(f1, f2):
+        return PairResult(f1.time_utc, (f1.camera, f2.camera), [], Histogram(np.zeros(2), np.zeros(1)),
+                          PointSet.empty(), np.zeros((2, 2), np.float32), {}, {}, flags=["clock_too_far"],
+                          diagnostics={"clock_offset_s": 90.0, "clock_interval_ratio": ratio})
+    warned = []
+    handler = logging.Handler(logging.WARNING)
+
+    def emit(rec):
+        if getattr(rec, "cbh_event", None) == "clock_too_far":
+            warned.append(rec.getMessage())
+    handler.emit = emit
+    service.log.addHandler(handler)
+    try:
+        Service([MemorySource("cam1", frames("cam1", 3)), MemorySource("cam2", frames("cam2", 3))], process,
+                [MemorySink()]).run()
+    finally:
+        service.log.removeHandler(handler)
+    assert len(warned) == 1, warned
+    assert ("frames captured off their stamps" in warned[0]) is said, warned[0]
+    assert ("differ by 8 %" in warned[0]) is said

@@ -58,6 +58,11 @@ __all__ = ["ServiceConfig", "ServiceStats", "SourceStatus", "Service", "MemorySi
 
 log = logging.getLogger(__name__)
 
+#: A pair's two frame intervals this far apart (``clock_interval_ratio``) say so in the
+#: ``clock_too_far`` warning: frames captured off their stamps (the real Fehmarn hour 0.989–1.014,
+#: randomized skies on their stamps 0.995–1.002, frames up to ±1 s off 0.97–1.18).
+FRAME_TIMING_SHARE = 0.02
+
 STATES = ("connecting", "streaming", "backoff", "ended", "failed")
 
 
@@ -823,10 +828,13 @@ class Service:
                             "dark to tell cloud from clear sky; no layers are reported until it is light again",
                             extra={"cbh_event": "night", "cbh_flags": invalid})
             elif not geometric and "clock_too_far" in invalid:
+                off = abs(result.diagnostics.get("clock_interval_ratio", math.nan) - 1.0)
+                timing = (f"; their frames' intervals differ by {100 * off:.0f} %: frames captured off their stamps "
+                          "(capture on the camera's own timer, not on request)" if off > FRAME_TIMING_SHARE else "")
                 log.warning(f"pair at {f1.time_utc.isoformat()}: clock_too_far: the cameras' clocks differ by "
                             f"{result.diagnostics.get('clock_offset_s', math.nan):.0f} s and the clouds moved too far "
                             "between the two captures for this pair to be matched at one time; layers are not "
-                            "reported as valid until a pair is (set the cameras' clocks: NTP)",
+                            f"reported as valid until a pair is (set the cameras' clocks: NTP{timing})",
                             extra={"cbh_event": "clock_too_far", "cbh_flags": invalid})
             elif not geometric and "clock_unknown" in invalid:
                 own, run = (result.diagnostics.get(k, math.nan) for k in ("clock_offset_pair_s", "clock_offset_s"))
