@@ -119,7 +119,8 @@ class SkyClock:
     offset_s : float
         Camera 2's clock offset (positive: it captures late) [s]; NaN = not observable here.
     error_s : float
-        Its standard error (tile spread / √tiles) [s].
+        Its standard error (tile spread / √tiles, with the frames' timing share |ratio − 1|·|δ|,
+        :func:`interval_ratio`) [s].
     tiles : int
         Tiles that saw motion across the baseline.
     heights_m : ndarray (N,)
@@ -488,10 +489,10 @@ def interval_ratio(g1: np.ndarray, g2: np.ndarray, h: np.ndarray, dz_m: float, o
     in plane offsets, so along the sky's mean motion each point's ratio is dt₂/dt₁ · h/(h − dz);
     the height factor is taken out, and the median of the points' ratios is returned. Frames
     captured on their stamps give 1 (the real Fehmarn hour: 0.989–1.014 over 30 pairs a minute
-    apart; randomized skies 0.995–1.002). IP cameras fetched by a script
-    capture each frame a little off its stamp: each camera's rate, read over its nominal interval,
-    is then off by its own interval's error, and this ratio shows their difference (randomized
-    clock sky 16910 with frames up to ±3 s off, every 30 s: 0.77–1.07)."""
+    apart; randomized skies 0.995–1.002). IP cameras fetched by a script capture each frame a
+    little off its stamp: each camera's rate, read over its nominal interval, is then off by its
+    own interval's error, and this ratio shows their difference (randomized clock sky 16910 with
+    frames up to ±3 s off, every 30 s: 0.77–1.07)."""
     sel = ok & np.isfinite(h) & (h > 0) & (h - dz_m > 0)
     if int(sel.sum()) < min_points:
         return math.nan
@@ -540,7 +541,7 @@ def _carry_noise(rate_noise: float, offset_s: float, w: np.ndarray, nw: np.ndarr
     nw_rms = _rms(nw)
     wb = float(np.percentile(np.abs(w @ b_unit), 90))
     via_offset = own * wb / nw_rms if nw_rms > 0 else math.inf
-    return float(math.hypot(math.hypot(own, via_offset), timing))
+    return float(math.hypot(own, via_offset, timing))
 
 
 def _heights(w: np.ndarray, f: np.ndarray, bp: np.ndarray, offset_s: float) -> np.ndarray:
